@@ -1,0 +1,202 @@
+"""Pinhole camera model.
+
+Conventions used everywhere in gpdepth3d (stated once, here):
+
+* Camera frame: OpenCV. x right, y down, z forward (into the scene), metres.
+* Pixel coordinates: (u, v) = (column, row). The centre of pixel (row i, column j) is at
+  (u, v) = (j, i); the image covers u in [-0.5, width - 0.5), v in [-0.5, height - 0.5).
+* ``depth`` is z-depth in metres (the z coordinate of the point in the camera frame), not the
+  length of the ray. 0 marks "no depth".
+* Poses are ``T_world_camera``: 4x4 rigid transforms mapping camera-frame points into the world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import CalibrationError, InvalidDepthError, ShapeError, describe
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Pinhole intrinsics with the image size they belong to.
+
+    Attributes:
+        fx: Focal length along u, pixels.
+        fy: Focal length along v, pixels.
+        cx: Principal point u, pixels (pixel-centre convention, see module docstring).
+        cy: Principal point v, pixels.
+        width: Image width, pixels.
+        height: Image height, pixels.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise CalibrationError(name, "a finite focal length > 0 (pixels)", value)
+        for name in ("cx", "cy"):
+            if not np.isfinite(getattr(self, name)):
+                raise CalibrationError(name, "a finite principal point", getattr(self, name))
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if int(value) != value or value <= 0:
+                raise CalibrationError(name, "a positive integer image size", value)
+            object.__setattr__(self, name, int(value))
+        if not (-0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5):
+            raise CalibrationError(
+                "cx, cy",
+                f"a principal point inside the {self.width}x{self.height} image",
+                (self.cx, self.cy),
+            )
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> "PinholeCamera":
+        """Builds a camera from a 3x3 intrinsic matrix and the image size it belongs to."""
+        K = np.asarray(K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise CalibrationError("K", "a 3x3 intrinsic matrix", describe(K))
+        if not np.allclose(K[2], [0.0, 0.0, 1.0]) or abs(K[1, 0]) > 1e-9:
+            raise CalibrationError("K", "last row [0, 0, 1] and K[1, 0] == 0", K.tolist())
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height)
+
+    @property
+    def K(self) -> np.ndarray:
+        """The 3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape as (height, width)."""
+        return (self.height, self.width)
+
+    def check_image(self, array: np.ndarray, argument: str) -> None:
+        """Raises `ShapeError` unless ``array`` is (height, width, ...) of this camera."""
+        if np.ndim(array) < 2 or tuple(np.shape(array)[:2]) != self.shape:
+            raise ShapeError(
+                argument, f"an image of shape ({self.height}, {self.width}, ...) for this camera", describe(array)
+            )
+
+    def resized(self, width: int, height: int) -> "PinholeCamera":
+        """The same camera for the image resized to (width, height) (pixel-centre convention)."""
+        sx, sy = width / self.width, height / self.height
+        return PinholeCamera(
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            width,
+            height,
+        )
+
+    def cropped(self, left: int, top: int, width: int, height: int) -> "PinholeCamera":
+        """The camera of the crop whose top-left pixel is (left, top) in this image."""
+        if left < 0 or top < 0 or left + width > self.width or top + height > self.height:
+            raise CalibrationError(
+                "crop", f"a window inside the {self.width}x{self.height} image", (left, top, width, height)
+            )
+        return PinholeCamera(self.fx, self.fy, self.cx - left, self.cy - top, width, height)
+
+    # ------------------------------------------------------------------ geometry
+    def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel-centre coordinates (u, v), each of shape (height, width)."""
+        v, u = np.mgrid[0 : self.height, 0 : self.width]
+        return u.astype(np.float64), v.astype(np.float64)
+
+    def project(self, points_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Projects camera-frame points to pixels.
+
+        Args:
+            points_camera: (N, 3) points in the camera frame, metres.
+
+        Returns:
+            uv: (N, 2) pixel coordinates (u, v); meaningless where z <= 0.
+            z: (N,) z-depth in metres.
+        """
+        p = np.asarray(points_camera, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ShapeError("points_camera", "an (N, 3) array", describe(p))
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = self.fx * p[:, 0] / z + self.cx
+            v = self.fy * p[:, 1] / z + self.cy
+        return np.stack([u, v], axis=1), z
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """Boolean mask of pixel coordinates that fall inside the image."""
+        uv = np.asarray(uv)
+        return (
+            np.isfinite(uv).all(axis=1)
+            & (uv[:, 0] >= -0.5)
+            & (uv[:, 0] < self.width - 0.5)
+            & (uv[:, 1] >= -0.5)
+            & (uv[:, 1] < self.height - 0.5)
+        )
+
+    def backproject_pixels(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Lifts pixels with z-depth to (N, 3) camera-frame points (metres)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        depth = np.asarray(depth, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ShapeError("uv", "an (N, 2) array", describe(uv))
+        if depth.shape != (uv.shape[0],):
+            raise ShapeError("depth", f"shape ({uv.shape[0]},) matching uv", describe(depth))
+        x = (uv[:, 0] - self.cx) / self.fx * depth
+        y = (uv[:, 1] - self.cy) / self.fy * depth
+        return np.stack([x, y, depth], axis=1)
+
+    def backproject(self, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lifts a depth map to camera-frame points.
+
+        Args:
+            depth: (height, width) z-depth in metres; 0 marks no depth.
+
+        Returns:
+            points: (N, 3) camera-frame points of the valid pixels (finite depth > 0), metres.
+            valid: (height, width) boolean mask of those pixels (row-major order of ``points``).
+        """
+        depth = np.asarray(depth, dtype=np.float64)
+        if depth.shape != self.shape:
+            raise ShapeError("depth", f"shape {self.shape} of the camera", describe(depth))
+        if np.any(depth < 0):
+            raise InvalidDepthError("depth", "z-depth >= 0 (0 = no depth)", f"minimum {np.nanmin(depth)}")
+        valid = np.isfinite(depth) & (depth > 0)
+        u, v = self.pixel_grid()
+        uv = np.stack([u[valid], v[valid]], axis=1)
+        return self.backproject_pixels(uv, depth[valid]), valid
+
+
+def check_pose(T: np.ndarray, argument: str = "T_world_camera", atol: float = 1e-4) -> np.ndarray:
+    """Validates a 4x4 rigid transform and returns it as float64.
+
+    Raises:
+        CalibrationError: if T is not 4x4, not finite, its rotation is not orthonormal with
+            determinant +1, or its last row is not [0, 0, 0, 1].
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise CalibrationError(argument, "a 4x4 rigid transform", describe(T))
+    if not np.all(np.isfinite(T)):
+        raise CalibrationError(argument, "finite values", "NaN or inf entries")
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=atol):
+        raise CalibrationError(argument, "last row [0, 0, 0, 1]", T[3].tolist())
+    if not np.allclose(R @ R.T, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
+        raise CalibrationError(argument, "an orthonormal rotation with det +1", f"det {np.linalg.det(R):.4f}")
+    return T
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Applies a 4x4 transform to (N, 3) points."""
+    points = np.asarray(points, dtype=np.float64)
+    return points @ T[:3, :3].T + T[:3, 3]

@@ -1,0 +1,288 @@
+"""Depth completion: the public entry point `complete()` and `DepthCompleter` for sequences.
+
+Input rules (documented once, here):
+
+* ``mde_depth``: (H, W) float z-depth in metres. 0, NaN and +/-inf mark pixels with no MDE
+  depth (they are not observations). Negative depths raise `InvalidDepthError`.
+* ``sparse``: `SparseDepth`. Its image may have another resolution than the MDE as long as it
+  shows the same image (equal aspect ratio within 1 %): points are moved to the MDE grid keeping
+  the closest point per pixel. An empty set is allowed: the result is then the GP given the MDE
+  alone (balanced) or the prior (residual: the MDE with the prior's large variance).
+* ``output_shape``: (Ho, Wo) of the result; defaults to the MDE shape and may be larger (the
+  paper's M > N upsampling) or smaller. Output pixel centres are placed with the pixel-centre
+  convention in the MDE grid.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DataFormatError, EmptyInputError, InvalidDepthError, ShapeError, describe
+from .gp import make_engine
+from .gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
+from .io import save_depth_png, save_npz
+from .mde.align import AlignmentResult, align_depth
+from .measurements import SparseDepth
+
+
+@dataclass(frozen=True)
+class DepthPosterior:
+    """GP posterior of the depth field on the output grid.
+
+    Attributes:
+        mean: (Ho, Wo) posterior mean z-depth, metres.
+        variance: (Ho, Wo) posterior marginal variance of the depth, m^2.
+        mde: (Ho, Wo) the input MDE depth resampled to the output grid (metres, 0 = none), for
+            comparison.
+        sparse: The measurements as used, on the GP grid (closest point per pixel).
+        config: The model configuration.
+        depth_scale: The depth scale (metres) that relative units were multiplied by.
+        alignment: Scale/shift applied to the MDE (residual formulation), else identity.
+        timings: Seconds spent per stage ("setup", "solve").
+    """
+
+    mean: np.ndarray
+    variance: np.ndarray
+    mde: np.ndarray
+    sparse: SparseDepth
+    config: DepthGPConfig
+    depth_scale: float
+    alignment: AlignmentResult = field(default_factory=lambda: AlignmentResult(1.0, 0.0, 0))
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def std(self) -> np.ndarray:
+        """(Ho, Wo) posterior standard deviation, metres."""
+        return np.sqrt(np.maximum(self.variance, 0.0))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mean.shape  # type: ignore[return-value]
+
+    def save(self, path: str | Path, *, png: bool = False) -> list[Path]:
+        """Writes ``mean``, ``variance``, ``std`` and ``mde`` to an ``.npz`` (atomically).
+
+        With ``png=True`` also writes ``<stem>_mean.png`` and ``<stem>_std.png`` as 16-bit PNG in
+        the KITTI convention (value = metres * 256). Returns the written paths.
+        """
+        path = Path(path).with_suffix(".npz")
+        written = [
+            save_npz(
+                path,
+                mean=self.mean.astype(np.float32),
+                variance=self.variance.astype(np.float32),
+                std=self.std.astype(np.float32),
+                mde=self.mde.astype(np.float32),
+                sparse_uvd=np.stack([self.sparse.u, self.sparse.v, self.sparse.depth], 1).astype(np.float32),
+                sparse_image_size=np.array(self.sparse.image_size),
+                depth_scale=np.float64(self.depth_scale),
+                alignment=np.array([self.alignment.scale, self.alignment.shift]),
+            )
+        ]
+        if png:
+            written.append(save_depth_png(path.with_name(path.stem + "_mean.png"), self.mean))
+            written.append(save_depth_png(path.with_name(path.stem + "_std.png"), self.std))
+        return written
+
+    @classmethod
+    def load(cls, path: str | Path, config: DepthGPConfig | None = None) -> "DepthPosterior":
+        """Reads a posterior written by `save` (the config is not stored; pass it if needed)."""
+        path = Path(path)
+        if not path.is_file():
+            raise DataFormatError(path, "posterior file not found")
+        try:
+            with np.load(path, allow_pickle=False) as d:
+                uvd = d["sparse_uvd"].astype(np.float64)
+                size = tuple(int(x) for x in d["sparse_image_size"])
+                sparse = SparseDepth(uvd[:, 0], uvd[:, 1], uvd[:, 2], size)
+                align = d["alignment"]
+                return cls(
+                    mean=d["mean"].astype(np.float64),
+                    variance=d["variance"].astype(np.float64),
+                    mde=d["mde"].astype(np.float64),
+                    sparse=sparse,
+                    config=config or DepthGPConfig(),
+                    depth_scale=float(d["depth_scale"]),
+                    alignment=AlignmentResult(float(align[0]), float(align[1]), 0),
+                )
+        except (KeyError, ValueError, OSError) as exc:
+            raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
+
+
+def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validates an MDE depth map; returns it as float64 with invalid pixels at 0, and the valid mask."""
+    d = np.asarray(mde_depth)
+    if d.ndim != 2 or d.shape[0] < 2 or d.shape[1] < 2:
+        raise ShapeError("mde_depth", "a 2-D (H, W) depth map with H, W >= 2", describe(d))
+    if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):
+        raise ShapeError("mde_depth", "a real-valued depth map", describe(d))
+    d = d.astype(np.float64)
+    finite = np.isfinite(d)
+    if np.any(d[finite] < 0):
+        raise InvalidDepthError(
+            "mde_depth", "z-depths >= 0 in metres (0/NaN/inf = no depth)", f"{int(np.sum(d[finite] < 0))} negative"
+        )
+    valid = finite & (d > 0)
+    return np.where(valid, d, 0.0), valid
+
+
+def _fill_invalid(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Fills invalid pixels with the nearest valid depth (for use as a prior mean)."""
+    if valid.all():
+        return depth
+    from scipy.ndimage import distance_transform_edt
+
+    _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
+    return depth[ri, ci]
+
+
+def _resize(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    if depth.shape == tuple(shape):
+        return depth
+    import cv2
+
+    return cv2.resize(depth, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def build_problem(
+    mde_depth: np.ndarray,
+    sparse: SparseDepth,
+    config: DepthGPConfig,
+    output_shape: tuple[int, int] | None = None,
+) -> tuple[GridProblem, SparseDepth, float, AlignmentResult]:
+    """Turns an MDE map and measurements into the `GridProblem` of ``config``'s formulation.
+
+    Returns:
+        The problem, the measurements on the GP grid, the depth scale (metres) and the alignment.
+    """
+    mde, valid = check_mde_depth(mde_depth)
+    if not isinstance(sparse, SparseDepth):
+        raise ShapeError("sparse", "a SparseDepth", type(sparse).__name__)
+    h, w = mde.shape
+    sh, sw = sparse.image_size
+    if abs((sw / sh) / (w / h) - 1.0) > 0.01:
+        raise ShapeError(
+            "sparse",
+            f"measurements of an image with the aspect ratio of mde_depth {w}x{h}",
+            f"image size {sw}x{sh}",
+        )
+    grid_sparse = sparse.rasterize((h, w))
+    if not valid.any() and len(grid_sparse) == 0:
+        raise EmptyInputError("mde_depth, sparse", "at least one valid MDE pixel or measurement", "none")
+    out_shape = (h, w) if output_shape is None else (int(output_shape[0]), int(output_shape[1]))
+    if out_shape[0] < 1 or out_shape[1] < 1:
+        raise ShapeError("output_shape", "(Ho, Wo) with positive sizes", output_shape)
+
+    scale = float(np.median(mde[valid])) if valid.any() else float(np.median(grid_sparse.depth))
+    unit = scale if config.units == "relative" else 1.0
+    s, sdl, smeas = config.outputscale * unit, config.sigma_dl * unit, config.sigma_meas * unit
+
+    rows = grid_sparse.v.astype(np.int64)
+    cols = grid_sparse.u.astype(np.int64)
+    sig = np.where(np.isfinite(grid_sparse.sigma), grid_sparse.sigma, smeas)
+    meas_prec = np.zeros((h, w))
+    meas_val = np.zeros((h, w))
+    meas_prec[rows, cols] = 1.0 / sig**2
+    meas_val[rows, cols] = grid_sparse.depth
+
+    alignment = AlignmentResult(1.0, 0.0, 0)
+    if config.formulation == "balanced":
+        c = float(np.mean(mde[valid])) if valid.any() else float(np.mean(grid_sparse.depth))
+        prior = np.full((h, w), c)
+        mde_prec = np.where(valid, 1.0 / sdl**2, 0.0)
+        precision = mde_prec + meas_prec
+        with np.errstate(invalid="ignore", divide="ignore"):
+            obs = np.where(precision > 0, (mde_prec * mde + meas_prec * meas_val) / precision, 0.0)
+        out_prior = np.full(out_shape, c)
+    else:
+        if len(grid_sparse):
+            alignment = align_depth(mde[rows, cols], grid_sparse.depth, config.align)
+        base = _fill_invalid(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
+        prior = alignment.apply(base)
+        precision, obs = meas_prec, meas_val
+        out_prior = _resize(prior, out_shape)
+    problem = GridProblem(
+        prior_mean=prior,
+        obs=obs,
+        precision=precision,
+        out_rows=output_coordinates(h, out_shape[0]),
+        out_cols=output_coordinates(w, out_shape[1]),
+        out_prior_mean=out_prior,
+        kernel=Kernel(config.nu, config.lengthscale, s),
+    )
+    return problem, grid_sparse, scale, alignment
+
+
+class DepthCompleter:
+    """Completes depth frame after frame with one configuration.
+
+    The engine (and any per-resolution set-up it caches, such as factorisations of the prior
+    precision) is kept between calls, so the frames of a sequence after the first are cheaper.
+
+    Example:
+        >>> completer = DepthCompleter(DepthGPConfig(engine="exact"))
+        >>> posterior = completer(mde_depth, sparse)  # doctest: +SKIP
+    """
+
+    def __init__(self, config: DepthGPConfig | None = None):
+        self.config = config or DepthGPConfig()
+        self.engine = make_engine(self.config)
+
+    def complete(
+        self,
+        mde_depth: np.ndarray,
+        sparse: SparseDepth,
+        *,
+        output_shape: tuple[int, int] | None = None,
+        variance: bool = True,
+    ) -> DepthPosterior:
+        """Posterior depth (mean and variance) given an MDE map and sparse measurements.
+
+        Args:
+            mde_depth: (H, W) MDE z-depth in metres (0/NaN/inf = none).
+            sparse: Range measurements (any resolution of the same image).
+            output_shape: (Ho, Wo) of the result; default (H, W).
+            variance: Compute the marginal variance (else it is NaN, and faster).
+        """
+        t0 = time.perf_counter()
+        problem, grid_sparse, scale, alignment = build_problem(mde_depth, sparse, self.config, output_shape)
+        t1 = time.perf_counter()
+        mean, var = self.engine.solve(problem, variance=variance)
+        t2 = time.perf_counter()
+        if var is None:
+            var = np.full(mean.shape, np.nan)
+        mde, valid = check_mde_depth(mde_depth)
+        mde_out = _resize(mde, problem.out_shape)
+        if problem.out_shape != mde.shape:
+            mde_out = np.where(_resize(valid.astype(np.float64), problem.out_shape) > 0.999, mde_out, 0.0)
+        return DepthPosterior(
+            mean=mean,
+            variance=var,
+            mde=mde_out,
+            sparse=grid_sparse,
+            config=self.config,
+            depth_scale=scale,
+            alignment=alignment,
+            timings={"setup": t1 - t0, "solve": t2 - t1},
+        )
+
+    __call__ = complete
+
+
+def complete(
+    mde_depth: np.ndarray,
+    sparse: SparseDepth,
+    *,
+    config: DepthGPConfig | None = None,
+    output_shape: tuple[int, int] | None = None,
+    variance: bool = True,
+) -> DepthPosterior:
+    """Completes one frame: dense posterior depth and variance from an MDE map and sparse depth.
+
+    See `DepthCompleter.complete` for the arguments; the module docstring states the input rules.
+    """
+    return DepthCompleter(config).complete(mde_depth, sparse, output_shape=output_shape, variance=variance)

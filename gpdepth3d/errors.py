@@ -1,0 +1,67 @@
+"""Typed exceptions raised at the public boundary of gpdepth3d.
+
+Every error raised on bad user input names the argument, what was expected and what came,
+so that the CLI can print it on one line and a caller can catch it by type.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class GPDepthError(Exception):
+    """Base class of every error gpdepth3d raises on purpose."""
+
+
+class InvalidInputError(GPDepthError, ValueError):
+    """An argument has the wrong type, shape, range or content.
+
+    Attributes:
+        argument: Name of the offending argument.
+        expected: What was expected, in words.
+        got: What came, in words.
+    """
+
+    def __init__(self, argument: str, expected: str, got: Any):
+        self.argument = argument
+        self.expected = expected
+        self.got = got
+        super().__init__(f"{argument}: expected {expected}, got {got}")
+
+
+class ShapeError(InvalidInputError):
+    """An array has the wrong shape or two arrays do not fit together."""
+
+
+class InvalidDepthError(InvalidInputError):
+    """A depth array holds values that break the stated convention (NaN, inf, negative...)."""
+
+
+class CalibrationError(InvalidInputError):
+    """Intrinsics, extrinsics or a pose do not fit the data (or are not a valid transform)."""
+
+
+class EmptyInputError(InvalidInputError):
+    """An input that must hold at least one valid element holds none."""
+
+
+class DataFormatError(GPDepthError, ValueError):
+    """A file is missing, of an unknown format, or corrupt."""
+
+    def __init__(self, path: Any, problem: str):
+        self.path = path
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+class ProblemTooLargeError(GPDepthError, MemoryError):
+    """A problem exceeds the size an engine accepts (for example the dense `exact` engine)."""
+
+
+def describe(x: Any) -> str:
+    """Short description of a value for an error message (shape and dtype of arrays)."""
+    shape = getattr(x, "shape", None)
+    dtype = getattr(x, "dtype", None)
+    if shape is not None:
+        return f"array of shape {tuple(shape)} and dtype {dtype}"
+    return f"{type(x).__name__} {x!r}"[:200]

@@ -1,0 +1,34 @@
+"""The GP depth model and the engines that compute its posterior.
+
+All engines take a `GridProblem` and return the same posterior (mean, marginal variance);
+they differ only in how they compute it:
+
+* ``exact``: dense Cholesky, the reference for small inputs.
+* ``kissgp``: GPyTorch KISS-GP (``GridInterpolationKernel``), faithful to the paper.
+* ``fast``: exploits the pixel grid; the default for real frames.
+"""
+
+from __future__ import annotations
+
+from .model import DepthGPConfig as DepthGPConfig
+from .model import GridProblem as GridProblem
+from .model import Kernel as Kernel
+from .model import matern_1d as matern_1d
+from ..errors import InvalidInputError
+
+
+def make_engine(config: DepthGPConfig):
+    """Builds the engine named by ``config.engine`` (imports heavy back-ends lazily)."""
+    if config.engine == "exact":
+        from .exact import ExactEngine
+
+        return ExactEngine(max_points=config.max_exact_points)
+    if config.engine == "kissgp":
+        from .kissgp import KissGPEngine
+
+        return KissGPEngine()
+    if config.engine == "fast":
+        from .fast import FastEngine
+
+        return FastEngine()
+    raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", config.engine)

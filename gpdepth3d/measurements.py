@@ -1,0 +1,375 @@
+"""Sparse range measurements: `SparseDepth`, LiDAR projection and occlusion-aware resampling.
+
+A measurement is a pixel position (u, v) in an image of known size, a z-depth in metres and a
+standard deviation in metres. Whenever several measurements fall into one pixel (projection of a
+LiDAR scan, downsampling to a coarser grid), the closest one is kept: the farther points are
+hidden behind it (the z-buffer rule of the paper's occlusion handling).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import PinholeCamera
+from .errors import (
+    CalibrationError,
+    DataFormatError,
+    InvalidDepthError,
+    ShapeError,
+    describe,
+)
+
+
+def _as_shape(image_size: tuple[int, int]) -> tuple[int, int]:
+    if len(image_size) != 2 or any(int(s) != s or s <= 0 for s in image_size):
+        raise ShapeError("image_size", "(height, width) with positive integers", image_size)
+    return (int(image_size[0]), int(image_size[1]))
+
+
+@dataclass(frozen=True)
+class SparseDepth:
+    """Sparse depth measurements in one image.
+
+    Attributes:
+        u: (N,) column coordinates, pixels (pixel centres at integers).
+        v: (N,) row coordinates, pixels.
+        depth: (N,) z-depth, metres, finite and > 0.
+        sigma: (N,) standard deviation of each depth, metres; NaN means "use the model's
+            default sigma_meas".
+        image_size: (height, width) of the image the coordinates refer to.
+    """
+
+    u: np.ndarray
+    v: np.ndarray
+    depth: np.ndarray
+    image_size: tuple[int, int]
+    sigma: np.ndarray = field(default=None)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        shape = _as_shape(self.image_size)
+        object.__setattr__(self, "image_size", shape)
+        arrays = {}
+        for name in ("u", "v", "depth"):
+            a = np.asarray(getattr(self, name), dtype=np.float64)
+            if a.ndim != 1:
+                raise ShapeError(name, "a 1-D array", describe(a))
+            arrays[name] = a
+        n = arrays["depth"].shape[0]
+        sigma = self.sigma
+        sigma = np.full(n, np.nan) if sigma is None else np.asarray(sigma, dtype=np.float64)
+        if np.ndim(sigma) == 0:
+            sigma = np.full(n, float(sigma))
+        arrays["sigma"] = sigma
+        for name, a in arrays.items():
+            if a.shape != (n,):
+                raise ShapeError(name, f"shape ({n},) like depth", describe(a))
+        if not np.all(np.isfinite(arrays["u"])) or not np.all(np.isfinite(arrays["v"])):
+            raise InvalidDepthError("u, v", "finite pixel coordinates", "NaN or inf")
+        d = arrays["depth"]
+        if not np.all(np.isfinite(d)) or np.any(d <= 0):
+            bad = int(np.sum(~np.isfinite(d) | (d <= 0)))
+            raise InvalidDepthError(
+                "depth", "finite z-depths > 0 (drop invalid points with SparseDepth.from_arrays)", f"{bad} invalid"
+            )
+        s = arrays["sigma"]
+        if np.any(s[np.isfinite(s)] <= 0) or np.any(np.isinf(s)):
+            raise InvalidDepthError("sigma", "standard deviations > 0 (or NaN for the default)", "<= 0 or inf")
+        h, w = shape
+        inside = (arrays["u"] >= -0.5) & (arrays["u"] < w - 0.5) & (arrays["v"] >= -0.5) & (arrays["v"] < h - 0.5)
+        if not np.all(inside):
+            raise InvalidDepthError(
+                "u, v",
+                f"coordinates inside the {w}x{h} image (drop outside points with SparseDepth.from_arrays)",
+                f"{int(np.sum(~inside))} points outside",
+            )
+        for name, a in arrays.items():
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def empty(cls, image_size: tuple[int, int]) -> "SparseDepth":
+        """No measurements."""
+        z = np.zeros(0)
+        return cls(z, z, z, image_size)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        u: np.ndarray,
+        v: np.ndarray,
+        depth: np.ndarray,
+        image_size: tuple[int, int],
+        sigma: np.ndarray | float | None = None,
+    ) -> "SparseDepth":
+        """Builds measurements, silently dropping invalid ones.
+
+        Dropped: non-finite or non-positive depth, non-finite coordinates, points outside the
+        image. Use the constructor instead to have such points raise.
+        """
+        u = np.asarray(u, dtype=np.float64).ravel()
+        v = np.asarray(v, dtype=np.float64).ravel()
+        depth = np.asarray(depth, dtype=np.float64).ravel()
+        if not (u.shape == v.shape == depth.shape):
+            raise ShapeError("u, v, depth", "three arrays of one length", (u.shape, v.shape, depth.shape))
+        if sigma is None:
+            sigma = np.full(depth.shape, np.nan)
+        sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), depth.shape)
+        h, w = _as_shape(image_size)
+        with np.errstate(invalid="ignore"):
+            keep = (
+                np.isfinite(depth)
+                & (depth > 0)
+                & np.isfinite(u)
+                & np.isfinite(v)
+                & (u >= -0.5)
+                & (u < w - 0.5)
+                & (v >= -0.5)
+                & (v < h - 0.5)
+            )
+        return cls(u[keep], v[keep], depth[keep], (h, w), sigma[keep])
+
+    @classmethod
+    def from_depth_map(cls, depth_map: np.ndarray, sigma: float | None = None) -> "SparseDepth":
+        """Measurements from a sparse depth image (0, NaN or inf = no measurement; metres)."""
+        d = np.asarray(depth_map, dtype=np.float64)
+        if d.ndim != 2:
+            raise ShapeError("depth_map", "a 2-D (height, width) depth image", describe(d))
+        if np.any(d < 0):
+            raise InvalidDepthError("depth_map", "depths >= 0 (0 = no measurement)", f"minimum {np.nanmin(d)}")
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(d) & (d > 0)
+        v, u = np.nonzero(valid)
+        return cls(u.astype(np.float64), v.astype(np.float64), d[valid], d.shape, sigma)
+
+    # ------------------------------------------------------------------ queries
+    def __len__(self) -> int:
+        return int(self.depth.shape[0])
+
+    @property
+    def uv(self) -> np.ndarray:
+        """(N, 2) pixel coordinates."""
+        return np.stack([self.u, self.v], axis=1)
+
+    def subset(self, index: np.ndarray) -> "SparseDepth":
+        """The measurements selected by a boolean mask or an index array."""
+        return SparseDepth(self.u[index], self.v[index], self.depth[index], self.image_size, self.sigma[index])
+
+    def with_sigma(self, sigma: float | np.ndarray) -> "SparseDepth":
+        """The same points with new standard deviations (metres)."""
+        return SparseDepth(self.u, self.v, self.depth, self.image_size, np.broadcast_to(sigma, self.depth.shape))
+
+    def pixel_indices(self, shape: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Integer (row, col) of each point on a grid of ``shape`` covering the same image.
+
+        The grid may have another resolution than ``image_size``: coordinates are rescaled with
+        the pixel-centre convention and rounded to the nearest pixel centre.
+        """
+        h, w = self.image_size if shape is None else _as_shape(shape)
+        sh, sw = self.image_size
+        col = np.rint((self.u + 0.5) * (w / sw) - 0.5).astype(np.int64)
+        row = np.rint((self.v + 0.5) * (h / sh) - 0.5).astype(np.int64)
+        return np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)
+
+    def rasterize(self, shape: tuple[int, int] | None = None) -> "SparseDepth":
+        """Snaps the points to the pixel centres of a grid of ``shape``, closest point per pixel.
+
+        This is the occlusion-aware resampling of the paper: when several points land in one
+        pixel only the nearest survives. The result has ``image_size == shape``.
+        """
+        shape = self.image_size if shape is None else _as_shape(shape)
+        if len(self) == 0:
+            return SparseDepth.empty(shape)
+        row, col = self.pixel_indices(shape)
+        flat = row * shape[1] + col
+        order = np.lexsort((self.depth, flat))  # by pixel, then nearest first
+        first = np.ones(order.shape, dtype=bool)
+        first[1:] = flat[order][1:] != flat[order][:-1]
+        keep = order[first]
+        return SparseDepth(
+            col[keep].astype(np.float64), row[keep].astype(np.float64), self.depth[keep], shape, self.sigma[keep]
+        )
+
+    def to_depth_map(self, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """Dense (height, width) image with the closest depth per pixel and 0 elsewhere."""
+        r = self.rasterize(shape)
+        out = np.zeros(r.image_size, dtype=np.float64)
+        out[r.v.astype(np.int64), r.u.astype(np.int64)] = r.depth
+        return out
+
+
+# ---------------------------------------------------------------------- projection
+def project_points(
+    points_camera: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    min_depth: float = 1e-3,
+    sigma: float | np.ndarray | None = None,
+) -> SparseDepth:
+    """Projects camera-frame 3-D points into the image, keeping the closest point per pixel.
+
+    Args:
+        points_camera: (N, 3) points in the OpenCV camera frame, metres.
+        camera: The camera; points projecting outside its image are dropped.
+        min_depth: Points with z below this (behind or at the camera) are dropped.
+        sigma: Optional per-point depth standard deviation (metres).
+
+    Returns:
+        `SparseDepth` on the camera's pixel grid, one point per pixel at most.
+    """
+    uv, z = camera.project(points_camera)
+    keep = np.isfinite(z) & (z > min_depth)
+    uv, z = uv[keep], z[keep]
+    if sigma is not None:
+        sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), keep.shape)[keep]
+    sparse = SparseDepth.from_arrays(uv[:, 0], uv[:, 1], z, camera.shape, sigma)
+    return sparse.rasterize()
+
+
+def downsample_depth(depth: np.ndarray, factor: int) -> np.ndarray:
+    """Shrinks a sparse or dense depth map by an integer factor keeping the closest depth per block.
+
+    Invalid pixels (0, NaN, inf) are ignored; a block with no valid pixel becomes 0. The output
+    has shape (height // factor, width // factor); trailing rows and columns that do not fill a
+    block are dropped (crop first to keep them).
+    """
+    d = np.asarray(depth, dtype=np.float64)
+    if d.ndim != 2:
+        raise ShapeError("depth", "a 2-D depth map", describe(d))
+    if int(factor) != factor or factor < 1:
+        raise ShapeError("factor", "an integer >= 1", factor)
+    factor = int(factor)
+    h, w = d.shape[0] // factor, d.shape[1] // factor
+    if h == 0 or w == 0:
+        raise ShapeError("factor", f"at most the image size {d.shape}", factor)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(d) & (d > 0)
+    blocks = np.where(valid, d, np.inf)[: h * factor, : w * factor]
+    blocks = blocks.reshape(h, factor, w, factor).min(axis=(1, 3))
+    blocks[~np.isfinite(blocks)] = 0.0
+    return blocks
+
+
+# ---------------------------------------------------------------------- LiDAR & calibration
+@dataclass(frozen=True)
+class LidarCalibration:
+    """LiDAR-to-image calibration.
+
+    Attributes:
+        P: (3, 4) projection matrix of the rectified camera (KITTI ``P2``), pixels.
+        T_camera_lidar: (4, 4) transform from LiDAR to the (rectified) camera frame, including
+            KITTI's ``R0_rect``.
+    """
+
+    P: np.ndarray
+    T_camera_lidar: np.ndarray
+
+    def __post_init__(self) -> None:
+        P = np.asarray(self.P, dtype=np.float64)
+        T = np.asarray(self.T_camera_lidar, dtype=np.float64)
+        if P.shape != (3, 4) or not np.all(np.isfinite(P)):
+            raise CalibrationError("P", "a finite 3x4 projection matrix", describe(P))
+        if T.shape == (3, 4):
+            T = np.vstack([T, [0, 0, 0, 1]])
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise CalibrationError("T_camera_lidar", "a finite 3x4 or 4x4 transform", describe(T))
+        object.__setattr__(self, "P", P)
+        object.__setattr__(self, "T_camera_lidar", T)
+
+    @classmethod
+    def from_kitti(cls, path: str | Path, camera: int = 2) -> "LidarCalibration":
+        """Reads a KITTI object-benchmark calibration file (``P2``, ``R0_rect``, ``Tr_velo_to_cam``).
+
+        Also accepts the raw-data pair ``calib_cam_to_cam.txt`` when given its folder: then
+        ``calib_velo_to_cam.txt`` (R, T) and ``calib_cam_to_cam.txt`` (P_rect_0N, R_rect_00)
+        are read from that folder.
+        """
+        path = Path(path)
+        if path.is_dir():
+            return cls._from_kitti_raw(path, camera)
+        values = _read_kitti_kv(path)
+        try:
+            P = values[f"P{camera}"].reshape(3, 4)
+            R0 = values.get("R0_rect", values.get("R_rect", np.eye(3).ravel())).reshape(3, 3)
+            Tr = values.get("Tr_velo_to_cam", values.get("Tr_velo_cam"))
+            if Tr is None:
+                raise KeyError("Tr_velo_to_cam")
+            Tr = Tr.reshape(3, 4)
+        except (KeyError, ValueError) as exc:
+            raise DataFormatError(path, f"not a KITTI calibration file (missing or malformed {exc})") from None
+        R = np.eye(4)
+        R[:3, :3] = R0
+        T = R @ np.vstack([Tr, [0, 0, 0, 1]])
+        return cls(P, T)
+
+    @classmethod
+    def _from_kitti_raw(cls, folder: Path, camera: int) -> "LidarCalibration":
+        c2c = _read_kitti_kv(folder / "calib_cam_to_cam.txt")
+        v2c = _read_kitti_kv(folder / "calib_velo_to_cam.txt")
+        try:
+            P = c2c[f"P_rect_0{camera}"].reshape(3, 4)
+            R0 = c2c["R_rect_00"].reshape(3, 3)
+            Tr = np.hstack([v2c["R"].reshape(3, 3), v2c["T"].reshape(3, 1)])
+        except (KeyError, ValueError) as exc:
+            raise DataFormatError(folder, f"not a KITTI raw calibration folder (missing {exc})") from None
+        R = np.eye(4)
+        R[:3, :3] = R0
+        return cls(P, R @ np.vstack([Tr, [0, 0, 0, 1]]))
+
+    def project(
+        self, points_lidar: np.ndarray, image_size: tuple[int, int], *, min_depth: float = 1e-3
+    ) -> SparseDepth:
+        """Projects LiDAR points into the image, closest point per pixel.
+
+        Args:
+            points_lidar: (N, 3) or (N, 4) LiDAR points (x, y, z[, reflectance]), metres.
+            image_size: (height, width) of the image.
+            min_depth: Points with camera z below this are dropped.
+
+        Returns:
+            `SparseDepth` of z-depths in the rectified camera frame.
+        """
+        p = np.asarray(points_lidar, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] not in (3, 4):
+            raise ShapeError("points_lidar", "an (N, 3) or (N, 4) array", describe(p))
+        cam = p[:, :3] @ self.T_camera_lidar[:3, :3].T + self.T_camera_lidar[:3, 3]
+        homog = np.hstack([cam, np.ones((cam.shape[0], 1))]) @ self.P.T
+        # P = K [I | t]: the image z of a point is cam z + t_z; use the camera z as depth.
+        z = homog[:, 2]
+        keep = np.isfinite(z) & (cam[:, 2] > min_depth) & (z > min_depth)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = homog[:, 0] / z
+            v = homog[:, 1] / z
+        sparse = SparseDepth.from_arrays(u[keep], v[keep], z[keep], image_size)
+        return sparse.rasterize()
+
+
+def _read_kitti_kv(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise DataFormatError(path, "calibration file not found")
+    values: dict[str, np.ndarray] = {}
+    for line in path.read_text().splitlines():
+        if ":" not in line:
+            continue
+        key, rest = line.split(":", 1)
+        try:
+            values[key.strip()] = np.array([float(x) for x in rest.split()])
+        except ValueError:
+            continue  # e.g. calib_time: 09-Jan-2012 13:57:47
+    if not values:
+        raise DataFormatError(path, "no 'key: numbers' lines found")
+    return values
+
+
+def load_velodyne(path: str | Path) -> np.ndarray:
+    """Reads a KITTI Velodyne ``.bin`` scan as an (N, 4) float32 array (x, y, z, reflectance)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "Velodyne scan not found")
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size == 0 or raw.size % 4:
+        raise DataFormatError(path, f"expected float32 x, y, z, r records, got {raw.size} floats")
+    return raw.reshape(-1, 4)

@@ -1,0 +1,100 @@
+"""Depth-completion metrics (KITTI and NYU conventions) and calibration of the posterior variance.
+
+All metrics are computed over valid ground-truth pixels only: finite and > 0 (and, where a
+prediction is not finite or <= 0, that pixel counts with the prediction clamped to
+``min_depth`` so a bad prediction is penalised rather than skipped).
+
+Units: RMSE and MAE in millimetres, iRMSE and iMAE in 1/km (KITTI); REL is the mean absolute
+relative error; delta_k is the share of pixels with max(pred/gt, gt/pred) < 1.25^k (NYU).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import EmptyInputError, ShapeError, describe
+
+METRIC_NAMES = ("rmse", "mae", "irmse", "imae", "rel", "delta1", "delta2", "delta3")
+
+
+def _prepare(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None, min_depth: float):
+    pred = np.asarray(pred, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if pred.shape != gt.shape:
+        raise ShapeError("pred", f"the shape of gt {gt.shape}", describe(pred))
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(gt) & (gt > 0)
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != gt.shape:
+            raise ShapeError("mask", f"the shape of gt {gt.shape}", describe(mask))
+        valid &= mask
+    if not valid.any():
+        raise EmptyInputError("gt", "at least one valid ground-truth pixel (finite, > 0)", "none")
+    p = pred[valid]
+    p = np.where(np.isfinite(p), np.maximum(p, min_depth), min_depth)
+    return p, gt[valid], valid
+
+
+def depth_metrics(
+    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None, *, min_depth: float = 1e-3
+) -> dict[str, float]:
+    """RMSE, MAE (mm), iRMSE, iMAE (1/km), REL, delta1..3 of a depth prediction (metres).
+
+    Args:
+        pred: Predicted z-depth, metres.
+        gt: Ground-truth z-depth, metres; 0/NaN/inf = no ground truth.
+        mask: Optional extra boolean mask of pixels to evaluate.
+        min_depth: Predictions are clamped to at least this (metres).
+
+    Returns:
+        Dict with the keys of `METRIC_NAMES` plus ``n`` (number of pixels evaluated).
+    """
+    p, g, _ = _prepare(pred, gt, mask, min_depth)
+    err = p - g
+    ierr = 1.0 / p - 1.0 / g  # 1/m
+    ratio = np.maximum(p / g, g / p)
+    return {
+        "rmse": float(np.sqrt(np.mean(err**2)) * 1000.0),
+        "mae": float(np.mean(np.abs(err)) * 1000.0),
+        "irmse": float(np.sqrt(np.mean(ierr**2)) * 1000.0),
+        "imae": float(np.mean(np.abs(ierr)) * 1000.0),
+        "rel": float(np.mean(np.abs(err) / g)),
+        "delta1": float(np.mean(ratio < 1.25)),
+        "delta2": float(np.mean(ratio < 1.25**2)),
+        "delta3": float(np.mean(ratio < 1.25**3)),
+        "n": int(g.size),
+    }
+
+
+def calibration_metrics(
+    mean: np.ndarray,
+    variance: np.ndarray,
+    gt: np.ndarray,
+    mask: np.ndarray | None = None,
+) -> dict[str, float]:
+    """How well the posterior variance describes the actual error.
+
+    Returns:
+        ``nll``: mean Gaussian negative log-likelihood of gt (nats per pixel, depth in metres);
+        ``coverage_1sigma`` / ``coverage_2sigma``: share of pixels with |error| <= 1 / 2 std
+        (a calibrated model gives about 0.683 / 0.954); ``z_rms``: RMS of error / std (1 when
+        calibrated); ``n``.
+    """
+    mean = np.asarray(mean, dtype=np.float64)
+    variance = np.asarray(variance, dtype=np.float64)
+    if variance.shape != mean.shape:
+        raise ShapeError("variance", f"the shape of mean {mean.shape}", describe(variance))
+    p, g, valid = _prepare(mean, gt, mask, 0.0)
+    var = np.maximum(variance[valid], 1e-12)
+    if not np.all(np.isfinite(var)):
+        raise ShapeError("variance", "finite variances at the evaluated pixels", "NaN or inf")
+    err = p - g
+    z = np.abs(err) / np.sqrt(var)
+    return {
+        "nll": float(np.mean(0.5 * np.log(2 * np.pi * var) + 0.5 * err**2 / var)),
+        "coverage_1sigma": float(np.mean(z <= 1.0)),
+        "coverage_2sigma": float(np.mean(z <= 2.0)),
+        "z_rms": float(np.sqrt(np.mean(z**2))),
+        "n": int(g.size),
+    }
