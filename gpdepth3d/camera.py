@@ -12,7 +12,7 @@ Conventions used everywhere in gpdepth3d (stated once, here):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,9 @@ class PinholeCamera:
         cy: Principal point v, pixels.
         width: Image width, pixels.
         height: Image height, pixels.
+        check_principal_point: Require the principal point inside the image (catches
+            intrinsics of another image size); `cropped` turns it off since an off-centre crop
+            legitimately has its principal point outside.
     """
 
     fx: float
@@ -38,6 +41,7 @@ class PinholeCamera:
     cy: float
     width: int
     height: int
+    check_principal_point: bool = field(default=True, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("fx", "fy"):
@@ -52,7 +56,9 @@ class PinholeCamera:
             if int(value) != value or value <= 0:
                 raise CalibrationError(name, "a positive integer image size", value)
             object.__setattr__(self, name, int(value))
-        if not (-0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5):
+        if self.check_principal_point and not (
+            -0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5
+        ):
             raise CalibrationError(
                 "cx, cy",
                 f"a principal point inside the {self.width}x{self.height} image",
@@ -97,6 +103,7 @@ class PinholeCamera:
             (self.cy + 0.5) * sy - 0.5,
             width,
             height,
+            self.check_principal_point,
         )
 
     def cropped(self, left: int, top: int, width: int, height: int) -> "PinholeCamera":
@@ -105,7 +112,7 @@ class PinholeCamera:
             raise CalibrationError(
                 "crop", f"a window inside the {self.width}x{self.height} image", (left, top, width, height)
             )
-        return PinholeCamera(self.fx, self.fy, self.cx - left, self.cy - top, width, height)
+        return PinholeCamera(self.fx, self.fy, self.cx - left, self.cy - top, width, height, False)
 
     # ------------------------------------------------------------------ geometry
     def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
@@ -199,4 +206,9 @@ def check_pose(T: np.ndarray, argument: str = "T_world_camera", atol: float = 1e
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Applies a 4x4 transform to (N, 3) points."""
     points = np.asarray(points, dtype=np.float64)
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ShapeError("T", "a 4x4 transform", describe(T))
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ShapeError("points", "an (N, 3) array", describe(points))
     return points @ T[:3, :3].T + T[:3, 3]

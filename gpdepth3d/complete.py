@@ -16,6 +16,7 @@ Input rules (documented once, here):
 from __future__ import annotations
 
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -109,7 +110,7 @@ class DepthPosterior:
                     depth_scale=float(d["depth_scale"]),
                     alignment=AlignmentResult(float(align[0]), float(align[1]), 0),
                 )
-        except (KeyError, ValueError, OSError) as exc:
+        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
 

@@ -19,12 +19,13 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
 
-from .errors import DataFormatError, InvalidDepthError, ShapeError, describe
+from .errors import DataFormatError, GPDepthError, InvalidDepthError, ShapeError, describe
 from .measurements import SparseDepth
 
 KITTI_PNG_SCALE = 1.0 / 256.0
@@ -124,7 +125,7 @@ def load_depth(
             raise DataFormatError(path, f"unknown depth format '{suffix}' (use .npy, .npz or .png)")
     except DataFormatError:
         raise
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise DataFormatError(path, f"corrupt or unreadable: {exc}") from None
     depth = np.asarray(depth, dtype=np.float64)
     if depth.ndim == 3 and depth.shape[-1] == 1:
@@ -167,12 +168,17 @@ def load_sparse(
         raise DataFormatError(path, "file not found")
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            if {"u", "v", "depth"} <= set(data.keys()):
-                if image_size is None:
-                    raise ShapeError("image_size", "(height, width) for a point list", None)
-                sigma = data["sigma"] if "sigma" in data else None
-                return SparseDepth.from_arrays(data["u"], data["v"], data["depth"], image_size, sigma)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if {"u", "v", "depth"} <= set(data.keys()):
+                    if image_size is None:
+                        raise ShapeError("image_size", "(height, width) for a point list", None)
+                    sigma = data["sigma"] if "sigma" in data else None
+                    return SparseDepth.from_arrays(data["u"], data["v"], data["depth"], image_size, sigma)
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            if isinstance(exc, GPDepthError):
+                raise
+            raise DataFormatError(path, f"corrupt or unreadable point list: {exc}") from None
     if suffix in (".txt", ".csv"):
         if image_size is None:
             raise ShapeError("image_size", "(height, width) for a point list", None)

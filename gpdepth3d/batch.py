@@ -1,0 +1,862 @@
+"""Dataset-scale completion and evaluation on a Dask cluster, resumable frame by frame.
+
+`run_batch` maps one frame's work (load, complete, write; with ``task="eval"`` also score)
+over a list of `FrameSpec` on Dask: a `distributed.LocalCluster` of ``workers`` processes by
+default (no set-up), or the cluster whose scheduler listens at ``address``
+(``"tcp://host:8786"``). ``workers=0`` runs the same work in this process without Dask.
+
+Guarantees:
+
+* Light tasks: a frame spec is a few strings; each worker reads its frame from the dataset
+  folder itself (no image crosses the scheduler), so the folder and ``output_dir`` must be
+  visible to every worker at the same path (one machine, or a shared file system).
+* Resumable: each frame's outputs are named by its frame id and written atomically
+  (`gpdepth3d.io.atomic_path`); a frame counts as done only when its *final* file exists
+  (``<id>.npz`` for ``complete``, ``<id>.metrics.json`` for ``eval``, written last). A
+  re-run skips done frames; a killed run leaves only temporary files, which the next run
+  deletes before it starts. One run at a time per ``output_dir`` (a lock file enforces it),
+  and one set of settings: ``batch_settings.json`` records the model config and the loader,
+  and a run with other settings is refused rather than mixing results.
+* Failures stay local: an exception in one frame (or the loss of the worker computing it) is
+  recorded with the frame id and the error in the `BatchReport` and in
+  ``batch_report.json``; the other frames go on. Failed frames have no final file, so the
+  next run retries them.
+
+Inputs of a frame (`HoldoutInputs`): the datasets here have no monocular network for outdoor
+scenes, so the default builds the input by *holdout*: ``n_input`` measurements sampled from the
+frame's points (projected LiDAR, or the dense ground truth where the dataset has one), a
+disjoint ``holdout`` share of the LiDAR held out as ground truth for ``eval``. The MDE input is
+either absent (``mde="none"``: the residual GP's prior mean is then the median measured depth)
+or a clearly labelled stand-in (``mde="standin"``: the *input* points densified by nearest
+neighbour and perturbed by a smooth random scale error; never the held-out points). Any
+picklable ``loader(spec) -> FrameInputs`` can replace it.
+
+A script that calls `run_batch` with a local cluster must guard its entry point with
+``if __name__ == "__main__":`` (Dask starts its worker processes with ``spawn``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import re
+import threading
+import time
+import traceback
+import uuid
+import zlib
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Callable, Iterator, Literal, Optional, Sequence
+
+import numpy as np
+
+from .errors import GPDepthError, InvalidInputError
+from .gp.model import DepthGPConfig
+from .io import atomic_path, atomic_write
+from .measurements import SparseDepth, downsample_depth
+
+Task = Literal["complete", "eval"]
+TASKS = ("complete", "eval")
+REPORT_NAME = "batch_report.json"
+SETTINGS_NAME = "batch_settings.json"
+LOCK_NAME = ".gpdepth3d_batch.lock"
+_FRAME_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.+-]{0,199}$")
+# Temporary files of gpdepth3d.io.atomic_path: ".<stem>.<random>.tmp<suffix>".
+_TEMP_FILE = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+class FramesFailedError(GPDepthError):
+    """Some frames of a batch failed (raised by `batch_command` after the others were written)."""
+
+
+# ---------------------------------------------------------------------------------- frames
+@dataclass(frozen=True)
+class FrameSpec:
+    """What a worker needs to find one frame: a few strings, never the data.
+
+    Attributes:
+        frame_id: Unique name of the frame's outputs (letters, digits, ``_ . + -``; not
+            starting with ``.`` or ``-``).
+        root: Dataset folder (must be readable by the workers at this path).
+        name: Frame name within the dataset (`gpdepth3d.datasets` reader's ``names``).
+        kind: Dataset kind (a key of `gpdepth3d.datasets.READERS`); None = detect from files.
+    """
+
+    frame_id: str
+    root: str
+    name: str
+    kind: Optional[str] = None
+
+
+def check_frame_id(frame_id: str) -> str:
+    """Returns ``frame_id`` if it is a safe, non-hidden file name stem, else raises `InvalidInputError`."""
+    if not isinstance(frame_id, str) or not _FRAME_ID.match(frame_id):
+        raise InvalidInputError(
+            "frame_id", "1-200 characters of letters, digits, '_', '.', '+', '-' (not starting with '.' or '-')", frame_id
+        )
+    return frame_id
+
+
+def dataset_frames(
+    root: str | Path,
+    kind: str | None = None,
+    *,
+    repeat: int = 1,
+    limit: int | None = None,
+) -> list[FrameSpec]:
+    """Frame specs of every frame of a dataset folder, optionally repeated and truncated.
+
+    Args:
+        root: Dataset folder (any layout `gpdepth3d.datasets.open_dataset` reads).
+        kind: Dataset kind; None = detect.
+        repeat: Each frame appears this many times; copies get the ids ``<name>-r0001`` ...
+            (the first keeps ``<name>``). For load tests and benchmarks: the copies read the
+            same files but are separate frames with their own outputs.
+        limit: Keep at most this many specs (after repeating).
+
+    Returns:
+        The specs, in dataset order (repeats of the whole dataset one after the other).
+    """
+    from .datasets import detect_format, open_dataset
+
+    if int(repeat) != repeat or repeat < 1:
+        raise InvalidInputError("repeat", "an integer >= 1", repeat)
+    if limit is not None and (int(limit) != limit or limit < 0):
+        raise InvalidInputError("limit", "None or an integer >= 0", limit)
+    kind = kind or detect_format(root)
+    reader = open_dataset(root, kind)
+    root_s = str(Path(root).resolve())
+    specs = []
+    for r in range(int(repeat)):
+        for name in reader.names:
+            frame_id = name if r == 0 else f"{name}-r{r:04d}"
+            specs.append(FrameSpec(check_frame_id(frame_id), root_s, name, kind))
+    return specs if limit is None else specs[: int(limit)]
+
+
+def _check_frames(frames: Sequence[FrameSpec]) -> list[FrameSpec]:
+    if isinstance(frames, (str, bytes, Path)) or not hasattr(frames, "__iter__"):
+        raise InvalidInputError("frames", "a sequence of FrameSpec", type(frames).__name__)
+    frames = list(frames)
+    seen: set[str] = set()
+    for i, spec in enumerate(frames):
+        if not hasattr(spec, "frame_id"):
+            raise InvalidInputError(f"frames[{i}]", "a FrameSpec (or an object with a frame_id)", type(spec).__name__)
+        check_frame_id(spec.frame_id)
+        if spec.frame_id in seen:
+            raise InvalidInputError("frames", "unique frame ids", f"{spec.frame_id!r} twice")
+        seen.add(spec.frame_id)
+    return frames
+
+
+# ---------------------------------------------------------------------------------- inputs
+@dataclass(frozen=True)
+class FrameInputs:
+    """The inputs of one frame on the GP grid.
+
+    Attributes:
+        mde: (H, W) MDE z-depth in metres (0 = none; all 0 = no MDE).
+        sparse: Input measurements, image size (H, W).
+        gt: (H, W) ground-truth z-depth for ``eval`` (metres, 0 = none), or None.
+        info: Small JSON-able description (counts, what the MDE is).
+    """
+
+    mde: np.ndarray
+    sparse: SparseDepth
+    gt: Optional[np.ndarray] = None
+    info: dict = field(default_factory=dict)
+
+
+@lru_cache(maxsize=8)
+def _reader(root: str, kind: str | None):
+    from .datasets import open_dataset
+
+    return open_dataset(root, kind)
+
+
+def frame_seed(seed: int, frame_id: str) -> int:
+    """A per-frame seed that depends only on ``seed`` and the frame id (stable across runs and machines)."""
+    return (int(seed) * 1_000_003 + zlib.crc32(frame_id.encode())) % (2**32)
+
+
+@dataclass(frozen=True)
+class HoldoutInputs:
+    """Builds a frame's inputs from a dataset frame by holdout (the default loader).
+
+    Measurement source: the frame's ``sparse`` points (projected LiDAR, SLAM points) if it
+    has them, else the valid pixels of its dense ground truth. All maps are shrunk by
+    ``factor`` with `downsample_depth` (closest depth per block).
+
+    Ground truth (``eval``): the dense depth where the dataset has one; otherwise a random
+    ``holdout`` share of the points, which are then never given as input.
+
+    Input: ``n_input`` points drawn uniformly from the points not held out.
+
+    MDE: ``"none"`` (no MDE) or ``"standin"``, a STAND-IN for an outdoor MDE network, which
+    does not exist here: the input points densified by nearest neighbour and multiplied by a
+    smooth random scale error of about ``standin_error`` (relative, std). It is built from
+    the input points only, so it carries no information about the held-out points.
+
+    Attributes:
+        factor: Integer downsampling of the dataset resolution (3 = the paper's 1/3).
+        n_input: Number of input measurements per frame.
+        holdout: Share of the points held out as ground truth (only without dense depth).
+        mde: "none" or "standin" (see above).
+        standin_error: Relative std of the stand-in's scale error.
+        seed: Base seed; each frame draws from `frame_seed(seed, frame_id)`.
+    """
+
+    factor: int = 3
+    n_input: int = 500
+    holdout: float = 0.2
+    mde: Literal["none", "standin"] = "none"
+    standin_error: float = 0.1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if int(self.factor) != self.factor or self.factor < 1:
+            raise InvalidInputError("factor", "an integer >= 1", self.factor)
+        if int(self.n_input) != self.n_input or self.n_input < 1:
+            raise InvalidInputError("n_input", "an integer >= 1", self.n_input)
+        if not (np.isfinite(self.holdout) and 0 < self.holdout < 1):
+            raise InvalidInputError("holdout", "a share in (0, 1)", self.holdout)
+        if self.mde not in ("none", "standin"):
+            raise InvalidInputError("mde", "'none' or 'standin'", self.mde)
+        if not (np.isfinite(self.standin_error) and self.standin_error >= 0):
+            raise InvalidInputError("standin_error", "a relative std >= 0", self.standin_error)
+
+    def __call__(self, spec: FrameSpec) -> FrameInputs:
+        """Reads ``spec``'s frame from its dataset and builds the inputs (runs on the worker)."""
+        frame = _reader(spec.root, spec.kind).load(spec.name)
+        return self.from_maps(
+            spec.frame_id,
+            points=None if frame.sparse is None else frame.sparse.to_depth_map(),
+            dense_gt=frame.depth,
+        )
+
+    def from_maps(
+        self, frame_id: str, *, points: np.ndarray | None, dense_gt: np.ndarray | None = None
+    ) -> FrameInputs:
+        """Builds the inputs from full-resolution maps.
+
+        Args:
+            frame_id: Seeds the random draws.
+            points: (H, W) sparse depth map (metres, 0 = none), or None to sample the dense GT.
+            dense_gt: (H, W) dense ground truth (metres, 0 = invalid), or None.
+        """
+        from .sampling import holdout_split, sample_uniform
+
+        if points is None and dense_gt is None:
+            raise InvalidInputError("frame", "sparse points or a dense depth map", "neither")
+        rng = np.random.default_rng(frame_seed(self.seed, frame_id))
+        source = downsample_depth(points if points is not None else dense_gt, self.factor)
+        shape = source.shape
+        available = SparseDepth.from_depth_map(source)
+        if dense_gt is not None:
+            gt = downsample_depth(dense_gt, self.factor)
+            pool = available
+        else:
+            pool, held_out = holdout_split(available, holdout=self.holdout, rng=rng)
+            gt = held_out.to_depth_map(shape)
+        sparse = sample_uniform(pool, n=self.n_input, rng=rng)
+        mde = self._standin(sparse, rng) if self.mde == "standin" else np.zeros(shape)
+        info = {
+            "shape": list(shape),
+            "n_available": len(available),
+            "n_input": len(sparse),
+            "n_gt": int(np.count_nonzero(gt)),
+            "gt": "dense" if dense_gt is not None else "holdout",
+            "mde": "STAND-IN: densified input points x smooth scale error" if self.mde == "standin" else "none",
+        }
+        return FrameInputs(mde=mde, sparse=sparse, gt=gt, info=info)
+
+    def _standin(self, sparse: SparseDepth, rng: np.random.Generator) -> np.ndarray:
+        from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+        shape = sparse.image_size
+        if len(sparse) == 0:
+            return np.zeros(shape)
+        grid = sparse.to_depth_map(shape)
+        _, (ri, ci) = distance_transform_edt(grid <= 0, return_indices=True)
+        dense = grid[ri, ci]
+        noise = gaussian_filter(rng.standard_normal(shape), sigma=max(shape) / 8.0, mode="reflect")
+        noise *= self.standin_error / max(float(noise.std()), 1e-12)
+        return dense * np.exp(noise)
+
+
+# ---------------------------------------------------------------------------------- one frame
+@dataclass(frozen=True)
+class FrameResult:
+    """What a worker returns for one frame (small: the outputs are on disk).
+
+    Attributes:
+        frame_id: The frame.
+        ok: True when the final file was written.
+        seconds: Wall time of the frame on the worker.
+        error: ``"<ExceptionType>: <message>"`` when it failed, else None.
+        traceback: Formatted traceback of the failure, else None.
+        metrics: ``eval``: the frame's metrics, else None.
+    """
+
+    frame_id: str
+    ok: bool
+    seconds: float
+    error: Optional[str] = None
+    traceback: Optional[str] = None
+    metrics: Optional[dict] = None
+
+
+def output_paths(output_dir: str | Path, frame_id: str, task: Task) -> dict[str, Path]:
+    """The files a frame writes: ``posterior`` (``<id>.npz``) and, for eval, ``metrics``; ``final`` is the last."""
+    output_dir = Path(output_dir)
+    paths = {"posterior": output_dir / f"{frame_id}.npz"}
+    if task == "eval":
+        paths["metrics"] = output_dir / f"{frame_id}.metrics.json"
+    paths["final"] = paths["metrics" if task == "eval" else "posterior"]
+    return paths
+
+
+_COMPLETERS: dict = {}
+_COMPLETERS_LOCK = threading.Lock()
+
+
+def _completer(config: DepthGPConfig):
+    """One `DepthCompleter` per configuration and worker process (engines cache per-resolution set-up)."""
+    from .complete import DepthCompleter
+
+    with _COMPLETERS_LOCK:
+        if config not in _COMPLETERS:
+            _COMPLETERS[config] = DepthCompleter(config)
+        return _COMPLETERS[config]
+
+
+def _json_default(x: Any):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON-serialisable: {type(x).__name__}")
+
+
+def write_json(path: str | Path, data: Any) -> Path:
+    """Writes ``data`` as indented JSON atomically."""
+    text = json.dumps(data, indent=2, default=_json_default)
+    return atomic_write(path, lambda tmp: tmp.write_text(text + "\n"))
+
+
+def process_frame(
+    spec: FrameSpec,
+    output_dir: str,
+    *,
+    config: DepthGPConfig,
+    loader: Callable[[FrameSpec], FrameInputs],
+    task: Task = "complete",
+    variance: bool = True,
+    png: bool = False,
+) -> FrameResult:
+    """Does one frame: load, complete, write atomically (and score for ``eval``); never raises.
+
+    Returns a failed `FrameResult` (with the error and traceback) instead of raising, so one
+    bad frame cannot stop a batch. ``eval`` writes the posterior first and the metrics file
+    last: the metrics file marks the frame done.
+    """
+    t0 = time.perf_counter()
+    try:
+        paths = output_paths(output_dir, spec.frame_id, task)
+        inputs = loader(spec)
+        if not isinstance(inputs, FrameInputs):
+            raise InvalidInputError("loader", "a callable returning FrameInputs", type(inputs).__name__)
+        posterior = _completer(config).complete(inputs.mde, inputs.sparse, variance=variance or task == "eval")
+        posterior.save(paths["posterior"], png=png)
+        metrics = None
+        if task == "eval":
+            metrics = evaluate_posterior(posterior.mean, posterior.variance, inputs.gt)
+            record = {
+                "frame_id": spec.frame_id,
+                "name": getattr(spec, "name", None),
+                "metrics": metrics,
+                "inputs": inputs.info,
+                "timings": posterior.timings,
+            }
+            write_json(paths["metrics"], record)
+        return FrameResult(spec.frame_id, True, time.perf_counter() - t0, metrics=metrics)
+    except Exception as exc:  # noqa: BLE001 - a batch reports every frame's failure and goes on
+        return FrameResult(
+            getattr(spec, "frame_id", "?"),
+            False,
+            time.perf_counter() - t0,
+            error=f"{type(exc).__name__}: {exc}",
+            traceback=traceback.format_exc(),
+        )
+
+
+def evaluate_posterior(mean: np.ndarray, variance: np.ndarray, gt: np.ndarray | None) -> dict[str, float]:
+    """Depth metrics (`depth_metrics`) and variance calibration (`calibration_metrics`) against ``gt``.
+
+    Calibration keys get a ``cal_`` prefix except ``nll`` and the coverages; ``n`` is the number
+    of ground-truth pixels.
+    """
+    from .errors import EmptyInputError
+    from .metrics import calibration_metrics, depth_metrics
+
+    if gt is None:
+        raise EmptyInputError("gt", "ground truth for task='eval' (a loader that returns FrameInputs.gt)", None)
+    out = dict(depth_metrics(mean, gt))
+    cal = calibration_metrics(mean, variance, gt)
+    for key, value in cal.items():
+        if key != "n":
+            out[key] = value
+    return out
+
+
+# ---------------------------------------------------------------------------------- report
+@dataclass(frozen=True)
+class FrameFailure:
+    """A frame that failed: its id and the error (``"<Type>: <message>"``), with the traceback."""
+
+    frame_id: str
+    error: str
+    traceback: str = ""
+
+
+@dataclass(frozen=True)
+class BatchReport:
+    """Outcome of `run_batch`.
+
+    Attributes:
+        task: "complete" or "eval".
+        output_dir: Where the outputs are.
+        n_frames: Frames asked for.
+        n_computed: Frames computed and written by this run.
+        n_skipped: Frames already done before this run (final file present).
+        failures: Frames that failed in this run (no final file; a re-run retries them).
+        seconds: Wall time of the whole run (including cluster start-up), s.
+        startup_seconds: Cluster start-up / connection time, s.
+        compute_seconds: Time from the first submission to the last result, s.
+        frames_per_second: ``n_computed / compute_seconds``.
+        temp_files_removed: Stale temporary files of killed runs deleted at the start.
+        workers: Worker processes (Dask) that ran the frames; 0 = in-process.
+        aggregate: ``eval``: mean of each metric over all done frames (this and earlier runs),
+            with ``frames``; None for ``complete``.
+    """
+
+    task: str
+    output_dir: Path
+    n_frames: int
+    n_computed: int
+    n_skipped: int
+    failures: tuple[FrameFailure, ...]
+    seconds: float
+    startup_seconds: float
+    compute_seconds: float
+    frames_per_second: float
+    temp_files_removed: int
+    workers: int
+    aggregate: Optional[dict] = None
+
+    @property
+    def ok(self) -> bool:
+        """True when every frame is done."""
+        return not self.failures and self.n_computed + self.n_skipped == self.n_frames
+
+    def summary(self) -> str:
+        """A few human-readable lines."""
+        lines = [
+            f"{self.task}: {self.n_frames} frames: {self.n_computed} computed, {self.n_skipped} already done, "
+            f"{len(self.failures)} failed; {self.frames_per_second:.2f} frames/s on {self.workers} worker(s) "
+            f"(start-up {self.startup_seconds:.1f} s, total {self.seconds:.1f} s)"
+        ]
+        for f in self.failures:
+            lines.append(f"  FAILED {f.frame_id}: {f.error}")
+        if self.aggregate:
+            keys = [k for k in ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_2sigma") if k in self.aggregate]
+            lines.append(
+                f"  mean over {self.aggregate['frames']} frames: "
+                + ", ".join(f"{k} {self.aggregate[k]:.4g}" for k in keys)
+            )
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["output_dir"] = str(self.output_dir)
+        d["ok"] = self.ok
+        return d
+
+
+def aggregate_metrics(output_dir: str | Path, frame_ids: Sequence[str]) -> Optional[dict]:
+    """Mean of every metric over the frames whose ``<id>.metrics.json`` exists (per-frame average, KITTI style).
+
+    Returns None when no frame has metrics; else the means plus ``frames`` (count) and
+    ``pixels`` (evaluated ground-truth pixels in total).
+    """
+    rows = []
+    for frame_id in frame_ids:
+        path = output_paths(output_dir, frame_id, "eval")["metrics"]
+        if path.is_file():
+            rows.append(json.loads(path.read_text())["metrics"])
+    if not rows:
+        return None
+    keys = [k for k in rows[0] if k != "n"]
+    agg = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    agg["frames"] = len(rows)
+    agg["pixels"] = int(sum(r.get("n", 0) for r in rows))
+    return agg
+
+
+# ---------------------------------------------------------------------------------- driver
+@contextlib.contextmanager
+def _exclusive(output_dir: Path) -> Iterator[None]:
+    """Holds an exclusive lock on ``output_dir`` for one run (fcntl.flock; no-op where unavailable)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    with open(output_dir / LOCK_NAME, "a") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise InvalidInputError(
+                "output_dir", "a folder no other batch run is writing to", f"{output_dir} is locked by another run"
+            ) from None
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def fingerprint(obj: Any) -> str:
+    """A stable text identity of a config or loader: the repr of a dataclass, else the qualified name."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return repr(obj)
+    target = obj if hasattr(obj, "__qualname__") else type(obj)
+    return f"{getattr(target, '__module__', '?')}.{target.__qualname__}"
+
+
+def check_settings(output_dir: str | Path, config: DepthGPConfig, loader: Any) -> None:
+    """Refuses to mix outputs of different settings in one folder; records them on first use.
+
+    ``output_dir/batch_settings.json`` holds the model config and the `fingerprint` of the
+    loader the existing outputs were made with. A run with other settings raises
+    `InvalidInputError` (skipped frames would otherwise keep results of the old settings).
+    The engine is not part of the settings: every engine computes the same posterior, so a
+    run may be resumed with another one.
+    """
+    import dataclasses
+
+    path = Path(output_dir) / SETTINGS_NAME
+    model = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    model = {k: v for k, v in model.items() if k not in ("engine", "max_exact_points")}
+    settings = {"config": model, "loader": fingerprint(loader)}
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except ValueError:
+            old = None
+        if old != settings:
+            raise InvalidInputError(
+                "config, loader",
+                f"the settings the outputs in {output_dir} were made with ({old}); use a new output_dir",
+                settings,
+            )
+        return
+    write_json(path, settings)
+
+
+def remove_stale_temp_files(output_dir: str | Path) -> int:
+    """Deletes temporary files left by killed writers (``.<stem>.<random>.tmp<suffix>``); returns how many."""
+    n = 0
+    for path in Path(output_dir).iterdir():
+        if path.is_file() and _TEMP_FILE.match(path.name):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+                n += 1
+    return n
+
+
+def _import_dask():
+    try:
+        import distributed
+    except ImportError:
+        raise ImportError(
+            "gpdepth3d batch runs on Dask: install it with `pip install 'gpdepth3d[batch]'` "
+            "(or `pip install distributed`), or pass workers=0 to run in this process"
+        ) from None
+    return distributed
+
+
+def _warm_up() -> None:
+    """Imports what a frame needs, on each worker at start-up (not during the first frame)."""
+    import scipy.linalg  # noqa: F401
+    import scipy.ndimage  # noqa: F401
+
+    from . import complete, datasets, metrics, sampling  # noqa: F401
+
+
+@contextlib.contextmanager
+def _client(workers: int, address: str | None) -> Iterator[tuple[Any, int]]:
+    """A Dask client (and the number of worker threads) on a new LocalCluster or at ``address``."""
+    distributed = _import_dask()
+    if address is None:
+        cluster = distributed.LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
+        try:
+            with distributed.Client(cluster) as client:
+                client.run(_warm_up)
+                yield client, workers
+        finally:
+            cluster.close()
+    else:
+        with distributed.Client(address, timeout="30s") as client:
+            threads = sum(client.nthreads().values())
+            if threads == 0:
+                client.wait_for_workers(1, timeout=60)
+                threads = sum(client.nthreads().values())
+            client.run(_warm_up)
+            yield client, threads
+
+
+def run_batch(
+    frames: Sequence[FrameSpec],
+    output_dir: str | Path,
+    *,
+    config: DepthGPConfig | None = None,
+    loader: Callable[[FrameSpec], FrameInputs] | None = None,
+    task: Task = "complete",
+    workers: int | None = None,
+    address: str | None = None,
+    variance: bool = True,
+    png: bool = False,
+    max_in_flight: int | None = None,
+    progress: bool = True,
+) -> BatchReport:
+    """Completes (or evaluates) many frames on Dask, skipping done frames and isolating failures.
+
+    Args:
+        frames: Frame specs with unique ids (see `dataset_frames`).
+        output_dir: Folder of the outputs (created); one run at a time per folder.
+        config: GP model; default ``DepthGPConfig.residual()``. Its ``engine`` field picks the
+            engine ("exact" for a few thousand points, "fast" for full frames).
+        loader: Picklable ``loader(spec) -> FrameInputs`` run on the workers; default
+            `HoldoutInputs()`.
+        task: "complete" (write ``<id>.npz`` posteriors) or "eval" (also write
+            ``<id>.metrics.json`` and aggregate them).
+        workers: Local worker processes (one thread each); default the number of CPUs;
+            0 = run in this process without Dask. Ignored with ``address``.
+        address: Scheduler address of a running Dask cluster (e.g. ``"tcp://10.0.0.5:8786"``);
+            None = start a LocalCluster.
+        variance: Compute the posterior variance (always on for ``eval``).
+        png: Also write 16-bit PNGs of mean and std per frame.
+        max_in_flight: Frames submitted but not finished at any time (default twice the
+            worker threads): bounds the scheduler's memory on huge datasets and the work in
+            flight when a run is killed.
+        progress: Show a tqdm progress bar (frames/s).
+
+    Returns:
+        The `BatchReport`; it is also written to ``output_dir/batch_report.json``.
+    """
+    t_start = time.perf_counter()
+    frames = _check_frames(frames)
+    if task not in TASKS:
+        raise InvalidInputError("task", "'complete' or 'eval'", task)
+    if workers is None:
+        workers = os.cpu_count() or 1
+    if int(workers) != workers or workers < 0:
+        raise InvalidInputError("workers", "an integer >= 0 (0 = in this process)", workers)
+    workers = int(workers)
+    if address is not None and (not isinstance(address, str) or not address):
+        raise InvalidInputError("address", "a Dask scheduler address such as 'tcp://host:8786', or None", address)
+    if max_in_flight is not None and (int(max_in_flight) != max_in_flight or max_in_flight < 1):
+        raise InvalidInputError("max_in_flight", "an integer >= 1", max_in_flight)
+    config = config or DepthGPConfig.residual()
+    if not isinstance(config, DepthGPConfig):
+        raise InvalidInputError("config", "a DepthGPConfig", type(config).__name__)
+    loader = loader or HoldoutInputs()
+    if not callable(loader):
+        raise InvalidInputError("loader", "a callable loader(spec) -> FrameInputs", type(loader).__name__)
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+
+    with _exclusive(output_dir):
+        check_settings(output_dir, config, loader)
+        removed = remove_stale_temp_files(output_dir)
+        todo = [f for f in frames if not output_paths(output_dir, f.frame_id, task)["final"].is_file()]
+        n_skipped = len(frames) - len(todo)
+        kwargs = dict(config=config, loader=loader, task=task, variance=variance, png=png)
+        results: list[FrameResult] = []
+        startup = 0.0
+        t_compute = time.perf_counter()
+        n_workers = 0
+        bar = _progress_bar(len(todo), task, progress and bool(todo))
+        try:
+            if todo and (workers == 0 and address is None):
+                for spec in todo:
+                    results.append(process_frame(spec, str(output_dir), **kwargs))
+                    _advance(bar, results)
+            elif todo:
+                t0 = time.perf_counter()
+                with _client(workers, address) as (client, threads):
+                    startup = time.perf_counter() - t0
+                    n_workers = len(client.nthreads()) or workers
+                    t_compute = time.perf_counter()
+                    window = int(max_in_flight or 2 * max(threads, 1))
+                    results = _run_dask(client, todo, str(output_dir), kwargs, window, bar)
+        finally:
+            if bar is not None:
+                bar.close()
+        compute = time.perf_counter() - t_compute if todo else 0.0
+
+        failures = tuple(FrameFailure(r.frame_id, r.error or "unknown error", r.traceback or "") for r in results if not r.ok)
+        n_computed = sum(r.ok for r in results)
+        aggregate = aggregate_metrics(output_dir, [f.frame_id for f in frames]) if task == "eval" else None
+        report = BatchReport(
+            task=task,
+            output_dir=output_dir,
+            n_frames=len(frames),
+            n_computed=n_computed,
+            n_skipped=n_skipped,
+            failures=failures,
+            seconds=time.perf_counter() - t_start,
+            startup_seconds=startup,
+            compute_seconds=compute,
+            frames_per_second=n_computed / compute if compute > 0 else 0.0,
+            temp_files_removed=removed,
+            workers=n_workers,
+            aggregate=aggregate,
+        )
+        write_json(output_dir / REPORT_NAME, report.to_dict())
+    return report
+
+
+def _progress_bar(total: int, task: str, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True)
+
+
+def _advance(bar, results: list[FrameResult]) -> None:
+    if bar is None:
+        return
+    failed = sum(not r.ok for r in results)
+    if failed:
+        bar.set_postfix(failed=failed, refresh=False)
+    bar.update(1)
+
+
+def _run_dask(client, todo: list[FrameSpec], output_dir: str, kwargs: dict, window: int, bar) -> list[FrameResult]:
+    """Submits frames in a sliding window of ``window`` futures; collects results as they complete."""
+    distributed = _import_dask()
+    token = uuid.uuid4().hex[:8]
+    pending = iter(todo)
+    by_key: dict[str, FrameSpec] = {}
+
+    def submit(spec: FrameSpec):
+        key = f"gpdepth3d-{kwargs['task']}-{spec.frame_id}-{token}"
+        by_key[key] = spec
+        return client.submit(process_frame, spec, output_dir, key=key, pure=False, **kwargs)
+
+    first = [submit(s) for _, s in zip(range(window), pending)]
+    results: list[FrameResult] = []
+    queue = distributed.as_completed(first)
+    try:
+        for future in queue:
+            spec = by_key.pop(future.key)
+            try:
+                result = future.result()
+            except Exception as exc:  # noqa: BLE001 - lost worker (KilledWorker), cancelled, ...
+                result = FrameResult(
+                    spec.frame_id, False, 0.0, error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc()
+                )
+            future.release()
+            results.append(result)
+            _advance(bar, results)
+            nxt = next(pending, None)
+            if nxt is not None:
+                queue.add(submit(nxt))
+    except BaseException:
+        client.cancel(list(queue.futures))
+        raise
+    return results
+
+
+# ---------------------------------------------------------------------------------- command
+def batch_command(
+    *,
+    data: Path,
+    output_dir: Path,
+    dataset: Optional[Literal["kitti_tiny", "kitti_object", "7scenes", "ibims_sample", "vio_sparse"]] = None,
+    task: Literal["complete", "eval"] = "complete",
+    workers: int = 2,
+    address: Optional[str] = None,
+    limit: Optional[int] = None,
+    repeat: int = 1,
+    engine: Optional[Literal["exact", "kissgp", "fast"]] = None,
+    factor: int = 3,
+    n_input: int = 500,
+    mde: Literal["none", "standin"] = "none",
+    seed: int = 0,
+    png: bool = False,
+    progress: bool = True,
+) -> None:
+    """Complete or evaluate every frame of a dataset folder on Dask (resumable; re-run to finish).
+
+    Writes OUTPUT_DIR/<frame>.npz (posterior mean, variance, std in metres / m^2), with --task eval also
+    OUTPUT_DIR/<frame>.metrics.json, and OUTPUT_DIR/batch_report.json (counts, failures, mean metrics).
+    Frames already done are skipped, so a killed run resumes where it stopped. Inputs: --n-input
+    measurements sampled from the frame's LiDAR (20 % held out as ground truth for eval) or from its dense
+    depth; with --mde standin a STAND-IN MDE (densified input points with a smooth scale error) is the
+    prior mean, since no outdoor MDE network exists here. Exits with an error if any frame failed.
+
+    Args:
+        data: Dataset folder (kitti_tiny, 7scenes, ibims_sample, vio_sparse, kitti_object layouts).
+        output_dir: Output folder (created).
+        dataset: Dataset kind; default: detected from the folder.
+        task: "complete" (posteriors) or "eval" (posteriors + per-frame metrics + aggregate).
+        workers: Local Dask worker processes (0 = no Dask, in this process); ignored with --address.
+        address: Scheduler address of a running Dask cluster, e.g. tcp://10.0.0.5:8786 (the data and output
+            folders must be visible to its workers at the same paths).
+        limit: Process at most this many frames (after --repeat).
+        repeat: Repeat the dataset's frames this many times under new ids (benchmarks).
+        engine: GP engine: "exact" (dense, up to a few thousand points), "fast" (grid, full frames), "kissgp";
+            default: the model's default.
+        factor: Downsample the dataset resolution by this integer factor (3 = the paper's 1/3).
+        n_input: Measurements given as input per frame.
+        mde: "none" (no MDE) or "standin" (clearly a stand-in, see above).
+        seed: Seed of the per-frame sampling.
+        png: Also write 16-bit PNGs of mean and std.
+        progress: Show the progress bar.
+    """
+    frames = dataset_frames(data, dataset, repeat=repeat, limit=limit)
+    report = run_batch(
+        frames,
+        output_dir,
+        config=DepthGPConfig.residual() if engine is None else DepthGPConfig.residual(engine=engine),
+        loader=HoldoutInputs(factor=factor, n_input=n_input, mde=mde, seed=seed),
+        task=task,
+        workers=workers,
+        address=address,
+        png=png,
+        progress=progress,
+    )
+    print(report.summary())
+    print(f"wrote {report.n_computed} frame(s) and {Path(output_dir) / REPORT_NAME}")
+    if report.failures:
+        raise FramesFailedError(
+            f"{len(report.failures)} of {report.n_frames} frames failed (first: {report.failures[0].frame_id}: "
+            f"{report.failures[0].error}); see {Path(output_dir) / REPORT_NAME}; re-run to retry them"
+        )

@@ -1,0 +1,184 @@
+"""The ``gpdepth3d`` command line: a thin layer that parses, calls the library and maps errors.
+
+Every command prints what it wrote. A `GPDepthError` (bad input, missing or corrupt file)
+becomes one line on stderr and exit code 1.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated, Literal, Optional, Union
+
+import numpy as np
+import tyro
+
+from .errors import GPDepthError
+from .gp.model import DepthGPConfig
+
+# The GP model as a CLI choice: `gpdepth3d complete ... model:residual --model.lengthscale 30`.
+ModelChoice = Union[
+    Annotated[DepthGPConfig, tyro.conf.subcommand("paper", default=DepthGPConfig.paper(), prefix_name=False)],
+    Annotated[DepthGPConfig, tyro.conf.subcommand("residual", default=DepthGPConfig.residual(), prefix_name=False)],
+]
+
+
+def _print_metrics(rows: dict[str, dict[str, float]]) -> None:
+    keys = ("rmse", "mae", "irmse", "imae", "rel", "delta1")
+    print(f"{'method':<12}" + "".join(f"{k:>10}" for k in keys))
+    for name, m in rows.items():
+        print(f"{name:<12}" + "".join(f"{m[k]:>10.3f}" for k in keys))
+    print("(rmse, mae in mm; irmse, imae in 1/km; rel fraction; delta1 share)")
+
+
+def complete_command(
+    *,
+    mde: Path,
+    output: Path,
+    sparse: Optional[Path] = None,
+    lidar: Optional[Path] = None,
+    calib: Optional[Path] = None,
+    model: ModelChoice = DepthGPConfig.paper(),
+    lidar_image_size: Optional[tuple[int, int]] = None,
+    mde_png_scale: float = 1.0 / 256.0,
+    sparse_png_scale: float = 1.0 / 256.0,
+    sparse_points: Literal["uvd", "xyz"] = "uvd",
+    intrinsics: Optional[Path] = None,
+    gt: Optional[Path] = None,
+    gt_png_scale: float = 1.0 / 256.0,
+    gt_invalid_value: Optional[int] = None,
+    output_size: Optional[tuple[int, int]] = None,
+    png: bool = True,
+) -> None:
+    """Complete one frame: MDE depth + sparse depth -> posterior mean and variance.
+
+    Writes OUTPUT.npz (mean, variance, std, mde, in metres / m^2) and, with --png, OUTPUT_mean.png and
+    OUTPUT_std.png (16-bit, KITTI convention value = metres * 256). Prints metrics when --gt is given.
+
+    Args:
+        mde: MDE depth map (.npy/.npz in metres, or 16-bit .png with --mde-png-scale).
+        output: Output path (the .npz suffix is added).
+        sparse: Sparse depth: a sparse depth map (.npy/.npz/.png) or a point list (.npz with u, v, depth; .txt lines
+            "u v depth [sigma]" in MDE pixels and metres, or "X Y Z" camera-frame metres with --sparse-points xyz).
+        lidar: Instead of --sparse: a raw KITTI Velodyne scan (.bin), projected with --calib (closest point per pixel).
+        calib: KITTI calibration for --lidar: an object-benchmark calib_*.txt or a raw-data folder with
+            calib_cam_to_cam.txt and calib_velo_to_cam.txt.
+        lidar_image_size: HEIGHT WIDTH of the image the calibration belongs to (default: the MDE size); the
+            projected points are then moved to the MDE grid, closest point per pixel.
+        model: GP model preset ("paper": balanced KISS-GP of the paper; "residual": MDE as prior mean).
+        mde_png_scale: Metres per unit of a 16-bit MDE PNG.
+        sparse_png_scale: Metres per unit of a 16-bit sparse PNG.
+        sparse_points: How a .txt point list is read: "uvd" (pixels + depth) or "xyz" (camera frame, needs --intrinsics).
+        intrinsics: 3x3 K as text (fx 0 cx / 0 fy cy / 0 0 1) for the MDE image; checked against the image size.
+        gt: Ground-truth depth for metrics (same formats).
+        gt_png_scale: Metres per unit of a 16-bit ground-truth PNG (1/1000 for Kinect millimetres).
+        gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
+        output_size: Output HEIGHT WIDTH (default: the MDE size; larger upsamples).
+        png: Also write 16-bit PNGs of mean and std.
+    """
+    from .camera import PinholeCamera
+    from .complete import DepthCompleter
+    from .io import load_depth, load_sparse
+    from .errors import InvalidInputError
+    from .measurements import LidarCalibration, load_velodyne, project_points
+    from .metrics import calibration_metrics, depth_metrics
+
+    mde_depth = load_depth(mde, png_scale=mde_png_scale)
+    camera = None
+    if intrinsics is not None:
+        camera = PinholeCamera.from_K(_load_K(intrinsics), mde_depth.shape[1], mde_depth.shape[0])
+    if (sparse is None) == (lidar is None):
+        raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
+    if lidar is not None:
+        if calib is None:
+            raise InvalidInputError("--calib", "a KITTI calibration for --lidar", None)
+        calibration = LidarCalibration.from_kitti(calib)
+        measurements = calibration.project(load_velodyne(lidar), lidar_image_size or mde_depth.shape)
+    elif sparse_points == "xyz":
+        if camera is None:
+            raise InvalidInputError("--intrinsics", "intrinsics for --sparse-points xyz", None)
+        xyz = _load_table(sparse, 3)
+        measurements = project_points(xyz, camera)
+    else:
+        measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale)
+    completer = DepthCompleter(model)
+    posterior = completer.complete(mde_depth, measurements, output_shape=output_size)
+    written = posterior.save(output, png=png)
+    print(
+        f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
+        f"({model.formulation}, engine {model.engine}) in {sum(posterior.timings.values()):.2f} s"
+    )
+    if gt is not None:
+        gt_depth = load_depth(gt, png_scale=gt_png_scale, invalid_value=gt_invalid_value)
+        if gt_depth.shape != posterior.shape:
+            import cv2
+
+            gt_depth = cv2.resize(gt_depth, posterior.shape[::-1], interpolation=cv2.INTER_NEAREST)
+        rows = {"mde": depth_metrics(posterior.mde, gt_depth), "gp": depth_metrics(posterior.mean, gt_depth)}
+        _print_metrics(rows)
+        cal = calibration_metrics(posterior.mean, posterior.variance, gt_depth)
+        print(f"calibration: +-1 sigma {cal['coverage_1sigma']:.3f}, +-2 sigma {cal['coverage_2sigma']:.3f}, "
+              f"NLL {cal['nll']:.3f}")
+    for path in written:
+        print(f"wrote {path}")
+
+
+def _load_K(path: Path) -> np.ndarray:
+    from .errors import DataFormatError
+
+    try:
+        K = np.loadtxt(path, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise DataFormatError(path, f"expected a 3x3 intrinsic matrix as text: {exc}") from None
+    if K.shape != (3, 3):
+        raise DataFormatError(path, f"expected a 3x3 intrinsic matrix, got shape {K.shape}")
+    return K
+
+
+def _load_table(path: Path, columns: int) -> np.ndarray:
+    from .errors import DataFormatError
+
+    try:
+        table = np.loadtxt(path, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise DataFormatError(path, f"expected a numeric table: {exc}") from None
+    if table.shape[1] < columns:
+        raise DataFormatError(path, f"expected at least {columns} columns, got {table.shape[1]}")
+    return table[:, -columns:]
+
+
+def demo_command(*, output_dir: Path = Path("gpdepth3d_demo"), seed: int = 0) -> None:
+    """Run the whole flow on built-in synthetic data (no arguments needed) and say where the outputs are.
+
+    Args:
+        output_dir: Folder for the outputs.
+        seed: Seed of the synthetic scene.
+    """
+    from .demo import run_demo
+
+    for line in run_demo(output_dir, seed=seed):
+        print(line)
+
+
+COMMANDS = {
+    "demo": demo_command,
+    "complete": complete_command,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``gpdepth3d`` command."""
+    try:
+        tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, prog="gpdepth3d")
+    except GPDepthError as exc:
+        print(f"gpdepth3d: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("gpdepth3d: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

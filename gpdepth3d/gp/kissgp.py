@@ -1,0 +1,351 @@
+"""The ``kissgp`` engine: the paper's GPyTorch KISS-GP, set up so that it computes the exact model.
+
+Yoon & Kim (IROS 2020) solved the GP with GPyTorch's KISS-GP (structured kernel interpolation,
+Wilson & Nickisch, ICML 2015): the covariance between observed pixels is ``W K_UU W^T`` with
+``K_UU`` the kernel on a regular grid of inducing points (a Kronecker product of one Toeplitz
+matrix per image axis) and ``W`` sparse cubic-interpolation weights; solves use conjugate
+gradients (CG) with fast Kronecker/Toeplitz matrix-vector products. This engine builds exactly
+that GPyTorch model::
+
+    ExactGP(train_x = observed pixels (row, col), train_y = (obs - prior_mean) / s,
+            covar = ScaleKernel(GridInterpolationKernel(MaternKernel(nu, l), grid)),
+            likelihood = FixedNoiseGaussianLikelihood(noise = 1 / (precision * s^2)))
+
+with the hyperparameters fixed from the `GridProblem` (no training), and computes the posterior
+of the same separable-Matern model as `ExactEngine`:
+
+* **Grid on the pixel centres.** The inducing grid is the GP grid itself (integer pixel
+  centres) padded by two nodes on every side, so the cubic interpolation of a pixel centre is an
+  exact selection (weight 1 on its node) and ``W K_UU W^T`` *is* the kernel matrix: on the input
+  grid the engine has no approximation besides the CG tolerance. The grid bounds are given, so
+  GPyTorch never rebuilds the grid (GPyTorch issue #1704), and the two padding nodes keep every
+  output coordinate (>= -0.5 and <= H - 0.5) away from the boundary special case of its
+  interpolation (issues #836, #243).
+* **Kronecker order.** GPyTorch 1.15's ``GridKernel`` builds ``K_UU = K_cols (x) K_rows`` while
+  its interpolation indices are row-major (``index = i_row * G_cols + i_col``): on a non-square
+  grid (every image) the kernel it computes is not the Matern kernel (entries wrong by up to
+  0.5 of the prior variance; a square grid with an isotropic kernel hides it).
+  `PixelGridInterpolationKernel` builds the Kronecker product in index order; the tests check
+  ``W K_UU W^T`` against the dense kernel on a non-square grid.
+* **Conditioning (GPyTorch issue #768).** Everything is float64 and in units of the output scale
+  ``s`` with the prior mean subtracted, so the kernel has unit diagonal and the noise is the
+  ratio (sigma / s)^2 (e.g. 0.0025 for MDE pixels, 1e-6 for LiDAR points in the paper's
+  set-up). GPyTorch's default pivoted-Cholesky preconditioner ``L L^T + D`` is harmful with such
+  heteroscedastic noise: where ``L`` misses part of ``K`` the preconditioner is ~1e-6 while the
+  matrix is ~1, so preconditioning multiplies the condition number (this is the "never
+  converges" set-up). It is only used (rank `preconditioner_size`) when all noises are equal,
+  the case it was designed for; otherwise CG runs unpreconditioned, which converges because a
+  Matern kernel on a pixel grid with l ~ 1.5 is well conditioned by itself. CG (GPyTorch's
+  ``linear_cg``) runs to a relative residual of `cg_tolerance` and the engine checks the true
+  residual afterwards, raising `ConvergenceError` instead of returning an unconverged mean.
+* **Variance.** ``variance_method="solve"`` (default) computes the exact predictive variance
+  ``k** - k*o (K_oo + D)^-1 ko*`` by batched CG solves, one right-hand side per output pixel,
+  in blocks that bound memory: it matches the exact engine to the CG tolerance. ``"love"`` uses
+  GPyTorch's LOVE (``fast_pred_var``, Pleiss et al. 2018) with a Lanczos root decomposition of
+  size `root_decomposition_size`, clamped at 0 (LOVE with fixed heteroscedastic noise can go
+  negative, GPyTorch issue #864); it is much cheaper but a rank-r approximation of
+  ``(K_oo + D)^-1``, accurate only when r approaches the number of observed pixels (see
+  ``bench/kissgp.py`` for the measured error).
+* **Upsampled output** (``out_rows``/``out_cols`` between pixel centres, the paper's M > N
+  output): output pixels off the grid nodes get KISS-GP's cubic interpolation of the kernel,
+  ``k(x*, x) ~ w*^T K_UU w_x``. This is the one approximation of this engine; its error against
+  the exact kernel is largest for nu = 0.5 (the kernel has a cusp at 0 that a cubic cannot
+  follow) and is measured in ``tests/test_kissgp.py``.
+
+The engine runs on CPU or CUDA (`device`); cost per CG iteration is a few FFTs of the padded
+grid per right-hand side.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from typing import Literal
+
+import numpy as np
+import torch
+
+import gpytorch
+import linear_operator
+from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
+
+from ..errors import GPDepthError, InvalidInputError
+from .model import GridProblem
+
+VarianceMethod = Literal["solve", "love"]
+
+#: Grid axes longer than this use Toeplitz (FFT) Kronecker factors, shorter ones dense factors.
+TOEPLITZ_ABOVE = 1000
+
+
+class ConvergenceError(GPDepthError, ArithmeticError):
+    """Conjugate gradients did not reach the requested residual within the iteration limit."""
+
+
+class PixelGridInterpolationKernel(gpytorch.kernels.GridInterpolationKernel):
+    """GPyTorch ``GridInterpolationKernel`` whose inducing grid is the pixel grid of an image.
+
+    The grid nodes are the integer pixel centres ``-pad .. H - 1 + pad`` (rows) and
+    ``-pad .. W - 1 + pad`` (columns); inputs are (row, col) in pixel units. ``K_UU`` is built
+    as ``K_rows (x) K_cols`` (Toeplitz factors), the order of GPyTorch's row-major interpolation
+    indices (its own ``GridKernel`` reverses it, which is wrong on non-square grids).
+
+    Args:
+        base_kernel: A stationary one-dimensional-capable GPyTorch kernel (here a Matern).
+        shape: (H, W) of the pixel grid.
+        pad: Grid nodes added beyond the image on every side (>= 2 keeps outputs within
+            [-0.5, H - 0.5] clear of GPyTorch's interpolation boundary handling).
+    """
+
+    def __init__(
+        self, base_kernel: gpytorch.kernels.Kernel, shape: tuple[int, int], *, pad: int = 2, toeplitz: bool = False
+    ):
+        h, w = int(shape[0]), int(shape[1])
+        if h < 1 or w < 1:
+            raise InvalidInputError("shape", "(H, W) with H, W >= 1", shape)
+        if pad < 2:
+            raise InvalidInputError("pad", "an integer >= 2", pad)
+        bounds = ((-float(pad), float(h - 1 + pad)), (-float(pad), float(w - 1 + pad)))
+        super().__init__(base_kernel, grid_size=[h + 2 * pad, w + 2 * pad], grid_bounds=bounds)
+        self.pad = pad
+        self.toeplitz = bool(toeplitz)
+        self.image_shape = (h, w)
+        # Integer nodes (create_grid's spacing is (b1 - b0 + 2 d) / (G - 1), not 1).
+        self.update_grid([torch.arange(-pad, h + pad, dtype=torch.float64), torch.arange(-pad, w + pad, dtype=torch.float64)])
+
+    def _inducing_forward(self, last_dim_is_batch, **params):
+        if last_dim_is_batch:
+            return super()._inducing_forward(last_dim_is_batch=last_dim_is_batch, **params)
+        factors = []
+        for g in self.grid:
+            first_col = self.base_kernel(g[:1].unsqueeze(-1), g.unsqueeze(-1), **params).to_dense().squeeze(-2)
+            if self.toeplitz:
+                factors.append(ToeplitzLinearOperator(first_col))
+            else:
+                idx = torch.arange(g.shape[-1], device=g.device)
+                factors.append(DenseLinearOperator(first_col[(idx[:, None] - idx[None, :]).abs()]))
+        return KroneckerProductLinearOperator(*factors)
+
+
+class _KissGPModel(gpytorch.models.ExactGP):
+    """The paper's model: zero mean (data are residuals), ScaleKernel(KISS-GP(Matern))."""
+
+    def __init__(self, train_x, train_y, likelihood, *, nu: float, lengthscale: float, shape, pad: int, toeplitz: bool):
+        super().__init__(train_x, train_y, likelihood)
+        self.mean_module = gpytorch.means.ZeroMean()
+        base = gpytorch.kernels.MaternKernel(nu=nu)
+        base.lengthscale = lengthscale
+        self.covar_module = gpytorch.kernels.ScaleKernel(
+            PixelGridInterpolationKernel(base, shape, pad=pad, toeplitz=toeplitz)
+        )
+        self.covar_module.outputscale = 1.0
+
+    def forward(self, x):
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+def default_device() -> str:
+    """"cuda" when torch sees a GPU, else "cpu"."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+class KissGPEngine:
+    """GP posterior with GPyTorch KISS-GP (the paper's method), exact on the pixel grid.
+
+    See the module docstring for the model, the set-up and its one approximation (upsampled
+    output). After each `solve`, `last_stats` holds the CG iteration counts, the achieved
+    relative residuals and the timings.
+
+    Args:
+        device: Torch device ("cpu", "cuda", "cuda:1"); default "cuda" if available else "cpu".
+        variance_method: "solve" (exact predictive variance by batched CG) or "love"
+            (GPyTorch LOVE / fast_pred_var, approximate).
+        cg_tolerance: Relative residual ||A x - b|| / ||b|| at which CG stops (mean solve).
+        variance_cg_tolerance: Mean relative residual of the batched variance solves.
+        max_cg_iterations: CG iteration limit; exceeding it raises `ConvergenceError`.
+        preconditioner_size: Rank of GPyTorch's pivoted-Cholesky preconditioner, used only
+            when all observation noises are equal (0 = never).
+        root_decomposition_size: Lanczos rank of LOVE ("love" only).
+        block_entries: Memory bound of the variance solves: right-hand sides per block are
+            chosen so that (observed pixels x block) stays below this many entries.
+        pad: Inducing-grid nodes beyond the image on every side (>= 2).
+    """
+
+    name = "kissgp"
+
+    def __init__(
+        self,
+        *,
+        device: str | torch.device | None = None,
+        variance_method: VarianceMethod = "solve",
+        cg_tolerance: float = 1e-8,
+        variance_cg_tolerance: float = 1e-6,
+        max_cg_iterations: int = 5000,
+        preconditioner_size: int = 100,
+        root_decomposition_size: int = 1000,
+        block_entries: int = 20_000_000,
+        pad: int = 2,
+        toeplitz: bool | None = None,
+    ):
+        if variance_method not in ("solve", "love"):
+            raise InvalidInputError("variance_method", "'solve' or 'love'", variance_method)
+        for name, value in (("cg_tolerance", cg_tolerance), ("variance_cg_tolerance", variance_cg_tolerance)):
+            if not (math.isfinite(value) and 0 < value < 1):
+                raise InvalidInputError(name, "a value in (0, 1)", value)
+        for name, value, low in (
+            ("max_cg_iterations", max_cg_iterations, 1),
+            ("preconditioner_size", preconditioner_size, 0),
+            ("root_decomposition_size", root_decomposition_size, 1),
+            ("block_entries", block_entries, 1),
+            ("pad", pad, 2),
+        ):
+            if not isinstance(value, (int, np.integer)) or value < low:
+                raise InvalidInputError(name, f"an integer >= {low}", value)
+        try:
+            self.device = torch.device(default_device() if device is None else device)
+        except (RuntimeError, TypeError) as exc:
+            raise InvalidInputError("device", "a torch device such as 'cpu' or 'cuda'", device) from exc
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise InvalidInputError("device", "an available device (torch sees no CUDA GPU)", str(device))
+        self.variance_method = variance_method
+        self.cg_tolerance = float(cg_tolerance)
+        self.variance_cg_tolerance = float(variance_cg_tolerance)
+        self.max_cg_iterations = int(max_cg_iterations)
+        self.preconditioner_size = int(preconditioner_size)
+        self.root_decomposition_size = int(root_decomposition_size)
+        self.block_entries = int(block_entries)
+        self.pad = int(pad)
+        self.toeplitz = None if toeplitz is None else bool(toeplitz)
+        self.last_stats: dict = {}
+
+    # ------------------------------------------------------------------ helpers
+    def _tensor(self, a) -> torch.Tensor:
+        return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64, device=self.device)
+
+    def _cg(self, op, rhs: torch.Tensor, tolerance: float, preconditioner) -> tuple[torch.Tensor, int, float]:
+        """Solves op X = rhs with GPyTorch's CG; returns X, iterations and the worst true relative residual."""
+        calls = [0]
+
+        def matmul(x):
+            calls[0] += 1
+            return op._matmul(x)
+
+        with warnings.catch_warnings():
+            # Convergence is checked below on the true residual, per column.
+            warnings.simplefilter("ignore", linear_operator.utils.warnings.NumericalWarning)
+            x = linear_operator.utils.linear_cg(
+                matmul,
+                rhs,
+                tolerance=tolerance,
+                eps=1e-300,
+                stop_updating_after=tolerance * 1e-2,
+                max_iter=self.max_cg_iterations,
+                preconditioner=preconditioner,
+            )
+        iterations = max(calls[0] - 1, 0)  # one product computes the initial residual
+        resid = (op._matmul(x) - rhs).norm(dim=0) / rhs.norm(dim=0).clamp_min(1e-300)
+        return x, iterations, float(resid.max()) if resid.numel() else 0.0
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, problem: GridProblem, *, variance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None).
+
+        Raises:
+            ConvergenceError: CG did not reach its tolerance within `max_cg_iterations`.
+        """
+        t0 = time.perf_counter()
+        k = problem.kernel
+        s = float(k.outputscale)
+        h, w = problem.shape
+        ho, wo = problem.out_shape
+        rows, cols = np.nonzero(problem.precision > 0)
+        n = rows.shape[0]
+        stats: dict = {"observed": int(n), "outputs": int(ho * wo), "device": str(self.device)}
+        out_r, out_c = np.meshgrid(problem.out_rows, problem.out_cols, indexing="ij")
+        test_x = self._tensor(np.stack([out_r.ravel(), out_c.ravel()], axis=1))
+        prior_out = problem.out_prior_mean.astype(np.float64).reshape(ho, wo)
+
+        train_x = self._tensor(np.stack([rows, cols], axis=1).astype(np.float64))
+        y = self._tensor((problem.obs[rows, cols] - problem.prior_mean[rows, cols]) / s)
+        noise = self._tensor(1.0 / (problem.precision[rows, cols] * s * s))
+        likelihood = gpytorch.likelihoods.FixedNoiseGaussianLikelihood(noise=noise, learn_additional_noise=False)
+        model = _KissGPModel(
+            train_x, y, likelihood, nu=k.nu, lengthscale=k.lengthscale, shape=(h, w), pad=self.pad,
+            toeplitz=self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE,
+        ).to(device=self.device, dtype=torch.float64)
+        model.eval()
+        likelihood.eval()
+        covar = model.covar_module
+
+        with torch.no_grad(), gpytorch.settings.fast_computations(True, True, True):
+            if n == 0:
+                prior_var = covar(test_x, diag=True).to_dense().reshape(ho, wo)
+                self.last_stats = {**stats, "cg_iterations_mean": 0, "cg_iterations_variance": 0}
+                var = (s * s * prior_var).cpu().numpy() if variance else None
+                return prior_out.copy(), var
+
+            A = covar(train_x).evaluate_kernel().add_diagonal(noise)
+            precond = None
+            constant_noise = bool(torch.all(noise == noise[0]))
+            if constant_noise and self.preconditioner_size > 0 and n > self.preconditioner_size:
+                with linear_operator.settings.max_preconditioner_size(self.preconditioner_size), \
+                        linear_operator.settings.min_preconditioning_size(0):
+                    precond = A._preconditioner()[0]
+            stats["preconditioner"] = "pivoted_cholesky" if precond is not None else "none"
+            t1 = time.perf_counter()
+            alpha, iters, resid = self._cg(A, y.unsqueeze(-1), self.cg_tolerance, precond)
+            stats.update(cg_iterations_mean=iters, cg_residual_mean=resid)
+            if not resid <= max(10 * self.cg_tolerance, 1e-12):
+                raise ConvergenceError(
+                    f"kissgp: CG reached a relative residual of {resid:.3g} after {iters} iterations "
+                    f"(tolerance {self.cg_tolerance:g}); raise max_cg_iterations or check the noise levels"
+                )
+            cross = covar(test_x, train_x).evaluate_kernel()
+            mean = cross._matmul(alpha).squeeze(-1).reshape(ho, wo)
+            mean_np = prior_out + s * mean.cpu().numpy()
+            t2 = time.perf_counter()
+            stats["time_mean"] = t2 - t1
+            var_np = None
+            if variance:
+                if self.variance_method == "solve":
+                    var = self._variance_solve(covar, A, train_x, test_x, precond, stats)
+                else:
+                    var = self._variance_love(model, test_x, stats)
+                var_np = s * s * var.clamp_min(0.0).reshape(ho, wo).cpu().numpy()
+            stats["time_variance"] = time.perf_counter() - t2
+            stats["time_total"] = time.perf_counter() - t0
+        self.last_stats = stats
+        return mean_np, var_np
+
+    def _variance_solve(self, covar, A, train_x, test_x, precond, stats) -> torch.Tensor:
+        """Exact predictive variance k** - k*o A^-1 ko* by batched CG, in blocks of output pixels."""
+        n = train_x.shape[0]
+        m = test_x.shape[0]
+        block = int(max(1, min(m, self.block_entries // max(n, 1))))
+        out = torch.empty(m, dtype=torch.float64, device=self.device)
+        total_iters, worst, blocks = 0, 0.0, 0
+        for start in range(0, m, block):
+            xb = test_x[start : start + block]
+            b = xb.shape[0]
+            eye = torch.eye(b, dtype=torch.float64, device=self.device)
+            rhs = covar(train_x, xb).evaluate_kernel()._matmul(eye)  # (n, b) = K_o*
+            prior = covar(xb, diag=True).to_dense()
+            x, iters, resid = self._cg(A, rhs, self.variance_cg_tolerance, precond)
+            out[start : start + b] = prior - (rhs * x).sum(0)
+            total_iters += iters
+            worst = max(worst, resid)
+            blocks += 1
+        stats.update(cg_iterations_variance=total_iters / max(blocks, 1), cg_residual_variance=worst, variance_blocks=blocks)
+        return out
+
+    def _variance_love(self, model, test_x, stats) -> torch.Tensor:
+        """GPyTorch LOVE (fast_pred_var) predictive variance with a rank-r Lanczos root."""
+        with gpytorch.settings.fast_pred_var(True), gpytorch.settings.max_root_decomposition_size(
+            self.root_decomposition_size
+        ), gpytorch.settings.max_cg_iterations(self.max_cg_iterations), gpytorch.settings.eval_cg_tolerance(
+            self.cg_tolerance
+        ), gpytorch.settings.cg_tolerance(self.cg_tolerance), linear_operator.settings.max_preconditioner_size(0):
+            var = model(test_x).variance
+        stats["root_decomposition_size"] = self.root_decomposition_size
+        return var

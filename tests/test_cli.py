@@ -1,0 +1,120 @@
+"""The command line end to end: demo, complete (7-Scenes with sampled points, KITTI raw Velodyne), errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpdepth3d.cli import main
+from gpdepth3d.complete import DepthPosterior
+from gpdepth3d.io import load_depth
+from gpdepth3d.measurements import downsample_depth
+
+
+def _write_7scenes_inputs(root: Path, tmp_path: Path, n_points: int = 300):
+    """Stand-in MDE (Kinect depth blurred, scaled, noised: not a network) and points sampled from the depth."""
+    import cv2
+
+    gt = load_depth(root / "7scenes" / "frame-000000.depth.png", png_scale=1e-3, invalid_value=65535)
+    gt = downsample_depth(gt, 4)
+    rng = np.random.default_rng(0)
+    filled = np.where(gt > 0, gt, np.median(gt[gt > 0]))
+    mde = cv2.GaussianBlur(filled, (0, 0), 3) * 1.15 * np.exp(rng.normal(0, 0.02, gt.shape))
+    np.save(tmp_path / "mde.npy", mde)
+    v, u = np.nonzero(gt > 0)
+    pick = rng.choice(v.size, n_points, replace=False)
+    np.savetxt(tmp_path / "points.txt", np.stack([u[pick], v[pick], gt[v[pick], u[pick]]], 1))
+    np.save(tmp_path / "gt.npy", gt)
+    return gt, mde
+
+
+class TestCompleteCommand:
+    def test_7scenes_prior_and_sampled_points(self, shared_data, tmp_path, capsys):
+        gt, mde = _write_7scenes_inputs(shared_data, tmp_path)
+        code = main([
+            "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "points.txt"),
+            "--output", str(tmp_path / "out" / "frame0"), "--gt", str(tmp_path / "gt.npy"), "residual",
+        ])
+        assert code == 0
+        out = capsys.readouterr().out
+        assert "wrote" in out and "rmse" in out
+        post = DepthPosterior.load(tmp_path / "out" / "frame0.npz")
+        assert post.mean.shape == gt.shape
+        valid = gt > 0
+        rmse_mde = np.sqrt(np.mean((mde[valid] - gt[valid]) ** 2))
+        rmse_gp = np.sqrt(np.mean((post.mean[valid] - gt[valid]) ** 2))
+        assert rmse_gp < 0.6 * rmse_mde
+        assert np.all(post.variance > 0)
+        png = load_depth(tmp_path / "out" / "frame0_mean.png")  # KITTI convention metres * 256
+        np.testing.assert_allclose(png, post.mean, atol=1 / 256)
+
+    def test_kitti_raw_velodyne_projected_by_the_library(self, shared_data, tmp_path, capsys):
+        from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+        import gpdepth3d as g
+
+        folder = shared_data / "kitti_object"
+        calib = g.LidarCalibration.from_kitti(folder / "calib_000000.txt")
+        lidar = calib.project(g.load_velodyne(folder / "000000.bin"), (375, 1242))
+        small = downsample_depth(lidar.to_depth_map(), 3)
+        _, (ri, ci) = distance_transform_edt(small == 0, return_indices=True)
+        np.save(tmp_path / "mde.npy", gaussian_filter(small[ri, ci] * 1.3, 2.0))  # stand-in MDE, 125 x 414
+        code = main([
+            "complete", "--mde", str(tmp_path / "mde.npy"), "--lidar", str(folder / "000000.bin"),
+            "--calib", str(folder / "calib_000000.txt"), "--lidar-image-size", "375", "1242",
+            "--output", str(tmp_path / "kitti"), "--no-png", "residual",
+        ])
+        assert code == 0
+        post = DepthPosterior.load(tmp_path / "kitti.npz")
+        assert post.mean.shape == (125, 414)
+        assert len(post.sparse) > 3000
+        # At the measured pixels the posterior follows the LiDAR closely.
+        r, c = post.sparse.v.astype(int), post.sparse.u.astype(int)
+        assert np.median(np.abs(post.mean[r, c] - post.sparse.depth)) < 0.2
+        assert "wrote" in capsys.readouterr().out
+
+
+class TestErrors:
+    def test_missing_file_is_one_line_and_exit_1(self, tmp_path, capsys):
+        code = main(["complete", "--mde", str(tmp_path / "nope.npy"), "--sparse", str(tmp_path / "p.txt"),
+                     "--output", str(tmp_path / "o")])
+        assert code == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "nope.npy" in err[0] and "not found" in err[0]
+        assert not list(tmp_path.iterdir())
+
+    def test_both_sources_rejected(self, tmp_path, capsys):
+        np.save(tmp_path / "mde.npy", np.ones((8, 8)))
+        code = main(["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", "a.txt", "--lidar", "b.bin",
+                     "--output", str(tmp_path / "o")])
+        assert code == 1
+        assert "--sparse / --lidar" in capsys.readouterr().err
+        assert not (tmp_path / "o.npz").exists()
+
+    def test_intrinsics_that_do_not_fit_the_image(self, tmp_path, capsys):
+        np.save(tmp_path / "mde.npy", np.ones((48, 64)))
+        np.savetxt(tmp_path / "K.txt", [[585, 0, 320], [0, 585, 240], [0, 0, 1]])
+        np.savetxt(tmp_path / "xyz.txt", [[0.0, 0.0, 1.0]])
+        code = main(["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "xyz.txt"),
+                     "--sparse-points", "xyz", "--intrinsics", str(tmp_path / "K.txt"), "--output", str(tmp_path / "o")])
+        assert code == 1
+        assert "principal point" in capsys.readouterr().err
+
+
+class TestDemoCommand:
+    def test_demo_runs_from_the_installed_entry_point(self, tmp_path):
+        proc = subprocess.run(
+            [sys.executable, "-m", "gpdepth3d.cli", "demo", "--output-dir", str(tmp_path / "demo")],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert proc.returncode == 0, proc.stderr
+        assert "outputs are in" in proc.stdout
+        lines = {line.split()[0]: line for line in proc.stdout.splitlines() if line[:3] in ("mde", "gp-")}
+        rmse = {k: float(v.split()[1]) for k, v in lines.items()}
+        assert rmse["gp-residual"] < rmse["mde+scale"] < rmse["mde"]
+        assert rmse["gp-paper"] < rmse["mde"]
+        assert (tmp_path / "demo" / "gp-paper.npz").is_file()

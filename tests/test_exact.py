@@ -1,0 +1,170 @@
+"""Tests of the exact engine (gpdepth3d.gp.exact) against a naive dense GP written here."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+
+from gpdepth3d.complete import build_problem, complete
+from gpdepth3d.errors import ProblemTooLargeError
+from gpdepth3d.gp.exact import ExactEngine
+from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel
+from gpdepth3d.measurements import SparseDepth
+
+H, W = 6, 7
+
+
+def matern(d, nu, l):
+    """Matern correlation written out independently of gpdepth3d."""
+    r = np.abs(d) / l
+    if nu == 0.5:
+        return np.exp(-r)
+    if nu == 1.5:
+        return (1 + np.sqrt(3) * r) * np.exp(-np.sqrt(3) * r)
+    return (1 + np.sqrt(5) * r + 5 * r**2 / 3) * np.exp(-np.sqrt(5) * r)
+
+
+def k(ra, ca, rb, cb, s, nu, l):
+    return s**2 * matern(np.subtract.outer(ra, rb), nu, l) * matern(np.subtract.outer(ca, cb), nu, l)
+
+
+def naive_posterior(mde, sparse, cfg, out_shape):
+    """Dense GP with one row per observation (an MDE pixel and a point on it are two rows)."""
+    valid = np.isfinite(mde) & (mde > 0)
+    scale = np.median(mde[valid])
+    unit = scale if cfg.units == "relative" else 1.0
+    s, sdl, sm = cfg.outputscale * unit, cfg.sigma_dl * unit, cfg.sigma_meas * unit
+    pr, pc, pd = sparse.v, sparse.u, sparse.depth
+    psig = np.where(np.isfinite(sparse.sigma), sparse.sigma, sm)
+    ho, wo = out_shape
+    orr = (np.arange(ho) + 0.5) * H / ho - 0.5
+    occ = (np.arange(wo) + 0.5) * W / wo - 0.5
+    oR, oC = [a.ravel() for a in np.meshgrid(orr, occ, indexing="ij")]
+    if cfg.formulation == "balanced":
+        mr, mc = np.nonzero(valid)
+        rows = np.concatenate([mr, pr])
+        cols = np.concatenate([mc, pc])
+        y = np.concatenate([mde[valid], pd])
+        noise = np.concatenate([np.full(mr.size, sdl**2), psig**2])
+        c = mde[valid].mean()
+        m_obs = np.full(y.size, c)
+        m_out = np.full(oR.size, c)
+    else:
+        assert valid.all()
+        rows, cols, y, noise = pr, pc, pd, psig**2
+        m_obs = mde[pr.astype(int), pc.astype(int)]
+        m_out = map_coordinates(mde, [oR, oC], order=1, mode="nearest")  # bilinear, pixel centres
+    Koo = k(rows, cols, rows, cols, s, cfg.nu, cfg.lengthscale) + np.diag(noise)
+    Kso = k(oR, oC, rows, cols, s, cfg.nu, cfg.lengthscale)
+    mean = m_out + Kso @ np.linalg.solve(Koo, y - m_obs)
+    var = s**2 - np.einsum("ij,ji->i", Kso, np.linalg.solve(Koo, Kso.T))
+    return mean.reshape(out_shape), var.reshape(out_shape)
+
+
+def inputs(seed=0):
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:H, 0:W]
+    mde = 3.0 + 0.3 * r + 0.1 * c + 0.2 * rng.normal(size=(H, W))
+    pts = [(1, 2), (4, 5), (2, 6), (5, 0)]
+    v = np.array([p[0] for p in pts], float)
+    u = np.array([p[1] for p in pts], float)
+    d = mde[v.astype(int), u.astype(int)] * 1.1 + rng.normal(0, 0.05, size=len(pts))
+    sigma = np.array([np.nan, 0.02, np.nan, np.nan])  # one point carries its own sigma (metres)
+    return mde, SparseDepth(u, v, d, (H, W), sigma)
+
+
+CONFIGS = [
+    DepthGPConfig(engine="exact", nu=0.5, lengthscale=1.5),
+    DepthGPConfig(engine="exact", nu=1.5, lengthscale=2.0, sigma_dl=0.1, sigma_meas=0.01),
+    DepthGPConfig(engine="exact", nu=2.5, lengthscale=1.0, outputscale=0.5, units="metres"),
+    DepthGPConfig.residual(engine="exact", align="none", lengthscale=3.0),
+    DepthGPConfig.residual(engine="exact", align="none", nu=2.5, lengthscale=2.0, units="metres"),
+]
+
+
+class TestExactEngineVsNaiveGP:
+    @pytest.mark.parametrize("cfg", CONFIGS, ids=lambda c: f"{c.formulation}-nu{c.nu}-{c.units}")
+    @pytest.mark.parametrize("out_shape", [(H, W), (12, 14), (9, 10)])
+    def test_posterior_matches(self, cfg, out_shape):
+        mde, sparse = inputs()
+        if cfg.formulation == "balanced":
+            mde[3, 3] = np.nan  # an invalid MDE pixel is not an observation
+        post = complete(mde, sparse, config=cfg, output_shape=out_shape)
+        mean, var = naive_posterior(mde, sparse, cfg, out_shape)
+        assert post.mean.shape == post.variance.shape == out_shape
+        np.testing.assert_allclose(post.mean, mean, rtol=1e-8, atol=1e-8)
+        np.testing.assert_allclose(post.variance, var, rtol=1e-6, atol=1e-10)
+
+    def test_measurement_on_an_invalid_mde_pixel(self):
+        mde, _ = inputs()
+        mde[2, 2] = 0.0
+        sparse = SparseDepth(np.array([2.0]), np.array([2.0]), np.array([7.0]), (H, W))
+        cfg = CONFIGS[0]
+        post = complete(mde, sparse, config=cfg)
+        mean, var = naive_posterior(mde, sparse, cfg, (H, W))
+        np.testing.assert_allclose(post.mean, mean, rtol=1e-8)
+        np.testing.assert_allclose(post.variance, var, rtol=1e-6)
+
+
+def grid_problem(n_obs=5, shape=(H, W), seed=1, s=0.7):
+    rng = np.random.default_rng(seed)
+    precision = np.zeros(shape)
+    idx = rng.choice(shape[0] * shape[1], n_obs, replace=False)
+    precision.flat[idx] = 1.0 / 0.1**2
+    obs = rng.uniform(2.0, 4.0, size=shape)
+    return GridProblem(
+        prior_mean=np.full(shape, 3.0),
+        obs=obs,
+        precision=precision,
+        out_rows=np.arange(shape[0], dtype=float),
+        out_cols=np.arange(shape[1], dtype=float),
+        out_prior_mean=np.full(shape, 3.0),
+        kernel=Kernel(1.5, 2.0, s),
+    )
+
+
+class TestExactEngineSolve:
+    def test_variance_flag(self):
+        p = grid_problem()
+        mean, var = ExactEngine().solve(p)
+        mean2, none = ExactEngine().solve(p, variance=False)
+        assert none is None and var.shape == mean.shape == (H, W)
+        np.testing.assert_array_equal(mean, mean2)
+        assert np.all(var > 0) and np.all(var <= 0.7**2 + 1e-12)
+
+    def test_no_observations_gives_the_prior(self):
+        p = grid_problem(n_obs=0)
+        mean, var = ExactEngine().solve(p)
+        np.testing.assert_array_equal(mean, p.out_prior_mean)
+        np.testing.assert_allclose(var, 0.49)
+
+    def test_small_noise_interpolates(self):
+        p = grid_problem(n_obs=4)
+        p = GridProblem(p.prior_mean, p.obs, np.where(p.precision > 0, 1e10, 0.0), p.out_rows, p.out_cols, p.out_prior_mean, p.kernel)
+        mean, var = ExactEngine().solve(p)
+        at = p.precision > 0
+        np.testing.assert_allclose(mean[at], p.obs[at], atol=1e-4)
+        assert np.all(var[at] < 1e-8) and np.all(var[~at] > 1e-4)
+
+    def test_blocked_output_equals_single_block(self):
+        p = grid_problem(n_obs=10, shape=(20, 30))
+        a = ExactEngine().solve(p)
+        b = ExactEngine(max_cross_entries=10 * 600).solve(p)  # 4 output blocks of 150 pixels
+        np.testing.assert_allclose(a[0], b[0], rtol=1e-12)
+        np.testing.assert_allclose(a[1], b[1], rtol=1e-10)
+
+    def test_too_large_is_refused(self):
+        p = grid_problem(n_obs=10)
+        with pytest.raises(ProblemTooLargeError, match="exact engine"):
+            ExactEngine(max_points=9).solve(p)
+        with pytest.raises(ProblemTooLargeError):
+            ExactEngine(max_cross_entries=10 * H * W - 1).solve(p)
+        with pytest.raises(ProblemTooLargeError):
+            complete(*inputs(), config=DepthGPConfig(engine="exact", max_exact_points=10))
+
+    def test_build_problem_feeds_the_engine(self):
+        mde, sparse = inputs()
+        problem, grid_sparse, scale, _ = build_problem(mde, sparse, CONFIGS[0])
+        assert problem.output_is_input and scale == pytest.approx(np.median(mde))
+        assert np.count_nonzero(problem.precision) == H * W and len(grid_sparse) == 4

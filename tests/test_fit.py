@@ -1,0 +1,106 @@
+"""Tests of hyperparameter fitting (gpdepth3d.gp.fit) on data sampled from the model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpdepth3d.complete import build_problem
+from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp.fit import fit_hyperparameters, log_marginal_likelihood
+from gpdepth3d.gp.model import DepthGPConfig, matern_1d
+from gpdepth3d.measurements import SparseDepth
+
+H, W = 40, 48
+
+
+def sample_field(rng, lengthscale, s, nu=0.5, mean=10.0):
+    """One draw of the separable Matern field on the (H, W) grid (dense Kronecker Cholesky)."""
+    Lv = np.linalg.cholesky(matern_1d(np.subtract.outer(np.arange(H), np.arange(H)), nu, lengthscale) + 1e-10 * np.eye(H))
+    Lu = np.linalg.cholesky(matern_1d(np.subtract.outer(np.arange(W), np.arange(W)), nu, lengthscale) + 1e-10 * np.eye(W))
+    return mean + s * Lv @ rng.standard_normal((H, W)) @ Lu.T
+
+
+def balanced_frame(rng, lengthscale=3.0, s=1.0, sdl=0.3, smeas=0.02, n_points=300):
+    f = sample_field(rng, lengthscale, s)
+    mde = f + rng.normal(0, sdl, f.shape)
+    idx = rng.choice(H * W, n_points, replace=False)
+    r, c = np.divmod(idx, W)
+    sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), f[r, c] + rng.normal(0, smeas, n_points), (H, W))
+    return mde, sparse
+
+
+def dense_balanced_lml(mde, sparse, cfg):
+    """Dense reference: one row per observation (MDE pixels and points separately)."""
+    rr, cc = np.nonzero(mde > 0)
+    rows = np.concatenate([rr, sparse.v.astype(int)])
+    cols = np.concatenate([cc, sparse.u.astype(int)])
+    y = np.concatenate([mde[rr, cc], sparse.depth]) - mde[rr, cc].mean()
+    noise = np.concatenate([np.full(rr.size, cfg.sigma_dl**2), np.full(len(sparse), cfg.sigma_meas**2)])
+    K = cfg.outputscale**2 * matern_1d(np.subtract.outer(rows, rows), cfg.nu, cfg.lengthscale) * matern_1d(
+        np.subtract.outer(cols, cols), cfg.nu, cfg.lengthscale
+    ) + np.diag(noise)
+    sign, logdet = np.linalg.slogdet(K)
+    return -0.5 * y @ np.linalg.solve(K, y) - 0.5 * logdet - 0.5 * y.size * np.log(2 * np.pi)
+
+
+class TestLogMarginalLikelihood:
+    def test_balanced_matches_dense_with_double_observations(self):
+        rng = np.random.default_rng(0)
+        small = (12, 14)
+        f = 10 + rng.normal(0, 1, small)
+        mde = f + rng.normal(0, 0.3, small)
+        r, c = np.divmod(rng.choice(small[0] * small[1], 20, replace=False), small[1])
+        sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), f[r, c], small)
+        cfg = DepthGPConfig(units="metres", lengthscale=2.0, outputscale=1.2, sigma_dl=0.3, sigma_meas=0.05)
+        assert log_marginal_likelihood(mde, sparse, cfg) == pytest.approx(dense_balanced_lml(mde, sparse, cfg), rel=1e-9)
+
+    def test_residual_matches_dense(self):
+        rng = np.random.default_rng(1)
+        mde = 10 + rng.normal(0, 1, (10, 12))
+        r, c = np.divmod(rng.choice(120, 30, replace=False), 12)
+        sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), mde[r, c] + rng.normal(0, 0.5, 30), (10, 12))
+        cfg = DepthGPConfig.residual(units="metres", align="none", outputscale=0.7, lengthscale=3.0, sigma_meas=0.1)
+        problem, *_ = build_problem(mde, sparse, cfg)
+        K = 0.49 * matern_1d(np.subtract.outer(r, r), 0.5, 3.0) * matern_1d(np.subtract.outer(c, c), 0.5, 3.0)
+        K += 0.01 * np.eye(30)
+        y = sparse.depth - mde[r, c]
+        dense = -0.5 * y @ np.linalg.solve(K, y) - 0.5 * np.linalg.slogdet(K)[1] - 15 * np.log(2 * np.pi)
+        assert log_marginal_likelihood(mde, sparse, cfg) == pytest.approx(dense, rel=1e-9)
+
+
+class TestFitHyperparameters:
+    def test_recovers_balanced_parameters_and_improves_lml(self):
+        rng = np.random.default_rng(2)
+        mde, sparse = balanced_frame(rng, lengthscale=3.0, s=1.0, sdl=0.3, smeas=0.02)
+        start = DepthGPConfig(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02)
+        fitted = fit_hyperparameters(mde, sparse, start)
+        assert fitted.lengthscale == pytest.approx(3.0, rel=0.4)
+        assert fitted.outputscale == pytest.approx(1.0, rel=0.4)
+        assert fitted.sigma_dl == pytest.approx(0.3, rel=0.15)
+        assert fitted.sigma_meas == start.sigma_meas and fitted.formulation == "balanced"
+        assert log_marginal_likelihood(mde, sparse, fitted) > log_marginal_likelihood(mde, sparse, start) + 10
+
+    def test_residual_fit_improves_lml(self):
+        rng = np.random.default_rng(3)
+        err = sample_field(rng, 6.0, 0.8, mean=0.0)
+        truth = 10 + rng.normal(0, 1, (H, W))
+        mde = truth - err
+        r, c = np.divmod(rng.choice(H * W, 800, replace=False), W)
+        sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), truth[r, c], (H, W), sigma=0.01)
+        start = DepthGPConfig.residual(units="metres", align="none", lengthscale=1.0, outputscale=0.1)
+        fitted = fit_hyperparameters(mde, sparse, start)
+        assert fitted.lengthscale == pytest.approx(6.0, rel=0.5)
+        assert fitted.outputscale == pytest.approx(0.8, rel=0.5)
+        assert log_marginal_likelihood(mde, sparse, fitted) > log_marginal_likelihood(mde, sparse, start)
+
+    def test_bad_arguments(self):
+        mde, sparse = balanced_frame(np.random.default_rng(4), n_points=10)
+        with pytest.raises(InvalidInputError):
+            fit_hyperparameters(mde, sparse, DepthGPConfig(), params=("bogus",))
+        with pytest.raises(InvalidInputError):
+            fit_hyperparameters(mde, sparse, DepthGPConfig.residual(), params=("sigma_dl",))
+        with pytest.raises(InvalidInputError):
+            fit_hyperparameters(mde, sparse, DepthGPConfig(), max_iterations=0)
+        with pytest.raises(InvalidInputError):
+            fit_hyperparameters(mde, sparse, "config")

@@ -1,0 +1,269 @@
+"""Tests of gpdepth3d.io: atomic writes, depth PNG/npy/npz, sparse point lists, RGB images."""
+
+from __future__ import annotations
+
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+
+from gpdepth3d import io as gio
+from gpdepth3d.errors import DataFormatError, InvalidDepthError, ShapeError
+from gpdepth3d.io import (
+    KITTI_PNG_SCALE,
+    atomic_path,
+    atomic_write,
+    load_depth,
+    load_rgb,
+    load_sparse,
+    save_depth_png,
+    save_npz,
+)
+
+
+def listing(folder):
+    return sorted(p.name for p in folder.iterdir())
+
+
+class TestAtomicPath:
+    def test_success_moves_into_place(self, tmp_path):
+        target = tmp_path / "sub" / "out.txt"
+        with atomic_path(target) as tmp:
+            assert tmp.parent == target.parent and tmp != target
+            tmp.write_text("hello")
+            assert not target.exists()
+        assert target.read_text() == "hello"
+        assert listing(target.parent) == ["out.txt"]
+
+    def test_failure_leaves_nothing(self, tmp_path):
+        target = tmp_path / "out.txt"
+        with pytest.raises(RuntimeError):
+            with atomic_path(target) as tmp:
+                tmp.write_text("half")
+                raise RuntimeError("writer died")
+        assert listing(tmp_path) == []
+
+    def test_failure_keeps_an_existing_file(self, tmp_path):
+        target = tmp_path / "out.txt"
+        target.write_text("old")
+        with pytest.raises(RuntimeError):
+            with atomic_path(target) as tmp:
+                tmp.write_text("new but broken")
+                raise RuntimeError("writer died")
+        assert target.read_text() == "old" and listing(tmp_path) == ["out.txt"]
+
+
+class TestAtomicWrite:
+    def test_writes(self, tmp_path):
+        out = atomic_write(tmp_path / "a.bin", lambda p: p.write_bytes(b"abc"))
+        assert out.read_bytes() == b"abc"
+
+    def test_failing_writer_leaves_no_file_and_no_temp(self, tmp_path):
+        def writer(p):
+            p.write_bytes(b"partial")
+            raise OSError("disk full")
+
+        with pytest.raises(OSError):
+            atomic_write(tmp_path / "a.bin", writer)
+        assert listing(tmp_path) == []
+
+
+class TestSaveNpz:
+    def test_round_trip(self, tmp_path):
+        a = np.arange(12.0).reshape(3, 4)
+        path = save_npz(tmp_path / "x.npz", depth=a, other=np.int16(3))
+        with np.load(path) as d:
+            np.testing.assert_array_equal(d["depth"], a)
+            assert int(d["other"]) == 3
+
+    def test_failure_leaves_nothing(self, tmp_path, monkeypatch):
+        def broken(f, **arrays):
+            f.write(b"PK\x03\x04 partial zip")
+            raise OSError("disk full")
+
+        monkeypatch.setattr(gio.np, "savez_compressed", broken)
+        with pytest.raises(OSError):
+            save_npz(tmp_path / "x.npz", depth=np.ones(3))
+        assert listing(tmp_path) == []
+
+
+class TestSaveDepthPng:
+    def test_round_trip_kitti_convention(self, tmp_path):
+        rng = np.random.default_rng(0)
+        d = rng.uniform(0.5, 80.0, size=(7, 9))
+        d[0, 0] = 0.0
+        d[1, 1] = np.nan
+        d[2, 2] = -3.0  # invalid: written as 0
+        path = save_depth_png(tmp_path / "d.png", d)
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        assert raw.dtype == np.uint16 and raw.shape == (7, 9)
+        assert raw[0, 0] == raw[1, 1] == raw[2, 2] == 0
+        assert raw[3, 3] == np.rint(d[3, 3] * 256)
+        back = load_depth(path)
+        valid = np.isfinite(d) & (d > 0)
+        np.testing.assert_allclose(back[valid], d[valid], atol=0.5 / 256)
+        assert np.all(back[~valid] == 0)
+
+    def test_suffix_and_scale(self, tmp_path):
+        path = save_depth_png(tmp_path / "d.npy", np.full((2, 2), 1.234), png_scale=1e-3)
+        assert path.suffix == ".png" and path.exists()
+        np.testing.assert_allclose(load_depth(path, png_scale=1e-3), 1.234)
+
+    def test_too_deep_raises_and_writes_nothing(self, tmp_path):
+        with pytest.raises(InvalidDepthError):
+            save_depth_png(tmp_path / "d.png", np.full((2, 2), 300.0))  # 300 m > 255.99 m at 1/256
+        assert listing(tmp_path) == []
+
+    def test_bad_shape(self, tmp_path):
+        with pytest.raises(ShapeError):
+            save_depth_png(tmp_path / "d.png", np.ones((2, 2, 3)))
+        assert listing(tmp_path) == []
+
+
+class TestLoadDepth:
+    def test_npy_and_npz(self, tmp_path):
+        d = np.array([[1.0, np.nan], [np.inf, 2.0]])
+        np.save(tmp_path / "d.npy", d)
+        np.testing.assert_array_equal(load_depth(tmp_path / "d.npy"), [[1.0, 0.0], [0.0, 2.0]])
+        np.savez(tmp_path / "one.npz", anything=d[..., None])  # (H, W, 1) is squeezed
+        assert load_depth(tmp_path / "one.npz").shape == (2, 2)
+        np.savez(tmp_path / "two.npz", depth=np.ones((2, 2)), rgb=np.zeros((2, 2, 3)))
+        np.testing.assert_array_equal(load_depth(tmp_path / "two.npz"), np.ones((2, 2)))
+        np.savez(tmp_path / "post.npz", variance=np.zeros((2, 2)), mean=np.full((2, 2), 3.0))
+        np.testing.assert_array_equal(load_depth(tmp_path / "post.npz"), np.full((2, 2), 3.0))
+        np.testing.assert_array_equal(load_depth(tmp_path / "post.npz", key="variance"), np.zeros((2, 2)))
+
+    def test_npz_key_errors(self, tmp_path):
+        np.savez(tmp_path / "amb.npz", a=np.ones((2, 2)), b=np.ones((2, 2)))
+        with pytest.raises(DataFormatError, match="key="):
+            load_depth(tmp_path / "amb.npz")
+        with pytest.raises(DataFormatError, match="no array"):
+            load_depth(tmp_path / "amb.npz", key="depth")
+
+    def test_png_invalid_value(self, tmp_path):
+        raw = np.array([[1000, 65535], [0, 2500]], dtype=np.uint16)
+        cv2.imwrite(str(tmp_path / "k.png"), raw)
+        d = load_depth(tmp_path / "k.png", png_scale=1e-3, invalid_value=65535)
+        np.testing.assert_allclose(d, [[1.0, 0.0], [0.0, 2.5]])
+
+    def test_8bit_png_rejected(self, tmp_path):
+        cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((4, 4, 3), np.uint8))
+        with pytest.raises(DataFormatError, match="16-bit"):
+            load_depth(tmp_path / "rgb.png")
+
+    @pytest.mark.parametrize(
+        "name, content",
+        [("d.npy", b"not a depth map"), ("d.npz", b"not a depth map"), ("d.npz", b"PK\x03\x04 truncated"), ("d.png", b"\x89PNG\r\n")],
+    )
+    def test_corrupt_files(self, tmp_path, name, content):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(DataFormatError):
+            load_depth(tmp_path / name)
+
+    def test_missing_unknown_and_wrong_rank(self, tmp_path):
+        with pytest.raises(DataFormatError, match="not found"):
+            load_depth(tmp_path / "missing.npy")
+        (tmp_path / "d.tiff").write_bytes(b"II*\x00")
+        with pytest.raises(DataFormatError, match="unknown"):
+            load_depth(tmp_path / "d.tiff")
+        np.save(tmp_path / "cube.npy", np.ones((2, 2, 2)))
+        with pytest.raises(DataFormatError, match="2-D"):
+            load_depth(tmp_path / "cube.npy")
+        np.save(tmp_path / "obj.npy", np.array([None, 1], dtype=object), allow_pickle=True)
+        with pytest.raises(DataFormatError):
+            load_depth(tmp_path / "obj.npy")  # pickles are refused
+
+    def test_seven_scenes_depth(self, seven_scenes_frame):
+        d = seven_scenes_frame.depth
+        assert d.shape == (480, 640)
+        valid = d > 0
+        assert 0.7 < valid.mean() <= 1.0
+        assert 0.3 < d[valid].min() and d[valid].max() < 8.0  # Kinect range, millimetres read as metres
+
+
+class TestLoadSparse:
+    def test_npz_point_list(self, tmp_path):
+        np.savez(tmp_path / "p.npz", u=[1.0, 50.0], v=[2.0, 1.0], depth=[3.0, 4.0], sigma=[0.1, 0.2])
+        s = load_sparse(tmp_path / "p.npz", (10, 20))  # the second point is outside: dropped
+        assert len(s) == 1 and (s.u[0], s.v[0], s.depth[0], s.sigma[0]) == (1.0, 2.0, 3.0, 0.1)
+        with pytest.raises(ShapeError):
+            load_sparse(tmp_path / "p.npz")
+
+    def test_text_point_lists(self, tmp_path):
+        (tmp_path / "p.txt").write_text("1 2 3.5\n4 5 6.5\n")
+        s = load_sparse(tmp_path / "p.txt", (10, 10))
+        np.testing.assert_array_equal(s.depth, [3.5, 6.5])
+        assert np.all(np.isnan(s.sigma))
+        (tmp_path / "p.csv").write_text("1,2,3.5,0.01\n")
+        s = load_sparse(tmp_path / "p.csv", (10, 10))
+        assert s.sigma[0] == 0.01
+        (tmp_path / "empty.txt").write_text("")
+        with warnings.catch_warnings():  # numpy may warn that the file holds no data
+            warnings.simplefilter("ignore", UserWarning)
+            assert len(load_sparse(tmp_path / "empty.txt", (10, 10))) == 0
+        with pytest.raises(ShapeError):
+            load_sparse(tmp_path / "p.txt")
+
+    def test_text_errors(self, tmp_path):
+        (tmp_path / "cols.txt").write_text("1 2\n3 4\n")
+        with pytest.raises(DataFormatError, match="columns"):
+            load_sparse(tmp_path / "cols.txt", (10, 10))
+        (tmp_path / "junk.txt").write_text("u v depth\nfoo bar baz\n")
+        with pytest.raises(DataFormatError):
+            load_sparse(tmp_path / "junk.txt", (10, 10))
+        with pytest.raises(DataFormatError):
+            load_sparse(tmp_path / "missing.txt", (10, 10))
+
+    def test_sparse_depth_map(self, tmp_path):
+        m = np.zeros((6, 8))
+        m[1, 2] = 4.0
+        m[5, 7] = 12.5
+        save_depth_png(tmp_path / "s.png", m)
+        s = load_sparse(tmp_path / "s.png")
+        assert s.image_size == (6, 8) and len(s) == 2
+        np.testing.assert_allclose(s.to_depth_map(), m, atol=0.5 / 256)
+        with pytest.raises(ShapeError):
+            load_sparse(tmp_path / "s.png", (12, 16))
+        np.save(tmp_path / "s.npy", m)
+        np.testing.assert_array_equal(load_sparse(tmp_path / "s.npy").to_depth_map(), m)
+
+    @pytest.mark.parametrize("content", [b"garbage", b"PK\x03\x04 truncated zip"])
+    def test_corrupt_npz(self, tmp_path, content):
+        (tmp_path / "bad.npz").write_bytes(content)
+        with pytest.raises(DataFormatError):
+            load_sparse(tmp_path / "bad.npz", (4, 4))
+
+    def test_invalid_sigma_in_point_list(self, tmp_path):
+        np.savez(tmp_path / "p.npz", u=[1.0], v=[2.0], depth=[3.0], sigma=[-0.1])
+        with pytest.raises(InvalidDepthError):
+            load_sparse(tmp_path / "p.npz", (10, 20))
+
+    def test_ibims_samples(self, shared_data):
+        gt = load_depth(shared_data / "ibims_sample" / "gt.npz")
+        s = load_sparse(shared_data / "ibims_sample" / "sparse_100.npz", gt.shape)
+        assert 90 <= len(s) <= 100
+        np.testing.assert_allclose(s.depth, gt[s.v.astype(int), s.u.astype(int)], rtol=1e-6)
+
+
+class TestLoadRgb:
+    def test_round_trip(self, tmp_path):
+        rgb = np.zeros((4, 5, 3), np.uint8)
+        rgb[..., 0] = 200  # red
+        cv2.imwrite(str(tmp_path / "c.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        out = load_rgb(tmp_path / "c.png")
+        np.testing.assert_array_equal(out, rgb)
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(DataFormatError):
+            load_rgb(tmp_path / "missing.png")
+        (tmp_path / "bad.jpg").write_bytes(b"not a jpeg")
+        with pytest.raises(DataFormatError):
+            load_rgb(tmp_path / "bad.jpg")
+
+    def test_seven_scenes_colour(self, seven_scenes_frame):
+        assert seven_scenes_frame.rgb.shape == (480, 640, 3) and seven_scenes_frame.rgb.dtype == np.uint8
+
+
+def test_kitti_png_scale_constant():
+    assert KITTI_PNG_SCALE == 1.0 / 256.0
