@@ -13,7 +13,11 @@ Measured:
   ``compute`` is first submission to last result, ``total`` adds the cluster start-up;
 * scaling = frames/s with 2 workers / frames/s with 1 worker;
 * overhead per frame = (compute time with 1 worker - plain loop time) / frames, and the same
-  with the start-up included.
+  with the start-up included;
+* CPU seconds of each run (this process, which hosts the Dask scheduler, plus its waited-for
+  child processes, the workers: ``getrusage`` SELF + CHILDREN) and the CPU overhead per frame
+  against the plain loop. Unlike wall time, CPU time hardly depends on what else runs on the
+  machine, so it is the robust overhead figure on a busy machine.
 
 Prints a table and writes ``bench/results/batch.json`` (atomically). Timings on a shared
 2-core machine are noisy: the load average before and after each run is recorded.
@@ -26,6 +30,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import platform
 import shutil
 import tempfile
@@ -38,6 +43,15 @@ REPO = Path(__file__).resolve().parents[1]
 def default_data() -> Path:
     env = os.environ.get("GPDEPTH3D_DATA")
     return (Path(env) if env else REPO.parent / "shared" / "data") / "kitti_tiny"
+
+
+def cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its terminated, waited-for children."""
+    total = 0.0
+    for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN):
+        usage = resource.getrusage(who)
+        total += usage.ru_utime + usage.ru_stime
+    return total
 
 
 def plain_loop(frames, out: Path, config, loader) -> float:
@@ -91,7 +105,9 @@ def main() -> None:
     rows = []
     try:
         load0 = os.getloadavg()
+        cpu0 = cpu_seconds()
         plain_s = plain_loop(frames, scratch / "plain", config, loader)
+        plain_cpu = cpu_seconds() - cpu0
         rows.append(
             {
                 "mode": "plain loop",
@@ -101,6 +117,7 @@ def main() -> None:
                 "compute_s": plain_s,
                 "total_s": plain_s,
                 "frames_per_s": len(frames) / plain_s,
+                "cpu_s": plain_cpu,
                 "load_before": load0[0],
                 "load_after": os.getloadavg()[0],
             }
@@ -108,6 +125,7 @@ def main() -> None:
         print(f"plain loop: {len(frames) / plain_s:.3f} frames/s", flush=True)
         for w in args.workers:
             load0 = os.getloadavg()
+            cpu0 = cpu_seconds()
             report = run_batch(frames, scratch / f"dask{w}", config=config, loader=loader, workers=w, progress=False)
             if not report.ok:
                 raise RuntimeError(report.summary())
@@ -120,6 +138,7 @@ def main() -> None:
                     "compute_s": report.compute_seconds,
                     "total_s": report.seconds,
                     "frames_per_s": report.frames_per_second,
+                    "cpu_s": cpu_seconds() - cpu0,
                     "load_before": load0[0],
                     "load_after": os.getloadavg()[0],
                 }
@@ -137,13 +156,20 @@ def main() -> None:
         summary["overhead_per_frame_s"] = (by_workers[1]["compute_s"] - plain_s) / n
         summary["overhead_per_frame_with_startup_s"] = (by_workers[1]["total_s"] - plain_s) / n
         summary["plain_s_per_frame"] = plain_s / n
+        summary["plain_cpu_s_per_frame"] = plain_cpu / n
+        summary["cpu_overhead_per_frame_s"] = (by_workers[1]["cpu_s"] - plain_cpu) / n
+    if 2 in by_workers:
+        summary["cpu_overhead_per_frame_2_workers_s"] = (by_workers[2]["cpu_s"] - plain_cpu) / n
 
     print()
-    print(f"{'mode':<20}{'workers':>8}{'frames':>8}{'start-up s':>12}{'compute s':>11}{'frames/s':>10}{'load':>12}")
+    print(
+        f"{'mode':<20}{'workers':>8}{'frames':>8}{'start-up s':>12}{'compute s':>11}{'frames/s':>10}"
+        f"{'CPU s':>9}{'load':>12}"
+    )
     for r in rows:
         print(
             f"{r['mode']:<20}{r['workers']:>8}{r['frames']:>8}{r['startup_s']:>12.2f}{r['compute_s']:>11.1f}"
-            f"{r['frames_per_s']:>10.3f}{r['load_before']:>6.1f}->{r['load_after']:<5.1f}"
+            f"{r['frames_per_s']:>10.3f}{r['cpu_s']:>9.1f}{r['load_before']:>6.1f}->{r['load_after']:<5.1f}"
         )
     for key, value in summary.items():
         print(f"{key}: {value:.4f}")

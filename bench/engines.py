@@ -90,6 +90,8 @@ def make(engine: str, config):
 
 def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
     """Runs one (engine, size) cell in this process; returns its measurements."""
+    import torch  # noqa: F401  (one-time import, not part of the first-frame time)
+
     from gpdepth3d.complete import DepthCompleter
 
     mde, sparse, config = load_frame(data, size)

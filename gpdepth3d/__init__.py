@@ -8,6 +8,17 @@ stated once in `gpdepth3d.camera`.
 
 from .camera import PinholeCamera as PinholeCamera
 from .camera import check_pose as check_pose
+from .cloud import ColoredCloud as ColoredCloud
+from .cloud import backproject_depth as backproject_depth
+from .cloud import backproject_posterior as backproject_posterior
+from .fusion import FusionConfig as FusionConfig
+from .fusion import TSDFFusion as TSDFFusion
+from .fusion import save_mesh as save_mesh
+from .mapping import Mapper as Mapper
+from .mapping import MapperConfig as MapperConfig
+from .mapping import sparse_from_map_points as sparse_from_map_points
+from .triangulation import TriangulationConfig as TriangulationConfig
+from .triangulation import triangulate_frames as triangulate_frames
 from .complete import DepthCompleter as DepthCompleter
 from .complete import DepthPosterior as DepthPosterior
 from .complete import complete as complete

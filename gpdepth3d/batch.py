@@ -56,7 +56,7 @@ import numpy as np
 
 from .errors import GPDepthError, InvalidInputError
 from .gp.model import DepthGPConfig
-from .io import atomic_path, atomic_write
+from .io import atomic_write
 from .measurements import SparseDepth, downsample_depth
 
 Task = Literal["complete", "eval"]
@@ -662,7 +662,10 @@ def run_batch(
         png: Also write 16-bit PNGs of mean and std per frame.
         max_in_flight: Frames submitted but not finished at any time (default twice the
             worker threads): bounds the scheduler's memory on huge datasets and the work in
-            flight when a run is killed.
+            flight when a run is killed. A frame that kills its worker process (segfault,
+            out of memory) is retried on other workers and then reported as ``KilledWorker``
+            (Dask's ``distributed.scheduler.allowed-failures``, default 3); frames waiting on
+            that worker are rescheduled.
         progress: Show a tqdm progress bar (frames/s).
 
     Returns:
@@ -746,7 +749,9 @@ def _progress_bar(total: int, task: str, enabled: bool):
         return None
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True)
+    # rate_noinv: always frames/s (tqdm would switch to s/frame below one frame per second).
+    fmt = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}{postfix}]"
+    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True, bar_format=fmt)
 
 
 def _advance(bar, results: list[FrameResult]) -> None:

@@ -161,16 +161,20 @@ def demo_command(*, output_dir: Path = Path("gpdepth3d_demo"), seed: int = 0) ->
         print(line)
 
 
-COMMANDS = {
-    "demo": demo_command,
-    "complete": complete_command,
-}
+def _commands() -> dict:
+    from .viewer import view_command
+
+    return {
+        "demo": demo_command,
+        "complete": complete_command,
+        "view": view_command,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``gpdepth3d`` command."""
     try:
-        tyro.extras.subcommand_cli_from_dict(COMMANDS, args=argv, prog="gpdepth3d")
+        tyro.extras.subcommand_cli_from_dict(_commands(), args=argv, prog="gpdepth3d")
     except GPDepthError as exc:
         print(f"gpdepth3d: error: {exc}", file=sys.stderr)
         return 1

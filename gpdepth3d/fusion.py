@@ -12,6 +12,12 @@ weight ``w_p``. For every voxel centre ``x`` (world frame) in the truncation ban
     color <- (W * color + w * rgb[v, u]) / (W + w)
     W     <- min(W + w, weight_cap)
 
+Implementation: the blocks to allocate are found by sampling every valid pixel's ray through
+the truncation band (Open3D's ``compute_unique_block_coordinates`` samples the band too
+sparsely for truncations of several blocks and would leave band voxels un-updated); the voxel
+update runs in torch on zero-copy DLPack views of the grid's buffers, the same code on CPU and
+CUDA (``FusionConfig.device``).
+
 Weightings (`FusionConfig.weighting`):
 
 * ``"uniform"``: ``w = 1`` for every valid pixel (what the stock integration does).
@@ -161,7 +167,6 @@ class TSDFFusion:
             int(self.config.block_count),
             self._device,
         )
-        self._K = o3c.Tensor(camera.K, dtype=o3c.float64)
         dev_type = "cuda" if self._device.get_type() == o3c.Device.DeviceType.CUDA else "cpu"
         self._torch_device = f"{dev_type}:{self._device.get_id()}" if dev_type == "cuda" else "cpu"
         self.frames_integrated = 0
@@ -188,7 +193,7 @@ class TSDFFusion:
             CalibrationError: if the pose is not a rigid transform.
             EmptyInputError: if the frame has no depth inside [depth_min, depth_max] with weight > 0.
         """
-        o3d, o3c, cfg = self._o3d, self._o3c, self.config
+        cfg = self.config
         T = check_pose(T_world_camera, atol=POSE_ATOL)
         d = np.asarray(depth)
         if d.ndim != 2:
@@ -227,29 +232,18 @@ class TSDFFusion:
                 if not np.issubdtype(rgb.dtype, np.integer):
                     color = color * 255.0
 
-        dev = self._device
-        extrinsic = o3c.Tensor(np.linalg.inv(T), dtype=o3c.float64)  # T_camera_world
-        depth_t = o3c.Tensor(d, device=dev)
-        blocks = self.vbg.compute_unique_block_coordinates(
-            o3d.t.geometry.Image(depth_t.reshape((d.shape[0], d.shape[1], 1))),
-            self._K,
-            extrinsic,
-            1.0,
-            float(cfg.depth_max),
-            float(cfg.truncation / cfg.voxel_size),
-        )
+        # The voxel update runs in torch on zero-copy (DLPack) views of the grid's buffers: the
+        # same code on CPU and CUDA, and much faster on the CPU than Open3D's indexing ops.
+        import torch
+
+        tdev = self._torch_device
+        blocks = self._band_blocks(d, T)
         if blocks.shape[0] == 0:
             return 0
         hashmap = self.vbg.hashmap()
         hashmap.activate(blocks)
         buf_indices, _ = hashmap.find(blocks)
         voxel_coords, voxel_indices = self.vbg.voxel_coordinates_and_flattened_indices(buf_indices)
-
-        # The voxel update runs in torch on zero-copy (DLPack) views of the grid's buffers: the
-        # same code on CPU and CUDA, and much faster on the CPU than Open3D's indexing ops.
-        import torch
-
-        tdev = self._torch_device
         coords = _to_torch(voxel_coords)
         flat = _to_torch(voxel_indices)
         Tcw = torch.as_tensor(np.linalg.inv(T), dtype=torch.float32, device=tdev)
@@ -289,6 +283,45 @@ class TSDFFusion:
         weight[idx] = torch.clamp(wsum, max=float(cfg.weight_cap))
         self.frames_integrated += 1
         return n
+
+    def _band_blocks(self, depth: np.ndarray, T: np.ndarray) -> Any:
+        """(M, 3) int32 Open3D tensor of the blocks the truncation band of a depth frame touches.
+
+        Open3D's ``compute_unique_block_coordinates`` samples the band too sparsely (with a
+        truncation of several blocks it skips blocks in the middle of the band, so some voxels
+        in the band would never be updated); here every valid pixel's ray is sampled through
+        [depth - truncation, depth + truncation] at steps of two voxels.
+        """
+        import torch
+
+        o3c, cfg, tdev = self._o3c, self.config, self._torch_device
+        v, u = np.nonzero(depth > 0)
+        z = torch.as_tensor(depth[v, u], dtype=torch.float32, device=tdev)
+        rays = torch.stack(
+            [
+                torch.as_tensor((u - self.camera.cx) / self.camera.fx, dtype=torch.float32, device=tdev),
+                torch.as_tensor((v - self.camera.cy) / self.camera.fy, dtype=torch.float32, device=tdev),
+                torch.ones(u.shape[0], dtype=torch.float32, device=tdev),
+            ],
+            dim=1,
+        )
+        trunc = float(cfg.truncation)
+        steps = int(np.ceil(2 * trunc / (2 * cfg.voxel_size))) + 1
+        offsets = torch.linspace(-trunc, trunc, steps, dtype=torch.float32, device=tdev)
+        Twc = torch.as_tensor(T, dtype=torch.float32, device=tdev)
+        block_size = float(cfg.voxel_size * cfg.block_resolution)
+        # Unique block coordinates via one int64 key per block (much faster than unique rows).
+        bias, span = 1 << 20, 1 << 21
+        keys = []
+        for off in offsets:
+            pts = rays * torch.clamp(z + off, min=1e-3)[:, None]
+            world = pts @ Twc[:3, :3].T + Twc[:3, 3]
+            b = torch.floor(world / block_size).to(torch.int64) + bias
+            keys.append(torch.unique((b[:, 0] * span + b[:, 1]) * span + b[:, 2]))
+        key = torch.unique(torch.cat(keys))
+        blocks = torch.stack([key // (span * span), (key // span) % span, key % span], dim=1) - bias
+        blocks = blocks.to(torch.int32).contiguous()
+        return o3c.Tensor.from_dlpack(torch.utils.dlpack.to_dlpack(blocks))
 
     def weights_for(self, variance: np.ndarray | None) -> np.ndarray | None:
         """The per-pixel weights of this volume's weighting for a variance map (None = uniform)."""

@@ -29,6 +29,8 @@ from .errors import DataFormatError, GPDepthError, InvalidDepthError, ShapeError
 from .measurements import SparseDepth
 
 KITTI_PNG_SCALE = 1.0 / 256.0
+_UMASK = os.umask(0o022)  # read the process umask once (at import, before any threads) and restore it
+os.umask(_UMASK)
 
 
 @contextlib.contextmanager
@@ -41,6 +43,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():

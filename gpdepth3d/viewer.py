@@ -136,7 +136,7 @@ class ViewerFrame:
             _check_aspect(self.camera, gt.shape, "depth_gt")
             object.__setattr__(self, "depth_gt", np.where(np.isfinite(gt) & (gt > 0), gt, 0.0))
         if self.T_world_camera is not None:
-            object.__setattr__(self, "T_world_camera", as_rigid(self.T_world_camera, "T_world_camera"))
+            object.__setattr__(self, "T_world_camera", check_pose(self.T_world_camera, "T_world_camera"))
 
     @property
     def pose(self) -> np.ndarray:
@@ -184,18 +184,6 @@ class ViewerFrame:
         return cls(post, camera, image, gt, T_world_camera, name=Path(posterior).stem)
 
 
-def as_rigid(T: np.ndarray, argument: str = "T_world_camera", *, atol: float = 1e-2) -> np.ndarray:
-    """Validates a 4x4 pose with tolerance ``atol`` and snaps its rotation to the nearest rotation (SVD).
-
-    Recorded poses are often stored with a few digits (7-Scenes: det(R) = 0.9999), which a strict
-    check rejects; drawing needs an exact rotation (viser converts it to a quaternion).
-    """
-    T = check_pose(T, argument, atol=atol).copy()
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    T[:3, :3] = U @ Vt
-    return T
-
-
 def default_camera(width: int, height: int, *, hfov_deg: float = 60.0) -> PinholeCamera:
     """A camera with the given horizontal field of view and centred principal point (a fallback guess)."""
     f = width / (2.0 * math.tan(math.radians(hfov_deg) / 2.0))
@@ -215,7 +203,7 @@ def load_pose(path: str | Path) -> np.ndarray:
         values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
     if values.size != 16:
         raise DataFormatError(path, f"expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
-    return as_rigid(values.reshape(4, 4), str(path))
+    return check_pose(values.reshape(4, 4), str(path))
 
 
 def load_poses(path: str | Path) -> list[np.ndarray]:
@@ -230,7 +218,7 @@ def load_poses(path: str | Path) -> list[np.ndarray]:
     if table.shape[1] != 12:
         raise DataFormatError(path, f"expected 12 numbers per line (3x4 pose), got {table.shape[1]}")
     bottom = np.tile([0.0, 0.0, 0.0, 1.0], (table.shape[0], 1))
-    return [as_rigid(T.reshape(4, 4), f"{path} line {i + 1}") for i, T in enumerate(np.hstack([table, bottom]))]
+    return [check_pose(T.reshape(4, 4), f"{path} line {i + 1}") for i, T in enumerate(np.hstack([table, bottom]))]
 
 
 def load_mesh(path: str | Path) -> "trimesh.Trimesh":
@@ -356,6 +344,7 @@ def _frame_layers(frame: ViewerFrame, stride: int) -> dict[str, _Layer]:
     for key, depth, own_sigma in (("gp", post.mean, std), ("mde", post.mde, nan)):
         d = np.asarray(depth, dtype=np.float64)
         with np.errstate(invalid="ignore"):
+            d = np.where(d > 0, d, 0.0)  # a posterior mean <= 0 (or NaN) is no surface: not drawn
             err = np.abs(d - gt)
         pts, col, z, ex = _lift_map(d, rgb, cam, T, stride, {"sigma": own_sigma, "error": err, "gp_sigma": std})
         layers[key] = _Layer(pts.astype(np.float32), col, z, ex["sigma"], ex["error"], ex["gp_sigma"])
@@ -556,7 +545,6 @@ class Viewer:
         else:
             extent, centre, height = 1.0, T0[:3, 3] + forward, 1.0
         self._spacing = 1.15 * extent
-        self._centre = centre
 
         self.groups: dict[str, Any] = {}
         self.point_clouds: dict[str, Any] = {}
@@ -620,12 +608,12 @@ class Viewer:
             )
 
         # Initial view: behind and above the first camera, looking at the scene centre.
-        n_slots = len({self._slot(k) for k in self.groups})
-        width = self._spacing * max(n_slots, 1)
+        slots = {self._slot(k) for k in self.groups} or {0.0}
+        width = self._spacing * (max(slots) - min(slots) + 1.0)
         fov = math.radians(50.0)
         distance = 0.45 * width / math.tan(fov / 2.0) + 0.2 * extent
-        # (shifted right by a few percent: the GUI panel covers the right of the page)
-        mid = float(np.mean([self._slot(k) for k in self.groups] or [0.0]))
+        # Look at the middle of the layers, shifted right a little: the GUI panel covers the page's right.
+        mid = 0.5 * (max(slots) + min(slots))
         look_at = centre + self._right * (self._spacing * mid + 0.12 * width)
         self.server.initial_camera.fov = fov
         self.server.initial_camera.look_at = tuple(float(x) for x in look_at)
@@ -634,8 +622,8 @@ class Viewer:
         self.server.initial_camera.up = tuple(float(x) for x in up)
 
     def _slot(self, group: str) -> float:
-        if group == "meshes":
-            return 2.0 if "gt" in self.groups else 1.0
+        if group == "meshes":  # right of everything else
+            return 1.0 + max((_SLOTS[k] for k in self.groups if k in _SLOTS), default=-1.0)
         return float(_SLOTS[group])
 
     # ------------------------------------------------------------------ GUI

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -219,10 +220,12 @@ class TestProcessFrame:
 
 
 class TestRunBatchInProcess:
-    def test_writes_every_frame_then_skips_them(self, tiny_kitti, tmp_path):
+    def test_writes_every_frame_then_skips_them(self, tiny_kitti, tmp_path, capsys):
         frames = dataset_frames(tiny_kitti, repeat=2)
         out = tmp_path / "out"
-        report = run_batch(frames, out, config=CONFIG, loader=LOADER, workers=0, progress=False)
+        report = run_batch(frames, out, config=CONFIG, loader=LOADER, workers=0, progress=True)
+        bar = capsys.readouterr().err
+        assert "8/8" in bar and "frame/s" in bar and "s/frame" not in bar
         assert isinstance(report, BatchReport) and report.ok
         assert (report.n_computed, report.n_skipped, report.failures) == (8, 0, ())
         assert npz_ids(out) == sorted(f.frame_id for f in frames)
@@ -308,28 +311,49 @@ class TestRunBatchInProcess:
         assert not list(tmp_path.glob("*.npz"))
 
 
+@dataclass(frozen=True)
+class DiesOn(HoldoutInputs):
+    """The default loader, except that the worker process dies (os._exit) on one frame."""
+
+    die_on: str = ""
+
+    def __call__(self, spec: FrameSpec) -> FrameInputs:
+        if spec.frame_id == self.die_on:
+            os._exit(13)
+        return super().__call__(spec)
+
+
 class TestRunBatchDask:
-    def test_cluster_at_an_address_isolates_a_failing_frame(self, tmp_path):
+    def test_cluster_at_an_address_isolates_failing_frames_and_lost_workers(self, tmp_path):
         distributed = pytest.importorskip("distributed")
-        data = write_kitti_like(tmp_path / "data", ["a", "b", "c", "d"])
-        (data / "velodyne_02" / "c.npz").unlink()
+        import dask
+
+        data = write_kitti_like(tmp_path / "data", ["a", "b", "c", "d", "e"])
+        (data / "velodyne_02" / "c.npz").unlink()  # c raises DataFormatError; b kills its worker
         frames = dataset_frames(data)
         out = tmp_path / "out"
+        loader = DiesOn(factor=3, n_input=40, die_on="b")
         # A running cluster reached by its scheduler address (the LocalCluster path is run by
-        # the kill-and-resume test).
-        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
-            report = run_batch(
-                frames, out, config=CONFIG, loader=LOADER, task="eval", address=cluster.scheduler_address, progress=False
-            )
-            assert len(cluster.workers) == 2, "run_batch must not close a cluster it did not start"
+        # the kill-and-resume test). allowed-failures=0: the first lost worker fails the frame
+        # (default 3: Dask retries it on other workers first); max_in_flight=2 (the worker
+        # threads): no frame waits on the dying worker, so only the frame that killed it is lost.
+        with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+            with distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
+                report = run_batch(
+                    frames, out, config=CONFIG, loader=loader, task="eval", address=cluster.scheduler_address,
+                    max_in_flight=2, progress=False,
+                )
+                assert cluster.status.name == "running", "run_batch must not close a cluster it did not start"
         assert report.workers == 2 and report.startup_seconds > 0
         assert (report.n_computed, report.n_skipped) == (3, 0)
-        assert [f.frame_id for f in report.failures] == ["c"]
-        assert "DataFormatError" in report.failures[0].error and "projected LiDAR not found" in report.failures[0].error
-        assert sorted(p.name.split(".")[0] for p in out.glob("*.metrics.json")) == ["a", "b", "d"]
+        failures = {f.frame_id: f.error for f in report.failures}
+        assert sorted(failures) == ["b", "c"]
+        assert failures["b"].startswith("KilledWorker")
+        assert failures["c"].startswith("DataFormatError") and "projected LiDAR not found" in failures["c"]
+        assert sorted(p.name.split(".")[0] for p in out.glob("*.metrics.json")) == ["a", "d", "e"]
         assert report.aggregate["frames"] == 3 and not report.ok
         # Results from the workers equal the in-process computation.
-        serial = run_batch(frames[:1], tmp_path / "serial", config=CONFIG, loader=LOADER, task="eval", workers=0, progress=False)
+        serial = run_batch(frames[:1], tmp_path / "serial", config=CONFIG, loader=loader, task="eval", workers=0, progress=False)
         a = json.loads((out / "a.metrics.json").read_text())["metrics"]
         b = json.loads((tmp_path / "serial" / "a.metrics.json").read_text())["metrics"]
         assert a["rmse"] == pytest.approx(b["rmse"], rel=1e-9) and serial.ok

@@ -235,7 +235,7 @@ class TestCheckPose:
         T = pose()
         out = check_pose(T.tolist())
         assert out.dtype == np.float64
-        np.testing.assert_array_equal(out, T)
+        np.testing.assert_allclose(out, T, atol=1e-12)
 
     def test_bad_poses(self):
         bad = {"shape": np.eye(3), "nan": np.full((4, 4), np.nan), "last row": pose() + np.diag([0, 0, 0, 1.0])}
@@ -266,3 +266,17 @@ class TestTransformPoints:
     def test_bad_shapes(self, T, points):
         with pytest.raises(ShapeError):
             transform_points(T, points)
+
+
+class TestCheckPoseSnapsRecordedPoses:
+    def test_snaps_recorded_poses_and_rejects_others(self):
+        c, sn = np.cos(0.3), np.sin(0.3)
+        T0 = np.array([[c, -sn, 0, 1.0], [sn, c, 0, 2.0], [0, 0, 1, 3.0], [0, 0, 0, 1]])
+        T = T0.copy()
+        T[:3, :3] *= 1.0001  # as stored with few digits (7-Scenes: det 0.9998)
+        snapped = check_pose(T)
+        np.testing.assert_allclose(snapped[:3, :3] @ snapped[:3, :3].T, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(snapped, T0, atol=1e-9)
+        T[:3, :3] *= 1.1
+        with pytest.raises(CalibrationError):
+            check_pose(T)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import DepthCompleter, build_problem
+from gpdepth3d.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError, ShapeError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
@@ -113,7 +113,7 @@ class TestFastEngineAgainstExact:
     @pytest.mark.parametrize("formulation", ["balanced", "residual"])
     def test_real_kitti_crop_through_completer(self, shared_data, formulation):
         lidar = np.load(shared_data / "kitti_tiny" / "velodyne_02" / "0000000000.npz")["velodyne_depth"]
-        crop = lidar[210:242, 400:464]  # 32 x 64 pixels with LiDAR
+        crop = lidar[214:238, 400:464]  # 24 x 64 pixels with LiDAR
         sparse = SparseDepth.from_depth_map(crop)
         assert len(sparse) > 50
         from scipy.ndimage import gaussian_filter
@@ -121,8 +121,8 @@ class TestFastEngineAgainstExact:
         filled = np.where(crop > 0, crop, np.median(crop[crop > 0]))
         mde = gaussian_filter(filled, 3.0) * 1.1  # simulated MDE: smoothed, scaled
         base = DepthGPConfig.paper() if formulation == "balanced" else DepthGPConfig.residual()
-        fast = DepthCompleter(base.replace(engine="fast"))(mde, sparse, output_shape=(64, 128))
-        exact = DepthCompleter(base.replace(engine="exact"))(mde, sparse, output_shape=(64, 128))
+        fast = DepthCompleter(base.replace(engine="fast"))(mde, sparse, output_shape=(48, 128))
+        exact = DepthCompleter(base.replace(engine="exact"))(mde, sparse, output_shape=(48, 128))
         depth_range = float(np.ptp(crop[crop > 0]))
         assert np.sqrt(np.mean((fast.mean - exact.mean) ** 2)) < 1e-6 * depth_range
         np.testing.assert_allclose(fast.std, exact.std, rtol=1e-6)
@@ -135,6 +135,7 @@ class TestFastEngineBehaviour:
         p1 = random_problem(rng, 10, 12)
         m1, _ = engine.solve(p1)
         tree = engine._tree(10, 12, 1)
+        assert tree.ntiles >= 1
         engine.solve(random_problem(rng, 10, 12))
         assert engine._tree(10, 12, 1) is tree
         m1b, _ = engine.solve(p1)
@@ -167,6 +168,10 @@ class TestFastEngineBehaviour:
             FastEngine(leaf_pixels=0)
         with pytest.raises(InvalidInputError):
             FastEngine(cache_size=0)
+        with pytest.raises(InvalidInputError):
+            FastEngine(threads=0)
+        with pytest.raises(InvalidInputError):
+            FastEngine(tile=-3)
         problem = random_problem(np.random.default_rng(8), 5, 5)
         bad = GridProblem(problem.prior_mean, problem.obs, -problem.precision - 1, problem.out_rows,
                           problem.out_cols, problem.out_prior_mean, problem.kernel)
@@ -183,3 +188,30 @@ class TestFastEngineBehaviour:
         from gpdepth3d.gp import make_engine
 
         assert isinstance(make_engine(DepthGPConfig(engine="fast")), FastEngine)
+
+
+class TestDevices:
+    def test_explicit_torch_cpu_device_matches_default(self):
+        problem = random_problem(np.random.default_rng(9), 9, 13, out=(18, 26))
+        m0, v0 = FastEngine().solve(problem)
+        m1, v1 = FastEngine(device="cpu").solve(problem)
+        np.testing.assert_allclose(m1, m0, atol=1e-12)
+        np.testing.assert_allclose(v1, v0, rtol=1e-12)
+
+    def test_cuda_matches_exact(self):
+        torch = pytest.importorskip("torch")
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device")
+        problem = random_problem(np.random.default_rng(10), 20, 30, out=(40, 60))
+        m0, v0 = ExactEngine().solve(problem)
+        m1, v1 = FastEngine(device="cuda").solve(problem)
+        np.testing.assert_allclose(m1, m0, atol=1e-9)
+        np.testing.assert_allclose(v1, v0, rtol=1e-8)
+
+    def test_padding_and_tiling_exact_on_odd_sizes(self):
+        # sizes that need padding to the tile lattice, several tiles per axis
+        problem = random_problem(np.random.default_rng(11), 23, 37, out=(23, 37))
+        m0, v0 = ExactEngine().solve(problem)
+        m1, v1 = FastEngine(tile=5, leaf_pixels=6).solve(problem)
+        np.testing.assert_allclose(m1, m0, atol=1e-9)
+        np.testing.assert_allclose(v1, v0, rtol=1e-9)

@@ -11,7 +11,7 @@ from gpdepth3d.gp.fit import fit_hyperparameters, log_marginal_likelihood
 from gpdepth3d.gp.model import DepthGPConfig, matern_1d
 from gpdepth3d.measurements import SparseDepth
 
-H, W = 40, 48
+H, W = 32, 40
 
 
 def sample_field(rng, lengthscale, s, nu=0.5, mean=10.0):
@@ -74,7 +74,7 @@ class TestFitHyperparameters:
         rng = np.random.default_rng(2)
         mde, sparse = balanced_frame(rng, lengthscale=3.0, s=1.0, sdl=0.3, smeas=0.02)
         start = DepthGPConfig(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02)
-        fitted = fit_hyperparameters(mde, sparse, start)
+        fitted = fit_hyperparameters(mde, sparse, start, max_iterations=30)
         assert fitted.lengthscale == pytest.approx(3.0, rel=0.4)
         assert fitted.outputscale == pytest.approx(1.0, rel=0.4)
         assert fitted.sigma_dl == pytest.approx(0.3, rel=0.15)
@@ -89,7 +89,7 @@ class TestFitHyperparameters:
         r, c = np.divmod(rng.choice(H * W, 800, replace=False), W)
         sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), truth[r, c], (H, W), sigma=0.01)
         start = DepthGPConfig.residual(units="metres", align="none", lengthscale=1.0, outputscale=0.1)
-        fitted = fit_hyperparameters(mde, sparse, start)
+        fitted = fit_hyperparameters(mde, sparse, start, max_iterations=30)
         assert fitted.lengthscale == pytest.approx(6.0, rel=0.5)
         assert fitted.outputscale == pytest.approx(0.8, rel=0.5)
         assert log_marginal_likelihood(mde, sparse, fitted) > log_marginal_likelihood(mde, sparse, start)

@@ -36,6 +36,16 @@ class TestAtomicPath:
         assert target.read_text() == "hello"
         assert listing(target.parent) == ["out.txt"]
 
+    def test_result_has_the_usual_permissions(self, tmp_path):
+        import os
+
+        mask = os.umask(0)
+        os.umask(mask)
+        target = tmp_path / "out.txt"
+        with atomic_path(target) as tmp:
+            tmp.write_text("x")
+        assert target.stat().st_mode & 0o777 == 0o666 & ~mask
+
     def test_failure_leaves_nothing(self, tmp_path):
         target = tmp_path / "out.txt"
         with pytest.raises(RuntimeError):

@@ -31,7 +31,6 @@ from gpdepth3d.metrics import depth_metrics
 from gpdepth3d.synthetic import make_scene
 from gpdepth3d.viewer import (
     COLORMAPS,
-    as_rigid,
     MISSING_COLOR,
     ViewerConfig,
     ViewerFrame,
@@ -174,16 +173,6 @@ class TestLoaders:
             load_pose(tmp_path / "bad.txt")
         with pytest.raises(DataFormatError):
             load_pose(tmp_path / "missing.txt")
-
-    def test_as_rigid_snaps_recorded_poses_and_rejects_others(self, room):
-        T = room.T_world_camera.copy()
-        T[:3, :3] *= 1.00005  # as stored with few digits (7-Scenes: det 0.9999)
-        snapped = as_rigid(T)
-        np.testing.assert_allclose(snapped[:3, :3] @ snapped[:3, :3].T, np.eye(3), atol=1e-12)
-        np.testing.assert_allclose(snapped, room.T_world_camera, atol=1e-4)
-        T[:3, :3] *= 1.1
-        with pytest.raises(CalibrationError):
-            as_rigid(T)
 
     def test_load_pose_of_7scenes(self, shared_data):
         path = shared_data / "7scenes" / "frame-000000.pose.txt"
@@ -332,6 +321,17 @@ class TestShow:
             with pytest.raises(InvalidInputError):
                 v.set_color_by("error")
 
+    def test_posterior_without_variance(self, room):
+        post = make_posterior(room)
+        post = DepthPosterior(post.mean, np.full(post.shape, np.nan), post.mde, post.sparse, post.config, 1.0)
+        with show(ViewerFrame(post, room.camera, depth_gt=room.depth_gt), port=0) as v:
+            assert v.controls["max_sigma"].disabled
+            assert "calibration" not in v.metrics and "gp" in v.metrics
+            v.set_max_sigma(0.0)  # unknown sigma: nothing to hide
+            assert v.visible_count("gp") == post.mean.size
+            v.set_color_by("sigma")
+            assert np.all(v.point_clouds["gp"].colors == MISSING_COLOR)
+
     def test_layout_and_point_size(self, viewer):
         pos = {k: np.asarray(g.position) for k, g in viewer.groups.items()}
         np.testing.assert_allclose(pos["gp"], 0.0)
@@ -393,6 +393,16 @@ class TestShow:
             second = backproject_depth(frames[1].posterior.mean, room.rgb, room.camera, T_world_camera=T2)
             np.testing.assert_allclose(pts[n:], second.points, atol=1e-5)
             assert {"cameras", "meshes"} <= set(v.groups) and "show_meshes" in v.controls
+
+    def test_meshes_only(self, tmp_path):
+        import trimesh
+
+        trimesh.creation.box(extents=(1.0, 2.0, 3.0)).export(tmp_path / "mesh.glb")
+        with show([], meshes=[tmp_path / "mesh.glb"], port=0) as v:
+            assert len(v.meshes) == 1 and v.point_clouds == {} and v.frustums == []
+            np.testing.assert_allclose(np.asarray(v.groups["meshes"].position), 0.0)
+        with pytest.raises(InvalidInputError, match="meshes"):
+            show([], meshes=[np.zeros((3, 3))], port=0)
 
     def test_live_posterior_from_complete(self, room):
         small = make_scene(1, kind="room", width=24, height=18)

@@ -14,10 +14,14 @@ balanced and the residual formulation only differ in w) the posterior precision 
     P = Q + S^T W S,     mu = P^-1 S^T W (y - m),
 
 with S selecting the f state. P is sparse SPD: it is factorised with a multifrontal Cholesky
-over a nested-dissection ordering of the pixel grid (the separators are image rows and columns,
-so the elimination tree and every frontal index map are known from the grid size alone and are
-cached per resolution). Marginal variances diag(P^-1) come from the selected inverse computed
-top-down over the same fronts (Takahashi / Erisman-Tinney recursions): exact, no sampling.
+over a nested-dissection ordering of the pixel grid. The grid is padded with unobserved pixels (which leaves the
+posterior of the real pixels unchanged) to a lattice of equal tiles separated by one-pixel rows
+and columns; every tile has the same elimination subtree, so the tile work runs batched over all
+tiles (one batched dense Cholesky / triangular solve / product per subtree node), and the
+separators between tiles are eliminated by a nested dissection of the tile lattice. The
+structure, index maps and prior precision are cached per resolution and kernel. Marginal
+variances diag(P^-1) come from the selected inverse computed top-down over the same fronts
+(Takahashi / Erisman-Tinney recursions): exact, no sampling.
 No approximation is made anywhere; results equal the dense `exact` engine to rounding.
 
 Output grids other than the input grid (finer, coarser or shifted) are exact too: conditioned
@@ -27,20 +31,22 @@ the weighted sum of the posterior state means, the variance the weighted quadrat
 posterior covariance of those states (a clique of the 9-point stencil, so present in one front
 of the selected inverse) plus the conditional prior variance.
 
-Cost with n pixels: O(n^1.5) flops and O(n log n) memory for the factor (nested dissection on a
-2-D grid), the same for the selected inverse; d^6 times more for nu > 0.5 (nu = 2.5 is heavy
-beyond ~100 x 100). Back-ends: NumPy/SciPy LAPACK on the CPU (``device=None``, the default), or
-torch on any device (``device="cuda"``, float64), the same algorithm for mean and variance.
+Cost with n pixels: O(n^1.5) flops and O(n log n) memory (nested dissection on a 2-D grid),
+the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 is heavy beyond
+~100 x 100 pixels). Numerics: torch, float64, on the CPU by default or on any torch device
+(``FastEngine(device="cuda")``: mean and variance both run there; set-up runs on the CPU with
+NumPy and is cached). The dense kernels are batched LAPACK/BLAS calls (cholesky_ex,
+solve_triangular, matmul, index_add_).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import blas, lapack
 
 from ..errors import InvalidInputError, ShapeError
 from .markov import chain_precision, readout_weights, state_dim
@@ -48,165 +54,380 @@ from .model import GridProblem
 
 
 # ----------------------------------------------------------------------------- symbolic phase
+#
+# The grid (padded by unobserved pixels, which leaves the posterior of the real pixels unchanged)
+# is cut into nr x nc equal tiles of th x tw pixels separated by one-pixel rows and columns.
+# Inside a tile, nested dissection gives the same elimination subtree (a "template") for every
+# tile, so the numeric work on the tiles runs batched over all tiles, one template node at a
+# time. The separator rows and columns between tiles are eliminated afterwards by a nested
+# dissection over the tile lattice ("top" nodes, one by one). Front positions of pixels outside
+# the padded grid (rings of border tiles) point at a dummy variable / trash slot that is zero.
+
+_OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
+
+
+def _ring(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """(m, 2) pixels around the region [r0, r1) x [c0, c1) (unclipped), in a fixed order."""
+    top = np.stack([np.full(c1 - c0 + 2, r0 - 1), np.arange(c0 - 1, c1 + 1)], 1)
+    bottom = np.stack([np.full(c1 - c0 + 2, r1), np.arange(c0 - 1, c1 + 1)], 1)
+    left = np.stack([np.arange(r0, r1), np.full(r1 - r0, c0 - 1)], 1)
+    right = np.stack([np.arange(r0, r1), np.full(r1 - r0, c1)], 1)
+    return np.concatenate([top, bottom, left, right]).astype(np.int64)
 
 
 @dataclass
-class _Tree:
-    """Elimination tree and frontal index maps of the nested-dissection order of an (H, W) grid.
+class _Template:
+    """Nested-dissection subtree of one th x tw tile (relative pixel coordinates)."""
 
-    Variables are numbered in elimination order: node X owns the contiguous range
-    starts[X]:starts[X + 1]; its front is those variables followed by bnd[X] (sorted).
-    """
-
-    shape: tuple[int, int]
-    ds: int
-    pix_order: np.ndarray  # (n,) pixel (r * W + c) at each elimination position
-    pix_pos: np.ndarray  # (n,) elimination position of each pixel
-    starts: np.ndarray  # (nodes + 1,) own variable ranges
-    bnd: list  # per node: sorted variable indices (elimination numbering) of the boundary
-    parent: np.ndarray  # (nodes,) -1 for the root
-    children: list  # per node: list of child nodes
-    loc: list  # per node: positions of bnd within the parent's front
-    ea_flat: list  # per node: flat positions of the child's update matrix in the parent's front
-    node_of_var: np.ndarray  # (nvar,) owning node
-    nf: np.ndarray  # (nodes,) front sizes
-
-    @property
-    def nodes(self) -> int:
-        return len(self.bnd)
-
-    def front_positions(self, node: int, variables: np.ndarray) -> np.ndarray:
-        """Positions of variables (all in the node's front) within the node's front."""
-        st, en = self.starts[node], self.starts[node + 1]
-        v = np.asarray(variables)
-        out = np.empty(v.shape, dtype=np.int64)
-        own = (v >= st) & (v < en)
-        out[own] = v[own] - st
-        b = self.bnd[node]
-        idx = np.searchsorted(b, v[~own])
-        if np.any(idx >= b.size) or np.any(b[np.minimum(idx, b.size - 1)] != v[~own]):
-            raise RuntimeError("internal error: variable not in front")
-        out[~own] = en - st + idx
-        return out
+    th: int
+    tw: int
+    own: list  # per node (k, 2) own pixels
+    ring: list  # per node (m, 2) ring pixels (may lie outside the tile)
+    children: list
+    parent: list
+    posmap: list  # per node (th + 2, tw + 2): front pixel position of pixel (r + 1, c + 1), -1 = absent
 
 
-def _build_tree(h: int, w: int, ds: int, leaf_pixels: int) -> _Tree:
-    """Nested dissection of the (h, w) pixel grid by middle rows/columns, leaves <= leaf_pixels."""
-    order_chunks: list[np.ndarray] = []
-    ring_pix: list[np.ndarray] = []
-    parent: list[int] = []
-    children: list[list[int]] = []
-
-    def ring(r0, r1, c0, c1):
-        rr, cc = [], []
-        cl, cr = max(c0 - 1, 0), min(c1 + 1, w)
-        if r0 > 0:
-            rr.append(np.full(cr - cl, r0 - 1))
-            cc.append(np.arange(cl, cr))
-        if r1 < h:
-            rr.append(np.full(cr - cl, r1))
-            cc.append(np.arange(cl, cr))
-        if c0 > 0:
-            rr.append(np.arange(r0, r1))
-            cc.append(np.full(r1 - r0, c0 - 1))
-        if c1 < w:
-            rr.append(np.arange(r0, r1))
-            cc.append(np.full(r1 - r0, c1))
-        if not rr:
-            return np.zeros(0, dtype=np.int64)
-        return (np.concatenate(rr) * w + np.concatenate(cc)).astype(np.int64)
+def _build_template(th: int, tw: int, leaf_pixels: int) -> _Template:
+    own, ring, children, parent = [], [], [], []
 
     def visit(r0, r1, c0, c1) -> int:
         hh, ww = r1 - r0, c1 - c0
         kids = []
         if hh * ww <= leaf_pixels or (hh < 3 and ww < 3):
             rr, cc = np.meshgrid(np.arange(r0, r1), np.arange(c0, c1), indexing="ij")
-            own = (rr * w + cc).ravel()
+            o = np.stack([rr.ravel(), cc.ravel()], 1)
         elif ww >= hh:
             m = c0 + ww // 2
-            kids = [visit(r0, r1, c0, m), visit(r0, r1, m + 1, c1)] if m + 1 < c1 else [visit(r0, r1, c0, m)]
-            own = np.arange(r0, r1) * w + m
+            kids = [visit(r0, r1, c0, m)] + ([visit(r0, r1, m + 1, c1)] if m + 1 < c1 else [])
+            o = np.stack([np.arange(r0, r1), np.full(hh, m)], 1)
         else:
             m = r0 + hh // 2
-            kids = [visit(r0, m, c0, c1), visit(m + 1, r1, c0, c1)] if m + 1 < r1 else [visit(r0, m, c0, c1)]
-            own = m * w + np.arange(c0, c1)
-        node = len(order_chunks)
-        order_chunks.append(own.astype(np.int64))
-        ring_pix.append(ring(r0, r1, c0, c1))
-        parent.append(-1)
+            kids = [visit(r0, m, c0, c1)] + ([visit(m + 1, r1, c0, c1)] if m + 1 < r1 else [])
+            o = np.stack([np.full(ww, m), np.arange(c0, c1)], 1)
+        node = len(own)
+        own.append(o.astype(np.int64))
+        ring.append(_ring(r0, r1, c0, c1))
         children.append(kids)
+        parent.append(-1)
         for k in kids:
             parent[k] = node
         return node
 
-    visit(0, h, 0, w)
-    n = h * w
-    pix_order = np.concatenate(order_chunks)
-    pix_pos = np.empty(n, dtype=np.int64)
-    pix_pos[pix_order] = np.arange(n)
-    counts = np.array([c.size for c in order_chunks])
-    starts = np.concatenate([[0], np.cumsum(counts)]) * ds
+    visit(0, th, 0, tw)
+    posmap = []
+    for o, g in zip(own, ring):
+        pm = np.full((th + 2, tw + 2), -1, dtype=np.int64)
+        front = np.concatenate([o, g])
+        pm[front[:, 0] + 1, front[:, 1] + 1] = np.arange(front.shape[0])
+        posmap.append(pm)
+    return _Template(th, tw, own, ring, children, parent, posmap)
+
+
+def _tiling(n: int, target: int) -> tuple[int, int]:
+    """(tiles, tile size) along an axis of n pixels: tiles * (size + 1) - 1 >= n, size ~ target."""
+    tiles = max(1, int(round((n + 1) / (target + 1))))
+    size = -(-(n + 1) // tiles) - 1
+    return tiles, size
+
+
+@dataclass
+class _Tree:
+    """Elimination structure of the padded pixel grid (see the comment above)."""
+
+    shape: tuple[int, int]  # the problem's grid
+    padded: tuple[int, int]
+    ds: int
+    tpl: _Template
+    origins: np.ndarray  # (T, 2) tile origins
+    nvar: int  # real variables; index nvar is the dummy
+    pix_var: np.ndarray  # (hp * wp,) variable of state 0 of each padded pixel
+    vnode: np.ndarray  # (nvar,) virtual node owning each variable (template: tau * T + t; top: offset + x)
+    # template nodes (batched over tiles)
+    t_base: np.ndarray  # (ntpl + 1,) first variable of each template node's block (T * no variables)
+    t_no: np.ndarray  # own variables per tile
+    t_nf: np.ndarray  # front size (variables)
+    t_bnd: list  # per node (T, nb): global variables of the ring (dummy = nvar)
+    t_loc: list  # per non-root node (nb,): positions of the ring in the parent's front
+    t_ea: list  # per non-root node: flat positions of the update matrix in the parent's front
+    # top nodes (one by one)
+    top_starts: np.ndarray  # (ntop + 1,) own variable ranges
+    top_bnd: list  # sorted global variables
+    top_nf: np.ndarray
+    top_parent: np.ndarray
+    top_children: list  # top children
+    top_tiles: list  # per top node: tiles whose template root hangs below it
+    top_loc: list
+    top_ea: list
+    tile_loc: np.ndarray  # (T, nb_root) positions of a tile root's ring in its top parent's front (trash = nf)
+    tile_ea: np.ndarray  # (T, nb_root^2) flat positions (trash = nf^2)
+    tile_parent: np.ndarray  # (T,) top node (-1: a single tile, no top nodes)
+
+    @property
+    def ntiles(self) -> int:
+        return self.origins.shape[0]
+
+    @property
+    def ntpl(self) -> int:
+        return len(self.tpl.own)
+
+    @property
+    def ntop(self) -> int:
+        return len(self.top_bnd)
+
+    def top_positions(self, x: int, variables: np.ndarray) -> np.ndarray:
+        """Positions of variables (all in top node x's front) within that front."""
+        st, en = self.top_starts[x], self.top_starts[x + 1]
+        v = np.asarray(variables)
+        out = np.empty(v.shape, dtype=np.int64)
+        own = (v >= st) & (v < en)
+        out[own] = v[own] - st
+        b = self.top_bnd[x]
+        idx = np.searchsorted(b, v[~own])
+        if np.any(idx >= b.size) or np.any(b[np.minimum(idx, max(b.size - 1, 0))] != v[~own]):
+            raise RuntimeError("internal error: variable not in front")
+        out[~own] = en - st + idx
+        return out
+
+    def tile_positions(self, tau: int, tiles: np.ndarray, pixels: np.ndarray, states: np.ndarray) -> np.ndarray:
+        """Front positions in template node tau of tile-relative pixels of the given tiles."""
+        rel = pixels - self.origins[tiles]
+        pos = self.tpl.posmap[tau][rel[:, 0] + 1, rel[:, 1] + 1]
+        if np.any(pos < 0):
+            raise RuntimeError("internal error: pixel not in template front")
+        return pos * self.ds + states
+
+
+def _build_tree(h: int, w: int, ds: int, tile: int, leaf_pixels: int) -> _Tree:
+    nr, th = _tiling(h, tile)
+    nc, tw = _tiling(w, tile)
+    hp, wp = nr * (th + 1) - 1, nc * (tw + 1) - 1
+    tpl = _build_template(th, tw, leaf_pixels)
+    T = nr * nc
+    ti, tj = np.divmod(np.arange(T), nc)
+    origins = np.stack([ti * (th + 1), tj * (tw + 1)], 1).astype(np.int64)
     states = np.arange(ds)
-    bnd = []
-    for rp in ring_pix:
-        pos = np.sort(pix_pos[rp])
-        bnd.append((pos[:, None] * ds + states).ravel())
-    nodes = len(bnd)
-    node_of_var = np.repeat(np.arange(nodes), counts * ds)
-    nf = np.array([starts[k + 1] - starts[k] + bnd[k].size for k in range(nodes)])
+    pix_var = np.full(hp * wp, -1, dtype=np.int64)
+    vnode_chunks = []
+    t_base = [0]
+    t_no = []
+    for tau, o in enumerate(tpl.own):
+        k = o.shape[0]
+        glob = (origins[:, None, :] + o[None, :, :])  # (T, k, 2)
+        pix = glob[..., 0] * wp + glob[..., 1]
+        pix_var[pix.ravel()] = t_base[-1] + np.arange(T * k) * ds
+        vnode_chunks.append(np.repeat(tau * T + np.arange(T), k * ds))
+        t_no.append(k * ds)
+        t_base.append(t_base[-1] + T * k * ds)
+    ntpl = len(tpl.own)
+    # top nodes: nested dissection of the tile lattice
+    top_own, top_ring, top_children, top_tiles, top_parent = [], [], [], [], []
+
+    def visit(i0, i1, j0, j1) -> tuple[str, int]:
+        if (i1 - i0) * (j1 - j0) == 1:
+            return ("tile", i0 * nc + j0)
+        r0, r1 = i0 * (th + 1), i1 * (th + 1) - 1
+        c0, c1 = j0 * (tw + 1), j1 * (tw + 1) - 1
+        if (c1 - c0 >= r1 - r0 and j1 - j0 > 1) or i1 - i0 == 1:
+            m = (j0 + j1) // 2
+            kids = [visit(i0, i1, j0, m), visit(i0, i1, m, j1)]
+            col = m * (tw + 1) - 1
+            o = np.arange(r0, r1) * wp + col
+        else:
+            m = (i0 + i1) // 2
+            kids = [visit(i0, m, j0, j1), visit(m, i1, j0, j1)]
+            row = m * (th + 1) - 1
+            o = row * wp + np.arange(c0, c1)
+        g = _ring(r0, r1, c0, c1)
+        g = g[(g[:, 0] >= 0) & (g[:, 0] < hp) & (g[:, 1] >= 0) & (g[:, 1] < wp)]
+        node = len(top_own)
+        top_own.append(o.astype(np.int64))
+        top_ring.append(g[:, 0] * wp + g[:, 1])
+        top_children.append([k for kind, k in kids if kind == "top"])
+        top_tiles.append([k for kind, k in kids if kind == "tile"])
+        top_parent.append(-1)
+        for kind, k in kids:
+            if kind == "top":
+                top_parent[k] = node
+        return ("top", node)
+
+    visit(0, nr, 0, nc)
+    off = t_base[-1]
+    top_starts = [off]
+    for x, o in enumerate(top_own):
+        pix_var[o] = top_starts[-1] + np.arange(o.size) * ds
+        vnode_chunks.append(np.full(o.size * ds, ntpl * T + x))
+        top_starts.append(top_starts[-1] + o.size * ds)
+    nvar = top_starts[-1]
+    assert np.all(pix_var >= 0)
+    top_bnd = [np.sort((pix_var[g][:, None] + states).ravel()) for g in top_ring]
+    top_starts = np.array(top_starts)
+    top_nf = np.array([top_starts[x + 1] - top_starts[x] + top_bnd[x].size for x in range(len(top_own))], dtype=np.int64)
+    # template rings as global variables (dummy outside the padded grid)
+    t_bnd, t_nf = [], []
+    for tau, g in enumerate(tpl.ring):
+        glob = origins[:, None, :] + g[None, :, :]
+        inside = (glob[..., 0] >= 0) & (glob[..., 0] < hp) & (glob[..., 1] >= 0) & (glob[..., 1] < wp)
+        pix = np.where(inside, glob[..., 0] * wp + glob[..., 1], 0)
+        var = np.where(inside[..., None], pix_var[pix][..., None] + states, nvar)
+        t_bnd.append(var.reshape(T, -1))
+        t_nf.append(t_no[tau] + g.shape[0] * ds)
+    t_nf = np.array(t_nf, dtype=np.int64)
+    t_loc, t_ea = [None] * ntpl, [None] * ntpl
+    for tau in range(ntpl):
+        p = tpl.parent[tau]
+        if p >= 0:
+            g = tpl.ring[tau]
+            pos = tpl.posmap[p][g[:, 0] + 1, g[:, 1] + 1]
+            assert np.all(pos >= 0)
+            loc = (pos[:, None] * ds + states).ravel()
+            t_loc[tau] = loc
+            t_ea[tau] = (loc[:, None] * t_nf[p] + loc[None, :]).ravel()
     tree = _Tree(
-        shape=(h, w), ds=ds, pix_order=pix_order, pix_pos=pix_pos, starts=starts, bnd=bnd,
-        parent=np.array(parent), children=children, loc=[None] * nodes, ea_flat=[None] * nodes,
-        node_of_var=node_of_var, nf=nf,
+        shape=(h, w), padded=(hp, wp), ds=ds, tpl=tpl, origins=origins, nvar=int(nvar), pix_var=pix_var,
+        vnode=np.concatenate(vnode_chunks), t_base=np.array(t_base), t_no=np.array(t_no), t_nf=t_nf,
+        t_bnd=t_bnd, t_loc=t_loc, t_ea=t_ea, top_starts=top_starts, top_bnd=top_bnd, top_nf=top_nf,
+        top_parent=np.array(top_parent, dtype=np.int64), top_children=top_children, top_tiles=top_tiles,
+        top_loc=[None] * len(top_own), top_ea=[None] * len(top_own), tile_loc=None, tile_ea=None,
+        tile_parent=np.full(T, -1, dtype=np.int64),
     )
-    for k in range(nodes):
-        p = parent[k]
-        if p >= 0 and bnd[k].size:
-            loc = tree.front_positions(p, bnd[k])
-            tree.loc[k] = loc
-            tree.ea_flat[k] = (loc[:, None] * nf[p] + loc[None, :]).ravel()
+    for x in range(tree.ntop):
+        p = tree.top_parent[x]
+        if p >= 0:
+            loc = tree.top_positions(p, top_bnd[x])
+            tree.top_loc[x] = loc
+            tree.top_ea[x] = (loc[:, None] * top_nf[p] + loc[None, :]).ravel()
+    root = ntpl - 1
+    nb_root = t_bnd[root].shape[1]
+    tile_loc = np.zeros((T, nb_root), dtype=np.int64)
+    tile_ea = np.zeros((T, nb_root * nb_root), dtype=np.int64)
+    for x in range(tree.ntop):
+        nf = top_nf[x]
+        for t in top_tiles[x]:
+            tree.tile_parent[t] = x
+            v = t_bnd[root][t]
+            real = v < nvar
+            loc = np.full(nb_root, nf, dtype=np.int64)
+            loc[real] = tree.top_positions(x, v[real])
+            tile_loc[t] = loc
+            ea = loc[:, None] * nf + loc[None, :]
+            ea[~real, :] = nf * nf
+            ea[:, ~real] = nf * nf
+            tile_ea[t] = ea.ravel()
+    tree.tile_loc, tree.tile_ea = tile_loc, tile_ea
     return tree
 
 
 @dataclass
 class _Prior:
-    """Per-node assembly of the prior precision (Qv (x) Qu) of unit variance, and its log-det."""
+    """Front assembly of the unit-variance prior precision Qv (x) Qu, and its log-determinant."""
 
-    qpos: list  # per node: flat positions in the front
-    qval: list  # per node: values
-    dpos: list  # per node: flat positions of the own diagonal
-    logdet: float  # log det(Qv (x) Qu) (unit outputscale)
+    t_qpos: list  # per template node (nq,) flat positions
+    t_qval: list  # per template node (T, nq) values
+    top_qpos: list
+    top_qval: list
+    logdet: float  # log det(Qv (x) Qu) over the padded grid (unit outputscale)
+
+
+def _prior_pattern(tree: _Tree) -> dict:
+    """Front positions and pixel pairs of every prior precision entry (per tree, cached on it)."""
+    if "_pattern" in tree.__dict__:
+        return tree.__dict__["_pattern"]
+    hp, wp = tree.padded
+    ds = tree.ds
+    tpl = tree.tpl
+    T = tree.ntiles
+    template = []
+    for tau in range(tree.ntpl):
+        pm = tpl.posmap[tau]
+        nf = tree.t_nf[tau]
+        pa, pb, pp, qq = [], [], [], []
+        for dr, dc in _OFFSETS:
+            p = tpl.own[tau]
+            q = p + np.array([dr, dc])
+            bpos = pm[q[:, 0] + 1, q[:, 1] + 1]
+            keep = bpos >= 0
+            apos = pm[p[keep, 0] + 1, p[keep, 1] + 1]
+            bpos = bpos[keep]
+            is_own = bpos < tpl.own[tau].shape[0]
+            # (p, q) always; (q, p) when q is a ring pixel (own pairs come twice by symmetry)
+            pa += [apos, bpos[~is_own]]
+            pb += [bpos, apos[~is_own]]
+            pp += [p[keep], q[keep][~is_own]]
+            qq += [q[keep], p[keep][~is_own]]
+        pa, pb = np.concatenate(pa), np.concatenate(pb)
+        pp, qq = np.concatenate(pp), np.concatenate(qq)
+        ga = tree.origins[:, None, :] + pp[None]  # (T, m, 2)
+        gb = tree.origins[:, None, :] + qq[None]
+        inside = (gb[..., 0] >= 0) & (gb[..., 0] < hp) & (gb[..., 1] >= 0) & (gb[..., 1] < wp)
+        inside &= (ga[..., 0] >= 0) & (ga[..., 0] < hp) & (ga[..., 1] >= 0) & (ga[..., 1] < wp)
+        coords = (
+            np.clip(ga[..., 0], 0, hp - 1).ravel(), np.clip(ga[..., 1], 0, wp - 1).ravel(),
+            np.clip(gb[..., 0], 0, hp - 1).ravel(), np.clip(gb[..., 1], 0, wp - 1).ravel(),
+        )
+        pos = ((pa * ds)[:, None, None] + np.arange(ds)[None, :, None]) * nf + (pb * ds)[:, None, None] + np.arange(ds)
+        template.append((pos.ravel(), coords, inside))
+    is_top = np.zeros(hp * wp, dtype=bool)
+    is_top[tree.vnode[tree.pix_var] >= tree.ntpl * T] = True
+    all_top = np.nonzero(is_top)[0]
+    pr, pc = np.divmod(all_top, wp)
+    rows_p, rows_q = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    for dr, dc in _OFFSETS:
+        qr, qc = pr + dr, pc + dc
+        ok = (qr >= 0) & (qr < hp) & (qc >= 0) & (qc < wp)
+        qpix = np.where(ok, qr * wp + qc, 0)
+        ok &= is_top[qpix]
+        rows_p.append(all_top[ok])
+        rows_q.append(qpix[ok])
+    p_all, q_all = np.concatenate(rows_p), np.concatenate(rows_q)
+    owner = tree.vnode[np.minimum(tree.pix_var[p_all], tree.pix_var[q_all])] - tree.ntpl * T
+    sort = np.argsort(owner, kind="stable")
+    bounds = np.searchsorted(owner[sort], np.arange(tree.ntop + 1))
+    st = np.arange(ds)
+    top = []
+    for x in range(tree.ntop):
+        sel = sort[bounds[x] : bounds[x + 1]]
+        va = (tree.pix_var[p_all[sel]][:, None] + st).ravel()
+        vb = (tree.pix_var[q_all[sel]][:, None] + st).ravel()
+        a = tree.top_positions(x, va).reshape(-1, ds)
+        b = tree.top_positions(x, vb).reshape(-1, ds)
+        pos = (a[:, :, None] * tree.top_nf[x] + b[:, None, :]).ravel()
+        top.append((pos, (*np.divmod(p_all[sel], wp), *np.divmod(q_all[sel], wp))))
+    pattern = {"template": template, "top": top}
+    tree.__dict__["_pattern"] = pattern
+    return pattern
 
 
 def _build_prior(tree: _Tree, nu: float, lengthscale: float) -> _Prior:
-    h, w = tree.shape
+    hp, wp = tree.padded
     d = state_dim(nu)
-    Qv, ldv = chain_precision(np.arange(h, dtype=np.float64), nu, lengthscale)
-    Qu, ldu = chain_precision(np.arange(w, dtype=np.float64), nu, lengthscale)
-    Q = sp.kron(Qv, Qu, format="coo")  # index (r d + k) (W d) + (c d + l)
-    rv, cu = np.divmod(Q.row, w * d)
-    r, k = np.divmod(rv, d)
-    c, l = np.divmod(cu, d)
-    rv2, cu2 = np.divmod(Q.col, w * d)
-    r2, k2 = np.divmod(rv2, d)
-    c2, l2 = np.divmod(cu2, d)
-    ds = d * d
-    vi = tree.pix_pos[r * w + c] * ds + k * d + l
-    vj = tree.pix_pos[r2 * w + c2] * ds + k2 * d + l2
-    owner = np.minimum(tree.node_of_var[vi], tree.node_of_var[vj])
-    sort = np.argsort(owner, kind="stable")
-    vi, vj, val, owner = vi[sort], vj[sort], Q.data[sort], owner[sort]
-    bounds = np.searchsorted(owner, np.arange(tree.nodes + 1))
-    qpos, qval, dpos = [], [], []
-    for x in range(tree.nodes):
-        sl = slice(bounds[x], bounds[x + 1])
-        a = tree.front_positions(x, vi[sl])
-        b = tree.front_positions(x, vj[sl])
-        qpos.append(a * tree.nf[x] + b)
-        qval.append(val[sl].copy())
-        no = tree.starts[x + 1] - tree.starts[x]
-        dpos.append(np.arange(no) * (tree.nf[x] + 1))
-    return _Prior(qpos, qval, dpos, w * d * ldv + h * d * ldu)
+    ds = tree.ds
+    if d * d != ds:
+        raise InvalidInputError("nu", f"a smoothness with {ds} states per pixel", nu)
+    pattern = _prior_pattern(tree)
+    Qv, ldv = chain_precision(np.arange(hp, dtype=np.float64), nu, lengthscale)
+    Qu, ldu = chain_precision(np.arange(wp, dtype=np.float64), nu, lengthscale)
+    Qv, Qu = Qv.toarray(), Qu.toarray()
+    kk, ll = np.divmod(np.arange(ds), d)
+
+    def values(rp, cp, rq, cq):
+        """(m, ds, ds) Q blocks between pixels p and q (m,) in padded-grid coordinates."""
+        a = Qv[(rp * d)[:, None, None] + kk[None, :, None], (rq * d)[:, None, None] + kk[None, None, :]]
+        b = Qu[(cp * d)[:, None, None] + ll[None, :, None], (cq * d)[:, None, None] + ll[None, None, :]]
+        return a * b
+
+    T = tree.ntiles
+    t_qpos, t_qval = [], []
+    for pos, coords, inside in pattern["template"]:
+        m = inside.shape[1]
+        vals = values(*coords).reshape(T, m, ds, ds) * inside[..., None, None]
+        t_qpos.append(pos)
+        t_qval.append(vals.reshape(T, -1))
+    top_qpos, top_qval = [], []
+    for pos, coords in pattern["top"]:
+        top_qpos.append(pos)
+        top_qval.append(values(*coords).ravel())
+    return _Prior(t_qpos, t_qval, top_qpos, top_qval, wp * d * ldv + hp * d * ldu)
 
 
 @dataclass
@@ -216,13 +437,15 @@ class _Readout:
     wv: sp.csr_matrix  # (Ho, H d) row weights
     wu: sp.csr_matrix  # (Wo, W d) column weights
     resid: np.ndarray  # (Ho, Wo) conditional prior variance (unit outputscale)
-    node_groups: list  # per node: (output flat indices (m,), front positions (m, 4 ds), weights (m, 4 ds))
+    t_groups: list  # per template node: (outputs (m,), tiles (m,), front positions (m, 4 ds), weights (m, 4 ds))
+    top_groups: list  # per top node: (outputs (m,), front positions (m, 4 ds), weights (m, 4 ds))
 
 
 def _build_readout(tree: _Tree, out_rows: np.ndarray, out_cols: np.ndarray, nu: float, lengthscale: float) -> _Readout:
     h, w = tree.shape
+    hp, wp = tree.padded
     d = state_dim(nu)
-    ds = d * d
+    ds = tree.ds
     fr, wr, rr = readout_weights(np.arange(h, dtype=np.float64), out_rows, nu, lengthscale)
     fc, wc, rc = readout_weights(np.arange(w, dtype=np.float64), out_cols, nu, lengthscale)
     ho, wo = out_rows.shape[0], out_cols.shape[0]
@@ -234,132 +457,251 @@ def _build_readout(tree: _Tree, out_rows: np.ndarray, out_cols: np.ndarray, nu: 
         return sp.csr_matrix((wts.ravel(), (rows, cols)), shape=(m, n * d))
 
     resid = 1.0 - np.outer(1.0 - rr, 1.0 - rc)
-    # Variance: group output pixels by the node owning the first-eliminated variable of their 2x2 block.
     orr, occ = np.meshgrid(np.arange(ho), np.arange(wo), indexing="ij")
     orr, occ = orr.ravel(), occ.ravel()
-    br, bc = fr[orr], fc[occ]
-    corner_r = br[:, None] + np.array([0, 0, 1, 1])
-    corner_c = bc[:, None] + np.array([0, 1, 0, 1])
-    pix = tree.pix_pos[corner_r * w + corner_c]  # (m, 4)
-    var = (pix[:, :, None] * ds + np.arange(ds)).reshape(len(orr), 4 * ds)
-    # weights: corner (a, b) state (k, l) -> wr[:, a, k] * wc[:, b, l]
-    wgt = np.einsum("mak,mbl->mabkl", wr[orr], wc[occ]).reshape(len(orr), 4 * ds)
-    owner = tree.node_of_var[var.min(axis=1)]
+    m = orr.size
+    corner_r = fr[orr][:, None] + np.array([0, 0, 1, 1])
+    corner_c = fc[occ][:, None] + np.array([0, 1, 0, 1])
+    cpix = np.stack([corner_r, corner_c], -1)  # (m, 4, 2) padded-grid pixels (inside the real grid)
+    pvar = tree.pix_var[corner_r * wp + corner_c]  # (m, 4)
+    wgt = np.einsum("mak,mbl->mabkl", wr[orr], wc[occ]).reshape(m, 4 * ds)
+    first = np.argmin(pvar, axis=1)
+    owner = tree.vnode[pvar[np.arange(m), first]]
     sort = np.argsort(owner, kind="stable")
-    bounds = np.searchsorted(owner[sort], np.arange(tree.nodes + 1))
-    groups = []
-    for x in range(tree.nodes):
-        sel = sort[bounds[x] : bounds[x + 1]]
+    T = tree.ntiles
+    bounds = np.searchsorted(owner[sort], np.arange((tree.ntpl + tree.ntop) * 0 + tree.ntpl * T + tree.ntop + 1))
+    states = np.tile(np.arange(ds), 4)
+    t_groups = []
+    for tau in range(tree.ntpl):
+        sel = sort[bounds[tau * T] : bounds[(tau + 1) * T]]
         if sel.size == 0:
-            groups.append(None)
+            t_groups.append(None)
             continue
-        pos = tree.front_positions(x, var[sel].ravel()).reshape(sel.size, 4 * ds)
-        groups.append((sel, pos, wgt[sel]))
-    return _Readout(wmat(fr, wr, h), wmat(fc, wc, w), resid, groups)
+        tiles = owner[sel] - tau * T
+        pix = np.repeat(cpix[sel], ds, axis=1).reshape(-1, 2)
+        pos = tree.tile_positions(tau, np.repeat(tiles, 4 * ds), pix, np.tile(states, sel.size)).reshape(sel.size, 4 * ds)
+        t_groups.append((sel, tiles, pos, wgt[sel]))
+    top_groups = []
+    for x in range(tree.ntop):
+        v = tree.ntpl * T + x
+        sel = sort[bounds[v] : bounds[v + 1]]
+        if sel.size == 0:
+            top_groups.append(None)
+            continue
+        var = (pvar[sel][:, :, None] + np.arange(ds)).reshape(sel.size, 4 * ds)
+        pos = tree.top_positions(x, var.ravel()).reshape(sel.size, 4 * ds)
+        top_groups.append((sel, pos, wgt[sel]))
+    return _Readout(wmat(fr, wr, h), wmat(fc, wc, w), resid, t_groups, top_groups)
 
 
-# ----------------------------------------------------------------------------- numeric phase (NumPy / LAPACK)
+# ----------------------------------------------------------------------------- numeric phase (torch)
+
+
+def _device_arrays(tree: _Tree, prior: _Prior, readout: "_Readout | None", device):
+    """Index arrays and prior values of the tree as torch tensors on ``device`` (cached on the objects)."""
+    import torch
+
+    key = str(device)
+    cache = tree.__dict__.setdefault("_dev", {})
+    if key not in cache:
+        t = lambda a: None if a is None else torch.as_tensor(np.asarray(a), device=device)  # noqa: E731
+        cache[key] = {
+            "t_bnd": [t(b) for b in tree.t_bnd], "t_loc": [t(x) for x in tree.t_loc],
+            "t_ea": [t(x) for x in tree.t_ea], "top_bnd": [t(b) for b in tree.top_bnd],
+            "top_loc": [t(x) for x in tree.top_loc], "top_ea": [t(x) for x in tree.top_ea],
+            "tile_loc": t(tree.tile_loc), "tile_ea": t(tree.tile_ea),
+            "top_tiles": [t(np.array(x, dtype=np.int64)) for x in tree.top_tiles],
+            "t_diag": [t(np.arange(no) * (nf + 1)) for no, nf in zip(tree.t_no, tree.t_nf)],
+            "top_diag": [t(np.arange(tree.top_starts[x + 1] - tree.top_starts[x]) * (tree.top_nf[x] + 1)) for x in range(tree.ntop)],
+        }
+    pcache = prior.__dict__.setdefault("_dev", {})
+    if key not in pcache:
+        t = lambda a: torch.as_tensor(np.asarray(a), device=device)  # noqa: E731
+        pcache[key] = {
+            "t_qpos": [t(x) for x in prior.t_qpos], "t_qval": [t(x) for x in prior.t_qval],
+            "top_qpos": [t(x) for x in prior.top_qpos], "top_qval": [t(x) for x in prior.top_qval],
+        }
+    rdev = None
+    if readout is not None:
+        rcache = readout.__dict__.setdefault("_dev", {})
+        if key not in rcache:
+            t = lambda a: torch.as_tensor(np.asarray(a), device=device)  # noqa: E731
+            rcache[key] = {
+                "t": [None if g is None else tuple(t(a) for a in g) for g in readout.t_groups],
+                "top": [None if g is None else tuple(t(a) for a in g) for g in readout.top_groups],
+            }
+        rdev = rcache[key]
+    return cache[key], pcache[key], rdev
 
 
 class _Factor:
-    """Multifrontal Cholesky factor of P (NumPy): per node L11 (no, no) and L21^T (no, nb)."""
+    """Cholesky factor of the posterior precision over the tree's fronts (torch, float64, any device)."""
 
-    def __init__(self, tree: _Tree, prior: _Prior, inv_s2: float, prec_var: np.ndarray):
-        self.tree = tree
-        starts, nf = tree.starts, tree.nf
-        L11s, L21Ts = [], []
-        updates: list = [None] * tree.nodes
-        logdet = 0.0
-        for x in range(tree.nodes):
-            n_f = int(nf[x])
-            st, en = int(starts[x]), int(starts[x + 1])
+    def __init__(self, tree: _Tree, prior: _Prior, inv_s2: float, prec_var: np.ndarray, device=None):
+        import torch
+
+        self.torch = torch
+        self.device = torch.device("cpu" if device is None else device)
+        self.tree, self.prior = tree, prior
+        ix, pq, _ = _device_arrays(tree, prior, None, self.device)
+        self.ix = ix
+        opts = {"dtype": torch.float64, "device": self.device}
+        prec = torch.as_tensor(prec_var, **opts)
+        T = tree.ntiles
+        tpl = tree.tpl
+        solve_tri = torch.linalg.solve_triangular
+        logdet = torch.zeros((), **opts)
+        info = torch.zeros((), dtype=torch.int32, device=self.device)
+        upd: list = [None] * tree.ntpl
+        self.tL11, self.tL21T = [], []
+        for tau in range(tree.ntpl):
+            nf, no = int(tree.t_nf[tau]), int(tree.t_no[tau])
+            F = torch.zeros((T, nf * nf), **opts)
+            F.index_copy_(1, pq["t_qpos"][tau], pq["t_qval"][tau] * inv_s2)
+            F.index_add_(1, ix["t_diag"][tau], prec[tree.t_base[tau] : tree.t_base[tau + 1]].view(T, no))
+            for c in tpl.children[tau]:
+                F.index_add_(1, ix["t_ea"][c], upd[c].reshape(T, -1))
+                upd[c] = None
+            F = F.view(T, nf, nf)
+            L11, inf = torch.linalg.cholesky_ex(F[:, :no, :no])
+            info = info + inf.abs().sum()
+            logdet = logdet + 2.0 * torch.log(torch.diagonal(L11, dim1=1, dim2=2)).sum()
+            L21T = solve_tri(L11, F[:, :no, no:], upper=False)
+            upd[tau] = F[:, no:, no:] - L21T.mT @ L21T
+            self.tL11.append(L11)
+            self.tL21T.append(L21T)
+        root_update = upd[tree.ntpl - 1].reshape(T, -1)
+        self.L11, self.L21T = [], []
+        updates: list = [None] * tree.ntop
+        for x in range(tree.ntop):
+            nf = int(tree.top_nf[x])
+            st, en = int(tree.top_starts[x]), int(tree.top_starts[x + 1])
             no = en - st
-            F = np.zeros((n_f, n_f))
-            Ff = F.reshape(-1)
-            Ff[prior.qpos[x]] = prior.qval[x] * inv_s2
-            Ff[prior.dpos[x]] += prec_var[st:en]
-            for c in tree.children[x]:
-                u = updates[c]
-                if u is not None:
-                    Ff[tree.ea_flat[c]] += u.reshape(-1)
-                    updates[c] = None
-            L11, info = lapack.dpotrf(F[:no, :no], lower=1, clean=1, overwrite_a=0)
-            if info != 0:
-                raise np.linalg.LinAlgError(f"posterior precision not positive definite (node {x}, info {info})")
-            logdet += 2.0 * float(np.sum(np.log(np.diag(L11))))
-            if n_f > no:
-                L21T = blas.dtrsm(1.0, L11, F[:no, no:], lower=1)
-                U = F[no:, no:]
-                U -= L21T.T @ L21T
-                updates[x] = U
-            else:
-                L21T = np.zeros((no, 0))
-            L11s.append(L11)
-            L21Ts.append(L21T)
-        self.L11, self.L21T, self.logdet = L11s, L21Ts, logdet
+            Ff = torch.zeros(nf * nf + 1, **opts)
+            Ff.index_copy_(0, pq["top_qpos"][x], pq["top_qval"][x] * inv_s2)
+            Ff.index_add_(0, ix["top_diag"][x], prec[st:en])
+            for c in tree.top_children[x]:
+                Ff.index_add_(0, ix["top_ea"][c], updates[c].reshape(-1))
+                updates[c] = None
+            if tree.top_tiles[x]:
+                tiles = ix["top_tiles"][x]
+                Ff.index_add_(0, ix["tile_ea"][tiles].reshape(-1), root_update[tiles].reshape(-1))
+            F = Ff[:-1].view(nf, nf)
+            L11, inf = torch.linalg.cholesky_ex(F[:no, :no])
+            info = info + inf.abs()
+            logdet = logdet + 2.0 * torch.log(torch.diagonal(L11)).sum()
+            L21T = solve_tri(L11, F[:no, no:], upper=False)
+            if nf > no:
+                updates[x] = F[no:, no:] - L21T.T @ L21T
+            self.L11.append(L11)
+            self.L21T.append(L21T)
+        if int(info) != 0:
+            raise np.linalg.LinAlgError("posterior precision not positive definite (check precisions and scales)")
+        self.logdet = float(logdet)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solves P x = b for b (nvar,) in elimination numbering."""
-        tree = self.tree
-        y = np.array(b, dtype=np.float64, copy=True)
-        starts = tree.starts
-        for x in range(tree.nodes):
-            st, en = starts[x], starts[x + 1]
-            z = blas.dtrsm(1.0, self.L11[x], y[st:en, None], lower=1)[:, 0]
-            y[st:en] = z
+        """Solves P x = b for b (nvar,) (variables in elimination numbering)."""
+        torch = self.torch
+        tree, ix = self.tree, self.ix
+        T = tree.ntiles
+        n = tree.nvar
+        solve_tri = torch.linalg.solve_triangular
+        y = torch.zeros(n + 1, dtype=torch.float64, device=self.device)
+        y[:n] = torch.as_tensor(b, dtype=torch.float64, device=self.device)
+        for tau in range(tree.ntpl):
+            s = slice(int(tree.t_base[tau]), int(tree.t_base[tau + 1]))
+            z = solve_tri(self.tL11[tau], y[s].view(T, -1, 1), upper=False)
+            y[s] = z.reshape(-1)
+            y.index_add_(0, ix["t_bnd"][tau].reshape(-1), -(self.tL21T[tau].mT @ z).reshape(-1))
+        for x in range(tree.ntop):
+            st, en = int(tree.top_starts[x]), int(tree.top_starts[x + 1])
+            z = solve_tri(self.L11[x], y[st:en].view(-1, 1), upper=False)
+            y[st:en] = z.view(-1)
             if self.L21T[x].shape[1]:
-                y[tree.bnd[x]] -= self.L21T[x].T @ z
-        for x in range(tree.nodes - 1, -1, -1):
-            st, en = starts[x], starts[x + 1]
-            rhs = y[st:en]
+                y.index_add_(0, ix["top_bnd"][x], -(self.L21T[x].T @ z).view(-1))
+        y[n] = 0.0
+        for x in range(tree.ntop - 1, -1, -1):
+            st, en = int(tree.top_starts[x]), int(tree.top_starts[x + 1])
+            rhs = y[st:en].view(-1, 1)
             if self.L21T[x].shape[1]:
-                rhs = rhs - self.L21T[x] @ y[tree.bnd[x]]
-            y[st:en] = blas.dtrsm(1.0, self.L11[x], rhs[:, None], lower=1, trans_a=1)[:, 0]
-        return y
+                rhs = rhs - self.L21T[x] @ y[ix["top_bnd"][x]].view(-1, 1)
+            y[st:en] = solve_tri(self.L11[x].T, rhs, upper=True).view(-1)
+        for tau in range(tree.ntpl - 1, -1, -1):
+            s = slice(int(tree.t_base[tau]), int(tree.t_base[tau + 1]))
+            rhs = y[s].view(T, -1, 1) - self.tL21T[tau] @ y[ix["t_bnd"][tau]].unsqueeze(-1)
+            y[s] = solve_tri(self.tL11[tau].mT, rhs, upper=True).reshape(-1)
+        return y[:n].cpu().numpy()
 
     def selected_inverse(self, readout: _Readout | None) -> tuple[np.ndarray, np.ndarray | None]:
-        """diag(P^-1) (nvar,) and, with a read-out, the output variances w^T Sigma_block w (m,)."""
-        tree = self.tree
-        starts = tree.starts
-        diag = np.empty(int(starts[-1]))
-        out = None
-        if readout is not None:
-            out = np.empty(readout.resid.size)
-        sig: list = [None] * tree.nodes
-        last_child = [min(c) if c else -1 for c in tree.children]
-        for x in range(tree.nodes - 1, -1, -1):
-            st, en = int(starts[x]), int(starts[x + 1])
+        """diag(P^-1) (nvar,) and, with a read-out, the output variances w^T Sigma_block w (Ho Wo,)."""
+        torch = self.torch
+        tree, ix = self.tree, self.ix
+        _, _, rd = _device_arrays(tree, self.prior, readout, self.device)
+        opts = {"dtype": torch.float64, "device": self.device}
+        T = tree.ntiles
+        solve_tri = torch.linalg.solve_triangular
+        diag = torch.empty(tree.nvar, **opts)
+        out = torch.empty(readout.resid.size, **opts) if readout is not None else None
+        sig: list = [None] * tree.ntop
+        for x in range(tree.ntop - 1, -1, -1):
+            st, en = int(tree.top_starts[x]), int(tree.top_starts[x + 1])
             no = en - st
-            Linv, info = lapack.dtrtri(self.L11[x], lower=1)
-            if info != 0:
-                raise np.linalg.LinAlgError(f"singular factor block (node {x})")
-            Ainv = Linv.T @ Linv
-            p = tree.parent[x]
-            L21T = self.L21T[x]
-            if L21T.shape[1] == 0:
-                S = Ainv
-                SJJ = Ainv
+            nf = int(tree.top_nf[x])
+            L11 = self.L11[x]
+            Linv = solve_tri(L11, torch.eye(no, **opts), upper=False)
+            S = torch.zeros((nf + 1, nf + 1), **opts)  # last row / column: the zero trash slot
+            SJJ = Linv.T @ Linv
+            if nf > no:
+                loc = ix["top_loc"][x]
+                SBB = sig[tree.top_parent[x]][loc[:, None], loc[None, :]]
+                TT = Linv.T @ self.L21T[x]
+                SBJ = -(SBB @ TT.T)
+                SJJ = SJJ - TT @ SBJ
+                S[:no, no:nf] = SBJ.T
+                S[no:nf, :no] = SBJ
+                S[no:nf, no:nf] = SBB
+            S[:no, :no] = SJJ
+            diag[st:en] = torch.diagonal(SJJ)
+            if rd is not None and rd["top"][x] is not None:
+                sel, pos, wgt = rd["top"][x]
+                out[sel] = torch.einsum("mi,mij,mj->m", wgt, S[pos[:, :, None], pos[:, None, :]], wgt)
+            sig[x] = S
+        tsig: list = [None] * tree.ntpl
+        tpl = tree.tpl
+        for tau in range(tree.ntpl - 1, -1, -1):
+            no, nf = int(tree.t_no[tau]), int(tree.t_nf[tau])
+            L11, L21T = self.tL11[tau], self.tL21T[tau]
+            Linv = solve_tri(L11, torch.eye(no, **opts).expand(T, no, no), upper=False)
+            LinvT = Linv.mT
+            p = tpl.parent[tau]
+            if p >= 0:
+                loc = ix["t_loc"][tau]
+                SBB = tsig[p][:, loc[:, None], loc[None, :]]
             else:
-                loc = tree.loc[x]
-                SBB = sig[p][np.ix_(loc, loc)]
-                TT = Linv.T @ L21T  # L11^-T L21^T  (no, nb)
-                SBJ = -(SBB @ TT.T)  # (nb, no)
-                SJJ = Ainv - TT @ SBJ
-                S = np.empty((tree.nf[x], tree.nf[x]))
-                S[:no, :no] = SJJ
-                S[:no, no:] = SBJ.T
-                S[no:, :no] = SBJ
-                S[no:, no:] = SBB
-            diag[st:en] = np.diag(SJJ)
-            if readout is not None and readout.node_groups[x] is not None:
-                sel, pos, wgt = readout.node_groups[x]
-                block = S[pos[:, :, None], pos[:, None, :]]
-                out[sel] = np.einsum("mi,mij,mj->m", wgt, block, wgt)
-            if tree.children[x]:
-                sig[x] = S
-            if p >= 0 and last_child[p] == x:
-                sig[p] = None
-        return diag, out
+                nb = nf - no
+                SBB = torch.zeros((T, nb, nb), **opts)
+                for x in range(tree.ntop):
+                    if tree.top_tiles[x]:
+                        tiles = ix["top_tiles"][x]
+                        loc = ix["tile_loc"][tiles]
+                        SBB[tiles] = sig[x][loc[:, :, None], loc[:, None, :]]
+            TT = LinvT @ L21T  # (T, no, nb)
+            SBJ = -(SBB @ TT.mT)  # (T, nb, no)
+            S = torch.empty((T, nf, nf), **opts)
+            SJJ = LinvT @ Linv - TT @ SBJ
+            S[:, :no, :no] = SJJ
+            S[:, :no, no:] = SBJ.mT
+            S[:, no:, :no] = SBJ
+            S[:, no:, no:] = SBB
+            diag[int(tree.t_base[tau]) : int(tree.t_base[tau + 1])] = torch.diagonal(SJJ, dim1=1, dim2=2).reshape(-1)
+            if rd is not None and rd["t"][tau] is not None:
+                sel, tiles, pos, wgt = rd["t"][tau]
+                block = S[tiles[:, None, None], pos[:, :, None], pos[:, None, :]]
+                out[sel] = torch.einsum("mi,mij,mj->m", wgt, block, wgt)
+            tsig[tau] = S
+            if p >= 0 and min(tpl.children[p]) == tau:
+                tsig[p] = None
+        return diag.cpu().numpy(), (out.cpu().numpy() if out is not None else None)
 
 
 # ----------------------------------------------------------------------------- engine
@@ -368,27 +710,44 @@ class _Factor:
 class FastEngine:
     """Exact GP posterior on the pixel grid via the sparse precision (see the module docstring).
 
-    The engine caches, per resolution and kernel, the elimination tree, the prior precision
-    assembly and the output read-out, so a `DepthCompleter` (which keeps one engine) only pays
-    the numeric factorisation from the second frame of a resolution on.
+    The engine caches, per resolution and kernel, the elimination structure, the prior
+    precision assembly and the output read-out, so a `DepthCompleter` (which keeps one engine)
+    only pays the numeric factorisation from the second frame of a resolution on. A direct
+    factorisation has nothing to warm-start.
 
     Args:
-        device: None for NumPy/SciPy on the CPU (default), or a torch device ("cpu", "cuda", ...)
-            to run the same algorithm with torch in float64.
-        leaf_pixels: Largest sub-grid (pixels) eliminated as one dense front.
+        device: torch device of the numeric work (None = "cpu"); float64 everywhere.
+        tile: Target tile size (pixels per side) of the batched part of the elimination.
+        leaf_pixels: Largest sub-grid (pixels) eliminated as one dense front inside a tile.
         cache_size: Number of (resolution, kernel) set-ups kept.
+        threads: CPU threads of torch during the numeric work (restored afterwards); None keeps
+            torch's setting. The default 1 is as fast on 2 cores for these many small batched
+            kernels and avoids the collapse of multi-threaded BLAS on a busy machine.
     """
 
     name = "fast"
 
-    def __init__(self, device=None, *, leaf_pixels: int | None = None, cache_size: int = 4):
-        if leaf_pixels is not None and (not isinstance(leaf_pixels, int) or leaf_pixels < 1):
-            raise InvalidInputError("leaf_pixels", "an integer >= 1", leaf_pixels)
-        if not isinstance(cache_size, int) or cache_size < 1:
+    def __init__(
+        self,
+        device=None,
+        *,
+        tile: int | None = None,
+        leaf_pixels: int | None = None,
+        cache_size: int = 4,
+        threads: int | None = 1,
+    ):
+        if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
+            raise InvalidInputError("threads", "None or an integer >= 1", threads)
+        self.threads = threads
+        for name, value in (("tile", tile), ("leaf_pixels", leaf_pixels)):
+            if value is not None and (not isinstance(value, (int, np.integer)) or value < 1):
+                raise InvalidInputError(name, "an integer >= 1", value)
+        if not isinstance(cache_size, (int, np.integer)) or cache_size < 1:
             raise InvalidInputError("cache_size", "an integer >= 1", cache_size)
         self.device = device
+        self.tile = tile
         self.leaf_pixels = leaf_pixels
-        self.cache_size = cache_size
+        self.cache_size = int(cache_size)
         self._trees: OrderedDict = OrderedDict()
         self._priors: OrderedDict = OrderedDict()
         self._readouts: OrderedDict = OrderedDict()
@@ -405,11 +764,12 @@ class FastEngine:
         return value
 
     def _tree(self, h: int, w: int, ds: int) -> _Tree:
-        leaf = self.leaf_pixels or max(1, 48 // ds)
-        return self._cached(self._trees, (h, w, ds, leaf), lambda: _build_tree(h, w, ds, leaf))
+        tile = self.tile or (24 if ds == 1 else 12 if ds == 4 else 8)
+        leaf = self.leaf_pixels or max(1, 40 // ds)
+        return self._cached(self._trees, (h, w, ds, tile, leaf), lambda: _build_tree(h, w, ds, tile, leaf))
 
     def _prior(self, tree: _Tree, nu: float, lengthscale: float) -> _Prior:
-        key = (tree.shape, tree.ds, id(tree), float(nu), float(lengthscale))
+        key = (id(tree), float(nu), float(lengthscale))
         return self._cached(self._priors, key, lambda: _build_prior(tree, nu, lengthscale))
 
     def _readout(self, tree: _Tree, problem: GridProblem) -> _Readout:
@@ -421,23 +781,35 @@ class FastEngine:
 
     # -- public
     def factorize(self, problem: GridProblem):
-        """Factorises the posterior precision of ``problem``; returns (factor, tree, prior)."""
+        """Factorises the posterior precision of ``problem``.
+
+        Returns:
+            (factor, tree, prior, real_vars): the factor, the cached elimination structure and
+            prior assembly, and the (H, W) variable index of state 0 of each grid pixel.
+        """
         _check_problem(problem)
         h, w = problem.shape
         k = problem.kernel
         d = state_dim(k.nu)
         tree = self._tree(h, w, d * d)
         prior = self._prior(tree, k.nu, k.lengthscale)
-        prec_var = np.zeros(int(tree.starts[-1]))
-        prec_var[::tree.ds] = np.asarray(problem.precision, dtype=np.float64).ravel()[tree.pix_order]
+        real_vars = tree.pix_var.reshape(tree.padded)[:h, :w]
+        prec_var = np.zeros(tree.nvar)
+        prec_var[real_vars.ravel()] = np.asarray(problem.precision, dtype=np.float64).ravel()
         inv_s2 = 1.0 / float(k.outputscale) ** 2
-        if self.device is None:
-            factor = _Factor(tree, prior, inv_s2, prec_var)
-        else:
-            from ._fast_torch import TorchFactor
+        with _torch_threads(self.threads):
+            factor = _Factor(tree, prior, inv_s2, prec_var, self.device)
+        return factor, tree, prior, real_vars
 
-            factor = TorchFactor(tree, prior, inv_s2, prec_var, self.device)
-        return factor, tree, prior
+    def _posterior_states(self, problem: GridProblem):
+        factor, tree, prior, real_vars = self.factorize(problem)
+        prec = np.asarray(problem.precision, dtype=np.float64)
+        resid = np.where(prec > 0, np.asarray(problem.obs, np.float64) - np.asarray(problem.prior_mean, np.float64), 0.0)
+        b = np.zeros(tree.nvar)
+        b[real_vars.ravel()] = (prec * resid).ravel()
+        with _torch_threads(self.threads):
+            mu = factor.solve(b)
+        return factor, tree, prior, real_vars, mu, prec, resid
 
     def solve(self, problem: GridProblem, *, variance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None).
@@ -446,18 +818,13 @@ class FastEngine:
             problem: The grid problem (either formulation).
             variance: Also compute the marginal variances (selected inversion).
         """
-        factor, tree, prior = self.factorize(problem)
+        factor, tree, prior, real_vars, mu, _, _ = self._posterior_states(problem)
         h, w = problem.shape
         k = problem.kernel
         d = state_dim(k.nu)
         ds = tree.ds
         s2 = float(k.outputscale) ** 2
-        prec = np.asarray(problem.precision, dtype=np.float64)
-        resid = np.where(prec > 0, np.asarray(problem.obs, np.float64) - np.asarray(problem.prior_mean, np.float64), 0.0)
-        b = np.zeros(int(tree.starts[-1]))
-        b[::ds] = (prec * resid).ravel()[tree.pix_order]
-        mu = factor.solve(b)
-        states = mu.reshape(-1, ds)[tree.pix_pos].reshape(h, w, d, d)  # (r, c, k, l)
+        states = mu[real_vars[..., None] + np.arange(ds)].reshape(h, w, d, d)  # (r, c, k, l)
         same_grid = problem.output_is_input
         if same_grid:
             mean = np.asarray(problem.out_prior_mean, np.float64) + states[:, :, 0, 0]
@@ -468,10 +835,12 @@ class FastEngine:
         if not variance:
             return mean, None
         if same_grid:
-            diag, _ = factor.selected_inverse(None)
-            var = diag.reshape(-1, ds)[tree.pix_pos, 0].reshape(h, w)
+            with _torch_threads(self.threads):
+                diag, _ = factor.selected_inverse(None)
+            var = diag[real_vars]
         else:
-            _, out = factor.selected_inverse(readout)
+            with _torch_threads(self.threads):
+                _, out = factor.selected_inverse(readout)
             var = out.reshape(problem.out_shape) + s2 * readout.resid
         return mean, np.maximum(var, 0.0)
 
@@ -479,34 +848,39 @@ class FastEngine:
         """Log marginal likelihood log p(y) of the observed pixels of ``problem`` (nats).
 
         Uses log p(y) = log N(y; f*, W^-1) + log N(f*; m, Q^-1) - log N(f*; f*, P^-1) at the
-        posterior mean f*, with log det P from the sparse Cholesky factor.
+        posterior mean f* (the latent field on the padded grid, all states), with log det P
+        from the Cholesky factor and log det Q from the 1-D chains.
         """
-        factor, tree, prior = self.factorize(problem)
+        factor, tree, prior, real_vars, mu, prec, resid = self._posterior_states(problem)
         k = problem.kernel
-        ds = tree.ds
+        d = state_dim(k.nu)
         s2 = float(k.outputscale) ** 2
-        prec = np.asarray(problem.precision, dtype=np.float64)
         obs = prec > 0
-        resid = np.where(obs, np.asarray(problem.obs, np.float64) - np.asarray(problem.prior_mean, np.float64), 0.0)
-        b = np.zeros(int(tree.starts[-1]))
-        b[::ds] = (prec * resid).ravel()[tree.pix_order]
-        mu = factor.solve(b)
-        f = np.zeros_like(resid)
-        f.ravel()[tree.pix_order] = mu[::ds]
+        f = mu[real_vars]
         data = -0.5 * float(np.sum(prec[obs] * (resid[obs] - f[obs]) ** 2))
         data += 0.5 * float(np.sum(np.log(prec[obs]))) - 0.5 * obs.sum() * np.log(2 * np.pi)
-        # f^T Q f with Q = blocks / s^2: reuse the per-node assembly (each entry owned once).
-        quad = 0.0
-        for x in range(tree.nodes):
-            n_f = tree.nf[x]
-            st, en = tree.starts[x], tree.starts[x + 1]
-            front = np.concatenate([np.arange(st, en), tree.bnd[x]])
-            a, bb = np.divmod(prior.qpos[x], n_f)
-            quad += float(np.sum(prior.qval[x] * mu[front[a]] * mu[front[bb]]))
-        quad /= s2
-        nvar = int(tree.starts[-1])
-        logdet_q = prior.logdet - nvar * np.log(s2)
+        hp, wp = tree.padded
+        Qv, _ = chain_precision(np.arange(hp, dtype=np.float64), k.nu, k.lengthscale)
+        Qu, _ = chain_precision(np.arange(wp, dtype=np.float64), k.nu, k.lengthscale)
+        X = mu[tree.pix_var[:, None] + np.arange(tree.ds)].reshape(hp, wp, d, d).transpose(0, 2, 1, 3).reshape(hp * d, wp * d)
+        quad = float(np.sum(X * (Qv @ (Qu @ X.T).T))) / s2
+        logdet_q = prior.logdet - tree.nvar * np.log(s2)
         return data - 0.5 * quad + 0.5 * logdet_q - 0.5 * factor.logdet
+
+
+@contextmanager
+def _torch_threads(threads: int | None):
+    """Temporarily sets torch's intra-op CPU threads."""
+    import torch
+
+    old = torch.get_num_threads()
+    if threads is not None and threads != old:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if threads is not None and threads != old:
+            torch.set_num_threads(old)
 
 
 def _check_problem(problem: GridProblem) -> None:

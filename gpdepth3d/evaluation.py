@@ -1,0 +1,885 @@
+"""Evaluation of depth-completion methods on real data: protocols x densities x methods.
+
+Every method sees the same frames, the same MDE map and the same sparse input; metrics are
+computed against the same ground truth. Methods (`METHODS`):
+
+* ``mde``: the MDE alone.
+* ``mde_scale``: the MDE times one robust global scale fitted to the sparse points.
+* ``ip_basic``: IP-Basic (Ku et al. 2018) from the sparse points only (`gpdepth3d.baselines`).
+* ``gp_balanced``: the paper's balanced GP (`DepthGPConfig.paper`), MDE pixels and points both
+  observations; solved on a GP grid of ``balanced_factor`` times the evaluation resolution (the
+  paper worked at 1/3 KITTI resolution) with the output at full evaluation resolution.
+* ``gp_residual``: the residual GP (`DepthGPConfig.residual`): scale-aligned MDE as prior mean,
+  the GP models its additive error.
+* ``gp_residual_fit``: the residual GP with its length scale, output scale and a nugget
+  (white MDE error + measurement noise) fitted per frame by maximising the exact marginal
+  likelihood of the measured residuals (`fit_residual_points`; cheap: only the n measured
+  pixels enter it).
+* ``gp_relative``: beyond both: the residual GP on the *ratio* depth / MDE (a multiplicative
+  MDE error, whose size grows with depth as a monocular network's does), plus a white-noise
+  MDE component (pixel-level error the smooth field cannot explain). See `relative_residual`.
+
+Ground truth: the dense depth of the frame where the dataset has one (7-Scenes, iBims); else a
+held-out share of the dataset's own sparse points (KITTI, SLAM features), see
+`gpdepth3d.sampling.holdout_split`: the protocols then draw only from the remaining points.
+
+Results: one row per (frame, protocol, level, method) with every `depth_metrics` and
+`calibration_metrics` value, aggregated per (protocol, level, method) as the mean over frames;
+written as CSV and JSON (atomically), a markdown table, an RMSE-vs-density PNG per protocol and
+a qualitative figure. The command-line entry is `eval_command`.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterable, Literal, Sequence
+
+import numpy as np
+
+from .baselines import ip_basic
+from .complete import DepthCompleter
+from .datasets import Frame, open_dataset
+from .errors import (
+    EmptyInputError,
+    InvalidInputError,
+    ProblemTooLargeError,
+)
+from .gp.model import DepthGPConfig
+from .io import atomic_path, atomic_write
+from .mde.align import align_depth
+from .measurements import SparseDepth
+from .metrics import METRIC_NAMES, calibration_metrics, depth_metrics
+from .sampling import (
+    PAPER_DENSITIES,
+    SeedLike,
+    make_rng,
+    sample_band,
+    sample_scanlines,
+    sample_uniform,
+    beam_ids,
+    lidar_elevation,
+)
+
+METHODS: tuple[str, ...] = (
+    "mde",
+    "mde_scale",
+    "ip_basic",
+    "gp_balanced",
+    "gp_residual",
+    "gp_residual_fit",
+    "gp_relative",
+)
+PROTOCOLS: tuple[str, ...] = ("uniform", "density", "hband", "vband", "scanlines")
+CALIBRATION_NAMES = ("nll", "coverage_1sigma", "coverage_2sigma", "z_rms")
+ProtocolName = Literal["uniform", "density", "hband", "vband", "scanlines"]
+
+
+# ----------------------------------------------------------------------------- methods
+@dataclass(frozen=True)
+class MethodOutput:
+    """A method's dense prediction: mean (H, W) metres, variance (H, W) m^2 or None, seconds."""
+
+    mean: np.ndarray
+    variance: np.ndarray | None
+    seconds: float
+    note: str = ""
+
+
+def relative_residual(
+    mde: np.ndarray,
+    sparse: SparseDepth,
+    completer: DepthCompleter,
+    *,
+    white: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residual GP on the depth ratio rho = depth / MDE, with an optional white MDE error.
+
+    Model: depth(x) = MDE(x) * rho(x), rho = s * (1 + g(x)) + w(x), where g is the GP of
+    ``completer.config`` (residual formulation, relative units so its scales are fractions),
+    s the robust global scale (``config.align``) and w white noise of standard deviation
+    ``white`` (a fraction): the MDE's pixel-level error, which the smooth g cannot explain.
+    Each measured point gives rho_j = z_j / MDE(x_j) with noise sd sqrt((sigma_j / MDE)^2 +
+    white^2); the posterior of rho is computed by the completer on a constant unit prior map,
+    then mapped back: mean = MDE * E[rho], variance = MDE^2 * (Var[rho] + white^2).
+
+    Args:
+        mde: (H, W) MDE depth, metres (0 = none; filled from the nearest valid pixel).
+        sparse: Measurements of the same image.
+        completer: A `DepthCompleter` whose config has formulation "residual".
+        white: White-noise share of the MDE error (e.g. 0.05 = 5 % of the depth).
+
+    Returns:
+        (mean (H, W) metres, variance (H, W) m^2).
+    """
+    cfg = completer.config
+    if cfg.formulation != "residual":
+        raise InvalidInputError("completer", "a completer with the residual formulation", cfg.formulation)
+    if not np.isfinite(white) or white < 0:
+        raise InvalidInputError("white", "a share >= 0", white)
+    m = np.asarray(mde, dtype=np.float64)
+    valid = np.isfinite(m) & (m > 0)
+    if not valid.any():
+        raise EmptyInputError("mde", "at least one valid MDE pixel", "none")
+    if not valid.all():
+        from scipy.ndimage import distance_transform_edt
+
+        _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
+        m = np.where(valid, m, 0.0)[ri, ci]
+    g = sparse.rasterize(m.shape)
+    r, c = g.v.astype(np.int64), g.u.astype(np.int64)
+    md = m[r, c]
+    sig = np.where(np.isfinite(g.sigma), g.sigma, cfg.sigma_meas * (1.0 if cfg.units == "metres" else md))
+    ratio_sigma = np.sqrt((sig / md) ** 2 + white**2)
+    ratio = SparseDepth(g.u, g.v, g.depth / md, m.shape, ratio_sigma)
+    unit_cfg = cfg if cfg.units == "relative" else cfg.replace(units="relative")
+    if unit_cfg is not cfg:
+        completer = DepthCompleter(unit_cfg)
+    post = completer.complete(np.ones_like(m), ratio)
+    return m * post.mean, m**2 * (post.variance + white**2)
+
+
+def fit_residual_points(
+    mde: np.ndarray,
+    sparse: SparseDepth,
+    config: DepthGPConfig,
+    *,
+    max_points: int = 400,
+    restarts: Sequence[float] = (40.0, 120.0),
+    rng: SeedLike = 0,
+) -> tuple[DepthGPConfig, float]:
+    """Fits the residual GP's hyperparameters to one frame by exact marginal likelihood.
+
+    In the residual formulation only the measurements are observations, so the marginal
+    likelihood is that of the n residuals r = z - align(MDE) at the measured pixels under
+    N(0, s^2 C_l + (sigma_meas^2 + w^2) I): an n x n Cholesky per evaluation. The length scale
+    l (GP-grid pixels), the output scale s and the nugget w (white MDE error, the part of the
+    MDE error that is not spatially correlated) are fitted by L-BFGS-B on their logarithms,
+    from several starting length scales; the measurement noise sigma_meas stays as configured.
+
+    Args:
+        mde: (H, W) MDE depth, metres.
+        sparse: Measurements (any resolution of the same image).
+        config: Residual-formulation config (alignment, nu, units, sigma_meas, start values).
+        max_points: Fit on a random subset of at most this many points (cost n^3).
+        restarts: Starting length scales, GP-grid pixels.
+        rng: Seed or Generator of the subset.
+
+    Returns:
+        (config with the fitted lengthscale and outputscale and sigma_meas replaced by
+        sqrt(sigma_meas^2 + w^2), all in ``config.units``; w in the same units).
+        With fewer than 5 points ``config`` is returned unchanged (and w = 0).
+    """
+    import scipy.linalg
+    import scipy.optimize
+
+    from .complete import check_mde_depth
+    from .gp.model import matern_1d
+
+    if config.formulation != "residual":
+        raise InvalidInputError("config", "a residual-formulation config", config.formulation)
+    m, valid = check_mde_depth(mde)
+    g = sparse.rasterize(m.shape)
+    r_idx, c_idx = g.v.astype(np.int64), g.u.astype(np.int64)
+    keep = valid[r_idx, c_idx]
+    if int(keep.sum()) < 5:
+        return config, 0.0
+    if keep.sum() > max_points:
+        chosen = make_rng(rng).choice(np.nonzero(keep)[0], size=max_points, replace=False)
+        keep = np.zeros_like(keep)
+        keep[chosen] = True
+    rows, cols, z = r_idx[keep].astype(float), c_idx[keep].astype(float), g.depth[keep]
+    md = m[r_idx[keep], c_idx[keep]]
+    resid = z - align_depth(md, z, config.align).apply(md)
+    unit = float(np.median(m[valid])) if config.units == "relative" else 1.0
+    sig = g.sigma[keep]
+    meas_var = np.where(np.isfinite(sig), sig**2, (config.sigma_meas * unit) ** 2)
+    dr, dc = np.subtract.outer(rows, rows), np.subtract.outer(cols, cols)
+    resid = resid / unit
+    meas_var = meas_var / unit**2
+
+    def nlml(x: np.ndarray) -> float:
+        l, s, w = np.exp(x)
+        K = s * s * matern_1d(dr, config.nu, l) * matern_1d(dc, config.nu, l)
+        K[np.diag_indices_from(K)] += meas_var + w * w
+        try:
+            L = np.linalg.cholesky(K)
+        except np.linalg.LinAlgError:
+            return 1e30
+        a = scipy.linalg.solve_triangular(L, resid, lower=True, check_finite=False)
+        return float(0.5 * a @ a + np.log(np.diag(L)).sum())
+
+    bounds = [(np.log(1.0), np.log(4.0 * max(m.shape))), (np.log(1e-3), np.log(3.0)), (np.log(1e-4), np.log(1.0))]
+    best = None
+    for l0 in restarts:
+        x0 = np.log([min(max(l0, 1.5), 3.0 * max(m.shape)), max(config.outputscale, 2e-3), 0.02])
+        res = scipy.optimize.minimize(nlml, x0, method="L-BFGS-B", bounds=bounds, options={"maxiter": 40})
+        if best is None or res.fun < best.fun:
+            best = res
+    l, s, w = (float(v) for v in np.exp(best.x))
+    fitted = config.replace(
+        lengthscale=l, outputscale=s, sigma_meas=float(np.sqrt(config.sigma_meas**2 + w * w))
+    )
+    return fitted, w
+
+
+@dataclass
+class MethodSuite:
+    """Runs the methods of `METHODS` on one frame with shared engines (caches survive frames).
+
+    A config whose engine is "exact" (the `DepthGPConfig` default) is solved by the exact engine
+    while the problem fits it (``max_exact_points`` observed pixels, 6e7 cross-covariance
+    entries) and by the ``fast`` engine beyond; "fast" and "kissgp" are used as given.
+
+    Args:
+        residual: Config of ``gp_residual`` (default `DepthGPConfig.residual`).
+        balanced: Config of ``gp_balanced`` (default `DepthGPConfig.paper`).
+        relative: Config of the GP of ``gp_relative`` (residual formulation, relative units).
+        relative_white: White MDE error share of ``gp_relative``.
+        balanced_factor: GP grid of ``gp_balanced`` relative to the evaluation resolution.
+        device: Torch device for the fast engine (None = NumPy on the CPU).
+    """
+
+    residual: DepthGPConfig | None = None
+    balanced: DepthGPConfig | None = None
+    relative: DepthGPConfig | None = None
+    relative_white: float = 0.05
+    balanced_factor: float = 0.5
+    device: str | None = None
+    _completers: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.residual is None:
+            self.residual = DepthGPConfig.residual()
+        if self.balanced is None:
+            self.balanced = DepthGPConfig.paper()
+        if self.relative is None:
+            self.relative = DepthGPConfig.residual(lengthscale=40.0, outputscale=0.2, sigma_meas=0.01)
+        if not 0 < self.balanced_factor <= 1:
+            raise InvalidInputError("balanced_factor", "a resolution factor in (0, 1]", self.balanced_factor)
+
+    def _completer(self, config: DepthGPConfig, n_observed: int, n_output: int) -> DepthCompleter:
+        """A cached completer; a config asking for "exact" falls back to "fast" when too large."""
+        engine = config.engine
+        if engine == "exact" and (n_observed > config.max_exact_points or n_observed * n_output > 60_000_000):
+            engine = "fast"
+        cfg = config.replace(engine=engine)
+        if cfg not in self._completers:
+            completer = DepthCompleter(cfg)
+            if engine == "fast" and self.device is not None:
+                from .gp.fast import FastEngine
+
+                completer.engine = FastEngine(device=self.device)
+            self._completers[cfg] = completer
+        return self._completers[cfg]
+
+    def run(self, name: str, mde: np.ndarray, sparse: SparseDepth) -> MethodOutput:
+        """Runs method ``name`` on an (H, W) MDE map and the sparse input; output at (H, W)."""
+        t0 = time.perf_counter()
+        shape = mde.shape
+        if name == "mde":
+            return MethodOutput(mde.copy(), None, 0.0)
+        if name == "mde_scale":
+            g = sparse.rasterize(shape)
+            fit = align_depth(mde[g.v.astype(int), g.u.astype(int)], g.depth, "scale")
+            return MethodOutput(fit.apply(mde), None, time.perf_counter() - t0)
+        if name == "ip_basic":
+            return MethodOutput(ip_basic(sparse, shape), None, time.perf_counter() - t0)
+        if name == "gp_residual":
+            post = self._completer(self.residual, len(sparse), mde.size).complete(mde, sparse)
+            return MethodOutput(post.mean, post.variance, time.perf_counter() - t0)
+        if name == "gp_residual_fit":
+            fitted, _ = fit_residual_points(mde, sparse, self.residual)
+            # the fitted config differs per frame: no caching of completers for it
+            engine = self._completer(self.residual, len(sparse), mde.size).config.engine
+            post = DepthCompleter(fitted.replace(engine=engine)).complete(mde, sparse)
+            note = ""
+            return MethodOutput(post.mean, post.variance, time.perf_counter() - t0, note)
+        if name == "gp_relative":
+            mean, var = relative_residual(
+                mde, sparse, self._completer(self.relative, len(sparse), mde.size), white=self.relative_white
+            )
+            return MethodOutput(mean, var, time.perf_counter() - t0)
+        if name == "gp_balanced":
+            import cv2
+
+            h, w = shape
+            gh, gw = max(2, round(h * self.balanced_factor)), max(2, round(w * self.balanced_factor))
+            small = mde if (gh, gw) == shape else cv2.resize(mde, (gw, gh), interpolation=cv2.INTER_AREA)
+            n_obs = int(np.sum(np.isfinite(small) & (small > 0)))
+            post = self._completer(self.balanced, n_obs, h * w).complete(small, sparse, output_shape=shape)
+            note = "" if (gh, gw) == shape else f"GP grid {gw}x{gh}"
+            return MethodOutput(post.mean, post.variance, time.perf_counter() - t0, note)
+        raise InvalidInputError("method", f"one of {METHODS}", name)
+
+
+# ----------------------------------------------------------------------------- protocols
+def protocol_levels(protocol: str, points: Sequence[float] | None) -> list[float]:
+    """Default levels of a protocol: numbers of points (uniform, bands), densities, or k (scan lines)."""
+    if points:
+        return [float(p) for p in points]
+    if protocol == "density":
+        return list(PAPER_DENSITIES)
+    if protocol == "scanlines":
+        return [1.0, 2.0, 4.0, 8.0]
+    return [50.0, 200.0, 500.0]
+
+
+def level_label(protocol: str, level: float) -> str:
+    """Human-readable label of a level ("200 pts", "1/16", "every 4th beam")."""
+    if protocol == "density":
+        if level >= 1:
+            return "1x"
+        inv = 1.0 / level
+        return f"1/{inv:.0f}" if abs(inv - round(inv)) < 1e-6 else f"{level:.3g}"
+    if protocol == "scanlines":
+        return f"1/{int(level)} beams"
+    return f"{int(level)} pts"
+
+
+def draw_sparse(
+    protocol: str,
+    level: float,
+    available: SparseDepth,
+    *,
+    rng: np.random.Generator,
+    beams: np.ndarray | None = None,
+) -> SparseDepth:
+    """The sparse input of one protocol level, drawn from the available points.
+
+    * uniform: ``level`` points uniformly at random.
+    * density: a share ``level`` of the available points.
+    * hband / vband: ``level`` points inside the lower half rows / the left half columns.
+    * scanlines: every ``level``-th LiDAR beam (``beams`` = beam id per available point).
+    """
+    if protocol == "uniform":
+        return sample_uniform(available, n=int(level), rng=rng)
+    if protocol == "density":
+        return sample_uniform(available, density=float(level), rng=rng)
+    if protocol == "hband":
+        return sample_band(available, axis="horizontal", start=0.5, stop=1.0, n=int(level), rng=rng)
+    if protocol == "vband":
+        return sample_band(available, axis="vertical", start=0.0, stop=0.5, n=int(level), rng=rng)
+    if protocol == "scanlines":
+        if beams is None:
+            raise InvalidInputError("beams", "beam ids of the available points (LiDAR data only)", None)
+        return sample_scanlines(available, keep_every=int(level), beams=beams)
+    raise InvalidInputError("protocol", f"one of {PROTOCOLS}", protocol)
+
+
+# ----------------------------------------------------------------------------- running
+@dataclass(frozen=True)
+class EvalSetup:
+    """Ground truth and available points of one frame at the evaluation resolution."""
+
+    frame: Frame
+    mde: np.ndarray
+    gt: np.ndarray
+    available: SparseDepth
+    beams: np.ndarray | None
+    gt_kind: str
+
+
+def prepare_frame(
+    frame: Frame,
+    mde: Callable[[np.ndarray], np.ndarray],
+    *,
+    resolution: float = 0.5,
+    holdout: float = 0.2,
+    rng: np.random.Generator,
+    need_beams: bool = False,
+) -> EvalSetup:
+    """Resizes a frame, runs the MDE and splits off ground truth (dense, or held-out points).
+
+    Beam ids for the scan-line protocol are recovered at full resolution (with the frame's
+    LiDAR calibration when it has one) and carried to the evaluation grid.
+    """
+    beams_full = None
+    if need_beams:
+        if frame.sparse is None:
+            raise InvalidInputError("protocol", "a dataset with LiDAR points for 'scanlines'", frame.name)
+        if frame.calibration is None and frame.camera is None:
+            raise InvalidInputError("protocol", "a dataset with a camera or LiDAR calibration", frame.name)
+        beams_full = beam_ids(lidar_elevation(frame.sparse, frame.calibration, frame.camera))
+    small = frame.resized(resolution)
+    depth_map = np.asarray(mde(small.rgb), dtype=np.float64)
+    beams = None
+    if small.depth is not None:
+        gt = small.depth
+        available = SparseDepth.from_depth_map(gt)
+        kind = "dense"
+        if need_beams:
+            raise InvalidInputError("protocol", "'scanlines' only for LiDAR datasets", frame.name)
+    else:
+        if frame.sparse is None or len(frame.sparse) < 2:
+            raise InvalidInputError("data", "dense ground truth or sparse points to hold out", frame.name)
+        full = frame.sparse
+        if beams_full is not None:
+            # keep beam ids through the closest-per-pixel rasterisation by rasterising (depth, beam) pairs
+            g = full.rasterize(small.shape)
+            row, col = full.pixel_indices(small.shape)
+            lookup = {}
+            order = np.lexsort((full.depth, row * small.shape[1] + col))
+            for i in order[::-1]:
+                lookup[(row[i], col[i])] = beams_full[i]
+            grid_beams = np.array([lookup[(int(v), int(u))] for v, u in zip(g.v, g.u)], dtype=np.int64)
+        else:
+            g = full.rasterize(small.shape)
+            grid_beams = None
+        idx = rng.permutation(len(g))
+        n_out = min(len(g) - 1, max(1, int(round(holdout * len(g)))))
+        test = np.zeros(len(g), dtype=bool)
+        test[idx[:n_out]] = True
+        available = g.subset(~test)
+        gt = g.subset(test).to_depth_map()
+        beams = grid_beams[~test] if grid_beams is not None else None
+        kind = f"held-out {holdout:.0%} of points"
+    return EvalSetup(small, depth_map, gt, available, beams, kind)
+
+
+def evaluate(
+    frames: Iterable[Frame],
+    mde: Callable[[np.ndarray], np.ndarray],
+    *,
+    protocols: Sequence[str] = ("uniform",),
+    levels: dict[str, Sequence[float]] | None = None,
+    methods: Sequence[str] = METHODS,
+    suite: MethodSuite | None = None,
+    resolution: float = 0.5,
+    seed: int = 0,
+    progress: bool = True,
+    on_frame: Callable[[EvalSetup, dict], None] | None = None,
+) -> list[dict]:
+    """Runs every method on every frame, protocol and level; returns one row per run.
+
+    Args:
+        frames: The frames (e.g. a dataset reader, or a list).
+        mde: The MDE front-end, rgb (H, W, 3) uint8 -> depth (H, W) metres.
+        protocols: Names from `PROTOCOLS`.
+        levels: Per protocol the levels (see `protocol_levels`); default per protocol.
+        methods: Names from `METHODS`.
+        suite: The method runner (default `MethodSuite()`).
+        resolution: Evaluation resolution relative to the dataset's images (0.5 = half).
+        seed: Seed of all random draws (each frame gets its own stream).
+        progress: Show a tqdm bar over frames.
+        on_frame: Called after each frame with its setup and {(protocol, level, method): output}.
+
+    Returns:
+        Rows with keys frame, protocol, level, label, method, n_points, every metric of
+        `METRIC_NAMES` and of calibration (NaN where a method gives no variance), seconds, note.
+    """
+    from tqdm import tqdm
+
+    for p in protocols:
+        if p not in PROTOCOLS:
+            raise InvalidInputError("protocols", f"names from {PROTOCOLS}", p)
+    for m in methods:
+        if m not in METHODS:
+            raise InvalidInputError("methods", f"names from {METHODS}", m)
+    if not np.isfinite(resolution) or not 0 < resolution <= 4:
+        raise InvalidInputError("resolution", "a factor in (0, 4]", resolution)
+    suite = suite or MethodSuite()
+    levels = dict(levels or {})
+    frames = list(frames) if not hasattr(frames, "__len__") else frames
+    rows: list[dict] = []
+    bar = tqdm(frames, desc="eval", unit="frame", disable=not progress, total=len(frames))
+    for index, frame in enumerate(bar):
+        rng = np.random.default_rng([seed, index])
+        setup = prepare_frame(
+            frame, mde, resolution=resolution, rng=rng, need_beams="scanlines" in protocols
+        )
+        outputs: dict = {}
+        for protocol in protocols:
+            for level in protocol_levels(protocol, levels.get(protocol)):
+                sparse = draw_sparse(protocol, level, setup.available, rng=rng, beams=setup.beams)
+                for method in methods:
+                    row = {
+                        "frame": frame.name,
+                        "protocol": protocol,
+                        "level": float(level),
+                        "label": level_label(protocol, level),
+                        "method": method,
+                        "n_points": len(sparse),
+                        "gt": setup.gt_kind,
+                    }
+                    try:
+                        if len(sparse) == 0 and method not in ("mde",):
+                            raise EmptyInputError("sparse", "at least one measurement", 0)
+                        out = suite.run(method, setup.mde, sparse)
+                    except (ProblemTooLargeError, EmptyInputError, ImportError) as exc:
+                        row.update({k: math.nan for k in METRIC_NAMES + CALIBRATION_NAMES})
+                        row.update(seconds=math.nan, note=f"skipped: {exc}")
+                        rows.append(row)
+                        continue
+                    row.update(depth_metrics(out.mean, setup.gt))
+                    row.pop("n", None)
+                    if out.variance is not None and np.all(np.isfinite(out.variance)):
+                        cal = calibration_metrics(out.mean, out.variance, setup.gt)
+                        row.update({k: cal[k] for k in CALIBRATION_NAMES})
+                    else:
+                        row.update({k: math.nan for k in CALIBRATION_NAMES})
+                    row.update(seconds=out.seconds, note=out.note)
+                    rows.append(row)
+                    outputs[(protocol, float(level), method)] = (out, sparse)
+        if on_frame is not None:
+            on_frame(setup, outputs)
+    return rows
+
+
+def summarize(rows: Sequence[dict]) -> list[dict]:
+    """Mean over frames of every metric per (protocol, level, method), in first-seen order.
+
+    A run that was skipped (NaN) is left out of the mean; ``frames`` counts the runs averaged.
+    """
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["protocol"], r["level"], r["method"]), []).append(r)
+    out = []
+    for (protocol, level, method), rs in groups.items():
+        s = {"protocol": protocol, "level": level, "label": rs[0]["label"], "method": method}
+        ok = [r for r in rs if np.isfinite(r["rmse"])]
+        s["frames"] = len(ok)
+        s["n_points"] = float(np.mean([r["n_points"] for r in rs]))
+        for k in METRIC_NAMES + CALIBRATION_NAMES + ("seconds",):
+            vals = [r[k] for r in ok if np.isfinite(r[k])]
+            s[k] = float(np.mean(vals)) if vals else math.nan
+        notes = sorted({r["note"] for r in rs if r["note"]})
+        s["note"] = "; ".join(notes)[:300]
+        out.append(s)
+    return out
+
+
+# ----------------------------------------------------------------------------- output
+def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
+    """Writes rows (dicts with one key set) as CSV, atomically."""
+    if not rows:
+        raise EmptyInputError("rows", "at least one row", 0)
+    keys = list(rows[0].keys())
+    buf = _io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=keys)
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({k: r.get(k) for k in keys})
+    return atomic_write(path, lambda tmp: tmp.write_text(buf.getvalue()))
+
+
+def write_json(data, path: str | Path) -> Path:
+    """Writes JSON atomically (NaN as null)."""
+
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, (np.floating, np.integer)):
+            return clean(x.item())
+        return x
+
+    text = json.dumps(clean(data), indent=1)
+    return atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
+def markdown_table(summary: Sequence[dict], *, metrics: Sequence[str] | None = None) -> str:
+    """A markdown table of the summary: one row per (protocol, level, method)."""
+    metrics = list(metrics or ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_1sigma", "coverage_2sigma"))
+    head = ["protocol", "level", "method", "points"] + metrics
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for s in summary:
+        cells = [s["protocol"], s["label"], s["method"], f"{s['n_points']:.0f}"]
+        for k in metrics:
+            v = s[k]
+            if not np.isfinite(v):
+                cells.append("-")
+            elif k in ("rmse", "mae", "irmse", "imae"):
+                cells.append(f"{v:.0f}")
+            elif k.startswith("coverage") or k.startswith("delta"):
+                cells.append(f"{100 * v:.1f}%")
+            else:
+                cells.append(f"{v:.3f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_rmse_vs_level(summary: Sequence[dict], protocol: str, path: str | Path) -> Path:
+    """Paper-style plot: RMSE (mm) against the level (points/density) per method, PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [s for s in summary if s["protocol"] == protocol and np.isfinite(s["rmse"])]
+    if not rows:
+        raise EmptyInputError("summary", f"rows of protocol {protocol!r}", 0)
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    for method in dict.fromkeys(s["method"] for s in rows):
+        rs = sorted((s for s in rows if s["method"] == method), key=lambda s: s["n_points"])
+        ax.plot([s["n_points"] for s in rs], [s["rmse"] for s in rs], marker="o", label=method)
+    ax.set_xscale("log")
+    ax.set_xlabel("number of sparse points (mean)")
+    ax.set_ylabel("RMSE [mm]")
+    ax.set_title(f"RMSE vs density ({protocol})")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(Path(path).with_suffix(".png")) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path).with_suffix(".png")
+
+
+def plot_qualitative(
+    rgb: np.ndarray,
+    mde: np.ndarray,
+    sparse: SparseDepth,
+    mean: np.ndarray,
+    std: np.ndarray,
+    gt: np.ndarray,
+    path: str | Path,
+    *,
+    title: str = "",
+) -> Path:
+    """Six panels: RGB, MDE, sparse input, GP mean, GP std, |error| of the mean (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    valid = np.isfinite(gt) & (gt > 0)
+    vmax = float(np.percentile(np.concatenate([gt[valid], mean.ravel()]), 99)) if valid.any() else float(mean.max())
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), dpi=90)
+    sp_map = sparse.to_depth_map(mean.shape)
+    err = np.where(valid, np.abs(mean - gt), np.nan)
+    panels = [
+        (rgb, "RGB", None, None),
+        (mde, "MDE [m]", "magma_r", (0, vmax)),
+        (np.where(sp_map > 0, sp_map, np.nan), f"sparse ({len(sparse)} pts) [m]", "magma_r", (0, vmax)),
+        (mean, "GP mean [m]", "magma_r", (0, vmax)),
+        (std, "GP std [m]", "viridis", (0, float(np.percentile(std, 99)))),
+        (err, "|mean - gt| [m]", "inferno", (0, float(np.nanpercentile(err, 99)) if valid.any() else 1)),
+    ]
+    for ax, (img, name, cmap, lim) in zip(axes.ravel(), panels):
+        if cmap is None:
+            ax.imshow(img)
+        else:
+            if name.startswith("sparse"):
+                yy, xx = np.nonzero(np.isfinite(img))
+                ax.imshow(np.zeros(mean.shape), cmap="gray", vmin=0, vmax=1)
+                im = ax.scatter(xx, yy, c=img[yy, xx], s=6, cmap=cmap, vmin=lim[0], vmax=lim[1])
+                ax.set_xlim(-0.5, mean.shape[1] - 0.5)
+                ax.set_ylim(mean.shape[0] - 0.5, -0.5)
+            else:
+                cm = matplotlib.colormaps[cmap].copy()
+                cm.set_bad("0.75")  # no ground truth: grey
+                im = ax.imshow(img, cmap=cm, vmin=lim[0], vmax=max(lim[1], 1e-6))
+            fig.colorbar(im, ax=ax, fraction=0.035)
+        ax.set_title(name)
+        ax.axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(Path(path).with_suffix(".png")) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path).with_suffix(".png")
+
+
+# ----------------------------------------------------------------------------- MDE by name
+def default_model_path(data: Path) -> Path:
+    """Where the FastDepth model is looked for: ``<data>/../../models`` or ``<data>/../models``."""
+    for base in (data.parent.parent / "models", data.parent / "models", data / "models"):
+        p = base / "fast_depth_224.tflite"
+        if p.is_file():
+            return p
+    return data.parent.parent / "models" / "fast_depth_224.tflite"
+
+
+class DegradedGroundTruthMDE:
+    """A stand-in MDE built from the ground truth (for tests and ablations, not a real network).
+
+    The current frame's dense ground truth (set ``frame``) is smoothed at ``blur`` of the image
+    size, multiplied by ``scale`` and by a smooth random multiplicative error of ``noise``.
+    """
+
+    def __init__(self, *, scale: float = 1.15, noise: float = 0.1, blur: float = 0.03, seed: int = 0):
+        self.scale, self.noise, self.blur, self.seed = scale, noise, blur, seed
+        self.frame: Frame | None = None
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        import cv2
+        from scipy.ndimage import distance_transform_edt
+
+        if self.frame is None or self.frame.depth is None:
+            raise InvalidInputError("mde", "'gt-degraded' only with a dataset with dense ground truth", None)
+        gt = cv2.resize(self.frame.depth.astype(np.float32), (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
+        valid = gt > 0
+        if not valid.any():
+            raise EmptyInputError("ground truth", "valid pixels", 0)
+        _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
+        d = gt[ri, ci].astype(np.float64)
+        k = max(1, int(self.blur * max(d.shape))) | 1
+        d = cv2.GaussianBlur(d, (0, 0), k)
+        rng = np.random.default_rng(self.seed)
+        low = cv2.resize(rng.normal(0, 1, (4, 4)), (d.shape[1], d.shape[0]), interpolation=cv2.INTER_CUBIC)
+        return d * self.scale * np.exp(self.noise * low)
+
+
+# ----------------------------------------------------------------------------- CLI entry
+def eval_command(
+    data: Path,
+    *,
+    mde: Literal["fastdepth", "gt-degraded"] = "fastdepth",
+    protocol: str = "uniform",
+    points: str = "",
+    output: Path = Path("eval_output"),
+    frames: int | None = None,
+    stride: int = 1,
+    resolution: float = 0.5,
+    methods: str = ",".join(METHODS),
+    model: Path | None = None,
+    seed: int = 0,
+    device: str | None = None,
+    qualitative: bool = True,
+    progress: bool = True,
+) -> list[dict]:
+    """Evaluates depth completion on a dataset folder: prints a table, writes CSV/JSON/PNG.
+
+    Args:
+        data: Dataset folder (7scenes, kitti_tiny, kitti_object, ibims_sample, vio_sparse;
+            the layout is detected).
+        mde: Monocular front-end: "fastdepth" (TFLite FastDepth) or "gt-degraded" (a blurred,
+            mis-scaled ground truth; datasets with dense ground truth only).
+        protocol: Comma-separated protocols: uniform (N points), density (the paper's eight
+            densities, shares of the available points), hband (lower half rows), vband (left
+            half columns), scanlines (every k-th LiDAR beam; KITTI).
+        points: Comma-separated levels, e.g. "50,200,500" (points), "0.0156,0.25" (density)
+            or "1,2,4" (scan lines: keep every k-th beam); empty = the protocol's defaults.
+        output: Output folder for results.csv, summary.csv, results.json, rmse_<protocol>.png,
+            qualitative.png.
+        frames: Use at most this many frames (after ``stride``).
+        stride: Use every stride-th frame.
+        resolution: Evaluation resolution relative to the images (0.5 = half).
+        methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_balanced,
+            gp_residual, gp_residual_fit, gp_relative.
+        model: FastDepth .tflite path (default: ../models/fast_depth_224.tflite beside the data
+            folder's parent, i.e. shared/models).
+        seed: Seed of the sampling.
+        device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
+        qualitative: Also draw the qualitative figure of the first frame.
+        progress: Show the progress bar.
+
+    Returns:
+        The summary rows (one per protocol, level and method).
+    """
+    data = Path(data)
+    dataset = open_dataset(data)
+    protocols = [p.strip() for p in protocol.split(",") if p.strip()]
+    for p in protocols:
+        if p not in PROTOCOLS:
+            raise InvalidInputError("protocol", f"comma-separated names from {PROTOCOLS}", protocol)
+    method_list = [m.strip() for m in methods.split(",") if m.strip()]
+    for m in method_list:
+        if m not in METHODS:
+            raise InvalidInputError("methods", f"comma-separated names from {METHODS}", methods)
+    try:
+        level_values = [float(x) for x in points.split(",") if x.strip()]
+    except ValueError:
+        raise InvalidInputError("points", "comma-separated numbers such as '50,200,500'", points) from None
+    if int(stride) != stride or stride < 1:
+        raise InvalidInputError("stride", "an integer >= 1", stride)
+    if frames is not None and (int(frames) != frames or frames < 1):
+        raise InvalidInputError("frames", "a number of frames >= 1", frames)
+    indices = list(range(0, len(dataset), stride))[: frames if frames is not None else None]
+
+    degraded = None
+    if mde == "fastdepth":
+        from .mde.tflite import FastDepthTFLite
+
+        front = FastDepthTFLite(model or default_model_path(data))
+    elif mde == "gt-degraded":
+        degraded = DegradedGroundTruthMDE(seed=seed)
+        front = degraded
+    else:
+        raise InvalidInputError("mde", "'fastdepth' or 'gt-degraded'", mde)
+
+    def frame_iter():
+        for i in indices:
+            f = dataset[i]
+            if degraded is not None:
+                degraded.frame = f
+            yield f
+
+    class _Frames:
+        def __len__(self):
+            return len(indices)
+
+        def __iter__(self):
+            return frame_iter()
+
+    first: dict = {}
+
+    def keep_first(setup: EvalSetup, outputs: dict) -> None:
+        if first or not qualitative:
+            return
+        for key in sorted(outputs, key=lambda k: (k[2] != "gp_relative", k[2] != "gp_residual", -k[1])):
+            out, sparse = outputs[key]
+            if out.variance is not None:
+                first.update(setup=setup, out=out, sparse=sparse, key=key)
+                return
+
+    levels = {p: level_values for p in protocols} if level_values else None
+    rows = evaluate(
+        _Frames(),
+        front,
+        protocols=protocols,
+        levels=levels,
+        methods=method_list,
+        suite=MethodSuite(device=device),
+        resolution=resolution,
+        seed=seed,
+        progress=progress,
+        on_frame=keep_first,
+    )
+    summary = summarize(rows)
+    output = Path(output)
+    write_csv(rows, output / "results.csv")
+    write_csv(summary, output / "summary.csv")
+    write_json(
+        {
+            "data": str(data),
+            "dataset": type(dataset).__name__,
+            "mde": mde,
+            "resolution": resolution,
+            "frames": [dataset.names[i] for i in indices],
+            "seed": seed,
+            "summary": summary,
+            "rows": rows,
+        },
+        output / "results.json",
+    )
+    table = markdown_table(summary)
+    atomic_write(output / "summary.md", lambda tmp: tmp.write_text(table + "\n"))
+    for p in protocols:
+        if any(s["protocol"] == p and np.isfinite(s["rmse"]) for s in summary):
+            plot_rmse_vs_level(summary, p, output / f"rmse_{p}.png")
+    if first:
+        s, out = first["setup"], first["out"]
+        protocol_name, level, method = first["key"]
+        plot_qualitative(
+            s.frame.rgb,
+            s.mde,
+            first["sparse"],
+            out.mean,
+            np.sqrt(np.maximum(out.variance, 0)),
+            s.gt,
+            output / "qualitative.png",
+            title=f"{s.frame.name}: {method}, {protocol_name} {level_label(protocol_name, level)}",
+        )
+    print(table)
+    return summary

@@ -1,0 +1,255 @@
+"""Tests of the GPyTorch KISS-GP engine against the dense exact engine (real 7-Scenes depth).
+
+Acceptance set-up: a 48x64 crop of 7-Scenes frame 0 (Kinect depth, metres) is the ground truth;
+the MDE is *simulated* from it (gt * 1.15 + a smooth error field + white noise) and 200
+measurements are sampled from the ground truth. Both formulations are completed with
+``engine="kissgp"`` and ``engine="exact"`` and compared on the input grid.
+
+What is asserted and why (numbers measured on this crop):
+
+* mean: rms(mean_k - mean_e) <= 1e-5 * rms(mean_e - mean(mean_e)). On the pixel grid KISS-GP's
+  interpolation is an exact selection, so the only error is the CG tolerance (1e-8 relative
+  residual); measured ~1e-8. 1e-5 leaves margin for other BLAS/threads and is 1000x stricter
+  than the 1 % of the brief.
+* variance: relative error |var_k - var_e| / var_e with median <= 1e-4, 95th percentile <= 1e-3
+  and maximum <= 1e-2 (measured: median ~1e-8, p95 ~1e-5, max ~3e-4 from the probing of the
+  balanced formulation; the residual formulation uses a Cholesky and agrees to ~1e-9).
+* upsampled output (2x, off-grid pixels are KISS-GP cubic interpolations of the grid, the paper's
+  M > N output): measured and asserted separately, see `TestUpsampled`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from gpdepth3d import DepthGPConfig, SparseDepth, complete
+from gpdepth3d.complete import build_problem
+from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp import make_engine
+from gpdepth3d.gp.exact import ExactEngine
+from gpdepth3d.gp.kissgp import ConvergenceError, KissGPEngine, PixelGridInterpolationKernel, default_device
+from gpdepth3d.gp.model import Kernel
+
+CONFIGS = {"balanced": DepthGPConfig(), "residual": DepthGPConfig.residual()}
+
+
+def rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+def relative_error(var_k: np.ndarray, var_e: np.ndarray) -> np.ndarray:
+    return np.abs(var_k - var_e) / var_e
+
+
+@pytest.fixture(scope="module")
+def crop(shared_data):
+    """(gt, simulated mde, 200 measurements) on a 48x64 crop of 7-Scenes frame 0."""
+    from scipy.ndimage import gaussian_filter
+
+    from gpdepth3d.io import load_depth
+
+    path = shared_data / "7scenes" / "frame-000000.depth.png"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    depth = load_depth(path, png_scale=1 / 1000, invalid_value=65535)
+    gt = depth[200:248, 300:364].astype(np.float64)
+    valid = np.isfinite(gt) & (gt > 0)
+    assert valid.mean() > 0.9  # the chosen crop is (almost) fully valid
+    rng = np.random.default_rng(0)
+    smooth = gaussian_filter(rng.standard_normal(gt.shape), 6) * 3
+    mde = np.where(valid, gt * 1.15 + 0.05 * smooth + 0.01 * rng.standard_normal(gt.shape), 0.0)
+    vr, vc = np.nonzero(valid)
+    pick = rng.choice(vr.size, 200, replace=False)
+    sparse = SparseDepth.from_arrays(vc[pick].astype(float), vr[pick].astype(float), gt[vr[pick], vc[pick]], gt.shape)
+    return gt, mde, sparse
+
+
+def _both(mde, sparse, config, **kwargs):
+    exact = complete(mde, sparse, config=config.replace(engine="exact"), **kwargs)
+    kiss = complete(mde, sparse, config=config.replace(engine="kissgp"), **kwargs)
+    return exact, kiss
+
+
+def _assert_agree(exact, kiss):
+    me, mk = exact.mean, kiss.mean
+    assert rms(mk - me) <= 1e-5 * rms(me - me.mean())
+    rel = relative_error(kiss.variance, exact.variance)
+    assert np.median(rel) <= 1e-4
+    assert np.percentile(rel, 95) <= 1e-3
+    assert rel.max() <= 1e-2
+
+
+class TestPixelGridInterpolationKernel:
+    @pytest.mark.parametrize("nu", [0.5, 1.5, 2.5])
+    def test_matches_dense_kernel_on_non_square_grid(self, nu):
+        # GPyTorch's own GridKernel gets the Kronecker order wrong when H != W; ours must not.
+        import gpytorch
+
+        h, w = 5, 9
+        base = gpytorch.kernels.MaternKernel(nu=nu)
+        kernel = PixelGridInterpolationKernel(base, (h, w)).double().eval()
+        base.lengthscale = 2.0
+        r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+        x = torch.tensor(np.stack([r.ravel(), c.ravel()], 1), dtype=torch.float64)
+        with torch.no_grad():
+            got = kernel(x, x).to_dense().numpy()
+        want = Kernel(nu, 2.0, 1.0).matrix(r.ravel(), c.ravel(), r.ravel(), c.ravel())
+        np.testing.assert_allclose(got, want, atol=1e-12)
+
+    def test_pixel_centres_are_selections(self):
+        import gpytorch
+
+        kernel = PixelGridInterpolationKernel(gpytorch.kernels.MaternKernel(nu=0.5), (4, 6)).double()
+        x = torch.tensor([[0.0, 0.0], [3.0, 5.0], [2.0, 1.0]], dtype=torch.float64)
+        _, values = kernel._compute_grid(x)
+        np.testing.assert_allclose(values.max(-1).values.numpy(), 1.0, atol=1e-14)
+        np.testing.assert_allclose(values.abs().sum(-1).numpy(), 1.0, atol=1e-14)
+
+    def test_grid_covers_output_extent_without_rebuild(self):
+        import gpytorch
+
+        kernel = PixelGridInterpolationKernel(gpytorch.kernels.MaternKernel(nu=0.5), (4, 6)).double().eval()
+        grid_before = [g.clone() for g in kernel.grid]
+        x = torch.tensor([[-0.5, -0.5], [3.5, 5.5]], dtype=torch.float64)  # image corners
+        with torch.no_grad():
+            kernel(x, x).to_dense()
+        assert all(torch.equal(a, b) for a, b in zip(grid_before, kernel.grid))
+
+    def test_rejects_bad_arguments(self):
+        import gpytorch
+
+        with pytest.raises(InvalidInputError):
+            PixelGridInterpolationKernel(gpytorch.kernels.MaternKernel(nu=0.5), (4, 6), pad=1)
+        with pytest.raises(InvalidInputError):
+            PixelGridInterpolationKernel(gpytorch.kernels.MaternKernel(nu=0.5), (0, 6))
+
+
+class TestKissGPEngine:
+    @pytest.mark.parametrize("formulation", ["balanced", "residual"])
+    def test_matches_exact_on_real_crop(self, crop, formulation):
+        _, mde, sparse = crop
+        exact, kiss = _both(mde, sparse, CONFIGS[formulation])
+        _assert_agree(exact, kiss)
+
+    def test_no_measurements(self, crop):
+        _, mde, sparse = crop
+        empty = SparseDepth.empty(sparse.image_size)
+        # Balanced: the GP given the MDE alone (every pixel observed, probing route).
+        exact, kiss = _both(mde[:24, :32], SparseDepth.empty((24, 32)), CONFIGS["balanced"])
+        _assert_agree(exact, kiss)
+        # Residual: no observation at all, the posterior is the prior.
+        post = complete(mde, empty, config=CONFIGS["residual"].replace(engine="kissgp"))
+        ref = complete(mde, empty, config=CONFIGS["residual"].replace(engine="exact"))
+        np.testing.assert_allclose(post.mean, ref.mean, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(post.variance, ref.variance, rtol=1e-12)
+
+    def test_invalid_mde_pixels(self, crop):
+        _, mde, sparse = crop
+        mde = mde[:24, :32].copy()
+        mde[4:12, 6:15] = 0.0  # a hole: long-range posterior covariance, own probe columns
+        mde[18:20, 2:5] = np.nan
+        keep = (sparse.v < 24) & (sparse.u < 32)
+        sub = SparseDepth(sparse.u[keep], sparse.v[keep], sparse.depth[keep], (24, 32))
+        for config in CONFIGS.values():
+            exact, kiss = _both(mde, sub, config)
+            _assert_agree(exact, kiss)
+
+    @pytest.mark.parametrize("method", ["cholesky", "probe", "solve"])
+    def test_variance_methods_agree(self, crop, method):
+        _, mde, sparse = crop
+        keep = (sparse.v < 16) & (sparse.u < 20)
+        sub = SparseDepth(sparse.u[keep], sparse.v[keep], sparse.depth[keep], (16, 20))
+        problem, *_ = build_problem(mde[:16, :20], sub, CONFIGS["balanced"])
+        me, ve = ExactEngine().solve(problem)
+        engine = KissGPEngine(device="cpu", variance_method=method)
+        mk, vk = engine.solve(problem)
+        assert engine.last_stats["variance_method"] == method
+        assert rms(mk - me) <= 1e-5 * rms(me - me.mean())
+        assert relative_error(vk, ve).max() <= 1e-2
+
+    def test_love_is_approximate_and_non_negative(self, crop):
+        # LOVE (GPyTorch fast_pred_var) with a rank far below n: non-negative but not exact.
+        _, mde, sparse = crop
+        problem, *_ = build_problem(mde[:8, :12], SparseDepth.empty((8, 12)), CONFIGS["balanced"])
+        _, ve = ExactEngine().solve(problem)
+        mk, vk = KissGPEngine(device="cpu", variance_method="love", root_decomposition_size=8).solve(problem)
+        assert np.all(vk >= 0)
+        assert np.median(relative_error(vk, ve)) > 0.1
+
+    def test_mean_only_and_stats(self, crop):
+        _, mde, sparse = crop
+        problem, *_ = build_problem(mde, sparse, CONFIGS["balanced"])
+        engine = KissGPEngine(device="cpu")
+        mean, var = engine.solve(problem, variance=False)
+        assert var is None and mean.shape == (48, 64)
+        stats = engine.last_stats
+        assert stats["observed"] == 48 * 64 and 0 < stats["cg_iterations_mean"] < 1000
+        assert stats["cg_residual_mean"] <= 1e-7
+
+    def test_convergence_error_when_cg_is_cut_short(self, crop):
+        _, mde, sparse = crop
+        problem, *_ = build_problem(mde, sparse, CONFIGS["balanced"])
+        with pytest.raises(ConvergenceError):
+            KissGPEngine(device="cpu", max_cg_iterations=3).solve(problem, variance=False)
+
+    def test_make_engine_and_default_device(self):
+        engine = make_engine(DepthGPConfig(engine="kissgp"))
+        assert isinstance(engine, KissGPEngine)
+        assert engine.device.type == default_device()
+        assert default_device() == ("cuda" if torch.cuda.is_available() else "cpu")
+
+    @pytest.mark.parametrize(
+        "kwargs",
+        [
+            {"variance_method": "nope"},
+            {"cg_tolerance": 0.0},
+            {"max_cg_iterations": 0},
+            {"pad": 1},
+            {"probe_spacing": 0},
+            {"device": "not-a-device"},
+        ],
+    )
+    def test_rejects_bad_options(self, kwargs):
+        with pytest.raises(InvalidInputError):
+            KissGPEngine(**kwargs)
+
+    @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+    def test_cuda_matches_cpu(self, crop):
+        _, mde, sparse = crop
+        problem, *_ = build_problem(mde, sparse, CONFIGS["balanced"])
+        m_cpu, v_cpu = KissGPEngine(device="cpu").solve(problem)
+        m_gpu, v_gpu = KissGPEngine(device="cuda").solve(problem)
+        np.testing.assert_allclose(m_gpu, m_cpu, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(v_gpu, v_cpu, rtol=1e-4)
+
+
+class TestUpsampled:
+    """2x output: off-grid pixels get KISS-GP's cubic interpolation of the grid (the paper's M > N).
+
+    Measured on the crop (48x64 -> 96x128): the interpolated mean stays close to the exact GP's
+    (residual, l = 20: rms error 0.9 % of the mean's spread; balanced, nu = 0.5 with l = 1.5:
+    ~19 %, the exponential kernel's cusp is not a cubic), while the variance at off-grid pixels
+    is the interpolation of the node variances and misses the sub-pixel variance of the
+    exact GP: it is below the exact variance (balanced: ~0.4 % of it; residual: median 23 %
+    lower). The asserts encode these measured bounds with margin.
+    """
+
+    def test_residual_mean_close_variance_below(self, crop):
+        _, mde, sparse = crop
+        exact, kiss = _both(mde, sparse, CONFIGS["residual"], output_shape=(96, 128))
+        assert kiss.mean.shape == (96, 128)
+        assert rms(kiss.mean - exact.mean) <= 0.03 * rms(exact.mean - exact.mean.mean())
+        rel = relative_error(kiss.variance, exact.variance)
+        assert np.median(rel) <= 0.4
+        assert np.mean(kiss.variance <= exact.variance * (1 + 1e-6)) >= 0.95
+
+    def test_balanced_mean_within_mde_noise(self, crop):
+        _, mde, sparse = crop
+        keep = (sparse.v < 24) & (sparse.u < 32)
+        sub = SparseDepth(sparse.u[keep], sparse.v[keep], sparse.depth[keep], (24, 32))
+        exact, kiss = _both(mde[:24, :32], sub, CONFIGS["balanced"], output_shape=(48, 64))
+        sigma_dl = CONFIGS["balanced"].sigma_dl * exact.depth_scale
+        assert rms(kiss.mean - exact.mean) <= 0.5 * sigma_dl
+        assert np.all(kiss.variance <= exact.variance)
