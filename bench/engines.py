@@ -19,7 +19,8 @@ noise. The model is the paper's balanced set-up for KITTI and the residual set-u
 Each (engine, size) runs in its own subprocess: peak RSS is that process's maximum resident set
 (``resource.getrusage``) minus the RSS after imports and data loading. Times: ``first`` is the
 first solve of a resolution (set-up included), ``mean`` / ``mean_var`` the best of ``--repeats``
-later solves. The error vs exact is measured on a 40 x 48 crop of each size (exact is infeasible on
+later solves. Cells of an earlier run that a run does not measure are kept in the JSON (each
+row has its date and the machine's load average). The error vs exact is measured on a 40 x 48 crop of each size (exact is infeasible on
 the full frames): RMS difference of the means in % of the crop's depth range, and the largest
 relative difference of the standard deviations. Results: a table on stdout and
 ``bench/results/engines.json`` (written atomically).
@@ -162,10 +163,19 @@ def main() -> None:
                     row = json.loads(res.stdout.strip().splitlines()[-1])
             except subprocess.TimeoutExpired:
                 row = {"engine": engine, "size": size, "error": f"timeout after {args.timeout:.0f} s"}
+            row["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+            row["load_average_1min"] = os.getloadavg()[0]
             rows.append(row)
             print(_fmt(row), flush=True)
+    path = REPO / "bench" / "results" / "engines.json"
+    if path.is_file():  # keep the cells of an earlier run that this run did not measure
+        try:
+            done = {(r["engine"], r["size"]) for r in rows}
+            rows += [r for r in json.loads(path.read_text())["rows"] if (r["engine"], r["size"]) not in done]
+        except (ValueError, KeyError):
+            pass
     speedups = {}
-    for size in args.sizes.split(","):
+    for size in SIZES:
         f = next((r for r in rows if r["size"] == size and r["engine"] == "fast" and "mean_var_s" in r), None)
         k = next((r for r in rows if r["size"] == size and r["engine"] == "kissgp" and "mean_var_s" in r), None)
         if f and k:
@@ -175,13 +185,12 @@ def main() -> None:
 
     result = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
-        "load_average": os.getloadavg(),
+        "note": "the 2-core machine was shared with other jobs; load_average_1min per row",
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "mde": "simulated from the sensor depth (filled, Gaussian sigma 4 px, x1.05, 3 % noise)",
         "rows": rows,
         "speedup_fast_vs_kissgp": speedups,
     }
-    path = REPO / "bench" / "results" / "engines.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=2))

@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> dict:
           f"solve {posterior.timings['solve']:.2f} s")
     for path in posterior.save(args.out / f"{args.frame}_posterior", png=True):
         print(f"wrote {path}")
-    return {"n_lidar": len(lidar), "shape": posterior.shape}
+    return {"n_lidar": len(lidar), "shape": posterior.shape, "image_shape": rgb.shape[:2]}
 
 
 if __name__ == "__main__":

@@ -838,7 +838,7 @@ def batch_command(
         limit: Process at most this many frames (after --repeat).
         repeat: Repeat the dataset's frames this many times under new ids (benchmarks).
         engine: GP engine: "exact" (dense, up to a few thousand points), "fast" (grid, full frames), "kissgp";
-            default: the model's default.
+            default: `DepthGPConfig`'s default engine.
         factor: Downsample the dataset resolution by this integer factor (3 = the paper's 1/3).
         n_input: Measurements given as input per frame.
         mde: "none" (no MDE) or "standin" (clearly a stand-in, see above).

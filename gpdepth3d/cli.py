@@ -162,11 +162,15 @@ def demo_command(*, output_dir: Path = Path("gpdepth3d_demo"), seed: int = 0) ->
 
 
 def _commands() -> dict:
+    from .evaluation import eval_command
+    from .mapping import fuse_command
     from .viewer import view_command
 
     return {
         "demo": demo_command,
         "complete": complete_command,
+        "eval": eval_command,
+        "fuse": fuse_command,
         "view": view_command,
     }
 

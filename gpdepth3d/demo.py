@@ -72,5 +72,16 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
 
 
 def _extras(frame, posteriors, output_dir: Path) -> list[Path]:
-    """Figure and point cloud of the residual posterior (written by the evaluation and cloud modules)."""
-    return []
+    """Figure and confidence-weighted point cloud of the residual posterior."""
+    from .cloud import backproject_posterior
+    from .evaluation import plot_qualitative
+
+    post = posteriors["gp-residual"]
+    figure = plot_qualitative(
+        frame.rgb, frame.mde, post.sparse, post.mean, post.std, frame.depth_gt,
+        output_dir / "gp-residual.png", title="GP residual on a SIMULATED street (simulated LiDAR and MDE)",
+    )
+    # Far, uncertain pixels (the sky is filled by the MDE) are dropped by a depth limit; every
+    # point keeps its variance and confidence as PLY properties.
+    cloud = backproject_posterior(post, frame.rgb, frame.camera, max_depth=frame.max_depth)
+    return [figure, cloud.save_ply(output_dir / "gp-residual_cloud.ply")]

@@ -675,8 +675,7 @@ def plot_qualitative(
                 ax.set_xlim(-0.5, mean.shape[1] - 0.5)
                 ax.set_ylim(mean.shape[0] - 0.5, -0.5)
             else:
-                cm = matplotlib.colormaps[cmap].copy()
-                cm.set_bad("0.75")  # no ground truth: grey
+                cm = matplotlib.colormaps[cmap].with_extremes(bad="0.75")  # no ground truth: grey
                 im = ax.imshow(img, cmap=cm, vmin=lim[0], vmax=max(lim[1], 1e-6))
             fig.colorbar(im, ax=ax, fraction=0.035)
         ax.set_title(name)

@@ -169,6 +169,7 @@ class TestKissGPEngine:
         assert rms(mk - me) <= 1e-5 * rms(me - me.mean())
         assert relative_error(vk, ve).max() <= 1e-2
 
+    @pytest.mark.slow  # GPyTorch's LOVE path compiles TorchScript Lanczos code on first use (~10-25 s)
     def test_love_is_approximate_and_non_negative(self, crop):
         # LOVE (GPyTorch fast_pred_var) with a rank far below n: non-negative but not exact.
         _, mde, sparse = crop

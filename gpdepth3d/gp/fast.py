@@ -643,6 +643,9 @@ class _Factor:
         diag = torch.empty(tree.nvar, **opts)
         out = torch.empty(readout.resid.size, **opts) if readout is not None else None
         sig: list = [None] * tree.ntop
+        nb_root = int(tree.t_nf[-1] - tree.t_no[-1])
+        root_sbb = torch.zeros((T, nb_root, nb_root), **opts)  # Sigma of each tile root's ring
+        last_child = [min(c) if c else -1 for c in tree.top_children]
         for x in range(tree.ntop - 1, -1, -1):
             st, en = int(tree.top_starts[x]), int(tree.top_starts[x + 1])
             no = en - st
@@ -665,7 +668,15 @@ class _Factor:
             if rd is not None and rd["top"][x] is not None:
                 sel, pos, wgt = rd["top"][x]
                 out[sel] = torch.einsum("mi,mij,mj->m", wgt, S[pos[:, :, None], pos[:, None, :]], wgt)
-            sig[x] = S
+            if tree.top_tiles[x]:
+                tiles = ix["top_tiles"][x]
+                loc = ix["tile_loc"][tiles]
+                root_sbb[tiles] = S[loc[:, :, None], loc[:, None, :]]
+            if tree.top_children[x]:
+                sig[x] = S
+            p = tree.top_parent[x]
+            if p >= 0 and last_child[p] == x:
+                sig[p] = None  # all its children are done
         tsig: list = [None] * tree.ntpl
         tpl = tree.tpl
         for tau in range(tree.ntpl - 1, -1, -1):
@@ -678,13 +689,7 @@ class _Factor:
                 loc = ix["t_loc"][tau]
                 SBB = tsig[p][:, loc[:, None], loc[None, :]]
             else:
-                nb = nf - no
-                SBB = torch.zeros((T, nb, nb), **opts)
-                for x in range(tree.ntop):
-                    if tree.top_tiles[x]:
-                        tiles = ix["top_tiles"][x]
-                        loc = ix["tile_loc"][tiles]
-                        SBB[tiles] = sig[x][loc[:, :, None], loc[:, None, :]]
+                SBB = root_sbb
             TT = LinvT @ L21T  # (T, no, nb)
             SBJ = -(SBB @ TT.mT)  # (T, nb, no)
             S = torch.empty((T, nf, nf), **opts)

@@ -115,18 +115,23 @@ def fit_hyperparameters(
     bounds = [tuple(np.log(_BOUNDS[n])) for n in names]
     x0 = np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
 
+    from ..complete import check_mde_depth
+
+    # per-observation scale keeps L-BFGS-B's first steps sensible
+    n_obs = max(1, int(check_mde_depth(mde_depth)[1].sum()) * (config.formulation == "balanced") + len(sparse))
+
     def objective(x: np.ndarray) -> float:
         cfg = config.replace(**{n: float(np.exp(v)) for n, v in zip(names, x)})
         try:
             value = log_marginal_likelihood(mde_depth, sparse, cfg, engine=engine)
         except np.linalg.LinAlgError:
             return 1e300
-        return -value if np.isfinite(value) else 1e300
+        return -value / n_obs if np.isfinite(value) else 1e300
 
     f0 = objective(x0)
     result = scipy.optimize.minimize(
         objective, x0, method="L-BFGS-B", bounds=bounds,
-        options={"maxiter": max_iterations, "eps": 1e-5},
+        options={"maxiter": max_iterations, "eps": 1e-6},
     )
     best = result.x if result.fun <= f0 else x0
     return config.replace(**{n: float(np.exp(v)) for n, v in zip(names, best)})
