@@ -3,25 +3,21 @@
 Fuses a dense but inaccurate monocular depth map (MDE) with accurate but sparse range
 measurements (LiDAR, SLAM features) following Yoon & Kim, IROS 2020 (KISS-GP), and turns the
 result into confidence-weighted point clouds and TSDF maps. Units and frame conventions are
-stated once in `gpdepth3d.camera`.
+stated once in `gpdepth3d.camera`. Importing the package loads neither torch nor Open3D; the
+modules that need them import them when used.
 """
 
+from .baselines import ip_basic as ip_basic
 from .camera import PinholeCamera as PinholeCamera
 from .camera import check_pose as check_pose
 from .cloud import ColoredCloud as ColoredCloud
 from .cloud import backproject_depth as backproject_depth
 from .cloud import backproject_posterior as backproject_posterior
-from .fusion import FusionConfig as FusionConfig
-from .fusion import TSDFFusion as TSDFFusion
-from .fusion import save_mesh as save_mesh
-from .mapping import Mapper as Mapper
-from .mapping import MapperConfig as MapperConfig
-from .mapping import sparse_from_map_points as sparse_from_map_points
-from .triangulation import TriangulationConfig as TriangulationConfig
-from .triangulation import triangulate_frames as triangulate_frames
 from .complete import DepthCompleter as DepthCompleter
 from .complete import DepthPosterior as DepthPosterior
 from .complete import complete as complete
+from .datasets import Frame as Frame
+from .datasets import open_dataset as open_dataset
 from .errors import CalibrationError as CalibrationError
 from .errors import DataFormatError as DataFormatError
 from .errors import EmptyInputError as EmptyInputError
@@ -30,7 +26,15 @@ from .errors import InvalidDepthError as InvalidDepthError
 from .errors import InvalidInputError as InvalidInputError
 from .errors import ProblemTooLargeError as ProblemTooLargeError
 from .errors import ShapeError as ShapeError
+from .fusion import FusionConfig as FusionConfig
+from .fusion import TSDFFusion as TSDFFusion
+from .fusion import save_mesh as save_mesh
 from .gp.model import DepthGPConfig as DepthGPConfig
+from .mapping import Mapper as Mapper
+from .mapping import MapperConfig as MapperConfig
+from .mapping import sparse_from_map_points as sparse_from_map_points
+from .mde import ArrayMDE as ArrayMDE
+from .mde import align_depth as align_depth
 from .measurements import LidarCalibration as LidarCalibration
 from .measurements import SparseDepth as SparseDepth
 from .measurements import downsample_depth as downsample_depth
@@ -38,5 +42,11 @@ from .measurements import load_velodyne as load_velodyne
 from .measurements import project_points as project_points
 from .metrics import calibration_metrics as calibration_metrics
 from .metrics import depth_metrics as depth_metrics
+from .sampling import holdout_split as holdout_split
+from .sampling import sample_band as sample_band
+from .sampling import sample_scanlines as sample_scanlines
+from .sampling import sample_uniform as sample_uniform
+from .triangulation import TriangulationConfig as TriangulationConfig
+from .triangulation import triangulate_frames as triangulate_frames
 
 __version__ = "0.1.0"

@@ -6,7 +6,6 @@ becomes one line on stderr and exit code 1.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
@@ -79,7 +78,7 @@ def complete_command(
     """
     from .camera import PinholeCamera
     from .complete import DepthCompleter
-    from .io import load_depth, load_sparse
+    from .io import load_depth, load_sparse, read_matrix
     from .errors import InvalidInputError
     from .measurements import LidarCalibration, load_velodyne, project_points
     from .metrics import calibration_metrics, depth_metrics
@@ -87,7 +86,7 @@ def complete_command(
     mde_depth = load_depth(mde, png_scale=mde_png_scale)
     camera = None
     if intrinsics is not None:
-        camera = PinholeCamera.from_K(_load_K(intrinsics), mde_depth.shape[1], mde_depth.shape[0])
+        camera = PinholeCamera.from_K(read_matrix(intrinsics, (3, 3), "intrinsics"), mde_depth.shape[1], mde_depth.shape[0])
     if (sparse is None) == (lidar is None):
         raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
     if lidar is not None:
@@ -122,18 +121,6 @@ def complete_command(
               f"NLL {cal['nll']:.3f}")
     for path in written:
         print(f"wrote {path}")
-
-
-def _load_K(path: Path) -> np.ndarray:
-    from .errors import DataFormatError
-
-    try:
-        K = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise DataFormatError(path, f"expected a 3x3 intrinsic matrix as text: {exc}") from None
-    if K.shape != (3, 3):
-        raise DataFormatError(path, f"expected a 3x3 intrinsic matrix, got shape {K.shape}")
-    return K
 
 
 def _load_table(path: Path, columns: int) -> np.ndarray:

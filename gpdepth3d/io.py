@@ -26,6 +26,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .errors import DataFormatError, GPDepthError, InvalidDepthError, ShapeError, describe
+from .camera import check_pose
 from .measurements import SparseDepth
 
 KITTI_PNG_SCALE = 1.0 / 256.0
@@ -213,3 +214,50 @@ def load_rgb(path: str | Path) -> np.ndarray:
     if bgr is None:
         raise DataFormatError(path, "not a readable image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """Reads a whitespace-separated text matrix and checks its shape; DataFormatError otherwise."""
+    if not path.is_file():
+        raise DataFormatError(path, f"{what} not found")
+    try:
+        m = np.loadtxt(path, ndmin=2)
+    except ValueError as exc:
+        raise DataFormatError(path, f"{what}: not a numeric matrix ({exc})") from None
+    if m.size != int(np.prod(shape)):
+        raise DataFormatError(path, f"{what}: expected {shape} values, got shape {m.shape}")
+    m = m.reshape(shape)
+    if not np.all(np.isfinite(m)):
+        raise DataFormatError(path, f"{what}: non-finite values")
+    return m
+
+
+def load_pose(path: str | Path) -> np.ndarray:
+    """Reads a 4x4 ``T_world_camera`` from text: 4 rows of 4 numbers (7-Scenes/TUM) or 12 numbers (3x4)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "pose file not found")
+    try:
+        values = np.loadtxt(path, ndmin=1).ravel()
+    except ValueError as exc:
+        raise DataFormatError(path, f"expected numbers of a 4x4 or 3x4 pose: {exc}") from None
+    if values.size == 12:
+        values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
+    if values.size != 16:
+        raise DataFormatError(path, f"expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
+    return check_pose(values.reshape(4, 4), str(path))
+
+
+def load_poses(path: str | Path) -> list[np.ndarray]:
+    """Reads one pose per line (12 numbers, row-major 3x4, KITTI odometry style) as 4x4 matrices."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "pose file not found")
+    try:
+        table = np.loadtxt(path, ndmin=2)
+    except ValueError as exc:
+        raise DataFormatError(path, f"expected lines of 12 numbers: {exc}") from None
+    if table.shape[1] != 12:
+        raise DataFormatError(path, f"expected 12 numbers per line (3x4 pose), got {table.shape[1]}")
+    bottom = np.tile([0.0, 0.0, 0.0, 1.0], (table.shape[0], 1))
+    return [check_pose(T.reshape(4, 4), f"{path} line {i + 1}") for i, T in enumerate(np.hstack([table, bottom]))]

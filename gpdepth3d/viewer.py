@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Any, Literal, Optional, Sequence
 import numpy as np
 
 from .camera import PinholeCamera, check_pose
+from .io import load_pose, load_poses, read_matrix
 from .errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -188,37 +189,6 @@ def default_camera(width: int, height: int, *, hfov_deg: float = 60.0) -> Pinhol
     """A camera with the given horizontal field of view and centred principal point (a fallback guess)."""
     f = width / (2.0 * math.tan(math.radians(hfov_deg) / 2.0))
     return PinholeCamera(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
-
-
-def load_pose(path: str | Path) -> np.ndarray:
-    """Reads a 4x4 ``T_world_camera`` from text: 4 rows of 4 numbers (7-Scenes/TUM) or 12 numbers (3x4)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(path, "pose file not found")
-    try:
-        values = np.loadtxt(path, ndmin=1).ravel()
-    except ValueError as exc:
-        raise DataFormatError(path, f"expected numbers of a 4x4 or 3x4 pose: {exc}") from None
-    if values.size == 12:
-        values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
-    if values.size != 16:
-        raise DataFormatError(path, f"expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
-    return check_pose(values.reshape(4, 4), str(path))
-
-
-def load_poses(path: str | Path) -> list[np.ndarray]:
-    """Reads one pose per line (12 numbers, row-major 3x4, KITTI odometry style) as 4x4 matrices."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataFormatError(path, "pose file not found")
-    try:
-        table = np.loadtxt(path, ndmin=2)
-    except ValueError as exc:
-        raise DataFormatError(path, f"expected lines of 12 numbers: {exc}") from None
-    if table.shape[1] != 12:
-        raise DataFormatError(path, f"expected 12 numbers per line (3x4 pose), got {table.shape[1]}")
-    bottom = np.tile([0.0, 0.0, 0.0, 1.0], (table.shape[0], 1))
-    return [check_pose(T.reshape(4, 4), f"{path} line {i + 1}") for i, T in enumerate(np.hstack([table, bottom]))]
 
 
 def load_mesh(path: str | Path) -> "trimesh.Trimesh":
@@ -986,12 +956,7 @@ def view_command(
         pose_list = [None] * n
     K = None
     if intrinsics is not None:
-        try:
-            K = np.loadtxt(intrinsics, ndmin=2)
-        except (OSError, ValueError) as exc:
-            raise DataFormatError(intrinsics, f"expected a 3x3 intrinsic matrix as text: {exc}") from None
-        if K.shape != (3, 3):
-            raise DataFormatError(intrinsics, f"expected a 3x3 intrinsic matrix, got shape {K.shape}")
+        K = read_matrix(Path(intrinsics), (3, 3), "intrinsics")
     elif n:
         print("view: no --intrinsics; assuming a 60 degree horizontal field of view")
     frames = [

@@ -27,6 +27,7 @@ from gpdepth3d.errors import (
     ShapeError,
 )
 from gpdepth3d.gp.model import DepthGPConfig
+from gpdepth3d.io import load_pose, load_poses
 from gpdepth3d.metrics import depth_metrics
 from gpdepth3d.synthetic import make_scene
 from gpdepth3d.viewer import (
@@ -37,8 +38,6 @@ from gpdepth3d.viewer import (
     colorbar_image,
     default_camera,
     load_mesh,
-    load_pose,
-    load_poses,
     show,
     view_command,
 )

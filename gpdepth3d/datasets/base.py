@@ -9,6 +9,7 @@ from typing import Iterator
 import numpy as np
 
 from ..camera import PinholeCamera
+from ..io import read_matrix as read_matrix  # noqa: F401  (re-exported for the readers)
 from ..errors import DataFormatError, InvalidInputError
 from ..measurements import LidarCalibration, SparseDepth
 
@@ -108,19 +109,3 @@ class DatasetReader:
         if not path.is_file():
             raise DataFormatError(path, f"{what} not found")
         return path
-
-
-def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
-    """Reads a whitespace-separated text matrix and checks its shape; DataFormatError otherwise."""
-    if not path.is_file():
-        raise DataFormatError(path, f"{what} not found")
-    try:
-        m = np.loadtxt(path, ndmin=2)
-    except ValueError as exc:
-        raise DataFormatError(path, f"{what}: not a numeric matrix ({exc})") from None
-    if m.size != int(np.prod(shape)):
-        raise DataFormatError(path, f"{what}: expected {shape} values, got shape {m.shape}")
-    m = m.reshape(shape)
-    if not np.all(np.isfinite(m)):
-        raise DataFormatError(path, f"{what}: non-finite values")
-    return m
