@@ -19,6 +19,7 @@ from .complete import complete as complete
 from .datasets import Frame as Frame
 from .datasets import open_dataset as open_dataset
 from .errors import CalibrationError as CalibrationError
+from .errors import ConvergenceError as ConvergenceError
 from .errors import DataFormatError as DataFormatError
 from .errors import EmptyInputError as EmptyInputError
 from .errors import GPDepthError as GPDepthError

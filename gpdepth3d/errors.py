@@ -58,6 +58,10 @@ class ProblemTooLargeError(GPDepthError, MemoryError):
     """A problem exceeds the size an engine accepts (for example the dense `exact` engine)."""
 
 
+class ConvergenceError(GPDepthError, ArithmeticError):
+    """An iterative solver (conjugate gradients) did not reach its tolerance within its iteration limit."""
+
+
 def describe(x: Any) -> str:
     """Short description of a value for an error message (shape and dtype of arrays)."""
     shape = getattr(x, "shape", None)

@@ -94,17 +94,13 @@ import gpytorch
 import linear_operator
 from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
 
-from ..errors import GPDepthError, InvalidInputError
+from ..errors import ConvergenceError, InvalidInputError
 from .model import GridProblem
 
 VarianceMethod = Literal["auto", "cholesky", "probe", "solve", "love"]
 
 #: Grid axes longer than this use Toeplitz (FFT) Kronecker factors, shorter ones dense factors.
 TOEPLITZ_ABOVE = 1000
-
-
-class ConvergenceError(GPDepthError, ArithmeticError):
-    """Conjugate gradients did not reach the requested residual within the iteration limit."""
 
 
 class PixelGridInterpolationKernel(gpytorch.kernels.GridInterpolationKernel):
