@@ -58,8 +58,13 @@ def plain_loop(frames, out: Path, config, loader) -> float:
     """Seconds for the frames done one after the other in this process with one thread."""
     from threadpoolctl import threadpool_limits
 
-    from gpdepth3d.batch import process_frame
+    from gpdepth3d.batch import _warm_up, process_frame
+    from gpdepth3d.gp import make_engine
 
+    # Load every native library first: threadpoolctl limits only the pools loaded when it is
+    # entered (scipy.linalg's BLAS would otherwise come in during frame 1 with all cores).
+    _warm_up()
+    make_engine(config)
     try:
         import torch
 

@@ -149,6 +149,7 @@ def demo_command(*, output_dir: Path = Path("gpdepth3d_demo"), seed: int = 0) ->
 
 
 def _commands() -> dict:
+    from .batch import batch_command
     from .evaluation import eval_command
     from .mapping import fuse_command
     from .viewer import view_command
@@ -159,6 +160,7 @@ def _commands() -> dict:
         "eval": eval_command,
         "fuse": fuse_command,
         "view": view_command,
+        "batch": batch_command,
     }
 
 
