@@ -6,6 +6,7 @@ becomes one line on stderr and exit code 1.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
@@ -174,6 +175,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("gpdepth3d: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into `head` & co.: not an error
+        sys.stdout = open(os.devnull, "w")
+        return 0
     return 0
 
 

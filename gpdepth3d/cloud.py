@@ -35,10 +35,6 @@ from .camera import PinholeCamera, check_pose, transform_points
 from .errors import DataFormatError, EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
 from .io import atomic_path
 
-POSE_ATOL = 1e-3
-"""Tolerance of the rigidity check of poses (real SLAM / KinectFusion poses, e.g. 7-Scenes, are
-orthonormal only to ~2e-4; the same tolerance as `gpdepth3d.datasets.sevenscenes`)."""
-
 if TYPE_CHECKING:  # pragma: no cover
     from .complete import DepthPosterior
 
@@ -176,7 +172,7 @@ class ColoredCloud:
 
     def transformed(self, T: np.ndarray) -> "ColoredCloud":
         """The cloud moved by a rigid 4x4 transform (e.g. ``T_world_camera``); depths are kept."""
-        T = check_pose(T, "T", atol=POSE_ATOL)
+        T = check_pose(T, "T")
         return ColoredCloud(transform_points(T, self.points), self.colors, self.variance, self.confidence, self.depth)
 
     def concatenate(self, *others: "ColoredCloud") -> "ColoredCloud":
@@ -370,7 +366,7 @@ def backproject_depth(
     conf = confidence_from_variance(pvar, z, rho_ref=rho_ref)
     cloud = ColoredCloud(points, rgb[valid], pvar, conf, z)
     if T_world_camera is not None:
-        cloud = cloud.transformed(check_pose(T_world_camera, atol=POSE_ATOL))
+        cloud = cloud.transformed(check_pose(T_world_camera))
     return cloud
 
 

@@ -46,10 +46,6 @@ from .cloud import ColoredCloud
 from .errors import EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
 from .io import atomic_path
 
-POSE_ATOL = 1e-3
-"""Tolerance of the rigidity check of poses (real SLAM / KinectFusion poses, e.g. 7-Scenes, are
-orthonormal only to ~2e-4; the same tolerance as `gpdepth3d.datasets.sevenscenes`)."""
-
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
 
@@ -194,7 +190,7 @@ class TSDFFusion:
             EmptyInputError: if the frame has no depth inside [depth_min, depth_max] with weight > 0.
         """
         cfg = self.config
-        T = check_pose(T_world_camera, atol=POSE_ATOL)
+        T = check_pose(T_world_camera)
         d = np.asarray(depth)
         if d.ndim != 2:
             raise ShapeError("depth", "a 2-D (H, W) depth map", describe(d))

@@ -35,7 +35,7 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from .camera import PinholeCamera, check_pose, transform_points
-from .cloud import POSE_ATOL, ColoredCloud
+from .cloud import ColoredCloud
 from .complete import DepthCompleter, DepthPosterior
 from .errors import EmptyInputError, InvalidInputError, ShapeError, describe
 from .fusion import FusionConfig, TSDFFusion, save_mesh
@@ -67,7 +67,7 @@ def sparse_from_map_points(
     Returns:
         `SparseDepth` on the camera's grid (closest point per pixel).
     """
-    T = check_pose(T_world_camera, atol=POSE_ATOL)
+    T = check_pose(T_world_camera)
     p = np.asarray(points_world, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ShapeError("points_world", "an (N, 3) array", describe(p))
@@ -231,7 +231,7 @@ class Mapper:
             EmptyInputError: when the frame has no depth to fuse.
         """
         timings: dict[str, float] = {}
-        T = check_pose(T_world_camera, atol=POSE_ATOL)
+        T = check_pose(T_world_camera)
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))

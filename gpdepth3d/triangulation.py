@@ -28,10 +28,6 @@ from .camera import PinholeCamera, check_pose
 from .errors import InvalidInputError, ShapeError, describe
 from .measurements import SparseDepth
 
-POSE_ATOL = 1e-3
-"""Tolerance of the rigidity check of poses (real SLAM / KinectFusion poses, e.g. 7-Scenes, are
-orthonormal only to ~2e-4; the same tolerance as `gpdepth3d.datasets.sevenscenes`)."""
-
 
 @dataclass(frozen=True)
 class TriangulationConfig:
@@ -167,7 +163,7 @@ def fundamental_from_poses(
     camera: PinholeCamera, T_world_a: np.ndarray, T_world_b: np.ndarray
 ) -> np.ndarray:
     """Fundamental matrix F with x_b^T F x_a = 0 for pixels x_a of view a and x_b of view b."""
-    T_ba = np.linalg.inv(check_pose(T_world_b, "T_world_b", atol=POSE_ATOL)) @ check_pose(T_world_a, "T_world_a", atol=POSE_ATOL)
+    T_ba = np.linalg.inv(check_pose(T_world_b, "T_world_b")) @ check_pose(T_world_a, "T_world_a")
     R, t = T_ba[:3, :3], T_ba[:3, 3]
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     Kinv = np.linalg.inv(camera.K)
@@ -275,8 +271,8 @@ def triangulate_matches(
         raise ShapeError("uv_ref", "an (N, 2) array", describe(uv_ref))
     if uv_other.shape != uv_ref.shape:
         raise ShapeError("uv_other", f"shape {uv_ref.shape} like uv_ref", describe(uv_other))
-    T_wr = check_pose(T_world_ref, "T_world_ref", atol=POSE_ATOL)
-    T_wo = check_pose(T_world_other, "T_world_other", atol=POSE_ATOL)
+    T_wr = check_pose(T_world_ref, "T_world_ref")
+    T_wo = check_pose(T_world_other, "T_world_other")
     T_rw, T_ow = np.linalg.inv(T_wr), np.linalg.inv(T_wo)
     K = camera.K
     P_r, P_o = K @ T_rw[:3], K @ T_ow[:3]

@@ -49,7 +49,7 @@ class SevenScenes(DatasetReader):
         if pose_path.is_file():
             T = read_matrix(pose_path, (4, 4), "pose")
             try:
-                pose = check_pose(T, atol=1e-3)
+                pose = check_pose(T)
             except CalibrationError as exc:
                 raise DataFormatError(pose_path, f"not a rigid transform: {exc}") from None
         h, w = rgb.shape[:2]
