@@ -82,3 +82,29 @@ def room_frame() -> SyntheticFrame:
 def tiny_street_frame() -> SyntheticFrame:
     """Small simulated street frame (64x24) for tests with the dense exact engine."""
     return make_scene(0, kind="street", width=64, height=24)
+
+
+@pytest.fixture
+def break_writes(monkeypatch):
+    """``break_writes("gpdepth3d.cloud")`` makes ``open`` inside that module return files whose writes
+    store half the data and then raise ``OSError("disk full")`` (to test that failed exports leave no file)."""
+    real_open = open
+
+    class HalfWritten:
+        def __init__(self, f):
+            self.f = f
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.f.close()
+
+        def write(self, data):
+            self.f.write(data[: len(data) // 2])
+            raise OSError("disk full")
+
+    def apply(module: str) -> None:
+        monkeypatch.setattr(f"{module}.open", lambda p, m: HalfWritten(real_open(p, m)), raising=False)
+
+    return apply

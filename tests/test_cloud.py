@@ -212,30 +212,14 @@ class TestColoredCloud:
         np.testing.assert_allclose(back.confidence, cloud.confidence, rtol=1e-6)
         np.testing.assert_allclose(back.variance, cloud.variance, rtol=1e-5)
 
-    def test_export_errors_leave_no_file(self, tmp_path: Path, monkeypatch):
+    def test_export_errors_leave_no_file(self, tmp_path: Path, break_writes):
         cloud = self._cloud()
         with pytest.raises(EmptyInputError):
             cloud.subset(np.zeros(len(cloud), bool)).save_ply(tmp_path / "empty.ply")
         with pytest.raises(InvalidInputError):
             cloud.save_ply(tmp_path / "cloud.txt")
 
-        real_open = open
-
-        class Broken:
-            def __init__(self, f):
-                self.f = f
-
-            def __enter__(self):
-                return self
-
-            def __exit__(self, *exc):
-                self.f.close()
-
-            def write(self, data):
-                self.f.write(data[: len(data) // 2])
-                raise OSError("disk full")
-
-        monkeypatch.setattr("gpdepth3d.cloud.open", lambda p, m: Broken(real_open(p, m)), raising=False)
+        break_writes("gpdepth3d.cloud")
         with pytest.raises(OSError):
             cloud.save_ply(tmp_path / "broken.ply")
         assert list(tmp_path.iterdir()) == []

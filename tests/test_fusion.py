@@ -179,7 +179,7 @@ class TestExport:
         if suffix == ".ply":
             np.testing.assert_array_equal(loaded.visual.vertex_colors[:, :3], mesh.visual.vertex_colors[:, :3])
 
-    def test_errors_leave_no_file(self, mesh, tmp_path: Path, monkeypatch):
+    def test_errors_leave_no_file(self, mesh, tmp_path: Path, break_writes):
         import trimesh
 
         with pytest.raises(InvalidInputError):
@@ -188,23 +188,7 @@ class TestExport:
             save_mesh("not a mesh", tmp_path / "m.ply")
         with pytest.raises(EmptyInputError):
             save_mesh(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "m.ply")
-        real_open = open
-
-        class Broken:
-            def __init__(self, f):
-                self.f = f
-
-            def __enter__(self):
-                return self
-
-            def __exit__(self, *exc):
-                self.f.close()
-
-            def write(self, data):
-                self.f.write(data[:10])
-                raise OSError("disk full")
-
-        monkeypatch.setattr("gpdepth3d.fusion.open", lambda p, m: Broken(real_open(p, m)), raising=False)
+        break_writes("gpdepth3d.fusion")
         with pytest.raises(OSError):
             save_mesh(mesh, tmp_path / "m.glb")
         assert list(tmp_path.iterdir()) == []
