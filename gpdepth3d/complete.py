@@ -43,7 +43,7 @@ class DepthPosterior:
         config: The model configuration.
         depth_scale: The depth scale (metres) that relative units were multiplied by.
         alignment: Scale/shift applied to the MDE (residual formulation), else identity.
-        timings: Seconds spent per stage ("setup", "solve").
+        timings: Seconds spent per stage ("fit": hyperparameter fit when config.fit, "setup", "solve").
     """
 
     mean: np.ndarray
@@ -221,8 +221,11 @@ def build_problem(
 class DepthCompleter:
     """Completes depth frame after frame with one configuration.
 
-    The engine (and any per-resolution set-up it caches, such as factorisations of the prior
-    precision) is kept between calls, so the frames of a sequence after the first are cheaper.
+    The engine (and the per-resolution set-up it caches: the elimination structure, the prior
+    precision and the output read-out of the ``fast`` engine) is kept between calls, so the frames
+    of a sequence after the first are cheaper. With ``config.fit`` each frame's hyperparameters
+    are fitted by maximum marginal likelihood, warm-started from the previous frame's values
+    (`fitted`; set it to None to start again from ``config``).
 
     Example:
         >>> completer = DepthCompleter(DepthGPConfig(engine="exact"))
@@ -232,6 +235,22 @@ class DepthCompleter:
     def __init__(self, config: DepthGPConfig | None = None):
         self.config = config or DepthGPConfig()
         self.engine = make_engine(self.config)
+        self.fitted: DepthGPConfig | None = None
+        self._fit_engine = None
+
+    def _frame_config(self, mde_depth: np.ndarray, sparse: SparseDepth) -> DepthGPConfig:
+        """The configuration of this frame: ``config``, or fitted to the frame when ``config.fit``."""
+        if not self.config.fit:
+            return self.config
+        from .gp.fast import FastEngine
+        from .gp.fit import fit_hyperparameters
+
+        if self._fit_engine is None:
+            self._fit_engine = self.engine if isinstance(self.engine, FastEngine) else FastEngine()
+        start = (self.fitted or self.config).replace(fit=False)
+        fitted = fit_hyperparameters(mde_depth, sparse, start, engine=self._fit_engine)
+        self.fitted = fitted
+        return fitted.replace(fit=True)
 
     def complete(
         self,
@@ -250,7 +269,9 @@ class DepthCompleter:
             variance: Compute the marginal variance (else it is NaN, and faster).
         """
         t0 = time.perf_counter()
-        problem, grid_sparse, scale, alignment = build_problem(mde_depth, sparse, self.config, output_shape)
+        config = self._frame_config(mde_depth, sparse)
+        tf = time.perf_counter()
+        problem, grid_sparse, scale, alignment = build_problem(mde_depth, sparse, config, output_shape)
         t1 = time.perf_counter()
         mean, var = self.engine.solve(problem, variance=variance)
         t2 = time.perf_counter()
@@ -265,10 +286,10 @@ class DepthCompleter:
             variance=var,
             mde=mde_out,
             sparse=grid_sparse,
-            config=self.config,
+            config=config,
             depth_scale=scale,
             alignment=alignment,
-            timings={"setup": t1 - t0, "solve": t2 - t1},
+            timings={"fit": tf - t0, "setup": t1 - tf, "solve": t2 - t1},
         )
 
     __call__ = complete

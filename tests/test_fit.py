@@ -104,3 +104,37 @@ class TestFitHyperparameters:
             fit_hyperparameters(mde, sparse, DepthGPConfig(), max_iterations=0)
         with pytest.raises(InvalidInputError):
             fit_hyperparameters(mde, sparse, "config")
+
+
+class TestFitOption:
+    def test_config_fit_fits_each_frame_warm_started(self, monkeypatch):
+        from gpdepth3d.complete import DepthCompleter
+        import gpdepth3d.gp.fit as fitmod
+
+        rng = np.random.default_rng(5)
+        start = DepthGPConfig(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02, fit=True)
+        completer = DepthCompleter(start)
+        starts = []
+        real = fitmod.fit_hyperparameters
+
+        def spy(mde, sparse, config, **kw):
+            starts.append(config)
+            return real(mde, sparse, config, **kw)
+
+        monkeypatch.setattr(fitmod, "fit_hyperparameters", spy)
+        frames = [balanced_frame(rng, lengthscale=3.0, s=1.0, sdl=0.3) for _ in range(2)]
+        posts = [completer(mde, sparse) for mde, sparse in frames]
+        # frame 1 starts from the config, frame 2 from frame 1's fit
+        assert starts[0].lengthscale == 1.0 and not starts[0].fit
+        assert starts[1].lengthscale == posts[0].config.lengthscale != 1.0
+        for (mde, sparse), post in zip(frames, posts):
+            assert post.config.fit and post.config.sigma_dl == pytest.approx(0.3, rel=0.2)
+            assert log_marginal_likelihood(mde, sparse, post.config) > log_marginal_likelihood(mde, sparse, start) + 10
+            assert post.timings["fit"] > 0
+        # the posterior is the one of the fitted model
+        ref = DepthCompleter(posts[1].config.replace(fit=False))(*frames[1])
+        np.testing.assert_allclose(posts[1].mean, ref.mean, atol=1e-9)
+
+    def test_fit_flag_is_validated(self):
+        with pytest.raises(InvalidInputError, match="fit"):
+            DepthGPConfig(fit="yes")

@@ -50,6 +50,7 @@ import scipy.sparse as sp
 
 from ..errors import InvalidInputError, ShapeError
 from .markov import chain_precision, readout_weights, state_dim
+from .multifrontal import FrontalFactor, FrontTree
 from .model import GridProblem
 
 
@@ -439,6 +440,8 @@ class _Readout:
     resid: np.ndarray  # (Ho, Wo) conditional prior variance (unit outputscale)
     t_groups: list  # per template node: (outputs (m,), tiles (m,), front positions (m, 4 ds), weights (m, 4 ds))
     top_groups: list  # per top node: (outputs (m,), front positions (m, 4 ds), weights (m, 4 ds))
+    corner_vars: np.ndarray  # (Ho Wo, 4 ds) grid state variables each output reads
+    corner_wgt: np.ndarray  # (Ho Wo, 4 ds) their weights
 
 
 def _build_readout(tree: _Tree, out_rows: np.ndarray, out_cols: np.ndarray, nu: float, lengthscale: float) -> _Readout:
@@ -491,7 +494,98 @@ def _build_readout(tree: _Tree, out_rows: np.ndarray, out_cols: np.ndarray, nu: 
         var = (pvar[sel][:, :, None] + np.arange(ds)).reshape(sel.size, 4 * ds)
         pos = tree.top_positions(x, var.ravel()).reshape(sel.size, 4 * ds)
         top_groups.append((sel, pos, wgt[sel]))
-    return _Readout(wmat(fr, wr, h), wmat(fc, wc, w), resid, t_groups, top_groups)
+    corner_vars = (pvar[:, :, None] + np.arange(ds)).reshape(m, 4 * ds)
+    return _Readout(wmat(fr, wr, h), wmat(fc, wc, w), resid, t_groups, top_groups, corner_vars, wgt)
+
+
+# ----------------------------------------------------------------------------- compiled CPU phase
+#
+# On the CPU the numeric work runs in `gpdepth3d.gp.multifrontal` (numba + LAPACK): every
+# (template node, tile) pair and every top node becomes one front of a `FrontTree`; the prior
+# precision is assembled entry by entry from the 9-point stencil of d x d state blocks.
+
+
+def _front_tree(tree: _Tree) -> FrontTree:
+    """The tree's fronts for the compiled phase (cached on the tree)."""
+    if "_fronts" in tree.__dict__:
+        return tree.__dict__["_fronts"]
+    T, ntpl, nvar = tree.ntiles, tree.ntpl, tree.nvar
+    st, no, parent, bnds = [], [], [], []
+    for tau in range(ntpl):
+        p = tree.tpl.parent[tau]
+        for t in range(T):
+            st.append(tree.t_base[tau] + t * tree.t_no[tau])
+            no.append(tree.t_no[tau])
+            b = tree.t_bnd[tau][t]
+            bnds.append(b[b < nvar])
+            if p >= 0:
+                parent.append(p * T + t)
+            else:
+                parent.append(ntpl * T + tree.tile_parent[t] if tree.tile_parent[t] >= 0 else -1)
+    for x in range(tree.ntop):
+        st.append(tree.top_starts[x])
+        no.append(tree.top_starts[x + 1] - tree.top_starts[x])
+        bnds.append(tree.top_bnd[x])
+        parent.append(ntpl * T + tree.top_parent[x] if tree.top_parent[x] >= 0 else -1)
+    fronts = FrontTree.build(st, no, parent, bnds, nvar)
+    tree.__dict__["_fronts"] = fronts
+    return fronts
+
+
+@dataclass
+class _FrontalPrior:
+    """Prior precision entries (lower triangle, unit outputscale) and their front assembly map."""
+
+    asm: tuple  # (ptr, flat positions, source entry) per front
+    qvals: np.ndarray  # value of each entry
+    logdet: float
+
+
+def _build_frontal_prior(tree: _Tree, nu: float, lengthscale: float) -> _FrontalPrior:
+    hp, wp = tree.padded
+    d = state_dim(nu)
+    ds = tree.ds
+    if d * d != ds:
+        raise InvalidInputError("nu", f"a smoothness with {ds} states per pixel", nu)
+    fronts = _front_tree(tree)
+    if "_frontal_pattern" not in tree.__dict__:
+        pr, pc = np.divmod(np.arange(hp * wp), wp)
+        ents = []
+        for dr, dc in _OFFSETS:
+            qr, qc = pr + dr, pc + dc
+            ok = (qr >= 0) & (qr < hp) & (qc >= 0) & (qc < wp)
+            a, b = pr[ok] * wp + pc[ok], qr[ok] * wp + qc[ok]
+            ents.append(np.stack([a, b], 1))
+        pairs = np.concatenate(ents)
+        s1, s2 = np.divmod(np.arange(ds * ds), ds)
+        va = (tree.pix_var[pairs[:, 0]][:, None] + s1).ravel()
+        vb = (tree.pix_var[pairs[:, 1]][:, None] + s2).ravel()
+        keep = va >= vb  # each symmetric pair once (lower triangle in elimination order)
+        pix = np.repeat(pairs, ds * ds, axis=0)[keep]
+        st1, st2 = np.tile(s1, pairs.shape[0])[keep], np.tile(s2, pairs.shape[0])[keep]
+        tree.__dict__["_frontal_pattern"] = (pix, st1, st2, fronts.assembly(va[keep], vb[keep]))
+    pix, st1, st2, asm = tree.__dict__["_frontal_pattern"]
+    Qv, ldv = chain_precision(np.arange(hp, dtype=np.float64), nu, lengthscale)
+    Qu, ldu = chain_precision(np.arange(wp, dtype=np.float64), nu, lengthscale)
+    (ra, ca), (rb, cb) = np.divmod(pix[:, 0], wp), np.divmod(pix[:, 1], wp)
+    (k1, l1), (k2, l2) = np.divmod(st1, d), np.divmod(st2, d)
+    qv = np.asarray(Qv[ra * d + k1, rb * d + k2]).ravel()
+    qu = np.asarray(Qu[ca * d + l1, cb * d + l2]).ravel()
+    return _FrontalPrior(asm, qv * qu, wp * d * ldv + hp * d * ldu)
+
+
+def _frontal_readout(fronts: FrontTree, readout: _Readout) -> tuple:
+    """(ptr, output index, front positions, weights, n_out) of a read-out (cached on the read-out)."""
+    cache = readout.__dict__.setdefault("_frontal", {})
+    if id(fronts) not in cache:
+        v = readout.corner_vars
+        f = fronts.front_of[v.min(axis=1)]
+        pos = fronts.positions(np.repeat(f, v.shape[1]), v.ravel()).reshape(v.shape)
+        srt = np.argsort(f, kind="stable")
+        ptr = np.searchsorted(f[srt], np.arange(fronts.st.size + 1)).astype(np.int64)
+        cache[id(fronts)] = (ptr, srt.astype(np.int64), np.ascontiguousarray(pos[srt]),
+                             np.ascontiguousarray(readout.corner_wgt[srt]), v.shape[0])
+    return cache[id(fronts)]
 
 
 # ----------------------------------------------------------------------------- numeric phase (torch)
@@ -728,6 +822,8 @@ class FastEngine:
         threads: CPU threads of torch during the numeric work (restored afterwards); None keeps
             torch's setting. The default 1 is as fast on 2 cores for these many small batched
             kernels and avoids the collapse of multi-threaded BLAS on a busy machine.
+        backend: "compiled" (numba + LAPACK, `gpdepth3d.gp.multifrontal`; CPU only), "torch"
+            (batched torch kernels; any device) or "auto" (compiled on the CPU, torch elsewhere).
     """
 
     name = "fast"
@@ -740,6 +836,7 @@ class FastEngine:
         leaf_pixels: int | None = None,
         cache_size: int = 4,
         threads: int | None = 1,
+        backend: str = "auto",
     ):
         if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
             raise InvalidInputError("threads", "None or an integer >= 1", threads)
@@ -749,6 +846,12 @@ class FastEngine:
                 raise InvalidInputError(name, "an integer >= 1", value)
         if not isinstance(cache_size, (int, np.integer)) or cache_size < 1:
             raise InvalidInputError("cache_size", "an integer >= 1", cache_size)
+        if backend not in ("auto", "compiled", "torch"):
+            raise InvalidInputError("backend", "'auto', 'compiled' or 'torch'", backend)
+        on_cpu = device is None or str(device) == "cpu"
+        if backend == "compiled" and not on_cpu:
+            raise InvalidInputError("backend", "'torch' or 'auto' on a non-CPU device", backend)
+        self.backend = "compiled" if backend == "auto" and on_cpu else ("torch" if backend == "auto" else backend)
         self.device = device
         self.tile = tile
         self.leaf_pixels = leaf_pixels
@@ -773,9 +876,10 @@ class FastEngine:
         leaf = self.leaf_pixels or max(1, 40 // ds)
         return self._cached(self._trees, (h, w, ds, tile, leaf), lambda: _build_tree(h, w, ds, tile, leaf))
 
-    def _prior(self, tree: _Tree, nu: float, lengthscale: float) -> _Prior:
-        key = (id(tree), float(nu), float(lengthscale))
-        return self._cached(self._priors, key, lambda: _build_prior(tree, nu, lengthscale))
+    def _prior(self, tree: _Tree, nu: float, lengthscale: float):
+        key = (id(tree), float(nu), float(lengthscale), self.backend)
+        build = _build_frontal_prior if self.backend == "compiled" else _build_prior
+        return self._cached(self._priors, key, lambda: build(tree, nu, lengthscale))
 
     def _readout(self, tree: _Tree, problem: GridProblem) -> _Readout:
         k = problem.kernel
@@ -802,8 +906,11 @@ class FastEngine:
         prec_var = np.zeros(tree.nvar)
         prec_var[real_vars.ravel()] = np.asarray(problem.precision, dtype=np.float64).ravel()
         inv_s2 = 1.0 / float(k.outputscale) ** 2
-        with _torch_threads(self.threads):
-            factor = _Factor(tree, prior, inv_s2, prec_var, self.device)
+        if self.backend == "compiled":
+            factor = FrontalFactor(_front_tree(tree), prior.asm, prior.qvals * inv_s2, prec_var)
+        else:
+            with _torch_threads(self.threads):
+                factor = _Factor(tree, prior, inv_s2, prec_var, self.device)
         return factor, tree, prior, real_vars
 
     def _posterior_states(self, problem: GridProblem):
@@ -844,8 +951,9 @@ class FastEngine:
                 diag, _ = factor.selected_inverse(None)
             var = diag[real_vars]
         else:
+            ro = _frontal_readout(factor.tree, readout) if self.backend == "compiled" else readout
             with _torch_threads(self.threads):
-                _, out = factor.selected_inverse(readout)
+                _, out = factor.selected_inverse(ro)
             var = out.reshape(problem.out_shape) + s2 * readout.resid
         return mean, np.maximum(var, 0.0)
 

@@ -1,0 +1,659 @@
+"""Compiled multifrontal Cholesky, solve and selected inversion over a tree of dense fronts.
+
+This is the CPU numeric phase of the ``fast`` engine (`gpdepth3d.gp.fast` builds the
+nested-dissection tree of the pixel grid; this module eliminates it). A *front* owns a
+contiguous range of variables (``st .. st + no``) and sees a boundary of ``nb`` later
+variables; its dense ``nf x nf`` matrix (``nf = no + nb``, column-major, lower triangle, own
+variables first) is assembled from the prior precision, the observation precision and the
+update matrices of its children, and partially factorised:
+
+    F = [[F11, .], [F21, F22]]:  L11 = chol(F11),  L21 = F21 L11^-T,  U = F22 - L21 L21^T  -> parent
+
+The selected inverse (Takahashi / Erisman-Tinney) then runs top-down: with the parent's
+posterior covariance restricted to the front's boundary, Sigma_BB,
+
+    W = L21 L11^-1,   Sigma_BJ = -Sigma_BB W,   Sigma_JJ = (L11 L11^T)^-1 - Sigma_BJ^T W,
+
+which gives the covariance on every front (so the diagonal, and any read-out that stays inside
+one front). Everything is exact (rounding only).
+
+Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
+Cython bindings (dpotrf, dtrsm, dsyrk, dpotri, dsymm, dgemm, dtrsv, dgemv), so there is no
+per-front interpreter overhead and no per-frame allocation beyond three flat buffers. Each
+front's boundary is sorted by its position in the parent front, so the lower triangle of a
+child's update lands in the lower triangle of the parent (extend-add and the gather of
+Sigma_BB need no symmetry bookkeeping). Update matrices live on a stack (post-order), the
+covariance fronts on a root-path stack (pre-order); both offsets are computed once per tree.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from llvmlite import binding as llvm
+from numba import types
+from numba.extending import get_cython_function_address
+
+def _bind(lib: str, name: str, nargs: int):
+    """A LAPACK/BLAS routine of SciPy's Cython bindings as a numba external function.
+
+    The routine's address is registered with LLVM under a private symbol name, so the compiled
+    kernels refer to it by name and can be cached on disk (a ctypes pointer would be baked in).
+    """
+    symbol = f"gpdepth3d_{name}"
+    llvm.add_symbol(symbol, get_cython_function_address(f"scipy.linalg.cython_{lib}", name))
+    return types.ExternalFunction(symbol, types.void(*([types.intp] * nargs)))
+
+
+_dpotrf = _bind("lapack", "dpotrf", 5)  # uplo, n, a, lda, info
+_dlauum = _bind("lapack", "dlauum", 5)  # uplo, n, a, lda, info
+_dtrmm = _bind("blas", "dtrmm", 11)  # side, uplo, transa, diag, m, n, alpha, a, lda, b, ldb
+_dsyrk = _bind("blas", "dsyrk", 10)  # uplo, trans, n, k, alpha, a, lda, beta, c, ldc
+_dsymm = _bind("blas", "dsymm", 12)  # side, uplo, m, n, alpha, a, lda, b, ldb, beta, c, ldc
+_dgemm = _bind("blas", "dgemm", 13)  # transa, transb, m, n, k, alpha, a, lda, b, ldb, beta, c, ldc
+_dtrmv = _bind("blas", "dtrmv", 8)  # uplo, trans, diag, n, a, lda, x, incx
+_dgemv = _bind("blas", "dgemv", 11)  # trans, m, n, alpha, a, lda, x, incx, beta, y, incy
+
+_FLAGS = dict(nogil=True, cache=True, boundscheck=False)
+_BLOCK = 32  # diagonal block of the triangular inversion
+# Entries below this magnitude are set to zero as fronts are produced. Long-range couplings decay
+# geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles ~100x
+# slower; with every stored operand >= 1e-100 or 0, no product of up to three of them is subnormal.
+# The change is far below rounding of any entry that matters (precisions and covariances here
+# span ~1e-12 .. 1e12).
+_TINY = 1e-100
+
+
+@nb.njit(**_FLAGS)
+def _flush(A, off, m, n, lda):
+    """Zeroes the entries of magnitude < _TINY of the m x n block of flat column-major ``A`` at ``off``."""
+    for j in range(n):
+        c = off + j * lda
+        for i in range(m):
+            if abs(A[c + i]) < _TINY:
+                A[c + i] = 0.0
+
+
+@nb.njit(**_FLAGS)
+def _chars():
+    # L, N, T, R as single-byte Fortran characters
+    return np.array([ord("L"), ord("N"), ord("T"), ord("R")], dtype=np.int8)
+
+
+@nb.njit(**_FLAGS)
+def _tri_inv(A, off, n, lda, ip):
+    """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
+
+    Blocked as LAPACK's dtrtri, but every off-diagonal step is a dtrmm with an already inverted
+    block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is ~10x slower than
+    dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops.
+    """
+    ch = _chars()
+    dp = np.array([1.0, -1.0])
+    j = ((n - 1) // _BLOCK) * _BLOCK
+    while j >= 0:
+        jb = min(_BLOCK, n - j)
+        d0 = off + j + j * lda
+        for c in range(jb - 1, -1, -1):  # unblocked inverse of the diagonal block (dtrti2)
+            cc = d0 + c + c * lda
+            A[cc] = 1.0 / A[cc]
+            ajj = -A[cc]
+            for i in range(jb - 1, c, -1):
+                acc = 0.0
+                for k in range(c + 1, i + 1):
+                    acc += A[d0 + i + k * lda] * A[d0 + k + c * lda]
+                A[d0 + i + c * lda] = acc
+            for i in range(c + 1, jb):
+                A[d0 + i + c * lda] *= ajj
+        m = n - j - jb
+        if m > 0:
+            ip[0], ip[1], ip[2] = m, jb, lda
+            a21 = A.ctypes.data + (d0 + jb) * 8
+            a22 = A.ctypes.data + (d0 + jb + jb * lda) * 8
+            _dtrmm(ch.ctypes.data, ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 1, ip.ctypes.data,
+                   ip.ctypes.data + 4, dp.ctypes.data, a22, ip.ctypes.data + 8, a21, ip.ctypes.data + 8)
+            _dtrmm(ch.ctypes.data + 3, ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 1, ip.ctypes.data,
+                   ip.ctypes.data + 4, dp.ctypes.data + 8, A.ctypes.data + d0 * 8, ip.ctypes.data + 8, a21,
+                   ip.ctypes.data + 8)
+        j -= _BLOCK
+
+
+@nb.njit(**_FLAGS)
+def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr, asm_pos, asm_src,
+                qvals, prec, l_ptr, lbuf, upd_off, stack, work):
+    """Multifrontal Cholesky of the fronts in ``order``; returns (log det, first failing front or -1).
+
+    Stores per front [L11^-1; L21] (nf x no, column-major) at ``lbuf[l_ptr[f]]``.
+    """
+    ch = _chars()
+    ip = np.zeros(8, dtype=np.int32)  # integer scalars passed by reference
+    ip2 = np.zeros(4, dtype=np.int32)
+    dp = np.array([1.0, -1.0, 0.0])
+    cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
+    one, mone = dp.ctypes.data, dp.ctypes.data + 8
+    logdet = 0.0
+    for f in order:
+        no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
+        F = work[: nf * nf]
+        for j in range(nf):
+            F[j * (nf + 1) : (j + 1) * nf] = 0.0
+        for k in range(asm_ptr[f], asm_ptr[f + 1]):
+            F[asm_pos[k]] += qvals[asm_src[k]]
+        for j in range(no):
+            F[j * (nf + 1)] += prec[s + j]
+        for kc in range(children_ptr[f], children_ptr[f + 1]):
+            c = children[kc]
+            nbc = nb_[c]
+            u0 = upd_off[c]
+            e0 = ea_ptr[c]
+            for jj in range(nbc):
+                cj = ea_pos[e0 + jj] * nf
+                col = u0 + jj * nbc
+                for ii in range(jj, nbc):
+                    F[ea_pos[e0 + ii] + cj] += stack[col + ii]
+        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
+        _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
+        if ip[3] != 0:
+            return logdet, f
+        for j in range(no):
+            logdet += 2.0 * np.log(F[j * (nf + 1)])
+        _tri_inv(F, 0, no, nf, ip2)
+        _flush(F, 0, no, no, nf)
+        if nbf > 0:
+            a21 = F.ctypes.data + no * 8
+            a22 = F.ctypes.data + (no + no * nf) * 8
+            _dtrmm(cR, cL, cT, cN, ip.ctypes.data + 8, ip.ctypes.data, one, F.ctypes.data, ip.ctypes.data + 4,
+                   a21, ip.ctypes.data + 4)
+            _flush(F, no, nbf, no, nf)
+            _dsyrk(cL, cN, ip.ctypes.data + 8, ip.ctypes.data, mone, a21, ip.ctypes.data + 4, one, a22,
+                   ip.ctypes.data + 4)
+            u0 = upd_off[f]
+            for jj in range(nbf):
+                src = no + (no + jj) * nf
+                dst = u0 + jj * nbf
+                for ii in range(jj, nbf):
+                    v = F[src + ii]
+                    stack[dst + ii] = v if abs(v) >= _TINY else 0.0
+        lbuf[l_ptr[f] : l_ptr[f] + nf * no] = F[: nf * no]
+    return logdet, -1
+
+
+@nb.njit(**_FLAGS)
+def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp, seq_slot, acc):
+    """Forward substitution L z = y over the fronts of ``order``, in place.
+
+    Updates of variables with ``seq_slot[v] >= 0`` are summed into ``acc`` instead of ``y`` (they
+    belong to fronts that other threads also update); pass an empty ``acc`` to update ``y``.
+    """
+    ch = _chars()
+    ip = np.zeros(4, dtype=np.int32)
+    dp = np.array([1.0, -1.0, 0.0])
+    cL, cN = ch.ctypes.data, ch.ctypes.data + 1
+    one, zero = dp.ctypes.data, dp.ctypes.data + 16
+    private = acc.size > 0
+    for f in order:
+        no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
+        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 1
+        L = lbuf.ctypes.data + l_ptr[f] * 8
+        _dtrmv(cL, cN, cN, ip.ctypes.data, L, ip.ctypes.data + 4, y.ctypes.data + s * 8, ip.ctypes.data + 12)
+        if nbf > 0:
+            _dgemv(cN, ip.ctypes.data + 8, ip.ctypes.data, one, L + no * 8, ip.ctypes.data + 4,
+                   y.ctypes.data + s * 8, ip.ctypes.data + 12, zero, tmp.ctypes.data, ip.ctypes.data + 12)
+            b0 = bnd_ptr[f]
+            for i in range(nbf):
+                v = bnd[b0 + i]
+                if private and seq_slot[v] >= 0:
+                    acc[seq_slot[v]] += tmp[i]
+                else:
+                    y[v] -= tmp[i]
+
+
+@nb.njit(**_FLAGS)
+def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp):
+    """Backward substitution L^T x = z over the fronts of ``order`` (processed in reverse), in place."""
+    ch = _chars()
+    ip = np.zeros(4, dtype=np.int32)
+    dp = np.array([1.0, -1.0, 0.0])
+    cL, cN, cT = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2
+    one, mone = dp.ctypes.data, dp.ctypes.data + 8
+    for k in range(order.size - 1, -1, -1):
+        f = order[k]
+        no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
+        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 1
+        L = lbuf.ctypes.data + l_ptr[f] * 8
+        if nbf > 0:
+            b0 = bnd_ptr[f]
+            for i in range(nbf):
+                tmp[i] = y[bnd[b0 + i]]
+            _dgemv(cT, ip.ctypes.data + 8, ip.ctypes.data, mone, L + no * 8, ip.ctypes.data + 4,
+                   tmp.ctypes.data, ip.ctypes.data + 12, one, y.ctypes.data + s * 8, ip.ctypes.data + 12)
+        _dtrmv(cL, cT, cN, ip.ctypes.data, L, ip.ctypes.data + 4, y.ctypes.data + s * 8, ip.ctypes.data + 12)
+
+
+@nb.njit(parallel=True, nogil=True, cache=True)
+def _solve(bin_ptr, bin_order, seq_order, seq_vars, seq_slot, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp,
+           acc):
+    """Solves (L L^T) x = y in place: subtrees in parallel, then their ancestors, and back."""
+    nbins = bin_ptr.size - 1
+    for b in nb.prange(nbins):
+        acc[b, :] = 0.0
+        _forward_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y,
+                     tmp[b], seq_slot, acc[b])
+    for b in range(nbins):
+        for k in range(seq_vars.size):
+            y[seq_vars[k]] -= acc[b, k]
+    _forward_run(seq_order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp[0], seq_slot, acc[0, :0])
+    _backward_run(seq_order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp[0])
+    for b in nb.prange(nbins):
+        _backward_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y,
+                      tmp[b])
+
+
+@nb.njit(**_FLAGS)
+def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, work, diag,
+                ro_ptr, ro_out, ro_pos, ro_wgt, out):
+    """Selected inverse over the fronts of ``order`` (processed in reverse, i.e. pre-order):
+    diag(P^-1) and the read-out quadratic forms."""
+    ch = _chars()
+    ip = np.zeros(8, dtype=np.int32)
+    dp = np.array([1.0, -1.0, 0.0])
+    cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
+    one, mone, zero = dp.ctypes.data, dp.ctypes.data + 8, dp.ctypes.data + 16
+    nw = ro_pos.shape[1]
+    for k in range(order.size - 1, -1, -1):
+        f = order[k]
+        no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
+        S = sig[sig_off[f] : sig_off[f] + nf * nf]
+        L = lbuf[l_ptr[f] : l_ptr[f] + nf * no]
+        for j in range(no):
+            for i in range(j, no):
+                S[i + j * nf] = L[i + j * nf]
+        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
+        _dlauum(cL, ip.ctypes.data, S.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)  # L11^-T L11^-1
+        if nbf > 0:
+            p = parent[f]
+            nfp = nf_[p]
+            P = sig[sig_off[p] : sig_off[p] + nfp * nfp]
+            e0 = ea_ptr[f]
+            for jj in range(nbf):
+                cj = ea_pos[e0 + jj] * nfp
+                dst = no + (no + jj) * nf
+                for ii in range(jj, nbf):
+                    S[dst + ii] = P[ea_pos[e0 + ii] + cj]
+            W = work[: nbf * no]
+            for j in range(no):
+                W[j * nbf : (j + 1) * nbf] = L[no + j * nf : nf + j * nf]
+            ip[4] = nbf
+            _dtrmm(cR, cL, cN, cN, ip.ctypes.data + 8, ip.ctypes.data, one, L.ctypes.data, ip.ctypes.data + 4,
+                   W.ctypes.data, ip.ctypes.data + 16)  # W = L21 L11^-1
+            _flush(W, 0, nbf, no, nbf)
+            sbj = S.ctypes.data + no * 8
+            _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
+                   ip.ctypes.data + 4, W.ctypes.data, ip.ctypes.data + 16, zero, sbj, ip.ctypes.data + 4)
+            _dgemm(cT, cN, ip.ctypes.data, ip.ctypes.data, ip.ctypes.data + 8, mone, sbj, ip.ctypes.data + 4,
+                   W.ctypes.data, ip.ctypes.data + 16, one, S.ctypes.data, ip.ctypes.data + 4)
+        _flush(S, 0, nf, no, nf)
+        for j in range(no):
+            diag[s + j] = S[j * (nf + 1)]
+        for r in range(ro_ptr[f], ro_ptr[f + 1]):
+            acc = 0.0
+            for a in range(nw):
+                pa = ro_pos[r, a]
+                for b in range(nw):
+                    pb = ro_pos[r, b]
+                    v = S[pa + pb * nf] if pa >= pb else S[pb + pa * nf]
+                    acc += ro_wgt[r, a] * ro_wgt[r, b] * v
+            out[ro_out[r]] = acc
+
+
+@nb.njit(parallel=True, nogil=True, cache=True)
+def _factor_bins(bin_ptr, bin_order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr,
+                 asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, work):
+    """Factorises the independent subtrees, one bin per thread; returns (log det, first failing front)."""
+    nbins = bin_ptr.size - 1
+    logdets = np.zeros(nbins)
+    bad = np.full(nbins, -1, dtype=np.int64)
+    for b in nb.prange(nbins):
+        logdets[b], bad[b] = _factor_run(
+            bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos,
+            asm_ptr, asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, work[b])
+    return logdets.sum(), bad.max()
+
+
+@nb.njit(parallel=True, nogil=True, cache=True)
+def _selinv_bins(bin_ptr, bin_order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig,
+                 work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
+    """Selected inverse of the independent subtrees (their ancestors done), one bin per thread."""
+    for b in nb.prange(bin_ptr.size - 1):
+        _selinv_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf,
+                    sig_off, sig, work[b], diag, ro_ptr, ro_out, ro_pos, ro_wgt, out)
+
+
+_CONTROLLER = None
+_POOL_LOCK = threading.Lock()
+
+
+def _blas_threads(n: int):
+    """Context limiting the BLAS threads (one per numba thread in the parallel parts)."""
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=n, user_api="blas")
+
+
+@dataclass
+class FrontTree:
+    """Symbolic structure of the elimination: fronts, their variables and buffer offsets.
+
+    Front ``f`` owns variables ``st[f] .. st[f] + no[f]`` and has the boundary variables
+    ``bnd[bnd_ptr[f]:bnd_ptr[f + 1]]`` (sorted by their position in the parent front, which is
+    ``ea_pos`` at the same offsets). Variables must be numbered so that a front's variables come
+    after those of its descendants.
+    """
+
+    nvar: int
+    st: np.ndarray
+    no: np.ndarray
+    nb: np.ndarray
+    nf: np.ndarray
+    parent: np.ndarray
+    order: np.ndarray  # post-order (children before parents, subtrees contiguous)
+    children_ptr: np.ndarray
+    children: np.ndarray
+    bnd_ptr: np.ndarray
+    bnd: np.ndarray
+    ea_pos: np.ndarray
+    l_ptr: np.ndarray
+    l_size: int
+    upd_off: np.ndarray
+    stack_size: int
+    sig_off: np.ndarray
+    sig_size: int
+    work_size: int
+    front_of: np.ndarray  # (nvar,) owning front of each variable
+    bin_ptr: np.ndarray  # fronts of independent subtrees, one bin per thread: bin_order[bin_ptr[b]:bin_ptr[b+1]]
+    bin_order: np.ndarray  # (each bin in post-order)
+    seq_order: np.ndarray  # their common ancestors, post-order
+    seq_vars: np.ndarray  # variables of the common ancestors
+    seq_slot: np.ndarray  # (nvar,) index of a variable in seq_vars, -1 for the others
+
+    @classmethod
+    def build(cls, st, no, parent, boundaries, nvar: int, threads: int | None = None) -> "FrontTree":
+        """Builds the structure from each front's own range, parent (-1 = root) and boundary variables.
+
+        ``threads`` (default: numba's thread count) independent groups of subtrees are formed for
+        the parallel part of the factorisation and of the selected inversion.
+        """
+        st = np.asarray(st, dtype=np.int64)
+        no = np.asarray(no, dtype=np.int64)
+        parent = np.asarray(parent, dtype=np.int64)
+        n = st.size
+        kids: list[list[int]] = [[] for _ in range(n)]
+        roots = []
+        for f in range(n):
+            (kids[parent[f]] if parent[f] >= 0 else roots).append(f)
+        order = np.empty(n, dtype=np.int64)
+        k = 0
+        stack = [(r, False) for r in reversed(roots)]
+        while stack:  # iterative DFS post-order
+            f, done = stack.pop()
+            if done:
+                order[k] = f
+                k += 1
+                continue
+            stack.append((f, True))
+            stack.extend((c, False) for c in reversed(kids[f]))
+        front_of = np.full(nvar, -1, dtype=np.int64)
+        for f in range(n):
+            front_of[st[f] : st[f] + no[f]] = f
+        if np.any(front_of < 0):
+            raise RuntimeError("internal error: a variable belongs to no front")
+        threads = nb.get_num_threads() if threads is None else int(threads)
+        # boundaries sorted by their position in the parent front (pre-order: parents first)
+        bnd = [np.asarray(b, dtype=np.int64) for b in boundaries]
+        ea = [np.zeros(0, dtype=np.int64)] * n
+        where = np.full(nvar, -1, dtype=np.int64)
+        for f in order[::-1]:
+            if not kids[f]:
+                continue
+            where[st[f] : st[f] + no[f]] = np.arange(no[f])
+            where[bnd[f]] = no[f] + np.arange(bnd[f].size)
+            for c in kids[f]:
+                pos = where[bnd[c]]
+                if np.any(pos < 0):
+                    raise RuntimeError("internal error: a boundary variable is not in the parent front")
+                srt = np.argsort(pos, kind="stable")
+                bnd[c], ea[c] = bnd[c][srt], pos[srt]
+            where[st[f] : st[f] + no[f]] = -1
+            where[bnd[f]] = -1
+        nbv = np.array([b.size for b in bnd], dtype=np.int64)
+        nf = no + nbv
+        for f in range(n):
+            if parent[f] < 0 and nbv[f]:
+                raise RuntimeError("internal error: a root front has a boundary")
+        bnd_ptr = np.concatenate([[0], np.cumsum(nbv)])
+        l_ptr = np.concatenate([[0], np.cumsum(nf * no)])
+        bins, seq = _split(order, kids, roots, no, nbv, threads)
+        in_seq = np.zeros(n, dtype=bool)
+        in_seq[seq] = True
+        # update stacks: one region per bin, then one for the common ancestors (each LIFO in post-order)
+        upd_off = np.zeros(n, dtype=np.int64)
+        base = 0
+        for part in [*bins, seq]:
+            top = peak = base
+            for f in part:
+                own_kids = [c for c in kids[f] if in_seq[c] == in_seq[f]]
+                if own_kids:
+                    top = min(upd_off[c] for c in own_kids)
+                upd_off[f] = top
+                top += int(nbv[f]) ** 2
+                peak = max(peak, top)
+            base = peak
+        stack_size = base
+        # covariance fronts: a region per common ancestor, then per bin a root-path stack
+        sig_off = np.zeros(n, dtype=np.int64)
+        base = 0
+        for f in seq:
+            sig_off[f] = base
+            base += int(nf[f]) ** 2
+        for part in bins:
+            end = base
+            for f in part[::-1]:
+                p = parent[f]
+                sig_off[f] = base if in_seq[p] else sig_off[p] + int(nf[p]) ** 2
+                end = max(end, sig_off[f] + int(nf[f]) ** 2)
+            base = end
+        children_ptr = np.concatenate([[0], np.cumsum([len(c) for c in kids])]).astype(np.int64)
+        children = np.array([c for cs in kids for c in cs], dtype=np.int64)
+        bin_ptr = np.concatenate([[0], np.cumsum([len(b) for b in bins])]).astype(np.int64)
+        seq_vars = np.concatenate([np.arange(st[f], st[f] + no[f]) for f in seq] or [np.zeros(0, np.int64)])
+        seq_slot = np.full(nvar, -1, dtype=np.int64)
+        seq_slot[seq_vars] = np.arange(seq_vars.size)
+        return cls(
+            nvar=int(nvar), st=st, no=no, nb=nbv, nf=nf, parent=parent, order=order,
+            children_ptr=children_ptr, children=children, bnd_ptr=bnd_ptr.astype(np.int64),
+            bnd=np.concatenate(bnd) if n else np.zeros(0, np.int64),
+            ea_pos=np.concatenate(ea) if n else np.zeros(0, np.int64),
+            l_ptr=l_ptr.astype(np.int64), l_size=int(l_ptr[-1]), upd_off=upd_off, stack_size=max(stack_size, 1),
+            sig_off=sig_off, sig_size=int(max(1, base)),
+            work_size=int(max(1, (nf * nf).max(), (nbv * no).max())), front_of=front_of,
+            bin_ptr=bin_ptr, bin_order=np.array([f for b in bins for f in b], dtype=np.int64),
+            seq_order=np.asarray(seq, dtype=np.int64), seq_vars=seq_vars.astype(np.int64), seq_slot=seq_slot,
+        )
+
+    def acquire(self) -> "_Workspace":
+        """Buffers for a factorisation: reused across frames (no allocation, no page faults)."""
+        with _POOL_LOCK:
+            pool = self.__dict__.setdefault("_pool", [])
+            if pool:
+                return pool.pop()
+        return _Workspace(self)
+
+    def release(self, ws: "_Workspace") -> None:
+        """Returns buffers taken by `acquire` (a factor does so when it is freed)."""
+        with _POOL_LOCK:
+            pool = self.__dict__.setdefault("_pool", [])
+            if len(pool) < 2:
+                pool.append(ws)
+
+    def positions(self, fronts: np.ndarray, variables: np.ndarray) -> np.ndarray:
+        """Positions of ``variables`` in the given ``fronts`` (same shapes; each must be in its front)."""
+        fronts = np.asarray(fronts, dtype=np.int64)
+        v = np.asarray(variables, dtype=np.int64)
+        out = v - self.st[fronts]
+        own = (out >= 0) & (out < self.no[fronts])
+        if not np.all(own):
+            keys = self._bnd_keys()
+            q = fronts[~own] * (self.nvar + 1) + v[~own]
+            i = np.searchsorted(keys[0], q)
+            if np.any(i >= keys[0].size) or np.any(keys[0][np.minimum(i, keys[0].size - 1)] != q):
+                raise RuntimeError("internal error: variable not in front")
+            out[~own] = keys[1][i]
+        return out
+
+    def _bnd_keys(self):
+        if not hasattr(self, "_keys"):
+            f = np.repeat(np.arange(self.st.size), self.nb)
+            local = np.arange(self.bnd.size) - self.bnd_ptr[f] + self.no[f]
+            key = f * (self.nvar + 1) + self.bnd
+            srt = np.argsort(key)
+            self._keys = (key[srt], local[srt])
+        return self._keys
+
+    def assembly(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Assembly map of the symmetric matrix entries (rows[k], cols[k]) (each pair once).
+
+        Returns (ptr, flat positions, source index k) grouped by front: the entry goes to the
+        front owning the earlier of its two variables, in the lower triangle.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        cols = np.asarray(cols, dtype=np.int64)
+        lo, hi = np.minimum(rows, cols), np.maximum(rows, cols)
+        f = self.front_of[lo]
+        pa = self.positions(f, lo)
+        pb = self.positions(f, hi)
+        r, c = np.maximum(pa, pb), np.minimum(pa, pb)
+        flat = r + c * self.nf[f]
+        srt = np.argsort(f, kind="stable")
+        ptr = np.searchsorted(f[srt], np.arange(self.st.size + 1)).astype(np.int64)
+        return ptr, flat[srt], srt.astype(np.int64)
+
+
+def _split(order, kids, roots, no, nbv, threads: int):
+    """Groups subtrees into ``threads`` bins of similar work (longest-processing-time first).
+
+    Returns (bins: list of post-ordered front lists, seq: post-ordered common ancestors).
+    """
+    n = order.size
+    cost = no**3 / 3.0 + no**2 * nbv + no * nbv**2 + (no + nbv) ** 2 * 8.0
+    sub = cost.astype(np.float64).copy()
+    size = np.ones(n, dtype=np.int64)
+    pos = np.empty(n, dtype=np.int64)
+    pos[order] = np.arange(n)
+    for f in order:
+        for c in kids[f]:
+            sub[f] += sub[c]
+            size[f] += size[c]
+    tasks = list(roots)
+    if threads > 1:
+        while len(tasks) < 4 * threads:
+            heavy = max(tasks, key=lambda f: sub[f])
+            if not kids[heavy] or sub[heavy] < 0.02 * sub[roots].sum():
+                break
+            tasks.remove(heavy)
+            tasks.extend(kids[heavy])
+    loads = [0.0] * max(threads, 1)
+    groups: list[list[int]] = [[] for _ in loads]
+    for f in sorted(tasks, key=lambda f: -sub[f]):
+        b = int(np.argmin(loads))
+        loads[b] += sub[f]
+        groups[b].append(f)
+    bins = []
+    in_task = np.zeros(n, dtype=bool)
+    for g in groups:
+        segs = [order[pos[f] - size[f] + 1 : pos[f] + 1] for f in sorted(g, key=lambda f: pos[f])]
+        b = np.concatenate(segs) if segs else np.zeros(0, np.int64)
+        in_task[b] = True
+        bins.append([int(f) for f in b])
+    seq = [int(f) for f in order if not in_task[f]]
+    return bins, seq
+
+
+class FrontalFactor:
+    """Cholesky factor of ``A = Q_scaled + diag(prec)`` over a `FrontTree` (CPU, float64).
+
+    Args:
+        tree: The symbolic structure.
+        asm: ``(ptr, positions, sources)`` from `FrontTree.assembly` for the entries of Q.
+        qvals: Values of those entries (already scaled).
+        prec: (nvar,) diagonal added to A (observation precisions; 0 where unobserved).
+    """
+
+    def __init__(self, tree: FrontTree, asm, qvals: np.ndarray, prec: np.ndarray):
+        self.tree = tree
+        t = tree
+        self._ws = ws = tree.acquire()
+        self.lbuf, stack, work = ws.lbuf, ws.stack, ws.work
+        q = np.ascontiguousarray(qvals, dtype=np.float64)
+        d = np.ascontiguousarray(prec, dtype=np.float64)
+        common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q, d,
+                  t.l_ptr, self.lbuf, t.upd_off, stack)
+        with _blas_threads(1):
+            logdet, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
+            if bad < 0:
+                ld, bad = _factor_run(t.seq_order, *common, work[0])
+                logdet += ld
+        if bad >= 0:
+            raise np.linalg.LinAlgError("posterior precision not positive definite (check precisions and scales)")
+        self.logdet = float(logdet)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """x = A^-1 b for b (nvar,)."""
+        t = self.tree
+        y = np.array(b, dtype=np.float64, copy=True)
+        nbins = t.bin_ptr.size - 1
+        tmp = np.empty((nbins, max(1, int(t.nb.max(initial=0)))))
+        acc = np.empty((nbins, max(1, t.seq_vars.size)))
+        with _blas_threads(1):
+            _solve(t.bin_ptr, t.bin_order, t.seq_order, t.seq_vars, t.seq_slot, t.st, t.no, t.nb, t.nf, t.bnd_ptr,
+                   t.bnd, t.l_ptr, self.lbuf, y, tmp, acc)
+        return y
+
+    def selected_inverse(self, readout=None) -> tuple[np.ndarray, np.ndarray | None]:
+        """diag(A^-1) (nvar,) and, given a read-out ``(ptr, out index, positions, weights, n_out)``,
+        the quadratic forms w^T Sigma w of each output (all its positions inside one front)."""
+        t = self.tree
+        sig, work = self._ws.sig, self._ws.work
+        diag = np.empty(t.nvar)
+        if readout is None:
+            ro = (np.zeros(t.st.size + 1, np.int64), np.zeros(0, np.int64), np.zeros((0, 1), np.int64),
+                  np.zeros((0, 1)), 0)
+        else:
+            ro = readout
+        out = np.empty(ro[4])
+        common = (t.parent, t.st, t.no, t.nb, t.nf, t.bnd_ptr, t.ea_pos, t.l_ptr, self.lbuf, t.sig_off, sig)
+        ro_args = (diag, ro[0], ro[1], ro[2], ro[3], out)
+        with _blas_threads(1):
+            _selinv_run(t.seq_order, *common, work[0], *ro_args)
+            _selinv_bins(t.bin_ptr, t.bin_order, *common, work, *ro_args)
+        return diag, (out if readout is not None else None)
+
+    def __del__(self):
+        ws, self._ws = getattr(self, "_ws", None), None
+        if ws is not None:
+            self.tree.release(ws)
+
+
+class _Workspace:
+    """Buffers of one factorisation (the factor itself, the update stack, the covariance fronts)."""
+
+    def __init__(self, tree: FrontTree):
+        self.lbuf = np.empty(tree.l_size)
+        self.stack = np.empty(tree.stack_size)
+        self.work = np.empty((tree.bin_ptr.size - 1, tree.work_size))
+        self.sig = np.empty(tree.sig_size)

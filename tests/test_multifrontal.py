@@ -1,0 +1,149 @@
+"""Tests of the compiled multifrontal kernels (gpdepth3d.gp.multifrontal) and of the fast engine's back-ends."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp.exact import ExactEngine
+from gpdepth3d.gp.fast import FastEngine
+from gpdepth3d.gp.multifrontal import FrontalFactor, FrontTree
+
+from test_fast import random_problem
+
+
+def arrow_system(rng, sizes=(3, 4, 2, 5)):
+    """A random SPD matrix with the elimination tree 0, 1 -> 2 -> 3 (fronts of ``sizes`` variables).
+
+    Variables are numbered front by front; each front couples to all of its ancestors, and the
+    boundaries are given in a random order (the tree sorts them).
+    """
+    st = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    n = int(np.sum(sizes))
+    parent = [2, 2, 3, -1]
+    own = [np.arange(st[f], st[f] + sizes[f]) for f in range(4)]
+    # coupling pattern: a front's own variables with its own and with its ancestors' variables
+    mask = np.zeros((n, n), dtype=bool)
+    for f in range(4):
+        anc = []
+        p = parent[f]
+        while p >= 0:
+            anc.append(own[p])
+            p = parent[p]
+        vs = np.concatenate([own[f], *anc]) if anc else own[f]
+        mask[np.ix_(own[f], vs)] = True
+    mask |= mask.T
+    A = np.where(mask, rng.normal(size=(n, n)), 0.0)
+    A = 0.5 * (A + A.T)
+    A += np.eye(n) * (np.abs(A).sum(1).max() + 1.0)  # diagonally dominant: SPD
+    bnds = []
+    for f in range(4):
+        cols = np.nonzero(mask[own[f]].any(0))[0]
+        b = cols[cols >= st[f] + sizes[f]]
+        bnds.append(rng.permutation(b))
+    return A, st, np.array(sizes), parent, bnds
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_factor_solve_selinv_match_dense(threads):
+    rng = np.random.default_rng(0)
+    A, st, no, parent, bnds = arrow_system(rng)
+    n = A.shape[0]
+    tree = FrontTree.build(st, no, parent, bnds, n, threads=threads)
+    rows, cols = np.nonzero(np.tril(A))
+    asm = tree.assembly(rows, cols)
+    # split A into an off-diagonal "prior" part and a diagonal "observation" part
+    d = rng.uniform(0.1, 1.0, n)
+    vals = A[rows, cols] - np.where(rows == cols, d[rows], 0.0)
+    factor = FrontalFactor(tree, asm, vals, d)
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(factor.solve(b), np.linalg.solve(A, b), rtol=1e-11, atol=1e-12)
+    diag, _ = factor.selected_inverse()
+    np.testing.assert_allclose(diag, np.diag(np.linalg.inv(A)), rtol=1e-11)
+    assert factor.logdet == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-12)
+
+
+def test_readout_quadratic_forms():
+    rng = np.random.default_rng(1)
+    A, st, no, parent, bnds = arrow_system(rng)
+    n = A.shape[0]
+    tree = FrontTree.build(st, no, parent, bnds, n)
+    rows, cols = np.nonzero(np.tril(A))
+    factor = FrontalFactor(tree, tree.assembly(rows, cols), A[rows, cols], np.zeros(n))
+    Sigma = np.linalg.inv(A)
+    # outputs reading variables of one front each (own + boundary of front 0, own of the root)
+    groups = [np.array([0, 1, bnds[0][0]]), np.array([st[3], st[3] + 1, st[3] + 4])]
+    fronts = np.array([0, 3])
+    w = rng.normal(size=(2, 3))
+    pos = np.stack([tree.positions(np.full(3, f), g) for f, g in zip(fronts, groups)])
+    order = np.argsort(fronts)
+    ptr = np.searchsorted(fronts[order], np.arange(tree.st.size + 1))
+    _, out = factor.selected_inverse((ptr, order, pos[order], w[order], 2))
+    for k in range(2):
+        g = groups[k]
+        assert out[k] == pytest.approx(w[k] @ Sigma[np.ix_(g, g)] @ w[k], rel=1e-11)
+
+
+def test_not_positive_definite_raises():
+    rng = np.random.default_rng(2)
+    A, st, no, parent, bnds = arrow_system(rng)
+    n = A.shape[0]
+    tree = FrontTree.build(st, no, parent, bnds, n)
+    rows, cols = np.nonzero(np.tril(A))
+    with pytest.raises(np.linalg.LinAlgError):
+        FrontalFactor(tree, tree.assembly(rows, cols), -A[rows, cols], np.zeros(n))
+
+
+def test_factors_alive_together_keep_their_own_buffers():
+    rng = np.random.default_rng(3)
+    A, st, no, parent, bnds = arrow_system(rng)
+    n = A.shape[0]
+    tree = FrontTree.build(st, no, parent, bnds, n)
+    rows, cols = np.nonzero(np.tril(A))
+    asm = tree.assembly(rows, cols)
+    f1 = FrontalFactor(tree, asm, A[rows, cols], np.zeros(n))
+    f2 = FrontalFactor(tree, asm, A[rows, cols], np.full(n, 5.0))
+    b = rng.normal(size=n)
+    np.testing.assert_allclose(f1.solve(b), np.linalg.solve(A, b), rtol=1e-11)
+    np.testing.assert_allclose(f2.solve(b), np.linalg.solve(A + 5 * np.eye(n), b), rtol=1e-11)
+    del f1, f2
+    f3 = FrontalFactor(tree, asm, A[rows, cols], np.zeros(n))  # reuses a released workspace
+    np.testing.assert_allclose(f3.solve(b), np.linalg.solve(A, b), rtol=1e-11)
+
+
+class TestBackends:
+    @pytest.mark.parametrize("nu", [0.5, 1.5])
+    @pytest.mark.parametrize("balanced", [False, True])
+    def test_compiled_and_torch_agree(self, nu, balanced):
+        problem = random_problem(np.random.default_rng(4), 31, 45, nu=nu, balanced=balanced, out=(40, 52))
+        m0, v0 = FastEngine(backend="torch", tile=9).solve(problem)
+        m1, v1 = FastEngine(backend="compiled", tile=9).solve(problem)
+        np.testing.assert_allclose(m1, m0, atol=1e-9)
+        np.testing.assert_allclose(v1, v0, rtol=1e-9)
+        lml0 = FastEngine(backend="torch", tile=9).log_marginal_likelihood(problem)
+        assert FastEngine(backend="compiled", tile=9).log_marginal_likelihood(problem) == pytest.approx(lml0, rel=1e-10)
+
+    def test_torch_backend_matches_exact(self):
+        problem = random_problem(np.random.default_rng(5), 17, 23, out=(17, 23))
+        m0, v0 = ExactEngine().solve(problem)
+        m1, v1 = FastEngine(backend="torch", tile=6).solve(problem)
+        np.testing.assert_allclose(m1, m0, atol=1e-9)
+        np.testing.assert_allclose(v1, v0, rtol=1e-9)
+
+    def test_vanishing_couplings_are_exact(self):
+        # l = 0.04 px: neighbour correlation e^-25, couplings across fronts far below 1e-100
+        # (flushed to zero to avoid subnormal arithmetic); the posterior must still be exact.
+        problem = random_problem(np.random.default_rng(6), 40, 50, lengthscale=0.04, balanced=True)
+        m0, v0 = ExactEngine(max_points=10_000).solve(problem)
+        m1, v1 = FastEngine().solve(problem)
+        np.testing.assert_allclose(m1, m0, atol=1e-9)
+        np.testing.assert_allclose(v1, v0, rtol=1e-9)
+
+    def test_bad_backend(self):
+        with pytest.raises(InvalidInputError, match="backend"):
+            FastEngine(backend="fortran")
+        with pytest.raises(InvalidInputError, match="backend"):
+            FastEngine(device="cuda", backend="compiled")
+        assert FastEngine().backend == "compiled"
+        assert FastEngine(device="cuda").backend == "torch"
