@@ -33,16 +33,24 @@ of the selected inverse) plus the conditional prior variance.
 
 Cost with n pixels: O(n^1.5) flops and O(n log n) memory (nested dissection on a 2-D grid),
 the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 is heavy beyond
-~100 x 100 pixels). Numerics: torch, float64, on the CPU by default or on any torch device
-(``FastEngine(device="cuda")``: mean and variance both run there; set-up runs on the CPU with
-NumPy and is cached). The dense kernels are batched LAPACK/BLAS calls (cholesky_ex,
-solve_triangular, matmul, index_add_).
+~100 x 100 pixels). Numerics, float64 everywhere, in one of two back-ends (``backend=``):
+
+* ``compiled`` (the default on the CPU): every (template node, tile) pair and every top node is
+  one front of `gpdepth3d.gp.multifrontal`, which runs the factorisation, the solves and the
+  selected inverse in numba-compiled loops calling LAPACK/BLAS, independent subtrees on
+  separate threads, with buffers reused from frame to frame.
+* ``torch`` (any torch device, ``FastEngine(device="cuda")``): the tiles' fronts batched into
+  one cholesky_ex / solve_triangular / matmul / index_add_ call per template node, the top
+  nodes one by one.
+
+The set-up (tree, index maps, prior precision, read-out) runs once per resolution and kernel
+with NumPy and is cached.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -819,9 +827,11 @@ class FastEngine:
         tile: Target tile size (pixels per side) of the batched part of the elimination.
         leaf_pixels: Largest sub-grid (pixels) eliminated as one dense front inside a tile.
         cache_size: Number of (resolution, kernel) set-ups kept.
-        threads: CPU threads of torch during the numeric work (restored afterwards); None keeps
-            torch's setting. The default 1 is as fast on 2 cores for these many small batched
-            kernels and avoids the collapse of multi-threaded BLAS on a busy machine.
+        threads: torch back-end: CPU threads of torch during the numeric work (restored
+            afterwards); None keeps torch's setting. The default 1 is as fast on 2 cores for these
+            many small batched kernels. The compiled back-end runs one subtree group per numba
+            thread (``numba.set_num_threads`` / NUMBA_NUM_THREADS, read when a resolution is
+            first seen) with single-threaded BLAS.
         backend: "compiled" (numba + LAPACK, `gpdepth3d.gp.multifrontal`; CPU only), "torch"
             (batched torch kernels; any device) or "auto" (compiled on the CPU, torch elsewhere).
     """
@@ -888,6 +898,10 @@ class FastEngine:
             self._readouts, key, lambda: _build_readout(tree, problem.out_rows, problem.out_cols, k.nu, k.lengthscale)
         )
 
+    def _threads(self):
+        """torch's thread setting for the torch back-end (the compiled one sets its own)."""
+        return _torch_threads(self.threads) if self.backend == "torch" else nullcontext()
+
     # -- public
     def factorize(self, problem: GridProblem):
         """Factorises the posterior precision of ``problem``.
@@ -919,7 +933,7 @@ class FastEngine:
         resid = np.where(prec > 0, np.asarray(problem.obs, np.float64) - np.asarray(problem.prior_mean, np.float64), 0.0)
         b = np.zeros(tree.nvar)
         b[real_vars.ravel()] = (prec * resid).ravel()
-        with _torch_threads(self.threads):
+        with self._threads():
             mu = factor.solve(b)
         return factor, tree, prior, real_vars, mu, prec, resid
 
@@ -947,12 +961,12 @@ class FastEngine:
         if not variance:
             return mean, None
         if same_grid:
-            with _torch_threads(self.threads):
+            with self._threads():
                 diag, _ = factor.selected_inverse(None)
             var = diag[real_vars]
         else:
             ro = _frontal_readout(factor.tree, readout) if self.backend == "compiled" else readout
-            with _torch_threads(self.threads):
+            with self._threads():
                 _, out = factor.selected_inverse(ro)
             var = out.reshape(problem.out_shape) + s2 * readout.resid
         return mean, np.maximum(var, 0.0)

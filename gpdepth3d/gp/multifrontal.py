@@ -121,6 +121,7 @@ def _tri_inv(A, off, n, lda, ip):
         j -= _BLOCK
 
 
+
 @nb.njit(**_FLAGS)
 def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr, asm_pos, asm_src,
                 qvals, prec, l_ptr, lbuf, upd_off, stack, work):
@@ -138,22 +139,24 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     for f in order:
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         F = work[: nf * nf]
-        for j in range(nf):
-            F[j * (nf + 1) : (j + 1) * nf] = 0.0
-        for k in range(asm_ptr[f], asm_ptr[f + 1]):
-            F[asm_pos[k]] += qvals[asm_src[k]]
+        unf = np.uint64(nf)
+        for uj in range(unf):
+            for i in range(uj * unf + uj, (uj + np.uint64(1)) * unf):
+                F[i] = 0.0
+        for k in range(np.uint64(asm_ptr[f]), np.uint64(asm_ptr[f + 1])):
+            F[np.uint64(asm_pos[k])] += qvals[np.uint64(asm_src[k])]
         for j in range(no):
             F[j * (nf + 1)] += prec[s + j]
         for kc in range(children_ptr[f], children_ptr[f + 1]):
             c = children[kc]
-            nbc = nb_[c]
-            u0 = upd_off[c]
-            e0 = ea_ptr[c]
+            nbc = np.uint64(nb_[c])
+            u0 = np.uint64(upd_off[c])
+            e0 = np.uint64(ea_ptr[c])
             for jj in range(nbc):
-                cj = ea_pos[e0 + jj] * nf
+                cj = np.uint64(ea_pos[e0 + jj]) * unf
                 col = u0 + jj * nbc
                 for ii in range(jj, nbc):
-                    F[ea_pos[e0 + ii] + cj] += stack[col + ii]
+                    F[np.uint64(ea_pos[e0 + ii]) + cj] += stack[col + ii]
         ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
         _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
         if ip[3] != 0:
@@ -170,14 +173,19 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
             _flush(F, no, nbf, no, nf)
             _dsyrk(cL, cN, ip.ctypes.data + 8, ip.ctypes.data, mone, a21, ip.ctypes.data + 4, one, a22,
                    ip.ctypes.data + 4)
-            u0 = upd_off[f]
-            for jj in range(nbf):
-                src = no + (no + jj) * nf
-                dst = u0 + jj * nbf
-                for ii in range(jj, nbf):
+        if nbf > 0:
+            u0 = np.uint64(upd_off[f])
+            unb = np.uint64(nbf)
+            uno = np.uint64(no)
+            for jj in range(unb):
+                src = uno + (uno + jj) * unf
+                dst = u0 + jj * unb
+                for ii in range(jj, unb):
                     v = F[src + ii]
                     stack[dst + ii] = v if abs(v) >= _TINY else 0.0
-        lbuf[l_ptr[f] : l_ptr[f] + nf * no] = F[: nf * no]
+        l0 = np.uint64(l_ptr[f])
+        for i in range(np.uint64(nf * no)):
+            lbuf[l0 + i] = F[i]
     return logdet, -1
 
 
@@ -268,21 +276,23 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         S = sig[sig_off[f] : sig_off[f] + nf * nf]
         L = lbuf[l_ptr[f] : l_ptr[f] + nf * no]
+        if nbf > 0:  # Sigma_BB from the parent's covariance front
+            p = parent[f]
+            nfp = nf_[p]
+            P = sig[sig_off[p] : sig_off[p] + nfp * nfp]
+            e0 = np.uint64(ea_ptr[f])
+            unb, uno, unf, unfp = np.uint64(nbf), np.uint64(no), np.uint64(nf), np.uint64(nfp)
+            for jj in range(unb):
+                cj = np.uint64(ea_pos[e0 + jj]) * unfp
+                dst = uno + (uno + jj) * unf
+                for ii in range(jj, unb):
+                    S[dst + ii] = P[np.uint64(ea_pos[e0 + ii]) + cj]
         for j in range(no):
             for i in range(j, no):
                 S[i + j * nf] = L[i + j * nf]
         ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
         _dlauum(cL, ip.ctypes.data, S.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)  # L11^-T L11^-1
         if nbf > 0:
-            p = parent[f]
-            nfp = nf_[p]
-            P = sig[sig_off[p] : sig_off[p] + nfp * nfp]
-            e0 = ea_ptr[f]
-            for jj in range(nbf):
-                cj = ea_pos[e0 + jj] * nfp
-                dst = no + (no + jj) * nf
-                for ii in range(jj, nbf):
-                    S[dst + ii] = P[ea_pos[e0 + ii] + cj]
             W = work[: nbf * no]
             for j in range(no):
                 W[j * nbf : (j + 1) * nbf] = L[no + j * nf : nf + j * nf]
