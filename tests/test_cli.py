@@ -52,6 +52,30 @@ class TestCompleteCommand:
         png = load_depth(tmp_path / "out" / "frame0_mean.png")  # KITTI convention metres * 256
         np.testing.assert_allclose(png, post.mean, atol=1 / 256)
 
+    def test_fitted_hyperparameters_from_the_command_line(self, shared_data, tmp_path, capsys):
+        from gpdepth3d.complete import DepthCompleter
+        from gpdepth3d.gp.fit import log_marginal_likelihood
+        from gpdepth3d.gp.model import DepthGPConfig
+        from gpdepth3d.io import load_sparse
+
+        gt, mde = _write_7scenes_inputs(shared_data, tmp_path, n_points=150)
+        code = main([
+            "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "points.txt"),
+            "--output", str(tmp_path / "fit"), "--no-png", "residual", "--model.fit",
+        ])
+        assert code == 0 and "wrote" in capsys.readouterr().out
+        post = DepthPosterior.load(tmp_path / "fit.npz")
+        valid = gt > 0
+        assert np.sqrt(np.mean((post.mean[valid] - gt[valid]) ** 2)) < np.sqrt(np.mean((mde[valid] - gt[valid]) ** 2))
+        # the written posterior is the one of hyperparameters fitted to this frame (higher likelihood)
+        sparse = load_sparse(tmp_path / "points.txt", mde.shape)
+        fixed = DepthGPConfig.residual()
+        fitted = DepthCompleter(fixed.replace(fit=True))(mde, sparse)
+        np.testing.assert_allclose(post.mean, fitted.mean, atol=1e-6)
+        assert log_marginal_likelihood(mde, sparse, fitted.config.replace(fit=False)) > log_marginal_likelihood(
+            mde, sparse, fixed
+        )
+
     def test_kitti_raw_velodyne_projected_by_the_library(self, shared_data, tmp_path, capsys):
         from scipy.ndimage import distance_transform_edt, gaussian_filter
 

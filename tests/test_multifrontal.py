@@ -45,14 +45,19 @@ def arrow_system(rng, sizes=(3, 4, 2, 5)):
     return A, st, np.array(sizes), parent, bnds
 
 
+def arrow_tree(seed: int, threads=None):
+    """(A, its FrontTree, the assembly map of its lower triangle, entry values, rng, st, boundaries)."""
+    rng = np.random.default_rng(seed)
+    A, st, no, parent, bnds = arrow_system(rng)
+    tree = FrontTree.build(st, no, parent, bnds, A.shape[0], threads=threads)
+    rows, cols = np.nonzero(np.tril(A))
+    return A, tree, tree.assembly(rows, cols), (rows, cols), rng, st, bnds
+
+
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_factor_solve_selinv_match_dense(threads):
-    rng = np.random.default_rng(0)
-    A, st, no, parent, bnds = arrow_system(rng)
+    A, tree, asm, (rows, cols), rng, _, _ = arrow_tree(0, threads)
     n = A.shape[0]
-    tree = FrontTree.build(st, no, parent, bnds, n, threads=threads)
-    rows, cols = np.nonzero(np.tril(A))
-    asm = tree.assembly(rows, cols)
     # split A into an off-diagonal "prior" part and a diagonal "observation" part
     d = rng.uniform(0.1, 1.0, n)
     vals = A[rows, cols] - np.where(rows == cols, d[rows], 0.0)
@@ -65,12 +70,8 @@ def test_factor_solve_selinv_match_dense(threads):
 
 
 def test_readout_quadratic_forms():
-    rng = np.random.default_rng(1)
-    A, st, no, parent, bnds = arrow_system(rng)
-    n = A.shape[0]
-    tree = FrontTree.build(st, no, parent, bnds, n)
-    rows, cols = np.nonzero(np.tril(A))
-    factor = FrontalFactor(tree, tree.assembly(rows, cols), A[rows, cols], np.zeros(n))
+    A, tree, asm, (rows, cols), rng, st, bnds = arrow_tree(1)
+    factor = FrontalFactor(tree, asm, A[rows, cols], np.zeros(A.shape[0]))
     Sigma = np.linalg.inv(A)
     # outputs reading variables of one front each (own + boundary of front 0, own of the root)
     groups = [np.array([0, 1, bnds[0][0]]), np.array([st[3], st[3] + 1, st[3] + 4])]
@@ -86,22 +87,14 @@ def test_readout_quadratic_forms():
 
 
 def test_not_positive_definite_raises():
-    rng = np.random.default_rng(2)
-    A, st, no, parent, bnds = arrow_system(rng)
-    n = A.shape[0]
-    tree = FrontTree.build(st, no, parent, bnds, n)
-    rows, cols = np.nonzero(np.tril(A))
+    A, tree, asm, (rows, cols), _, _, _ = arrow_tree(2)
     with pytest.raises(np.linalg.LinAlgError):
-        FrontalFactor(tree, tree.assembly(rows, cols), -A[rows, cols], np.zeros(n))
+        FrontalFactor(tree, asm, -A[rows, cols], np.zeros(A.shape[0]))
 
 
 def test_factors_alive_together_keep_their_own_buffers():
-    rng = np.random.default_rng(3)
-    A, st, no, parent, bnds = arrow_system(rng)
+    A, tree, asm, (rows, cols), rng, _, _ = arrow_tree(3)
     n = A.shape[0]
-    tree = FrontTree.build(st, no, parent, bnds, n)
-    rows, cols = np.nonzero(np.tril(A))
-    asm = tree.assembly(rows, cols)
     f1 = FrontalFactor(tree, asm, A[rows, cols], np.zeros(n))
     f2 = FrontalFactor(tree, asm, A[rows, cols], np.full(n, 5.0))
     b = rng.normal(size=n)
@@ -147,3 +140,30 @@ class TestBackends:
             FastEngine(device="cuda", backend="compiled")
         assert FastEngine().backend == "compiled"
         assert FastEngine(device="cuda").backend == "torch"
+
+
+def test_completer_reuses_per_resolution_setup_and_buffers():
+    from gpdepth3d.complete import DepthCompleter
+    from gpdepth3d.gp.model import DepthGPConfig
+    from gpdepth3d.measurements import SparseDepth
+
+    rng = np.random.default_rng(7)
+    completer = DepthCompleter(DepthGPConfig.residual(engine="fast", lengthscale=5.0))
+    engine = completer.engine
+
+    def frame():
+        mde = rng.uniform(2.0, 4.0, (30, 40))
+        r, c = rng.integers(0, 30, 50), rng.integers(0, 40, 50)
+        return mde, SparseDepth.from_arrays(c.astype(float), r.astype(float), mde[r, c] * 1.1, (30, 40))
+
+    completer(*frame())
+    (tree,) = engine._trees.values()
+    fronts = tree.__dict__["_fronts"]
+    (ws,) = fronts._pool
+    second = frame()
+    post = completer(*second)
+    assert list(engine._trees.values()) == [tree] and tree.__dict__["_fronts"] is fronts
+    assert fronts._pool == [ws]  # the second frame factorised into the first frame's buffers
+    ref = DepthCompleter(completer.config.replace(engine="exact"))(*second)
+    np.testing.assert_allclose(post.mean, ref.mean, atol=1e-9)
+    np.testing.assert_allclose(post.variance, ref.variance, rtol=1e-8)

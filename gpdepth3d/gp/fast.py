@@ -407,15 +407,22 @@ def _prior_pattern(tree: _Tree) -> dict:
     return pattern
 
 
-def _build_prior(tree: _Tree, nu: float, lengthscale: float) -> _Prior:
+def _chains(tree: _Tree, nu: float, lengthscale: float):
+    """The 1-D chain precisions along rows and columns of the padded grid and log det(Qv (x) Qu)."""
     hp, wp = tree.padded
     d = state_dim(nu)
-    ds = tree.ds
-    if d * d != ds:
-        raise InvalidInputError("nu", f"a smoothness with {ds} states per pixel", nu)
-    pattern = _prior_pattern(tree)
+    if d * d != tree.ds:
+        raise InvalidInputError("nu", f"a smoothness with {tree.ds} states per pixel", nu)
     Qv, ldv = chain_precision(np.arange(hp, dtype=np.float64), nu, lengthscale)
     Qu, ldu = chain_precision(np.arange(wp, dtype=np.float64), nu, lengthscale)
+    return Qv, Qu, wp * d * ldv + hp * d * ldu
+
+
+def _build_prior(tree: _Tree, nu: float, lengthscale: float) -> _Prior:
+    d = state_dim(nu)
+    ds = tree.ds
+    Qv, Qu, logdet = _chains(tree, nu, lengthscale)
+    pattern = _prior_pattern(tree)
     Qv, Qu = Qv.toarray(), Qu.toarray()
     kk, ll = np.divmod(np.arange(ds), d)
 
@@ -436,7 +443,7 @@ def _build_prior(tree: _Tree, nu: float, lengthscale: float) -> _Prior:
     for pos, coords in pattern["top"]:
         top_qpos.append(pos)
         top_qval.append(values(*coords).ravel())
-    return _Prior(t_qpos, t_qval, top_qpos, top_qval, wp * d * ldv + hp * d * ldu)
+    return _Prior(t_qpos, t_qval, top_qpos, top_qval, logdet)
 
 
 @dataclass
@@ -553,8 +560,7 @@ def _build_frontal_prior(tree: _Tree, nu: float, lengthscale: float) -> _Frontal
     hp, wp = tree.padded
     d = state_dim(nu)
     ds = tree.ds
-    if d * d != ds:
-        raise InvalidInputError("nu", f"a smoothness with {ds} states per pixel", nu)
+    Qv, Qu, logdet = _chains(tree, nu, lengthscale)
     fronts = _front_tree(tree)
     if "_frontal_pattern" not in tree.__dict__:
         pr, pc = np.divmod(np.arange(hp * wp), wp)
@@ -573,13 +579,11 @@ def _build_frontal_prior(tree: _Tree, nu: float, lengthscale: float) -> _Frontal
         st1, st2 = np.tile(s1, pairs.shape[0])[keep], np.tile(s2, pairs.shape[0])[keep]
         tree.__dict__["_frontal_pattern"] = (pix, st1, st2, fronts.assembly(va[keep], vb[keep]))
     pix, st1, st2, asm = tree.__dict__["_frontal_pattern"]
-    Qv, ldv = chain_precision(np.arange(hp, dtype=np.float64), nu, lengthscale)
-    Qu, ldu = chain_precision(np.arange(wp, dtype=np.float64), nu, lengthscale)
     (ra, ca), (rb, cb) = np.divmod(pix[:, 0], wp), np.divmod(pix[:, 1], wp)
     (k1, l1), (k2, l2) = np.divmod(st1, d), np.divmod(st2, d)
     qv = np.asarray(Qv[ra * d + k1, rb * d + k2]).ravel()
     qu = np.asarray(Qu[ca * d + l1, cb * d + l2]).ravel()
-    return _FrontalPrior(asm, qv * qu, wp * d * ldv + hp * d * ldu)
+    return _FrontalPrior(asm, qv * qu, logdet)
 
 
 def _frontal_readout(fronts: FrontTree, readout: _Readout) -> tuple:
