@@ -9,21 +9,27 @@ update matrices of its children, and partially factorised:
 
     F = [[F11, .], [F21, F22]]:  L11 = chol(F11),  L21 = F21 L11^-T,  U = F22 - L21 L21^T  -> parent
 
-The selected inverse (Takahashi / Erisman-Tinney) then runs top-down: with the parent's
-posterior covariance restricted to the front's boundary, Sigma_BB,
+Each front keeps [L11^-1; L21] (the inverse of its diagonal factor, so every triangular solve
+below is a multiplication). The selected inverse (Takahashi / Erisman-Tinney) then runs
+top-down: with the parent's posterior covariance restricted to the front's boundary, Sigma_BB,
 
-    W = L21 L11^-1,   Sigma_BJ = -Sigma_BB W,   Sigma_JJ = (L11 L11^T)^-1 - Sigma_BJ^T W,
+    W = L21 L11^-1,   Sigma_BJ = -Sigma_BB W,   Sigma_JJ = L11^-T L11^-1 - Sigma_BJ^T W,
 
 which gives the covariance on every front (so the diagonal, and any read-out that stays inside
 one front). Everything is exact (rounding only).
 
 Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
-Cython bindings (dpotrf, dtrsm, dsyrk, dpotri, dsymm, dgemm, dtrsv, dgemv), so there is no
-per-front interpreter overhead and no per-frame allocation beyond three flat buffers. Each
-front's boundary is sorted by its position in the parent front, so the lower triangle of a
-child's update lands in the lower triangle of the parent (extend-add and the gather of
-Sigma_BB need no symmetry bookkeeping). Update matrices live on a stack (post-order), the
-covariance fronts on a root-path stack (pre-order); both offsets are computed once per tree.
+Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm runs
+at a tenth of dtrmm's speed on these shapes, so L11 is inverted by a blocked dtrmm scheme), so
+there is no per-front interpreter overhead. The subtrees below the top of the tree are grouped
+into one bin per thread and run in parallel (numba prange, single-threaded BLAS), their common
+ancestors after them (factorisation) or before them (selected inverse). Each front's boundary
+is sorted by its position in the parent front, so the lower triangle of a child's update lands
+in the lower triangle of the parent (extend-add and the gather of Sigma_BB need no symmetry
+bookkeeping). Update matrices live on stacks (post-order), the covariance fronts on root-path
+stacks (pre-order); all offsets are computed once per tree, and the buffers of a factorisation
+are reused by the next one. Inner loops index with unsigned integers, which lets LLVM vectorise
+them (numba checks signed indices for wrap-around).
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ import numpy as np
 from llvmlite import binding as llvm
 from numba import types
 from numba.extending import get_cython_function_address
+
 
 def _bind(lib: str, name: str, nargs: int):
     """A LAPACK/BLAS routine of SciPy's Cython bindings as a numba external function.
@@ -119,7 +126,6 @@ def _tri_inv(A, off, n, lda, ip):
                    ip.ctypes.data + 4, dp.ctypes.data + 8, A.ctypes.data + d0 * 8, ip.ctypes.data + 8, a21,
                    ip.ctypes.data + 8)
         j -= _BLOCK
-
 
 
 @nb.njit(**_FLAGS)
@@ -475,7 +481,7 @@ class FrontTree:
             end = base
             for f in part[::-1]:
                 p = parent[f]
-                sig_off[f] = base if in_seq[p] else sig_off[p] + int(nf[p]) ** 2
+                sig_off[f] = base if p < 0 or in_seq[p] else sig_off[p] + int(nf[p]) ** 2
                 end = max(end, sig_off[f] + int(nf[f]) ** 2)
             base = end
         children_ptr = np.concatenate([[0], np.cumsum([len(c) for c in kids])]).astype(np.int64)
