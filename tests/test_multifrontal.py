@@ -167,3 +167,16 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
     ref = DepthCompleter(completer.config.replace(engine="exact"))(*second)
     np.testing.assert_allclose(post.mean, ref.mean, atol=1e-9)
     np.testing.assert_allclose(post.variance, ref.variance, rtol=1e-8)
+
+
+def test_concurrent_callers_get_their_own_answers():
+    from concurrent.futures import ThreadPoolExecutor
+
+    problems = [random_problem(np.random.default_rng(20 + k), 26, 34, balanced=k % 2 == 0) for k in range(6)]
+    engine = FastEngine(tile=8)
+    serial = [engine.solve(p) for p in problems]
+    with ThreadPoolExecutor(4) as pool:
+        parallel = list(pool.map(engine.solve, problems))
+    for (m0, v0), (m1, v1) in zip(serial, parallel):
+        np.testing.assert_allclose(m1, m0, atol=1e-12)
+        np.testing.assert_allclose(v1, v0, rtol=1e-12)

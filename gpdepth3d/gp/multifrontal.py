@@ -35,6 +35,7 @@ them (numba checks signed indices for wrap-around).
 from __future__ import annotations
 
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numba as nb
@@ -350,16 +351,25 @@ def _selinv_bins(bin_ptr, bin_order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, 
 
 _CONTROLLER = None
 _POOL_LOCK = threading.Lock()
+_RUN_LOCK = threading.Lock()
 
 
-def _blas_threads(n: int):
-    """Context limiting the BLAS threads (one per numba thread in the parallel parts)."""
+@contextmanager
+def _numeric_section():
+    """One numeric phase at a time per process, with single-threaded BLAS.
+
+    Each phase already uses every numba thread, so concurrent callers (threads of a Dask worker,
+    a viewer's server) lose nothing by waiting; it also keeps numba's parallel regions un-nested,
+    which its workqueue threading layer requires. BLAS runs single-threaded inside (one BLAS
+    call per numba thread).
+    """
     global _CONTROLLER
     if _CONTROLLER is None:
         from threadpoolctl import ThreadpoolController
 
         _CONTROLLER = ThreadpoolController()
-    return _CONTROLLER.limit(limits=n, user_api="blas")
+    with _RUN_LOCK, _CONTROLLER.limit(limits=1, user_api="blas"):
+        yield
 
 
 @dataclass
@@ -619,7 +629,7 @@ class FrontalFactor:
         d = np.ascontiguousarray(prec, dtype=np.float64)
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q, d,
                   t.l_ptr, self.lbuf, t.upd_off, stack)
-        with _blas_threads(1):
+        with _numeric_section():
             logdet, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
             if bad < 0:
                 ld, bad = _factor_run(t.seq_order, *common, work[0])
@@ -635,7 +645,7 @@ class FrontalFactor:
         nbins = t.bin_ptr.size - 1
         tmp = np.empty((nbins, max(1, int(t.nb.max(initial=0)))))
         acc = np.empty((nbins, max(1, t.seq_vars.size)))
-        with _blas_threads(1):
+        with _numeric_section():
             _solve(t.bin_ptr, t.bin_order, t.seq_order, t.seq_vars, t.seq_slot, t.st, t.no, t.nb, t.nf, t.bnd_ptr,
                    t.bnd, t.l_ptr, self.lbuf, y, tmp, acc)
         return y
@@ -654,7 +664,7 @@ class FrontalFactor:
         out = np.empty(ro[4])
         common = (t.parent, t.st, t.no, t.nb, t.nf, t.bnd_ptr, t.ea_pos, t.l_ptr, self.lbuf, t.sig_off, sig)
         ro_args = (diag, ro[0], ro[1], ro[2], ro[3], out)
-        with _blas_threads(1):
+        with _numeric_section():
             _selinv_run(t.seq_order, *common, work[0], *ro_args)
             _selinv_bins(t.bin_ptr, t.bin_order, *common, work, *ro_args)
         return diag, (out if readout is not None else None)
