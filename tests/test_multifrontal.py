@@ -180,3 +180,14 @@ def test_concurrent_callers_get_their_own_answers():
     for (m0, v0), (m1, v1) in zip(serial, parallel):
         np.testing.assert_allclose(m1, m0, atol=1e-12)
         np.testing.assert_allclose(v1, v0, rtol=1e-12)
+
+
+def test_alternating_resolutions_with_a_one_entry_cache():
+    # set-ups are evicted and rebuilt; cached priors and read-outs must never meet a wrong tree
+    engine = FastEngine(cache_size=1)
+    problems = [random_problem(np.random.default_rng(30 + k), 18 + 3 * (k % 2), 24, out=(20, 30)) for k in range(4)]
+    for p in problems:
+        m0, v0 = ExactEngine().solve(p)
+        m1, v1 = engine.solve(p)
+        np.testing.assert_allclose(m1, m0, atol=1e-9)
+        np.testing.assert_allclose(v1, v0, rtol=1e-8)

@@ -588,16 +588,17 @@ def _build_frontal_prior(tree: _Tree, nu: float, lengthscale: float) -> _Frontal
 
 def _frontal_readout(fronts: FrontTree, readout: _Readout) -> tuple:
     """(ptr, output index, front positions, weights, n_out) of a read-out (cached on the read-out)."""
-    cache = readout.__dict__.setdefault("_frontal", {})
-    if id(fronts) not in cache:
+    cached = readout.__dict__.get("_frontal")
+    if cached is None or cached[0] is not fronts:
         v = readout.corner_vars
         f = fronts.front_of[v.min(axis=1)]
         pos = fronts.positions(np.repeat(f, v.shape[1]), v.ravel()).reshape(v.shape)
         srt = np.argsort(f, kind="stable")
         ptr = np.searchsorted(f[srt], np.arange(fronts.st.size + 1)).astype(np.int64)
-        cache[id(fronts)] = (ptr, srt.astype(np.int64), np.ascontiguousarray(pos[srt]),
-                             np.ascontiguousarray(readout.corner_wgt[srt]), v.shape[0])
-    return cache[id(fronts)]
+        cached = (fronts, (ptr, srt.astype(np.int64), np.ascontiguousarray(pos[srt]),
+                           np.ascontiguousarray(readout.corner_wgt[srt]), v.shape[0]))
+        readout.__dict__["_frontal"] = cached
+    return cached[1]
 
 
 # ----------------------------------------------------------------------------- numeric phase (torch)
@@ -888,16 +889,23 @@ class FastEngine:
     def _tree(self, h: int, w: int, ds: int) -> _Tree:
         tile = self.tile or (24 if ds == 1 else 12 if ds == 4 else 8)
         leaf = self.leaf_pixels or max(1, 40 // ds)
-        return self._cached(self._trees, (h, w, ds, tile, leaf), lambda: _build_tree(h, w, ds, tile, leaf))
+        key = (h, w, ds, tile, leaf)
+
+        def build():
+            tree = _build_tree(h, w, ds, tile, leaf)
+            tree.__dict__["_key"] = key  # what the prior and read-out caches refer to (ids can be reused)
+            return tree
+
+        return self._cached(self._trees, key, build)
 
     def _prior(self, tree: _Tree, nu: float, lengthscale: float):
-        key = (id(tree), float(nu), float(lengthscale), self.backend)
+        key = (tree.__dict__["_key"], float(nu), float(lengthscale), self.backend)
         build = _build_frontal_prior if self.backend == "compiled" else _build_prior
         return self._cached(self._priors, key, lambda: build(tree, nu, lengthscale))
 
     def _readout(self, tree: _Tree, problem: GridProblem) -> _Readout:
         k = problem.kernel
-        key = (id(tree), problem.out_rows.tobytes(), problem.out_cols.tobytes(), float(k.nu), float(k.lengthscale))
+        key = (tree.__dict__["_key"], problem.out_rows.tobytes(), problem.out_cols.tobytes(), float(k.nu), float(k.lengthscale))
         return self._cached(
             self._readouts, key, lambda: _build_readout(tree, problem.out_rows, problem.out_cols, k.nu, k.lengthscale)
         )
