@@ -581,9 +581,19 @@ def _build_frontal_prior(tree: _Tree, nu: float, lengthscale: float) -> _Frontal
     pix, st1, st2, asm = tree.__dict__["_frontal_pattern"]
     (ra, ca), (rb, cb) = np.divmod(pix[:, 0], wp), np.divmod(pix[:, 1], wp)
     (k1, l1), (k2, l2) = np.divmod(st1, d), np.divmod(st2, d)
-    qv = np.asarray(Qv[ra * d + k1, rb * d + k2]).ravel()
-    qu = np.asarray(Qu[ca * d + l1, cb * d + l2]).ravel()
+    qv = _bands(Qv, d)[ra, rb - ra + 1, k1, k2]
+    qu = _bands(Qu, d)[ca, cb - ca + 1, l1, l2]
     return _FrontalPrior(asm, qv * qu, logdet)
+
+
+def _bands(Q: sp.spmatrix, d: int) -> np.ndarray:
+    """(n, 3, d, d) blocks Q[i, i + o - 1] of a block-tridiagonal chain precision (n d x n d)."""
+    n = Q.shape[0] // d
+    coo = Q.tocoo()
+    i, j = np.divmod(coo.row, d), np.divmod(coo.col, d)
+    out = np.zeros((n, 3, d, d))
+    out[i[0], j[0] - i[0] + 1, i[1], j[1]] = coo.data
+    return out
 
 
 def _frontal_readout(fronts: FrontTree, readout: _Readout) -> tuple:
