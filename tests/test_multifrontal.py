@@ -8,6 +8,7 @@ import pytest
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
+from gpdepth3d.gp.model import GridProblem, Kernel
 from gpdepth3d.gp.multifrontal import FrontalFactor, FrontTree
 
 from test_fast import random_problem
@@ -191,3 +192,43 @@ def test_alternating_resolutions_with_a_one_entry_cache():
         m1, v1 = engine.solve(p)
         np.testing.assert_allclose(m1, m0, atol=1e-9)
         np.testing.assert_allclose(v1, v0, rtol=1e-8)
+
+
+class TestPriorReuse:
+    @staticmethod
+    def sparse_problem(seed, h=40, w=56, n=12, nu=0.5, out=None):
+        """Residual-style problem: a handful of observed pixels, most fronts see none."""
+        rng = np.random.default_rng(seed)
+        p = random_problem(rng, h, w, nu=nu, frac=0.0, out=out)
+        prec = np.zeros((h, w))
+        idx = rng.choice(h * w, n, replace=False)
+        prec.flat[idx] = rng.uniform(10.0, 1e4, n)
+        return GridProblem(p.prior_mean, p.obs, prec, p.out_rows, p.out_cols, p.out_prior_mean,
+                           Kernel(nu, 3.0, rng.uniform(0.5, 2.0)))
+
+    @pytest.mark.parametrize("nu", [0.5, 1.5])
+    def test_frames_reusing_the_prior_factor_are_exact(self, nu):
+        engine = FastEngine(tile=7)
+        fresh = FastEngine(tile=7, prior_cache_mb=0)
+        for k in range(4):  # a new scale and new points every frame
+            problem = self.sparse_problem(40 + k, nu=nu, out=(50, 60) if k == 3 else None)
+            m0, v0 = ExactEngine().solve(problem)
+            m1, v1 = engine.solve(problem)
+            np.testing.assert_allclose(m1, m0, atol=1e-9)
+            np.testing.assert_allclose(v1, v0, rtol=1e-8)
+            assert engine.log_marginal_likelihood(problem) == pytest.approx(
+                fresh.log_marginal_likelihood(problem), rel=1e-10)
+        assert engine._prior_factor is not None and fresh._prior_factor is None
+        fronts = engine._prior_factor[1].tree
+        prec = np.zeros(fronts.nvar)
+        assert fronts.touched_share(prec) == 0.0
+
+    def test_dense_observations_do_not_build_it(self):
+        engine = FastEngine(tile=7)
+        for k in range(3):
+            engine.solve(random_problem(np.random.default_rng(50 + k), 30, 40, balanced=True))
+        assert engine._prior_factor is None
+
+    def test_bad_budget(self):
+        with pytest.raises(InvalidInputError, match="prior_cache_mb"):
+            FastEngine(prior_cache_mb=-1)

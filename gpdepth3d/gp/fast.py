@@ -58,7 +58,7 @@ import scipy.sparse as sp
 
 from ..errors import InvalidInputError, ShapeError
 from .markov import chain_precision, readout_weights, state_dim
-from .multifrontal import FrontalFactor, FrontTree
+from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
 
 
@@ -849,6 +849,11 @@ class FastEngine:
             first seen) with single-threaded BLAS.
         backend: "compiled" (numba + LAPACK, `gpdepth3d.gp.multifrontal`; CPU only), "torch"
             (batched torch kernels; any device) or "auto" (compiled on the CPU, torch elsewhere).
+        prior_cache_mb: Compiled back-end: memory allowed for the factor of the prior alone
+            (`PriorFactor`, one per engine), which the frames of a sequence reuse for every
+            front their observations do not reach. It is built from the second frame with the
+            same resolution and kernel on, when at least a quarter of the fronts are unreached
+            (the residual formulation with sparse points); 0 disables it.
     """
 
     name = "fast"
@@ -862,6 +867,7 @@ class FastEngine:
         cache_size: int = 4,
         threads: int | None = 1,
         backend: str = "auto",
+        prior_cache_mb: float = 256.0,
     ):
         if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
             raise InvalidInputError("threads", "None or an integer >= 1", threads)
@@ -877,6 +883,11 @@ class FastEngine:
         if backend == "compiled" and not on_cpu:
             raise InvalidInputError("backend", "'torch' or 'auto' on a non-CPU device", backend)
         self.backend = "compiled" if backend == "auto" and on_cpu else ("torch" if backend == "auto" else backend)
+        if not isinstance(prior_cache_mb, (int, float, np.integer, np.floating)) or not prior_cache_mb >= 0:
+            raise InvalidInputError("prior_cache_mb", "a number >= 0", prior_cache_mb)
+        self.prior_cache_mb = float(prior_cache_mb)
+        self._prior_factor: tuple | None = None  # (key, PriorFactor)
+        self._kernel_uses: dict = {}
         self.device = device
         self.tile = tile
         self.leaf_pixels = leaf_pixels
@@ -920,6 +931,26 @@ class FastEngine:
             self._readouts, key, lambda: _build_readout(tree, problem.out_rows, problem.out_cols, k.nu, k.lengthscale)
         )
 
+    def _reusable_prior(self, tree: _Tree, fronts: FrontTree, prior, kernel, prec_var: np.ndarray):
+        """The cached `PriorFactor` for this tree and kernel when worth it (see ``prior_cache_mb``)."""
+        key = (tree.__dict__["_key"], float(kernel.nu), float(kernel.lengthscale))
+        uses = self._kernel_uses[key] = self._kernel_uses.get(key, 0) + 1
+        if len(self._kernel_uses) > 64:  # forget kernels of past fits
+            self._kernel_uses = {key: uses}
+        if self._prior_factor is not None and self._prior_factor[0] == key and self._prior_factor[1].tree is fronts:
+            cached = self._prior_factor[1]
+        elif uses >= 2 and fronts.prior_bytes <= self.prior_cache_mb * 2**20:
+            cached = None
+        else:
+            return None
+        if fronts.touched_share(prec_var) > 0.75:
+            return None
+        if cached is None:
+            self._prior_factor = None  # free the old one first
+            cached = PriorFactor(fronts, prior.asm, prior.qvals)
+            self._prior_factor = (key, cached)
+        return cached
+
     def _threads(self):
         """torch's thread setting for the torch back-end (the compiled one sets its own)."""
         return _torch_threads(self.threads) if self.backend == "torch" else nullcontext()
@@ -943,7 +974,9 @@ class FastEngine:
         prec_var[real_vars.ravel()] = np.asarray(problem.precision, dtype=np.float64).ravel()
         inv_s2 = 1.0 / float(k.outputscale) ** 2
         if self.backend == "compiled":
-            factor = FrontalFactor(_front_tree(tree), prior.asm, prior.qvals * inv_s2, prec_var)
+            fronts = _front_tree(tree)
+            pf = self._reusable_prior(tree, fronts, prior, k, prec_var)
+            factor = FrontalFactor(fronts, prior.asm, prior.qvals, prec_var, scale2=1.0 / inv_s2, prior=pf)
         else:
             with _torch_threads(self.threads):
                 factor = _Factor(tree, prior, inv_s2, prec_var, self.device)

@@ -131,10 +131,13 @@ def _tri_inv(A, off, n, lda, ip):
 
 @nb.njit(**_FLAGS)
 def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr, asm_pos, asm_src,
-                qvals, prec, l_ptr, lbuf, upd_off, stack, work):
+                qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr, front_ld, save, work):
     """Multifrontal Cholesky of the fronts in ``order``; returns (log det, first failing front or -1).
 
-    Stores per front [L11^-1; L21] (nf x no, column-major) at ``lbuf[l_ptr[f]]``.
+    Stores per front [L11^-1; L21] (nf x no, column-major) at ``lbuf[l_ptr[f]]``. With a prior
+    factor (``touched`` non-empty), a front that no observation reaches is copied from
+    ``prior_l`` (its log det from ``front_ld``) and its update is read from ``prior_upd``; with
+    ``save`` every front's update and log det are stored there (building the prior factor).
     """
     ch = _chars()
     ip = np.zeros(8, dtype=np.int32)  # integer scalars passed by reference
@@ -143,8 +146,15 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
     logdet = 0.0
+    skip = touched.size > 0
     for f in order:
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
+        if skip and not touched[f]:
+            l0 = np.uint64(l_ptr[f])
+            for i in range(np.uint64(nf * no)):
+                lbuf[l0 + i] = prior_l[l0 + i]
+            logdet += front_ld[f]
+            continue
         F = work[: nf * nf]
         unf = np.uint64(nf)
         for uj in range(unf):
@@ -157,19 +167,27 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
         for kc in range(children_ptr[f], children_ptr[f + 1]):
             c = children[kc]
             nbc = np.uint64(nb_[c])
+            src = stack
             u0 = np.uint64(upd_off[c])
+            if skip and not touched[c]:
+                src = prior_upd
+                u0 = np.uint64(u_ptr[c])
             e0 = np.uint64(ea_ptr[c])
             for jj in range(nbc):
                 cj = np.uint64(ea_pos[e0 + jj]) * unf
                 col = u0 + jj * nbc
                 for ii in range(jj, nbc):
-                    F[np.uint64(ea_pos[e0 + ii]) + cj] += stack[col + ii]
+                    F[np.uint64(ea_pos[e0 + ii]) + cj] += src[col + ii]
         ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
         _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
         if ip[3] != 0:
             return logdet, f
+        ld = 0.0
         for j in range(no):
-            logdet += 2.0 * np.log(F[j * (nf + 1)])
+            ld += 2.0 * np.log(F[j * (nf + 1)])
+        logdet += ld
+        if save:
+            front_ld[f] = ld
         _tri_inv(F, 0, no, nf, ip2)
         _flush(F, 0, no, no, nf)
         if nbf > 0:
@@ -190,6 +208,10 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
                 for ii in range(jj, unb):
                     v = F[src + ii]
                     stack[dst + ii] = v if abs(v) >= _TINY else 0.0
+            if save:
+                p0 = np.uint64(u_ptr[f])
+                for i in range(unb * unb):
+                    prior_upd[p0 + i] = stack[u0 + i]
         l0 = np.uint64(l_ptr[f])
         for i in range(np.uint64(nf * no)):
             lbuf[l0 + i] = F[i]
@@ -326,9 +348,25 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
             out[ro_out[r]] = acc
 
 
+@nb.njit(**_FLAGS)
+def _touched(order, parent, st, no_, prec):
+    """Fronts that an observation (prec > 0) reaches: those owning one, and their ancestors."""
+    out = np.zeros(order.size, dtype=np.bool_)
+    for f in order:
+        if not out[f]:
+            for i in range(st[f], st[f] + no_[f]):
+                if prec[i] > 0.0:
+                    out[f] = True
+                    break
+        if out[f] and parent[f] >= 0:
+            out[parent[f]] = True
+    return out
+
+
 @nb.njit(parallel=True, nogil=True, cache=True)
 def _factor_bins(bin_ptr, bin_order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr,
-                 asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, work):
+                 asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr,
+                 front_ld, save, work):
     """Factorises the independent subtrees, one bin per thread; returns (log det, first failing front)."""
     nbins = bin_ptr.size - 1
     logdets = np.zeros(nbins)
@@ -336,7 +374,8 @@ def _factor_bins(bin_ptr, bin_order, st, no_, nb_, nf_, children_ptr, children, 
     for b in nb.prange(nbins):
         logdets[b], bad[b] = _factor_run(
             bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos,
-            asm_ptr, asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, work[b])
+            asm_ptr, asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr,
+            front_ld, save, work[b])
     return logdets.sum(), bad.max()
 
 
@@ -512,6 +551,15 @@ class FrontTree:
             seq_order=np.asarray(seq, dtype=np.int64), seq_vars=seq_vars.astype(np.int64), seq_slot=seq_slot,
         )
 
+    @property
+    def prior_bytes(self) -> int:
+        """Memory of a `PriorFactor` of this tree (bytes)."""
+        return 8 * (self.l_size + int(np.sum(self.nb * self.nb)))
+
+    def touched_share(self, prec: np.ndarray) -> float:
+        """Share of the fronts that an observation (prec > 0, per variable) reaches."""
+        return float(np.mean(_touched(self.order, self.parent, self.st, self.no, np.asarray(prec, np.float64))))
+
     def acquire(self) -> "_Workspace":
         """Buffers for a factorisation: reused across frames (no allocation, no page faults)."""
         with _POOL_LOCK:
@@ -611,24 +659,41 @@ def _split(order, kids, roots, no, nbv, threads: int):
 
 
 class FrontalFactor:
-    """Cholesky factor of ``A = Q_scaled + diag(prec)`` over a `FrontTree` (CPU, float64).
+    """Cholesky factor of ``A = Q / scale2 + diag(prec)`` over a `FrontTree` (CPU, float64).
+
+    The factorisation is of ``scale2 * A = Q + scale2 diag(prec)``, so that the fronts of ``Q``
+    alone do not depend on the frame's scale: a `PriorFactor` of Q then supplies every front that
+    no observation reaches (in the residual formulation with sparse points, most of them).
 
     Args:
         tree: The symbolic structure.
         asm: ``(ptr, positions, sources)`` from `FrontTree.assembly` for the entries of Q.
-        qvals: Values of those entries (already scaled).
+        qvals: Values of those entries.
         prec: (nvar,) diagonal added to A (observation precisions; 0 where unobserved).
+        scale2: Divides Q (the prior variance s^2 of a unit-variance prior precision).
+        prior: Factor of Q alone (same tree and values) whose unreached fronts are reused.
     """
 
-    def __init__(self, tree: FrontTree, asm, qvals: np.ndarray, prec: np.ndarray):
+    def __init__(self, tree: FrontTree, asm, qvals: np.ndarray, prec: np.ndarray, *, scale2: float = 1.0,
+                 prior: "PriorFactor | None" = None):
+        if not np.isfinite(scale2) or scale2 <= 0:
+            raise ValueError(f"scale2 must be finite and > 0, got {scale2}")
         self.tree = tree
+        self.scale2 = float(scale2)
         t = tree
         self._ws = ws = tree.acquire()
         self.lbuf, stack, work = ws.lbuf, ws.stack, ws.work
         q = np.ascontiguousarray(qvals, dtype=np.float64)
-        d = np.ascontiguousarray(prec, dtype=np.float64)
+        d = np.ascontiguousarray(prec, dtype=np.float64) * self.scale2
+        if prior is not None:
+            if prior.tree is not t:
+                raise ValueError("the prior factor belongs to another tree")
+            touched = _touched(t.order, t.parent, t.st, t.no, d)
+            skip = (touched, prior.lbuf, prior.upd, prior.u_ptr, prior.front_ld)
+        else:
+            skip = (np.zeros(0, np.bool_), np.zeros(0), np.zeros(0), t.l_ptr, np.zeros(0))
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q, d,
-                  t.l_ptr, self.lbuf, t.upd_off, stack)
+                  t.l_ptr, self.lbuf, t.upd_off, stack, *skip, False)
         with _numeric_section():
             logdet, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
             if bad < 0:
@@ -636,12 +701,12 @@ class FrontalFactor:
                 logdet += ld
         if bad >= 0:
             raise np.linalg.LinAlgError("posterior precision not positive definite (check precisions and scales)")
-        self.logdet = float(logdet)
+        self.logdet = float(logdet) - t.nvar * np.log(self.scale2)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x = A^-1 b for b (nvar,)."""
         t = self.tree
-        y = np.array(b, dtype=np.float64, copy=True)
+        y = np.array(b, dtype=np.float64, copy=True) * self.scale2
         nbins = t.bin_ptr.size - 1
         tmp = np.empty((nbins, max(1, int(t.nb.max(initial=0)))))
         acc = np.empty((nbins, max(1, t.seq_vars.size)))
@@ -667,12 +732,43 @@ class FrontalFactor:
         with _numeric_section():
             _selinv_run(t.seq_order, *common, work[0], *ro_args)
             _selinv_bins(t.bin_ptr, t.bin_order, *common, work, *ro_args)
+        diag *= self.scale2
+        out *= self.scale2
         return diag, (out if readout is not None else None)
 
     def __del__(self):
         ws, self._ws = getattr(self, "_ws", None), None
         if ws is not None:
             self.tree.release(ws)
+
+
+class PriorFactor:
+    """The fronts of the prior precision Q alone (no observation): L and update of every front.
+
+    Kept per tree and kernel; a `FrontalFactor` copies the fronts that no observation of its
+    frame reaches instead of recomputing them. Memory: ``8 * (l_size + sum nb^2)`` bytes
+    (`FrontTree.prior_bytes`).
+    """
+
+    def __init__(self, tree: FrontTree, asm, qvals: np.ndarray):
+        self.tree = t = tree
+        nb2 = t.nb * t.nb
+        self.u_ptr = np.concatenate([[0], np.cumsum(nb2)]).astype(np.int64)
+        self.upd = np.empty(max(1, int(self.u_ptr[-1])))
+        self.front_ld = np.zeros(t.st.size)
+        self.lbuf = np.empty(t.l_size)
+        stack = np.empty(t.stack_size)
+        work = np.empty((t.bin_ptr.size - 1, t.work_size))
+        q = np.ascontiguousarray(qvals, dtype=np.float64)
+        common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q,
+                  np.zeros(t.nvar), t.l_ptr, self.lbuf, t.upd_off, stack, np.zeros(0, np.bool_), self.lbuf, self.upd,
+                  self.u_ptr, self.front_ld, True)
+        with _numeric_section():
+            _, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
+            if bad < 0:
+                _, bad = _factor_run(t.seq_order, *common, work[0])
+        if bad >= 0:
+            raise np.linalg.LinAlgError("prior precision not positive definite")
 
 
 class _Workspace:
