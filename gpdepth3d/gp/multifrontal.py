@@ -167,17 +167,17 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
         for kc in range(children_ptr[f], children_ptr[f + 1]):
             c = children[kc]
             nbc = np.uint64(nb_[c])
-            src = stack
+            upd = stack
             u0 = np.uint64(upd_off[c])
             if skip and not touched[c]:
-                src = prior_upd
+                upd = prior_upd
                 u0 = np.uint64(u_ptr[c])
             e0 = np.uint64(ea_ptr[c])
             for jj in range(nbc):
                 cj = np.uint64(ea_pos[e0 + jj]) * unf
                 col = u0 + jj * nbc
                 for ii in range(jj, nbc):
-                    F[np.uint64(ea_pos[e0 + ii]) + cj] += src[col + ii]
+                    F[np.uint64(ea_pos[e0 + ii]) + cj] += upd[col + ii]
         ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
         _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
         if ip[3] != 0:
@@ -198,7 +198,6 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
             _flush(F, no, nbf, no, nf)
             _dsyrk(cL, cN, ip.ctypes.data + 8, ip.ctypes.data, mone, a21, ip.ctypes.data + 4, one, a22,
                    ip.ctypes.data + 4)
-        if nbf > 0:
             u0 = np.uint64(upd_off[f])
             unb = np.uint64(nbf)
             uno = np.uint64(no)
