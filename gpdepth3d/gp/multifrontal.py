@@ -85,10 +85,11 @@ def _flush(A, off, m, n, lda):
                 A[c + i] = 0.0
 
 
-@nb.njit(**_FLAGS)
-def _chars():
-    # L, N, T, R as single-byte Fortran characters
-    return np.array([ord("L"), ord("N"), ord("T"), ord("R")], dtype=np.int8)
+# Constants passed to LAPACK/BLAS by reference. Module-level arrays are frozen into the compiled
+# code as static data, so their addresses stay valid for the whole call (a local array's memory
+# is released after its last use in numba's IR, which is before the BLAS calls that read it).
+_CHARS = np.array([ord("L"), ord("N"), ord("T"), ord("R")], dtype=np.int8)  # Fortran characters
+_CONST = np.array([1.0, -1.0, 0.0])  # alpha / beta values
 
 
 @nb.njit(**_FLAGS)
@@ -99,8 +100,8 @@ def _tri_inv(A, off, n, lda, ip):
     block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is ~10x slower than
     dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops.
     """
-    ch = _chars()
-    dp = np.array([1.0, -1.0])
+    ch = _CHARS
+    dp = _CONST
     j = ((n - 1) // _BLOCK) * _BLOCK
     while j >= 0:
         jb = min(_BLOCK, n - j)
@@ -139,10 +140,10 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     ``prior_l`` (its log det from ``front_ld``) and its update is read from ``prior_upd``; with
     ``save`` every front's update and log det are stored there (building the prior factor).
     """
-    ch = _chars()
+    ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)  # integer scalars passed by reference
     ip2 = np.zeros(4, dtype=np.int32)
-    dp = np.array([1.0, -1.0, 0.0])
+    dp = _CONST
     cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
     logdet = 0.0
@@ -224,9 +225,9 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp, se
     Updates of variables with ``seq_slot[v] >= 0`` are summed into ``acc`` instead of ``y`` (they
     belong to fronts that other threads also update); pass an empty ``acc`` to update ``y``.
     """
-    ch = _chars()
+    ch = _CHARS
     ip = np.zeros(4, dtype=np.int32)
-    dp = np.array([1.0, -1.0, 0.0])
+    dp = _CONST
     cL, cN = ch.ctypes.data, ch.ctypes.data + 1
     one, zero = dp.ctypes.data, dp.ctypes.data + 16
     private = acc.size > 0
@@ -250,9 +251,9 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp, se
 @nb.njit(**_FLAGS)
 def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp):
     """Backward substitution L^T x = z over the fronts of ``order`` (processed in reverse), in place."""
-    ch = _chars()
+    ch = _CHARS
     ip = np.zeros(4, dtype=np.int32)
-    dp = np.array([1.0, -1.0, 0.0])
+    dp = _CONST
     cL, cN, cT = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
     for k in range(order.size - 1, -1, -1):
@@ -289,13 +290,45 @@ def _solve(bin_ptr, bin_order, seq_order, seq_vars, seq_slot, st, no_, nb_, nf_,
 
 
 @nb.njit(**_FLAGS)
-def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, work, diag,
-                ro_ptr, ro_out, ro_pos, ro_wgt, out):
-    """Selected inverse over the fronts of ``order`` (processed in reverse, i.e. pre-order):
-    diag(P^-1) and the read-out quadratic forms."""
-    ch = _chars()
+def _w_block(L, no, nbf, nf, W, ip):
+    """W = L21 L11^-1 (nb x no, column-major, leading dimension nb) from a front's [L11^-1; L21]."""
+    ch = _CHARS
+    dp = _CONST
+    for j in range(no):
+        W[j * nbf : (j + 1) * nbf] = L[no + j * nf : nf + j * nf]
+    ip[5], ip[6], ip[7] = nbf, no, nf
+    _dtrmm(ch.ctypes.data + 3, ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 1, ip.ctypes.data + 20,
+           ip.ctypes.data + 24, dp.ctypes.data, L.ctypes.data, ip.ctypes.data + 28, W.ctypes.data, ip.ctypes.data + 20)
+    _flush(W, 0, nbf, no, nbf)
+
+
+@nb.njit(**_FLAGS)
+def _prior_parts(st, no_, nb_, nf_, l_ptr, lbuf, w_ptr, prior_w, lam_ptr, prior_lam):
+    """W = L21 L11^-1 and L11^-T L11^-1 of every front of a prior factor (for `_selinv_run`)."""
+    ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)
-    dp = np.array([1.0, -1.0, 0.0])
+    for f in range(st.size):
+        no, nbf, nf = no_[f], nb_[f], nf_[f]
+        L = lbuf[l_ptr[f] : l_ptr[f] + nf * no]
+        lam = prior_lam[lam_ptr[f] : lam_ptr[f] + no * no]
+        for j in range(no):
+            for i in range(j, no):
+                lam[i + j * no] = L[i + j * nf]
+        ip[0], ip[1] = no, 0
+        _dlauum(ch.ctypes.data, ip.ctypes.data, lam.ctypes.data, ip.ctypes.data, ip.ctypes.data + 4)
+        if nbf > 0:
+            _w_block(L, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no], ip)
+
+
+@nb.njit(**_FLAGS)
+def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, touched, prior_w,
+                w_ptr, prior_lam, lam_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
+    """Selected inverse over the fronts of ``order`` (processed in reverse, i.e. pre-order):
+    diag(P^-1) and the read-out quadratic forms. Fronts that no observation reaches (``touched``
+    non-empty and False) take W and L11^-T L11^-1 from the prior factor."""
+    ch = _CHARS
+    ip = np.zeros(8, dtype=np.int32)
+    dp = _CONST
     cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
     one, mone, zero = dp.ctypes.data, dp.ctypes.data + 8, dp.ctypes.data + 16
     nw = ro_pos.shape[1]
@@ -315,24 +348,27 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                 dst = uno + (uno + jj) * unf
                 for ii in range(jj, unb):
                     S[dst + ii] = P[np.uint64(ea_pos[e0 + ii]) + cj]
-        for j in range(no):
-            for i in range(j, no):
-                S[i + j * nf] = L[i + j * nf]
-        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
-        _dlauum(cL, ip.ctypes.data, S.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)  # L11^-T L11^-1
-        if nbf > 0:
-            W = work[: nbf * no]
+        ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, 0, nbf
+        if touched.size > 0 and not touched[f]:  # prior front: W and L11^-T L11^-1 are cached
+            lam0 = lam_ptr[f]
             for j in range(no):
-                W[j * nbf : (j + 1) * nbf] = L[no + j * nf : nf + j * nf]
-            ip[4] = nbf
-            _dtrmm(cR, cL, cN, cN, ip.ctypes.data + 8, ip.ctypes.data, one, L.ctypes.data, ip.ctypes.data + 4,
-                   W.ctypes.data, ip.ctypes.data + 16)  # W = L21 L11^-1
-            _flush(W, 0, nbf, no, nbf)
+                for i in range(j, no):
+                    S[i + j * nf] = prior_lam[lam0 + i + j * no]
+            wp = prior_w[w_ptr[f] :].ctypes.data
+        else:
+            for j in range(no):
+                for i in range(j, no):
+                    S[i + j * nf] = L[i + j * nf]
+            _dlauum(cL, ip.ctypes.data, S.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)  # L11^-T L11^-1
+            wp = work.ctypes.data
+            if nbf > 0:
+                _w_block(L, no, nbf, nf, work, ip)
+        if nbf > 0:
             sbj = S.ctypes.data + no * 8
             _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
-                   ip.ctypes.data + 4, W.ctypes.data, ip.ctypes.data + 16, zero, sbj, ip.ctypes.data + 4)
+                   ip.ctypes.data + 4, wp, ip.ctypes.data + 16, zero, sbj, ip.ctypes.data + 4)
             _dgemm(cT, cN, ip.ctypes.data, ip.ctypes.data, ip.ctypes.data + 8, mone, sbj, ip.ctypes.data + 4,
-                   W.ctypes.data, ip.ctypes.data + 16, one, S.ctypes.data, ip.ctypes.data + 4)
+                   wp, ip.ctypes.data + 16, one, S.ctypes.data, ip.ctypes.data + 4)
         _flush(S, 0, nf, no, nf)
         for j in range(no):
             diag[s + j] = S[j * (nf + 1)]
@@ -380,11 +416,12 @@ def _factor_bins(bin_ptr, bin_order, st, no_, nb_, nf_, children_ptr, children, 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
 def _selinv_bins(bin_ptr, bin_order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig,
-                 work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
+                 touched, prior_w, w_ptr, prior_lam, lam_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
     """Selected inverse of the independent subtrees (their ancestors done), one bin per thread."""
     for b in nb.prange(bin_ptr.size - 1):
         _selinv_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf,
-                    sig_off, sig, work[b], diag, ro_ptr, ro_out, ro_pos, ro_wgt, out)
+                    sig_off, sig, touched, prior_w, w_ptr, prior_lam, lam_ptr, work[b], diag, ro_ptr, ro_out,
+                    ro_pos, ro_wgt, out)
 
 
 _CONTROLLER = None
@@ -553,7 +590,7 @@ class FrontTree:
     @property
     def prior_bytes(self) -> int:
         """Memory of a `PriorFactor` of this tree (bytes)."""
-        return 8 * (self.l_size + int(np.sum(self.nb * self.nb)))
+        return 8 * (self.l_size + int(np.sum(self.nb * self.nb + self.nb * self.no + self.no * self.no)))
 
     def touched_share(self, prec: np.ndarray) -> float:
         """Share of the fronts that an observation (prec > 0, per variable) reaches."""
@@ -689,8 +726,10 @@ class FrontalFactor:
                 raise ValueError("the prior factor belongs to another tree")
             touched = _touched(t.order, t.parent, t.st, t.no, d)
             skip = (touched, prior.lbuf, prior.upd, prior.u_ptr, prior.front_ld)
+            self._reuse = (touched, prior.w, prior.w_ptr, prior.lam, prior.lam_ptr)
         else:
             skip = (np.zeros(0, np.bool_), np.zeros(0), np.zeros(0), t.l_ptr, np.zeros(0))
+            self._reuse = (np.zeros(0, np.bool_), np.zeros(0), t.l_ptr, np.zeros(0), t.l_ptr)
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q, d,
                   t.l_ptr, self.lbuf, t.upd_off, stack, *skip, False)
         with _numeric_section():
@@ -726,7 +765,8 @@ class FrontalFactor:
         else:
             ro = readout
         out = np.empty(ro[4])
-        common = (t.parent, t.st, t.no, t.nb, t.nf, t.bnd_ptr, t.ea_pos, t.l_ptr, self.lbuf, t.sig_off, sig)
+        common = (t.parent, t.st, t.no, t.nb, t.nf, t.bnd_ptr, t.ea_pos, t.l_ptr, self.lbuf, t.sig_off, sig,
+                  *self._reuse)
         ro_args = (diag, ro[0], ro[1], ro[2], ro[3], out)
         with _numeric_section():
             _selinv_run(t.seq_order, *common, work[0], *ro_args)
@@ -742,11 +782,12 @@ class FrontalFactor:
 
 
 class PriorFactor:
-    """The fronts of the prior precision Q alone (no observation): L and update of every front.
+    """The fronts of the prior precision Q alone (no observation): L, update, W = L21 L11^-1 and
+    L11^-T L11^-1 of every front.
 
     Kept per tree and kernel; a `FrontalFactor` copies the fronts that no observation of its
-    frame reaches instead of recomputing them. Memory: ``8 * (l_size + sum nb^2)`` bytes
-    (`FrontTree.prior_bytes`).
+    frame reaches instead of recomputing them, and its selected inverse skips their dlauum and
+    dtrmm. Memory: `FrontTree.prior_bytes`.
     """
 
     def __init__(self, tree: FrontTree, asm, qvals: np.ndarray):
@@ -768,6 +809,12 @@ class PriorFactor:
                 _, bad = _factor_run(t.seq_order, *common, work[0])
         if bad >= 0:
             raise np.linalg.LinAlgError("prior precision not positive definite")
+        self.w_ptr = np.concatenate([[0], np.cumsum(t.nb * t.no)]).astype(np.int64)
+        self.lam_ptr = np.concatenate([[0], np.cumsum(t.no * t.no)]).astype(np.int64)
+        self.w = np.empty(max(1, int(self.w_ptr[-1])))
+        self.lam = np.empty(max(1, int(self.lam_ptr[-1])))
+        with _numeric_section():
+            _prior_parts(t.st, t.no, t.nb, t.nf, t.l_ptr, self.lbuf, self.w_ptr, self.w, self.lam_ptr, self.lam)
 
 
 class _Workspace:
