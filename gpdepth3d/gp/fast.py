@@ -38,7 +38,10 @@ the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 i
 * ``compiled`` (the default on the CPU): every (template node, tile) pair and every top node is
   one front of `gpdepth3d.gp.multifrontal`, which runs the factorisation, the solves and the
   selected inverse in numba-compiled loops calling LAPACK/BLAS, independent subtrees on
-  separate threads, with buffers reused from frame to frame.
+  separate threads, with buffers reused from frame to frame. From the second frame of a
+  resolution and kernel on, the fronts that no observation reaches (most of them with sparse
+  points in the residual formulation) are copied from a cached factor of the prior alone
+  (``prior_cache_mb``) instead of being recomputed.
 * ``torch`` (any torch device, ``FastEngine(device="cuda")``): the tiles' fronts batched into
   one cholesky_ex / solve_triangular / matmul / index_add_ call per template node, the top
   nodes one by one.
