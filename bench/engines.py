@@ -172,7 +172,7 @@ def main() -> None:
             row["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
             row["load_average_1min"] = os.getloadavg()[0]
             rows.append(row)
-            print(_fmt(row), flush=True)
+            _say(_fmt(row))
     path = REPO / "bench" / "results" / "engines.json"
     if path.is_file():  # keep the cells of an earlier run that this run did not measure
         try:
@@ -186,7 +186,7 @@ def main() -> None:
         k = next((r for r in rows if r["size"] == size and r["engine"] == "kissgp" and "mean_var_s" in r), None)
         if f and k:
             speedups[size] = {"mean": k["mean_s"] / f["mean_s"], "mean_var": k["mean_var_s"] / f["mean_var_s"]}
-            print(f"speed-up fast vs kissgp on {size}: mean x{speedups[size]['mean']:.0f}, mean+var x{speedups[size]['mean_var']:.0f}")
+            _say(f"speed-up fast vs kissgp on {size}: mean x{speedups[size]['mean']:.0f}, mean+var x{speedups[size]['mean_var']:.0f}")
     from gpdepth3d.io import atomic_path
 
     result = {
@@ -200,7 +200,15 @@ def main() -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=2))
-    print(f"wrote {path}")
+    _say(f"wrote {path}")
+
+
+def _say(line: str) -> None:
+    """Prints a line; a closed pipe (``| head``) must not stop the run before the JSON is written."""
+    try:
+        print(line, flush=True)
+    except BrokenPipeError:
+        sys.stdout = open(os.devnull, "w")
 
 
 def _fmt(r: dict) -> str:
