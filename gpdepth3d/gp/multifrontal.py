@@ -329,7 +329,7 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
     ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)
     dp = _CONST
-    cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
+    cL, cN, cT = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2
     one, mone, zero = dp.ctypes.data, dp.ctypes.data + 8, dp.ctypes.data + 16
     nw = ro_pos.shape[1]
     for k in range(order.size - 1, -1, -1):
