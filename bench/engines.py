@@ -2,7 +2,7 @@
 
 Usage::
 
-    python bench/engines.py [--data ../shared/data] [--engines fast,fast-torch,kissgp,exact] [--repeats 3]
+    python bench/engines.py [--data ../shared/data] [--engines fast,fast-grid,fast-torch,kissgp,exact] [--repeats 3]
 
 Inputs (real sensor data, simulated MDE):
 
@@ -11,11 +11,16 @@ Inputs (real sensor data, simulated MDE):
   block: 117 x 405 pixels, ~15k points (the paper's set-up; denser than the ~5k of a single 64-beam
   scan because every 3 x 3 block keeps its closest point).
 * ``kitti_full``: the same at 352 x 1216 (~18k points).
-* ``7scenes_half``: 7-Scenes frame 0 Kinect depth at 240 x 320 with 500 random points.
+* ``7scenes_half``: 7-Scenes frame 0 Kinect depth at 240 x 320 with 500 random points (residual
+  set-up). ``7scenes_half_balanced``: the same frame and points with the paper's balanced set-up
+  (every MDE pixel an observation).
 
 The MDE input is SIMULATED from the data (no network here): the depth with holes filled by the
 nearest valid value, Gaussian-smoothed (sigma 4 px), scaled by 1.05 and with 3 % multiplicative
-noise. The model is the paper's balanced set-up for KITTI and the residual set-up for 7-Scenes.
+noise. The model is the paper's balanced set-up for KITTI and the residual set-up for 7-Scenes
+unless named otherwise. Engines: ``fast`` (its automatic route: the sparse grid precision, or
+Woodbury over the points for few points with nu = 0.5; the row says which), ``fast-grid`` (the
+grid route forced), ``fast-torch`` (the grid route's torch back-end), ``kissgp``, ``exact``.
 
 Each (engine, size) runs in its own subprocess: peak RSS is that process's maximum resident set
 (``resource.getrusage``) minus the RSS after imports and data loading. Times: ``first`` is the
@@ -42,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-SIZES = ("kitti_third", "kitti_full", "7scenes_half")
+SIZES = ("kitti_third", "kitti_full", "7scenes_half", "7scenes_half_balanced")
 CROP = (40, 48)
 
 
@@ -77,7 +82,7 @@ def load_frame(data: Path, size: str):
         r, c = np.nonzero(truth > 0)
         pick = rng.choice(r.size, 500, replace=False)
         sparse = SparseDepth.from_arrays(c[pick].astype(float), r[pick].astype(float), truth[r[pick], c[pick]], truth.shape)
-        config = DepthGPConfig.residual()
+        config = DepthGPConfig.paper() if size.endswith("balanced") else DepthGPConfig.residual()
     valid = truth > 0
     _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
     mde = gaussian_filter(truth[ri, ci], 4.0) * 1.05 * (1 + 0.03 * rng.standard_normal(truth.shape))
@@ -85,13 +90,15 @@ def load_frame(data: Path, size: str):
 
 
 def make(engine: str, config):
-    """A completer running ``engine``: exact, kissgp, fast (default back-end) or fast-torch."""
+    """A completer running ``engine``: exact, kissgp, fast (automatic route), fast-grid or fast-torch."""
     from gpdepth3d.complete import DepthCompleter
     from gpdepth3d.gp.fast import FastEngine
 
     completer = DepthCompleter(config.replace(engine=engine.split("-")[0], max_exact_points=100_000))
     if engine == "fast-torch":
-        completer.engine = FastEngine(backend="torch")
+        completer.engine = FastEngine(backend="torch", route="grid")
+    elif engine == "fast-grid":
+        completer.engine = FastEngine(route="grid")
     return completer
 
 
@@ -119,6 +126,9 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
             tv.append(time.perf_counter() - t0)
         out["mean_s"], out["mean_var_s"] = min(tm), min(tv)
         out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base_rss
+        route = getattr(completer.engine, "last_route", None)
+        if route:
+            out["route"] = route
     # error vs exact on a crop around the image centre row band
     h, w = mde.shape
     r0, c0 = (h - CROP[0]) // 2 + h // 6, (w - CROP[1]) // 2
@@ -138,7 +148,10 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
         DepthCompleter(config.replace(engine="exact"))(crop_mde, crop_sparse)
         out["crop_mean_var_s"] = time.perf_counter() - t0
         return out
-    got = make(engine, config)(crop_mde, crop_sparse)
+    crop_completer = make(engine, config)
+    if out.get("route"):  # the crop is checked on the route the full frame took
+        crop_completer.engine.route = out["route"]
+    got = crop_completer(crop_mde, crop_sparse)
     rng_depth = float(np.ptp(ref.mean))
     out["crop_mean_rms_pct_range"] = float(100 * np.sqrt(np.mean((got.mean - ref.mean) ** 2)) / rng_depth)
     out["crop_std_max_rel"] = float(np.max(np.abs(got.std - ref.std) / ref.std))
@@ -148,7 +161,7 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
-    parser.add_argument("--engines", default="fast,fast-torch,kissgp,exact")
+    parser.add_argument("--engines", default="fast,fast-grid,fast-torch,kissgp,exact")
     parser.add_argument("--sizes", default=",".join(SIZES))
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per (engine, size) cell")
@@ -213,12 +226,13 @@ def _say(line: str) -> None:
 
 def _fmt(r: dict) -> str:
     if "error" in r:
-        return f"{r['engine']:10s} {r['size']:13s} ERROR {r['error']}"
+        return f"{r['engine']:10s} {r['size']:22s} ERROR {r['error']}"
     shape = "x".join(map(str, r["shape"]))
     if r["engine"] == "exact":
-        return (f"{r['engine']:10s} {r['size']:13s} {shape:9s} pts {r['points']:6d}  full frame infeasible; "
+        return (f"{r['engine']:10s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  full frame infeasible; "
                 f"{CROP[0]}x{CROP[1]} crop: mean {r['crop_mean_s'] * 1e3:8.1f} ms  mean+var {r['crop_mean_var_s'] * 1e3:8.1f} ms")
-    return (f"{r['engine']:10s} {r['size']:13s} {shape:9s} pts {r['points']:6d}  first {r['first_s'] * 1e3:9.1f} ms  "
+    engine = r["engine"] + (f" ({r['route']})" if r["engine"] == "fast" and "route" in r else "")
+    return (f"{engine:16s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  first {r['first_s'] * 1e3:9.1f} ms  "
             f"mean {r['mean_s'] * 1e3:9.1f} ms  mean+var {r['mean_var_s'] * 1e3:9.1f} ms  peak {r['peak_rss_mb']:7.1f} MB  "
             f"crop err: mean {r['crop_mean_rms_pct_range']:.1e} % of range, std {r['crop_std_max_rel']:.1e} rel")
 

@@ -71,13 +71,13 @@ class TestMarkov:
 
 
 class TestFastEngineAgainstExact:
-    @pytest.mark.parametrize("nu", [0.5, 1.5, 2.5])
+    @pytest.mark.parametrize("nu,route", [(0.5, "grid"), (0.5, "woodbury"), (1.5, "auto"), (2.5, "auto")])
     @pytest.mark.parametrize("out", [None, (25, 31), (5, 7)])
-    def test_random_problems(self, nu, out):
+    def test_random_problems(self, nu, route, out):
         rng = np.random.default_rng(1)
         problem = random_problem(rng, 12, 15, nu=nu, out=out)
         m1, v1 = ExactEngine().solve(problem)
-        m2, v2 = FastEngine().solve(problem)
+        m2, v2 = FastEngine(route=route).solve(problem)
         tol = 1e-9 if nu < 2.5 else 1e-7
         np.testing.assert_allclose(m2, m1, atol=tol * 10)
         np.testing.assert_allclose(v2, v1, atol=tol * v1.max())

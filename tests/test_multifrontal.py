@@ -150,7 +150,7 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
 
     rng = np.random.default_rng(7)
     completer = DepthCompleter(DepthGPConfig.residual(engine="fast", lengthscale=5.0))
-    engine = completer.engine
+    engine = completer.engine = FastEngine(route="grid")  # 50 points: "auto" would take the Woodbury route
 
     def frame():
         mde = rng.uniform(2.0, 4.0, (30, 40))
@@ -208,8 +208,8 @@ class TestPriorReuse:
 
     @pytest.mark.parametrize("nu", [0.5, 1.5])
     def test_frames_reusing_the_prior_factor_are_exact(self, nu):
-        engine = FastEngine(tile=7)
-        fresh = FastEngine(tile=7, prior_cache_mb=0)
+        engine = FastEngine(tile=7, route="grid")  # few points: "auto" would take the Woodbury route
+        fresh = FastEngine(tile=7, prior_cache_mb=0, route="grid")
         for k in range(4):  # a new scale and new points every frame
             problem = self.sparse_problem(40 + k, nu=nu, out=(50, 60) if k == 3 else None)
             m0, v0 = ExactEngine().solve(problem)

@@ -48,6 +48,11 @@ the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 i
 
 The set-up (tree, index maps, prior precision, read-out) runs once per resolution and kernel
 with NumPy and is cached.
+
+Few observed pixels (the residual formulation with sparse points) and nu = 0.5 take another
+exact route when its cost model says it is cheaper: Woodbury over the observed pixels with the
+exponential kernel's recursive filtering (`gpdepth3d.gp.woodbury`), O(m^3 + m^2 + n) for m
+points and n output pixels instead of O(n^1.5) (``route=`` forces either).
 """
 
 from __future__ import annotations
@@ -63,6 +68,7 @@ from ..errors import InvalidInputError, ShapeError
 from .markov import chain_precision, readout_weights, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
+from .woodbury import WoodburyPosterior, woodbury_seconds
 
 
 # ----------------------------------------------------------------------------- symbolic phase
@@ -852,6 +858,11 @@ class FastEngine:
             first seen) with single-threaded BLAS.
         backend: "compiled" (numba + LAPACK, `gpdepth3d.gp.multifrontal`; CPU only), "torch"
             (batched torch kernels; any device) or "auto" (compiled on the CPU, torch elsewhere).
+        route: "auto" (compiled back-end: the cheaper of the two by a cost model; torch
+            back-end: the grid), "grid" (the sparse precision over the pixel grid, any nu) or
+            "woodbury" (nu = 0.5 only: dense algebra over the observed pixels on the CPU,
+            `gpdepth3d.gp.woodbury`; for a few thousand points at most). ``last_route`` tells
+            which one the last call took.
         prior_cache_mb: Compiled back-end: memory allowed for the factor of the prior alone
             (`PriorFactor`, one per engine), which the frames of a sequence reuse for every
             front their observations do not reach. It is built from the second frame with the
@@ -871,6 +882,7 @@ class FastEngine:
         threads: int | None = 1,
         backend: str = "auto",
         prior_cache_mb: float = 256.0,
+        route: str = "auto",
     ):
         if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
             raise InvalidInputError("threads", "None or an integer >= 1", threads)
@@ -889,8 +901,13 @@ class FastEngine:
         if not isinstance(prior_cache_mb, (int, float, np.integer, np.floating)) or not prior_cache_mb >= 0:
             raise InvalidInputError("prior_cache_mb", "a number >= 0", prior_cache_mb)
         self.prior_cache_mb = float(prior_cache_mb)
+        if route not in ("auto", "grid", "woodbury"):
+            raise InvalidInputError("route", "'auto', 'grid' or 'woodbury'", route)
+        self.route = route
+        self.last_route: str | None = None  # the route the last solve took ("grid" / "woodbury")
         self._prior_factor: tuple | None = None  # (key, PriorFactor)
         self._kernel_uses: dict = {}
+        self._woodbury_buffers: dict = {}  # image buffers of the Woodbury route, per output shape
         self.device = device
         self.tile = tile
         self.leaf_pixels = leaf_pixels
@@ -958,6 +975,25 @@ class FastEngine:
         """torch's thread setting for the torch back-end (the compiled one sets its own)."""
         return _torch_threads(self.threads) if self.backend == "torch" else nullcontext()
 
+    def _woodbury(self, problem: GridProblem, variance: bool) -> bool:
+        """Whether ``problem`` takes the Woodbury route (see ``route``)."""
+        k = problem.kernel
+        if self.route == "grid" or (self.route == "auto" and (k.nu != 0.5 or self.backend == "torch")):
+            self.last_route = "grid"
+            return False
+        if k.nu != 0.5:
+            raise InvalidInputError("route", "'auto' or 'grid' for nu != 0.5 ('woodbury' needs nu = 0.5)", self.route)
+        if self.route == "woodbury":
+            use = True
+        else:
+            m = int(np.count_nonzero(np.asarray(problem.precision) > 0))
+            h, w = problem.shape
+            ho, wo = problem.out_shape
+            grid_s = (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 / _GRID_FLOPS_PER_S
+            use = woodbury_seconds(m, ho * wo, variance) < grid_s
+        self.last_route = "woodbury" if use else "grid"
+        return use
+
     # -- public
     def factorize(self, problem: GridProblem):
         """Factorises the posterior precision of ``problem``.
@@ -1002,6 +1038,10 @@ class FastEngine:
             problem: The grid problem (either formulation).
             variance: Also compute the marginal variances (selected inversion).
         """
+        _check_problem(problem)
+        if self._woodbury(problem, variance):
+            post = WoodburyPosterior(problem, self._woodbury_buffers)
+            return post.mean(), (post.variance() if variance else None)
         factor, tree, prior, real_vars, mu, _, _ = self._posterior_states(problem)
         h, w = problem.shape
         k = problem.kernel
@@ -1036,6 +1076,9 @@ class FastEngine:
         posterior mean f* (the latent field on the padded grid, all states), with log det P
         from the Cholesky factor and log det Q from the 1-D chains.
         """
+        _check_problem(problem)
+        if self._woodbury(problem, False):
+            return WoodburyPosterior(problem).log_marginal_likelihood()
         factor, tree, prior, real_vars, mu, prec, resid = self._posterior_states(problem)
         k = problem.kernel
         d = state_dim(k.nu)
@@ -1051,6 +1094,13 @@ class FastEngine:
         quad = float(np.sum(X * (Qv @ (Qu @ X.T).T))) / s2
         logdet_q = prior.logdet - tree.nvar * np.log(s2)
         return data - 0.5 * quad + 0.5 * logdet_q - 0.5 * factor.logdet
+
+
+# Cost model of the grid route (nu = 0.5) that picks a route: nested dissection of an n-pixel
+# grid takes ~22 n^1.5 flops to factorise and ~60 n^1.5 more for the selected inverse
+# (`FrontTree.flops` at 64 x 64 to 352 x 1216), sustained at ~12 GFLOPS on the 2-core CI machine
+# (1.8 GFLOP in ~130 ms at 320 x 240).
+_GRID_FLOPS_PER_S = 12e9
 
 
 @contextmanager

@@ -131,6 +131,32 @@ def _tri_inv(A, off, n, lda, ip):
 
 
 @nb.njit(**_FLAGS)
+def _inverse_from_cholesky(A, n, ip):
+    """In place: the lower Cholesky factor L (flat column-major n x n) -> lower triangle of (L L^T)^-1.
+
+    L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: as dpotri, ~3x faster.
+    """
+    _tri_inv(A, 0, n, n, ip)
+    ip[0], ip[1] = n, 0
+    _dlauum(_CHARS.ctypes.data, ip.ctypes.data, A.ctypes.data, ip.ctypes.data, ip.ctypes.data + 4)
+    return ip[1]
+
+
+def inverse_from_cholesky(L: np.ndarray) -> np.ndarray:
+    """(L L^T)^-1 (lower triangle; the upper one is left as it was) from a lower Cholesky factor, in place.
+
+    Args:
+        L: (n, n) Fortran-ordered float64 array holding the factor in its lower triangle.
+    """
+    if not (L.flags.f_contiguous and L.dtype == np.float64 and L.ndim == 2 and L.shape[0] == L.shape[1]):
+        raise ValueError("internal error: L must be a square Fortran-ordered float64 array")
+    info = _inverse_from_cholesky(L.ravel(order="F"), L.shape[0], np.zeros(4, dtype=np.int32))
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dlauum failed (info={info})")
+    return L
+
+
+@nb.njit(**_FLAGS)
 def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr, asm_pos, asm_src,
                 qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr, front_ld, save, work):
     """Multifrontal Cholesky of the fronts in ``order``; returns (log det, first failing front or -1).
@@ -586,6 +612,12 @@ class FrontTree:
             bin_ptr=bin_ptr, bin_order=np.array([f for b in bins for f in b], dtype=np.int64),
             seq_order=np.asarray(seq, dtype=np.int64), seq_vars=seq_vars.astype(np.int64), seq_slot=seq_slot,
         )
+
+    def flops(self) -> tuple[float, float]:
+        """(factorisation, selected inversion) flop counts of the dense fronts (a cost model)."""
+        no, nbv = self.no.astype(np.float64), self.nb.astype(np.float64)
+        factor = no**3 / 3 + no * no * nbv + no * nbv * nbv
+        return float(factor.sum()), float((2 * factor + no * nbv * nbv).sum())
 
     @property
     def prior_bytes(self) -> int:
