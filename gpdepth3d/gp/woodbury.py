@@ -48,24 +48,28 @@ _LOG_2PI = float(np.log(2 * np.pi))
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat_pairs(M, K, rr, cc, ri, rv, ci, cv, buf):
-    """Adds the impulses of every pair (j, k), k <= j, into buf (see the layout above).
+def _splat_pairs(M, K, cc, ri, rv, ci, cv, buf):
+    """Adds the impulses of every pair (k, j), k <= j, of points sorted by row into buf (see the layout above).
 
-    M: A^-1 (lower triangle read); K: the point correlations (off-diagonal read). ri / ci (2, m):
-    per point, the storage index of its "start" cell (first x >= p: C start, B) and of its "end"
-    cell (first x > p: C end, F) along rows / columns; rv / cv (2, m): its B and F values. A
-    pair adds w = M_jk K_jk (twice off the diagonal) times the outer product of its row and
-    column impulses: C +1 at the start of the lower point and -1 at the end of the higher one,
-    F at the end of the higher point, B at the start of the lower one.
+    M: A^-1 in column-major order (lower triangle read); K: the point correlations (read above
+    the diagonal). ri / ci (2, m): per point, the storage index of its "start" cell (first
+    x >= p: C start, B) and of its "end" cell (first x > p: C end, F) along rows / columns;
+    rv / cv (2, m): its B and F values. A pair adds w = M_jk K_jk (twice off the diagonal) times
+    the outer product of its row and column impulses: C +1 at the start of the lower point and -1
+    at the end of the higher one, F at the end of the higher point, B at the start of the lower
+    one. Rows are sorted, so point k is the lower one along rows.
     """
-    for j in range(M.shape[0]):
-        for k in range(j + 1):
-            w = M[j, k] * (2.0 * K[j, k] if k != j else 1.0)
-            lo, hi = (j, k) if rr[j] <= rr[k] else (k, j)
-            sa, sf, rb, rf = ri[0, lo], ri[1, hi], rv[0, lo], rv[1, hi]
-            lo, hi = (j, k) if cc[j] <= cc[k] else (k, j)
-            ta, tf, cb, cf = ci[0, lo], ci[1, hi], cv[0, lo], cv[1, hi]
-            wb, wf = w * rb, w * rf
+    m = M.shape[0]
+    for k in range(m):
+        sa, rb0 = ri[0, k], rv[0, k]
+        for j in range(k, m):
+            w = M[j, k] * (2.0 * K[k, j] if k != j else 1.0)
+            sf = ri[1, j]
+            wb, wf = w * rb0, w * rv[1, j]
+            if cc[k] <= cc[j]:
+                ta, tf, cb, cf = ci[0, k], ci[1, j], cv[0, k], cv[1, j]
+            else:
+                ta, tf, cb, cf = ci[0, j], ci[1, k], cv[0, j], cv[1, k]
             buf[sa, ta, 0] += w
             buf[sa, ta, 2] += w * cb
             buf[sa, ta, 6] += wb
@@ -102,25 +106,33 @@ def _filter(buf, lam_r, lam_c, g, out):
 
     C: cumulative sum; F: y_i = lam[i] y_{i-1} + u_i; B: y_i = lam[i + 1] y_{i+1} + u_{i+1 stored}.
     lam (n + 1,): lam[i] = e^{-rate (x_i - x_{i-1})}, lam[0] and lam[n] unused / 0. g (Ho + 1,
-    Wo, 3) is scratch: the column pass per row operator.
+    Wo, 3) is scratch: the column pass per row operator. buf is left all zero (read and cleared).
     """
     hs, ws, _ = buf.shape
     h, w = hs - 1, ws - 1
-    acc = np.zeros(9)
     for s in range(hs):  # columns: C and F forward, B backward (B input stored at i + 1)
-        acc[:] = 0.0
+        c0 = c1 = c2 = f0 = f1 = f2 = 0.0
         for i in range(w):
             li = lam_c[i]
-            for x in range(3):
-                acc[3 * x] += buf[s, i, 3 * x]
-                acc[3 * x + 1] = li * acc[3 * x + 1] + buf[s, i, 3 * x + 1]
-                g[s, i, x] = acc[3 * x] + acc[3 * x + 1]
-        acc[:] = 0.0
+            c0 += buf[s, i, 0]
+            c1 += buf[s, i, 3]
+            c2 += buf[s, i, 6]
+            f0 = li * f0 + buf[s, i, 1]
+            f1 = li * f1 + buf[s, i, 4]
+            f2 = li * f2 + buf[s, i, 7]
+            g[s, i, 0] = c0 + f0
+            g[s, i, 1] = c1 + f1
+            g[s, i, 2] = c2 + f2
+        b0 = b1 = b2 = 0.0
         for i in range(w - 1, -1, -1):
             li = lam_c[i + 1]
-            for x in range(3):
-                acc[3 * x + 2] = li * acc[3 * x + 2] + buf[s, i + 1, 3 * x + 2]
-                g[s, i, x] += acc[3 * x + 2]
+            b0 = li * b0 + buf[s, i + 1, 2]
+            b1 = li * b1 + buf[s, i + 1, 5]
+            b2 = li * b2 + buf[s, i + 1, 8]
+            g[s, i, 0] += b0
+            g[s, i, 1] += b1
+            g[s, i, 2] += b2
+        buf[s, :, :] = 0.0
     rowc = np.zeros(w)
     rowf = np.zeros(w)
     for i in range(h):  # rows: C and F forward
@@ -183,14 +195,17 @@ class _Axis:
         return np.stack([ge, end]).astype(np.int64), np.stack([vb, vf])
 
     def workspace(self, other: "_Axis", store: dict | None):
-        """Zeroed impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3), kept in ``store`` for reuse."""
+        """All-zero impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3), reused through ``store``.
+
+        `_filter` clears the buffer as it reads it; a buffer is handed out again only if the
+        call that had it got that far (``store["clean"]``).
+        """
         shape = (self.n + 1, other.n + 1, 9)
-        if store is not None and store.get("shape") == shape:
-            buf, g = store["buffers"]
-            buf.fill(0.0)
-            return buf, g
+        if store is not None and store.get("shape") == shape and store.pop("clean", False):
+            return store["buffers"]
         buf, g = np.zeros(shape), np.zeros((self.n + 1, other.n, 3))
         if store is not None:
+            store.clear()
             store.update(shape=shape, buffers=(buf, g))
         return buf, g
 
@@ -224,7 +239,7 @@ class WoodburyPosterior:
         self.problem = problem
         self._store = workspace
         prec = np.asarray(problem.precision, dtype=np.float64)
-        rows, cols = np.nonzero(prec > 0)
+        rows, cols = np.divmod(np.flatnonzero(prec), prec.shape[1])  # precisions are >= 0
         self.rr, self.cc = rows.astype(np.float64), cols.astype(np.float64)
         self.s2 = float(k.outputscale) ** 2
         self.inv_l = 1.0 / float(k.lengthscale)
@@ -256,6 +271,8 @@ class WoodburyPosterior:
         ra, ca = self._rows_axis, self._cols_axis
         out = np.empty((ra.n, ca.n))
         _filter(buf, ra.decay(rate), ca.decay(rate), g, out)
+        if self._store is not None and self._store.get("buffers", (None,))[0] is buf:
+            self._store["clean"] = True
         return self._unsort(out)
 
     def mean(self) -> np.ndarray:
@@ -282,7 +299,7 @@ class WoodburyPosterior:
         buf, g = ra.workspace(ca, self._store)
         with _numeric_section():
             Minv = inverse_from_cholesky(np.array(self.L, order="F"))
-            _splat_pairs(Minv, self.A, self.rr, self.cc, ri, rv, ci, cv, buf)
+            _splat_pairs(Minv, self.A, self.cc, ri, rv, ci, cv, buf)  # rr is sorted (row-major order)
             corr = self._filtered(buf, g, rate)
         return np.maximum(self.s2 * (1.0 - corr), 0.0)
 
