@@ -132,6 +132,10 @@ class TestRoute:
         assert engine.last_route == "grid"
         engine.solve(sparse_problem(rng, 120, 160, 150, nu=1.5))
         assert engine.last_route == "grid"
+        tiny_noise = sparse_problem(rng, 120, 160, 150, lengthscale=20.0)
+        tiny_noise.precision[tiny_noise.precision > 0] = 1e12  # s^2 / noise ~ 6e11: cancellation
+        engine.solve(tiny_noise)
+        assert engine.last_route == "grid"
 
     def test_cost_model_grows_with_points(self):
         assert woodbury_seconds(100, 76800, True) < woodbury_seconds(1000, 76800, True) < woodbury_seconds(4000, 76800, True)

@@ -5,7 +5,7 @@ they differ only in how they compute it:
 
 * ``exact``: dense Cholesky, the reference for small inputs.
 * ``kissgp``: GPyTorch KISS-GP (``GridInterpolationKernel``), faithful to the paper.
-* ``fast``: exploits the pixel grid; the default for real frames.
+* ``fast``: exploits the pixel grid (sparse precision, or Woodbury over few points); the default.
 """
 
 from __future__ import annotations

@@ -986,11 +986,15 @@ class FastEngine:
         if self.route == "woodbury":
             use = True
         else:
-            m = int(np.count_nonzero(np.asarray(problem.precision) > 0))
+            prec = np.asarray(problem.precision, dtype=np.float64)
+            m = int(np.count_nonzero(prec > 0))
             h, w = problem.shape
             ho, wo = problem.out_shape
             grid_s = (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 / _GRID_FLOPS_PER_S
-            use = woodbury_seconds(m, ho * wo, variance) < grid_s
+            # Woodbury computes s^2 (1 - quadratic form): near a point whose noise is tiny against s
+            # that cancels (error ~1e-16 s^2 cond(A), cond(A) <= 1 + m s^2 / noise); the grid does not.
+            well_conditioned = m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR
+            use = well_conditioned and woodbury_seconds(m, ho * wo, variance) < grid_s
         self.last_route = "woodbury" if use else "grid"
         return use
 
@@ -1101,6 +1105,9 @@ class FastEngine:
 # (`FrontTree.flops` at 64 x 64 to 352 x 1216), sustained at ~12 GFLOPS on the 2-core CI machine
 # (1.8 GFLOP in ~130 ms at 320 x 240).
 _GRID_FLOPS_PER_S = 12e9
+# "auto" leaves problems with a point of signal-to-noise variance ratio s^2 / noise above this to
+# the grid route (Woodbury's cancellation would cost more than ~1e-6 of the variance there).
+_WOODBURY_MAX_SNR = 1e8
 
 
 @contextmanager

@@ -239,7 +239,7 @@ class WoodburyPosterior:
         self.problem = problem
         self._store = workspace
         prec = np.asarray(problem.precision, dtype=np.float64)
-        rows, cols = np.divmod(np.flatnonzero(prec), prec.shape[1])  # precisions are >= 0
+        rows, cols = np.divmod(np.flatnonzero(prec.ravel() > 0), prec.shape[1])
         self.rr, self.cc = rows.astype(np.float64), cols.astype(np.float64)
         self.s2 = float(k.outputscale) ** 2
         self.inv_l = 1.0 / float(k.lengthscale)
