@@ -178,3 +178,16 @@ def test_real_frame_routes_agree(seven_scenes_frame):
     np.testing.assert_allclose(a.mean, g.mean, atol=1e-9)
     np.testing.assert_allclose(a.std, g.std, rtol=1e-8)
     assert np.sqrt(np.mean((a.mean - depth) ** 2, where=depth > 0)) < np.sqrt(np.mean((mde - depth) ** 2, where=depth > 0))
+
+
+def test_concurrent_callers_share_an_engine():
+    from concurrent.futures import ThreadPoolExecutor
+
+    problems = [sparse_problem(np.random.default_rng(40 + k), 30, 37, 20 + 5 * k, lengthscale=4.0) for k in range(6)]
+    engine = FastEngine(route="woodbury")
+    serial = [engine.solve(p) for p in problems]
+    with ThreadPoolExecutor(4) as pool:
+        parallel = list(pool.map(engine.solve, problems))
+    for (m0, v0), (m1, v1) in zip(serial, parallel):
+        np.testing.assert_array_equal(m1, m0)
+        np.testing.assert_array_equal(v1, v0)

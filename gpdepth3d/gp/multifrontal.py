@@ -456,7 +456,7 @@ _RUN_LOCK = threading.Lock()
 
 
 @contextmanager
-def _numeric_section():
+def numeric_section():
     """One numeric phase at a time per process, with single-threaded BLAS.
 
     Each phase already uses every numba thread, so concurrent callers (threads of a Dask worker,
@@ -764,7 +764,7 @@ class FrontalFactor:
             self._reuse = (np.zeros(0, np.bool_), np.zeros(0), t.l_ptr, np.zeros(0), t.l_ptr)
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q, d,
                   t.l_ptr, self.lbuf, t.upd_off, stack, *skip, False)
-        with _numeric_section():
+        with numeric_section():
             logdet, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
             if bad < 0:
                 ld, bad = _factor_run(t.seq_order, *common, work[0])
@@ -780,7 +780,7 @@ class FrontalFactor:
         nbins = t.bin_ptr.size - 1
         tmp = np.empty((nbins, max(1, int(t.nb.max(initial=0)))))
         acc = np.empty((nbins, max(1, t.seq_vars.size)))
-        with _numeric_section():
+        with numeric_section():
             _solve(t.bin_ptr, t.bin_order, t.seq_order, t.seq_vars, t.seq_slot, t.st, t.no, t.nb, t.nf, t.bnd_ptr,
                    t.bnd, t.l_ptr, self.lbuf, y, tmp, acc)
         return y
@@ -800,7 +800,7 @@ class FrontalFactor:
         common = (t.parent, t.st, t.no, t.nb, t.nf, t.bnd_ptr, t.ea_pos, t.l_ptr, self.lbuf, t.sig_off, sig,
                   *self._reuse)
         ro_args = (diag, ro[0], ro[1], ro[2], ro[3], out)
-        with _numeric_section():
+        with numeric_section():
             _selinv_run(t.seq_order, *common, work[0], *ro_args)
             _selinv_bins(t.bin_ptr, t.bin_order, *common, work, *ro_args)
         diag *= self.scale2
@@ -835,7 +835,7 @@ class PriorFactor:
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q,
                   np.zeros(t.nvar), t.l_ptr, self.lbuf, t.upd_off, stack, np.zeros(0, np.bool_), self.lbuf, self.upd,
                   self.u_ptr, self.front_ld, True)
-        with _numeric_section():
+        with numeric_section():
             _, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
             if bad < 0:
                 _, bad = _factor_run(t.seq_order, *common, work[0])
@@ -845,7 +845,7 @@ class PriorFactor:
         self.lam_ptr = np.concatenate([[0], np.cumsum(t.no * t.no)]).astype(np.int64)
         self.w = np.empty(max(1, int(self.w_ptr[-1])))
         self.lam = np.empty(max(1, int(self.lam_ptr[-1])))
-        with _numeric_section():
+        with numeric_section():
             _prior_parts(t.st, t.no, t.nb, t.nf, t.l_ptr, self.lbuf, self.w_ptr, self.w, self.lam_ptr, self.lam)
 
 

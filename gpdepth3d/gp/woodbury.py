@@ -18,11 +18,13 @@ outside it. Along an axis of sorted output coordinates x_0 < x_1 < ..., h is the
 linear operators applied to impulses: a cumulative sum of (+1 at the first x_i >= lo, -1 at the
 first x_i > hi) (the interval), a forward recursion y_i = lambda_i y_{i-1} + u_i with
 lambda_i = e^{-2 (x_i - x_{i-1}) / l} of one impulse after hi, and the mirrored backward recursion
-of one impulse before lo. In 2-D each pair splats at most 16 impulses into 9 images (one per
-pair of axis operators), which are then filtered along columns and rows. The mean is the same
-with single points and the rate 1 / l. Cost: O(m^3) for the Cholesky factor and the inverse of
-A, O(m^2) splats and O(Ho Wo) filtering, against O(Ho Wo m^2) directly; the recursions decay
-(|lambda| < 1), so nothing overflows at any length scale, and no approximation is made.
+of one impulse before lo. In 2-D each pair splats 16 impulses into 9 images (one per pair of axis
+operators, interleaved so that the 16 land in 4 cells), which are then filtered along columns
+and rows. The mean is the same with single points and the rate 1 / l. Cost: O(m^3) for the
+Cholesky factor of A and its inverse (`multifrontal.inverse_from_cholesky`), O(m^2) splats and
+O(Ho Wo) filtering, against O(Ho Wo m^2) directly. Every impulse value and decay is <= 1, so
+nothing overflows at any length scale, and no approximation is made. The points must be given in
+row-major order (as `numpy.flatnonzero` returns them).
 
 nu = 0.5 only (for nu > 0.5 the pair products are polynomials times exponentials); the engine
 uses the grid route otherwise.
@@ -35,7 +37,7 @@ import numpy as np
 import scipy.linalg
 
 from .model import GridProblem
-from .multifrontal import _numeric_section, inverse_from_cholesky
+from .multifrontal import numeric_section, inverse_from_cholesky
 
 _LOG_2PI = float(np.log(2 * np.pi))
 
@@ -252,7 +254,7 @@ class WoodburyPosterior:
         h, w = problem.shape
         er = np.exp(-self.inv_l * np.arange(h))
         ec = np.exp(-self.inv_l * np.arange(w))
-        with _numeric_section():
+        with numeric_section():
             self.A = _correlations(rows, cols, er, ec, 1.0 / (prec[rows, cols] * self.s2))
             self.L, info = scipy.linalg.lapack.dpotrf(self.A, lower=1, clean=0)
             if info != 0:
@@ -284,7 +286,7 @@ class WoodburyPosterior:
         ri, rv = ra.impulses(self.rr, self.inv_l, interval=False)
         ci, cv = ca.impulses(self.cc, self.inv_l, interval=False)
         buf, g = ra.workspace(ca, self._store)
-        with _numeric_section():
+        with numeric_section():
             _splat_points(self.alpha, ri, rv, ci, cv, buf)
             return prior + self._filtered(buf, g, self.inv_l)
 
@@ -297,7 +299,7 @@ class WoodburyPosterior:
         ri, rv = ra.impulses(self.rr, rate, interval=True)
         ci, cv = ca.impulses(self.cc, rate, interval=True)
         buf, g = ra.workspace(ca, self._store)
-        with _numeric_section():
+        with numeric_section():
             Minv = inverse_from_cholesky(np.array(self.L, order="F"))
             _splat_pairs(Minv, self.A, self.cc, ri, rv, ci, cv, buf)  # rr is sorted (row-major order)
             corr = self._filtered(buf, g, rate)
