@@ -103,12 +103,13 @@ def _splat_points(alpha, ri, rv, ci, cv, buf):
 
 
 @nb.njit(cache=True, nogil=True)
-def _filter(buf, lam_r, lam_c, g, out):
+def _filter(buf, lam_r, lam_c, g, out, interval):
     """out (Ho, Wo) = sum_X rowop_X(sum_Y colop_Y(slot 3 X + Y of buf)), buf as laid out above.
 
     C: cumulative sum; F: y_i = lam[i] y_{i-1} + u_i; B: y_i = lam[i + 1] y_{i+1} + u_{i+1 stored}.
     lam (n + 1,): lam[i] = e^{-rate (x_i - x_{i-1})}, lam[0] and lam[n] unused / 0. g (Ho + 1,
-    Wo, 3) is scratch: the column pass per row operator. buf is left all zero (read and cleared).
+    Wo, 3) is scratch: the column pass per row operator. interval=False skips the C slots (the
+    mean has none). buf is left all zero (read and cleared).
     """
     hs, ws, _ = buf.shape
     h, w = hs - 1, ws - 1
@@ -116,10 +117,11 @@ def _filter(buf, lam_r, lam_c, g, out):
         c0 = c1 = c2 = f0 = f1 = f2 = 0.0
         for i in range(w):
             li = lam_c[i]
-            c0 += buf[s, i, 0]
-            c1 += buf[s, i, 3]
-            c2 += buf[s, i, 6]
-            f0 = li * f0 + buf[s, i, 1]
+            if interval:
+                c0 += buf[s, i, 0]
+                c1 += buf[s, i, 3]
+                c2 += buf[s, i, 6]
+                f0 = li * f0 + buf[s, i, 1]
             f1 = li * f1 + buf[s, i, 4]
             f2 = li * f2 + buf[s, i, 7]
             g[s, i, 0] = c0 + f0
@@ -128,7 +130,8 @@ def _filter(buf, lam_r, lam_c, g, out):
         b0 = b1 = b2 = 0.0
         for i in range(w - 1, -1, -1):
             li = lam_c[i + 1]
-            b0 = li * b0 + buf[s, i + 1, 2]
+            if interval:
+                b0 = li * b0 + buf[s, i + 1, 2]
             b1 = li * b1 + buf[s, i + 1, 5]
             b2 = li * b2 + buf[s, i + 1, 8]
             g[s, i, 0] += b0
@@ -140,7 +143,8 @@ def _filter(buf, lam_r, lam_c, g, out):
     for i in range(h):  # rows: C and F forward
         li = lam_r[i]
         for c in range(w):
-            rowc[c] += g[i, c, 0]
+            if interval:
+                rowc[c] += g[i, c, 0]
             rowf[c] = li * rowf[c] + g[i, c, 1]
             out[i, c] = rowc[c] + rowf[c]
     rowf[:] = 0.0
@@ -269,10 +273,10 @@ class WoodburyPosterior:
         out[np.ix_(ra.order, ca.order)] = img
         return out
 
-    def _filtered(self, buf: np.ndarray, g: np.ndarray, rate: float) -> np.ndarray:
+    def _filtered(self, buf: np.ndarray, g: np.ndarray, rate: float, interval: bool) -> np.ndarray:
         ra, ca = self._rows_axis, self._cols_axis
         out = np.empty((ra.n, ca.n))
-        _filter(buf, ra.decay(rate), ca.decay(rate), g, out)
+        _filter(buf, ra.decay(rate), ca.decay(rate), g, out, interval)
         if self._store is not None and self._store.get("buffers", (None,))[0] is buf:
             self._store["clean"] = True
         return self._unsort(out)
@@ -288,7 +292,7 @@ class WoodburyPosterior:
         buf, g = ra.workspace(ca, self._store)
         with numeric_section():
             _splat_points(self.alpha, ri, rv, ci, cv, buf)
-            return prior + self._filtered(buf, g, self.inv_l)
+            return prior + self._filtered(buf, g, self.inv_l, False)
 
     def variance(self) -> np.ndarray:
         """Posterior marginal variance (Ho, Wo), m^2."""
@@ -302,7 +306,7 @@ class WoodburyPosterior:
         with numeric_section():
             Minv = inverse_from_cholesky(np.array(self.L, order="F"))
             _splat_pairs(Minv, self.A, self.cc, ri, rv, ci, cv, buf)  # rr is sorted (row-major order)
-            corr = self._filtered(buf, g, rate)
+            corr = self._filtered(buf, g, rate, True)
         return np.maximum(self.s2 * (1.0 - corr), 0.0)
 
     def log_marginal_likelihood(self) -> float:
