@@ -82,8 +82,8 @@ class TestFastEngineAgainstExact:
         np.testing.assert_allclose(m2, m1, atol=tol * 10)
         np.testing.assert_allclose(v2, v1, atol=tol * v1.max())
 
-    @pytest.mark.parametrize("balanced", [True, False])
-    def test_64x64_with_2k_points(self, balanced):
+    @pytest.mark.parametrize("balanced,route", [(True, "grid"), (True, "auto"), (False, "grid")])
+    def test_64x64_with_2k_points(self, balanced, route):
         rng = np.random.default_rng(2)
         h, w = (40, 48) if balanced else (64, 64)  # balanced: every pixel is observed
         prior = np.full((h, w), 15.0)
@@ -93,7 +93,9 @@ class TestFastEngineAgainstExact:
         obs = prior + np.cumsum(rng.normal(0, 0.3, (h, w)), axis=1)
         problem = GridProblem(prior, obs, prec, np.arange(h), np.arange(w), prior, Kernel(0.5, 1.5, 15.0))
         m1, v1 = ExactEngine().solve(problem)
-        m2, v2 = FastEngine().solve(problem)
+        engine = FastEngine(route=route)
+        m2, v2 = engine.solve(problem)
+        assert engine.last_route == ("neumann" if balanced and route == "auto" else "grid")
         depth_range = np.ptp(m1)
         assert np.sqrt(np.mean((m1 - m2) ** 2)) < 1e-8 * depth_range
         np.testing.assert_allclose(np.sqrt(v2), np.sqrt(v1), rtol=1e-7)

@@ -49,10 +49,13 @@ the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 i
 The set-up (tree, index maps, prior precision, read-out) runs once per resolution and kernel
 with NumPy and is cached.
 
-Few observed pixels (the residual formulation with sparse points) and nu = 0.5 take another
-exact route when its cost model says it is cheaper: Woodbury over the observed pixels with the
-exponential kernel's recursive filtering (`gpdepth3d.gp.woodbury`), O(m^3 + m^2 + n) for m
-points and n output pixels instead of O(n^1.5) (``route=`` forces either).
+With nu = 0.5 two other routes compute the same posterior when the cost model says they are
+cheaper (``route=`` forces any): few observed pixels (the residual formulation with sparse
+points) take Woodbury over those pixels with the exponential kernel's recursive filtering
+(`gpdepth3d.gp.woodbury`, exact, O(m^3 + m^2 + n) for m points and n output pixels), and a
+precision that the observations make diagonally dominant (the paper's balanced set-up: the
+stencil's couplings are ~2 % of the diagonal) takes a Neumann series with a certified bound
+(`gpdepth3d.gp.neumann`, O(n) with a few terms, relative error <= 1e-10 on the variances).
 """
 
 from __future__ import annotations
@@ -68,6 +71,7 @@ from ..errors import InvalidInputError, ShapeError
 from .markov import chain_precision, readout_weights, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
+from .neumann import NEUMANN_MEAN_TOL, NEUMANN_VAR_TOL, NeumannPosterior
 from .woodbury import WoodburyPosterior, woodbury_seconds
 
 
@@ -858,11 +862,14 @@ class FastEngine:
             first seen) with single-threaded BLAS.
         backend: "compiled" (numba + LAPACK, `gpdepth3d.gp.multifrontal`; CPU only), "torch"
             (batched torch kernels; any device) or "auto" (compiled on the CPU, torch elsewhere).
-        route: "auto" (compiled back-end: the cheaper of the two by a cost model; torch
-            back-end: the grid), "grid" (the sparse precision over the pixel grid, any nu) or
-            "woodbury" (nu = 0.5 only: dense algebra over the observed pixels on the CPU,
-            `gpdepth3d.gp.woodbury`; for a few thousand points at most). ``last_route`` tells
-            which one the last call took.
+        route: "auto" (compiled back-end: the cheapest that applies, by a cost model; torch
+            back-end: the grid), "grid" (the sparse precision over the pixel grid, any nu),
+            "woodbury" (nu = 0.5: dense algebra over the observed pixels on the CPU,
+            `gpdepth3d.gp.woodbury`; for a few thousand points at most) or "neumann" (nu = 0.5,
+            every pixel observed strongly enough that the precision is diagonally dominant, as
+            in the paper's balanced set-up, output on the input grid: a series with a certified
+            error bound, `gpdepth3d.gp.neumann`). ``last_route`` tells which one the last call
+            took. The log marginal likelihood uses the grid or Woodbury.
         prior_cache_mb: Compiled back-end: memory allowed for the factor of the prior alone
             (`PriorFactor`, one per engine), which the frames of a sequence reuse for every
             front their observations do not reach. It is built from the second frame with the
@@ -901,8 +908,8 @@ class FastEngine:
         if not isinstance(prior_cache_mb, (int, float, np.integer, np.floating)) or not prior_cache_mb >= 0:
             raise InvalidInputError("prior_cache_mb", "a number >= 0", prior_cache_mb)
         self.prior_cache_mb = float(prior_cache_mb)
-        if route not in ("auto", "grid", "woodbury"):
-            raise InvalidInputError("route", "'auto', 'grid' or 'woodbury'", route)
+        if route not in ("auto", "grid", "woodbury", "neumann"):
+            raise InvalidInputError("route", "'auto', 'grid', 'woodbury' or 'neumann'", route)
         self.route = route
         self.last_route: str | None = None  # the route the last solve took ("grid" / "woodbury")
         self._prior_factor: tuple | None = None  # (key, PriorFactor)
@@ -975,28 +982,49 @@ class FastEngine:
         """torch's thread setting for the torch back-end (the compiled one sets its own)."""
         return _torch_threads(self.threads) if self.backend == "torch" else nullcontext()
 
-    def _woodbury(self, problem: GridProblem, variance: bool) -> bool:
-        """Whether ``problem`` takes the Woodbury route (see ``route``)."""
+    def _route(self, problem: GridProblem, variance: bool, *, lml: bool = False):
+        """(route, its posterior object or None) for ``problem`` (see ``route``); sets ``last_route``."""
         k = problem.kernel
-        if self.route == "grid" or (self.route == "auto" and (k.nu != 0.5 or self.backend == "torch")):
+        route = self.route
+        if route == "grid" or (route == "auto" and (k.nu != 0.5 or self.backend == "torch")):
             self.last_route = "grid"
-            return False
+            return "grid", None
         if k.nu != 0.5:
-            raise InvalidInputError("route", "'auto' or 'grid' for nu != 0.5 ('woodbury' needs nu = 0.5)", self.route)
-        if self.route == "woodbury":
-            use = True
+            raise InvalidInputError("route", f"'auto' or 'grid' for nu = {k.nu} ('{route}' needs nu = 0.5)", route)
+        if route == "neumann" and lml:
+            raise InvalidInputError("route", "'auto', 'grid' or 'woodbury' for the log marginal likelihood", route)
+        prec = np.asarray(problem.precision, dtype=np.float64)
+        h, w = problem.shape
+        ho, wo = problem.out_shape
+        choice, payload = "grid", None
+        if route == "woodbury":
+            choice = "woodbury"
+        elif route == "neumann":
+            if not problem.output_is_input:
+                raise InvalidInputError("route", "'auto', 'grid' or 'woodbury' for an output grid other than the input", route)
+            payload = NeumannPosterior(problem)
+            if payload.terms(NEUMANN_MEAN_TOL) is None:
+                raise InvalidInputError(
+                    "route", "'auto' or 'grid': the precision is not diagonally dominant enough for 'neumann'",
+                    f"rho = {payload.rho:.3g}")
+            choice = "neumann"
         else:
-            prec = np.asarray(problem.precision, dtype=np.float64)
             m = int(np.count_nonzero(prec > 0))
-            h, w = problem.shape
-            ho, wo = problem.out_shape
-            grid_s = (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 / _GRID_FLOPS_PER_S
+            costs = {"grid": (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 / _GRID_FLOPS_PER_S}
             # Woodbury computes s^2 (1 - quadratic form): near a point whose noise is tiny against s
             # that cancels (error ~1e-16 s^2 cond(A), cond(A) <= 1 + m s^2 / noise); the grid does not.
-            well_conditioned = m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR
-            use = well_conditioned and woodbury_seconds(m, ho * wo, variance) < grid_s
-        self.last_route = "woodbury" if use else "grid"
-        return use
+            if m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR:
+                costs["woodbury"] = woodbury_seconds(m, ho * wo, variance)
+            if not lml and m >= 0.9 * h * w and problem.output_is_input:  # (nearly) every pixel observed
+                candidate = NeumannPosterior(problem)
+                t = candidate.seconds(variance)
+                if t is not None:
+                    costs["neumann"], payload = t, candidate
+            choice = min(costs, key=costs.get)
+            if choice != "neumann":
+                payload = None
+        self.last_route = choice
+        return choice, payload
 
     # -- public
     def factorize(self, problem: GridProblem):
@@ -1043,9 +1071,13 @@ class FastEngine:
             variance: Also compute the marginal variances (selected inversion).
         """
         _check_problem(problem)
-        if self._woodbury(problem, variance):
+        route, post = self._route(problem, variance)
+        if route == "woodbury":
             post = WoodburyPosterior(problem, self._woodbury_buffers)
             return post.mean(), (post.variance() if variance else None)
+        if route == "neumann":
+            mean = post.mean(post.terms(NEUMANN_MEAN_TOL))
+            return mean, (post.variance(post.terms(NEUMANN_VAR_TOL)) if variance else None)
         factor, tree, prior, real_vars, mu, _, _ = self._posterior_states(problem)
         h, w = problem.shape
         k = problem.kernel
@@ -1081,7 +1113,7 @@ class FastEngine:
         from the Cholesky factor and log det Q from the 1-D chains.
         """
         _check_problem(problem)
-        if self._woodbury(problem, False):
+        if self._route(problem, False, lml=True)[0] == "woodbury":
             return WoodburyPosterior(problem).log_marginal_likelihood()
         factor, tree, prior, real_vars, mu, prec, resid = self._posterior_states(problem)
         k = problem.kernel
