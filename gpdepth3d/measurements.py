@@ -185,10 +185,15 @@ class SparseDepth:
             return SparseDepth.empty(shape)
         row, col = self.pixel_indices(shape)
         flat = row * shape[1] + col
-        order = np.lexsort((self.depth, flat))  # by pixel, then nearest first
-        first = np.ones(order.shape, dtype=bool)
-        first[1:] = flat[order][1:] != flat[order][:-1]
-        keep = order[first]
+        slot = np.full(shape[0] * shape[1], -1, dtype=np.int64)
+        slot[flat] = np.arange(flat.size)
+        if np.count_nonzero(slot >= 0) == flat.size:  # one point per pixel: order by pixel, no sort
+            keep = slot[slot >= 0]
+        else:
+            order = np.lexsort((self.depth, flat))  # by pixel, then nearest first
+            first = np.ones(order.shape, dtype=bool)
+            first[1:] = flat[order][1:] != flat[order][:-1]
+            keep = order[first]
         return SparseDepth(
             col[keep].astype(np.float64), row[keep].astype(np.float64), self.depth[keep], shape, self.sigma[keep]
         )

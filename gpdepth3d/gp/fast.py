@@ -915,6 +915,7 @@ class FastEngine:
         self._prior_factor: tuple | None = None  # (key, PriorFactor)
         self._kernel_uses: dict = {}
         self._woodbury_buffers: dict = {}  # image buffers of the Woodbury route, per output shape
+        self._neumann_buffers: dict = {}  # coefficient buffer of the Neumann route
         self.device = device
         self.tile = tile
         self.leaf_pixels = leaf_pixels
@@ -1003,7 +1004,7 @@ class FastEngine:
             if not problem.output_is_input:
                 raise InvalidInputError("route", "'auto', 'grid' or 'woodbury' for an output grid other than the input", route)
             payload = NeumannPosterior(problem)
-            if payload.terms(NEUMANN_MEAN_TOL) is None:
+            if payload.terms(NEUMANN_MEAN_TOL) is None or (variance and payload.seconds(True) is None):
                 raise InvalidInputError(
                     "route", "'auto' or 'grid': the precision is not diagonally dominant enough for 'neumann'",
                     f"rho = {payload.rho:.3g}")
@@ -1016,12 +1017,15 @@ class FastEngine:
             if m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR:
                 costs["woodbury"] = woodbury_seconds(m, ho * wo, variance)
             if not lml and m >= 0.9 * h * w and problem.output_is_input:  # (nearly) every pixel observed
-                candidate = NeumannPosterior(problem)
+                candidate = NeumannPosterior(problem, self._neumann_buffers)
                 t = candidate.seconds(variance)
                 if t is not None:
                     costs["neumann"], payload = t, candidate
+                else:
+                    candidate.release()
             choice = min(costs, key=costs.get)
-            if choice != "neumann":
+            if choice != "neumann" and payload is not None:
+                payload.release()
                 payload = None
         self.last_route = choice
         return choice, payload
@@ -1076,8 +1080,11 @@ class FastEngine:
             post = WoodburyPosterior(problem, self._woodbury_buffers)
             return post.mean(), (post.variance() if variance else None)
         if route == "neumann":
-            mean = post.mean(post.terms(NEUMANN_MEAN_TOL))
-            return mean, (post.variance(post.terms(NEUMANN_VAR_TOL)) if variance else None)
+            try:
+                mean = post.mean(post.terms(NEUMANN_MEAN_TOL))
+                return mean, (post.variance(post.terms(NEUMANN_VAR_TOL)) if variance else None)
+            finally:
+                post.release()
         factor, tree, prior, real_vars, mu, _, _ = self._posterior_states(problem)
         h, w = problem.shape
         k = problem.kernel
