@@ -136,7 +136,8 @@ def _diag_series(coef, h, w, terms):
     """(H, W) image of sum_{k <= terms} (E^k)_ii by local walks (see the module docstring).
 
     Per pixel i, v_j = E^j e_i lives on a flat window of side S around i (cell a * S + b is pixel
-    (r + a - C, c + b - C), C the centre); v_1 is the pixel's own coefficients (E symmetric).
+    (r + a - C, c + b - C), C the centre). v_(j+1) = E v_j is scattered from the support of v_j:
+    cell q adds v_j[q] times its own 8 coefficients (E symmetric: E[q + d, q] = E[q, q + d]).
     """
     J = (terms + 1) // 2
     S = 2 * J + 3  # v_j has radius <= J; one zero border
@@ -148,42 +149,41 @@ def _diag_series(coef, h, w, terms):
         va = np.zeros(S * S)
         vb = np.zeros(S * S)
         for c in range(w):
-            e0 = ((r + _PAD) * ws + c + _PAD) * 8
             total = 1.0
-            if terms >= 2:
-                va[:] = 0.0
-                k = 0
-                for dr in range(-1, 2):
-                    for dc in range(-1, 2):
-                        if dr == 0 and dc == 0:
+            va[:] = 0.0
+            va[C * S + C] = 1.0  # v_0 = e_i
+            for j in range(1, J + 1):
+                for a in range(C - j, C + j + 1):  # v_j's support, cleared
+                    for b in range(C - j, C + j + 1):
+                        vb[a * S + b] = 0.0
+                for a in range(C - j + 1, C + j):  # scatter from v_(j-1)'s support
+                    for b in range(C - j + 1, C + j):
+                        x = va[a * S + b]
+                        if x == 0.0:
                             continue
-                        v = flat[e0 + k]  # E[i + d, i] = E[i, i + d]
-                        va[(C + dr) * S + C + dc] = v
-                        total += v * v  # (E^2)_ii = |v_1|^2
-                        k += 1
-            for j in range(2, J + 1):
-                lo, hi = C - j, C + j + 1
-                last_odd = 2 * j > terms  # only (E^(2j-1))_ii = v_(j-1) . E v_(j-1) is left
-                if last_odd:
-                    lo, hi = lo + 1, hi - 1
-                dot_prev = 0.0
-                norm2 = 0.0
-                for a in range(lo, hi):
-                    for b in range(lo, hi):
-                        x = a * S + b
+                        q = a * S + b
                         f = ((r + a - C + _PAD) * ws + c + b - C + _PAD) * 8
-                        acc = (flat[f] * va[x - S - 1] + flat[f + 1] * va[x - S] + flat[f + 2] * va[x - S + 1]
-                               + flat[f + 3] * va[x - 1] + flat[f + 4] * va[x + 1] + flat[f + 5] * va[x + S - 1]
-                               + flat[f + 6] * va[x + S] + flat[f + 7] * va[x + S + 1])
-                        vb[x] = acc
-                        dot_prev += acc * va[x]
-                        norm2 += acc * acc
+                        vb[q - S - 1] += flat[f] * x
+                        vb[q - S] += flat[f + 1] * x
+                        vb[q - S + 1] += flat[f + 2] * x
+                        vb[q - 1] += flat[f + 3] * x
+                        vb[q + 1] += flat[f + 4] * x
+                        vb[q + S - 1] += flat[f + 5] * x
+                        vb[q + S] += flat[f + 6] * x
+                        vb[q + S + 1] += flat[f + 7] * x
+                dot_prev = 0.0
+                for a in range(C - j + 1, C + j):
+                    for b in range(C - j + 1, C + j):
+                        dot_prev += va[a * S + b] * vb[a * S + b]
                 total += dot_prev  # (E^(2j-1))_ii = v_(j-1) . v_j
-                if not last_odd:
+                if 2 * j <= terms:
+                    norm2 = 0.0
+                    for a in range(C - j, C + j + 1):
+                        for b in range(C - j, C + j + 1):
+                            v = vb[a * S + b]
+                            norm2 += v * v
+                            va[a * S + b] = v
                     total += norm2  # (E^(2j))_ii = |v_j|^2
-                    for a in range(lo, hi):
-                        for b in range(lo, hi):
-                            va[a * S + b] = vb[a * S + b]
             out[r, c] = total
     return out
 
