@@ -112,8 +112,11 @@ class TestRoute:
             FastEngine(route="neumann").solve(balanced_problem(rng, 10, 12, hole=4))
         with pytest.raises(InvalidInputError, match="route"):
             FastEngine(route="neumann").solve(balanced_problem(rng, 10, 12, out=(20, 24)))
-        with pytest.raises(InvalidInputError, match="route"):
-            FastEngine(route="neumann").log_marginal_likelihood(balanced_problem(rng, 10, 12))
+        forced = FastEngine(route="neumann")
+        problem = balanced_problem(rng, 10, 12)
+        assert forced.log_marginal_likelihood(problem) == pytest.approx(
+            FastEngine(route="grid").log_marginal_likelihood(problem), rel=1e-12)
+        assert forced.last_route == "grid"  # the series has no log-determinant
         nu15 = balanced_problem(rng, 10, 12)
         nu15 = GridProblem(nu15.prior_mean, nu15.obs, nu15.precision, nu15.out_rows, nu15.out_cols,
                            nu15.out_prior_mean, Kernel(1.5, 1.5, 1.0))
@@ -140,3 +143,16 @@ def test_real_kitti_frame_routes_agree(shared_data):
     depth_range = float(np.ptp(lidar[lidar > 0]))
     assert np.max(np.abs(a.mean - g.mean)) < 1e-10 * depth_range
     np.testing.assert_allclose(a.std, g.std, rtol=1e-10)
+
+
+def test_concurrent_callers_share_an_engine():
+    from concurrent.futures import ThreadPoolExecutor
+
+    problems = [balanced_problem(np.random.default_rng(60 + k), 50 + 10 * (k % 2), 70) for k in range(6)]
+    engine = FastEngine(route="neumann")
+    serial = [engine.solve(p) for p in problems]
+    with ThreadPoolExecutor(4) as pool:
+        parallel = list(pool.map(engine.solve, problems))
+    for (m0, v0), (m1, v1) in zip(serial, parallel):
+        np.testing.assert_array_equal(m1, m0)
+        np.testing.assert_array_equal(v1, v0)
