@@ -7,7 +7,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from gpdepth3d.cli import main
 from gpdepth3d.complete import DepthPosterior
