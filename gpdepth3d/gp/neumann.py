@@ -35,6 +35,7 @@ import numpy as np
 
 from .markov import chain_precision
 from .model import GridProblem
+from .multifrontal import numeric_section
 
 # Tolerances of the series (bounds on the omitted terms): relative to max |M^-1/2 b| for the mean
 # (the error of a pixel's mean is at most sqrt(max M / M_i) times that, times the largest
@@ -214,7 +215,8 @@ class NeumannPosterior:
         if coef is None or coef.shape != shape:
             coef = np.zeros(shape)
         self._workspace = workspace
-        self.M, self.isq, self.coef, rho = _coefficients(dv, ov, du, ou, prec, 1.0 / float(k.outputscale) ** 2, coef)
+        with numeric_section():  # numba parallel regions: one at a time per process
+            self.M, self.isq, self.coef, rho = _coefficients(dv, ov, du, ou, prec, 1.0 / float(k.outputscale) ** 2, coef)
         self.rho = float(rho)
 
     def release(self) -> None:
@@ -252,7 +254,8 @@ class NeumannPosterior:
         p = self.problem
         prec = np.asarray(p.precision, np.float64)
         b = np.where(prec > 0, prec * (np.asarray(p.obs, np.float64) - np.asarray(p.prior_mean, np.float64)), 0.0)
-        z = _neumann_mean(self.coef, b * self.isq, int(terms))
+        with numeric_section():
+            z = _neumann_mean(self.coef, b * self.isq, int(terms))
         return np.asarray(p.out_prior_mean, np.float64) + z * self.isq
 
     def variance(self, terms: int) -> np.ndarray:
@@ -260,4 +263,5 @@ class NeumannPosterior:
         if not 0 <= terms <= MAX_VARIANCE_TERMS:
             raise ValueError(f"internal error: terms must be in [0, {MAX_VARIANCE_TERMS}], got {terms}")
         h, w = self.M.shape
-        return _diag_series(self.coef, h, w, int(terms)) / self.M
+        with numeric_section():
+            return _diag_series(self.coef, h, w, int(terms)) / self.M
