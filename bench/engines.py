@@ -18,9 +18,10 @@ Inputs (real sensor data, simulated MDE):
 The MDE input is SIMULATED from the data (no network here): the depth with holes filled by the
 nearest valid value, Gaussian-smoothed (sigma 4 px), scaled by 1.05 and with 3 % multiplicative
 noise. The model is the paper's balanced set-up for KITTI and the residual set-up for 7-Scenes
-unless named otherwise. Engines: ``fast`` (its automatic route: the sparse grid precision, or
-Woodbury over the points for few points with nu = 0.5; the row says which), ``fast-grid`` (the
-grid route forced), ``fast-torch`` (the grid route's torch back-end), ``kissgp``, ``exact``.
+unless named otherwise. Engines: ``fast`` (its automatic route, the row says which: the sparse
+grid precision; with nu = 0.5 Woodbury over few points or the Neumann series of an
+observation-dominated precision), ``fast-grid`` (the grid route forced), ``fast-torch`` (the grid
+route's torch back-end), ``kissgp``, ``exact``.
 
 Each (engine, size) runs in its own subprocess: peak RSS is that process's maximum resident set
 (``resource.getrusage``) minus the RSS after imports and data loading. Times: ``first`` is the

@@ -1143,9 +1143,9 @@ class FastEngine:
 
 
 # Cost model of the grid route (nu = 0.5) that picks a route: nested dissection of an n-pixel
-# grid takes ~22 n^1.5 flops to factorise and ~60 n^1.5 more for the selected inverse
-# (`FrontTree.flops` at 64 x 64 to 352 x 1216), sustained at ~12 GFLOPS on the 2-core CI machine
-# (1.8 GFLOP in ~130 ms at 320 x 240).
+# grid takes ~22 n^1.5 flops to factorise and ~60 n^1.5 more for the selected inverse (dense-front
+# counts over this module's trees, 64 x 64 to 352 x 1216), sustained at ~12 GFLOPS on the 2-core
+# CI machine (1.8 GFLOP in ~130 ms at 320 x 240).
 _GRID_FLOPS_PER_S = 12e9
 # "auto" leaves problems with a point of signal-to-noise variance ratio s^2 / noise above this to
 # the grid route (Woodbury's cancellation would cost more than ~1e-6 of the variance there).

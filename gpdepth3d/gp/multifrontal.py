@@ -613,12 +613,6 @@ class FrontTree:
             seq_order=np.asarray(seq, dtype=np.int64), seq_vars=seq_vars.astype(np.int64), seq_slot=seq_slot,
         )
 
-    def flops(self) -> tuple[float, float]:
-        """(factorisation, selected inversion) flop counts of the dense fronts (a cost model)."""
-        no, nbv = self.no.astype(np.float64), self.nb.astype(np.float64)
-        factor = no**3 / 3 + no * no * nbv + no * nbv * nbv
-        return float(factor.sum()), float((2 * factor + no * nbv * nbv).sum())
-
     @property
     def prior_bytes(self) -> int:
         """Memory of a `PriorFactor` of this tree (bytes)."""
