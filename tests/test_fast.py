@@ -30,6 +30,18 @@ def random_problem(rng, h, w, *, nu=0.5, lengthscale=2.0, s=1.3, frac=0.3, out=N
     )
 
 
+def assert_thread_safe(engine, problems):
+    """Solving ``problems`` on one engine from 4 threads at once gives the serial answers."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    serial = [engine.solve(p) for p in problems]
+    with ThreadPoolExecutor(4) as pool:
+        parallel = list(pool.map(engine.solve, problems))
+    for (m0, v0), (m1, v1) in zip(serial, parallel):
+        np.testing.assert_allclose(m1, m0, atol=1e-12)
+        np.testing.assert_allclose(v1, v0, rtol=1e-12)
+
+
 class TestMarkov:
     @pytest.mark.parametrize("nu", [0.5, 1.5, 2.5])
     def test_chain_precision_inverts_matern(self, nu):

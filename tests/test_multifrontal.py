@@ -11,7 +11,7 @@ from gpdepth3d.gp.fast import FastEngine
 from gpdepth3d.gp.model import GridProblem, Kernel
 from gpdepth3d.gp.multifrontal import FrontalFactor, FrontTree
 
-from test_fast import random_problem
+from test_fast import assert_thread_safe, random_problem
 
 
 def arrow_system(rng, sizes=(3, 4, 2, 5)):
@@ -171,16 +171,8 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
 
 
 def test_concurrent_callers_get_their_own_answers():
-    from concurrent.futures import ThreadPoolExecutor
-
     problems = [random_problem(np.random.default_rng(20 + k), 26, 34, balanced=k % 2 == 0) for k in range(6)]
-    engine = FastEngine(tile=8)
-    serial = [engine.solve(p) for p in problems]
-    with ThreadPoolExecutor(4) as pool:
-        parallel = list(pool.map(engine.solve, problems))
-    for (m0, v0), (m1, v1) in zip(serial, parallel):
-        np.testing.assert_allclose(m1, m0, atol=1e-12)
-        np.testing.assert_allclose(v1, v0, rtol=1e-12)
+    assert_thread_safe(FastEngine(tile=8, route="grid"), problems)
 
 
 def test_alternating_resolutions_with_a_one_entry_cache():

@@ -13,6 +13,8 @@ from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel, output_coordi
 from gpdepth3d.gp.neumann import NEUMANN_MEAN_TOL, NEUMANN_VAR_TOL, NeumannPosterior
 from gpdepth3d.measurements import SparseDepth
 
+from test_fast import assert_thread_safe
+
 
 def balanced_problem(rng, h, w, *, lengthscale=1.5, s=1.0, sigma_dl=0.05, points=60, holes=0, hole=0, out=None):
     """The paper's balanced set-up in relative units: every pixel an MDE observation, some precise points.
@@ -146,13 +148,5 @@ def test_real_kitti_frame_routes_agree(shared_data):
 
 
 def test_concurrent_callers_share_an_engine():
-    from concurrent.futures import ThreadPoolExecutor
-
     problems = [balanced_problem(np.random.default_rng(60 + k), 50 + 10 * (k % 2), 70) for k in range(6)]
-    engine = FastEngine(route="neumann")
-    serial = [engine.solve(p) for p in problems]
-    with ThreadPoolExecutor(4) as pool:
-        parallel = list(pool.map(engine.solve, problems))
-    for (m0, v0), (m1, v1) in zip(serial, parallel):
-        np.testing.assert_array_equal(m1, m0)
-        np.testing.assert_array_equal(v1, v0)
+    assert_thread_safe(FastEngine(route="neumann"), problems)

@@ -14,6 +14,8 @@ from gpdepth3d.gp.multifrontal import inverse_from_cholesky
 from gpdepth3d.gp.woodbury import WoodburyPosterior, woodbury_seconds
 from gpdepth3d.measurements import SparseDepth
 
+from test_fast import assert_thread_safe
+
 
 def sparse_problem(rng, h, w, m, *, lengthscale=5.0, s=0.8, out_rows=None, out_cols=None, nu=0.5):
     """Residual-style GridProblem: m observed pixels with their own noise, random prior mean (metres)."""
@@ -181,13 +183,5 @@ def test_real_frame_routes_agree(seven_scenes_frame):
 
 
 def test_concurrent_callers_share_an_engine():
-    from concurrent.futures import ThreadPoolExecutor
-
     problems = [sparse_problem(np.random.default_rng(40 + k), 30, 37, 20 + 5 * k, lengthscale=4.0) for k in range(6)]
-    engine = FastEngine(route="woodbury")
-    serial = [engine.solve(p) for p in problems]
-    with ThreadPoolExecutor(4) as pool:
-        parallel = list(pool.map(engine.solve, problems))
-    for (m0, v0), (m1, v1) in zip(serial, parallel):
-        np.testing.assert_array_equal(m1, m0)
-        np.testing.assert_array_equal(v1, v0)
+    assert_thread_safe(FastEngine(route="woodbury"), problems)
