@@ -22,7 +22,7 @@ separators between tiles are eliminated by a nested dissection of the tile latti
 structure, index maps and prior precision are cached per resolution and kernel. Marginal
 variances diag(P^-1) come from the selected inverse computed top-down over the same fronts
 (Takahashi / Erisman-Tinney recursions): exact, no sampling.
-No approximation is made anywhere; results equal the dense `exact` engine to rounding.
+On this (grid) route no approximation is made anywhere; results equal the dense `exact` engine to rounding.
 
 Output grids other than the input grid (finer, coarser or shifted) are exact too: conditioned
 on all grid states, f at an off-grid point depends only on the states of the 2 x 2 surrounding
