@@ -185,11 +185,13 @@ class SparseDepth:
             return SparseDepth.empty(shape)
         row, col = self.pixel_indices(shape)
         flat = row * shape[1] + col
-        slot = np.full(shape[0] * shape[1], -1, dtype=np.int64)
-        slot[flat] = np.arange(flat.size)
-        if np.count_nonzero(slot >= 0) == flat.size:  # one point per pixel: order by pixel, no sort
-            keep = slot[slot >= 0]
-        else:
+        keep = None
+        if shape[0] * shape[1] <= 16 * flat.size:  # dense points: a pixel table instead of a sort
+            slot = np.full(shape[0] * shape[1], -1, dtype=np.int64)
+            slot[flat] = np.arange(flat.size)
+            if np.count_nonzero(slot >= 0) == flat.size:  # one point per pixel: ordered by pixel
+                keep = slot[slot >= 0]
+        if keep is None:
             order = np.lexsort((self.depth, flat))  # by pixel, then nearest first
             first = np.ones(order.shape, dtype=bool)
             first[1:] = flat[order][1:] != flat[order][:-1]

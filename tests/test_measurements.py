@@ -153,6 +153,18 @@ class TestRasterize:
         np.testing.assert_array_equal(np.sort(fine.depth), [1.0, 2.0, 3.0])
         np.testing.assert_allclose(np.sort(fine.u), [0.0, 2.0, 8.0])  # 2u + 0.5 on the tie, rounded to even
 
+    @pytest.mark.parametrize("n", [5, 100, 300, 2000])  # sparse (sorted) and dense (pixel table) points
+    def test_pixel_order_and_nearest_at_any_density(self, n):
+        rng = np.random.default_rng(n)
+        flat = rng.choice(40 * 60, n, replace=False)
+        u, v = (flat % 60).astype(float), (flat // 60).astype(float)
+        r = sd(u, v, rng.uniform(1.0, 9.0, n), size=(40, 60)).rasterize()
+        order = np.argsort(flat)
+        np.testing.assert_array_equal(r.u, u[order])  # one point per pixel: all kept, by pixel
+        np.testing.assert_array_equal(r.v, v[order])
+        twice = sd(np.r_[u, u], np.r_[v, v], np.r_[np.full(n, 5.0), np.full(n, 2.0)], size=(40, 60)).rasterize()
+        assert len(twice) == n and np.all(twice.depth == 2.0)  # two per pixel: the nearer
+
     def test_to_depth_map_matches(self):
         s = sd([0.4, 0.2, 3], [0, 0.3, 2], [4.0, 2.0, 1.0])
         m = s.to_depth_map()
