@@ -201,19 +201,17 @@ class _Axis:
         return np.stack([ge, end]).astype(np.int64), np.stack([vb, vf])
 
     def workspace(self, other: "_Axis", store: dict | None):
-        """All-zero impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3), reused through ``store``.
+        """All-zero impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3).
 
-        `_filter` clears the buffer as it reads it; a buffer is handed out again only if the
-        call that had it got that far (``store["clean"]``).
+        Taken from ``store["free"]`` when it has this shape (``dict.pop``: one taker at a time), else
+        new. `_filter` clears the buffer as it reads it, and `WoodburyPosterior._filtered` puts
+        the pair back only then, so a buffer in the store is always zero.
         """
         shape = (self.n + 1, other.n + 1, 9)
-        if store is not None and store.get("shape") == shape and store.pop("clean", False):
-            return store["buffers"]
-        buf, g = np.zeros(shape), np.zeros((self.n + 1, other.n, 3))
-        if store is not None:
-            store.clear()
-            store.update(shape=shape, buffers=(buf, g))
-        return buf, g
+        free = store.pop("free", None) if store is not None else None
+        if free is not None and free[0].shape == shape:
+            return free
+        return np.zeros(shape), np.zeros((self.n + 1, other.n, 3))
 
 
 def woodbury_seconds(m: int, n_out: int, variance: bool) -> float:
@@ -277,8 +275,8 @@ class WoodburyPosterior:
         ra, ca = self._rows_axis, self._cols_axis
         out = np.empty((ra.n, ca.n))
         _filter(buf, ra.decay(rate), ca.decay(rate), g, out, interval)
-        if self._store is not None and self._store.get("buffers", (None,))[0] is buf:
-            self._store["clean"] = True
+        if self._store is not None:
+            self._store["free"] = (buf, g)  # all zero again
         return self._unsort(out)
 
     def mean(self) -> np.ndarray:
