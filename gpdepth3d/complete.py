@@ -25,7 +25,6 @@ import numpy as np
 from .errors import DataFormatError, EmptyInputError, InvalidDepthError, ShapeError, describe
 from .gp import make_engine
 from .gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
-from .io import save_depth_png, save_npz
 from .mde.align import AlignmentResult, align_depth
 from .measurements import SparseDepth
 
@@ -65,15 +64,30 @@ class DepthPosterior:
         return self.mean.shape  # type: ignore[return-value]
 
     def save(self, path: str | Path, *, png: bool = False) -> list[Path]:
-        """Writes ``mean``, ``variance``, ``std`` and ``mde`` to an ``.npz`` (atomically).
+        """Writes ``mean``, ``variance``, ``std`` and ``mde`` to ``<path>.npz``, as one set with the PNGs.
 
         With ``png=True`` also writes ``<stem>_mean.png`` and ``<stem>_std.png`` as 16-bit PNG in
-        the KITTI convention (value = metres * 256). Returns the written paths.
+        the KITTI convention (value = metres * 256, so depths up to 256 m). Everything is
+        validated before anything is written, and the files of one call appear together or not
+        at all (`gpdepth3d.io.atomic_write_set`: a kill, a full disk or a concurrent save of the
+        same path leaves the complete old set or the complete new set; PNGs of an earlier call
+        with ``png=True`` do not survive a later ``png=False`` call).
+
+        Returns:
+            The written paths (npz first).
+
+        Raises:
+            OutputError: the path is empty or a directory, or a file cannot be written.
+            InvalidDepthError: ``png=True`` and a mean or std exceeds the PNG range (256 m).
         """
-        path = Path(path).with_suffix(".npz")
-        written = [
-            save_npz(
-                path,
+        from .io import atomic_write_set, check_output_path, depth_png_values, npz_writer, png_writer
+
+        path = check_output_path(path)
+        path = path.with_suffix(".npz")
+        stem = path.stem
+        npz_name, png_names = f"{stem}.npz", (f"{stem}_mean.png", f"{stem}_std.png")
+        writers = {
+            npz_name: npz_writer(
                 mean=self.mean.astype(np.float32),
                 variance=self.variance.astype(np.float32),
                 std=self.std.astype(np.float32),
@@ -83,11 +97,14 @@ class DepthPosterior:
                 depth_scale=np.float64(self.depth_scale),
                 alignment=np.array([self.alignment.scale, self.alignment.shift]),
             )
-        ]
+        }
         if png:
-            written.append(save_depth_png(path.with_name(path.stem + "_mean.png"), self.mean))
-            written.append(save_depth_png(path.with_name(path.stem + "_std.png"), self.std))
-        return written
+            for name, values, arg in (
+                (png_names[0], self.mean, "mean"),
+                (png_names[1], self.std, "std"),
+            ):
+                writers[name] = png_writer(depth_png_values(values, argument=f"posterior {arg} (png=True)"), path.parent / name)
+        return atomic_write_set(path.with_suffix(""), writers, members=(npz_name, *png_names))
 
     @classmethod
     def load(cls, path: str | Path, config: DepthGPConfig | None = None) -> "DepthPosterior":

@@ -54,6 +54,26 @@ class DataFormatError(GPDepthError, ValueError):
         super().__init__(f"{path}: {problem}")
 
 
+class OutputError(GPDepthError, OSError):
+    """An output cannot be written: a read-only folder, a full disk, a directory or a file in the way.
+
+    Attributes:
+        path: The output that could not be written.
+        problem: What went wrong, in words.
+    """
+
+    def __init__(self, path: Any, problem: str):
+        self.path = path
+        self.problem = problem
+        super().__init__(f"{path}: cannot write: {problem}")
+
+    def __str__(self) -> str:
+        return f"{self.path}: cannot write: {self.problem}"
+
+    def __reduce__(self):  # picklable across Dask workers
+        return (type(self), (self.path, self.problem))
+
+
 class ProblemTooLargeError(GPDepthError, MemoryError):
     """A problem exceeds the size an engine accepts (for example the dense `exact` engine)."""
 

@@ -195,7 +195,10 @@ class TestLoadDepth:
 class TestLoadSparse:
     def test_npz_point_list(self, tmp_path):
         np.savez(tmp_path / "p.npz", u=[1.0, 50.0], v=[2.0, 1.0], depth=[3.0, 4.0], sigma=[0.1, 0.2])
-        s = load_sparse(tmp_path / "p.npz", (10, 20))  # the second point is outside: dropped
+        with pytest.raises(InvalidDepthError, match="1 of 2 rows"):  # the second point is outside: refused
+            load_sparse(tmp_path / "p.npz", (10, 20))
+        with pytest.warns(UserWarning, match="dropped 1 of 2 rows"):  # or dropped, with its count
+            s = load_sparse(tmp_path / "p.npz", (10, 20), drop_invalid=True)
         assert len(s) == 1 and (s.u[0], s.v[0], s.depth[0], s.sigma[0]) == (1.0, 2.0, 3.0, 0.1)
         with pytest.raises(ShapeError):
             load_sparse(tmp_path / "p.npz")
