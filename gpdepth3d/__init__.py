@@ -35,6 +35,9 @@ from .mapping import Mapper as Mapper
 from .mapping import MapperConfig as MapperConfig
 from .mapping import sparse_from_map_points as sparse_from_map_points
 from .mde import ArrayMDE as ArrayMDE
+from .mde import ONNXDepthModel as ONNXDepthModel
+from .mde import RTMonoDepthONNX as RTMonoDepthONNX
+from .mde import load_frontend as load_frontend
 from .mde import align_depth as align_depth
 from .measurements import LidarCalibration as LidarCalibration
 from .measurements import SparseDepth as SparseDepth

@@ -50,6 +50,8 @@ def complete_command(
     gt_invalid_value: Optional[int] = None,
     output_size: Optional[tuple[int, int]] = None,
     png: bool = True,
+    rgb: Optional[Path] = None,
+    models_dir: Optional[Path] = None,
 ) -> None:
     """Complete one frame: MDE depth + sparse depth -> posterior mean and variance.
 
@@ -57,7 +59,9 @@ def complete_command(
     OUTPUT_std.png (16-bit, KITTI convention value = metres * 256). Prints metrics when --gt is given.
 
     Args:
-        mde: MDE depth map (.npy/.npz in metres, or 16-bit .png with --mde-png-scale).
+        mde: MDE depth map (.npy/.npz in metres, or 16-bit .png with --mde-png-scale); with --rgb instead a
+            front-end that is run on the image: "rtmonodepth" (KITTI, outdoor), "rtmonodepth-mono", "fastdepth"
+            (NYU, indoor) or a .onnx/.tflite model file.
         output: Output path (the .npz suffix is added).
         sparse: Sparse depth: a sparse depth map (.npy/.npz/.png) or a point list (.npz with u, v, depth; .txt lines
             "u v depth [sigma]" in MDE pixels and metres, or "X Y Z" camera-frame metres with --sparse-points xyz).
@@ -76,6 +80,8 @@ def complete_command(
         gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
         output_size: Output HEIGHT WIDTH (default: the MDE size; larger upsamples).
         png: Also write 16-bit PNGs of mean and std.
+        rgb: RGB image to run the front-end named by --mde on (the MDE map is then the network's output).
+        models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
     """
     from .camera import PinholeCamera
     from .complete import DepthCompleter
@@ -84,7 +90,13 @@ def complete_command(
     from .measurements import LidarCalibration, load_velodyne, project_points
     from .metrics import calibration_metrics, depth_metrics
 
-    mde_depth = load_depth(mde, png_scale=mde_png_scale)
+    if rgb is not None:
+        from .io import load_rgb
+        from .mde import load_frontend
+
+        mde_depth = load_frontend(str(mde), models_dir=models_dir)(load_rgb(rgb))
+    else:
+        mde_depth = load_depth(mde, png_scale=mde_png_scale)
     camera = None
     if intrinsics is not None:
         camera = PinholeCamera.from_K(read_matrix(intrinsics, (3, 3), "intrinsics"), mde_depth.shape[1], mde_depth.shape[0])

@@ -1,8 +1,12 @@
 """Monocular depth front-ends and the alignment of relative depth to metric measurements.
 
 Every front-end follows the `MDE` protocol: ``mde(rgb (H, W, 3) uint8) -> depth (H, W) metres``.
-Heavy back-ends (TFLite, torch) are imported only when their front-end is built.
+Heavy back-ends (TFLite, onnxruntime, torch) are imported only when their front-end is built.
+Named presets of the real networks: `load_frontend` ("fastdepth", "rtmonodepth", ...).
 """
+
+import os
+from pathlib import Path
 
 from .align import AlignmentResult as AlignmentResult
 from .align import align_depth as align_depth
@@ -11,6 +15,86 @@ from .array import ArrayMDE as ArrayMDE
 from .array import FileMDE as FileMDE
 from .base import MDE as MDE
 from .base import check_rgb as check_rgb
+from .onnx import ONNXDepthModel as ONNXDepthModel
+from .onnx import RTMonoDepthONNX as RTMonoDepthONNX
+from ..errors import DataFormatError, InvalidInputError
+
+FRONTENDS: dict[str, str] = {
+    "fastdepth": "FastDepth (NYU, indoor), int8 TFLite fast_depth_224.tflite: metres",
+    "rtmonodepth": "RT-MonoDepth-S mono+stereo (KITTI, outdoor), rtmonodepth_s_ms_640_192.onnx: metres",
+    "rtmonodepth-mono": "RT-MonoDepth-S mono-only (KITTI), rtmonodepth_s_m_640_192.onnx: relative depth, no metric scale",
+}
+"""Names accepted by `load_frontend`, with what each is."""
+
+_FRONTEND_FILES = {
+    "fastdepth": "fast_depth_224.tflite",
+    "rtmonodepth": "rtmonodepth_s_ms_640_192.onnx",
+    "rtmonodepth-mono": "rtmonodepth_s_m_640_192.onnx",
+}
+
+
+def default_models_dir() -> Path:
+    """The folder of the real networks: ``$GPDEPTH3D_MODELS``, else the first existing of
+    ``../shared/models`` (from the working directory) and ``shared/models`` beside the repository
+    (``<repo>/../shared/models``); the first candidate when none exists."""
+    env = os.environ.get("GPDEPTH3D_MODELS")
+    if env:
+        return Path(env)
+    candidates = [Path.cwd().parent / "shared" / "models", Path(__file__).resolve().parents[3] / "shared" / "models"]
+    for c in candidates:
+        if c.is_dir():
+            return c
+    return candidates[0]
+
+
+def load_frontend(name_or_path: "str | Path", *, models_dir: "str | Path | None" = None, num_threads: "int | None" = None):
+    """A monocular front-end by preset name or model file.
+
+    Args:
+        name_or_path: A name of `FRONTENDS` ("fastdepth", "rtmonodepth", "rtmonodepth-mono"), or
+            the path of a model file: ``.tflite`` -> `FastDepthTFLite`; ``.onnx`` ->
+            `RTMonoDepthONNX` when the file is a published RT-MonoDepth-S export (recognised by its
+            sha256; metric or not accordingly), else `ONNXDepthModel` with its output read as
+            metres (build `ONNXDepthModel` yourself for disparity outputs).
+        models_dir: Folder of the named models (default `default_models_dir`).
+        num_threads: CPU threads of the runtime (None = its default).
+
+    Returns:
+        A callable ``rgb (H, W, 3) uint8 -> depth (H, W)`` (metres; relative for "rtmonodepth-mono").
+
+    Raises:
+        InvalidInputError: an unknown name (neither a preset nor a .tflite/.onnx path).
+        DataFormatError: the model file is missing or not loadable.
+    """
+    key = str(name_or_path).strip()
+    if key.lower() in _FRONTEND_FILES:
+        key = key.lower()
+        folder = Path(models_dir) if models_dir is not None else default_models_dir()
+        path = folder / _FRONTEND_FILES[key]
+        if not path.is_file():
+            raise DataFormatError(
+                path, f"model of the {key!r} front-end not found (pass models_dir or set GPDEPTH3D_MODELS)"
+            )
+    else:
+        path = Path(key)
+        if path.suffix.lower() not in (".tflite", ".onnx"):
+            raise InvalidInputError(
+                "name_or_path", f"a front-end name from {sorted(FRONTENDS)} or a .tflite/.onnx file", str(name_or_path)
+            )
+        if not path.is_file():
+            raise DataFormatError(path, "model file not found")
+    if path.suffix.lower() == ".tflite":
+        from .tflite import FastDepthTFLite
+
+        return FastDepthTFLite(path, num_threads=num_threads)
+    from .onnx import KNOWN_SHA256, file_sha256
+
+    known = KNOWN_SHA256.get(file_sha256(path))
+    if key == "rtmonodepth-mono" or (known is not None and not known[1]):
+        return RTMonoDepthONNX(path, metric=False, num_threads=num_threads)
+    if key == "rtmonodepth" or known is not None:
+        return RTMonoDepthONNX(path, metric=True, num_threads=num_threads)
+    return ONNXDepthModel(path, output="depth", num_threads=num_threads)
 
 
 def __getattr__(name: str):
