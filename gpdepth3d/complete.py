@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DataFormatError, EmptyInputError, InvalidDepthError, ShapeError, describe
+from .errors import DataFormatError, EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
 from .gp import make_engine
 from .gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
 from .mde.align import AlignmentResult, align_depth
@@ -131,6 +131,42 @@ class DepthPosterior:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
 
+MAX_UPSAMPLING = 16
+"""Largest ratio of an output side to the MDE's side (`check_output_shape`)."""
+MAX_OUTPUT_PIXELS = 2**27
+"""Largest number of output pixels (each output array of float64 then takes up to 1 GiB)."""
+
+
+def check_output_shape(output_shape, input_shape: tuple[int, int]) -> tuple[int, int]:
+    """Validates ``output_shape``: None (the input shape) or two integers (Ho, Wo) >= 1.
+
+    Each side may be at most `MAX_UPSAMPLING` times the input's and the output at most
+    `MAX_OUTPUT_PIXELS` pixels.
+
+    Raises:
+        ShapeError: for anything else (a string, NaN, floats, 1 or 3 sizes, zero, too large).
+    """
+    if output_shape is None:
+        return (int(input_shape[0]), int(input_shape[1]))
+    expected = "None or (Ho, Wo): two integers >= 1"
+    if isinstance(output_shape, (str, bytes)) or not hasattr(output_shape, "__len__") or len(output_shape) != 2:
+        raise ShapeError("output_shape", expected, describe(output_shape))
+    sizes = []
+    for s in output_shape:
+        if isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, np.integer)) or s < 1:
+            raise ShapeError("output_shape", expected, describe(output_shape))
+        sizes.append(int(s))
+    ho, wo = sizes
+    h, w = input_shape
+    if ho > MAX_UPSAMPLING * h or wo > MAX_UPSAMPLING * w or ho * wo > MAX_OUTPUT_PIXELS:
+        raise ShapeError(
+            "output_shape",
+            f"at most {MAX_UPSAMPLING}x the MDE size {h}x{w} per side and {MAX_OUTPUT_PIXELS} pixels",
+            (ho, wo),
+        )
+    return (ho, wo)
+
+
 def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validates an MDE depth map; returns it as float64 with invalid pixels at 0, and the valid mask."""
     d = np.asarray(mde_depth)
@@ -191,9 +227,7 @@ def build_problem(
     grid_sparse = sparse.rasterize((h, w))
     if not valid.any() and len(grid_sparse) == 0:
         raise EmptyInputError("mde_depth, sparse", "at least one valid MDE pixel or measurement", "none")
-    out_shape = (h, w) if output_shape is None else (int(output_shape[0]), int(output_shape[1]))
-    if out_shape[0] < 1 or out_shape[1] < 1:
-        raise ShapeError("output_shape", "(Ho, Wo) with positive sizes", output_shape)
+    out_shape = check_output_shape(output_shape, (h, w))
 
     scale = float(np.median(mde[valid])) if valid.any() else float(np.median(grid_sparse.depth))
     unit = scale if config.units == "relative" else 1.0
@@ -250,6 +284,8 @@ class DepthCompleter:
     """
 
     def __init__(self, config: DepthGPConfig | None = None):
+        if config is not None and not isinstance(config, DepthGPConfig):
+            raise InvalidInputError("config", "a DepthGPConfig (or None for the defaults)", describe(config))
         self.config = config or DepthGPConfig()
         self.engine = make_engine(self.config)
         self.fitted: DepthGPConfig | None = None

@@ -82,19 +82,25 @@ class DepthGPConfig:
     fit: bool = False
 
     def __post_init__(self) -> None:
-        if self.formulation not in ("balanced", "residual"):
+        if not isinstance(self.formulation, str) or self.formulation not in ("balanced", "residual"):
             raise InvalidInputError("formulation", "'balanced' or 'residual'", self.formulation)
-        if self.nu not in (0.5, 1.5, 2.5):
-            raise InvalidInputError("nu", "0.5, 1.5 or 2.5", self.nu)
+        if not _is_real(self.nu) or self.nu not in (0.5, 1.5, 2.5):
+            raise InvalidInputError("nu", "0.5, 1.5 or 2.5", f"{type(self.nu).__name__} {self.nu!r}")
+        object.__setattr__(self, "nu", float(self.nu))
         for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas"):
             value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise InvalidInputError(name, "a finite value > 0", value)
-        if self.units not in ("relative", "metres"):
+            if not _is_real(value) or not np.isfinite(value) or value <= 0:
+                raise InvalidInputError(name, "a finite number > 0", f"{type(value).__name__} {value!r}")
+            object.__setattr__(self, name, float(value))
+        m = self.max_exact_points
+        if isinstance(m, (bool, np.bool_)) or not isinstance(m, (int, np.integer)) or m < 1:
+            raise InvalidInputError("max_exact_points", "an integer >= 1", f"{type(m).__name__} {m!r}")
+        object.__setattr__(self, "max_exact_points", int(m))
+        if not isinstance(self.units, str) or self.units not in ("relative", "metres"):
             raise InvalidInputError("units", "'relative' or 'metres'", self.units)
-        if self.align not in ("none", "scale", "scale_shift"):
+        if not isinstance(self.align, str) or self.align not in ("none", "scale", "scale_shift"):
             raise InvalidInputError("align", "'none', 'scale' or 'scale_shift'", self.align)
-        if self.engine not in ("exact", "kissgp", "fast"):
+        if not isinstance(self.engine, str) or self.engine not in ("exact", "kissgp", "fast"):
             raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", self.engine)
         if not isinstance(self.fit, (bool, np.bool_)):
             raise InvalidInputError("fit", "True or False", self.fit)
@@ -117,6 +123,11 @@ class DepthGPConfig:
     def replace(self, **changes) -> "DepthGPConfig":
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+
+def _is_real(value) -> bool:
+    """True for a real number (int or float, numpy scalars included), False for bool, str, None."""
+    return not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, float, np.integer, np.floating))
 
 
 def matern_1d(distance: np.ndarray, nu: float, lengthscale: float) -> np.ndarray:
