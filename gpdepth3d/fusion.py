@@ -28,6 +28,23 @@ Weightings (`FusionConfig.weighting`):
   independent Gaussian readings of the signed distance) saturated at one observation, so that
   ``weight_cap`` and ``weight_threshold`` keep their usual meaning ("number of observations").
 
+Bad depth readings never stop a sequence: negative and non-finite depths (a GP posterior
+mean can dip below zero next to an outlier measurement) are masked like "no depth" and
+counted on the returned `IntegrationStats`.
+
+Per-voxel variance (``FusionConfig.integrate_variance``): the volume then also carries the
+per-pixel depth variance of the frames, averaged with the same weights as the TSDF. It is
+deliberately *not* the variance of an inverse-variance-weighted mean of independent readings
+(``1 / sum(1 / var_i)``): the depth errors of consecutive frames (the same MDE mistakes, the same
+sparse points) are strongly correlated, so averaging the variances is the honest summary.
+
+Re-integration (`TSDFFusion.reset_blocks` and the ``blocks`` argument of `TSDFFusion.integrate`):
+every voxel's value depends only on the frames whose truncation band reached its block, in the
+order they came. Zeroing a set of blocks and integrating the frames again restricted to those
+blocks therefore reproduces, voxel for voxel (bit for bit on one device), the volume that
+integrating the same frames from scratch gives; `gpdepth3d.mapping.Mapper.update_poses` uses
+this after a loop closure.
+
 Extraction (`TSDFFusion.extract_mesh`, `TSDFFusion.extract_point_cloud`) keeps voxels whose
 accumulated weight exceeds ``weight_threshold`` (Open3D's test is strict). Meshes are `trimesh.Trimesh` with vertex
 colours; `save_mesh` writes PLY, GLB or OBJ atomically.
@@ -35,7 +52,8 @@ colours; `save_mesh` writes PLY, GLB or OBJ atomically.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -43,8 +61,8 @@ import numpy as np
 
 from .camera import PinholeCamera, check_pose
 from .cloud import ColoredCloud
-from .errors import EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
-from .io import atomic_path
+from .errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
+from .io import atomic_path, atomic_write
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
@@ -73,6 +91,8 @@ class FusionConfig:
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
         block_count: Initial number of blocks of the hash map (it grows when needed).
         integrate_color: Fuse colours as well.
+        integrate_variance: Keep a per-voxel depth variance (m^2; see the module docstring);
+            `TSDFFusion.integrate` then needs a ``variance`` for every frame.
         device: Open3D device string, "CPU:0" or "CUDA:0".
     """
 
@@ -87,6 +107,7 @@ class FusionConfig:
     block_resolution: int = 8
     block_count: int = 20000
     integrate_color: bool = True
+    integrate_variance: bool = False
     device: str = "CPU:0"
 
     def __post_init__(self) -> None:
@@ -126,6 +147,41 @@ def weights_from_variance(variance: np.ndarray, *, sigma_ref: float) -> np.ndarr
         return np.where(ok, 1.0 / (1.0 + np.where(ok, var, 0.0) / sigma_ref**2), 0.0)
 
 
+@dataclass(frozen=True)
+class IntegrationStats:
+    """What `TSDFFusion.integrate` did with one frame.
+
+    Attributes:
+        voxels: Number of voxel updates.
+        pixels: Pixels that were fused (valid depth in range, weight > 0).
+        invalid_pixels: Pixels masked because their depth was negative or non-finite (NaN/inf);
+            0 = "no depth" is not counted.
+        block_keys: (M,) int64 keys of the blocks the frame's truncation band touched (see
+            `TSDFFusion.block_keys`); with ``blocks=`` given, only those among them.
+    """
+
+    voxels: int
+    pixels: int
+    invalid_pixels: int
+    block_keys: np.ndarray
+
+
+_KEY_BIAS, _KEY_SPAN = 1 << 20, 1 << 21
+
+
+def _blocks_to_keys(blocks: np.ndarray) -> np.ndarray:
+    """(M, 3) integer block coordinates to (M,) int64 keys (one number per block)."""
+    b = np.asarray(blocks, dtype=np.int64) + _KEY_BIAS
+    return (b[:, 0] * _KEY_SPAN + b[:, 1]) * _KEY_SPAN + b[:, 2]
+
+
+def _keys_to_blocks(keys: np.ndarray) -> np.ndarray:
+    """(M,) int64 keys to (M, 3) int32 block coordinates."""
+    k = np.asarray(keys, dtype=np.int64)
+    b = np.stack([k // (_KEY_SPAN * _KEY_SPAN), (k // _KEY_SPAN) % _KEY_SPAN, k % _KEY_SPAN], axis=1) - _KEY_BIAS
+    return b.astype(np.int32)
+
+
 class TSDFFusion:
     """A TSDF volume that integrates posed depth frames with per-pixel weights.
 
@@ -135,7 +191,7 @@ class TSDFFusion:
         >>> fusion.save_mesh("room.glb")  # doctest: +SKIP
     """
 
-    def __init__(self, camera: PinholeCamera, config: FusionConfig | None = None):
+    def __init__(self, camera: PinholeCamera, config: FusionConfig | None = None, *, _vbg: Any = None):
         import open3d as o3d
         import open3d.core as o3c
 
@@ -149,23 +205,39 @@ class TSDFFusion:
             o3c.Tensor([0.0], device=self._device)
         except Exception as exc:  # noqa: BLE001 - Open3D raises RuntimeError for unavailable devices
             raise InvalidInputError("device", "an Open3D device this build supports", f"{self.config.device}: {exc}")
-        names, dtypes, channels = ["tsdf", "weight"], [o3c.float32, o3c.float32], [1, 1]
-        if self.config.integrate_color:
-            names.append("color")
-            dtypes.append(o3c.float32)
-            channels.append(3)
-        self.vbg = o3d.t.geometry.VoxelBlockGrid(
-            tuple(names),
-            tuple(dtypes),
-            tuple(channels),
-            float(self.config.voxel_size),
-            int(self.config.block_resolution),
-            int(self.config.block_count),
-            self._device,
-        )
+        if _vbg is not None:
+            self.vbg = _vbg
+        else:
+            names, dtypes, channels = ["tsdf", "weight"], [o3c.float32, o3c.float32], [1, 1]
+            if self.config.integrate_color:
+                names.append("color")
+                dtypes.append(o3c.float32)
+                channels.append(3)
+            if self.config.integrate_variance:
+                names.append("variance")
+                dtypes.append(o3c.float32)
+                channels.append(1)
+            self.vbg = o3d.t.geometry.VoxelBlockGrid(
+                tuple(names),
+                tuple(dtypes),
+                tuple(channels),
+                float(self.config.voxel_size),
+                int(self.config.block_resolution),
+                int(self.config.block_count),
+                self._device,
+            )
         dev_type = "cuda" if self._device.get_type() == o3c.Device.DeviceType.CUDA else "cpu"
         self._torch_device = f"{dev_type}:{self._device.get_id()}" if dev_type == "cuda" else "cpu"
         self.frames_integrated = 0
+
+    @property
+    def _attributes(self) -> tuple[str, ...]:
+        names = ["tsdf", "weight"]
+        if self.config.integrate_color:
+            names.append("color")
+        if self.config.integrate_variance:
+            names.append("variance")
+        return tuple(names)
 
     # ------------------------------------------------------------------ integration
     def integrate(
@@ -175,18 +247,31 @@ class TSDFFusion:
         *,
         rgb: np.ndarray | None = None,
         weights: np.ndarray | None = None,
-    ) -> int:
-        """Fuses one posed depth frame; returns the number of voxels updated.
+        variance: np.ndarray | None = None,
+        blocks: np.ndarray | None = None,
+    ) -> IntegrationStats:
+        """Fuses one posed depth frame.
 
         Args:
-            depth: (H, W) z-depth in metres of the camera's image (0/NaN/inf = none).
+            depth: (H, W) z-depth in metres of the camera's image (0 = none). Negative and
+                non-finite values are masked like 0 and counted (``invalid_pixels``).
             T_world_camera: 4x4 rigid pose of the camera.
             rgb: Optional (H, W, 3) uint8 RGB image (needed for coloured meshes).
             weights: Optional (H, W) per-pixel weights >= 0 (default 1 for every pixel).
+            variance: (H, W) depth variance, m^2; needed (and only used) with
+                ``config.integrate_variance``; pixels with a non-finite or negative variance are
+                not fused.
+            blocks: Optional (M,) int64 block keys (`block_keys`): update only voxels of these
+                blocks (re-integration after `reset_blocks`).
+
+        Returns:
+            `IntegrationStats` (voxel updates, pixels fused and masked, blocks touched).
 
         Raises:
-            ShapeError: if depth, rgb or weights do not have the camera's size.
+            ShapeError: if depth, rgb, weights or variance do not have the camera's size.
             CalibrationError: if the pose is not a rigid transform.
+            InvalidInputError: for negative or non-finite weights, or a missing variance with
+                ``config.integrate_variance``.
             EmptyInputError: if the frame has no depth inside [depth_min, depth_max] with weight > 0.
         """
         cfg = self.config
@@ -196,9 +281,9 @@ class TSDFFusion:
             raise ShapeError("depth", "a 2-D (H, W) depth map", describe(d))
         self.camera.check_image(d, "depth")
         d = d.astype(np.float64)
-        finite = np.isfinite(d)
-        if np.any(d[finite] < 0):
-            raise InvalidDepthError("depth", "z-depths >= 0 (0 = no depth)", f"minimum {d[finite].min()}")
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(d) | (d < 0)
+        n_bad = int(bad.sum())
         if weights is None:
             w = np.ones(d.shape)
         else:
@@ -207,7 +292,17 @@ class TSDFFusion:
                 raise ShapeError("weights", f"the shape of depth {d.shape}", describe(w))
             if np.any(~np.isfinite(w)) or np.any(w < 0):
                 raise InvalidInputError("weights", "finite weights >= 0", "negative or non-finite weights")
-        valid = finite & (d > cfg.depth_min) & (d < cfg.depth_max) & (w > 0)
+        var = None
+        if cfg.integrate_variance:
+            if variance is None:
+                raise InvalidInputError("variance", "an (H, W) variance map (config.integrate_variance is on)", None)
+            var = np.asarray(variance, dtype=np.float64)
+            if var.shape != d.shape:
+                raise ShapeError("variance", f"the shape of depth {d.shape}", describe(var))
+            with np.errstate(invalid="ignore"):
+                w = np.where(np.isfinite(var) & (var >= 0), w, 0.0)
+        with np.errstate(invalid="ignore"):
+            valid = ~bad & (d > cfg.depth_min) & (d < cfg.depth_max) & (w > 0)
         if not valid.any():
             raise EmptyInputError(
                 "depth", f"at least one pixel with depth in ({cfg.depth_min}, {cfg.depth_max}) m and weight > 0", "none"
@@ -227,18 +322,51 @@ class TSDFFusion:
                 color = rgb[..., :3].astype(np.float32)
                 if not np.issubdtype(rgb.dtype, np.integer):
                     color = color * 255.0
+        pixels = int(valid.sum())
 
+        keys = self._band_keys(d, T)
+        if blocks is not None:
+            keys = np.intersect1d(keys, np.asarray(blocks, dtype=np.int64), assume_unique=False)
+        n = 0
+        if keys.size:
+            var32 = None if var is None else np.where(valid, var, 0.0).astype(np.float32)
+            n = self._update(keys, d, w, color, var32, T)
+        self.frames_integrated += 1
+        return IntegrationStats(voxels=n, pixels=pixels, invalid_pixels=n_bad, block_keys=keys)
+
+    def _activate(self, keys: np.ndarray) -> Any:
+        """Buffer indices of the blocks ``keys``, allocating (zeroed) the missing ones."""
+        o3c = self._o3c
+        blocks = o3c.Tensor(_keys_to_blocks(keys), device=self._device)
+        hashmap = self.vbg.hashmap()
+        buf, fresh = hashmap.activate(blocks)
+        fresh_np = fresh.cpu().numpy().astype(bool).reshape(-1)
+        if fresh_np.any():
+            # New blocks start at zero (a buffer slot may hold old values).
+            import torch
+
+            idx = buf.cpu().numpy().astype(np.int64).reshape(-1)[fresh_np]
+            self._zero(torch.as_tensor(idx, device=self._torch_device))
+        buf_indices, _ = hashmap.find(blocks)
+        return buf_indices
+
+    def _zero(self, buf_idx: Any) -> None:
+        """Sets every attribute of the blocks at torch buffer indices ``buf_idx`` to zero."""
+        if buf_idx.numel() == 0:
+            return
+        for name in self._attributes:
+            _to_torch(self.vbg.attribute(name))[buf_idx] = 0.0
+
+    def _update(
+        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray
+    ) -> int:
+        """The voxel update of one frame over the blocks ``keys`` (see the module docstring)."""
         # The voxel update runs in torch on zero-copy (DLPack) views of the grid's buffers: the
         # same code on CPU and CUDA, and much faster on the CPU than Open3D's indexing ops.
         import torch
 
-        tdev = self._torch_device
-        blocks = self._band_blocks(d, T)
-        if blocks.shape[0] == 0:
-            return 0
-        hashmap = self.vbg.hashmap()
-        hashmap.activate(blocks)
-        buf_indices, _ = hashmap.find(blocks)
+        cfg, tdev = self.config, self._torch_device
+        buf_indices = self._activate(keys)
         voxel_coords, voxel_indices = self.vbg.voxel_coordinates_and_flattened_indices(buf_indices)
         coords = _to_torch(voxel_coords)
         flat = _to_torch(voxel_indices)
@@ -276,12 +404,45 @@ class TSDFFusion:
             col_pix = torch.as_tensor(color, device=tdev)[v[keep], u[keep]]
             col = _to_torch(self.vbg.attribute("color")).view(-1, 3)
             col[idx] = (col[idx] * wold[:, None] + col_pix * wnew[:, None]) / wsum[:, None]
+        if var is not None:
+            var_pix = torch.as_tensor(var, device=tdev)[v[keep], u[keep]]
+            vvox = _to_torch(self.vbg.attribute("variance")).view(-1)
+            vvox[idx] = (vvox[idx] * wold + var_pix * wnew) / wsum
         weight[idx] = torch.clamp(wsum, max=float(cfg.weight_cap))
-        self.frames_integrated += 1
         return n
 
-    def _band_blocks(self, depth: np.ndarray, T: np.ndarray) -> Any:
-        """(M, 3) int32 Open3D tensor of the blocks the truncation band of a depth frame touches.
+    def block_keys(self, depth: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
+        """(M,) sorted int64 keys of the blocks a depth frame's truncation band touches.
+
+        The depth is filtered as `integrate` filters it (range and validity, not weights).
+        """
+        T = check_pose(T_world_camera)
+        d = np.asarray(depth, dtype=np.float64)
+        self.camera.check_image(d, "depth")
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(d) & (d > self.config.depth_min) & (d < self.config.depth_max)
+        return self._band_keys(np.where(ok, d, 0.0).astype(np.float32), T)
+
+    def reset_blocks(self, keys: np.ndarray) -> int:
+        """Zeroes TSDF, weight, colour and variance of the given blocks; returns how many existed.
+
+        Args:
+            keys: (M,) int64 block keys (`block_keys`, `IntegrationStats.block_keys`).
+        """
+        import torch
+
+        keys = np.unique(np.asarray(keys, dtype=np.int64))
+        if keys.size == 0:
+            return 0
+        blocks = self._o3c.Tensor(_keys_to_blocks(keys), device=self._device)
+        buf, found = self.vbg.hashmap().find(blocks)
+        found_np = found.cpu().numpy().astype(bool).reshape(-1)
+        idx = torch.as_tensor(buf.cpu().numpy().astype(np.int64).reshape(-1)[found_np], device=self._torch_device)
+        self._zero(idx)
+        return int(idx.numel())
+
+    def _band_keys(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """(M,) sorted int64 keys of the blocks the truncation band of a depth frame touches.
 
         Open3D's ``compute_unique_block_coordinates`` samples the band too sparsely (with a
         truncation of several blocks it skips blocks in the middle of the band, so some voxels
@@ -290,8 +451,10 @@ class TSDFFusion:
         """
         import torch
 
-        o3c, cfg, tdev = self._o3c, self.config, self._torch_device
+        cfg, tdev = self.config, self._torch_device
         v, u = np.nonzero(depth > 0)
+        if u.size == 0:
+            return np.zeros(0, np.int64)
         z = torch.as_tensor(depth[v, u], dtype=torch.float32, device=tdev)
         rays = torch.stack(
             [
@@ -307,17 +470,13 @@ class TSDFFusion:
         Twc = torch.as_tensor(T, dtype=torch.float32, device=tdev)
         block_size = float(cfg.voxel_size * cfg.block_resolution)
         # Unique block coordinates via one int64 key per block (much faster than unique rows).
-        bias, span = 1 << 20, 1 << 21
         keys = []
         for off in offsets:
             pts = rays * torch.clamp(z + off, min=1e-3)[:, None]
             world = pts @ Twc[:3, :3].T + Twc[:3, 3]
-            b = torch.floor(world / block_size).to(torch.int64) + bias
-            keys.append(torch.unique((b[:, 0] * span + b[:, 1]) * span + b[:, 2]))
-        key = torch.unique(torch.cat(keys))
-        blocks = torch.stack([key // (span * span), (key // span) % span, key % span], dim=1) - bias
-        blocks = blocks.to(torch.int32).contiguous()
-        return o3c.Tensor.from_dlpack(torch.utils.dlpack.to_dlpack(blocks))
+            b = torch.floor(world / block_size).to(torch.int64) + _KEY_BIAS
+            keys.append(torch.unique((b[:, 0] * _KEY_SPAN + b[:, 1]) * _KEY_SPAN + b[:, 2]))
+        return torch.unique(torch.cat(keys)).cpu().numpy()
 
     def weights_for(self, variance: np.ndarray | None) -> np.ndarray | None:
         """The per-pixel weights of this volume's weighting for a variance map (None = uniform)."""
@@ -327,9 +486,15 @@ class TSDFFusion:
 
     def integrate_posterior(
         self, posterior: "DepthPosterior", T_world_camera: np.ndarray, *, rgb: np.ndarray | None = None
-    ) -> int:
+    ) -> IntegrationStats:
         """Fuses a `DepthPosterior`'s mean, weighted as ``config.weighting`` says from its variance."""
-        return self.integrate(posterior.mean, T_world_camera, rgb=rgb, weights=self.weights_for(posterior.variance))
+        return self.integrate(
+            posterior.mean,
+            T_world_camera,
+            rgb=rgb,
+            weights=self.weights_for(posterior.variance),
+            variance=posterior.variance if self.config.integrate_variance else None,
+        )
 
     # ------------------------------------------------------------------ extraction
     def _check_nonempty(self) -> None:
@@ -342,7 +507,8 @@ class TSDFFusion:
         Returns:
             ``coords`` (M, 3) world positions of the voxels' sample points (metres), ``tsdf``
             (M,) truncated signed distance / truncation in [-1, 1], ``weight`` (M,) accumulated
-            weights and, with colour, ``color`` (M, 3) float in 0..1.
+            weights, with colour ``color`` (M, 3) float in 0..1 and with
+            ``config.integrate_variance`` ``variance`` (M,) m^2.
         """
         self._check_nonempty()
         hashmap = self.vbg.hashmap()
@@ -357,19 +523,28 @@ class TSDFFusion:
         }
         if self.config.integrate_color:
             out["color"] = self.vbg.attribute("color").reshape((-1, 3))[idx][keep].cpu().numpy().astype(np.float64) / 255
+        if self.config.integrate_variance:
+            out["variance"] = self.vbg.attribute("variance").reshape((-1,))[idx][keep].cpu().numpy().astype(np.float64)
         return out
 
-    def extract_mesh(self) -> "trimesh.Trimesh":
+    def extract_mesh(self, *, allow_empty: bool = False) -> "trimesh.Trimesh":
         """The zero level set as a `trimesh.Trimesh` (metres, world frame) with vertex colours.
 
+        Args:
+            allow_empty: Return a mesh without faces (instead of raising) when no surface passes
+                ``weight_threshold`` (e.g. after few frames with low weights).
+
         Raises:
-            EmptyInputError: if nothing was integrated or no surface passes ``weight_threshold``.
+            EmptyInputError: if nothing was integrated, or (without ``allow_empty``) no surface
+                passes ``weight_threshold``.
         """
         import trimesh
 
         self._check_nonempty()
         mesh = self.vbg.extract_triangle_mesh(float(self.config.weight_threshold)).cpu()
         if "positions" not in mesh.vertex or mesh.vertex.positions.shape[0] == 0 or mesh.triangle.indices.shape[0] == 0:
+            if allow_empty:
+                return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
             raise EmptyInputError("fusion", f"a surface with weight > {self.config.weight_threshold}", "no triangles")
         vertices = mesh.vertex.positions.numpy().astype(np.float64)
         faces = mesh.triangle.indices.numpy().astype(np.int64)
@@ -381,8 +556,13 @@ class TSDFFusion:
     def extract_point_cloud(self) -> ColoredCloud:
         """Surface points of the volume as a `ColoredCloud`.
 
-        The variance is unknown (NaN); the confidence is the accumulated weight of the voxel
-        nearest to each point divided by ``weight_cap`` (in [0, 1]).
+        Each point takes the values of the voxel nearest to it: the confidence is that voxel's
+        accumulated weight divided by ``weight_cap`` (in [0, 1]); the variance is the voxel's
+        fused depth variance (m^2) with ``config.integrate_variance``, else NaN (unknown). The
+        viewing depth is not defined for a fused point (``depth`` is NaN).
+
+        Raises:
+            EmptyInputError: if nothing was integrated or no surface passes ``weight_threshold``.
         """
         from scipy.spatial import cKDTree
 
@@ -399,11 +579,61 @@ class TSDFFusion:
         vox = self.voxels()
         _, nearest = cKDTree(vox["coords"]).query(pts)
         conf = np.clip(vox["weight"][nearest] / self.config.weight_cap, 0.0, 1.0)
-        return ColoredCloud(pts, colors, np.full(n, np.nan), conf, np.full(n, np.nan))
+        var = vox["variance"][nearest] if "variance" in vox else np.full(n, np.nan)
+        return ColoredCloud(pts, colors, var, conf, np.full(n, np.nan))
 
     def save_mesh(self, path: str | Path) -> Path:
         """Extracts the mesh and writes it (PLY, GLB or OBJ by suffix) atomically."""
         return save_mesh(self.extract_mesh(), path)
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> Path:
+        """Writes the volume atomically: ``path`` (``.npz``, Open3D's ``VoxelBlockGrid.save``) and,
+        beside it, ``<stem>.json`` with the camera, the config and the frame count.
+
+        Returns:
+            The ``.npz`` path.
+        """
+        path = Path(path)
+        if path.suffix.lower() != ".npz":
+            raise InvalidInputError("path", "a .npz file name", str(path))
+        meta = {
+            "camera": [self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy, self.camera.width, self.camera.height],
+            "config": asdict(self.config),
+            "frames_integrated": self.frames_integrated,
+        }
+        with atomic_path(path) as tmp:
+            self.vbg.save(str(tmp))
+        atomic_write(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(meta, indent=2)))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "TSDFFusion":
+        """Reads a volume written by `save` (the ``.npz`` and its ``.json``).
+
+        Raises:
+            DataFormatError: if a file is missing or not a saved volume.
+        """
+        import open3d as o3d
+
+        path = Path(path)
+        meta_path = path.with_suffix(".json")
+        for p in (path, meta_path):
+            if not p.is_file():
+                raise DataFormatError(p, "file of a saved TSDF volume not found")
+        try:
+            meta = json.loads(meta_path.read_text())
+            fx, fy, cx, cy, width, height = meta["camera"]
+            camera = PinholeCamera(float(fx), float(fy), float(cx), float(cy), int(width), int(height))
+            config = FusionConfig(**meta["config"])
+            vbg = o3d.t.geometry.VoxelBlockGrid.load(str(path))
+        except (KeyError, TypeError, ValueError, RuntimeError, OSError) as exc:
+            raise DataFormatError(path, f"not a saved gpdepth3d TSDF volume: {exc}") from None
+        if config.device != "CPU:0":
+            vbg = vbg.to(o3d.core.Device(config.device))
+        fusion = cls(camera, config, _vbg=vbg)
+        fusion.frames_integrated = int(meta["frames_integrated"])
+        return fusion
 
 
 def _to_torch(tensor: Any) -> Any:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.errors import CalibrationError, EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError
+from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
@@ -52,7 +52,7 @@ class TestIntegrate:
         rgb[..., 0] = 200
         rgb[..., 2] = 30
         for x in (-0.05, 0.0, 0.05):
-            assert fusion.integrate(_plane(PLANE_Z), _shift(x), rgb=rgb) > 0
+            assert fusion.integrate(_plane(PLANE_Z), _shift(x), rgb=rgb).voxels > 0
         mesh = fusion.extract_mesh()
         assert len(mesh.faces) > 100
         np.testing.assert_allclose(mesh.vertices[:, 2], PLANE_Z, atol=2e-3)
@@ -146,8 +146,8 @@ class TestIntegrate:
             fusion.integrate(_plane(), np.eye(4), weights=np.ones((60, 81)))
         with pytest.raises(InvalidInputError):
             fusion.integrate(_plane(), np.eye(4), weights=-np.ones(CAM.shape))
-        with pytest.raises(InvalidDepthError):
-            fusion.integrate(-_plane(), np.eye(4))
+        with pytest.raises(EmptyInputError):
+            fusion.integrate(-_plane(), np.eye(4))  # negative depths are masked: nothing left
         with pytest.raises(EmptyInputError):
             fusion.integrate(np.zeros(CAM.shape), np.eye(4))
         with pytest.raises(EmptyInputError):
@@ -192,3 +192,105 @@ class TestExport:
         with pytest.raises(OSError):
             save_mesh(mesh, tmp_path / "m.glb")
         assert list(tmp_path.iterdir()) == []
+
+
+def _sorted_voxels(fusion: TSDFFusion) -> dict[str, np.ndarray]:
+    vox = fusion.voxels()
+    order = np.lexsort(vox["coords"].T)
+    return {k: v[order] for k, v in vox.items()}
+
+
+class TestRobustness:
+    def test_negative_and_nan_depths_are_masked_and_counted(self):
+        depth = _plane()
+        depth[0, :5] = -0.07  # a GP mean that dipped below zero next to an outlier
+        depth[1, :3] = np.nan
+        depth[2, :2] = np.inf
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06))
+        stats = fusion.integrate(depth, np.eye(4))
+        assert stats.invalid_pixels == 10
+        assert stats.pixels == CAM.width * CAM.height - 10
+        assert stats.voxels > 0 and stats.block_keys.size > 0
+        clean = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06))
+        mask = np.isfinite(depth) & (depth > 0)
+        clean.integrate(np.where(mask, depth, 0.0), np.eye(4))
+        a, b = _sorted_voxels(fusion), _sorted_voxels(clean)
+        np.testing.assert_array_equal(a["tsdf"], b["tsdf"])
+
+    def test_empty_mesh_allowed(self):
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=5.0))
+        fusion.integrate(_plane(), np.eye(4), weights=np.full(CAM.shape, 0.1))
+        with pytest.raises(EmptyInputError):
+            fusion.extract_mesh()
+        assert len(fusion.extract_mesh(allow_empty=True).faces) == 0
+
+
+class TestReintegration:
+    @pytest.mark.parametrize("color", [True, False])
+    def test_reset_and_reintegrate_equals_from_scratch(self, color):
+        rng = np.random.default_rng(3)
+        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True, integrate_color=color, weight_cap=2.5)
+        depths = [1.4 + 0.3 * rng.random(CAM.shape) for _ in range(4)]
+        variances = [rng.uniform(0.001, 0.02, CAM.shape) for _ in range(4)]
+        rgbs = [rng.integers(0, 255, CAM.shape + (3,), dtype=np.uint8) for _ in range(4)]
+        poses = [_shift(0.1 * i) for i in range(4)]
+        fusion = TSDFFusion(CAM, cfg)
+        stats = [fusion.integrate(d, T, variance=v, rgb=c, weights=1 / (1 + v)) for d, T, v, c in zip(depths, poses, variances, rgbs)]
+        moved = list(poses)
+        moved[1] = _shift(0.13, 0.02)
+        affected = np.union1d(stats[1].block_keys, fusion.block_keys(depths[1], moved[1]))
+        assert fusion.reset_blocks(affected) >= np.unique(stats[1].block_keys).size  # plus new ones other frames made
+        for d, T, v, c in zip(depths, moved, variances, rgbs):
+            fusion.integrate(d, T, variance=v, rgb=c, weights=1 / (1 + v), blocks=affected)
+        scratch = TSDFFusion(CAM, cfg)
+        for d, T, v, c in zip(depths, moved, variances, rgbs):
+            scratch.integrate(d, T, variance=v, rgb=c, weights=1 / (1 + v))
+        a, b = _sorted_voxels(fusion), _sorted_voxels(scratch)
+        assert a.keys() == b.keys() and a["coords"].shape == b["coords"].shape
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+        # and the moved frame really changed the volume
+        unmoved = TSDFFusion(CAM, cfg)
+        for d, T, v, c in zip(depths, poses, variances, rgbs):
+            unmoved.integrate(d, T, variance=v, rgb=c, weights=1 / (1 + v))
+        assert _sorted_voxels(unmoved)["coords"].shape != a["coords"].shape or not np.array_equal(
+            _sorted_voxels(unmoved)["tsdf"], a["tsdf"]
+        )
+
+    def test_variance_needed_and_carried_to_points(self):
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True))
+        with pytest.raises(InvalidInputError):
+            fusion.integrate(_plane(), np.eye(4))
+        var = np.full(CAM.shape, 0.04)
+        fusion.integrate(_plane(), np.eye(4), variance=var)
+        fusion.integrate(_plane(), _shift(0.02), variance=np.full(CAM.shape, 0.01), weights=np.full(CAM.shape, 3.0))
+        cloud = fusion.extract_point_cloud()
+        # weighted mean of the variances (1 * 0.04 + 3 * 0.01) / 4 where both frames saw the voxel
+        assert np.all(np.isfinite(cloud.variance))
+        assert np.median(cloud.variance) == pytest.approx(0.0175, rel=1e-4)
+        with pytest.raises(ShapeError):
+            fusion.integrate(_plane(), np.eye(4), variance=var[:-1])
+
+
+class TestPersistence:
+    def test_save_load_round_trip(self, tmp_path: Path):
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True))
+        fusion.integrate(_plane(), np.eye(4), variance=np.full(CAM.shape, 0.01), rgb=np.full(CAM.shape + (3,), 90, np.uint8))
+        path = fusion.save(tmp_path / "map" / "volume.npz")
+        assert sorted(p.name for p in path.parent.iterdir()) == ["volume.json", "volume.npz"]
+        loaded = TSDFFusion.load(path)
+        assert loaded.config == fusion.config and loaded.camera == fusion.camera and loaded.frames_integrated == 1
+        a, b = _sorted_voxels(fusion), _sorted_voxels(loaded)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+        # the loaded volume keeps integrating
+        loaded.integrate(_plane(), _shift(0.05), variance=np.full(CAM.shape, 0.01))
+        assert len(loaded.extract_mesh().faces) > 100
+        with pytest.raises(InvalidInputError):
+            fusion.save(tmp_path / "volume.vbg")
+        with pytest.raises(DataFormatError):
+            TSDFFusion.load(tmp_path / "missing.npz")
+        (tmp_path / "bad.npz").write_bytes(b"not a zip")
+        (tmp_path / "bad.json").write_text((tmp_path / "map" / "volume.json").read_text())
+        with pytest.raises(DataFormatError):
+            TSDFFusion.load(tmp_path / "bad.npz")
