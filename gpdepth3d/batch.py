@@ -22,14 +22,15 @@ Guarantees:
   ``batch_report.json``; the other frames go on. Failed frames have no final file, so the
   next run retries them.
 
-Inputs of a frame (`HoldoutInputs`): the datasets here have no monocular network for outdoor
-scenes, so the default builds the input by *holdout*: ``n_input`` measurements sampled from the
-frame's points (projected LiDAR, or the dense ground truth where the dataset has one), a
-disjoint ``holdout`` share of the LiDAR held out as ground truth for ``eval``. The MDE input is
-either absent (``mde="none"``: the residual GP's prior mean is then the median measured depth)
-or a clearly labelled stand-in (``mde="standin"``: the *input* points densified by nearest
-neighbour and perturbed by a smooth random scale error; never the held-out points). Any
-picklable ``loader(spec) -> FrameInputs`` can replace it.
+Inputs of a frame (`HoldoutInputs`): the default builds the input by *holdout*: ``n_input``
+measurements sampled from the frame's points (projected LiDAR, or the dense ground truth where
+the dataset has one), a disjoint ``holdout`` share of the LiDAR held out as ground truth for
+``eval``. The MDE input is a real network run on the frame's image (``mde="rtmonodepth"``,
+outdoor, or ``"fastdepth"``, indoor; see `gpdepth3d.mde.load_frontend`), absent
+(``mde="none"``: the residual GP's prior mean is then the median measured depth) or a clearly
+labelled stand-in (``mde="standin"``: the *input* points densified by nearest neighbour and
+perturbed by a smooth random scale error; never the held-out points). Any picklable
+``loader(spec) -> FrameInputs`` can replace it.
 
 A script that calls `run_batch` with a local cluster must guard its entry point with
 ``if __name__ == "__main__":`` (Dask starts its worker processes with ``spawn``).
@@ -178,6 +179,14 @@ def _reader(root: str, kind: str | None):
     return open_dataset(root, kind)
 
 
+@lru_cache(maxsize=4)
+def _frontend(name: str, models_dir: str | None):
+    """One network front-end per name and worker process."""
+    from .mde import load_frontend
+
+    return load_frontend(name, models_dir=models_dir)
+
+
 def frame_seed(seed: int, frame_id: str) -> int:
     """A per-frame seed that depends only on ``seed`` and the frame id (stable across runs and machines)."""
     return (int(seed) * 1_000_003 + zlib.crc32(frame_id.encode())) % (2**32)
@@ -196,26 +205,30 @@ class HoldoutInputs:
 
     Input: ``n_input`` points drawn uniformly from the points not held out.
 
-    MDE: ``"none"`` (no MDE) or ``"standin"``, a STAND-IN for an outdoor MDE network, which
-    does not exist here: the input points densified by nearest neighbour and multiplied by a
-    smooth random scale error of about ``standin_error`` (relative, std). It is built from
-    the input points only, so it carries no information about the held-out points.
+    MDE: a network run on the frame's full-resolution image and shrunk to the grid by area
+    averaging (``"rtmonodepth"``, ``"fastdepth"``: `gpdepth3d.mde.load_frontend`, models from
+    ``models_dir``), ``"none"`` (no MDE) or ``"standin"``, a STAND-IN for an MDE network: the
+    input points densified by nearest neighbour and multiplied by a smooth random scale error of
+    about ``standin_error`` (relative, std). It is built from the input points only, so it
+    carries no information about the held-out points.
 
     Attributes:
         factor: Integer downsampling of the dataset resolution (3 = the paper's 1/3).
         n_input: Number of input measurements per frame.
         holdout: Share of the points held out as ground truth (only without dense depth).
-        mde: "none" or "standin" (see above).
+        mde: "rtmonodepth", "fastdepth", "none" or "standin" (see above).
         standin_error: Relative std of the stand-in's scale error.
+        models_dir: Folder of the networks (default `gpdepth3d.mde.default_models_dir`).
         seed: Base seed; each frame draws from `frame_seed(seed, frame_id)`.
     """
 
     factor: int = 3
     n_input: int = 500
     holdout: float = 0.2
-    mde: Literal["none", "standin"] = "none"
+    mde: Literal["none", "standin", "rtmonodepth", "fastdepth"] = "none"
     standin_error: float = 0.1
     seed: int = 0
+    models_dir: Optional[str] = None
 
     def __post_init__(self) -> None:
         if int(self.factor) != self.factor or self.factor < 1:
@@ -224,22 +237,31 @@ class HoldoutInputs:
             raise InvalidInputError("n_input", "an integer >= 1", self.n_input)
         if not (np.isfinite(self.holdout) and 0 < self.holdout < 1):
             raise InvalidInputError("holdout", "a share in (0, 1)", self.holdout)
-        if self.mde not in ("none", "standin"):
-            raise InvalidInputError("mde", "'none' or 'standin'", self.mde)
+        if self.mde not in ("none", "standin", "rtmonodepth", "fastdepth"):
+            raise InvalidInputError("mde", "'none', 'standin', 'rtmonodepth' or 'fastdepth'", self.mde)
         if not (np.isfinite(self.standin_error) and self.standin_error >= 0):
             raise InvalidInputError("standin_error", "a relative std >= 0", self.standin_error)
 
     def __call__(self, spec: FrameSpec) -> FrameInputs:
         """Reads ``spec``'s frame from its dataset and builds the inputs (runs on the worker)."""
         frame = _reader(spec.root, spec.kind).load(spec.name)
+        network = None
+        if self.mde in ("rtmonodepth", "fastdepth"):
+            network = _frontend(self.mde, self.models_dir)(frame.rgb)
         return self.from_maps(
             spec.frame_id,
             points=None if frame.sparse is None else frame.sparse.to_depth_map(),
             dense_gt=frame.depth,
+            mde_map=network,
         )
 
     def from_maps(
-        self, frame_id: str, *, points: np.ndarray | None, dense_gt: np.ndarray | None = None
+        self,
+        frame_id: str,
+        *,
+        points: np.ndarray | None,
+        dense_gt: np.ndarray | None = None,
+        mde_map: np.ndarray | None = None,
     ) -> FrameInputs:
         """Builds the inputs from full-resolution maps.
 
@@ -247,6 +269,7 @@ class HoldoutInputs:
             frame_id: Seeds the random draws.
             points: (H, W) sparse depth map (metres, 0 = none), or None to sample the dense GT.
             dense_gt: (H, W) dense ground truth (metres, 0 = invalid), or None.
+            mde_map: (H, W) network MDE (metres) for ``mde="rtmonodepth"/"fastdepth"``.
         """
         from .sampling import holdout_split, sample_uniform
 
@@ -263,14 +286,21 @@ class HoldoutInputs:
             pool, held_out = holdout_split(available, holdout=self.holdout, rng=rng)
             gt = held_out.to_depth_map(shape)
         sparse = sample_uniform(pool, n=self.n_input, rng=rng)
-        mde = self._standin(sparse, rng) if self.mde == "standin" else np.zeros(shape)
+        if self.mde in ("rtmonodepth", "fastdepth"):
+            import cv2
+
+            if mde_map is None:
+                raise InvalidInputError("mde_map", f"the network's depth map for mde={self.mde!r}", None)
+            mde = cv2.resize(np.asarray(mde_map, np.float64), shape[::-1], interpolation=cv2.INTER_AREA)
+        else:
+            mde = self._standin(sparse, rng) if self.mde == "standin" else np.zeros(shape)
         info = {
             "shape": list(shape),
             "n_available": len(available),
             "n_input": len(sparse),
             "n_gt": int(np.count_nonzero(gt)),
             "gt": "dense" if dense_gt is not None else "holdout",
-            "mde": "STAND-IN: densified input points x smooth scale error" if self.mde == "standin" else "none",
+            "mde": "STAND-IN: densified input points x smooth scale error" if self.mde == "standin" else self.mde,
         }
         return FrameInputs(mde=mde, sparse=sparse, gt=gt, info=info)
 
@@ -813,7 +843,8 @@ def batch_command(
     engine: Optional[Literal["exact", "kissgp", "fast"]] = None,
     factor: int = 3,
     n_input: int = 500,
-    mde: Literal["none", "standin"] = "none",
+    mde: Literal["none", "standin", "rtmonodepth", "fastdepth"] = "none",
+    models_dir: Optional[Path] = None,
     seed: int = 0,
     png: bool = False,
     progress: bool = True,
@@ -824,8 +855,9 @@ def batch_command(
     OUTPUT_DIR/<frame>.metrics.json, and OUTPUT_DIR/batch_report.json (counts, failures, mean metrics).
     Frames already done are skipped, so a killed run resumes where it stopped. Inputs: --n-input
     measurements sampled from the frame's LiDAR (20 % held out as ground truth for eval) or from its dense
-    depth; with --mde standin a STAND-IN MDE (densified input points with a smooth scale error) is the
-    prior mean, since no outdoor MDE network exists here. Exits with an error if any frame failed.
+    depth; with --mde rtmonodepth (outdoor) or fastdepth (indoor) the network's depth of each frame's image
+    is the MDE, with --mde standin a STAND-IN MDE (densified input points with a smooth scale error).
+    Exits with an error if any frame failed.
 
     Args:
         data: Dataset folder (kitti_tiny, 7scenes, ibims_sample, vio_sparse, kitti_object layouts).
@@ -841,7 +873,9 @@ def batch_command(
             default: `DepthGPConfig`'s default engine.
         factor: Downsample the dataset resolution by this integer factor (3 = the paper's 1/3).
         n_input: Measurements given as input per frame.
-        mde: "none" (no MDE) or "standin" (clearly a stand-in, see above).
+        mde: "rtmonodepth" (RT-MonoDepth-S, outdoor) or "fastdepth" (indoor) run on each frame's image, "none"
+            (no MDE) or "standin" (clearly a stand-in, see above).
+        models_dir: Folder of the networks (default: $GPDEPTH3D_MODELS or ../shared/models).
         seed: Seed of the per-frame sampling.
         png: Also write 16-bit PNGs of mean and std.
         progress: Show the progress bar.
@@ -851,7 +885,9 @@ def batch_command(
         frames,
         output_dir,
         config=DepthGPConfig.residual() if engine is None else DepthGPConfig.residual(engine=engine),
-        loader=HoldoutInputs(factor=factor, n_input=n_input, mde=mde, seed=seed),
+        loader=HoldoutInputs(
+            factor=factor, n_input=n_input, mde=mde, seed=seed, models_dir=None if models_dir is None else str(models_dir)
+        ),
         task=task,
         workers=workers,
         address=address,

@@ -697,13 +697,18 @@ def plot_qualitative(
 
 
 # ----------------------------------------------------------------------------- MDE by name
-def default_model_path(data: Path) -> Path:
-    """Where the FastDepth model is looked for: ``<data>/../../models`` or ``<data>/../models``."""
+def default_model_path(data: Path, name: str = "fastdepth") -> Path:
+    """Where the model of front-end ``name`` (`gpdepth3d.mde.FRONTENDS`) is looked for:
+    ``<data>/../../models``, ``<data>/../models`` or ``<data>/models``."""
+    from .mde import FRONTEND_FILES
+
+    if name not in FRONTEND_FILES:
+        raise InvalidInputError("name", f"a front-end from {sorted(FRONTEND_FILES)}", name)
     for base in (data.parent.parent / "models", data.parent / "models", data / "models"):
-        p = base / "fast_depth_224.tflite"
+        p = base / FRONTEND_FILES[name]
         if p.is_file():
             return p
-    return data.parent.parent / "models" / "fast_depth_224.tflite"
+    return data.parent.parent / "models" / FRONTEND_FILES[name]
 
 
 class DegradedGroundTruthMDE:
@@ -740,7 +745,7 @@ class DegradedGroundTruthMDE:
 def eval_command(
     data: Path,
     *,
-    mde: Literal["fastdepth", "gt-degraded"] = "fastdepth",
+    mde: Literal["fastdepth", "rtmonodepth", "rtmonodepth-mono", "gt-degraded"] = "fastdepth",
     protocol: str = "uniform",
     points: str = "",
     output: Path = Path("eval_output"),
@@ -759,8 +764,10 @@ def eval_command(
     Args:
         data: Dataset folder (7scenes, kitti_tiny, kitti_object, ibims_sample, vio_sparse;
             the layout is detected).
-        mde: Monocular front-end: "fastdepth" (TFLite FastDepth) or "gt-degraded" (a blurred,
-            mis-scaled ground truth; datasets with dense ground truth only).
+        mde: Monocular front-end: "fastdepth" (TFLite FastDepth, indoor), "rtmonodepth" (ONNX
+            RT-MonoDepth-S, KITTI, metric), "rtmonodepth-mono" (its mono-only model: relative
+            depth) or "gt-degraded" (a blurred, mis-scaled ground truth; datasets with dense
+            ground truth only).
         protocol: Comma-separated protocols: uniform (N points), density (the paper's eight
             densities, shares of the available points), hband (lower half rows), vband (left
             half columns), scanlines (every k-th LiDAR beam; KITTI).
@@ -774,8 +781,8 @@ def eval_command(
         methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_balanced,
             gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
             gp_balanced_fit, which fits per frame and level: ~10-60 factorisations each).
-        model: FastDepth .tflite path (default: ../models/fast_depth_224.tflite beside the data
-            folder's parent, i.e. shared/models).
+        model: The front-end's model file (default: its file in ../models beside the data
+            folder's parent, i.e. shared/models; see `default_model_path`).
         seed: Seed of the sampling.
         device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
         qualitative: Also draw the qualitative figure of the first frame.
@@ -805,15 +812,16 @@ def eval_command(
     indices = list(range(0, len(dataset), stride))[: frames if frames is not None else None]
 
     degraded = None
-    if mde == "fastdepth":
-        from .mde.tflite import FastDepthTFLite
+    if mde in ("fastdepth", "rtmonodepth", "rtmonodepth-mono"):
+        from .mde import load_frontend
 
-        front = FastDepthTFLite(model or default_model_path(data))
+        path = Path(model) if model is not None else default_model_path(data, mde)
+        front = load_frontend(mde, models_dir=path.parent) if model is None else load_frontend(path)
     elif mde == "gt-degraded":
         degraded = DegradedGroundTruthMDE(seed=seed)
         front = degraded
     else:
-        raise InvalidInputError("mde", "'fastdepth' or 'gt-degraded'", mde)
+        raise InvalidInputError("mde", "'fastdepth', 'rtmonodepth', 'rtmonodepth-mono' or 'gt-degraded'", mde)
 
     def frame_iter():
         for i in indices:

@@ -26,11 +26,12 @@ FRONTENDS: dict[str, str] = {
 }
 """Names accepted by `load_frontend`, with what each is."""
 
-_FRONTEND_FILES = {
+FRONTEND_FILES: dict[str, str] = {
     "fastdepth": "fast_depth_224.tflite",
     "rtmonodepth": "rtmonodepth_s_ms_640_192.onnx",
     "rtmonodepth-mono": "rtmonodepth_s_m_640_192.onnx",
 }
+"""File name of each named front-end's model (in `default_models_dir`)."""
 
 
 def default_models_dir() -> Path:
@@ -67,10 +68,10 @@ def load_frontend(name_or_path: "str | Path", *, models_dir: "str | Path | None"
         DataFormatError: the model file is missing or not loadable.
     """
     key = str(name_or_path).strip()
-    if key.lower() in _FRONTEND_FILES:
+    if key.lower() in FRONTEND_FILES:
         key = key.lower()
         folder = Path(models_dir) if models_dir is not None else default_models_dir()
-        path = folder / _FRONTEND_FILES[key]
+        path = folder / FRONTEND_FILES[key]
         if not path.is_file():
             raise DataFormatError(
                 path, f"model of the {key!r} front-end not found (pass models_dir or set GPDEPTH3D_MODELS)"
