@@ -1,0 +1,429 @@
+"""Trajectories and sparse maps of SLAM / SfM back-ends, in gpdepth3d's conventions.
+
+Every pose here is ``T_world_camera`` (4x4, maps camera coordinates to world coordinates; the
+OpenCV camera frame: x right, y down, z forward), whatever the file stores:
+
+* TUM RGB-D trajectories (``timestamp tx ty tz qx qy qz qw``, the camera's pose in the world)
+  and ORB-SLAM3's ``KeyFrameTrajectory.txt`` / ``CameraTrajectory.txt`` (the same format), read
+  with evo (`read_tum_trajectory`, written back with `write_tum_trajectory`);
+* KITTI odometry poses (one row-major 3x4 camera-to-world matrix per line) read with evo
+  (`read_kitti_poses`);
+* COLMAP models (``cameras``, ``images``, ``points3D``, binary or text) read with pycolmap
+  (`read_colmap_model`): COLMAP stores ``cam_from_world`` (world to camera); it is inverted here.
+
+Helpers: `pose_from_tq` / `tq_from_pose` (translation + unit quaternion, ``xyzw`` as TUM and
+scipy, or ``wxyz``), `invert_pose`, and `check_pose_orientation`, the loud check for the most
+common integration mistake: a ``T_camera_world`` passed where ``T_world_camera`` is expected. It
+projects the frame's map points with the pose and with its inverse; when clearly more of them
+land in front of the camera and inside the image under the inverse, it warns
+(`InvertedPoseWarning`) naming the frame and the figures.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from .camera import PinholeCamera, check_pose, transform_points
+from .errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
+from .io import atomic_path
+
+QuaternionOrder = Literal["xyzw", "wxyz"]
+
+
+class InvertedPoseWarning(UserWarning):
+    """A pose looks inverted (``T_camera_world`` given where ``T_world_camera`` is expected)."""
+
+
+# ---------------------------------------------------------------------- pose helpers
+def _quat_xyzw(q: np.ndarray, order: QuaternionOrder) -> np.ndarray:
+    if order not in ("xyzw", "wxyz"):
+        raise InvalidInputError("order", "'xyzw' or 'wxyz'", order)
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape[-1] != 4:
+        raise ShapeError("q", "quaternions of shape (..., 4)", describe(q))
+    if order == "wxyz":
+        q = q[..., [1, 2, 3, 0]]
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(~np.isfinite(norm)) or np.any(np.abs(norm - 1.0) > 1e-3):
+        raise CalibrationError("q", "unit quaternions (norm 1 +- 1e-3)", f"norms {np.ravel(norm)[:5]}")
+    return q / norm
+
+
+def pose_from_tq(t: np.ndarray, q: np.ndarray, *, order: QuaternionOrder = "xyzw") -> np.ndarray:
+    """4x4 pose(s) from translation(s) and unit quaternion(s).
+
+    Args:
+        t: (3,) or (N, 3) translations, metres.
+        q: (4,) or (N, 4) unit quaternions (rotation of the pose), in ``order``.
+        order: "xyzw" (TUM, scipy, ORB-SLAM3) or "wxyz" (COLMAP text files, evo's arrays).
+
+    Returns:
+        (4, 4) or (N, 4, 4) float64 rigid transforms ``[R(q) t; 0 1]``.
+
+    Raises:
+        ShapeError: on wrong shapes. CalibrationError: on quaternions that are not unit length.
+    """
+    from scipy.spatial.transform import Rotation
+
+    t = np.asarray(t, dtype=np.float64)
+    single = t.ndim == 1
+    t2 = np.atleast_2d(t)
+    q2 = np.atleast_2d(_quat_xyzw(q, order))
+    if t2.shape[1] != 3 or q2.shape[0] != t2.shape[0]:
+        raise ShapeError("t", f"translations of shape (3,) or ({q2.shape[0]}, 3) matching q", describe(t))
+    T = np.tile(np.eye(4), (t2.shape[0], 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(q2).as_matrix()
+    T[:, :3, 3] = t2
+    return T[0] if single else T
+
+
+def tq_from_pose(T: np.ndarray, *, order: QuaternionOrder = "xyzw") -> tuple[np.ndarray, np.ndarray]:
+    """Translation (3,) and unit quaternion (4,) of a rigid 4x4 pose (the inverse of `pose_from_tq`).
+
+    The quaternion has a non-negative scalar part.
+    """
+    from scipy.spatial.transform import Rotation
+
+    T = check_pose(T, "T")
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # xyzw
+    if q[3] < 0:
+        q = -q
+    if order == "wxyz":
+        q = q[[3, 0, 1, 2]]
+    elif order != "xyzw":
+        raise InvalidInputError("order", "'xyzw' or 'wxyz'", order)
+    return T[:3, 3].copy(), q
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """The inverse of a rigid 4x4 transform, ``[R^T, -R^T t; 0 1]`` (exact, no general inverse)."""
+    T = check_pose(T, "T")
+    inv = np.eye(4)
+    inv[:3, :3] = T[:3, :3].T
+    inv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return inv
+
+
+# ---------------------------------------------------------------------- the inverted-pose check
+@dataclass(frozen=True)
+class PoseCheck:
+    """Result of `check_pose_orientation`.
+
+    Attributes:
+        points: Number of finite map points checked.
+        visible: Fraction of them in front of the camera and inside the image under the pose.
+        visible_inverse: The same fraction under the inverse pose.
+        inverted: True when the pose looks inverted (see `check_pose_orientation`).
+    """
+
+    points: int
+    visible: float
+    visible_inverse: float
+    inverted: bool
+
+
+def _visible_fraction(points_world: np.ndarray, T_world_camera: np.ndarray, camera: PinholeCamera, min_depth: float) -> float:
+    pc = transform_points(invert_pose(T_world_camera), points_world)
+    front = pc[:, 2] > min_depth
+    if not front.any():
+        return 0.0
+    uv, _ = camera.project(pc[front])
+    return float(np.count_nonzero(camera.in_image(uv)) / len(points_world))
+
+
+def check_pose_orientation(
+    points_world: np.ndarray,
+    T_world_camera: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    frame: object = None,
+    min_points: int = 10,
+    min_depth: float = 1e-3,
+    warn: bool = True,
+) -> PoseCheck:
+    """Checks that map points are seen by a pose better than by its inverse; warns loudly if not.
+
+    The pose counts as inverted when at least ``min_points`` finite points are given, at most
+    half as many are visible (in front of the camera and inside the image) under
+    ``T_world_camera`` as under its inverse, and at least 30 % are visible under the inverse.
+
+    Args:
+        points_world: (N, 3) map points of this frame in the world frame, metres.
+        T_world_camera: 4x4 rigid pose to check.
+        camera: Intrinsics the points are projected with.
+        frame: Name or index of the frame for the warning.
+        min_points: Fewer finite points are not judged (``inverted`` False).
+        min_depth: Points closer than this (z, metres) count as behind the camera.
+        warn: Issue an `InvertedPoseWarning` when the pose looks inverted.
+
+    Returns:
+        `PoseCheck` with the two visible fractions.
+    """
+    T = check_pose(T_world_camera)
+    p = np.asarray(points_world, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ShapeError("points_world", "an (N, 3) array", describe(p))
+    p = p[np.all(np.isfinite(p), axis=1)]
+    n = int(p.shape[0])
+    if n == 0:
+        return PoseCheck(0, 0.0, 0.0, False)
+    vis = _visible_fraction(p, T, camera, min_depth)
+    vis_inv = _visible_fraction(p, invert_pose(T), camera, min_depth)
+    inverted = n >= min_points and vis_inv >= 0.3 and vis <= 0.5 * vis_inv
+    if inverted and warn:
+        warnings.warn(
+            f"frame {frame}: the pose looks inverted (T_camera_world given as T_world_camera?): "
+            f"{vis:.0%} of {n} map points are in front of the camera and inside the image under the pose, "
+            f"{vis_inv:.0%} under its inverse",
+            InvertedPoseWarning,
+            stacklevel=2,
+        )
+    return PoseCheck(n, vis, vis_inv, bool(inverted))
+
+
+# ---------------------------------------------------------------------- trajectories
+@dataclass(frozen=True)
+class Trajectory:
+    """A sequence of camera poses.
+
+    Attributes:
+        poses: (N, 4, 4) float64 ``T_world_camera`` (rotations snapped to exactly orthonormal,
+            as `gpdepth3d.camera.check_pose` does).
+        timestamps: (N,) float64 seconds (NaN when the format has none, e.g. KITTI).
+    """
+
+    poses: np.ndarray
+    timestamps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        poses = np.asarray(self.poses, dtype=np.float64)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise ShapeError("poses", "an (N, 4, 4) array", describe(poses))
+        poses = np.stack([check_pose(T, f"poses[{i}]") for i, T in enumerate(poses)]) if len(poses) else poses
+        ts = np.asarray(self.timestamps, dtype=np.float64)
+        if ts.size == 0:
+            ts = np.full(len(poses), np.nan)
+        if ts.shape != (len(poses),):
+            raise ShapeError("timestamps", f"shape ({len(poses)},)", describe(ts))
+        object.__setattr__(self, "poses", poses)
+        object.__setattr__(self, "timestamps", ts)
+
+    def __len__(self) -> int:
+        return int(self.poses.shape[0])
+
+    def nearest(self, timestamp: float, *, max_difference: float = 0.02) -> int:
+        """Index of the pose closest in time to ``timestamp`` (seconds).
+
+        Raises:
+            InvalidInputError: if the trajectory has no timestamps or none is within ``max_difference``.
+        """
+        if len(self) == 0 or np.all(np.isnan(self.timestamps)):
+            raise InvalidInputError("timestamp", "a trajectory with timestamps", "none")
+        i = int(np.nanargmin(np.abs(self.timestamps - timestamp)))
+        if abs(self.timestamps[i] - timestamp) > max_difference:
+            raise InvalidInputError(
+                "timestamp", f"a pose within {max_difference} s", f"nearest at {self.timestamps[i] - timestamp:+.3f} s"
+            )
+        return i
+
+
+def _check_file(path: str | Path) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, "trajectory file not found")
+    return path
+
+
+def read_tum_trajectory(path: str | Path) -> Trajectory:
+    """Reads a TUM RGB-D trajectory (also ORB-SLAM3's ``KeyFrameTrajectory.txt``) with evo.
+
+    Lines ``timestamp tx ty tz qx qy qz qw`` give each camera's pose in the world (metres);
+    ``#`` comments are skipped.
+
+    Raises:
+        DataFormatError: if the file is missing or evo cannot read it.
+    """
+    from evo.tools import file_interface
+
+    path = _check_file(path)
+    try:
+        traj = file_interface.read_tum_trajectory_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - evo raises its own and numpy errors on bad files
+        raise DataFormatError(path, f"not a TUM trajectory: {exc}") from None
+    return Trajectory(np.array(traj.poses_se3), np.asarray(traj.timestamps, dtype=np.float64))
+
+
+def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
+    """Writes a `Trajectory` as a TUM file with evo, atomically (timestamps NaN become 0, 1, 2...)."""
+    from evo.core.trajectory import PoseTrajectory3D
+    from evo.tools import file_interface
+
+    if not isinstance(trajectory, Trajectory):
+        raise InvalidInputError("trajectory", "a Trajectory", type(trajectory).__name__)
+    ts = np.where(np.isnan(trajectory.timestamps), np.arange(len(trajectory), dtype=np.float64), trajectory.timestamps)
+    traj = PoseTrajectory3D(poses_se3=list(trajectory.poses), timestamps=ts)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        file_interface.write_tum_trajectory_file(str(tmp), traj)
+    return path
+
+
+def read_kitti_poses(path: str | Path) -> Trajectory:
+    """Reads KITTI odometry poses (one row-major 3x4 camera-to-world matrix per line) with evo."""
+    from evo.tools import file_interface
+
+    path = _check_file(path)
+    try:
+        traj = file_interface.read_kitti_poses_file(str(path))
+    except Exception as exc:  # noqa: BLE001 - evo raises its own and numpy errors on bad files
+        raise DataFormatError(path, f"not a KITTI pose file: {exc}") from None
+    return Trajectory(np.array(traj.poses_se3))
+
+
+# ---------------------------------------------------------------------- COLMAP
+@dataclass(frozen=True)
+class ColmapImage:
+    """One registered image of a COLMAP model.
+
+    Attributes:
+        name: Image file name as stored in the model.
+        camera_id: Its camera.
+        T_world_camera: 4x4 pose (COLMAP's ``cam_from_world`` inverted).
+        uv: (K, 2) pixel positions of its keypoints that observe a 3-D point (pixel centres at
+            integer coordinates, as gpdepth3d: COLMAP's 0.5 offset removed).
+        point3D_ids: (K,) ids of the 3-D points they observe.
+    """
+
+    name: str
+    camera_id: int
+    T_world_camera: np.ndarray
+    uv: np.ndarray
+    point3D_ids: np.ndarray
+
+
+@dataclass(frozen=True)
+class ColmapModel:
+    """A COLMAP reconstruction as gpdepth3d uses it: cameras, posed images and map points.
+
+    Attributes:
+        cameras: camera id -> `PinholeCamera` (distortion dropped, see `read_colmap_model`).
+        images: image id -> `ColmapImage`.
+        point_ids: (M,) ids of the 3-D points.
+        points: (M, 3) positions in the world frame (the model's units).
+        colors: (M, 3) uint8 RGB.
+        errors: (M,) mean reprojection errors, pixels.
+        track_lengths: (M,) number of images observing each point.
+    """
+
+    cameras: dict
+    images: dict
+    point_ids: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    errors: np.ndarray
+    track_lengths: np.ndarray
+
+    def image_by_name(self, name: str) -> int:
+        """The id of the image called ``name``."""
+        for image_id, image in self.images.items():
+            if image.name == name:
+                return image_id
+        raise InvalidInputError("name", "the name of an image of the model", name)
+
+    def map_points(self, image_id: int) -> np.ndarray:
+        """(K, 3) world positions of the 3-D points observed by an image (for `Mapper.add_frame`)."""
+        if image_id not in self.images:
+            raise InvalidInputError("image_id", "the id of an image of the model", image_id)
+        index = {int(pid): i for i, pid in enumerate(self.point_ids)}
+        rows = [index[int(pid)] for pid in self.images[image_id].point3D_ids if int(pid) in index]
+        return self.points[np.asarray(rows, dtype=np.int64)] if rows else np.zeros((0, 3))
+
+    def trajectory(self) -> Trajectory:
+        """The registered images' poses in image-id order (timestamps NaN)."""
+        ids = sorted(self.images)
+        return Trajectory(np.stack([self.images[i].T_world_camera for i in ids]) if ids else np.zeros((0, 4, 4)))
+
+
+_PINHOLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE"}
+
+
+def _camera_from_colmap(cam, camera_id: int, ignore_distortion: bool) -> PinholeCamera:
+    name = str(cam.model_name) if hasattr(cam, "model_name") else str(cam.model).split(".")[-1]
+    if name not in _PINHOLE_MODELS and not ignore_distortion:
+        raise CalibrationError(
+            f"cameras[{camera_id}]",
+            f"a pinhole camera model ({', '.join(sorted(_PINHOLE_MODELS))}); undistort the images first "
+            "or pass ignore_distortion=True",
+            name,
+        )
+    # COLMAP puts the centre of the top-left pixel at (0.5, 0.5); gpdepth3d at (0, 0).
+    return PinholeCamera(
+        float(cam.focal_length_x),
+        float(cam.focal_length_y),
+        float(cam.principal_point_x) - 0.5,
+        float(cam.principal_point_y) - 0.5,
+        int(cam.width),
+        int(cam.height),
+    )
+
+
+def read_colmap_model(path: str | Path, *, ignore_distortion: bool = False) -> ColmapModel:
+    """Reads a COLMAP sparse model (a folder with cameras/images/points3D .bin or .txt) with pycolmap.
+
+    Args:
+        path: The model folder (e.g. ``sparse/0``).
+        ignore_distortion: Accept camera models with distortion and keep only their focal
+            lengths and principal point (else a `CalibrationError`).
+
+    Returns:
+        `ColmapModel` with ``T_world_camera`` poses and the 3-D points as map points.
+
+    Raises:
+        DataFormatError: if the folder is missing or pycolmap cannot read it.
+        CalibrationError: for a camera model with distortion (without ``ignore_distortion``).
+    """
+    import pycolmap
+
+    path = Path(path)
+    if not path.is_dir():
+        raise DataFormatError(path, "COLMAP model folder not found")
+    try:
+        rec = pycolmap.Reconstruction(str(path))
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError on bad models
+        raise DataFormatError(path, f"not a COLMAP model: {exc}") from None
+    cameras = {int(cid): _camera_from_colmap(cam, int(cid), ignore_distortion) for cid, cam in rec.cameras.items()}
+    images = {}
+    for iid, img in rec.images.items():
+        if not img.has_pose:
+            continue
+        cam_from_world = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
+        T_cw = np.eye(4)
+        T_cw[:3, :] = np.asarray(cam_from_world.matrix(), dtype=np.float64)
+        uv, ids = [], []
+        for p2d in img.points2D:
+            if p2d.has_point3D():
+                uv.append(np.asarray(p2d.xy, dtype=np.float64) - 0.5)
+                ids.append(int(p2d.point3D_id))
+        images[int(iid)] = ColmapImage(
+            str(img.name),
+            int(img.camera_id),
+            invert_pose(T_cw),
+            np.array(uv).reshape(-1, 2),
+            np.array(ids, dtype=np.int64),
+        )
+    pids = np.array(sorted(int(i) for i in rec.points3D), dtype=np.int64)
+    pts = [rec.points3D[int(i)] for i in pids]
+    return ColmapModel(
+        cameras=cameras,
+        images=images,
+        point_ids=pids,
+        points=np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3),
+        colors=np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3),
+        errors=np.array([p.error for p in pts], dtype=np.float64),
+        track_lengths=np.array([p.track.length() for p in pts], dtype=np.int64),
+    )
