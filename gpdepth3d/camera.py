@@ -19,6 +19,11 @@ import numpy as np
 from .errors import CalibrationError, InvalidDepthError, ShapeError, describe
 
 
+def _is_real(value) -> bool:
+    """True for a real number (Python or numpy int/float); False for bool, str, None, arrays."""
+    return not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, float, np.integer, np.floating))
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """Pinhole intrinsics with the image size they belong to.
@@ -46,15 +51,18 @@ class PinholeCamera:
     def __post_init__(self) -> None:
         for name in ("fx", "fy"):
             value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise CalibrationError(name, "a finite focal length > 0 (pixels)", value)
+            if not _is_real(value) or not np.isfinite(value) or value <= 0:
+                raise CalibrationError(name, "a finite focal length > 0 (pixels)", describe(value))
+            object.__setattr__(self, name, float(value))
         for name in ("cx", "cy"):
-            if not np.isfinite(getattr(self, name)):
-                raise CalibrationError(name, "a finite principal point", getattr(self, name))
+            value = getattr(self, name)
+            if not _is_real(value) or not np.isfinite(value):
+                raise CalibrationError(name, "a finite principal point (pixels)", describe(value))
+            object.__setattr__(self, name, float(value))
         for name in ("width", "height"):
             value = getattr(self, name)
-            if int(value) != value or value <= 0:
-                raise CalibrationError(name, "a positive integer image size", value)
+            if not _is_real(value) or not np.isfinite(value) or int(value) != value or value <= 0:
+                raise CalibrationError(name, "a positive integer image size", describe(value))
             object.__setattr__(self, name, int(value))
         if self.check_principal_point and not (
             -0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5
@@ -193,7 +201,10 @@ def check_pose(T: np.ndarray, argument: str = "T_world_camera", atol: float = 1e
         CalibrationError: if T is not 4x4, not finite, its rotation is not orthonormal with
             determinant +1 within ``atol``, or its last row is not [0, 0, 0, 1].
     """
-    T = np.array(T, dtype=np.float64)
+    try:
+        T = np.array(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CalibrationError(argument, "a 4x4 rigid transform of numbers", describe(T)) from None
     if T.shape != (4, 4):
         raise CalibrationError(argument, "a 4x4 rigid transform", describe(T))
     if not np.all(np.isfinite(T)):

@@ -318,7 +318,8 @@ def backproject_depth(
         depth: (H, W) z-depth, metres (0/NaN/inf = no depth); (H, W) must be the camera's.
         rgb: (H, W, 3) RGB image of the same size (uint8, or float in 0..1).
         camera: Intrinsics of the depth map.
-        variance: Optional (H, W) depth variance, m^2; pixels with non-finite variance are dropped.
+        variance: Optional (H, W) depth variance, m^2, >= 0 (InvalidInputError otherwise); pixels with
+            non-finite variance are dropped.
         T_world_camera: Optional 4x4 pose; the points are returned in the world frame.
         min_depth: Pixels with depth <= this are dropped (metres).
         max_depth: Pixels with depth > this are dropped (metres).
@@ -345,6 +346,12 @@ def backproject_depth(
         var = np.asarray(variance, dtype=np.float64)
         if var.shape != d.shape:
             raise ShapeError("variance", f"the shape of depth {d.shape}", describe(var))
+        with np.errstate(invalid="ignore"):
+            negative = var < -1e-12  # round-off of a posterior variance may dip a hair below 0
+        if np.any(negative):
+            raise InvalidInputError(
+                "variance", "variances >= 0 m^2 (NaN = unknown)", f"{int(negative.sum())} negative, min {var[negative].min():.3g}"
+            )
     else:
         var = np.full(d.shape, np.nan)
     if int(stride) != stride or stride < 1:

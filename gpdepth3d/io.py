@@ -603,16 +603,41 @@ def _points(path: Path, u, v, depth, image_size, sigma, drop_invalid: bool) -> S
 
 
 def load_rgb(path: str | Path) -> np.ndarray:
-    """Reads an image as (H, W, 3) uint8 RGB."""
+    """Reads an image as (H, W, 3) uint8 RGB.
+
+    Raises:
+        DataFormatError: missing, unreadable, or truncated (JPEG) file.
+    """
     import cv2
 
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "image not found")
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        _check_jpeg_complete(path)
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise DataFormatError(path, "not a readable image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _check_jpeg_complete(path: Path) -> None:
+    """Refuses a truncated JPEG (OpenCV decodes one silently, greying the missing part).
+
+    A complete JPEG starts with the SOI marker FFD8 and ends with the EOI marker FFD9 (trailing
+    padding aside); inside the entropy-coded data an FF byte is always stuffed, so a file cut
+    anywhere after its headers has no FFD9 at its end.
+    """
+    with open(path, "rb") as f:
+        head = f.read(2)
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        f.seek(max(0, size - 4096))
+        tail = f.read().rstrip(b"\x00\r\n\t ")
+    if head != b"\xff\xd8":
+        raise DataFormatError(path, "not a JPEG file (no FFD8 start marker)")
+    if not tail.endswith(b"\xff\xd9"):
+        raise DataFormatError(path, f"truncated JPEG ({size} bytes, no FFD9 end marker)")
 
 
 def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:

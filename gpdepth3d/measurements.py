@@ -23,9 +23,15 @@ from .errors import (
 )
 
 
-def _as_shape(image_size: tuple[int, int]) -> tuple[int, int]:
-    if len(image_size) != 2 or any(int(s) != s or s <= 0 for s in image_size):
-        raise ShapeError("image_size", "(height, width) with positive integers", image_size)
+def _as_shape(image_size: tuple[int, int], argument: str = "image_size") -> tuple[int, int]:
+    """Validates (height, width): two integers >= 1 (integral floats accepted); returns ints."""
+    expected = "(height, width) with two positive integers"
+    if isinstance(image_size, (str, bytes)) or not hasattr(image_size, "__len__") or len(image_size) != 2:
+        raise ShapeError(argument, expected, describe(image_size))
+    for s in image_size:
+        real = not isinstance(s, (bool, np.bool_)) and isinstance(s, (int, float, np.integer, np.floating))
+        if not real or not np.isfinite(s) or int(s) != s or s <= 0:
+            raise ShapeError(argument, expected, describe(image_size))
     return (int(image_size[0]), int(image_size[1]))
 
 
@@ -358,7 +364,13 @@ def _read_kitti_kv(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise DataFormatError(path, "calibration file not found")
     values: dict[str, np.ndarray] = {}
-    for line in path.read_text().splitlines():
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DataFormatError(path, "not a text calibration file (binary content)") from None
+    except OSError as exc:
+        raise DataFormatError(path, f"unreadable: {exc.strerror or exc}") from None
+    for line in text.splitlines():
         if ":" not in line:
             continue
         key, rest = line.split(":", 1)
@@ -372,11 +384,19 @@ def _read_kitti_kv(path: Path) -> dict[str, np.ndarray]:
 
 
 def load_velodyne(path: str | Path) -> np.ndarray:
-    """Reads a KITTI Velodyne ``.bin`` scan as an (N, 4) float32 array (x, y, z, reflectance)."""
+    """Reads a KITTI Velodyne ``.bin`` scan as an (N, 4) float32 array (x, y, z, reflectance).
+
+    Raises:
+        DataFormatError: missing file, or a size that is not a whole number of 16-byte records
+            (a truncated or foreign file).
+    """
     path = Path(path)
     if not path.is_file():
         raise DataFormatError(path, "Velodyne scan not found")
+    size = path.stat().st_size
+    if size == 0 or size % 16:
+        raise DataFormatError(
+            path, f"expected float32 (x, y, z, r) records of 16 bytes, got {size} bytes (not a multiple of 16)"
+        )
     raw = np.fromfile(path, dtype=np.float32)
-    if raw.size == 0 or raw.size % 4:
-        raise DataFormatError(path, f"expected float32 x, y, z, r records, got {raw.size} floats")
     return raw.reshape(-1, 4)

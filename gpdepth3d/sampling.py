@@ -36,9 +36,13 @@ def make_rng(seed: SeedLike) -> np.random.Generator:
     """A numpy Generator from a seed, an existing Generator (returned as is) or None (fresh entropy)."""
     if isinstance(seed, np.random.Generator):
         return seed
-    if seed is None or (isinstance(seed, (int, np.integer)) and not isinstance(seed, bool)):
-        return np.random.default_rng(seed)
-    raise InvalidInputError("rng", "an int seed, a numpy.random.Generator or None", type(seed).__name__)
+    if seed is None:
+        return np.random.default_rng()
+    if isinstance(seed, (int, np.integer)) and not isinstance(seed, (bool, np.bool_)):
+        if seed < 0:
+            raise InvalidInputError("rng", "an int seed >= 0, a numpy.random.Generator or None", int(seed))
+        return np.random.default_rng(int(seed))
+    raise InvalidInputError("rng", "an int seed >= 0, a numpy.random.Generator or None", describe(seed))
 
 
 def as_available(source: np.ndarray | SparseDepth) -> SparseDepth:
@@ -55,10 +59,21 @@ def _count(n_available: int, n: int | None, density: float | None) -> int:
     if (n is None) == (density is None):
         raise InvalidInputError("n, density", "exactly one of n (points) or density (share)", (n, density))
     if n is not None:
-        if int(n) != n or n < 0:
-            raise InvalidInputError("n", "a number of points >= 0", n)
+        if (
+            isinstance(n, (bool, np.bool_))
+            or not isinstance(n, (int, float, np.integer, np.floating))
+            or not np.isfinite(n)
+            or int(n) != n
+            or n < 0
+        ):
+            raise InvalidInputError("n", "a whole number of points >= 0", describe(n))
         return min(int(n), n_available)
-    if not np.isfinite(density) or not 0 < density <= 1:
+    if (
+        isinstance(density, (bool, np.bool_))
+        or not isinstance(density, (int, float, np.integer, np.floating))
+        or not np.isfinite(density)
+        or not 0 < density <= 1
+    ):
         raise InvalidInputError("density", "a share of the available points in (0, 1]", density)
     return max(1, int(round(density * n_available))) if n_available else 0
 

@@ -10,7 +10,7 @@ from ..camera import PinholeCamera
 from ..errors import DataFormatError
 from ..io import load_rgb
 from ..measurements import LidarCalibration, SparseDepth, load_velodyne
-from .base import DatasetReader, Frame, read_matrix
+from .base import DatasetReader, Frame, checked_pose, read_matrix
 
 
 class KittiTiny(DatasetReader):
@@ -42,7 +42,7 @@ class KittiTiny(DatasetReader):
                 raise DataFormatError(pose_path, f"expected 12 finite numbers per line, got shape {rows.shape}")
             poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
             poses[:, :3, :] = rows.reshape(-1, 3, 4)
-            self.poses = poses
+            self.poses = np.stack([checked_pose(T, pose_path, f"line {i + 1}") for i, T in enumerate(poses)])
         self.calibration: LidarCalibration | None = None
         if (self.root / "calib_cam_to_cam.txt").is_file() and (self.root / "calib_velo_to_cam.txt").is_file():
             self.calibration = LidarCalibration.from_kitti(self.root, camera=2)

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..errors import CalibrationError, DataFormatError
+from ..camera import PinholeCamera
+from ..errors import DataFormatError
 from ..io import load_depth, load_rgb
-from .base import DatasetReader, Frame, read_matrix
+from .base import DatasetReader, Frame, checked_pose, read_matrix
 
 DEFAULT_INTRINSICS = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -47,11 +47,7 @@ class SevenScenes(DatasetReader):
         pose = None
         pose_path = self.root / f"{name}.pose.txt"
         if pose_path.is_file():
-            T = read_matrix(pose_path, (4, 4), "pose")
-            try:
-                pose = check_pose(T)
-            except CalibrationError as exc:
-                raise DataFormatError(pose_path, f"not a rigid transform: {exc}") from None
+            pose = checked_pose(read_matrix(pose_path, (4, 4), "pose"), pose_path)
         h, w = rgb.shape[:2]
         camera = PinholeCamera.from_K(self.K, w, h)
         return Frame(name=name, rgb=rgb, camera=camera, depth=depth, pose=pose)
