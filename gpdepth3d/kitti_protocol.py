@@ -454,10 +454,11 @@ def paper_table(summary: Sequence[dict], *, resolution: str = "full", protocol: 
     """
     methods = list(dict.fromkeys(s["method"] for s in summary))
     labels = list(dict.fromkeys(s["label"] for s in summary if s["protocol"] == protocol))
-    head = ["density", "points", "paper (KITTI, monodepth2)"] + [f"{m} RMSE" for m in methods]
+    paper_col = "paper (KITTI, monodepth2)" if protocol == "uniform" else "paper (no band numbers)"
+    head = ["density", "points", paper_col] + [f"{m} RMSE" for m in methods]
     head += [f"{m} ±2σ" for m in methods if m.startswith("gp")]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
-    mde_cells = ["MDE alone", "0", f"{PAPER_KITTI_RMSE_MM['mde']:.0f}"]
+    mde_cells = ["MDE alone", "0", f"{PAPER_KITTI_RMSE_MM['mde']:.0f}" if protocol == "uniform" else "-"]
     for m in methods:
         s = _get(summary, resolution, protocol, labels[0], "mde") if labels else None
         mde_cells.append(f"{s['rmse']:.0f}" if (m == "mde" and s) else "")
@@ -466,7 +467,7 @@ def paper_table(summary: Sequence[dict], *, resolution: str = "full", protocol: 
     for label in labels:
         first = next((s for s in summary if s["protocol"] == protocol and s["label"] == label), None)
         cells = [label, f"{first['n_points']:.0f}" if first else "-"]
-        paper = PAPER_KITTI_RMSE_MM.get(label)
+        paper = PAPER_KITTI_RMSE_MM.get(label) if protocol == "uniform" else None
         cells.append(f"{paper:.0f}" if paper is not None else "-")
         for m in methods:
             s = _get(summary, resolution, protocol, label, m)
@@ -497,7 +498,8 @@ def full_table(summary: Sequence[dict]) -> str:
 
 
 def plot_kitti(summary: Sequence[dict], path: str | Path, *, title: str = "") -> Path:
-    """RMSE (mm) against input density, one panel per protocol, one line per method and resolution (PNG).
+    """RMSE (mm) against input density: one panel per protocol (a row of panels per ``dataset`` key
+    when the summary rows carry one), one line per method and resolution; PNG written atomically.
 
     The paper's published RMSE (uniform, full resolution) is drawn as black crosses.
     """
@@ -511,26 +513,33 @@ def plot_kitti(summary: Sequence[dict], path: str | Path, *, title: str = "") ->
     protocols = list(dict.fromkeys(s["protocol"] for s in summary))
     if not protocols:
         raise EmptyInputError("summary", "at least one summary row", 0)
-    fig, axes = plt.subplots(1, len(protocols), figsize=(5.2 * len(protocols), 4.2), dpi=100, squeeze=False)
+    datasets = list(dict.fromkeys(s.get("dataset", "") for s in summary))
+    fig, axes = plt.subplots(
+        len(datasets), len(protocols), figsize=(5.2 * len(protocols), 4.2 * len(datasets)), dpi=100, squeeze=False
+    )
     colours = {"mde": "tab:gray", "ip_basic": "tab:green", "gp_paper": "tab:blue", "gp_default": "tab:red"}
-    for ax, protocol in zip(axes[0], protocols):
-        rows = [s for s in summary if s["protocol"] == protocol]
-        for method in dict.fromkeys(s["method"] for s in rows):
-            for res, style in (("full", "-"), ("grid", ":")):
-                rs = sorted((s for s in rows if s["method"] == method and s["resolution"] == res), key=lambda s: s["density"])
-                if rs:
-                    ax.plot([s["density"] for s in rs], [s["rmse"] for s in rs], style, marker="o", ms=3,
-                            color=colours.get(method), label=f"{method} ({res})")
-        if protocol == "uniform":
-            paper = [(d, PAPER_KITTI_RMSE_MM[density_label(d)]) for d in PAPER_DENSITIES
-                     if density_label(d) in PAPER_KITTI_RMSE_MM]
-            ax.plot(*zip(*paper), "kx", ms=8, label="paper (KITTI, monodepth2)")
-            ax.axhline(PAPER_KITTI_RMSE_MM["mde"], color="k", lw=0.8, ls="--", label="paper MDE alone")
-        ax.set_xscale("log", base=2)
-        ax.set_xlabel("input density (share of the non-held-out LiDAR)")
-        ax.set_ylabel("RMSE [mm]")
-        ax.set_title(f"{protocol}")
-        ax.grid(True, which="both", alpha=0.3)
+    for axrow, dataset in zip(axes, datasets):
+        for ax, protocol in zip(axrow, protocols):
+            rows = [s for s in summary if s["protocol"] == protocol and s.get("dataset", "") == dataset]
+            for method in dict.fromkeys(s["method"] for s in rows):
+                for res, style in (("full", "-"), ("grid", ":")):
+                    rs = sorted(
+                        (s for s in rows if s["method"] == method and s["resolution"] == res), key=lambda s: s["density"]
+                    )
+                    if rs:
+                        ax.plot([s["density"] for s in rs], [s["rmse"] for s in rs], style, marker="o", ms=3,
+                                lw=3.0 if method == "gp_paper" else 1.5,  # visible under an identical default
+                                color=colours.get(method), label=f"{method} ({res})")
+            if protocol == "uniform":
+                paper = [(d, PAPER_KITTI_RMSE_MM[density_label(d)]) for d in PAPER_DENSITIES
+                         if density_label(d) in PAPER_KITTI_RMSE_MM]
+                ax.plot(*zip(*paper), "kx", ms=8, label="paper (KITTI, monodepth2)")
+                ax.axhline(PAPER_KITTI_RMSE_MM["mde"], color="k", lw=0.8, ls="--", label="paper: MDE alone")
+            ax.set_xscale("log", base=2)
+            ax.set_xlabel("input density (share of the non-held-out LiDAR)")
+            ax.set_ylabel("RMSE [mm]")
+            ax.set_title(f"{dataset + ': ' if dataset else ''}{protocol}")
+            ax.grid(True, which="both", alpha=0.3)
     axes[0][0].legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
