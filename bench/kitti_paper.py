@@ -18,7 +18,6 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 
 from gpdepth3d.datasets import open_dataset
 from gpdepth3d.evaluation import write_json
