@@ -18,7 +18,6 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-
 from gpdepth3d.datasets import open_dataset
 from gpdepth3d.evaluation import write_json
 from gpdepth3d.gp.model import DepthGPConfig
