@@ -38,6 +38,7 @@ A script that calls `run_batch` with a local cluster must guard its entry point 
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import logging
@@ -55,9 +56,9 @@ from typing import Any, Callable, Iterator, Literal, Optional, Sequence
 
 import numpy as np
 
-from .errors import GPDepthError, InvalidInputError
+from .errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
 from .gp.model import DepthGPConfig
-from .io import atomic_write
+from .io import atomic_write, write_problem
 from .measurements import SparseDepth, downsample_depth
 
 Task = Literal["complete", "eval"]
@@ -340,14 +341,26 @@ class FrameResult:
     metrics: Optional[dict] = None
 
 
-def output_paths(output_dir: str | Path, frame_id: str, task: Task) -> dict[str, Path]:
-    """The files a frame writes: ``posterior`` (``<id>.npz``) and, for eval, ``metrics``; ``final`` is the last."""
+def output_paths(output_dir: str | Path, frame_id: str, task: Task, *, png: bool = False) -> dict[str, Path]:
+    """The files a frame writes: ``posterior`` (``<id>.npz``), with ``png`` ``mean_png`` and ``std_png``,
+    for eval ``metrics``; ``final`` is the last one written.
+
+    A frame is done only when every one of these files exists (`frame_done`).
+    """
     output_dir = Path(output_dir)
     paths = {"posterior": output_dir / f"{frame_id}.npz"}
+    if png:
+        paths["mean_png"] = output_dir / f"{frame_id}_mean.png"
+        paths["std_png"] = output_dir / f"{frame_id}_std.png"
     if task == "eval":
         paths["metrics"] = output_dir / f"{frame_id}.metrics.json"
     paths["final"] = paths["metrics" if task == "eval" else "posterior"]
     return paths
+
+
+def frame_done(output_dir: str | Path, frame_id: str, task: Task, *, png: bool = False) -> bool:
+    """Whether every output of the frame exists (npz, the PNGs with ``png``, the metrics for eval)."""
+    return all(p.is_file() for p in output_paths(output_dir, frame_id, task, png=png).values())
 
 
 _COMPLETERS: dict = {}
@@ -398,7 +411,7 @@ def process_frame(
     """
     t0 = time.perf_counter()
     try:
-        paths = output_paths(output_dir, spec.frame_id, task)
+        paths = output_paths(output_dir, spec.frame_id, task, png=png)
         inputs = loader(spec)
         if not isinstance(inputs, FrameInputs):
             raise InvalidInputError("loader", "a callable returning FrameInputs", type(inputs).__name__)
@@ -548,7 +561,11 @@ def _exclusive(output_dir: Path) -> Iterator[None]:
     except ImportError:  # pragma: no cover - Windows
         yield
         return
-    with open(output_dir / LOCK_NAME, "a") as fh:
+    try:
+        fh = open(output_dir / LOCK_NAME, "a")
+    except OSError as exc:
+        raise OutputError(output_dir / LOCK_NAME, write_problem(exc)) from None
+    with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -631,8 +648,42 @@ def _warm_up() -> None:
     from . import complete, datasets, metrics, sampling  # noqa: F401
 
 
+_ADDRESS = re.compile(r"(?:(tcp|tls|ws|wss|ucx)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?")
+
+
+def check_address(address: str) -> str:
+    """Validates a Dask scheduler address: ``[tcp|tls|ws|wss|ucx://]host:port``; returns it.
+
+    Raises:
+        InvalidInputError: for anything else (no port, a port outside 1..65535, not a string).
+    """
+    expected = "a Dask scheduler address such as 'tcp://host:8786'"
+    if not isinstance(address, str):
+        raise InvalidInputError("address", expected, describe(address))
+    m = _ADDRESS.fullmatch(address.strip())
+    if m is None or not 1 <= int(m.group(3)) <= 65535:
+        raise InvalidInputError("address", expected, repr(address))
+    return address.strip()
+
+
+def make_output_dir(output_dir: str | Path) -> Path:
+    """Creates ``output_dir`` (and its parents) or raises `OutputError` (a file in the way, read-only)."""
+    output_dir = Path(output_dir)
+    if str(output_dir) == "":
+        raise OutputError("''", "output_dir needs a folder name")
+    if output_dir.exists() and not output_dir.is_dir():
+        raise OutputError(output_dir, "a file is in the way (expected a folder)")
+    try:
+        output_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(output_dir, f"cannot create the folder: {write_problem(exc)}") from None
+    if not os.access(output_dir, os.W_OK | os.X_OK):
+        raise OutputError(output_dir, "the folder is not writable")
+    return output_dir
+
+
 @contextlib.contextmanager
-def _client(workers: int, address: str | None) -> Iterator[tuple[Any, int]]:
+def _client(workers: int, address: str | None, connect_timeout: float = 10.0) -> Iterator[tuple[Any, int]]:
     """A Dask client (and the number of worker threads) on a new LocalCluster or at ``address``."""
     distributed = _import_dask()
     if address is None:
@@ -650,10 +701,19 @@ def _client(workers: int, address: str | None) -> Iterator[tuple[Any, int]]:
         finally:
             cluster.close()
     else:
-        with distributed.Client(address, timeout="30s") as client:
+        try:
+            client = distributed.Client(address, timeout=f"{connect_timeout}s")
+        except (OSError, TimeoutError, asyncio.TimeoutError) as exc:
+            raise ConnectionFailedError(
+                address, f"no Dask scheduler answered within {connect_timeout:g} s ({type(exc).__name__})"
+            ) from None
+        with client:
             threads = sum(client.nthreads().values())
             if threads == 0:
-                client.wait_for_workers(1, timeout=60)
+                try:
+                    client.wait_for_workers(1, timeout=connect_timeout)
+                except (OSError, TimeoutError, asyncio.TimeoutError):
+                    raise ConnectionFailedError(address, f"the scheduler has no worker after {connect_timeout:g} s") from None
                 threads = sum(client.nthreads().values())
             client.run(_warm_up)
             yield client, threads
@@ -672,6 +732,7 @@ def run_batch(
     png: bool = False,
     max_in_flight: int | None = None,
     progress: bool = True,
+    connect_timeout: float = 10.0,
 ) -> BatchReport:
     """Completes (or evaluates) many frames on Dask, skipping done frames and isolating failures.
 
@@ -697,6 +758,8 @@ def run_batch(
             (Dask's ``distributed.scheduler.allowed-failures``, default 3); frames waiting on
             that worker are rescheduled.
         progress: Show a tqdm progress bar (frames/s).
+        connect_timeout: Seconds to wait for the scheduler at ``address`` (and for its first
+            worker) before `ConnectionFailedError`.
 
     Returns:
         The `BatchReport`; it is also written to ``output_dir/batch_report.json``.
@@ -710,8 +773,15 @@ def run_batch(
     if int(workers) != workers or workers < 0:
         raise InvalidInputError("workers", "an integer >= 0 (0 = in this process)", workers)
     workers = int(workers)
-    if address is not None and (not isinstance(address, str) or not address):
-        raise InvalidInputError("address", "a Dask scheduler address such as 'tcp://host:8786', or None", address)
+    if address is not None:
+        address = check_address(address)
+    if (
+        isinstance(connect_timeout, bool)
+        or not isinstance(connect_timeout, (int, float))
+        or not np.isfinite(connect_timeout)
+        or connect_timeout <= 0
+    ):
+        raise InvalidInputError("connect_timeout", "seconds > 0", connect_timeout)
     if max_in_flight is not None and (int(max_in_flight) != max_in_flight or max_in_flight < 1):
         raise InvalidInputError("max_in_flight", "an integer >= 1", max_in_flight)
     config = config or DepthGPConfig.residual()
@@ -720,13 +790,12 @@ def run_batch(
     loader = loader or HoldoutInputs()
     if not callable(loader):
         raise InvalidInputError("loader", "a callable loader(spec) -> FrameInputs", type(loader).__name__)
-    output_dir = Path(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
+    output_dir = make_output_dir(output_dir)
 
     with _exclusive(output_dir):
         check_settings(output_dir, config, loader)
         removed = remove_stale_temp_files(output_dir)
-        todo = [f for f in frames if not output_paths(output_dir, f.frame_id, task)["final"].is_file()]
+        todo = [f for f in frames if not frame_done(output_dir, f.frame_id, task, png=png)]
         n_skipped = len(frames) - len(todo)
         kwargs = dict(config=config, loader=loader, task=task, variance=variance, png=png)
         results: list[FrameResult] = []
@@ -741,7 +810,7 @@ def run_batch(
                     _advance(bar, results)
             elif todo:
                 t0 = time.perf_counter()
-                with _client(workers, address) as (client, threads):
+                with _client(workers, address, connect_timeout) as (client, threads):
                     startup = time.perf_counter() - t0
                     n_workers = len(client.nthreads()) or workers
                     t_compute = time.perf_counter()
@@ -848,6 +917,7 @@ def batch_command(
     seed: int = 0,
     png: bool = False,
     progress: bool = True,
+    connect_timeout: float = 10.0,
 ) -> None:
     """Complete or evaluate every frame of a dataset folder on Dask (resumable; re-run to finish).
 
@@ -879,7 +949,10 @@ def batch_command(
         seed: Seed of the per-frame sampling.
         png: Also write 16-bit PNGs of mean and std.
         progress: Show the progress bar.
+        connect_timeout: Seconds to wait for the scheduler at --address before giving up.
     """
+    if address is not None:
+        check_address(address)  # before reading the dataset
     frames = dataset_frames(data, dataset, repeat=repeat, limit=limit)
     report = run_batch(
         frames,
@@ -893,6 +966,7 @@ def batch_command(
         address=address,
         png=png,
         progress=progress,
+        connect_timeout=connect_timeout,
     )
     print(report.summary())
     print(f"wrote {report.n_computed} frame(s) and {Path(output_dir) / REPORT_NAME}")

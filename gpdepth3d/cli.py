@@ -6,6 +6,7 @@ becomes one line on stderr and exit code 1.
 
 from __future__ import annotations
 
+import io
 import os
 import sys
 from pathlib import Path
@@ -14,8 +15,9 @@ from typing import Annotated, Literal, Optional, Union
 import numpy as np
 import tyro
 
-from .errors import GPDepthError
+from .errors import GPDepthError, OutputError
 from .gp.model import DepthGPConfig
+from .io import check_output_path
 
 # The GP model as a CLI choice: `gpdepth3d complete ... model:residual --model.lengthscale 30`.
 ModelChoice = Union[
@@ -52,6 +54,7 @@ def complete_command(
     png: bool = True,
     rgb: Optional[Path] = None,
     models_dir: Optional[Path] = None,
+    drop_invalid_points: bool = False,
 ) -> None:
     """Complete one frame: MDE depth + sparse depth -> posterior mean and variance.
 
@@ -68,8 +71,9 @@ def complete_command(
         lidar: Instead of --sparse: a raw KITTI Velodyne scan (.bin), projected with --calib (closest point per pixel).
         calib: KITTI calibration for --lidar: an object-benchmark calib_*.txt or a raw-data folder with
             calib_cam_to_cam.txt and calib_velo_to_cam.txt.
-        lidar_image_size: HEIGHT WIDTH of the image the calibration belongs to (default: the MDE size); the
-            projected points are then moved to the MDE grid, closest point per pixel.
+        lidar_image_size: HEIGHT WIDTH of the image the calibration belongs to (default: the MDE size, refused
+            when the calibration's principal point does not fit it); the projected points are then moved to the
+            MDE grid, closest point per pixel.
         model: GP model preset ("paper": balanced KISS-GP of the paper; "residual": MDE as prior mean).
         mde_png_scale: Metres per unit of a 16-bit MDE PNG.
         sparse_png_scale: Metres per unit of a 16-bit sparse PNG.
@@ -82,14 +86,24 @@ def complete_command(
         png: Also write 16-bit PNGs of mean and std.
         rgb: RGB image to run the front-end named by --mde on (the MDE map is then the network's output).
         models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
+        drop_invalid_points: Drop point-list rows with a NaN/negative depth or outside the image (their count is
+            printed as a warning) instead of refusing the file.
     """
     from .camera import PinholeCamera
-    from .complete import DepthCompleter
-    from .io import load_depth, load_sparse, read_matrix
+    from .complete import DepthCompleter, check_output_shape
     from .errors import InvalidInputError
+    from .io import check_png_scale, load_depth, load_sparse, read_matrix
     from .measurements import LidarCalibration, load_velodyne, project_points
     from .metrics import calibration_metrics, depth_metrics
 
+    # Everything is checked and read before anything is computed or written.
+    for name, value in (("--mde-png-scale", mde_png_scale), ("--sparse-png-scale", sparse_png_scale),
+                        ("--gt-png-scale", gt_png_scale)):
+        check_png_scale(value, name)
+    out_npz = check_output_path(output, "--output").with_suffix(".npz")
+    check_output_targets([out_npz] + ([out_npz.with_name(out_npz.stem + s) for s in ("_mean.png", "_std.png")] if png else []))
+    if (sparse is None) == (lidar is None):
+        raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
     if rgb is not None:
         from .io import load_rgb
         from .mde import load_frontend
@@ -97,15 +111,24 @@ def complete_command(
         mde_depth = load_frontend(str(mde), models_dir=models_dir)(load_rgb(rgb))
     else:
         mde_depth = load_depth(mde, png_scale=mde_png_scale)
+    out_shape = check_output_shape(output_size, mde_depth.shape)
+    gt_depth = None
+    if gt is not None:
+        gt_depth = load_depth(gt, png_scale=gt_png_scale, invalid_value=gt_invalid_value)
+        if abs((gt_depth.shape[1] / gt_depth.shape[0]) / (out_shape[1] / out_shape[0]) - 1.0) > 0.01:
+            raise InvalidInputError(
+                "--gt", f"a depth map of the image with the MDE's aspect ratio ({out_shape[1]}x{out_shape[0]})",
+                f"{gt_depth.shape[1]}x{gt_depth.shape[0]}",
+            )
     camera = None
     if intrinsics is not None:
         camera = PinholeCamera.from_K(read_matrix(intrinsics, (3, 3), "intrinsics"), mde_depth.shape[1], mde_depth.shape[0])
-    if (sparse is None) == (lidar is None):
-        raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
     if lidar is not None:
         if calib is None:
             raise InvalidInputError("--calib", "a KITTI calibration for --lidar", None)
         calibration = LidarCalibration.from_kitti(calib)
+        if lidar_image_size is None:
+            calibration.check_image_size(mde_depth.shape, "--lidar-image-size (default: the MDE size)")
         measurements = calibration.project(load_velodyne(lidar), lidar_image_size or mde_depth.shape)
     elif sparse_points == "xyz":
         if camera is None:
@@ -113,16 +136,15 @@ def complete_command(
         xyz = _load_table(sparse, 3)
         measurements = project_points(xyz, camera)
     else:
-        measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale)
+        measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points)
     completer = DepthCompleter(model)
     posterior = completer.complete(mde_depth, measurements, output_shape=output_size)
-    written = posterior.save(output, png=png)
+    written = posterior.save(out_npz, png=png)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
         f"({model.formulation}, engine {model.engine}) in {sum(posterior.timings.values()):.2f} s"
     )
-    if gt is not None:
-        gt_depth = load_depth(gt, png_scale=gt_png_scale, invalid_value=gt_invalid_value)
+    if gt_depth is not None:
         if gt_depth.shape != posterior.shape:
             import cv2
 
@@ -134,6 +156,43 @@ def complete_command(
               f"NLL {cal['nll']:.3f}")
     for path in written:
         print(f"wrote {path}")
+
+
+def check_output_targets(paths: list[Path]) -> None:
+    """Checks before any work that each output can be created: no directory in its place, a writable folder.
+
+    Raises:
+        OutputError: naming the first path that cannot be written.
+    """
+    from .io import check_output_path
+
+    for path in paths:
+        check_output_path(path)
+        folder = next((p for p in Path(path).absolute().parents if p.exists()), None)
+        if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
+            raise OutputError(path, f"the folder {folder} is not writable")
+
+
+def check_output_folder(folder: Path, argument: str) -> Path:
+    """Checks that ``folder`` is (or can become) a writable folder, before any work.
+
+    Raises:
+        OutputError: empty name, a file in the way, or a read-only folder.
+    """
+    if str(folder) == "":
+        raise OutputError("''", f"{argument} needs a folder name")
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(folder, f"{argument}: a file is in the way (expected a folder)")
+    for parent in folder.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputError(folder, f"{argument}: {parent} is a file, not a folder")
+            break
+    existing = next((p for p in [folder.absolute(), *folder.absolute().parents] if p.exists()), None)
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(folder, f"{argument}: the folder {existing} is not writable")
+    return folder
 
 
 def _load_table(path: Path, columns: int) -> np.ndarray:
@@ -157,39 +216,186 @@ def demo_command(*, output_dir: Path = Path("gpdepth3d_demo"), seed: int = 0) ->
     """
     from .demo import run_demo
 
+    check_output_folder(output_dir, "--output-dir")
     for line in run_demo(output_dir, seed=seed):
         print(line)
 
 
+def _eval(*args, **kwargs):
+    from .evaluation import eval_command
+    from .io import write_together
+
+    output = kwargs.get("output")
+    if output is not None:
+        check_output_folder(Path(output), "--output")
+    with write_together():  # all of eval's files appear together, or none (full disk, a failing plot)
+        return eval_command(*args, **kwargs)
+
+
 def _commands() -> dict:
+    import functools
+
     from .batch import batch_command
     from .evaluation import eval_command
     from .mapping import fuse_command
     from .viewer import view_command
 
-    return {
+    commands = {
         "demo": demo_command,
         "complete": complete_command,
-        "eval": eval_command,
+        "eval": functools.wraps(eval_command)(_eval),
         "fuse": fuse_command,
         "view": view_command,
         "batch": batch_command,
     }
+    return {name: _announce_start(f) for name, f in commands.items()}
+
+
+class _ParseErrors:
+    """Holds what the parser writes to stderr until the command starts (tyro's error box becomes one line)."""
+
+    def __init__(self) -> None:
+        self.buffer = io.StringIO()
+        self.real = sys.stderr
+        self.parsing = False
+
+    def write(self, text: str) -> int:
+        return (self.buffer if self.parsing else self.real).write(text)
+
+    def flush(self) -> None:
+        if not self.parsing:
+            self.real.flush()
+
+    def __getattr__(self, name: str):
+        return getattr(self.real, name)
+
+    def release(self) -> None:
+        """The command starts: what the parser wrote (warnings) goes out, later writes go straight through."""
+        self.parsing = False
+        if self.buffer.getvalue():
+            self.real.write(self.buffer.getvalue())
+            self.buffer = io.StringIO()
+
+
+_PARSE: Optional[_ParseErrors] = None
+
+
+def _announce_start(f):
+    import functools
+
+    @functools.wraps(f)
+    def run(*args, **kwargs):
+        if _PARSE is not None:
+            _PARSE.release()
+        return f(*args, **kwargs)
+
+    return run
+
+
+def one_line_parse_error(box: str) -> str:
+    """tyro's framed error message (title, sections, help hint) as one line."""
+    title, sections = "", [[]]
+    for raw in box.splitlines():
+        t = raw.strip()
+        if t.startswith("\u256d"):  # top border with the title
+            title = t.strip("\u256d\u256e\u2500 ")
+            continue
+        if t.startswith("\u2570") or not t:
+            continue
+        body = t[1:-1] if t.startswith("\u2502") and t.endswith("\u2502") else t
+        body = body.rstrip()
+        if body.strip() and set(body.strip()) <= {"\u2500"}:
+            sections.append([])
+            continue
+        if body.strip():
+            sections[-1].append(body[1:] if body.startswith(" ") else body)
+    parts, hint = [], ""
+    for sec in sections:
+        if not sec:
+            continue
+        head = sec[0].strip()
+        if head.startswith("For full helptext"):
+            hint = " ".join(line.strip() for line in sec[1:]) or head.split(" see ", 1)[-1]
+            continue
+        if head.startswith("Argument helptext"):
+            continue
+        if head.endswith(":") and len(sec) > 1:
+            indent = min(len(line) - len(line.lstrip()) for line in sec[1:])
+            items = [line.split()[0] for line in sec[1:] if len(line) - len(line.lstrip()) == indent]
+            parts.append(f"{head} {', '.join(items)}")
+        else:
+            parts.append(" ".join(line.strip() for line in sec))
+    text = "; ".join(parts).replace("__tyro-dummy-inner__.", "--")
+    text = " ".join(text.split())
+    message = f"{title}: {text}" if title else text
+    if hint:
+        message += f" (see {hint})"
+    return message or "invalid command line (see gpdepth3d --help)"
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"gpdepth3d: warning: {message}", file=file or sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``gpdepth3d`` command."""
+    """Entry point of the ``gpdepth3d`` command.
+
+    Every failure is one line on stderr and exit code 1 (a bad option value included); set
+    GPDEPTH3D_DEBUG=1 to see the traceback of an unexpected error instead.
+    """
+    global _PARSE
+    import warnings
+
+    show_warning = warnings.showwarning
+    warnings.showwarning = _one_line_warning
+    parse = _ParseErrors()
+    parse.parsing = True
+    _PARSE = parse
+    sys.stderr = parse  # type: ignore[assignment]
     try:
         tyro.extras.subcommand_cli_from_dict(_commands(), args=argv, prog="gpdepth3d")
+    except SystemExit as exc:
+        if parse.parsing and exc.code not in (0, None):
+            parse.parsing = False
+            print(f"gpdepth3d: error: {one_line_parse_error(parse.buffer.getvalue())}", file=parse.real)
+            return 1
+        parse.release()
+        raise
     except GPDepthError as exc:
+        parse.release()
         print(f"gpdepth3d: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        parse.release()
         print("gpdepth3d: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into `head` & co.: not an error
+        parse.release()
         sys.stdout = open(os.devnull, "w")
         return 0
+    except OSError as exc:
+        parse.release()
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"gpdepth3d: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        parse.release()
+        print("gpdepth3d: error: out of memory (try a smaller --output-size or input)", file=sys.stderr)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - the CLI's contract: one line and exit 1
+        parse.release()
+        if os.environ.get("GPDEPTH3D_DEBUG"):
+            raise
+        print(
+            f"gpdepth3d: error: unexpected {type(exc).__name__}: {exc} (set GPDEPTH3D_DEBUG=1 for the traceback)",
+            file=sys.stderr,
+        )
+        return 1
+    finally:
+        sys.stderr = parse.real
+        warnings.showwarning = show_warning
+        _PARSE = None
+    parse.release()
     return 0
 
 

@@ -74,6 +74,23 @@ class OutputError(GPDepthError, OSError):
         return (type(self), (self.path, self.problem))
 
 
+class ConnectionFailedError(GPDepthError, ConnectionError):
+    """A server (a Dask scheduler) could not be reached within the time allowed.
+
+    Attributes:
+        address: The address tried.
+        problem: What went wrong, in words.
+    """
+
+    def __init__(self, address: Any, problem: str):
+        self.address = address
+        self.problem = problem
+        super().__init__(f"{address}: {problem}")
+
+    def __reduce__(self):
+        return (type(self), (self.address, self.problem))
+
+
 class ProblemTooLargeError(GPDepthError, MemoryError):
     """A problem exceeds the size an engine accepts (for example the dense `exact` engine)."""
 

@@ -332,6 +332,30 @@ class LidarCalibration:
         R[:3, :3] = R0
         return cls(P, R @ np.vstack([Tr, [0, 0, 0, 1]]))
 
+    def check_image_size(self, image_size: tuple[int, int], argument: str = "image_size") -> None:
+        """Refuses an image size the calibration cannot belong to.
+
+        The principal point of ``P`` (pixels of the calibrated image) must lie in the middle
+        half of the image in each direction (KITTI's P2: (609.6, 172.9) in a 1242x375 image);
+        a smaller image (say a 320x240 MDE) means the points must be projected at the
+        calibrated size and moved to the MDE grid.
+
+        Raises:
+            CalibrationError: naming ``argument``, with the principal point and the size.
+        """
+        h, w = _as_shape(image_size, argument)
+        K = self.P[:, :3]
+        if abs(K[2, 2]) < 1e-12:
+            raise CalibrationError("P", "a projection matrix with P[2, 2] != 0", self.P.tolist())
+        cx, cy = K[0, 2] / K[2, 2], K[1, 2] / K[2, 2]
+        if not (0.25 * w <= cx + 0.5 <= 0.75 * w and 0.25 * h <= cy + 0.5 <= 0.75 * h):
+            raise CalibrationError(
+                argument,
+                f"the size of the image the calibration belongs to (its principal point ({cx:.1f}, {cy:.1f}) should "
+                "lie near the image centre)",
+                f"{w}x{h}",
+            )
+
     def project(
         self, points_lidar: np.ndarray, image_size: tuple[int, int], *, min_depth: float = 1e-3
     ) -> SparseDepth:

@@ -32,6 +32,7 @@ stride so that each layer holds at most ``ViewerConfig.max_points`` points.
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -862,6 +863,7 @@ def show(
     config: Optional[ViewerConfig] = None,
     host: str = "127.0.0.1",
     port: int = 8080,
+    allow_remote: bool = False,
 ) -> Viewer:
     """Starts the browser viewer for one frame or a posed sequence; returns at once.
 
@@ -874,16 +876,20 @@ def show(
         frames: A `ViewerFrame` or a sequence of them (posed with ``T_world_camera``).
         meshes: Fused meshes (`trimesh.Trimesh` or PLY/GLB/OBJ paths), in the world frame.
         config: Layout, colouring, point budget; default `ViewerConfig()`.
-        host: Interface to listen on (127.0.0.1: this machine only; 0.0.0.0: the network).
+        host: Interface to listen on (127.0.0.1: this machine only; 0.0.0.0: the network, which
+            needs ``allow_remote``). Checked at once (`check_host`): an address this machine does
+            not have raises instead of hanging.
         port: TCP port; 0 lets the system pick a free one, and a taken port makes viser try the
             next ones (`Viewer.port` and `Viewer.url` tell the port in use).
+        allow_remote: Allow a non-loopback ``host`` (the scene is then served to the network).
 
     Returns:
         The running `Viewer`; call ``stop()`` (or leave its ``with`` block) to free the port.
 
     Raises:
         EmptyInputError: if there is nothing to show.
-        InvalidInputError: for frames that are not `ViewerFrame`.
+        InvalidInputError: for frames that are not `ViewerFrame`, a bad port, or a host that
+            cannot be used (see `check_host`).
     """
     if isinstance(frames, ViewerFrame):
         frames = [frames]
@@ -894,9 +900,71 @@ def show(
     meshes = list(meshes)
     if not frames and not meshes:
         raise EmptyInputError("frames, meshes", "at least one frame or mesh", "none")
-    if int(port) != port or not 0 <= port <= 65535:
-        raise InvalidInputError("port", "a TCP port 0..65535", port)
+    if isinstance(port, (bool, np.bool_)) or not isinstance(port, (int, np.integer)) or not 0 <= port <= 65535:
+        raise InvalidInputError("port", "a TCP port 0..65535", describe(port))
+    check_host(host, allow_remote=allow_remote)
     return Viewer(frames, meshes, config or ViewerConfig(), host, int(port))
+
+
+def check_host(host: str, *, allow_remote: bool = False) -> bool:
+    """Checks that the viewer can listen on ``host`` at once (no hang on an address it cannot bind).
+
+    Returns:
+        True when ``host`` is a loopback interface (this machine only), False when it serves the
+        network (only with ``allow_remote``).
+
+    Raises:
+        InvalidInputError: ``host`` is not an IP address or name of this machine (say
+            ``999.1.1.1``, or an address of another machine), or is not loopback (``0.0.0.0``,
+            a LAN address) without ``allow_remote=True``: the viewer would serve the scene to
+            the network.
+    """
+    import ipaddress
+    import socket
+
+    if not isinstance(host, str) or not host or len(host) > 253:
+        raise InvalidInputError("host", "an IP address or host name of this machine", describe(host))
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError, OSError) as exc:
+        raise InvalidInputError("host", "an IP address or host name of this machine", f"{host!r} ({exc})") from None
+    addresses = {info[4][0] for info in infos}
+    for family, _, _, _, sockaddr in infos:
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind((sockaddr[0], 0))
+            except OSError as exc:
+                raise InvalidInputError(
+                    "host", "an address of this machine to listen on", f"{host!r} ({exc.strerror or exc})"
+                ) from None
+    loopback = all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
+    if not loopback and not allow_remote:
+        raise InvalidInputError(
+            "host",
+            "a loopback address such as 127.0.0.1, or allow_remote=True (CLI: --allow-remote) to serve the "
+            "scene to every machine that can reach this one",
+            host,
+        )
+    return loopback
+
+
+def port_taken(host: str, port: int) -> bool:
+    """Whether ``port`` on ``host`` is already in use (a listener answers or binding fails)."""
+    import socket
+
+    if port == 0:
+        return False
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError:
+        return False
+    family, _, _, _, sockaddr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind(sockaddr)
+        except OSError:
+            return True
+    return False
 
 
 def view_command(
@@ -915,6 +983,7 @@ def view_command(
     color_by: ColorBy = "rgb",
     max_points: int = 400_000,
     duration: Optional[float] = None,
+    allow_remote: bool = False,
 ) -> None:
     """Open the 3D viewer in the browser: GP-refined vs MDE-only point clouds, measurements, meshes.
 
@@ -931,13 +1000,28 @@ def view_command(
         gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
         poses: Camera-to-world poses: one 4x4 (or 3x4) text file per frame, or one file with a 3x4 pose per line.
         mesh: Meshes written by `gpdepth3d fuse` (.ply/.glb/.obj), world frame.
-        host: Interface to listen on (127.0.0.1 = this machine only).
-        port: TCP port of the page.
+        host: Interface to listen on (127.0.0.1 = this machine only; another address, such as 0.0.0.0, serves the
+            scene to the network and needs --allow-remote).
+        port: TCP port of the page (when it is taken the next free one is used, and said).
         layout: "side-by-side" or "overlay".
         color_by: Initial colouring: rgb, depth, sigma or error (needs --gt).
         max_points: Most points per layer; frames are subsampled to stay below it.
         duration: Stop after this many seconds (default: run until Ctrl-C).
+        allow_remote: Allow a --host other than loopback: everyone who can reach this machine sees the scene.
     """
+    if duration is not None and (
+        isinstance(duration, bool) or not isinstance(duration, (int, float)) or math.isnan(duration) or duration < 0
+    ):
+        raise InvalidInputError("--duration", "seconds >= 0 (or no --duration: until Ctrl-C)", duration)
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise InvalidInputError("--port", "a TCP port 0..65535", port)
+    local = check_host(host, allow_remote=allow_remote)  # before loading anything: fails at once
+    if not local:
+        print(
+            f"view: WARNING: serving on {host}:{port} to the network (--allow-remote): anyone who can reach this "
+            "machine can see the scene",
+            file=sys.stderr,
+        )
     n = len(posterior)
     if color_by == "error" and not gt:
         raise InvalidInputError("--color-by", "rgb, depth or sigma without --gt", color_by)
@@ -972,7 +1056,10 @@ def view_command(
         for i, path in enumerate(posterior)
     ]
     config = ViewerConfig(layout=layout, color_by=color_by, max_points=max_points)
-    with show(frames, meshes=list(mesh), config=config, host=host, port=port) as viewer:
+    taken = port_taken(host, port)
+    with show(frames, meshes=list(mesh), config=config, host=host, port=port, allow_remote=allow_remote) as viewer:
+        if taken or (port and viewer.port != port):
+            print(f"view: port {port} is taken (by another program); using port {viewer.port} instead")
         print(f"viewer running at {viewer.url} ({'Ctrl-C to stop' if duration is None else f'{duration:g} s'})")
         viewer.wait(duration)
     print("viewer stopped")
