@@ -2,7 +2,8 @@
 
 Cost O(n^3) in the number n of observed pixels and O(n m) memory for m output pixels, so it is
 meant for small crops and for checking the other engines. It refuses larger problems with
-`ProblemTooLargeError` instead of exhausting memory.
+`ProblemTooLargeError` instead of exhausting memory. The same algebra (`dense_posterior`) is the
+``fast`` engine's ``dense`` route for few observed pixels with nu > 0.5.
 """
 
 from __future__ import annotations
@@ -10,8 +11,89 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from ..errors import ProblemTooLargeError
+from ..errors import ConvergenceError, ProblemTooLargeError
 from .model import GridProblem
+
+
+def _factor(problem: GridProblem):
+    """(rows, cols, Cholesky factor of the correlation + noise ratio matrix, residuals) of the observed pixels."""
+    rows, cols = np.nonzero(problem.precision > 0)
+    k = problem.kernel
+    s2 = float(k.outputscale) ** 2
+    noise = 1.0 / np.asarray(problem.precision, np.float64)[rows, cols]
+    resid = np.asarray(problem.obs, np.float64)[rows, cols] - np.asarray(problem.prior_mean, np.float64)[rows, cols]
+    # Work in units of s so that the matrix is a correlation plus noise ratio.
+    A = k.factor(rows, rows) * k.factor(cols, cols)
+    A[np.diag_indices(rows.shape[0])] += noise / s2
+    try:
+        chol = scipy.linalg.cho_factor(A, lower=True, check_finite=False)
+    except np.linalg.LinAlgError as err:
+        raise ConvergenceError(
+            f"dense Cholesky failed for the Matern kernel nu={k.nu}, lengthscale={k.lengthscale} px, "
+            f"outputscale={k.outputscale} m on {rows.shape[0]} observed pixels: the kernel matrix plus noise "
+            f"(smallest noise/s^2 = {float(noise.min()) / s2:.3g}) is not numerically positive definite ({err})"
+        ) from None
+    return rows, cols, chol, resid
+
+
+def dense_posterior(
+    problem: GridProblem, *, variance: bool = True, max_cross_entries: int = 60_000_000
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Posterior mean (Ho, Wo) and marginal variance (Ho, Wo) (or None) by dense algebra over the observed pixels.
+
+    mean = m* + K*o (Koo + D)^-1 (y - m), var = k** - diag(K*o (Koo + D)^-1 Ko*). The cross
+    covariances of the separable kernel are products of two 1-D tables (output rows x observed
+    rows, output columns x observed columns), so no kernel is evaluated per (output, observed) pair.
+
+    Args:
+        problem: The grid problem (either formulation, any output grid).
+        variance: Also compute the marginal variances (m^2).
+        max_cross_entries: Output pixels x observed pixels handled per block (bounds the memory).
+    """
+    k = problem.kernel
+    s2 = float(k.outputscale) ** 2
+    ho, wo = problem.out_shape
+    m = ho * wo
+    if not np.any(problem.precision > 0):
+        mean = np.asarray(problem.out_prior_mean, np.float64).copy()
+        return mean, (np.full((ho, wo), s2) if variance else None)
+    rows, cols, chol, resid = _factor(problem)
+    n = rows.shape[0]
+    alpha = scipy.linalg.cho_solve(chol, resid, check_finite=False)
+    kr = k.factor(problem.out_rows, rows)  # (Ho, n)
+    kc = k.factor(problem.out_cols, cols)  # (Wo, n)
+    mean = np.empty(m)
+    var = np.empty(m) if variance else None
+    rows_per_block = max(1, max_cross_entries // max(n * wo, 1) // 4)
+    for r0 in range(0, ho, rows_per_block):
+        r1 = min(ho, r0 + rows_per_block)
+        cross = (kr[r0:r1, None, :] * kc[None, :, :]).reshape(-1, n)  # (b, n) correlations
+        sl = slice(r0 * wo, r1 * wo)
+        mean[sl] = cross @ alpha
+        if var is not None:
+            half = scipy.linalg.solve_triangular(chol[0], cross.T, lower=True, check_finite=False)
+            var[sl] = s2 * np.maximum(1.0 - np.einsum("ij,ij->j", half, half), 0.0)
+    mean = np.asarray(problem.out_prior_mean, np.float64).ravel() + mean
+    return mean.reshape(ho, wo), (var.reshape(ho, wo) if var is not None else None)
+
+
+def dense_log_marginal_likelihood(problem: GridProblem) -> float:
+    """log N(y; m, Koo + D) of the observed pixels of ``problem`` (nats), by dense Cholesky."""
+    if not np.any(problem.precision > 0):
+        return 0.0
+    rows, cols, chol, resid = _factor(problem)
+    s2 = float(problem.kernel.outputscale) ** 2
+    n = rows.shape[0]
+    alpha = scipy.linalg.cho_solve(chol, resid, check_finite=False)
+    logdet = 2.0 * float(np.sum(np.log(np.diag(chol[0])))) + n * np.log(s2)
+    return -0.5 * float(resid @ alpha) / s2 - 0.5 * logdet - 0.5 * n * np.log(2.0 * np.pi)
+
+
+def dense_bytes(n_observed: int, n_out: int, *, variance: bool = True, max_cross_entries: int = 60_000_000) -> int:
+    """Peak memory (bytes) of `dense_posterior`: the n x n factor, the 1-D tables and one block."""
+    n = int(n_observed)
+    block = min(int(n_out) * n, max(n, max_cross_entries // 4))
+    return 8 * (2 * n * n + block * (2 if variance else 1) + 4 * n_out)
 
 
 class ExactEngine:
@@ -25,8 +107,7 @@ class ExactEngine:
 
     def solve(self, problem: GridProblem, *, variance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None)."""
-        rows, cols = np.nonzero(problem.precision > 0)
-        n = rows.shape[0]
+        n = int(np.count_nonzero(problem.precision > 0))
         ho, wo = problem.out_shape
         m = ho * wo
         if n > self.max_points or n * m > self.max_cross_entries:
@@ -35,29 +116,4 @@ class ExactEngine:
                 f"({self.max_points} observed pixels, {self.max_cross_entries} cross entries); "
                 "use engine='fast' or a smaller crop"
             )
-        k = problem.kernel
-        s2 = k.outputscale**2
-        if n == 0:
-            mean = problem.out_prior_mean.astype(np.float64).copy()
-            return mean, (np.full((ho, wo), s2) if variance else None)
-        noise = 1.0 / problem.precision[rows, cols]
-        resid = problem.obs[rows, cols] - problem.prior_mean[rows, cols]
-        # Work in units of s so that the matrix is a correlation plus noise ratio.
-        A = k.factor(rows, rows) * k.factor(cols, cols)
-        A[np.diag_indices(n)] += noise / s2
-        chol = scipy.linalg.cho_factor(A, lower=True, check_finite=False)
-        alpha = scipy.linalg.cho_solve(chol, resid, check_finite=False)
-        out_r, out_c = np.meshgrid(problem.out_rows, problem.out_cols, indexing="ij")
-        out_r, out_c = out_r.ravel(), out_c.ravel()
-        mean = np.empty(m)
-        var = np.empty(m) if variance else None
-        block = max(1, self.max_cross_entries // max(n, 1) // 4)
-        for start in range(0, m, block):
-            sl = slice(start, min(m, start + block))
-            cross = k.factor(out_r[sl], rows) * k.factor(out_c[sl], cols)  # (b, n) correlations
-            mean[sl] = cross @ alpha
-            if var is not None:
-                half = scipy.linalg.solve_triangular(chol[0], cross.T, lower=True, check_finite=False)
-                var[sl] = s2 * np.maximum(1.0 - np.einsum("ij,ij->j", half, half), 0.0)
-        mean = problem.out_prior_mean.ravel() + mean
-        return mean.reshape(ho, wo), (var.reshape(ho, wo) if var is not None else None)
+        return dense_posterior(problem, variance=variance, max_cross_entries=self.max_cross_entries)

@@ -61,15 +61,18 @@ scaled mean and 2e-9 of each variance).
 
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import InvalidInputError, ShapeError
-from .markov import chain_precision, readout_weights, state_dim
+from ..errors import ConvergenceError, InvalidInputError, ProblemTooLargeError, ShapeError
+from .exact import dense_bytes, dense_log_marginal_likelihood, dense_posterior
+from .markov import _step, _unit_sde, chain_precision, readout_weights, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
 from .neumann import NEUMANN_MEAN_TOL, NEUMANN_VAR_TOL, NeumannPosterior
@@ -840,6 +843,86 @@ class _Factor:
         return diag.cpu().numpy(), (out.cpu().numpy() if out is not None else None)
 
 
+
+# ----------------------------------------------------------------------------- route limits
+
+
+class IllConditionedError(ConvergenceError):
+    """The grid route's precision form is too ill-conditioned for float64 with this kernel (and no
+    other route of the engine can take the problem)."""
+
+
+# The grid route factorises the precision Q / s^2 + W. Its entries grow like (l / pixel)^(2 nu + 1)
+# per axis while the covariance stays O(s^2), so rounding errors of a backward-stable Cholesky are
+# amplified by up to cond(Qv (x) Qu) (Matern 2.5 at l = 30 px: ~1e20). `grid_error_estimate` bounds
+# that amplification; the route is refused above _GRID_MAX_ERROR. Calibrated against the dense
+# engine on 20 x 24 to 48 x 64 grids (nu = 1.5, 2.5; l = 1.5-100 px; both formulations): the measured
+# error of the mean and the standard deviation, relative to s, was 1e-5 to 0.04 times the estimate,
+# so 1e-6 keeps them below ~4e-8 s.
+_GRID_MAX_ERROR = 1e-6
+# Memory of the grid route's numeric phase (factor, update stack, covariance fronts): measured
+# 43-64 bytes x ds^2 n log2 n for 60 x 80 to 352 x 1216 grids (ds = 1, 4, 9); 80 with margin for
+# the symbolic structure.
+_GRID_BYTES = 80.0
+
+
+def grid_error_estimate(problem: GridProblem) -> float:
+    """Estimated bound on the rounding error of the grid route, relative to the prior std s.
+
+    eps * ||Qv|| ||Qu|| * min(||Cv|| ||Cu||, 1 / (s^2 min w)): the conditioning of the prior
+    precision, less when every pixel is observed (the observations bound the posterior covariance).
+
+    Args:
+        problem: The grid problem.
+
+    Returns:
+        The estimate (dimensionless; the grid route is used up to 1e-6).
+    """
+    from .markov import chain_conditioning
+
+    h, w = problem.shape
+    k = problem.kernel
+    qv, cv = chain_conditioning(h, float(k.nu), float(k.lengthscale))
+    qu, cu = chain_conditioning(w, float(k.nu), float(k.lengthscale))
+    cov = cv * cu
+    wmin = float(np.min(problem.precision))
+    if wmin > 0:
+        cov = min(cov, 1.0 / (wmin * float(k.outputscale) ** 2))
+    return float(np.finfo(np.float64).eps * qv * qu * cov)
+
+
+def grid_bytes(shape: tuple[int, int], nu: float) -> int:
+    """Estimated peak memory (bytes) of the grid route on an (H, W) grid: ~80 ds^2 n log2 n."""
+    n = float(shape[0]) * float(shape[1])
+    ds = state_dim(nu) ** 2
+    return int(_GRID_BYTES * ds * ds * n * max(np.log2(n), 1.0))
+
+
+def memory_budget() -> int:
+    """Default memory budget of one solve (bytes): half of the memory available now."""
+    try:
+        import psutil
+
+        avail = int(psutil.virtual_memory().available)
+    except Exception:  # pragma: no cover - psutil missing or no /proc
+        avail = int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    return avail // 2
+
+
+def _dense_seconds(m: int, n_out: int, variance: bool) -> float:
+    """Cost model of the dense route: Cholesky m^3 / 3, cross tables n_out m, triangular solves n_out m^2."""
+    t = (m**3 / 3.0) / 10e9 + n_out * m * 3e-9
+    if variance:
+        t += n_out * float(m) ** 2 / 4e9
+    return t
+
+
+def _grid_seconds(h: int, w: int, nu: float, variance: bool) -> float:
+    """Cost model of the grid route (see _GRID_FLOPS_PER_S); fronts are ds = d^2 times larger for nu > 0.5."""
+    ds = state_dim(nu) ** 2
+    return (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 * ds**3 / _GRID_FLOPS_PER_S
+
+
 # ----------------------------------------------------------------------------- engine
 
 
@@ -891,6 +974,8 @@ class FastEngine:
         backend: str = "auto",
         prior_cache_mb: float = 256.0,
         route: str = "auto",
+        max_dense_points: int = 6000,
+        max_memory_mb: float | None = None,
     ):
         if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
             raise InvalidInputError("threads", "None or an integer >= 1", threads)
@@ -909,10 +994,19 @@ class FastEngine:
         if not isinstance(prior_cache_mb, (int, float, np.integer, np.floating)) or not prior_cache_mb >= 0:
             raise InvalidInputError("prior_cache_mb", "a number >= 0", prior_cache_mb)
         self.prior_cache_mb = float(prior_cache_mb)
-        if route not in ("auto", "grid", "woodbury", "neumann"):
-            raise InvalidInputError("route", "'auto', 'grid', 'woodbury' or 'neumann'", route)
+        if route not in ("auto", "grid", "woodbury", "neumann", "dense"):
+            raise InvalidInputError("route", "'auto', 'grid', 'woodbury', 'neumann' or 'dense'", route)
         self.route = route
-        self.last_route: str | None = None  # the route of the last call: "grid", "woodbury" or "neumann"
+        if isinstance(max_dense_points, (bool, np.bool_)) or not isinstance(max_dense_points, (int, np.integer)) \
+                or max_dense_points < 0:
+            raise InvalidInputError("max_dense_points", "an integer >= 0", max_dense_points)
+        self.max_dense_points = int(max_dense_points)
+        if max_memory_mb is not None and (isinstance(max_memory_mb, (bool, np.bool_))
+                                          or not isinstance(max_memory_mb, (int, float, np.integer, np.floating))
+                                          or not max_memory_mb > 0 or not np.isfinite(max_memory_mb)):
+            raise InvalidInputError("max_memory_mb", "None or a finite number > 0", max_memory_mb)
+        self.max_memory_mb = None if max_memory_mb is None else float(max_memory_mb)
+        self.last_route: str | None = None  # the route of the last call: "grid", "woodbury", "neumann" or "dense"
         self._prior_factor: tuple | None = None  # (key, PriorFactor)
         self._kernel_uses: dict = {}
         self._woodbury_buffers: dict = {}  # image buffers of the Woodbury route, per output shape
@@ -985,26 +1079,56 @@ class FastEngine:
         return _torch_threads(self.threads) if self.backend == "torch" else nullcontext()
 
     def _route(self, problem: GridProblem, variance: bool, *, lml: bool = False):
-        """(route, its posterior object or None) for ``problem`` (see ``route``); sets ``last_route``."""
+        """(route, its posterior object or None) for ``problem`` (see ``route``); sets ``last_route``.
+
+        Raises:
+            IllConditionedError: The grid route is refused for this kernel (`grid_error_estimate`
+                above 1e-6) and no other route applies.
+            ProblemTooLargeError: The chosen (or every applicable) route would exceed the memory budget.
+        """
         k = problem.kernel
         route = self.route
-        if route == "grid" or (route == "auto" and (k.nu != 0.5 or self.backend == "torch")):
-            self.last_route = "grid"
-            return "grid", None
-        if k.nu != 0.5:
-            raise InvalidInputError("route", f"'auto' or 'grid' for nu = {k.nu} ('{route}' needs nu = 0.5)", route)
-        if route == "neumann" and lml:  # the series gives no log-determinant
-            self.last_route = "grid"
-            return "grid", None
+        if route in ("woodbury", "neumann") and k.nu != 0.5:
+            raise InvalidInputError("route", f"'auto', 'grid' or 'dense' for nu = {k.nu} ('{route}' needs nu = 0.5)", route)
         prec = np.asarray(problem.precision, dtype=np.float64)
         h, w = problem.shape
         ho, wo = problem.out_shape
-        choice, payload = "grid", None
-        if route == "woodbury":
+        m = int(np.count_nonzero(prec > 0))
+        budget = self._budget()
+        # What the grid and the dense routes can take (every route computes the same posterior).
+        err = grid_error_estimate(problem)
+        gbytes = grid_bytes((h, w), k.nu)
+        grid_why = None
+        if err > _GRID_MAX_ERROR:
+            grid_why = (f"its precision form is too ill-conditioned for the Matern kernel nu={k.nu}, "
+                        f"lengthscale={k.lengthscale:g} px (estimated error {err:.2g} x outputscale > {_GRID_MAX_ERROR:g})")
+        elif gbytes > budget:
+            grid_why = f"it needs ~{gbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"
+        dbytes = dense_bytes(m, ho * wo, variance=variance)
+        dense_why = None
+        if m > self.max_dense_points:
+            dense_why = f"{m} observed pixels exceed its limit of {self.max_dense_points}"
+        elif dbytes > budget:
+            dense_why = f"it needs ~{dbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"
+        choice, payload = None, None
+        if route == "grid" or (route == "neumann" and lml):  # the series gives no log-determinant
+            if grid_why is not None:
+                self._refuse({"grid": grid_why}, problem)
+            choice = "grid"
+        elif route == "dense":
+            if dense_why is not None:
+                self._refuse({"dense": dense_why}, problem)
+            choice = "dense"
+        elif route == "woodbury":
+            wbytes = 8 * (3 * m * m + 12 * ho * wo)
+            if wbytes > budget:
+                self._refuse({"woodbury": f"it needs ~{wbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"}, problem)
             choice = "woodbury"
         elif route == "neumann":
             if not problem.output_is_input:
                 raise InvalidInputError("route", "'auto', 'grid' or 'woodbury' for an output grid other than the input", route)
+            if 200 * h * w > budget:
+                self._refuse({"neumann": f"it needs ~{200 * h * w / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"}, problem)
             payload = NeumannPosterior(problem, self._neumann_buffers)
             if payload.terms(NEUMANN_MEAN_TOL) is None or (variance and payload.seconds(True) is None):
                 payload.release()
@@ -1013,25 +1137,56 @@ class FastEngine:
                     f"rho = {payload.rho:.3g}")
             choice = "neumann"
         else:
-            m = int(np.count_nonzero(prec > 0))
-            costs = {"grid": (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 / _GRID_FLOPS_PER_S}
-            # Woodbury computes s^2 (1 - quadratic form): near a point whose noise is tiny against s
-            # that cancels (error ~1e-16 s^2 cond(A), cond(A) <= 1 + m s^2 / noise); the grid does not.
-            if m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR:
-                costs["woodbury"] = woodbury_seconds(m, ho * wo, variance)
-            if not lml and m >= 0.9 * h * w and problem.output_is_input:  # (nearly) every pixel observed
-                candidate = NeumannPosterior(problem, self._neumann_buffers)
-                t = candidate.seconds(variance)
-                if t is not None:
-                    costs["neumann"], payload = t, candidate
+            costs, why = {}, {}
+            if grid_why is None:
+                if k.nu == 0.5 and self.backend == "compiled":
+                    costs["grid"] = (22.0 + (60.0 if variance else 0.0)) * float(h * w) ** 1.5 / _GRID_FLOPS_PER_S
                 else:
-                    candidate.release()
+                    costs["grid"] = _grid_seconds(h, w, k.nu, variance)
+            else:
+                why["grid"] = grid_why
+            if dense_why is None:
+                costs["dense"] = _dense_seconds(m, ho * wo, variance)
+            else:
+                why["dense"] = dense_why
+            if k.nu == 0.5 and self.backend == "compiled":
+                # Woodbury computes s^2 (1 - quadratic form): near a point whose noise is tiny against s
+                # that cancels (error ~1e-16 s^2 cond(A), cond(A) <= 1 + m s^2 / noise); the grid does not.
+                if (m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR) and \
+                        8 * (3 * m * m + 12 * ho * wo) <= budget:
+                    costs["woodbury"] = woodbury_seconds(m, ho * wo, variance)
+                if not lml and m >= 0.9 * h * w and problem.output_is_input and 200 * h * w <= budget:
+                    candidate = NeumannPosterior(problem, self._neumann_buffers)  # (nearly) every pixel observed
+                    t = candidate.seconds(variance)
+                    if t is not None:
+                        costs["neumann"], payload = t, candidate
+                    else:
+                        candidate.release()
+                if "dense" in costs and "woodbury" in costs:
+                    del costs["dense"]  # the same algebra, Woodbury's variance is O(m^2 + n) instead of O(n m^2)
+            if not costs:
+                self._refuse(why, problem)
             choice = min(costs, key=costs.get)
             if choice != "neumann" and payload is not None:
                 payload.release()
                 payload = None
         self.last_route = choice
         return choice, payload
+
+    def _budget(self) -> int:
+        return int(self.max_memory_mb * 2**20) if self.max_memory_mb is not None else memory_budget()
+
+    @staticmethod
+    def _refuse(why: dict, problem: GridProblem):
+        """Raises the typed error that says why no route (or the forced one) can take ``problem``."""
+        k = problem.kernel
+        text = "; ".join(f"the {r} route is refused: {t}" for r, t in why.items())
+        msg = (f"fast engine: no route for a {problem.shape[0]} x {problem.shape[1]} grid with "
+               f"{int(np.count_nonzero(np.asarray(problem.precision) > 0))} observed pixels, Matern nu={k.nu}, "
+               f"lengthscale={k.lengthscale:g} px: {text}")
+        if any("ill-conditioned" in t for t in why.values()) and not any("GiB" in t for t in why.values()):
+            raise IllConditionedError(msg + "; use a smaller lengthscale or nu, or fewer observed pixels")
+        raise ProblemTooLargeError(msg + "; use a smaller grid or output, or fewer observed pixels")
 
     # -- public
     def factorize(self, problem: GridProblem):
@@ -1051,13 +1206,21 @@ class FastEngine:
         prec_var = np.zeros(tree.nvar)
         prec_var[real_vars.ravel()] = np.asarray(problem.precision, dtype=np.float64).ravel()
         inv_s2 = 1.0 / float(k.outputscale) ** 2
-        if self.backend == "compiled":
-            fronts = _front_tree(tree)
-            pf = self._reusable_prior(tree, fronts, prior, k, prec_var)
-            factor = FrontalFactor(fronts, prior.asm, prior.qvals, prec_var, scale2=1.0 / inv_s2, prior=pf)
-        else:
-            with _torch_threads(self.threads):
-                factor = _Factor(tree, prior, inv_s2, prec_var, self.device)
+        try:
+            if self.backend == "compiled":
+                fronts = _front_tree(tree)
+                pf = self._reusable_prior(tree, fronts, prior, k, prec_var)
+                factor = FrontalFactor(fronts, prior.asm, prior.qvals, prec_var, scale2=1.0 / inv_s2, prior=pf)
+            else:
+                with _torch_threads(self.threads):
+                    factor = _Factor(tree, prior, inv_s2, prec_var, self.device)
+        except np.linalg.LinAlgError as err:
+            raise IllConditionedError(
+                f"fast engine, grid route: the posterior precision of the Matern kernel nu={k.nu}, "
+                f"lengthscale={k.lengthscale:g} px, outputscale={k.outputscale:g} m on a {h} x {w} grid is not "
+                f"numerically positive definite (estimated error {grid_error_estimate(problem):.2g} x outputscale; "
+                f"largest observation precision {float(np.max(problem.precision)):.3g} 1/m^2): {err}"
+            ) from None
         return factor, tree, prior, real_vars
 
     def _posterior_states(self, problem: GridProblem):
@@ -1079,6 +1242,8 @@ class FastEngine:
         """
         _check_problem(problem)
         route, post = self._route(problem, variance)
+        if route == "dense":
+            return dense_posterior(problem, variance=variance)
         if route == "woodbury":
             post = WoodburyPosterior(problem, self._woodbury_buffers)
             return post.mean(), (post.variance() if variance else None)
@@ -1123,8 +1288,11 @@ class FastEngine:
         from the Cholesky factor and log det Q from the 1-D chains.
         """
         _check_problem(problem)
-        if self._route(problem, False, lml=True)[0] == "woodbury":
+        route = self._route(problem, False, lml=True)[0]
+        if route == "woodbury":
             return WoodburyPosterior(problem).log_marginal_likelihood()
+        if route == "dense":
+            return dense_log_marginal_likelihood(problem)
         factor, tree, prior, real_vars, mu, prec, resid = self._posterior_states(problem)
         k = problem.kernel
         d = state_dim(k.nu)

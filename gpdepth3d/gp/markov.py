@@ -32,33 +32,93 @@ def state_dim(nu: float) -> int:
     return int(nu + 0.5)
 
 
-@lru_cache(maxsize=32)
-def _sde(nu: float, lengthscale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Feedback matrix F (d, d) and stationary covariance P_inf (d, d), unit variance."""
-    d = state_dim(nu)
-    lam = np.sqrt(2.0 * nu) / lengthscale
-    coeffs = [scipy.special.comb(d, k) * lam ** (d - k) for k in range(d)]  # (s + lam)^d, low order first
+@lru_cache(maxsize=8)
+def _unit_sde(d: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Feedback F (d, d), stationary covariance P (d, d) and noise covariance G (d, d) of the SDE
+    with lam = 1 (unit variance of the first state)."""
+    coeffs = [scipy.special.comb(d, k) for k in range(d)]  # (s + 1)^d, low order first
     F = np.zeros((d, d))
     F[np.arange(d - 1), np.arange(1, d)] = 1.0
     F[d - 1, :] = -np.asarray(coeffs)
     Lq = np.zeros((d, d))
     Lq[d - 1, d - 1] = 1.0
     P = scipy.linalg.solve_continuous_lyapunov(F, -Lq)
-    P = 0.5 * (P + P.T) / P[0, 0]
-    return F, P
+    c = P[0, 0]
+    return F, 0.5 * (P + P.T) / c, Lq / c
+
+
+# Gauss-Legendre rule of the process-noise integral (integrand: exponentials times polynomials of
+# degree <= 2 (d - 1) on [0, h < 2]: 24 nodes integrate it to rounding).
+_GAUSS = np.polynomial.legendre.leggauss(24)
+# Steps (in units of 1 / lam) from which P - A P A^T loses less than ~2 digits to cancellation.
+_SUBTRACT_FROM = 2.0
+
+
+def _expm_unit(d: int, s: float) -> np.ndarray:
+    """expm(F s) (d, d) for the lam = 1 feedback matrix: F + I is nilpotent ((s + 1)^d is its
+    characteristic polynomial), so expm(F s) = e^-s sum_{k < d} ((F + I) s)^k / k! exactly."""
+    N = _unit_sde(d)[0] + np.eye(d)
+    out = np.eye(d)
+    term = np.eye(d)
+    for k in range(1, d):
+        term = term @ N * (s / k)
+        out = out + term
+    return np.exp(-s) * out
+
+
+@lru_cache(maxsize=256)
+def _step(d: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Transition A = expm(F h) and process noise Q(h) = int_0^h e^{Fs} G e^{F^T s} ds (lam = 1).
+
+    Q is computed by quadrature for short steps: the textbook P - A P A^T cancels catastrophically
+    there (at h = 0.001, d = 3 it keeps no correct digit; Q's smallest entries are O(h^(2d - 1))).
+    """
+    F, P, G = _unit_sde(d)
+    A = _expm_unit(d, h)
+    if h >= _SUBTRACT_FROM:
+        Q = P - A @ P @ A.T
+    else:
+        x, wq = _GAUSS
+        Q = np.zeros((d, d))
+        for s, wk in zip(0.5 * h * (x + 1.0), wq):
+            E = _expm_unit(d, s)
+            Q += wk * (E @ G @ E.T)
+        Q *= 0.5 * h
+    Q = 0.5 * (Q + Q.T)
+    A.setflags(write=False)
+    Q.setflags(write=False)
+    return A, Q
+
+
+def _lam(nu: float, lengthscale: float) -> float:
+    return float(np.sqrt(2.0 * nu) / lengthscale)
+
+
+def _sde(nu: float, lengthscale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Feedback matrix F (d, d) and stationary covariance P_inf (d, d) of the scaled states.
+
+    The states are f and its derivatives scaled to unit time 1 / lam = l / sqrt(2 nu):
+    x_k = f^(k) / lam^k. Their stationary covariance is O(1) whatever the length scale (the raw
+    derivatives' variances are O(lam^(2k)): at l = 100 px and nu = 2.5 they span 7 orders and
+    make the chain precision too ill-conditioned for float64).
+    """
+    F, P, _ = _unit_sde(state_dim(nu))
+    return F * _lam(nu, lengthscale), P
 
 
 def transition(nu: float, lengthscale: float, delta: float) -> np.ndarray:
-    """State transition A = expm(F delta) (d, d) over a coordinate step delta >= 0."""
-    F, _ = _sde(float(nu), float(lengthscale))
-    if F.shape == (1, 1):
-        return np.array([[np.exp(F[0, 0] * delta)]])
-    return scipy.linalg.expm(F * delta)
+    """State transition A = expm(F delta) (d, d) of the scaled states over a step delta >= 0."""
+    return _step(state_dim(nu), _lam(float(nu), float(lengthscale)) * float(delta))[0].copy()
+
+
+def process_noise(nu: float, lengthscale: float, delta: float) -> np.ndarray:
+    """Covariance (d, d) of x(t + delta) given x(t) (scaled states), accurate for small steps."""
+    return _step(state_dim(nu), _lam(float(nu), float(lengthscale)) * float(delta))[1].copy()
 
 
 def stationary_cov(nu: float, lengthscale: float) -> np.ndarray:
-    """Stationary state covariance P_inf (d, d) of the unit-variance Matern SDE."""
-    return _sde(float(nu), float(lengthscale))[1].copy()
+    """Stationary covariance P_inf (d, d) of the scaled states (first state: unit variance)."""
+    return _unit_sde(state_dim(nu))[1].copy()
 
 
 def chain_precision(coords: np.ndarray, nu: float, lengthscale: float) -> tuple[sp.csr_matrix, float]:
@@ -76,8 +136,9 @@ def chain_precision(coords: np.ndarray, nu: float, lengthscale: float) -> tuple[
     x = np.asarray(coords, dtype=np.float64)
     if x.ndim != 1 or x.size == 0 or np.any(np.diff(x) <= 0):
         raise InvalidInputError("coords", "a non-empty strictly increasing 1-D array", x)
-    F, P = _sde(float(nu), float(lengthscale))
-    d = F.shape[0]
+    d = state_dim(nu)
+    lam = _lam(float(nu), float(lengthscale))
+    P = _unit_sde(d)[1]
     n = x.shape[0]
     J = np.zeros((n, d, d))
     off = np.zeros((max(n - 1, 0), d, d))  # block (i + 1, i)
@@ -89,9 +150,9 @@ def chain_precision(coords: np.ndarray, nu: float, lengthscale: float) -> tuple[
     for i, dlt in enumerate(deltas):
         key = float(dlt)
         if key not in cache:
-            A = transition(nu, lengthscale, key)
-            Qn = P - A @ P @ A.T
-            Qi = np.linalg.inv(0.5 * (Qn + Qn.T))
+            A, Qn = _step(d, lam * key)
+            Qi = np.linalg.inv(Qn)
+            Qi = 0.5 * (Qi + Qi.T)
             cache[key] = (A, Qi, np.linalg.slogdet(Qn)[1])
         A, Qi, ld = cache[key]
         J[i] += A.T @ Qi @ A
@@ -113,9 +174,43 @@ def chain_precision(coords: np.ndarray, nu: float, lengthscale: float) -> tuple[
     return Q, -float(logdet_cov)
 
 
+@lru_cache(maxsize=128)
+def chain_conditioning(n: int, nu: float, lengthscale: float) -> tuple[float, float]:
+    """Norms (||Q||_inf, ||C||_inf) of the chain precision Q and state covariance C on 0..n-1.
+
+    Their product bounds the condition number of the 1-D chain precision; for the separable 2-D
+    field the products of the two axes bound that of the prior precision Qv (x) Qu, which is what
+    limits the accuracy of a factorisation in float64 (Matern 2.5 at l = 30 px: ~1e20).
+    ||C||_inf is the largest row sum of |C| over lags up to n - 1 from the middle row (|C(k)| =
+    |A^k P|, summed until the terms fall below 1e-17 of the total).
+
+    Args:
+        n: Number of grid coordinates (unit spacing), >= 1.
+        nu: Matern smoothness.
+        lengthscale: Length scale in pixels.
+    """
+    if int(n) < 1:
+        raise InvalidInputError("n", "an integer >= 1", n)
+    n = int(n)
+    d = state_dim(nu)
+    Q, _ = chain_precision(np.arange(min(n, 64), dtype=np.float64), nu, lengthscale)  # rows repeat beyond
+    q_norm = float(abs(Q).sum(axis=1).max())
+    P = _unit_sde(d)[1]
+    A = _step(d, _lam(float(nu), float(lengthscale)))[0]
+    total = np.abs(P).sum(axis=1)
+    M = P.copy()
+    for k in range(1, n):
+        M = A @ M
+        term = np.abs(M).sum(axis=1) * (2.0 if k < n // 2 else 1.0)
+        total = total + term
+        if term.max() < 1e-17 * total.max():
+            break
+    return q_norm, float(total.max())
+
+
 def _cross_cov(nu: float, lengthscale: float, t: float, s: float) -> np.ndarray:
     """Cov(x(t), x(s)) (d, d) of the unit-variance stationary SDE states."""
-    F, P = _sde(float(nu), float(lengthscale))
+    P = stationary_cov(nu, lengthscale)
     if t >= s:
         return transition(nu, lengthscale, t - s) @ P
     return P @ transition(nu, lengthscale, s - t).T
