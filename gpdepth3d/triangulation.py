@@ -19,7 +19,7 @@ sigmas, as they should.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, Sequence
 
 import numpy as np
@@ -31,44 +31,77 @@ from .measurements import SparseDepth
 
 @dataclass(frozen=True)
 class TriangulationConfig:
-    """Options of feature triangulation.
+    """Options of feature tracking and triangulation.
 
     Attributes:
-        detector: "orb" or "sift" (OpenCV).
+        detector: "klt" (Shi-Tomasi corners followed by pyramidal Lucas-Kanade: sub-pixel
+            tracks, the default), "orb" or "sift" (descriptor matching, OpenCV).
         max_features: Most keypoints detected per image.
+        min_corner_distance: Smallest distance between two "klt" corners, pixels.
+        klt_window: Lucas-Kanade window side, pixels.
+        klt_levels: Lucas-Kanade pyramid levels above the image.
+        klt_fb_error: Largest forward-backward tracking error of a "klt" step, pixels
+            (0 disables the check).
         ratio: Lowe ratio test threshold (best / second-best descriptor distance).
         max_epipolar_error: Largest Sampson distance to the epipolar geometry given by the
-            poses, pixels.
-        max_reprojection_error: Largest reprojection error in either view, pixels.
-        min_parallax_deg: Smallest angle between the two viewing rays at the point, degrees.
-        pixel_sigma: Standard deviation of a keypoint position (u and v), pixels.
+            poses for descriptor matches, pixels (loose: the poses are refined afterwards).
+        max_reprojection_error: Largest reprojection error of an observation, pixels.
+        min_parallax_deg: Smallest angle between two viewing rays at the point, degrees.
+        pixel_sigma: Standard deviation of a keypoint position (u and v), pixels; the noise
+            the residuals show is used when larger.
+        rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to
+            the reference (per axis), degrees.
+        translation_sigma: Prior standard deviation of each neighbour's translation relative
+            to the reference (per axis), metres.
+        min_views: Fewest views (reference included) that must support a multi-view point.
+        depth_sigma_floor: Relative depth sigma added in quadrature to the propagated one
+            (model errors: keypoints on depth edges, non-rigid or specular surfaces).
         min_depth: Points nearer than this to the reference camera are dropped, metres.
         max_depth: Points farther than this are dropped, metres.
         max_relative_sigma: Points whose depth sigma exceeds this fraction of their depth are dropped.
     """
 
-    detector: Literal["orb", "sift"] = "sift"
-    max_features: int = 3000
+    detector: Literal["klt", "orb", "sift"] = "klt"
+    max_features: int = 1000
+    min_corner_distance: float = 8.0
+    klt_window: int = 15
+    klt_levels: int = 3
+    klt_fb_error: float = 1.0
     ratio: float = 0.8
-    max_epipolar_error: float = 2.0
-    max_reprojection_error: float = 2.0
-    min_parallax_deg: float = 1.0
-    pixel_sigma: float = 1.0
+    max_epipolar_error: float = 4.0
+    max_reprojection_error: float = 3.0
+    min_parallax_deg: float = 0.5
+    pixel_sigma: float = 0.5
+    rotation_sigma_deg: float = 1.0
+    translation_sigma: float = 0.02
+    refine_poses: bool = False
+    variance_factor: bool = True
+    min_views: int = 2
+    depth_sigma_floor: float = 0.02
     min_depth: float = 0.1
     max_depth: float = 20.0
-    max_relative_sigma: float = 0.1
+    max_relative_sigma: float = 0.15
 
     def __post_init__(self) -> None:
-        if self.detector not in ("orb", "sift"):
-            raise InvalidInputError("detector", "'orb' or 'sift'", self.detector)
-        if int(self.max_features) != self.max_features or self.max_features < 8:
-            raise InvalidInputError("max_features", "an integer >= 8", self.max_features)
+        if self.detector not in ("klt", "orb", "sift"):
+            raise InvalidInputError("detector", "'klt', 'orb' or 'sift'", self.detector)
+        for name, low in (("max_features", 8), ("klt_window", 5), ("klt_levels", 0), ("min_views", 2)):
+            value = getattr(self, name)
+            if int(value) != value or value < low:
+                raise InvalidInputError(name, f"an integer >= {low}", value)
         if not 0 < self.ratio <= 1:
             raise InvalidInputError("ratio", "a value in (0, 1]", self.ratio)
-        for name in ("max_epipolar_error", "max_reprojection_error", "pixel_sigma", "max_depth", "max_relative_sigma"):
+        for name in (
+            "max_epipolar_error", "max_reprojection_error", "pixel_sigma", "max_depth", "max_relative_sigma",
+            "rotation_sigma_deg", "translation_sigma", "min_corner_distance",
+        ):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(name, "a finite value > 0", value)
+        for name in ("klt_fb_error", "depth_sigma_floor"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise InvalidInputError(name, "a finite value >= 0", value)
         if not 0 <= self.min_parallax_deg < 90:
             raise InvalidInputError("min_parallax_deg", "an angle in [0, 90) degrees", self.min_parallax_deg)
         if not 0 <= self.min_depth < self.max_depth:
@@ -81,7 +114,7 @@ class Features:
 
     Attributes:
         uv: (N, 2) keypoint positions (u, v), pixels (pixel-centre convention).
-        descriptors: (N, D) descriptors (uint8 for ORB, float32 for SIFT).
+        descriptors: (N, D) descriptors (uint8 for ORB, float32 for SIFT; D = 0 for KLT corners).
         detector: Which detector made them.
     """
 
@@ -133,7 +166,7 @@ def _gray(rgb: np.ndarray, argument: str) -> np.ndarray:
 
 
 def detect_features(rgb: np.ndarray, *, config: TriangulationConfig | None = None) -> Features:
-    """Detects keypoints and computes descriptors (ORB or SIFT) in an RGB image.
+    """Detects keypoints (Shi-Tomasi corners for "klt") and descriptors (ORB or SIFT) in an RGB image.
 
     Args:
         rgb: (H, W, 3) uint8 RGB image (or (H, W) uint8 grey).
@@ -146,6 +179,12 @@ def detect_features(rgb: np.ndarray, *, config: TriangulationConfig | None = Non
 
     config = config or TriangulationConfig()
     gray = _gray(rgb, "rgb")
+    if config.detector == "klt":
+        corners = cv2.goodFeaturesToTrack(
+            gray, int(config.max_features), 0.01, float(config.min_corner_distance), blockSize=5
+        )
+        uv = np.zeros((0, 2)) if corners is None else corners.reshape(-1, 2).astype(np.float64)
+        return Features(uv, np.zeros((uv.shape[0], 0), np.float32), "klt")
     if config.detector == "orb":
         det = cv2.ORB_create(nfeatures=int(config.max_features))
     else:
@@ -206,6 +245,8 @@ def match_features(
     config = config or TriangulationConfig()
     if a.detector != b.detector:
         raise InvalidInputError("b", f"features of the same detector as a ({a.detector})", b.detector)
+    if a.detector == "klt":
+        raise InvalidInputError("a", "features with descriptors (detector 'orb' or 'sift')", "klt corners")
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), np.int64)
     norm = cv2.NORM_HAMMING if a.detector == "orb" else cv2.NORM_L2
@@ -363,6 +404,540 @@ def triangulate_pair(
     )
 
 
+# ---------------------------------------------------------------------- multi-view tracks
+@dataclass(frozen=True)
+class MultiViewPoints:
+    """Points triangulated from tracks over several views by `triangulate_tracks`.
+
+    Attributes:
+        index: (N,) int64 row of each point in the tracks given.
+        uv: (N, 2) pixel positions in the reference view.
+        depth: (N,) z-depth in the reference camera, metres.
+        sigma: (N,) standard deviation of that depth, metres: pixel noise (scaled by the
+            residuals actually seen) and pose uncertainty propagated through the refinement,
+            plus the relative floor ``depth_sigma_floor``.
+        points_world: (N, 3) positions in the world frame (the reference pose as given), metres.
+        n_views: (N,) views that support the point, the reference included (>= 2).
+        reprojection_error: (N,) RMS reprojection error over the supporting views, pixels.
+        parallax_deg: (N,) largest angle between the reference ray and another view's ray, degrees.
+        poses: (V, 4, 4) ``T_world_camera`` of every view after refinement (the reference is
+            kept as given; views without enough tracks keep their given pose).
+        pixel_sigma: Reprojection noise estimated from the residuals (pixels, >= the configured
+            ``pixel_sigma``); used in ``sigma``.
+    """
+
+    index: np.ndarray
+    uv: np.ndarray
+    depth: np.ndarray
+    sigma: np.ndarray
+    points_world: np.ndarray
+    n_views: np.ndarray
+    reprojection_error: np.ndarray
+    parallax_deg: np.ndarray
+    poses: np.ndarray
+    pixel_sigma: float
+
+    def __len__(self) -> int:
+        return int(self.depth.shape[0])
+
+    def to_sparse(self, image_size: tuple[int, int]) -> SparseDepth:
+        """The points as `SparseDepth` of the reference image with their sigma."""
+        return SparseDepth.from_arrays(self.uv[:, 0], self.uv[:, 1], self.depth, image_size, self.sigma)
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices."""
+    z = np.zeros(a.shape[:-1])
+    return np.stack(
+        [
+            np.stack([z, -a[..., 2], a[..., 1]], -1),
+            np.stack([a[..., 2], z, -a[..., 0]], -1),
+            np.stack([-a[..., 1], a[..., 0], z], -1),
+        ],
+        -2,
+    )
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices."""
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    W = _skew(w)
+    small = theta < 1e-8
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(th) / th)
+    b = np.where(small, 0.5, (1 - np.cos(th)) / th**2)
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def _log_rotation(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors (angles below pi)."""
+    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    theta = np.arccos(c)[..., None]
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = np.sin(theta)
+    return np.where(theta < 1e-8, 0.5 * v, v * theta / (2 * np.where(theta < 1e-8, 1.0, s)))
+
+
+class _Problem:
+    """Inverse-depth bundle adjustment of one reference view against its neighbours.
+
+    Unknowns: the inverse depth rho_i of every track along its reference ray (the reference
+    keypoint is taken as exact) and a 6-D correction (rotation vector, translation) of every
+    neighbour's pose relative to the reference, with a Gaussian prior around the given pose.
+    A point in neighbour j: p = R_j xbar_i + rho_i t_j (homogeneous), pixel = pi(K p).
+    """
+
+    def __init__(self, xbar, uv, mask, R0, t0, camera, pixel_sigma, rot_sigma, trans_sigma):
+        self.xbar = xbar  # (N, 3) normalised reference rays (z = 1)
+        self.uv = uv  # (N, J, 2) observations in the neighbours
+        self.mask = mask  # (N, J) observed
+        self.R0, self.t0 = R0, t0  # (J, 3, 3), (J, 3): given reference -> neighbour transforms
+        self.R, self.t = R0.copy(), t0.copy()
+        self.f = np.array([camera.fx, camera.fy])
+        self.c = np.array([camera.cx, camera.cy])
+        self.pixel_sigma = float(pixel_sigma)
+        self.prior = np.r_[np.full(3, 1.0 / rot_sigma**2), np.full(3, 1.0 / trans_sigma**2)]
+
+    def project(self, rho, R=None, t=None):
+        R = self.R if R is None else R
+        t = self.t if t is None else t
+        p = np.einsum("jab,nb->nja", R, self.xbar) + rho[:, None, None] * t[None]
+        z = p[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = p[..., :2] / z[..., None] * self.f + self.c
+        return p, z, uv
+
+    def residuals(self, rho, R=None, t=None):
+        p, z, uv = self.project(rho, R, t)
+        r = (uv - self.uv) / self.pixel_sigma
+        valid = self.mask & (z > 1e-9) & np.all(np.isfinite(r), axis=-1)
+        return p, z, np.where(valid[..., None], r, 0.0), valid
+
+    def prior_residual(self, R=None, t=None):
+        R = self.R if R is None else R
+        t = self.t if t is None else t
+        dtheta = _log_rotation(R @ np.swapaxes(self.R0, 1, 2))
+        return np.concatenate([dtheta, t - self.t0], axis=1)  # (J, 6)
+
+    def cost(self, rho, scale, R=None, t=None):
+        _, _, r, valid = self.residuals(rho, R, t)
+        s2 = np.sum(r**2, axis=-1)
+        data = np.sum(np.where(valid, scale**2 * np.log1p(s2 / scale**2), 0.0))
+        e = self.prior_residual(R, t)
+        return data + np.sum(e**2 * self.prior)
+
+    def normal_equations(self, rho, weights):
+        """Gauss-Newton blocks with per-observation weights (N, J)."""
+        p, z, r, valid = self.residuals(rho)
+        w = np.where(valid, weights, 0.0)
+        fz = self.f / self.pixel_sigma
+        iz = np.where(valid, 1.0 / np.where(valid, z, 1.0), 0.0)
+        # d(residual)/dp: (N, J, 2, 3)
+        Jp = np.zeros(p.shape[:2] + (2, 3))
+        Jp[..., 0, 0] = fz[0] * iz
+        Jp[..., 1, 1] = fz[1] * iz
+        Jp[..., 0, 2] = -fz[0] * p[..., 0] * iz**2
+        Jp[..., 1, 2] = -fz[1] * p[..., 1] * iz**2
+        J_rho = np.einsum("njab,jb->nja", Jp, self.t)  # (N, J, 2)
+        Rx = np.einsum("jab,nb->nja", self.R, self.xbar)
+        J_theta = -np.einsum("njab,njbc->njac", Jp, _skew(Rx))
+        J_t = Jp * rho[:, None, None, None]
+        J_xi = np.concatenate([J_theta, J_t], axis=-1)  # (N, J, 2, 6)
+        h_rr = np.einsum("nj,nja,nja->n", w, J_rho, J_rho)
+        b_r = np.einsum("nj,nja,nja->n", w, J_rho, r)
+        H_xr = np.einsum("nj,njak,nja->njk", w, J_xi, J_rho)  # (N, J, 6)
+        H_xx = np.einsum("nj,njak,njal->jkl", w, J_xi, J_xi)  # (J, 6, 6)
+        b_x = np.einsum("nj,njak,nja->jk", w, J_xi, r)
+        e = self.prior_residual()
+        H_xx = H_xx + np.eye(6)[None] * self.prior[None, :, None]
+        b_x = b_x + e * self.prior[None]
+        return r, valid, h_rr, b_r, H_xr, H_xx, b_x
+
+    def schur(self, h_rr, H_xr, H_xx):
+        n, nj = H_xr.shape[:2]
+        A = H_xr.reshape(n, nj * 6)
+        inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
+        S = np.zeros((nj * 6, nj * 6))
+        for j in range(nj):
+            S[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = H_xx[j]
+        S -= (A * inv[:, None]).T @ A
+        return S, A, inv
+
+
+def _cauchy_weights(r: np.ndarray, scale: float) -> np.ndarray:
+    return 1.0 / (1.0 + np.sum(r**2, axis=-1) / scale**2)
+
+
+def triangulate_tracks(
+    tracks: np.ndarray,
+    poses: Sequence[np.ndarray] | np.ndarray,
+    camera: PinholeCamera,
+    *,
+    reference: int = 0,
+    config: TriangulationConfig | None = None,
+    _checked: bool = False,
+) -> MultiViewPoints:
+    """Triangulates feature tracks from all their views, refining the neighbours' poses.
+
+    Every track starts at a keypoint of the reference view. Steps: (1) a linear multi-view
+    triangulation of each track's inverse depth along its reference ray (the multi-view DLT
+    in inverse-depth form, iteratively reweighted); (2) a robust (Cauchy) Gauss-Newton /
+    Levenberg-Marquardt bundle adjustment of all inverse depths jointly with a correction of
+    every neighbour's pose relative to the reference, with a Gaussian prior of
+    ``rotation_sigma_deg`` / ``translation_sigma`` around the given relative pose (the
+    translations' prior fixes the metric scale); (3) observations off by more than
+    ``max_reprojection_error`` pixels are dropped and the problem solved again; (4) the
+    depth sigma is the marginal standard deviation of the inverse depth from the inverse of
+    the Gauss-Newton information (Schur complement: pixel noise *and* the pose uncertainty
+    that all points share), with the pixel noise taken as the larger of ``pixel_sigma`` and
+    the one the residuals show, plus a relative floor ``depth_sigma_floor * depth`` in
+    quadrature (keypoint-on-edge and residual model errors; calibrated on 7-Scenes).
+
+    Args:
+        tracks: (N, V, 2) pixel positions (u, v) of N tracks in V views; NaN where a track is
+            not seen. Every track must be seen in the reference view.
+        poses: V 4x4 ``T_world_camera`` poses.
+        camera: Intrinsics shared by all views.
+        reference: Index of the reference view.
+        config: Options (pixel_sigma, rotation_sigma_deg, translation_sigma, min_views,
+            max_reprojection_error, min_parallax_deg, min_depth, max_depth,
+            max_relative_sigma, depth_sigma_floor).
+
+    Returns:
+        `MultiViewPoints` of the tracks that pass: seen in >= ``min_views`` views after
+        outlier removal, in front of every supporting camera, depth in [min_depth,
+        max_depth], parallax >= ``min_parallax_deg``, sigma <= ``max_relative_sigma * depth``.
+
+    Raises:
+        ShapeError: tracks not (N, V, 2) or poses not V 4x4 matrices.
+        InvalidInputError: reference out of range, a track missing in the reference view.
+        CalibrationError: a pose that is not rigid.
+    """
+    config = config or TriangulationConfig()
+    tracks = np.asarray(tracks, dtype=np.float64)
+    if tracks.ndim != 3 or tracks.shape[2] != 2:
+        raise ShapeError("tracks", "an (N, V, 2) array of pixel positions", describe(tracks))
+    n, V = tracks.shape[:2]
+    poses = list(poses)
+    if len(poses) != V or V < 2:
+        raise ShapeError("poses", f"{V} 4x4 poses, one per view of tracks (>= 2 views)", len(poses))
+    Ts = np.stack([T if _checked else check_pose(T, f"poses[{k}]") for k, T in enumerate(poses)])
+    if not -V <= reference < V:
+        raise InvalidInputError("reference", f"an index into {V} views", reference)
+    ref = reference % V
+    if n and not np.all(np.isfinite(tracks[:, ref])):
+        raise InvalidInputError("tracks", "every track seen (finite) in the reference view", "NaN in the reference view")
+    others = [k for k in range(V) if k != ref]
+    empty = MultiViewPoints(
+        np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)),
+        np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Ts.copy(), float(config.pixel_sigma),
+    )
+    mask = np.all(np.isfinite(tracks[:, others]), axis=-1)
+    keep = np.nonzero(mask.sum(axis=1) >= config.min_views - 1)[0]
+    if keep.size == 0:
+        return empty
+    uv_ref = tracks[keep, ref]
+    obs = tracks[keep][:, others]
+    mask = mask[keep]
+    obs = np.where(mask[..., None], obs, 0.0)
+    T_rw = np.linalg.inv(Ts[ref])
+    T_jr = np.linalg.inv(Ts[others]) @ Ts[ref]  # reference camera -> neighbour camera
+    xbar = np.column_stack(
+        [(uv_ref[:, 0] - camera.cx) / camera.fx, (uv_ref[:, 1] - camera.cy) / camera.fy, np.ones(len(keep))]
+    )
+    prob = _Problem(
+        xbar, obs, mask, T_jr[:, :3, :3], T_jr[:, :3, 3], camera,
+        config.pixel_sigma, np.radians(config.rotation_sigma_deg), config.translation_sigma,
+    )
+    rho = _linear_inverse_depth(prob, mask.astype(np.float64))
+    rho_ok = np.isfinite(rho) & (rho > 0)
+    rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
+    mask &= rho_ok[:, None]
+    prob.mask = mask
+    # Robust refinement: a wide Cauchy scale first (the given poses can be several pixels
+    # off), then the final one; observations beyond max_reprojection_error are then dropped.
+    final_scale = 2.0
+    if config.refine_poses:
+        for scale, iters in ((8.0, 4), (final_scale, 6)):
+            rho = _levenberg_marquardt(prob, rho, scale, iters)
+    else:
+        rho = _gauss_newton_depths(prob, rho, final_scale, 4)
+    _, _, r, valid = prob.residuals(rho)
+    err_px = np.linalg.norm(r, axis=-1) * prob.pixel_sigma
+    prob.mask = mask = mask & valid & (err_px <= config.max_reprojection_error)
+    if config.refine_poses:
+        rho = _levenberg_marquardt(prob, rho, final_scale, 3)
+    else:
+        rho = _gauss_newton_depths(prob, rho, final_scale, 2)
+
+    # Noise level actually seen (Rayleigh median of 2-D residual norms), dof-corrected.
+    _, _, r, valid = prob.residuals(rho)
+    n_obs = int(valid.sum())
+    live = valid.any(axis=1)
+    n_par = int(live.sum()) + 6 * len(others)
+    if n_obs * 2 > n_par + 2:
+        med = np.median(np.linalg.norm(r[valid], axis=-1)) * prob.pixel_sigma / np.sqrt(2 * np.log(2))
+        seen = float(med * np.sqrt(2 * n_obs / (2 * n_obs - n_par)))
+    else:
+        seen = float(config.pixel_sigma)
+    sigma_px = max(float(config.pixel_sigma), seen)
+    prob.pixel_sigma = sigma_px
+    _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
+    S, A, inv = prob.schur(h_rr, H_xr, H_xx)
+    try:
+        S_inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        S_inv = np.linalg.pinv(S)
+    B = A * inv[:, None]
+    var_rho = inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
+    if config.variance_factor:
+        # a posteriori variance factor: residuals larger than the pixel noise say the poses
+        # (or the tracks) are worse than assumed, in the directions the images cannot see too
+        var_rho = var_rho * max(1.0, seen / float(config.pixel_sigma)) ** 2
+
+    n_views = 1 + valid.sum(axis=1)
+    depth = np.where(rho > 0, 1.0 / np.where(rho > 0, rho, 1.0), np.nan)
+    with np.errstate(invalid="ignore"):
+        sigma_geo = np.sqrt(np.maximum(var_rho, 0.0)) * depth**2
+    sigma = np.hypot(sigma_geo, config.depth_sigma_floor * depth)
+    # geometry checks
+    Xr = xbar * depth[:, None]
+    Xj = np.einsum("jab,nb->nja", prob.R, Xr) + prob.t[None]  # (N, J, 3) in the neighbours
+    cam_c = -np.einsum("jba,jb->ja", prob.R, prob.t)  # neighbour centres in the reference frame
+    ray_o = Xr[:, None, :] - cam_c[None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosang = np.einsum("na,nja->nj", Xr, ray_o) / (
+            np.linalg.norm(Xr, axis=1)[:, None] * np.linalg.norm(ray_o, axis=-1)
+        )
+    parallax = np.degrees(np.arccos(np.clip(np.where(valid, cosang, 1.0), -1.0, 1.0))).max(axis=1)
+    front = np.all(~valid | (Xj[..., 2] > config.min_depth * 0.5), axis=1)
+    rms = np.sqrt(np.sum(np.where(valid, np.sum(r**2, axis=-1), 0.0), axis=1) / np.maximum(valid.sum(axis=1), 1))
+    good = (
+        (n_views >= config.min_views)
+        & np.isfinite(depth)
+        & (depth >= config.min_depth)
+        & (depth <= config.max_depth)
+        & front
+        & (parallax >= config.min_parallax_deg)
+        & np.isfinite(sigma)
+        & (sigma > 0)
+        & (sigma <= config.max_relative_sigma * depth)
+    )
+    refined = Ts.copy()
+    T_new = np.tile(np.eye(4), (len(others), 1, 1))
+    T_new[:, :3, :3], T_new[:, :3, 3] = prob.R, prob.t
+    refined[others] = Ts[ref] @ np.linalg.inv(T_new)
+    sel = np.nonzero(good)[0]
+    Xw = Xr[sel] @ Ts[ref][:3, :3].T + Ts[ref][:3, 3]
+    return MultiViewPoints(
+        index=keep[sel].astype(np.int64),
+        uv=uv_ref[sel],
+        depth=depth[sel],
+        sigma=sigma[sel],
+        points_world=Xw,
+        n_views=n_views[sel].astype(np.int64),
+        reprojection_error=rms[sel] * sigma_px,
+        parallax_deg=parallax[sel],
+        poses=refined,
+        pixel_sigma=sigma_px,
+    )
+
+
+def _linear_inverse_depth(prob: _Problem, weights: np.ndarray) -> np.ndarray:
+    """Multi-view DLT of each track's inverse depth along its reference ray (closed form).
+
+    For an observation (x, y) (normalised) in neighbour j: x (r3.xbar + rho t3) = r1.xbar + rho t1
+    and the same in y; each row is linear in rho and scaled by the focal length over the
+    point's depth proxy, so that the least-squares residual is in pixels. Two passes, the
+    second weighting each observation by a Cauchy weight of its first-pass residual.
+    """
+    R, t = prob.R, prob.t
+    xy = (prob.uv - prob.c) / prob.f  # (N, J, 2)
+    Rx = np.einsum("jab,nb->nja", R, prob.xbar)
+    a = xy * t[None, :, 2:3] - t[None, :, :2]  # (N, J, 2)
+    b = Rx[..., :2] - xy * Rx[..., 2:3]
+    sw = (np.maximum(Rx[..., 2:3], 1e-6) ** -1) * prob.f
+    a, b = a * sw, b * sw
+    w = weights
+    rho = np.full(prob.xbar.shape[0], np.nan)
+    for _ in range(2):
+        num = np.einsum("nj,nja,nja->n", w, a, b)
+        den = np.einsum("nj,nja,nja->n", w, a, a)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = num / den
+        res = np.linalg.norm(a * rho[:, None, None] - b, axis=-1)
+        w = weights / (1.0 + (np.nan_to_num(res, nan=1e6) / 4.0) ** 2)
+    return rho
+
+
+def _gauss_newton_depths(prob: _Problem, rho: np.ndarray, scale: float, iterations: int) -> np.ndarray:
+    """Robust Gauss-Newton on the inverse depths alone (poses held): independent 1-D problems."""
+    f = prob.f / prob.pixel_sigma
+    for _ in range(iterations):
+        p, z, r, valid = prob.residuals(rho)
+        iz2 = np.where(valid, 1.0 / np.where(valid, z, 1.0) ** 2, 0.0)
+        t = prob.t[None]
+        J = np.stack(
+            [f[0] * (t[..., 0] * p[..., 2] - p[..., 0] * t[..., 2]), f[1] * (t[..., 1] * p[..., 2] - p[..., 1] * t[..., 2])],
+            -1,
+        ) * iz2[..., None]
+        w = _cauchy_weights(r, scale) * valid
+        h = np.sum(w * np.sum(J * J, axis=-1), axis=1)
+        b = np.sum(w * np.sum(J * r, axis=-1), axis=1)
+        step = np.where(h > 0, -b / np.where(h > 0, h, 1.0), 0.0)
+        # keep the inverse depth positive (halve steps that would cross zero)
+        rho_new = rho + step
+        rho = np.where(rho_new > 0.1 * rho, rho_new, 0.5 * rho)
+    return rho
+
+
+def _levenberg_marquardt(prob: _Problem, rho: np.ndarray, scale: float, iterations: int) -> np.ndarray:
+    lam = 1e-4
+    cost = prob.cost(rho, scale)
+    nj = prob.R.shape[0]
+    for _ in range(iterations):
+        _, valid, _, _, _, _, _ = prob.normal_equations(rho, np.ones(prob.mask.shape))
+        r = prob.residuals(rho)[2]
+        w = _cauchy_weights(r, scale) * valid
+        _, _, h_rr, b_r, H_xr, H_xx, b_x = prob.normal_equations(rho, w)
+        improved = False
+        for _ in range(6):
+            hd = h_rr * (1 + lam) + 1e-12
+            Hd = H_xx + lam * np.einsum("jkk->jk", H_xx)[..., None] * np.eye(6)[None]
+            S, A, inv = prob.schur(hd, H_xr, Hd)
+            g = b_x.reshape(-1) - (A * (b_r / hd)[:, None]).sum(axis=0)
+            try:
+                dx = -np.linalg.solve(S, g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            drho = -(b_r + A @ dx) / hd
+            dxj = dx.reshape(nj, 6)
+            R_new = _rodrigues(dxj[:, :3]) @ prob.R
+            t_new = prob.t + dxj[:, 3:]
+            rho_new = rho + drho
+            new_cost = prob.cost(rho_new, scale, R_new, t_new)
+            if np.isfinite(new_cost) and new_cost <= cost:
+                prob.R, prob.t, rho, cost = R_new, t_new, rho_new, new_cost
+                lam = max(lam / 10, 1e-8)
+                improved = True
+                break
+            lam *= 10
+        if not improved:
+            break
+    return rho
+
+
+def _track_klt(
+    grays: Sequence[np.ndarray], shape: tuple[int, int], start: np.ndarray, order: Sequence[int], config: TriangulationConfig
+) -> np.ndarray:
+    """Tracks keypoints of view order[0] through the views in ``order`` with pyramidal Lucas-Kanade.
+
+    Returns (N, len(grays), 2) positions (NaN where lost); each step starts from the previous
+    view's positions, with a forward-backward check (<= ``klt_fb_error`` pixels).
+    """
+    import cv2
+
+    n = start.shape[0]
+    out = np.full((n, len(grays), 2), np.nan)
+    out[:, order[0]] = start
+    alive = np.arange(n)
+    prev = start.astype(np.float32)
+    params = dict(winSize=(config.klt_window, config.klt_window), maxLevel=config.klt_levels,
+                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+    h, w = shape
+    for a, b in zip(order[:-1], order[1:]):
+        if alive.size == 0:
+            break
+        nxt, st, _ = cv2.calcOpticalFlowPyrLK(grays[a], grays[b], prev.reshape(-1, 1, 2), None, **params)
+        ok = st.ravel() == 1
+        if config.klt_fb_error > 0:
+            back, st2, _ = cv2.calcOpticalFlowPyrLK(grays[b], grays[a], nxt, None, **params)
+            fb = np.linalg.norm(back.reshape(-1, 2) - prev.reshape(-1, 2), axis=1)
+            ok &= (st2.ravel() == 1) & (fb <= config.klt_fb_error)
+        nxt = nxt.reshape(-1, 2)
+        ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= w - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= h - 1)
+        alive, prev = alive[ok], nxt[ok]
+        out[alive, b] = prev
+    return out
+
+
+def _match_tracks(feats: Sequence[Features], ref: int, camera: PinholeCamera, poses, config: TriangulationConfig) -> np.ndarray:
+    """Star tracks: every reference keypoint with its descriptor match in each other view."""
+    n = len(feats[ref])
+    out = np.full((n, len(feats), 2), np.nan)
+    out[:, ref] = feats[ref].uv
+    for j in range(len(feats)):
+        if j == ref:
+            continue
+        F = fundamental_from_poses(camera, poses[ref], poses[j])
+        pairs = match_features(feats[ref], feats[j], config=config, F=F)
+        out[pairs[:, 0], j] = feats[j].uv[pairs[:, 1]]
+    return out
+
+
+def build_tracks(
+    rgbs: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    camera: PinholeCamera,
+    *,
+    reference: int = -1,
+    config: TriangulationConfig | None = None,
+    features: Sequence[Features] | None = None,
+) -> np.ndarray:
+    """Feature tracks of the reference frame's keypoints through the other frames.
+
+    With ``detector="klt"`` (the default) the reference's corners are followed with
+    pyramidal Lucas-Kanade (OpenCV) outward from the reference through the frames in the
+    order given (frames are taken to be in temporal order: reference -> its neighbour -> the
+    next ...), with a forward-backward check; with "orb" / "sift" each reference keypoint
+    is matched by descriptor in every other frame (ratio test, mutual best, epipolar gate
+    ``max_epipolar_error`` around the given poses).
+
+    Args:
+        rgbs: V (H, W, 3) uint8 RGB images of ``camera``'s size.
+        poses: V 4x4 ``T_world_camera`` poses.
+        camera: Intrinsics.
+        reference: Index of the reference frame.
+        config: Options.
+        features: Optional precomputed features (one per frame; only the reference's are
+            used with "klt").
+
+    Returns:
+        (N, V, 2) pixel positions, NaN where a track is not seen; column ``reference`` is
+        the reference keypoints.
+    """
+    import cv2
+
+    config = config or TriangulationConfig()
+    V = len(rgbs)
+    ref = reference % V
+    for k, im in enumerate(rgbs):
+        camera.check_image(im, f"rgbs[{k}]")
+    if features is not None:
+        feats = list(features)
+        for k, f in enumerate(feats):
+            if f.detector != config.detector:
+                raise InvalidInputError(f"features[{k}]", f"features of detector {config.detector!r}", f.detector)
+    else:
+        feats = None
+    if config.detector == "klt":
+        ref_feat = feats[ref] if feats is not None else detect_features(rgbs[ref], config=config)
+        if len(ref_feat) == 0:
+            return np.zeros((0, V, 2))
+        grays = [_gray(im, f"rgbs[{k}]") for k, im in enumerate(rgbs)]
+        before = list(range(ref, -1, -1))
+        after = list(range(ref, V))
+        out = _track_klt(grays, grays[ref].shape, ref_feat.uv, before, config) if len(before) > 1 else None
+        if len(after) > 1:
+            out2 = _track_klt(grays, grays[ref].shape, ref_feat.uv, after, config)
+            out = out2 if out is None else np.where(np.isnan(out), out2, out)
+        return out
+    if feats is None:
+        feats = [detect_features(im, config=config) for im in rgbs]
+    return _match_tracks(feats, ref, camera, poses, config)
+
+
 def triangulate_frames(
     rgbs: Sequence[np.ndarray],
     poses: Sequence[np.ndarray],
@@ -372,14 +947,17 @@ def triangulate_frames(
     config: TriangulationConfig | None = None,
     features: Sequence[Features] | None = None,
 ) -> SparseDepth:
-    """Sparse depth for one frame, triangulated against every other posed frame given.
+    """Sparse depth for one frame from multi-view feature tracks through the other posed frames.
 
-    Each reference keypoint matched in several frames yields several depth estimates; they
-    are combined by inverse-variance weighting (sigma of the result = 1 / sqrt(sum 1/sigma^2))
-    after dropping estimates more than 3 sigma from the most certain one.
+    `build_tracks` follows the reference frame's keypoints through the other frames (KLT
+    outward from the reference in the order given, or descriptor matches), and
+    `triangulate_tracks` triangulates every track from all its views while refining the
+    other frames' poses relative to the reference (robust bundle adjustment with a pose
+    prior), with a per-point sigma that carries pixel noise and pose uncertainty. Any frame
+    may be the reference: the first frame of a sequence uses the later frames.
 
     Args:
-        rgbs: Two or more (H, W, 3) uint8 RGB images.
+        rgbs: Two or more (H, W, 3) uint8 RGB images, in temporal order.
         poses: Their 4x4 ``T_world_camera`` poses.
         camera: Intrinsics shared by all frames.
         reference: Index of the frame whose depth is returned.
@@ -397,33 +975,128 @@ def triangulate_frames(
         raise InvalidInputError("features", f"{n} Features, one per frame", len(features))
     if not -n <= reference < n:
         raise InvalidInputError("reference", f"an index into {n} frames", reference)
-    ref = reference % n
-    feats = list(features) if features is not None else [detect_features(im, config=config) for im in rgbs]
-    uv_all, d_all, s_all, key_all = [], [], [], []
-    key_of = {tuple(p): i for i, p in enumerate(np.round(feats[ref].uv, 3))}
-    for j in range(n):
-        if j == ref:
-            continue
-        tp = triangulate_pair(
-            rgbs[ref], rgbs[j], camera, poses[ref], poses[j], config=config, features=(feats[ref], feats[j])
-        )
-        if len(tp) == 0:
-            continue
-        uv_all.append(tp.uv_ref)
-        d_all.append(tp.depth)
-        s_all.append(tp.sigma)
-        key_all.append(np.array([key_of[tuple(p)] for p in np.round(tp.uv_ref, 3)], np.int64))
-    if not d_all:
+    tracks = build_tracks(rgbs, poses, camera, reference=reference, config=config, features=features)
+    if tracks.shape[0] == 0:
         return SparseDepth.empty(camera.shape)
-    uv, d, s, key = (np.concatenate(x) for x in (uv_all, d_all, s_all, key_all))
-    order = np.lexsort((s, key))
-    uv, d, s, key = uv[order], d[order], s[order], key[order]
-    starts = np.r_[0, np.nonzero(np.diff(key))[0] + 1]
-    best_d = np.repeat(d[starts], np.diff(np.r_[starts, key.shape[0]]))
-    best_s = np.repeat(s[starts], np.diff(np.r_[starts, key.shape[0]]))
-    agree = np.abs(d - best_d) <= 3.0 * np.hypot(s, best_s)
-    w = np.where(agree, 1.0 / s**2, 0.0)
-    wsum = np.add.reduceat(w, starts)
-    depth = np.add.reduceat(w * d, starts) / wsum
-    sigma = 1.0 / np.sqrt(wsum)
-    return SparseDepth.from_arrays(uv[starts, 0], uv[starts, 1], depth, camera.shape, sigma)
+    mv = triangulate_tracks(tracks, poses, camera, reference=reference, config=config)
+    return mv.to_sparse(camera.shape)
+
+
+class TrackTriangulator:
+    """Sparse depth for a stream of posed frames from feature tracks followed frame to frame.
+
+    Each call of `add` follows the live tracks from the previous frame into the new one with
+    pyramidal Lucas-Kanade (OpenCV, forward-backward checked), starts new Shi-Tomasi corners
+    where the image has none, and triangulates every track seen in the new frame and in at
+    least one of the ``window`` frames before it with `triangulate_tracks` (the new frame is
+    the reference). One tracking step per frame, however many views a track spans: the
+    cheap way to multi-view points at frame rate. The first frame of a stream gets no points
+    (nothing to triangulate against); `triangulate_frames` can use later frames instead.
+
+    Args:
+        camera: Intrinsics of the RGB images given to `add`.
+        config: Options (``detector`` is ignored: always KLT).
+        window: Earlier frames a track keeps its positions in (views besides the reference).
+    """
+
+    def __init__(self, camera: PinholeCamera, config: TriangulationConfig | None = None, *, window: int = 4):
+        if not isinstance(camera, PinholeCamera):
+            raise InvalidInputError("camera", "a PinholeCamera", type(camera).__name__)
+        if int(window) != window or window < 1:
+            raise InvalidInputError("window", "an integer >= 1", window)
+        self.camera = camera
+        self.config = config or TriangulationConfig()
+        self.window = int(window)
+        self.last: MultiViewPoints | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets every track and frame (e.g. after a tracking loss)."""
+        self._gray: np.ndarray | None = None
+        self._poses: list[np.ndarray] = []
+        self._tracks = np.zeros((0, 0, 2))
+        self.last = None
+
+    @property
+    def n_tracks(self) -> int:
+        """Tracks alive in the last frame."""
+        return int(self._tracks.shape[0])
+
+    def add(self, rgb: np.ndarray, T_world_camera: np.ndarray) -> SparseDepth:
+        """Tracks into one more posed frame and triangulates its tracks.
+
+        Args:
+            rgb: (H, W, 3) uint8 RGB image (or (H, W) uint8 grey) of ``camera``'s size.
+            T_world_camera: 4x4 rigid pose of the frame.
+
+        Returns:
+            `SparseDepth` of this frame with per-point sigma (metres); empty for the first frame.
+
+        Raises:
+            ShapeError: an image of the wrong size or type.
+            CalibrationError: a pose that is not rigid.
+        """
+        import cv2
+
+        cfg = self.config
+        T = check_pose(T_world_camera)
+        gray = _gray(rgb, "rgb")
+        if gray.shape != self.camera.shape:
+            raise ShapeError("rgb", f"an image of {self.camera.width}x{self.camera.height}", describe(gray))
+        h, w = gray.shape
+        tracks = self._tracks
+        if self._gray is not None and tracks.shape[0]:
+            prev = tracks[:, -1].astype(np.float32).reshape(-1, 1, 2)
+            params = dict(
+                winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+            )
+            nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._gray, gray, prev, None, **params)
+            ok = st.ravel() == 1
+            if cfg.klt_fb_error > 0:
+                back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self._gray, nxt, None, **params)
+                fb = np.linalg.norm(back.reshape(-1, 2) - prev.reshape(-1, 2), axis=1)
+                ok &= (st2.ravel() == 1) & (fb <= cfg.klt_fb_error)
+            nxt = nxt.reshape(-1, 2).astype(np.float64)
+            ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= w - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= h - 1)
+            tracks = np.concatenate([tracks[ok], nxt[ok, None]], axis=1)
+        elif self._gray is not None:
+            tracks = np.zeros((0, tracks.shape[1] + 1, 2))
+        else:
+            tracks = np.zeros((0, 1, 2))
+        self._poses.append(T)
+        if len(self._poses) > self.window + 1:
+            self._poses = self._poses[-(self.window + 1):]
+            tracks = tracks[:, -(self.window + 1):]
+        self._gray = gray
+
+        out = SparseDepth.empty(self.camera.shape)
+        self.last = None
+        seen = np.isfinite(tracks[:, :-1, 0]).any(axis=1) if tracks.shape[1] > 1 else np.zeros(len(tracks), bool)
+        if seen.any():
+            self.last = triangulate_tracks(tracks[seen], self._poses, self.camera, reference=-1, config=cfg, _checked=True)
+            out = self.last.to_sparse(self.camera.shape)
+            # point rows refer to the tracks given; map back to all tracks
+            self.last = replace(self.last, index=np.nonzero(seen)[0][self.last.index])
+
+        # new corners where the image has no live track
+        if tracks.shape[0] < cfg.max_features:
+            mask = np.full((h, w), 255, np.uint8)
+            r = max(1, int(round(cfg.min_corner_distance)))
+            for u, v in np.rint(tracks[:, -1]).astype(int):
+                cv2.circle(mask, (int(u), int(v)), r, 0, -1)
+            # corners on the half-resolution image (4x cheaper); a track starts wherever its
+            # corner lies, so sub-pixel corner accuracy is not needed
+            small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+            small_mask = cv2.resize(mask, (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+            corners = cv2.goodFeaturesToTrack(
+                small, int(cfg.max_features - tracks.shape[0]), 0.01, max(1.0, cfg.min_corner_distance / 2),
+                mask=small_mask, blockSize=3,
+            )
+            if corners is not None:
+                corners = corners * 2.0 + 0.5
+                new = np.full((corners.shape[0], tracks.shape[1], 2), np.nan)
+                new[:, -1] = corners.reshape(-1, 2)
+                tracks = np.concatenate([tracks, new], axis=0)
+        self._tracks = tracks
+        return out
