@@ -482,9 +482,10 @@ def paper_table(summary: Sequence[dict], *, resolution: str = "full", protocol: 
 
 
 def full_table(summary: Sequence[dict]) -> str:
-    """Markdown: every summary row with RMSE, MAE, iRMSE, iMAE and calibration."""
+    """Markdown: every summary row with RMSE, MAE, iRMSE, iMAE, calibration, the smallest mean and the
+    seconds per frame (wall time of the method; noisy on a shared machine)."""
     head = ["resolution", "protocol", "density", "method", "points", "RMSE mm", "MAE mm", "iRMSE 1/km", "iMAE 1/km",
-            "NLL", "±1σ", "±2σ", "min mean m"]
+            "NLL", "±1σ", "±2σ", "min mean m", "s / frame"]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for s in summary:
         cells = [s["resolution"], s["protocol"], s["label"], s["method"], f"{s['n_points']:.0f}"]
@@ -493,6 +494,7 @@ def full_table(summary: Sequence[dict]) -> str:
         for k in ("coverage_1sigma", "coverage_2sigma"):
             cells.append(f"{100 * s[k]:.1f}%" if np.isfinite(s[k]) else "-")
         cells.append(f"{s['min_mean']:.2f}")
+        cells.append(f"{s['seconds']:.3f}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
