@@ -58,7 +58,7 @@ import numpy as np
 
 from .errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
 from .gp.model import DepthGPConfig
-from .io import atomic_write, write_problem
+from .io import atomic_write, check_output_folder, write_problem
 from .measurements import SparseDepth, downsample_depth
 
 Task = Literal["complete", "eval"]
@@ -953,6 +953,7 @@ def batch_command(
     """
     if address is not None:
         check_address(address)  # before reading the dataset
+    check_output_folder(output_dir, "--output-dir")
     frames = dataset_frames(data, dataset, repeat=repeat, limit=limit)
     report = run_batch(
         frames,

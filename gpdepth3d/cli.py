@@ -17,7 +17,7 @@ import tyro
 
 from .errors import GPDepthError, OutputError
 from .gp.model import DepthGPConfig
-from .io import check_output_path
+from .io import check_output_folder, check_output_path
 
 # The GP model as a CLI choice: `gpdepth3d complete ... model:residual --model.lengthscale 30`.
 ModelChoice = Union[
@@ -164,35 +164,11 @@ def check_output_targets(paths: list[Path]) -> None:
     Raises:
         OutputError: naming the first path that cannot be written.
     """
-    from .io import check_output_path
-
     for path in paths:
         check_output_path(path)
         folder = next((p for p in Path(path).absolute().parents if p.exists()), None)
         if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
             raise OutputError(path, f"the folder {folder} is not writable")
-
-
-def check_output_folder(folder: Path, argument: str) -> Path:
-    """Checks that ``folder`` is (or can become) a writable folder, before any work.
-
-    Raises:
-        OutputError: empty name, a file in the way, or a read-only folder.
-    """
-    if str(folder) == "":
-        raise OutputError("''", f"{argument} needs a folder name")
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise OutputError(folder, f"{argument}: a file is in the way (expected a folder)")
-    for parent in folder.absolute().parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise OutputError(folder, f"{argument}: {parent} is a file, not a folder")
-            break
-    existing = next((p for p in [folder.absolute(), *folder.absolute().parents] if p.exists()), None)
-    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
-        raise OutputError(folder, f"{argument}: the folder {existing} is not writable")
-    return folder
 
 
 def _load_table(path: Path, columns: int) -> np.ndarray:

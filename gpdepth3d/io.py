@@ -98,6 +98,28 @@ def check_output_path(path: str | Path, argument: str = "path") -> Path:
     return p
 
 
+def check_output_folder(folder: str | Path, argument: str = "output_dir") -> Path:
+    """Checks that ``folder`` is (or can become) a writable folder, before any work; creates nothing.
+
+    Raises:
+        OutputError: empty name, a file in the way, or a folder that is not writable.
+    """
+    if not isinstance(folder, (str, os.PathLike)) or str(folder) == "":
+        raise OutputError(repr(folder), f"{argument} needs a folder name")
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(folder, f"{argument}: a file is in the way (expected a folder)")
+    for parent in folder.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputError(folder, f"{argument}: {parent} is a file, not a folder")
+            break
+    existing = next((p for p in [folder.absolute(), *folder.absolute().parents] if p.exists()), None)
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputError(folder, f"{argument}: the folder {existing} is not writable")
+    return folder
+
+
 def _make_parent(path: Path) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

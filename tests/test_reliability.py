@@ -1,0 +1,622 @@
+"""Reliability (issue 15): typed errors at every boundary, one-line CLI errors, outputs written as one set.
+
+* `API_CASES` / `CLI_CASES`: one row per bad input found by the fuzz run of issue 15; each must raise
+  its typed error (API) or print one line and exit 1 (CLI), and leave no output behind.
+* A hypothesis property test: for small random inputs (shapes, dtypes, magnitudes, configs) the
+  default engine gives a typed error or a finite posterior that matches ``engine="exact"``.
+* Kill tests: `DepthPosterior.save` killed at every step of its write (forked child, ``os._exit``),
+  ``gpdepth3d complete`` killed by SIGKILL at random moments, and two concurrent ``complete``
+  processes on one output: the files on disk are always one complete set (old or new).
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import random
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import gpdepth3d as g
+import gpdepth3d.batch
+import gpdepth3d.datasets
+import gpdepth3d.viewer
+from gpdepth3d import cli
+from gpdepth3d import io as gio
+from gpdepth3d.camera import PinholeCamera, check_pose
+from gpdepth3d.cloud import backproject_depth
+from gpdepth3d.complete import DepthPosterior, check_output_shape, complete
+from gpdepth3d.errors import (
+    CalibrationError,
+    ConnectionFailedError,
+    DataFormatError,
+    GPDepthError,
+    InvalidDepthError,
+    InvalidInputError,
+    OutputError,
+    ShapeError,
+)
+from gpdepth3d.gp.model import DepthGPConfig
+from gpdepth3d.measurements import LidarCalibration, SparseDepth, load_velodyne
+from gpdepth3d.sampling import sample_uniform
+
+EXACT = DepthGPConfig.residual(engine="exact")
+
+
+def small_problem(seed: int = 0, h: int = 12, w: int = 16, scale: float = 1.0):
+    rng = np.random.default_rng(seed)
+    mde = scale * (2.0 + rng.random((h, w)))
+    sparse = SparseDepth.from_arrays(rng.uniform(0, w - 1, 6), rng.uniform(0, h - 1, 6), scale * (2.0 + rng.random(6)), (h, w))
+    return mde, sparse
+
+
+def visible_files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith(".")) if folder.exists() else []
+
+
+# ------------------------------------------------------------------------------------------ API cases
+def _write(tmp: Path, name: str, data: bytes) -> Path:
+    path = tmp / name
+    path.write_bytes(data)
+    return path
+
+
+def _npy(tmp: Path, name: str, array: np.ndarray) -> Path:
+    path = tmp / name
+    np.save(path, array)
+    return path
+
+
+def _points(tmp: Path, rows: list[list[float]]) -> Path:
+    path = tmp / "points.txt"
+    np.savetxt(path, np.array(rows))
+    return path
+
+
+def _truncated_jpeg(tmp: Path) -> Path:
+    img = (np.random.default_rng(0).random((60, 80, 3)) * 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img)
+    assert ok
+    return _write(tmp, "cut.jpg", buf.tobytes()[: len(buf) * 2 // 3])
+
+
+def _kitti_tiny_with_pose(tmp: Path, scale: float) -> Path:
+    root = tmp / f"kitti_tiny_{scale:g}"
+    (root / "image_02").mkdir(parents=True)
+    (root / "velodyne_02").mkdir()
+    cv2.imwrite(str(root / "image_02" / "0000000000.png"), np.zeros((10, 20, 3), np.uint8))
+    np.savez(root / "velodyne_02" / "0000000000.npz", velodyne_depth=np.ones((10, 20), np.float32))
+    np.savetxt(root / "cam.txt", [[20.0, 0, 10], [0, 20.0, 5], [0, 0, 1]])
+    np.savetxt(root / "poses.txt", (scale * np.eye(4))[:3].reshape(1, 12))
+    return root
+
+
+def _seven_scenes_with_pose(tmp: Path, scale: float) -> Path:
+    root = tmp / f"7scenes_{scale:g}"
+    root.mkdir()
+    cv2.imwrite(str(root / "frame-000000.color.jpg"), np.zeros((10, 20, 3), np.uint8))
+    cv2.imwrite(str(root / "frame-000000.depth.png"), np.full((10, 20), 1000, np.uint16))
+    np.savetxt(root / "camera-intrinsics.txt", [[20.0, 0, 10], [0, 20.0, 5], [0, 0, 1]])
+    np.savetxt(root / "frame-000000.pose.txt", scale * np.eye(4) + np.diag([0, 0, 0, 1 - scale]))
+    return root
+
+
+def _complete_with(**kwargs):
+    mde, sparse = small_problem()
+    return complete(mde, sparse, **kwargs)
+
+
+SP = SparseDepth.from_arrays([1.0], [1.0], [2.0], (8, 8))
+CAM = PinholeCamera(10.0, 10.0, 4.0, 4.0, 8, 8)
+RGB = np.zeros((8, 8, 3), np.uint8)
+
+# (id, function of tmp_path, expected error type, text the message must contain)
+API_CASES = [
+    ("output_shape 1 element", lambda t: _complete_with(output_shape=(240,)), ShapeError, "output_shape"),
+    ("output_shape str", lambda t: _complete_with(output_shape="ab"), ShapeError, "output_shape"),
+    ("output_shape nan", lambda t: _complete_with(output_shape=float("nan")), ShapeError, "output_shape"),
+    ("output_shape 3 elements", lambda t: _complete_with(output_shape=(12, 16, 3)), ShapeError, "output_shape"),
+    ("output_shape non-integer", lambda t: _complete_with(output_shape=(12.5, 16)), ShapeError, "output_shape"),
+    ("output_shape zero", lambda t: _complete_with(output_shape=(0, 16)), ShapeError, "output_shape"),
+    ("output_shape huge", lambda t: check_output_shape((100000, 100000), (12, 16)), ShapeError, "at most"),
+    ("config dict", lambda t: _complete_with(config={"nu": 0.5}), InvalidInputError, "config"),
+    ("lengthscale str", lambda t: DepthGPConfig(lengthscale="30"), InvalidInputError, "lengthscale"),
+    ("lengthscale None", lambda t: DepthGPConfig(lengthscale=None), InvalidInputError, "lengthscale"),
+    ("lengthscale bool", lambda t: DepthGPConfig(lengthscale=True), InvalidInputError, "lengthscale"),
+    ("nu 3.7", lambda t: DepthGPConfig(nu=3.7), InvalidInputError, "nu"),
+    ("max_exact_points -5", lambda t: DepthGPConfig(max_exact_points=-5), InvalidInputError, "max_exact_points"),
+    ("max_exact_points str", lambda t: DepthGPConfig(max_exact_points="many"), InvalidInputError, "max_exact_points"),
+    ("image_size nan", lambda t: SparseDepth.empty((float("nan"), 5)), ShapeError, "image_size"),
+    ("image_size inf", lambda t: SparseDepth.empty((float("inf"), 5)), ShapeError, "image_size"),
+    ("image_size None", lambda t: SparseDepth.empty(None), ShapeError, "image_size"),
+    ("image_size scalar", lambda t: SparseDepth.empty(10), ShapeError, "image_size"),
+    ("camera width None", lambda t: PinholeCamera(585.0, 585.0, 320.0, 240.0, None, 480), CalibrationError, "width"),
+    ("camera fx str", lambda t: PinholeCamera("585", 585.0, 320.0, 240.0, 640, 480), CalibrationError, "fx"),
+    ("check_pose str", lambda t: check_pose("identity"), CalibrationError, "T_world_camera"),
+    ("check_pose str rows", lambda t: check_pose([["a"] * 4] * 4), CalibrationError, "T_world_camera"),
+    ("check_pose det 8", lambda t: check_pose(2 * np.eye(4) + np.diag([0, 0, 0, -1])), CalibrationError, "det"),
+    ("sample_uniform rng -1", lambda t: sample_uniform(np.ones((4, 4)), n=2, rng=-1), InvalidInputError, "rng"),
+    ("sample_uniform n inf", lambda t: sample_uniform(np.ones((4, 4)), n=float("inf")), InvalidInputError, "n"),
+    ("calib binary", lambda t: LidarCalibration.from_kitti(_write(t, "c.txt", bytes(range(256)) * 4)), DataFormatError, "binary"),
+    ("variance -1", lambda t: backproject_depth(np.ones((8, 8)), RGB, CAM, variance=-np.ones((8, 8))), InvalidInputError, "variance"),
+    ("load_depth png_scale -1", lambda t: gio.load_depth(_npy(t, "d.npy", np.ones((4, 4))), png_scale=-1), InvalidInputError, "png_scale"),
+    ("load_depth png_scale nan", lambda t: gio.load_depth(_npy(t, "d.npy", np.ones((4, 4))), png_scale=float("nan")), InvalidInputError, "png_scale"),
+    ("complex npy", lambda t: gio.load_depth(_npy(t, "c.npy", np.ones((4, 4)) * (1 + 1j))), DataFormatError, "complex"),
+    ("string npy", lambda t: gio.load_depth(_npy(t, "s.npy", np.array([["a", "b"], ["c", "d"]]))), DataFormatError, "dtype"),
+    ("point NaN depth", lambda t: gio.load_sparse(_points(t, [[1, 1, 2.0], [2, 2, np.nan]]), (8, 8)), InvalidDepthError, "1 of 2 rows"),
+    ("point negative depth", lambda t: gio.load_sparse(_points(t, [[1, 1, -2.0], [2, 2, 3]]), (8, 8)), InvalidDepthError, "1 of 2 rows"),
+    ("point outside image", lambda t: gio.load_sparse(_points(t, [[1, 1, 2.0], [20, 2, 3]]), (8, 8)), InvalidDepthError, "outside"),
+    ("bin not 16-byte records", lambda t: load_velodyne(_write(t, "s.bin", b"\0" * 36)), DataFormatError, "multiple of 16"),
+    ("truncated JPEG", lambda t: gio.load_rgb(_truncated_jpeg(t)), DataFormatError, "truncated"),
+    ("kitti_tiny pose det 8", lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 2.0)), DataFormatError, "rigid"),
+    ("7scenes pose det 8", lambda t: g.datasets.open_dataset(_seven_scenes_with_pose(t, 2.0))[0], DataFormatError, "rigid"),
+    ("save to a directory", lambda t: _complete_with(config=EXACT).save(_mkdir(t / "d.npz")), OutputError, "directory"),
+    ("save under a file", lambda t: _complete_with(config=EXACT).save(_write(t, "f", b"") / "x"), OutputError, "file"),
+    ("save empty name", lambda t: _complete_with(config=EXACT).save(""), OutputError, "name"),
+    ("PNG over 256 m", lambda t: _far().save(t / "far", png=True), InvalidDepthError, "256"),
+    ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
+    ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
+    ("batch address", lambda t: g.batch.check_address("not-an-address"), InvalidInputError, "address"),
+    ("batch address no port", lambda t: g.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
+    ("batch output under a file", lambda t: g.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
+]
+
+
+def _mkdir(path: Path) -> Path:
+    path.mkdir()
+    return path
+
+
+def _far() -> DepthPosterior:
+    post = _complete_with(config=EXACT)
+    from dataclasses import replace
+
+    return replace(post, mean=post.mean + 300.0)
+
+
+@pytest.mark.parametrize("case", API_CASES, ids=[c[0] for c in API_CASES])
+def test_api_case_raises_typed_error(case, tmp_path):
+    name, call, error, text = case
+    with pytest.raises(error) as info:
+        call(tmp_path)
+    assert isinstance(info.value, GPDepthError)
+    assert text in str(info.value)
+    assert "\n" not in str(info.value)
+    # nothing visible was written by a failed save
+    assert not any(p.suffix in (".npz", ".png") and not p.is_dir() for p in tmp_path.iterdir() if not p.name.startswith("."))
+
+
+def test_real_data_cases(shared_data, tmp_path):
+    """The same refusals on real files: a truncated 7-Scenes JPEG, a cut KITTI scan, its calibration vs 320x240."""
+    jpg = sorted((shared_data / "7scenes").glob("*.color.jpg"))[0]
+    assert gio.load_rgb(jpg).shape == (480, 640, 3)
+    cut = _write(tmp_path, "cut.color.jpg", jpg.read_bytes()[:-5000])
+    with pytest.raises(DataFormatError, match="truncated"):
+        gio.load_rgb(cut)
+    scan = shared_data / "kitti_object" / "000000.bin"
+    assert load_velodyne(scan).shape[1] == 4
+    with pytest.raises(DataFormatError, match="multiple of 16"):
+        load_velodyne(_write(tmp_path, "cut.bin", scan.read_bytes()[:-6]))
+    calib = LidarCalibration.from_kitti(shared_data / "kitti_object" / "calib_000000.txt")
+    calib.check_image_size((375, 1242))
+    with pytest.raises(CalibrationError, match="320x240"):
+        calib.check_image_size((240, 320))
+
+
+def test_dropped_points_are_counted(tmp_path):
+    path = _points(tmp_path, [[1, 1, 2.0], [2, 2, np.nan], [3, 3, -1.0], [30, 3, 4.0]])
+    with pytest.warns(UserWarning, match="dropped 3 of 4 rows \\(2 with a NaN"):
+        sparse = gio.load_sparse(path, (8, 8), drop_invalid=True)
+    assert len(sparse) == 1 and sparse.depth[0] == 2.0
+
+
+def test_port_taken_is_detected():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        assert g.viewer.port_taken("127.0.0.1", s.getsockname()[1])
+    assert g.viewer.check_host("127.0.0.1") is True
+    assert g.viewer.check_host("0.0.0.0", allow_remote=True) is False
+
+
+# ------------------------------------------------------------------------------------------ writes
+class TestFailedWrites:
+    def test_full_disk_leaves_old_set(self, tmp_path, monkeypatch):
+        post = _complete_with(config=EXACT)
+        post.save(tmp_path / "f", png=True)
+        before = {n: (tmp_path / n).read_bytes() for n in visible_files(tmp_path)}
+        calls = {"n": 0}
+        real = cv2.imwrite
+
+        def full(path, img, *a):
+            calls["n"] += 1
+            if calls["n"] == 2:  # the std PNG: the npz and the mean PNG were written already
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return real(path, img, *a)
+
+        monkeypatch.setattr(cv2, "imwrite", full)
+        from dataclasses import replace
+
+        with pytest.raises(OutputError, match="disk full"):
+            replace(post, mean=post.mean + 1).save(tmp_path / "f", png=True)
+        assert {n: (tmp_path / n).read_bytes() for n in visible_files(tmp_path)} == before
+        assert len([p for p in tmp_path.iterdir() if ".set-" in p.name]) == 1  # the failed set is gone
+
+    def test_full_disk_single_file(self, tmp_path, monkeypatch):
+        def full(*a, **k):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(np, "savez_compressed", full)
+        with pytest.raises(OutputError, match="disk full") as info:
+            gio.save_npz(tmp_path / "x.npz", a=np.ones(3))
+        assert isinstance(info.value, OSError)
+        assert list(tmp_path.iterdir()) == []
+
+    def test_unwritable_folder(self, tmp_path, monkeypatch):
+        def denied(*a, **k):
+            raise PermissionError(errno.EACCES, "Permission denied")
+
+        monkeypatch.setattr(gio.tempfile, "mkstemp", denied)
+        monkeypatch.setattr(gio.tempfile, "mkdtemp", denied)
+        with pytest.raises(OutputError, match="permission denied"):
+            gio.save_npz(tmp_path / "x.npz", a=np.ones(3))
+        with pytest.raises(OutputError, match="permission denied"):
+            _complete_with(config=EXACT).save(tmp_path / "y", png=True)
+        assert visible_files(tmp_path) == []
+
+    def test_write_together_all_or_nothing(self, tmp_path):
+        gio.atomic_write(tmp_path / "a.txt", lambda p: p.write_text("old"))
+        with pytest.raises(OutputError, match="disk full"):
+            with gio.write_together():
+                gio.atomic_write(tmp_path / "a.txt", lambda p: p.write_text("new"))
+                gio.atomic_write(tmp_path / "b.txt", lambda p: p.write_text("new"))
+                assert (tmp_path / "a.txt").read_text() == "old"  # nothing renamed yet
+
+                def full(p):
+                    raise OSError(errno.ENOSPC, "No space left on device")
+
+                gio.atomic_write(tmp_path / "c.txt", full)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+        assert (tmp_path / "a.txt").read_text() == "old"
+        with gio.write_together():
+            gio.atomic_write(tmp_path / "a.txt", lambda p: p.write_text("new"))
+            gio.atomic_write(tmp_path / "b.txt", lambda p: p.write_text("new"))
+        assert [(tmp_path / n).read_text() for n in ("a.txt", "b.txt")] == ["new", "new"]
+
+    def test_stale_files_of_killed_runs_are_removed(self, tmp_path):
+        post = _complete_with(config=EXACT)
+        post.save(tmp_path / "f", png=True)
+        stale = [tmp_path / ".f.abcd1234.tmp.npz", tmp_path / ".f_mean.abcd1234.tmp.png"]
+        for p in stale:
+            p.write_bytes(b"x" * 100)
+        (tmp_path / ".f.set-deadbeef").mkdir()
+        (tmp_path / ".f.set-deadbeef" / "f.npz").write_bytes(b"x")
+        (tmp_path / ".other.abcd1234.tmp.npz").write_bytes(b"not ours")
+        post.save(tmp_path / "f", png=True)
+        assert not any(p.exists() for p in stale) and not (tmp_path / ".f.set-deadbeef").exists()
+        assert (tmp_path / ".other.abcd1234.tmp.npz").exists()
+        assert len([p for p in tmp_path.iterdir() if ".f.set-" in p.name]) == 1
+
+    def test_png_false_after_png_true_drops_old_pngs(self, tmp_path):
+        post = _complete_with(config=EXACT)
+        post.save(tmp_path / "f", png=True)
+        post.save(tmp_path / "f", png=False)
+        assert visible_files(tmp_path) == ["f.npz"]
+
+    def test_plain_files_of_older_versions_are_taken_over(self, tmp_path):
+        post = _complete_with(config=EXACT)
+        gio.save_npz(tmp_path / "f.npz", mean=np.zeros(2))
+        gio.save_depth_png(tmp_path / "f_mean.png", np.ones((3, 3)))
+        post.save(tmp_path / "f", png=True)
+        assert visible_files(tmp_path) == ["f.npz", "f_mean.png", "f_std.png"]
+        assert_one_set(tmp_path, "f")
+
+
+# ------------------------------------------------------------------------------------------ CLI cases
+@pytest.fixture(scope="module")
+def cli_inputs(tmp_path_factory) -> Path:
+    t = tmp_path_factory.mktemp("cli_inputs")
+    mde, sparse = small_problem(h=24, w=32)
+    np.save(t / "mde.npy", mde)
+    np.save(t / "far.npy", mde * 200.0)
+    np.savetxt(t / "points.txt", np.stack([sparse.u, sparse.v, sparse.depth], 1))
+    np.savetxt(t / "points_far.txt", np.stack([sparse.u, sparse.v, 200.0 * sparse.depth], 1))
+    np.save(t / "strs.npy", np.array([["a", "b"], ["c", "d"]]))
+    (t / "binary.txt").write_bytes(bytes(range(256)) * 8)
+    (t / "a_file").write_text("x")
+    (t / "scan.bin").write_bytes(np.zeros((10, 4), np.float32).tobytes())
+    (t / "calib.txt").write_text(
+        "P2: 721.5 0 609.6 44.9 0 721.5 172.9 0.2 0 0 1 0.003\n"
+        "R0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -1 0 0 0 0 -1 0 1 0 0 0\n"
+    )
+    return t
+
+
+def _complete_args(t: Path, out: Path, *extra: str, mde: str = "mde.npy", points: str = "points.txt") -> list[str]:
+    return ["complete", "--mde", str(t / mde), "--sparse", str(t / points), "--output", str(out), *extra]
+
+
+# (id, argv builder (inputs folder, output folder), text of the one-line error)
+CLI_CASES = [
+    ("bad option value", lambda t, o: _complete_args(t, o / "x", "paper", "--model.nu", "3.7"), "nu"),
+    ("non-number option", lambda t, o: _complete_args(t, o / "x", "paper", "--model.lengthscale", "abc"), "lengthscale"),
+    ("unknown option", lambda t, o: ["complete", "--mdee", "x.npy"], "--mde"),
+    ("mde of strings", lambda t, o: _complete_args(t, o / "x", mde="strs.npy"), "dtype"),
+    ("binary calib", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "binary.txt"), "--output", str(o / "x")], "binary"),
+    ("lidar without image size", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "calib.txt"), "--output", str(o / "x")], "lidar-image-size"),
+    ("output size huge", lambda t, o: _complete_args(t, o / "x", "--output-size", "100000", "100000"), "output_shape"),
+    ("mde png scale 0", lambda t, o: _complete_args(t, o / "x", "--mde-png-scale", "0"), "--mde-png-scale"),
+    ("mde png scale nan", lambda t, o: _complete_args(t, o / "x", "--mde-png-scale", "nan"), "--mde-png-scale"),
+    ("gt png scale negative", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "mde.npy"), "--gt-png-scale", "-1"), "--gt-png-scale"),
+    ("gt missing", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "missing.png")), "not found"),
+    ("gt corrupt", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "binary.txt")), "binary.txt"),
+    ("depth over 256 m with png", lambda t, o: _complete_args(t, o / "x", mde="far.npy", points="points_far.txt") + ["residual", "--model.engine", "exact"], "256"),
+    ("output empty", lambda t, o: _complete_args(t, Path("")), "name"),
+    ("output is a directory", lambda t, o: _complete_args(t, (o / "d.npz").mkdir() or o / "d"), "directory"),
+    ("output under a file", lambda t, o: _complete_args(t, t / "a_file" / "x"), "file"),
+    ("view duration -1", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--duration", "-1"], "--duration"),
+    ("view bad host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "999.1.1.1", "--duration", "1"], "host"),
+    ("view remote host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "0.0.0.0", "--duration", "1"], "--allow-remote"),
+    ("eval onto a file", lambda t, o: ["eval", "--data", str(t), "--output", str(t / "a_file")], "a file is in the way"),
+    ("demo onto a file", lambda t, o: ["demo", "--output-dir", str(t / "a_file" / "d")], "is a file"),
+    ("batch onto a file", lambda t, o: ["batch", "--data", str(t), "--output-dir", str(t / "a_file" / "b"), "--workers", "0"], "file"),
+    ("batch bad address", lambda t, o: ["batch", "--data", str(t), "--output-dir", str(o / "b"), "--address", "not-an-address"], "address"),
+]
+
+
+@pytest.mark.parametrize("case", CLI_CASES, ids=[c[0] for c in CLI_CASES])
+def test_cli_case_one_line_exit_1(case, cli_inputs, tmp_path, capsys):
+    name, build, text = case
+    argv = build(cli_inputs, tmp_path)
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("gpdepth3d: warning")]
+    assert len(lines) == 1 and lines[0].startswith("gpdepth3d: error: "), err
+    assert "unexpected" not in lines[0] and "Traceback" not in err
+    assert text in lines[0], lines[0]
+    assert visible_files(tmp_path) in ([], ["d.npz"])  # nothing written
+
+
+def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
+    """A read-only folder (simulated: the tests may run as root, which writes anyway) and a full disk."""
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **k: False if str(p).startswith(str(tmp_path)) else real_access(p, mode, **k))
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "ro" / "x")) == 1
+    assert "not writable" in capsys.readouterr().err
+    monkeypatch.setattr(os, "access", real_access)
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(np, "savez_compressed", full)
+    argv = _complete_args(cli_inputs, tmp_path / "x") + ["residual", "--model.engine", "exact"]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "disk full" in err[0]
+    assert visible_files(tmp_path) == []
+
+
+def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, monkeypatch):
+    """eval's files are written together: a full disk at the third file leaves none of them."""
+    import functools
+
+    import gpdepth3d.evaluation as ev
+
+    @functools.wraps(ev.eval_command)  # the real options; the body writes three files, the third onto a full disk
+    def fake_eval(data, *, output, **kwargs):
+        gio.atomic_write(Path(output) / "results.csv", lambda p: p.write_text("a"))
+        gio.atomic_write(Path(output) / "summary.csv", lambda p: p.write_text("b"))
+
+        def full(p):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        gio.atomic_write(Path(output) / "results.json", full)
+
+    monkeypatch.setattr(ev, "eval_command", fake_eval)
+    assert cli.main(["eval", "--data", str(cli_inputs), "--output", str(tmp_path / "ev")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "disk full" in err[0]
+    assert visible_files(tmp_path / "ev") == [] and list((tmp_path / "ev").iterdir()) == []
+
+
+@pytest.mark.slow
+def test_cli_batch_unreachable_scheduler_bounded(cli_inputs, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    t0 = time.monotonic()
+    frames = [g.batch.FrameSpec("f0", str(cli_inputs), "x")]
+    with pytest.raises(ConnectionFailedError, match="no Dask scheduler"):
+        g.batch.run_batch(frames, tmp_path / "b", address="tcp://127.0.0.1:1", connect_timeout=1.0, progress=False)
+    assert time.monotonic() - t0 < 60  # bounded (a generous limit: the machine may be shared)
+
+
+# ------------------------------------------------------------------------------------------ property test
+def test_property_typed_error_or_exact_posterior():
+    """Random small inputs: a typed error, or a finite posterior (variance >= 0) equal to engine='exact'."""
+    hypothesis = pytest.importorskip("hypothesis")
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    @st.composite
+    def inputs(draw):
+        h, w = draw(st.integers(2, 9)), draw(st.integers(2, 9))
+        dtype = draw(st.sampled_from([np.float64, np.float32, np.int32, np.uint16]))
+        magnitude = 10.0 ** draw(st.integers(-3, 5))
+        seed = draw(st.integers(0, 2**16))
+        rng = np.random.default_rng(seed)
+        mde = (magnitude * (1.0 + rng.random((h, w)))).astype(dtype)
+        holes = draw(st.sampled_from(["none", "nan", "zero", "all"]))
+        if holes != "none" and np.issubdtype(mde.dtype, np.floating):
+            mask = rng.random((h, w)) < (1.0 if holes == "all" else 0.3)
+            mde[mask] = np.nan if holes == "nan" else 0.0
+        n = draw(st.integers(0, 6))
+        depth = magnitude * (1.0 + rng.random(n)) * draw(st.sampled_from([1.0, 1.0, 3.0, 0.2]))
+        sh, sw = draw(st.sampled_from([(h, w), (2 * h, 2 * w), (h + 1, w)]))
+        sparse = SparseDepth.from_arrays(rng.uniform(-0.5, sw - 0.6, n), rng.uniform(-0.5, sh - 0.6, n), depth, (sh, sw))
+        config = DepthGPConfig(
+            formulation=draw(st.sampled_from(["balanced", "residual"])),
+            nu=draw(st.sampled_from([0.5, 1.5, 2.5])),
+            lengthscale=draw(st.sampled_from([0.5, 1.5, 4.0, 30.0])),
+            outputscale=draw(st.sampled_from([0.05, 0.2, 1.0])),
+            sigma_dl=draw(st.sampled_from([0.01, 0.05, 0.5])),
+            sigma_meas=draw(st.sampled_from([0.001, 0.01, 0.1])),
+            units=draw(st.sampled_from(["relative", "metres"])),
+            align=draw(st.sampled_from(["none", "scale", "scale_shift"])),
+        )
+        out = draw(st.sampled_from([None, (h, w), (2 * h, 2 * w), (h + 1, max(2, w - 1))]))
+        return mde, sparse, config, out
+
+    examples = int(os.environ.get("GPDEPTH3D_FUZZ_EXAMPLES", "40"))  # a longer sweep: set it to 2000
+
+    @settings(max_examples=examples, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @given(inputs())
+    def check(args):
+        mde, sparse, config, out = args
+        try:
+            fast = complete(mde, sparse, config=config, output_shape=out)
+        except GPDepthError:
+            return
+        exact = complete(mde, sparse, config=config.replace(engine="exact"), output_shape=out)
+        assert np.all(np.isfinite(fast.mean)) and np.all(np.isfinite(fast.variance))
+        assert np.all(fast.variance >= -1e-9 * np.max(np.abs(exact.variance) + 1e-300))
+        scale = max(float(np.max(np.abs(exact.mean))), 1e-12)
+        np.testing.assert_allclose(fast.mean, exact.mean, atol=1e-6 * scale, rtol=1e-6)
+        np.testing.assert_allclose(fast.variance, exact.variance, atol=1e-6 * scale**2, rtol=1e-5)
+
+    assert hypothesis.__version__
+    check()
+
+
+# ------------------------------------------------------------------------------------------ kills
+def assert_one_set(folder: Path, stem: str, allowed_mdes: list[np.ndarray] | None = None) -> np.ndarray | None:
+    """The files of ``stem`` are absent or one complete, consistent set; returns its MDE (None if absent)."""
+    names = [f"{stem}.npz", f"{stem}_mean.png", f"{stem}_std.png"]
+    present = [(folder / n).is_file() for n in names]
+    if not any(present):
+        return None
+    assert all(present), f"incomplete set: {dict(zip(names, present))}"
+    with np.load(folder / names[0]) as d:
+        mean, std, mde = d["mean"].astype(np.float64), d["std"].astype(np.float64), d["mde"]
+    np.testing.assert_allclose(gio.load_depth(folder / names[1]), np.where(mean > 0, mean, 0), atol=0.6 / 256)
+    np.testing.assert_allclose(gio.load_depth(folder / names[2]), std, atol=0.6 / 256)
+    if allowed_mdes is not None:
+        assert any(np.allclose(mde, m, rtol=1e-6) for m in allowed_mdes), "a set of no known call"
+    return mde
+
+
+def _fork_save_killed_at(post: DepthPosterior, base: Path, step: int) -> bool:
+    """Runs ``post.save(base, png=True)`` in a forked child that dies (os._exit) at its ``step``-th file-system
+    change; returns whether the save finished before that step."""
+    pid = os.fork()
+    if pid == 0:  # child
+        try:
+            counter = {"n": 0}
+
+            def dying(fn):
+                def call(*a, **k):
+                    counter["n"] += 1
+                    if counter["n"] == step:
+                        os._exit(3)
+                    return fn(*a, **k)
+
+                return call
+
+            for mod, name in ((os, "replace"), (os, "symlink"), (os, "link"), (os, "unlink"), (shutil, "rmtree"),
+                              (gio.tempfile, "mkdtemp"), (gio.tempfile, "mkstemp")):
+                setattr(mod, name, dying(getattr(mod, name)))
+            post.save(base, png=True)
+            os._exit(0)
+        except BaseException:
+            os._exit(4)
+    _, status = os.waitpid(pid, 0)
+    code = os.waitstatus_to_exitcode(status)
+    assert code in (0, 3), f"child failed with {code}"
+    return code == 0
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
+    mde, sparse = small_problem()
+    posts = [complete(mde * (1 + k), sparse, config=EXACT) for k in range(3)]
+    known = [p.mde for p in posts]
+    # first save into an empty folder, then over a plain (pre-set) npz, then over a set
+    scenarios = [("empty", None), ("plain", "plain"), ("set", "set")]
+    for label, prepare in scenarios:
+        folder = tmp_path / label
+        folder.mkdir()
+        if prepare == "plain":
+            posts[0].save(folder / "f", png=False)  # a plain f.npz ...
+            gio.save_depth_png(folder / "f_mean.png", posts[0].mean)  # ... with plain PNGs beside it
+            gio.save_depth_png(folder / "f_std.png", posts[0].std)
+        elif prepare == "set":
+            posts[0].save(folder / "f", png=True)
+        step, finished = 1, False
+        while not finished:
+            finished = _fork_save_killed_at(posts[1 + step % 2], folder / "f", step)
+            got = assert_one_set(folder, "f", known)
+            if prepare is not None:
+                assert got is not None, f"{label}: the old set vanished at step {step}"
+            step += 1
+            assert step < 60
+        assert assert_one_set(folder, "f", known) is not None
+        posts[0].save(folder / "f", png=True)  # the next save cleans what the kills left
+        hidden = sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+        assert len(hidden) == 3, hidden
+
+
+def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
+    return [sys.executable, "-m", "gpdepth3d.cli", "complete", "--mde", str(inputs / mde), "--sparse",
+            str(inputs / "points.txt"), "--output", str(out), "residual", "--model.engine", "exact"]
+
+
+@pytest.mark.slow
+def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
+    """SIGKILL of `gpdepth3d complete` after a random delay, several rounds: always one complete set on disk."""
+    mde = np.load(cli_inputs / "mde.npy")
+    names = []
+    for k in range(4):
+        np.save(tmp_path / f"mde{k}.npy", mde * (1 + 0.5 * k))
+        names.append(f"mde{k}.npy")
+    shutil.copy(cli_inputs / "points.txt", tmp_path / "points.txt")
+    out = tmp_path / "out"
+    t0 = time.monotonic()
+    subprocess.run(_complete_cmd(tmp_path, out / "f", names[0]), check=True, capture_output=True)
+    duration = time.monotonic() - t0
+    known = [np.load(tmp_path / n) for n in names]
+    rng = random.Random(0)
+    kills = 0
+    for round_ in range(6):
+        proc = subprocess.Popen(_complete_cmd(tmp_path, out / "f", names[round_ % 4]), stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        time.sleep(rng.uniform(0.5, 1.05) * duration)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGKILL)
+            kills += 1
+        proc.wait()
+        assert assert_one_set(out, "f", known) is not None
+    assert kills >= 1
+
+
+@pytest.mark.slow
+def test_concurrent_completes_leave_one_set(cli_inputs, tmp_path):
+    """Two `gpdepth3d complete` processes on one --output: both succeed and one whole set is left."""
+    mde = np.load(cli_inputs / "mde.npy")
+    np.save(tmp_path / "a.npy", mde)
+    np.save(tmp_path / "b.npy", mde * 2)
+    shutil.copy(cli_inputs / "points.txt", tmp_path / "points.txt")
+    known = [mde, mde * 2]
+    for _ in range(2):
+        procs = [subprocess.Popen(_complete_cmd(tmp_path, tmp_path / "out" / "f", n), stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE) for n in ("a.npy", "b.npy")]
+        for p in procs:
+            _, err = p.communicate()
+            assert p.returncode == 0, err
+        assert assert_one_set(tmp_path / "out", "f", known) is not None
