@@ -44,6 +44,8 @@ from gpdepth3d.batch import (
 )
 from gpdepth3d.complete import DepthPosterior
 from gpdepth3d.errors import DataFormatError, EmptyInputError, InvalidInputError
+from gpdepth3d.io import load_depth
+from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.metrics import depth_metrics
 
 H, W = 45, 150
@@ -309,6 +311,47 @@ class TestRunBatchInProcess:
             with pytest.raises(InvalidInputError, match="locked"):
                 run_batch(dataset_frames(tiny_kitti), tmp_path, workers=0, progress=False)
         assert not list(tmp_path.glob("*.npz"))
+
+
+@dataclass(frozen=True)
+class FarAway(HoldoutInputs):
+    """The default loader, with every depth times 30 on frames whose id is listed: beyond a 16-bit PNG's 256 m."""
+
+    far: tuple[str, ...] = ()
+
+    def __call__(self, spec: FrameSpec) -> FrameInputs:
+        inputs = super().__call__(spec)
+        if spec.frame_id not in self.far:
+            return inputs
+        s = inputs.sparse
+        far = SparseDepth(s.u, s.v, 30.0 * s.depth, s.image_size, s.sigma)
+        return FrameInputs(30.0 * inputs.mde, far, None if inputs.gt is None else 30.0 * inputs.gt, inputs.info)
+
+
+class TestPngOutputs:
+    def test_a_frame_whose_png_fails_is_not_done_on_resume(self, tiny_kitti, tmp_path):
+        frames = dataset_frames(tiny_kitti, limit=2)
+        loader = FarAway(factor=3, n_input=40, far=(frames[0].frame_id,))
+        first = run_batch(frames, tmp_path, config=CONFIG, loader=loader, workers=0, png=True, progress=False)
+        assert first.n_computed == 1 and len(first.failures) == 1 and "256" in first.failures[0].error
+        assert npz_ids(tmp_path) == [frames[1].frame_id]  # the failed frame left nothing: no npz without its PNGs
+        again = run_batch(frames, tmp_path, config=CONFIG, loader=loader, workers=0, png=True, progress=False)
+        assert again.n_skipped == 1 and again.n_computed == 0 and len(again.failures) == 1 and not again.ok
+
+    def test_pngs_asked_for_later_make_frames_not_done(self, tiny_kitti, tmp_path):
+        frames = dataset_frames(tiny_kitti, limit=2)
+        run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, png=False, progress=False)
+        assert not list(tmp_path.glob("*.png"))
+        with_png = run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, png=True, progress=False)
+        assert with_png.n_computed == 2 and with_png.ok
+        for f in frames:
+            paths = output_paths(tmp_path, f.frame_id, "complete", png=True)
+            assert all(p.is_file() for p in paths.values())
+            np.testing.assert_allclose(
+                load_depth(paths["mean_png"]), DepthPosterior.load(paths["posterior"]).mean, atol=0.6 / 256
+            )
+        resumed = run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, png=True, progress=False)
+        assert resumed.n_skipped == 2
 
 
 @dataclass(frozen=True)
