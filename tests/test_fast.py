@@ -229,3 +229,232 @@ class TestDevices:
         m1, v1 = FastEngine(tile=5, leaf_pixels=6).solve(problem)
         np.testing.assert_allclose(m1, m0, atol=1e-9)
         np.testing.assert_allclose(v1, v0, rtol=1e-9)
+
+
+# ----------------------------------------------------------------------------- every kernel x every route
+
+NUS = [0.5, 1.5, 2.5]
+LENGTHSCALES = [1.5, 30.0, 100.0]
+ROUTES = ["grid", "woodbury", "neumann", "dense", "auto"]
+
+
+def naive_posterior(problem: GridProblem) -> tuple[np.ndarray, np.ndarray]:
+    """Independent dense reference: the GP equations with numpy.linalg.solve (LU, no Cholesky)."""
+    k = problem.kernel
+    s2 = k.outputscale**2
+    r, c = np.nonzero(problem.precision > 0)
+    orr, occ = np.meshgrid(problem.out_rows, problem.out_cols, indexing="ij")
+    orr, occ = orr.ravel(), occ.ravel()
+    K = s2 * matern_1d(np.subtract.outer(r, r), k.nu, k.lengthscale) * matern_1d(np.subtract.outer(c, c), k.nu, k.lengthscale)
+    K += np.diag(1.0 / problem.precision[r, c])
+    Kx = s2 * matern_1d(np.subtract.outer(orr, r), k.nu, k.lengthscale) * matern_1d(np.subtract.outer(occ, c), k.nu, k.lengthscale)
+    y = problem.obs[r, c] - problem.prior_mean[r, c]
+    mean = problem.out_prior_mean.ravel() + Kx @ np.linalg.solve(K, y)
+    var = s2 - np.einsum("ij,ji->i", Kx, np.linalg.solve(K, Kx.T))
+    return mean.reshape(problem.out_shape), np.maximum(var, 0.0).reshape(problem.out_shape)
+
+
+def formulation_problem(rng, h, w, *, nu, lengthscale, balanced, s=0.8, points=25, out=None):
+    """Residual: `points` pixels observed (sigma 5-20 cm); balanced: every pixel (sigma_DL = 4 cm) plus points (2 mm)."""
+    prior = 3.0 + np.cumsum(rng.normal(0.0, 0.05, (h, w)), axis=1)
+    prec = np.full((h, w), 1.0 / 0.04**2) if balanced else np.zeros((h, w))
+    idx = rng.choice(h * w, points, replace=False)
+    prec.ravel()[idx] += 1.0 / (0.002**2 if balanced else rng.uniform(0.05, 0.2, points) ** 2)
+    obs = prior + 0.4 * np.sin(np.arange(w) / 5.0)[None, :] + rng.normal(0.0, 0.05, (h, w))
+    ho, wo = out or (h, w)
+    return GridProblem(prior, obs, prec, output_coordinates(h, ho), output_coordinates(w, wo),
+                       rng.normal(3.0, 0.1, (ho, wo)), Kernel(nu, lengthscale, s))
+
+
+def check_route(problem, route, reference):
+    """Solves with ``route``; returns "match" (and asserts agreement with ``reference``), or the typed refusal."""
+    from gpdepth3d.errors import ConvergenceError
+    from gpdepth3d.gp.fast import IllConditionedError, grid_error_estimate
+
+    engine = FastEngine(route=route)
+    k = problem.kernel
+    if route in ("woodbury", "neumann") and k.nu != 0.5:
+        with pytest.raises(InvalidInputError, match="route"):
+            engine.solve(problem)
+        return "refused"
+    if route == "grid" and grid_error_estimate(problem) > 1e-6:
+        with pytest.raises(IllConditionedError, match=f"nu={k.nu}") as info:
+            engine.solve(problem)
+        assert isinstance(info.value, ConvergenceError)
+        return "refused"
+    try:
+        mean, var = engine.solve(problem)
+    except InvalidInputError as err:
+        assert route == "neumann" and "diagonally dominant" in str(err)
+        return "refused"
+    m0, v0 = reference
+    s = k.outputscale
+    np.testing.assert_allclose(mean, m0, rtol=0, atol=1e-7 * s, err_msg=f"mean, route {route} -> {engine.last_route}")
+    np.testing.assert_allclose(np.sqrt(var), np.sqrt(v0), rtol=0, atol=1e-7 * s, err_msg=f"std, route {route}")
+    assert route == "auto" or engine.last_route == route
+    return "match"
+
+
+class TestEveryKernelAndRoute:
+    """nu in {0.5, 1.5, 2.5} x l in {1.5, 30, 100} px x every route x both formulations against a numpy GP:
+    the engine matches it or refuses with a typed error, never a wrong answer."""
+
+    @pytest.mark.parametrize("balanced", [False, True], ids=["residual", "balanced"])
+    @pytest.mark.parametrize("nu", NUS)
+    def test_synthetic(self, nu, balanced):
+        outcomes = {}
+        for lengthscale in LENGTHSCALES:
+            problem = formulation_problem(np.random.default_rng(int(nu * 10 + lengthscale)), 12, 16, nu=nu,
+                                          lengthscale=lengthscale, balanced=balanced)
+            reference = naive_posterior(problem)
+            for route in ROUTES:
+                outcomes[lengthscale, route] = check_route(problem, route, reference)
+        assert all(outcomes[lengthscale, r] == "match" for lengthscale in LENGTHSCALES for r in ("auto", "dense"))
+        assert outcomes[1.5, "grid"] == "match"  # short length scales stay on the grid route
+        if nu == 0.5:
+            assert all(outcomes[lengthscale, r] == "match" for lengthscale in LENGTHSCALES for r in ("grid", "woodbury"))
+            assert outcomes[1.5, "neumann"] == ("match" if balanced else "refused")
+        if nu == 2.5:
+            assert outcomes[100.0, "grid"] == "refused"  # the precision form cannot hold this kernel in float64
+
+    @pytest.mark.parametrize("nu", [1.5, 2.5])
+    def test_other_output_grid(self, nu):
+        problem = formulation_problem(np.random.default_rng(3), 10, 13, nu=nu, lengthscale=30.0, balanced=False,
+                                      out=(19, 7))
+        reference = naive_posterior(problem)
+        assert check_route(problem, "auto", reference) == "match"
+        assert check_route(problem, "dense", reference) == "match"
+
+    def test_grid_route_long_lengthscale_where_accepted(self):
+        """nu = 1.5, l = 30 on a small fully observed grid: accepted by the estimate and exact to 1e-7 s."""
+        from gpdepth3d.gp.fast import grid_error_estimate
+
+        problem = formulation_problem(np.random.default_rng(4), 12, 16, nu=1.5, lengthscale=30.0, balanced=True)
+        assert grid_error_estimate(problem) <= 1e-6
+        assert check_route(problem, "grid", naive_posterior(problem)) == "match"
+
+    @pytest.mark.parametrize("balanced", [False, True], ids=["residual", "balanced"])
+    def test_real_7scenes_crop(self, seven_scenes_frame, balanced):
+        """A crop of 7-Scenes at 1/4 resolution (30 x 40 residual, 20 x 24 balanced: every pixel observed), every nu
+        and length scale, through `DepthCompleter`."""
+        from scipy.ndimage import gaussian_filter
+
+        from gpdepth3d.measurements import downsample_depth
+
+        depth = downsample_depth(seven_scenes_frame.depth, 4)
+        depth = depth[45:65, 70:94] if balanced else depth[40:70, 60:100]
+        valid = depth > 0
+        assert valid.sum() > 0.8 * depth.size
+        rng = np.random.default_rng(5)
+        r, c = np.nonzero(valid)
+        pick = rng.choice(r.size, 30, replace=False)
+        sparse = SparseDepth.from_arrays(c[pick].astype(float), r[pick].astype(float), depth[r[pick], c[pick]], depth.shape)
+        mde = gaussian_filter(np.where(valid, depth, np.median(depth[valid])), 2.0) * 1.08  # smooth, biased
+        engine = FastEngine()  # one engine for all kernels, as a DepthCompleter keeps it
+        base = DepthGPConfig.paper() if balanced else DepthGPConfig.residual()
+        for nu in NUS:
+            for lengthscale in LENGTHSCALES:
+                cfg = base.replace(nu=nu, lengthscale=lengthscale)
+                exact = DepthCompleter(cfg.replace(engine="exact"))(mde, sparse)
+                fast = DepthCompleter(cfg.replace(engine="fast"))
+                fast.engine = engine
+                post = fast(mde, sparse)
+                scale = float(np.median(mde)) * cfg.outputscale  # s in metres (relative units)
+                np.testing.assert_allclose(post.mean, exact.mean, rtol=0, atol=1e-7 * scale,
+                                           err_msg=f"nu={nu} l={lengthscale} route {fast.engine.last_route}")
+                np.testing.assert_allclose(post.std, exact.std, rtol=0, atol=1e-7 * scale)
+
+
+class TestRefusals:
+    def test_no_bare_linalg_error_from_the_grid_route(self):
+        """nu = 2.5, l = 100 with many observed pixels: no route can take it -> IllConditionedError, not LinAlgError."""
+        from gpdepth3d.errors import ConvergenceError
+        from gpdepth3d.gp.fast import IllConditionedError
+
+        problem = formulation_problem(np.random.default_rng(6), 30, 40, nu=2.5, lengthscale=100.0, balanced=True)
+        for engine in (FastEngine(route="grid"), FastEngine(max_dense_points=100)):
+            with pytest.raises(IllConditionedError, match=r"nu=2.5.*lengthscale=100") as info:
+                engine.solve(problem)
+            assert isinstance(info.value, ConvergenceError) and "estimated error" in str(info.value)
+
+    def test_factorisation_failure_is_typed(self, monkeypatch):
+        """Should the factorisation still fail, the LinAlgError is mapped to IllConditionedError naming the kernel."""
+        import gpdepth3d.gp.fast as fast_module
+
+        def fail(*args, **kwargs):
+            raise np.linalg.LinAlgError("posterior precision not positive definite")
+
+        monkeypatch.setattr(fast_module, "FrontalFactor", fail)
+        problem = random_problem(np.random.default_rng(7), 8, 9, nu=1.5)
+        with pytest.raises(fast_module.IllConditionedError, match=r"nu=1.5.*not numerically positive definite"):
+            FastEngine(route="grid").solve(problem)
+
+    def test_memory_budget_refuses_up_front(self):
+        from gpdepth3d.errors import ProblemTooLargeError
+        from gpdepth3d.gp.fast import grid_bytes
+
+        rng = np.random.default_rng(8)
+        h, w = 600, 800  # every pixel observed but a hole of 200 x 200 (an MDE with a NaN block)
+        prec = np.full((h, w), 400.0)
+        prec[200:400, 300:500] = 0.0
+        prior = np.full((h, w), 3.0)
+        problem = GridProblem(prior, prior + rng.normal(0, 0.1, (h, w)), prec, np.arange(h), np.arange(w), prior,
+                              Kernel(0.5, 1.5, 1.0))
+        assert grid_bytes((h, w), 0.5) > 300 * 2**20
+        with pytest.raises(ProblemTooLargeError, match=r"GiB \(limit 0.293 GiB\)"):
+            FastEngine(max_memory_mb=300).solve(problem)
+        with pytest.raises(ProblemTooLargeError, match="grid route is refused"):
+            FastEngine(route="grid", max_memory_mb=300).solve(problem)
+        with pytest.raises(InvalidInputError, match="max_memory_mb"):
+            FastEngine(max_memory_mb=-1)
+        with pytest.raises(InvalidInputError, match="max_dense_points"):
+            FastEngine(max_dense_points="many")
+
+    def test_grid_bytes_estimate_bounds_the_buffers(self):
+        """The estimate is an upper bound of the numeric buffers, within 2x, for nu = 0.5 and 1.5."""
+        from gpdepth3d.gp.fast import _front_tree, grid_bytes
+
+        engine = FastEngine()
+        for (h, w), nu in (((60, 80), 0.5), ((120, 160), 0.5), ((60, 80), 1.5)):
+            ds = state_dim(nu) ** 2
+            fronts = _front_tree(engine._tree(h, w, ds))
+            used = 8 * (fronts.l_size + fronts.stack_size + fronts.sig_size + 2 * fronts.work_size)
+            assert used <= grid_bytes((h, w), nu) <= 2 * used
+
+
+class TestConditioningHelpers:
+    def test_process_noise_accurate_for_short_steps(self):
+        """Q(h) ~ G h^(2d - 1) / ((d - 1)!^2 (2d - 1)) for the first state: P - A P A^T loses it, quadrature does not."""
+        from math import factorial
+
+        from gpdepth3d.gp.markov import _step, _unit_sde
+
+        for d in (2, 3):
+            G = _unit_sde(d)[2][d - 1, d - 1]
+            for h in (1e-3, 1e-2):
+                Q = _step(d, h)[1]
+                lead = G * h ** (2 * d - 1) / (factorial(d - 1) ** 2 * (2 * d - 1))
+                assert Q[0, 0] == pytest.approx(lead, rel=5 * d * h)
+                assert np.all(np.linalg.eigvalsh(Q) > 0)
+
+    def test_chain_precision_long_lengthscales(self):
+        """Scaled states keep the 1-D chain accurate at l = 30-100 px (was 1.4e-4 off at nu = 2.5, l = 100)."""
+        x = np.arange(40, dtype=float)
+        for nu, lengthscale, tol in ((1.5, 100.0, 1e-10), (2.5, 30.0, 1e-7)):
+            Q, _ = chain_precision(x, nu, lengthscale)
+            d = state_dim(nu)
+            S = np.linalg.inv(Q.toarray())
+            np.testing.assert_allclose(S[::d, ::d], matern_1d(np.subtract.outer(x, x), nu, lengthscale), atol=tol)
+
+    def test_chain_conditioning_bounds_the_condition_number(self):
+        from gpdepth3d.gp.markov import chain_conditioning
+
+        for nu in NUS:
+            for lengthscale in (1.5, 10.0):
+                q, c = chain_conditioning(30, nu, lengthscale)
+                Q, _ = chain_precision(np.arange(30, dtype=float), nu, lengthscale)
+                assert np.linalg.cond(Q.toarray()) <= q * c
+        grow = [np.prod(chain_conditioning(100, 2.5, lengthscale)) for lengthscale in (1.5, 10.0, 30.0)]
+        assert grow[0] < grow[1] < grow[2]
+        with pytest.raises(InvalidInputError, match="n"):
+            chain_conditioning(0, 0.5, 1.0)
