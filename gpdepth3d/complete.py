@@ -181,6 +181,12 @@ def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             "mde_depth", "z-depths >= 0 in metres (0/NaN/inf = no depth)", f"{int(np.sum(d[finite] < 0))} negative"
         )
     valid = finite & (d > 0)
+    outside = valid & ((d < 1e-6) | (d > 1e6))  # beyond any camera: the GP's scales would under/overflow
+    if np.any(outside):
+        raise InvalidDepthError(
+            "mde_depth", "z-depths in [1e-6, 1e6] m (0/NaN/inf = no depth)",
+            f"{int(outside.sum())} outside, e.g. {float(d[outside].flat[0]):g}"
+        )
     return np.where(valid, d, 0.0), valid
 
 
