@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
@@ -269,29 +270,36 @@ def _announce_start(f):
 
 
 def one_line_parse_error(box: str) -> str:
-    """tyro's framed error message (title, sections, help hint) as one line."""
+    """tyro's error message (framed on a terminal, ruled with dashes otherwise) as one line."""
     title, sections = "", [[]]
     for raw in box.splitlines():
-        t = raw.strip()
-        if t.startswith("\u256d"):  # top border with the title
-            title = t.strip("\u256d\u256e\u2500 ")
+        t = raw.rstrip()
+        stripped = t.strip()
+        if stripped.startswith("\u256d"):  # top border with the title
+            title = stripped.strip("\u256d\u256e\u2500 ")
             continue
-        if t.startswith("\u2570") or not t:
+        if stripped.startswith("\u2570") or not stripped:
             continue
-        body = t[1:-1] if t.startswith("\u2502") and t.endswith("\u2502") else t
-        body = body.rstrip()
-        if body.strip() and set(body.strip()) <= {"\u2500"}:
+        if stripped.startswith("\u2502"):
+            t = stripped[1:-1] if stripped.endswith("\u2502") else stripped[1:]
+        if set(t.strip()) <= {"\u2500", "-"}:
             sections.append([])
             continue
-        if body.strip():
-            sections[-1].append(body[1:] if body.startswith(" ") else body)
+        sections[-1].append(t.rstrip())
+    sections = [sec for sec in sections if sec]
+    if not title and len(sections) > 1 and len(sections[0]) == 1:
+        title = sections.pop(0)[0].strip()
+    for i, sec in enumerate(sections):
+        indent = min(len(line) - len(line.lstrip()) for line in sec)
+        sections[i] = [line[indent:] for line in sec]
     parts, hint = [], ""
     for sec in sections:
         if not sec:
             continue
         head = sec[0].strip()
         if head.startswith("For full helptext"):
-            hint = " ".join(line.strip() for line in sec[1:]) or head.split(" see ", 1)[-1]
+            hint = " ".join([head] + [line.strip() for line in sec[1:]])
+            hint = re.sub(r"^For full helptext,?\s*(run|see)?:?\s*", "", hint)
             continue
         if head.startswith("Argument helptext"):
             continue

@@ -128,6 +128,84 @@ class TestErrors:
         assert "principal point" in capsys.readouterr().err
 
 
+class TestOneLineErrors:
+    BOX = (
+        "\u256d\u2500 Required options \u2500\u2500\u2500\u256e\n"
+        "\u2502 Missing from gpdepth3d complete:            \u2502\n"
+        "\u2502     --mde PATH                              \u2502\n"
+        "\u2502         MDE depth map (.npy/.npz in metres,  \u2502\n"
+        "\u2502         --mde-png-scale); with --rgb (required) \u2502\n"
+        "\u2502     --output PATH                           \u2502\n"
+        "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
+        "\u2502 Unrecognized options:                       \u2502\n"
+        "\u2502     --mdee                                  \u2502\n"
+        "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
+        "\u2502 For full helptext, run:                     \u2502\n"
+        "\u2502     gpdepth3d complete --help               \u2502\n"
+        "\u2570\u2500\u2500\u2500\u2500\u256f\n"
+    )
+
+    def test_tyro_box_folds_to_one_line(self):
+        from gpdepth3d.cli import one_line_parse_error
+
+        line = one_line_parse_error(self.BOX)
+        assert line == (
+            "Required options: Missing from gpdepth3d complete: --mde, --output; Unrecognized options: --mdee "
+            "(see gpdepth3d complete --help)"
+        )
+        assert one_line_parse_error("") == "invalid command line (see gpdepth3d --help)"
+        plain = (  # tyro's format when stderr is not a terminal
+            " Value error            \n ----------------------- \n  Error parsing --model.nu: could not convert\n"
+            "  string to float: 'abc'\n  -----------------------\n  For full helptext, see gpdepth3d --help \n\n"
+        )
+        assert one_line_parse_error(plain) == (
+            "Value error: Error parsing --model.nu: could not convert string to float: 'abc' (see gpdepth3d --help)"
+        )
+
+    def test_bad_option_value_is_one_line_exit_1(self, tmp_path, capsys):
+        code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "paper", "--model.nu", "3.7"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and len(err) == 1
+        assert err[0] == "gpdepth3d: error: Value error: Error parsing --model: nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d --help)"
+
+    def test_help_is_untouched(self, capsys):
+        import pytest
+
+        with pytest.raises(SystemExit) as info:
+            main(["complete", "--help"])
+        assert info.value.code == 0
+        out = capsys.readouterr()
+        assert "--mde" in out.out and "error" not in out.err
+
+    def test_unexpected_errors_are_one_line_too(self, tmp_path, capsys, monkeypatch):
+        import pytest
+
+        import gpdepth3d.io as gio
+
+        def broken(*a, **k):
+            raise TypeError("a bug")
+
+        monkeypatch.setattr(gio, "load_depth", broken)
+        argv = ["complete", "--mde", "m.npy", "--sparse", "p.txt", "--output", str(tmp_path / "o")]
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == ["gpdepth3d: error: unexpected TypeError: a bug (set GPDEPTH3D_DEBUG=1 for the traceback)"]
+        monkeypatch.setenv("GPDEPTH3D_DEBUG", "1")
+        with pytest.raises(TypeError):
+            main(argv)
+
+    def test_dropped_points_warn_on_one_line(self, tmp_path, capsys):
+        np.save(tmp_path / "mde.npy", np.full((12, 16), 2.0))
+        np.savetxt(tmp_path / "p.txt", [[1, 1, 2.0], [2, 2, np.nan], [40, 2, 2.0]])
+        argv = ["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "p.txt"),
+                "--output", str(tmp_path / "o"), "residual", "--model.engine", "exact"]
+        assert main(argv) == 1 and "2 of 3 rows" in capsys.readouterr().err
+        assert main(argv[:7] + ["--drop-invalid-points"] + argv[7:]) == 0
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"gpdepth3d: warning: {tmp_path / 'p.txt'}: dropped 2 of 3 rows (1 with a NaN/inf/<= 0 depth, "
+                       "the others outside the 16x12 image)"]
+
+
 class TestDemoCommand:
     def test_demo_runs_from_the_installed_entry_point(self, tmp_path):
         proc = subprocess.run(
