@@ -527,3 +527,46 @@ def test_frame_inputs_is_the_loader_contract():
     sparse = LOADER.from_maps("x", points=np.where(np.eye(30, 60) > 0, 5.0, 0.0)).sparse
     inputs = FrameInputs(mde=np.zeros((10, 20)), sparse=sparse)
     assert inputs.gt is None and inputs.info == {}
+
+
+class TestChecks:
+    @pytest.mark.parametrize("good", ["tcp://10.0.0.5:8786", "127.0.0.1:8786", "tls://sched.example.org:1", "tcp://[::1]:8786"])
+    def test_addresses_accepted(self, good):
+        from gpdepth3d.batch import check_address
+
+        assert check_address(f" {good} ") == good
+
+    @pytest.mark.parametrize("bad", ["not-an-address", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://h:1", "", 8786])
+    def test_addresses_refused(self, bad):
+        from gpdepth3d.batch import check_address
+
+        with pytest.raises(InvalidInputError, match="address"):
+            check_address(bad)
+
+    def test_make_output_dir_and_frame_done(self, tmp_path):
+        from gpdepth3d.batch import frame_done, make_output_dir
+        from gpdepth3d.errors import OutputError
+
+        out = make_output_dir(tmp_path / "a" / "b")
+        assert out.is_dir()
+        (tmp_path / "file").write_text("")
+        with pytest.raises(OutputError, match="in the way"):
+            make_output_dir(tmp_path / "file")
+        with pytest.raises(OutputError, match="cannot create"):
+            make_output_dir(tmp_path / "file" / "x")
+        assert not frame_done(out, "f", "complete")
+        (out / "f.npz").write_bytes(b"")
+        assert frame_done(out, "f", "complete") and not frame_done(out, "f", "complete", png=True)
+        (out / "f_mean.png").write_bytes(b"")
+        (out / "f_std.png").write_bytes(b"")
+        assert frame_done(out, "f", "complete", png=True) and not frame_done(out, "f", "eval", png=True)
+
+    def test_unreachable_scheduler_is_a_typed_error(self, tmp_path):
+        pytest.importorskip("distributed")
+        from gpdepth3d.errors import ConnectionFailedError
+
+        with pytest.raises(InvalidInputError, match="connect_timeout"):
+            run_batch([FrameSpec("a", str(tmp_path), "a")], tmp_path / "o", address="tcp://127.0.0.1:1", connect_timeout=0)
+        with pytest.raises(ConnectionFailedError, match="1 s"):
+            run_batch([FrameSpec("a", str(tmp_path), "a")], tmp_path / "o", address="tcp://127.0.0.1:1",
+                      connect_timeout=1, progress=False)

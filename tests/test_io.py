@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 
 import cv2
@@ -280,3 +281,101 @@ class TestLoadRgb:
 
 def test_kitti_png_scale_constant():
     assert KITTI_PNG_SCALE == 1.0 / 256.0
+
+
+class TestOutputSets:
+    def writers(self, text: str, names=("s.txt", "s.csv")):
+        return {n: (lambda p, n=n: p.write_text(f"{text}:{n}")) for n in names}
+
+    def read(self, folder, names=("s.txt", "s.csv")):
+        return [(folder / n).read_text() if (folder / n).exists() else None for n in names]
+
+    def test_set_is_replaced_as_a_whole(self, tmp_path):
+        written = gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        assert written == [tmp_path / "s.txt", tmp_path / "s.csv"]
+        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
+        gio.atomic_write_set(tmp_path / "s", self.writers("v2"))
+        assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]
+        hidden = gio.output_set_files(tmp_path / "s")
+        assert hidden["lock"].is_file() and hidden["current"].is_symlink()
+        assert len([p for p in tmp_path.iterdir() if p.name.startswith(".s.set-")]) == 1
+
+    def test_failing_writer_keeps_the_old_set(self, tmp_path):
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+
+        def fails(p):
+            p.write_text("half")
+            raise OSError(28, "No space left on device")
+
+        with pytest.raises(gio.OutputError, match="disk full"):
+            gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: p.write_text("v2"), "s.csv": fails})
+        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
+        with pytest.raises(gio.OutputError, match="no file"):  # a writer that writes nothing
+            gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: None, "s.csv": lambda p: None})
+        with pytest.raises(gio.OutputError, match="plain file name"):
+            gio.atomic_write_set(tmp_path / "s", {"../s.txt": lambda p: None})
+
+    def test_members_not_written_leave_the_set(self, tmp_path):
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        gio.atomic_write_set(tmp_path / "s", self.writers("v2", ("s.txt",)), members=("s.txt", "s.csv"))
+        assert self.read(tmp_path) == ["v2:s.txt", None]
+        assert not os.path.lexists(tmp_path / "s.csv")
+
+    def test_single_plain_file_when_no_set_exists(self, tmp_path):
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1", ("s.txt",)), members=("s.txt", "s.csv"))
+        assert (tmp_path / "s.txt").is_file() and not (tmp_path / "s.txt").is_symlink()
+
+    def test_clean_output_set_removes_only_its_leftovers(self, tmp_path):
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        (tmp_path / ".s.set-zzzzzzzz").mkdir()
+        (tmp_path / ".s.abcdefgh.tmp.txt").write_text("x")
+        (tmp_path / ".t.abcdefgh.tmp.txt").write_text("other set")
+        assert gio.clean_output_set(tmp_path / "s", ["s.txt", "s.csv"]) == 2
+        assert (tmp_path / ".t.abcdefgh.tmp.txt").exists()
+        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
+
+
+class TestOutputChecks:
+    def test_check_output_path(self, tmp_path):
+        assert gio.check_output_path(tmp_path / "new" / "x.npz") == tmp_path / "new" / "x.npz"
+        (tmp_path / "d").mkdir()
+        (tmp_path / "f").write_text("")
+        for bad, text in (("", "name"), (tmp_path / "d", "directory"), (tmp_path / "f" / "x", "not a folder"),
+                          (3, "file path")):
+            with pytest.raises(gio.OutputError, match=text):
+                gio.check_output_path(bad)
+
+    def test_check_output_folder(self, tmp_path, monkeypatch):
+        assert gio.check_output_folder(tmp_path / "a" / "b") == tmp_path / "a" / "b"
+        (tmp_path / "f").write_text("")
+        for bad, text in (("", "name"), (tmp_path / "f", "in the way"), (tmp_path / "f" / "x", "not a folder")):
+            with pytest.raises(gio.OutputError, match=text):
+                gio.check_output_folder(bad)
+        monkeypatch.setattr(os, "access", lambda *a, **k: False)
+        with pytest.raises(gio.OutputError, match="not writable"):
+            gio.check_output_folder(tmp_path / "a")
+
+    def test_write_problem_names_the_cause(self):
+        assert gio.write_problem(OSError(28, "x")) == "no space left on the device (disk full)"
+        assert gio.write_problem(OSError(30, "x")) == "read-only file system"
+        assert gio.write_problem(OSError(5, "Input/output error")) == "Input/output error"
+
+
+class TestDepthPngValues:
+    def test_values_and_range(self):
+        v = gio.depth_png_values(np.array([[0.0, 1.0], [np.nan, -2.0]]))
+        assert v.dtype == np.uint16 and v.tolist() == [[0, 256], [0, 0]]
+        assert gio.depth_png_values(np.array([[255.99]])).item() == 65533
+        with pytest.raises(InvalidDepthError, match="256.0 m"):
+            gio.depth_png_values(np.array([[256.1]]))
+        assert gio.depth_png_values(np.array([[60.0]]), 1e-3).item() == 60000
+        with pytest.raises(ShapeError):
+            gio.depth_png_values(np.ones(3))
+        with pytest.raises(ShapeError):
+            gio.depth_png_values(np.array([["a"]]))
+
+    @pytest.mark.parametrize("bad", [0, -1, float("nan"), float("inf"), "1", None, True])
+    def test_check_png_scale(self, bad):
+        with pytest.raises(gio.InvalidInputError, match="png_scale"):
+            gio.check_png_scale(bad)
+        assert gio.check_png_scale(np.float32(0.5)) == 0.5

@@ -469,6 +469,44 @@ class TestViewCommand:
             view_command(posterior=(tmp_path / "post.npz",), color_by="error", port=0, duration=0)
 
 
+class TestHostAndPort:
+    def test_bad_host_fails_at_once(self, tmp_path, room):
+        make_posterior(room).save(tmp_path / "post.npz")
+        t0 = time.monotonic()
+        with pytest.raises(InvalidInputError, match="host"):
+            view_command(posterior=(tmp_path / "post.npz",), host="999.1.1.1", duration=1)
+        with pytest.raises(InvalidInputError, match="host"):
+            show(ViewerFrame.from_files(tmp_path / "post.npz"), host="10.255.255.254")  # not this machine's
+        assert time.monotonic() - t0 < 30  # no hang (generous: the test machine may be shared)
+
+    def test_remote_host_needs_allow_remote_and_warns(self, tmp_path, room, capsys):
+        make_posterior(room).save(tmp_path / "post.npz")
+        with pytest.raises(InvalidInputError, match="allow-remote"):
+            view_command(posterior=(tmp_path / "post.npz",), host="0.0.0.0", port=0, duration=0)
+        view_command(posterior=(tmp_path / "post.npz",), host="0.0.0.0", port=0, duration=0, allow_remote=True)
+        captured = capsys.readouterr()
+        assert "WARNING: serving on 0.0.0.0" in captured.err and "viewer running at" in captured.out
+
+    def test_taken_port_is_named(self, tmp_path, room, capsys):
+        import socket
+
+        make_posterior(room).save(tmp_path / "post.npz")
+        with socket.socket() as busy:
+            busy.bind(("127.0.0.1", 0))
+            busy.listen(1)
+            port = busy.getsockname()[1]
+            view_command(posterior=(tmp_path / "post.npz",), port=port, duration=0)
+        out = capsys.readouterr().out
+        assert f"port {port} is taken" in out
+        used = int(out.split("using port ")[1].split()[0])
+        assert used != port
+
+    @pytest.mark.parametrize("duration", [-1.0, float("nan")])
+    def test_bad_duration(self, tmp_path, duration):
+        with pytest.raises(InvalidInputError, match="--duration"):
+            view_command(posterior=(tmp_path / "post.npz",), duration=duration)
+
+
 # ---------------------------------------------------------------------- in a real browser
 def _playwright_or_skip():
     if not Path(CHROMIUM).is_file() and shutil.which("chromium") is None:
