@@ -57,6 +57,12 @@ class TestPinholeCamera:
             ((1.0, 1.0, 1.0, 1.0, 4, 2.5), "height"),
             ((1.0, 1.0, 10.0, 1.0, 4, 4), "cx, cy"),  # principal point outside the image
             ((1.0, 1.0, 1.0, -0.6, 4, 4), "cx, cy"),
+            (("585", 1.0, 1.0, 1.0, 4, 4), "fx"),
+            ((1.0, None, 1.0, 1.0, 4, 4), "fy"),
+            ((1.0, 1.0, "1", 1.0, 4, 4), "cx"),
+            ((1.0, 1.0, 1.0, 1.0, None, 4), "width"),
+            ((1.0, 1.0, 1.0, 1.0, 4, float("inf")), "height"),
+            ((True, 1.0, 1.0, 1.0, 4, 4), "fx"),
         ],
     )
     def test_bad_intrinsics(self, args, argument):
@@ -245,6 +251,10 @@ class TestCheckPose:
         scaled = pose()
         scaled[:3, :3] *= 2.0
         bad["scale"] = scaled
+        bad["strings"] = "identity"
+        bad["string rows"] = [["a"] * 4] * 4
+        bad["ragged"] = [[1.0, 0.0], [0.0]]
+        bad["det 8"] = np.diag([2.0, 2.0, 2.0, 1.0])
         for name, T in bad.items():
             with pytest.raises(CalibrationError) as info:
                 check_pose(T, "T_test")

@@ -96,6 +96,48 @@ class TestKittiTiny:
             ds[1]
 
 
+class TestPoseCheckIsShared:
+    """The KITTI-tiny and 7-Scenes readers refuse the same non-rigid pose (one check: checked_pose)."""
+
+    def test_scaled_pose_refused_by_both(self, shared_data, tmp_path):
+        src = _folder(shared_data, "kitti_tiny")
+        kt = tmp_path / "kitti_tiny"
+        shutil.copytree(src, kt)
+        rows = np.loadtxt(kt / "poses.txt", ndmin=2)
+        rows[2, [0, 5, 10]] *= 2.0  # frame 2: a rotation scaled by 2 (det 8)
+        np.savetxt(kt / "poses.txt", rows)
+        with pytest.raises(DataFormatError, match="line 3: not a rigid transform"):
+            KittiTiny(kt)
+        seven = tmp_path / "7scenes"
+        seven.mkdir()
+        src7 = _folder(shared_data, "7scenes")
+        for suffix in (".color.jpg", ".depth.png", ".pose.txt"):
+            shutil.copy(src7 / f"frame-000000{suffix}", seven / f"frame-000000{suffix}")
+        T = np.loadtxt(seven / "frame-000000.pose.txt")
+        T[:3, :3] *= 2.0
+        np.savetxt(seven / "frame-000000.pose.txt", T)
+        with pytest.raises(DataFormatError, match="not a rigid transform"):
+            SevenScenes(seven)[0]
+
+    def test_checked_pose(self, tmp_path):
+        from gpdepth3d.datasets.base import checked_pose
+
+        np.testing.assert_allclose(checked_pose(np.eye(4), tmp_path / "p.txt"), np.eye(4))
+        with pytest.raises(DataFormatError, match="p.txt: line 7: not a rigid"):
+            checked_pose(np.diag([2.0, 2, 2, 1]), tmp_path / "p.txt", "line 7")
+
+    def test_truncated_colour_image(self, shared_data, tmp_path):
+        seven = tmp_path / "7scenes"
+        seven.mkdir()
+        src7 = _folder(shared_data, "7scenes")
+        for suffix in (".color.jpg", ".depth.png", ".pose.txt"):
+            shutil.copy(src7 / f"frame-000000{suffix}", seven / f"frame-000000{suffix}")
+        jpg = seven / "frame-000000.color.jpg"
+        jpg.write_bytes(jpg.read_bytes()[: jpg.stat().st_size // 2])
+        with pytest.raises(DataFormatError, match="truncated JPEG"):
+            SevenScenes(seven)[0]
+
+
 class TestKittiObject:
     def test_frame(self, shared_data):
         ds = KittiObject(_folder(shared_data, "kitti_object"))

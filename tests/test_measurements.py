@@ -354,6 +354,32 @@ class TestLidarCalibration:
         assert (s.u[0], s.v[0], s.depth[0]) == (1.0, 1.0, 4.0)
 
 
+class TestCalibrationImageSize:
+    def test_real_calibration_against_image_sizes(self, shared_data):
+        calib = LidarCalibration.from_kitti(shared_data / "kitti_object" / "calib_000000.txt")
+        calib.check_image_size((375, 1242))  # the calibrated image
+        for size in ((240, 320), (125, 414)):  # a 320x240 MDE, KITTI at 1/3: P2 is not theirs
+            with pytest.raises(CalibrationError, match=f"{size[1]}x{size[0]}"):
+                calib.check_image_size(size, "--lidar-image-size")
+        with pytest.raises(ShapeError):
+            calib.check_image_size((375,))
+
+    def test_binary_calibration_file(self, tmp_path):
+        (tmp_path / "calib.txt").write_bytes(bytes(range(256)) * 4)
+        with pytest.raises(DataFormatError, match="binary"):
+            LidarCalibration.from_kitti(tmp_path / "calib.txt")
+
+
+class TestImageSizeValidation:
+    @pytest.mark.parametrize("size", [(float("nan"), 5), (float("inf"), 5), None, 10, "ab", (2.5, 4), (0, 4), (True, 4), (1, 2, 3)])
+    def test_bad_image_sizes(self, size):
+        with pytest.raises(ShapeError, match="image_size"):
+            SparseDepth.empty(size)
+
+    def test_integral_floats_accepted(self):
+        assert SparseDepth.empty((4.0, np.int64(5))).image_size == (4, 5)
+
+
 class TestLoadVelodyne:
     def test_round_trip(self, tmp_path):
         pts = np.arange(20, dtype=np.float32).reshape(5, 4)
@@ -371,6 +397,13 @@ class TestLoadVelodyne:
         np.arange(7, dtype=np.float32).tofile(tmp_path / "odd.bin")
         with pytest.raises(DataFormatError):
             load_velodyne(tmp_path / "odd.bin")
+
+    def test_size_not_a_whole_number_of_records(self, tmp_path):
+        np.arange(8, dtype=np.float32).tofile(tmp_path / "ok.bin")
+        assert load_velodyne(tmp_path / "ok.bin").shape == (2, 4)
+        (tmp_path / "cut.bin").write_bytes((tmp_path / "ok.bin").read_bytes()[:-2])  # 30 bytes: np.fromfile drops 2
+        with pytest.raises(DataFormatError, match="30 bytes"):
+            load_velodyne(tmp_path / "cut.bin")
 
     def test_real_scan(self, shared_data):
         scan = load_velodyne(shared_data / "kitti_object" / "000000.bin")
