@@ -168,3 +168,121 @@ class TestExactEngineSolve:
         problem, grid_sparse, scale, _ = build_problem(mde, sparse, CONFIGS[0])
         assert problem.output_is_input and scale == pytest.approx(np.median(mde))
         assert np.count_nonzero(problem.precision) == H * W and len(grid_sparse) == 4
+
+
+def with_changes(problem: GridProblem, **changes) -> GridProblem:
+    from dataclasses import replace
+
+    return replace(problem, **changes)
+
+
+def _bad_problems():
+    p = grid_problem(n_obs=6)
+    obs_pixel = tuple(np.argwhere(p.precision > 0)[0])
+    huge_obs = p.obs.copy()
+    huge_obs[obs_pixel] = 1e300
+    nan_obs = p.obs.copy()
+    nan_obs[obs_pixel] = np.nan
+    huge_prec = p.precision.copy()
+    huge_prec[obs_pixel] = 1e300
+    return {
+        "outputscale 1e300": (with_changes(p, kernel=Kernel(0.5, 1.5, 1e300)), "outputscale"),
+        "outputscale 1e-300": (with_changes(p, kernel=Kernel(1.5, 1.5, 1e-300)), "outputscale"),
+        "lengthscale inf": (with_changes(p, kernel=Kernel(0.5, np.inf, 1.0)), "lengthscale"),
+        "observed depth 1e300": (with_changes(p, obs=huge_obs), "problem.obs"),
+        "observed depth NaN": (with_changes(p, obs=nan_obs), "problem.obs"),
+        "prior mean 1e300": (with_changes(p, prior_mean=np.full(p.shape, 1e300)), "problem.prior_mean"),
+        "output prior mean inf": (with_changes(p, out_prior_mean=np.full(p.out_shape, np.inf)), "out_prior_mean"),
+        "precision 1e300": (with_changes(p, precision=huge_prec), "problem.precision"),
+        "precision NaN": (with_changes(p, precision=np.where(p.precision > 0, np.nan, 0.0)), "problem.precision"),
+        "output rows NaN": (with_changes(p, out_rows=np.full(p.out_shape[0], np.nan)), "out_rows"),
+        "precision of another shape": (with_changes(p, precision=p.precision[:, :-1]), "problem.precision"),
+    }
+
+
+class TestExtremeValues:
+    """Out-of-range numbers give a typed error naming the argument on every engine, never an OverflowError,
+    a ZeroDivisionError, NaN or inf."""
+
+    @pytest.mark.parametrize("case", list(_bad_problems()))
+    @pytest.mark.parametrize("engine", ["exact", "fast", "fast-dense", "fast-woodbury"])
+    def test_bad_problem_is_refused(self, case, engine):
+        from gpdepth3d.errors import InvalidInputError
+        from gpdepth3d.gp.fast import FastEngine
+
+        problem, argument = _bad_problems()[case]
+        solver = ExactEngine() if engine == "exact" else FastEngine(route=engine.split("-")[1] if "-" in engine else "auto")
+        with pytest.raises(InvalidInputError, match=argument):
+            solver.solve(problem)
+
+    def test_limits_are_inclusive_of_sane_values(self):
+        """Depths of 1e5 m with s = 1e4 m and noise 1e-3 m: accepted and finite (both engines agree)."""
+        from gpdepth3d.gp.fast import FastEngine
+
+        p = grid_problem(n_obs=6)
+        big = with_changes(p, prior_mean=p.prior_mean * 3e4, obs=p.obs * 3e4, out_prior_mean=p.out_prior_mean * 3e4,
+                           precision=np.where(p.precision > 0, 1e6, 0.0), kernel=Kernel(0.5, 1.5, 1e4))
+        m0, v0 = ExactEngine().solve(big)
+        m1, v1 = FastEngine().solve(big)
+        assert np.all(np.isfinite(m0)) and np.all(np.isfinite(v0))
+        np.testing.assert_allclose(m1, m0, rtol=1e-9)
+        np.testing.assert_allclose(np.sqrt(v1), np.sqrt(v0), rtol=1e-7)
+
+    @pytest.mark.parametrize("value", [1e300, 1e-300, 1e7, 1e-7])
+    @pytest.mark.parametrize("cfg", [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
+                             ids=["paper", "residual", "residual-exact"])
+    def test_mde_out_of_range_through_complete(self, value, cfg):
+        from gpdepth3d.errors import InvalidDepthError
+
+        mde, sparse = inputs()
+        with pytest.raises(InvalidDepthError, match=r"mde_depth.*\[1e-6, 1e6\] m"):
+            complete(np.full_like(mde, value), sparse, config=cfg)
+        mde[2, 3] = value  # one pixel is enough
+        with pytest.raises(InvalidDepthError, match="1 outside"):
+            complete(mde, sparse, config=cfg)
+
+
+class TestDenseAlgebra:
+    def test_log_marginal_likelihood_matches_naive(self):
+        from gpdepth3d.gp.exact import dense_log_marginal_likelihood
+
+        p = grid_problem(n_obs=9, shape=(8, 9))
+        obs = p.precision > 0
+        r, c = np.nonzero(obs)
+        K = k(r, c, r, c, p.kernel.outputscale, p.kernel.nu, p.kernel.lengthscale) + np.diag(1 / p.precision[obs])
+        y = p.obs[obs] - p.prior_mean[obs]
+        naive = -0.5 * y @ np.linalg.solve(K, y) - 0.5 * np.linalg.slogdet(K)[1] - 0.5 * y.size * np.log(2 * np.pi)
+        assert dense_log_marginal_likelihood(p) == pytest.approx(naive, rel=1e-12)
+        empty = with_changes(p, precision=np.zeros(p.shape))
+        assert dense_log_marginal_likelihood(empty) == 0.0
+
+    def test_fast_engine_lml_on_the_dense_route_matches(self):
+        from gpdepth3d.gp.exact import dense_log_marginal_likelihood
+        from gpdepth3d.gp.fast import FastEngine
+
+        p = with_changes(grid_problem(n_obs=9, shape=(8, 9)), kernel=Kernel(2.5, 30.0, 0.7))
+        engine = FastEngine()
+        assert engine.log_marginal_likelihood(p) == pytest.approx(dense_log_marginal_likelihood(p), rel=1e-12)
+        assert engine.last_route == "dense"
+
+    def test_dense_bytes_grows_with_points_and_outputs(self):
+        from gpdepth3d.gp.exact import dense_bytes
+
+        assert dense_bytes(100, 1000) < dense_bytes(1000, 1000) < dense_bytes(1000, 100000)
+        assert dense_bytes(500, 76800, variance=False) < dense_bytes(500, 76800)
+        assert dense_bytes(2000, 10) >= 8 * 2000**2
+
+    def test_failed_cholesky_is_a_typed_error(self, monkeypatch):
+        """Should the kernel matrix plus noise not be numerically positive definite, the LinAlgError becomes a
+        ConvergenceError naming the kernel and the smallest noise ratio."""
+        import scipy.linalg
+
+        from gpdepth3d.errors import ConvergenceError
+
+        def fail(*args, **kwargs):
+            raise np.linalg.LinAlgError("2-th leading minor not positive definite")
+
+        monkeypatch.setattr(scipy.linalg, "cho_factor", fail)
+        p = with_changes(grid_problem(n_obs=20, shape=(8, 9)), kernel=Kernel(2.5, 1e6, 1.0))
+        with pytest.raises(ConvergenceError, match=r"nu=2.5, lengthscale=1e\+06 px.*noise/s\^2 = 0.01"):
+            ExactEngine().solve(p)

@@ -11,8 +11,61 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from ..errors import ConvergenceError, ProblemTooLargeError
+from ..errors import ConvergenceError, InvalidDepthError, InvalidInputError, ProblemTooLargeError, ShapeError
 from .model import GridProblem
+
+# Ranges every engine accepts (metres): beyond them s^2, 1/s^2 or the products of the algebra
+# overflow or underflow float64 (an MDE of 1e300 gave OverflowError, 1e-300 NaN or a division by zero).
+MAX_ABS_DEPTH = 1e8
+OUTPUTSCALE_RANGE = (1e-9, 1e8)
+MAX_PRECISION_RATIO = 1e30  # largest observation precision x s^2 (noise variance >= 1e-30 s^2)
+
+
+def check_problem(problem: GridProblem) -> None:
+    """Validates a `GridProblem` before any engine computes with it.
+
+    Raises:
+        InvalidInputError: Not a GridProblem, a non-finite or out-of-range kernel parameter,
+            or precisions that are negative, non-finite or beyond 1e30 / s^2.
+        ShapeError: Arrays whose shapes do not fit the grid.
+        InvalidDepthError: Non-finite depths, or depths beyond +-1e8 m, where they are used.
+    """
+    if not isinstance(problem, GridProblem):
+        raise InvalidInputError("problem", "a GridProblem", type(problem).__name__)
+    h, w = np.shape(problem.prior_mean) if np.ndim(problem.prior_mean) == 2 else (0, 0)
+    if h < 1 or w < 1:
+        raise ShapeError("problem.prior_mean", "a 2-D (H, W) array", np.shape(problem.prior_mean))
+    for name in ("obs", "precision"):
+        if np.shape(getattr(problem, name)) != (h, w):
+            raise ShapeError(f"problem.{name}", f"shape {(h, w)}", np.shape(getattr(problem, name)))
+    if np.shape(problem.out_prior_mean) != problem.out_shape:
+        raise ShapeError("problem.out_prior_mean", f"shape {problem.out_shape}", np.shape(problem.out_prior_mean))
+    k = problem.kernel
+    lo, hi = OUTPUTSCALE_RANGE
+    if not (lo <= float(k.outputscale) <= hi):
+        raise InvalidInputError("problem.kernel.outputscale", f"a prior std in [{lo:g}, {hi:g}] m", k.outputscale)
+    if not (np.isfinite(k.lengthscale) and 0 < float(k.lengthscale) <= 1e8):
+        raise InvalidInputError("problem.kernel.lengthscale", "a length scale in (0, 1e8] px", k.lengthscale)
+    prec = np.asarray(problem.precision, dtype=np.float64)
+    if not np.all(np.isfinite(prec)) or np.any(prec < 0):
+        raise InvalidInputError("problem.precision", "finite values >= 0", "negative or non-finite values")
+    pmax = float(prec.max(initial=0.0))
+    if pmax * float(k.outputscale) ** 2 > MAX_PRECISION_RATIO:
+        raise InvalidInputError(
+            "problem.precision", f"observation precisions <= {MAX_PRECISION_RATIO:g} / outputscale^2 "
+            f"(noise std >= 1e-15 x {float(k.outputscale):g} m)", f"max {pmax:g} 1/m^2")
+    for name in ("out_rows", "out_cols"):
+        if not np.all(np.isfinite(np.asarray(getattr(problem, name), dtype=np.float64))):
+            raise InvalidInputError(f"problem.{name}", "finite output coordinates", "non-finite values")
+    observed = prec > 0
+    for name, values in (("prior_mean", np.asarray(problem.prior_mean, np.float64)[observed]),
+                         ("obs", np.asarray(problem.obs, np.float64)[observed]),
+                         ("out_prior_mean", np.asarray(problem.out_prior_mean, np.float64))):
+        bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_DEPTH)
+        if np.any(bad):
+            raise InvalidDepthError(
+                f"problem.{name}", f"finite depths within +-{MAX_ABS_DEPTH:g} m",
+                f"{int(bad.sum())} values outside, e.g. {float(values[bad][0]):g}")
 
 
 def _factor(problem: GridProblem):
@@ -29,8 +82,8 @@ def _factor(problem: GridProblem):
         chol = scipy.linalg.cho_factor(A, lower=True, check_finite=False)
     except np.linalg.LinAlgError as err:
         raise ConvergenceError(
-            f"dense Cholesky failed for the Matern kernel nu={k.nu}, lengthscale={k.lengthscale} px, "
-            f"outputscale={k.outputscale} m on {rows.shape[0]} observed pixels: the kernel matrix plus noise "
+            f"dense Cholesky failed for the Matern kernel nu={k.nu}, lengthscale={k.lengthscale:g} px, "
+            f"outputscale={k.outputscale:g} m on {rows.shape[0]} observed pixels: the kernel matrix plus noise "
             f"(smallest noise/s^2 = {float(noise.min()) / s2:.3g}) is not numerically positive definite ({err})"
         ) from None
     return rows, cols, chol, resid
@@ -106,7 +159,14 @@ class ExactEngine:
         self.max_cross_entries = max_cross_entries
 
     def solve(self, problem: GridProblem, *, variance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None)."""
+        """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None).
+
+        Raises:
+            ProblemTooLargeError: More observed pixels or cross entries than the limits.
+            ConvergenceError: The kernel matrix plus noise is not numerically positive definite.
+            InvalidInputError: A malformed problem (see `check_problem`).
+        """
+        check_problem(problem)
         n = int(np.count_nonzero(problem.precision > 0))
         ho, wo = problem.out_shape
         m = ho * wo

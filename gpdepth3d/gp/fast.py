@@ -71,7 +71,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ConvergenceError, InvalidInputError, ProblemTooLargeError, ShapeError
-from .exact import dense_bytes, dense_log_marginal_likelihood, dense_posterior
+from .exact import check_problem, dense_bytes, dense_log_marginal_likelihood, dense_posterior
 from .markov import _step, _unit_sde, chain_precision, readout_weights, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
@@ -1336,17 +1336,7 @@ def _torch_threads(threads: int | None):
 
 
 def _check_problem(problem: GridProblem) -> None:
-    if not isinstance(problem, GridProblem):
-        raise InvalidInputError("problem", "a GridProblem", type(problem).__name__)
+    check_problem(problem)
     h, w = problem.shape
     if h < 2 or w < 2:
         raise ShapeError("problem", "a GP grid of at least 2 x 2 pixels", f"{h} x {w}")
-    for name in ("obs", "precision"):
-        a = getattr(problem, name)
-        if np.shape(a) != (h, w):
-            raise ShapeError(f"problem.{name}", f"shape {(h, w)}", np.shape(a))
-    prec = np.asarray(problem.precision)
-    if not np.all(np.isfinite(prec)) or np.any(prec < 0):
-        raise InvalidInputError("problem.precision", "finite values >= 0", "negative or non-finite values")
-    if np.shape(problem.out_prior_mean) != problem.out_shape:
-        raise ShapeError("problem.out_prior_mean", f"shape {problem.out_shape}", np.shape(problem.out_prior_mean))

@@ -96,6 +96,7 @@ from linear_operator.operators import DenseLinearOperator, KroneckerProductLinea
 
 from ..errors import ConvergenceError, InvalidInputError
 from .model import GridProblem
+from .exact import check_problem
 
 VarianceMethod = Literal["auto", "cholesky", "probe", "solve", "love"]
 
@@ -299,6 +300,7 @@ class KissGPEngine:
         Raises:
             ConvergenceError: CG did not reach its tolerance within `max_cg_iterations`.
         """
+        check_problem(problem)
         t0 = time.perf_counter()
         k = problem.kernel
         s = float(k.outputscale)
