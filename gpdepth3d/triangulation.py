@@ -62,9 +62,9 @@ class TriangulationConfig:
     """
 
     detector: Literal["klt", "orb", "sift"] = "klt"
-    max_features: int = 1000
+    max_features: int = 400
     min_corner_distance: float = 8.0
-    klt_window: int = 15
+    klt_window: int = 11
     klt_levels: int = 3
     klt_fb_error: float = 1.0
     ratio: float = 0.8
@@ -72,12 +72,12 @@ class TriangulationConfig:
     max_reprojection_error: float = 3.0
     min_parallax_deg: float = 0.5
     pixel_sigma: float = 0.5
-    rotation_sigma_deg: float = 1.0
-    translation_sigma: float = 0.02
+    rotation_sigma_deg: float = 0.1
+    translation_sigma: float = 0.005
     refine_poses: bool = False
-    variance_factor: bool = True
+    variance_factor: bool = False
     min_views: int = 2
-    depth_sigma_floor: float = 0.02
+    depth_sigma_floor: float = 0.06
     min_depth: float = 0.1
     max_depth: float = 20.0
     max_relative_sigma: float = 0.15
@@ -393,6 +393,15 @@ def triangulate_pair(
     config = config or TriangulationConfig()
     camera.check_image(rgb_ref, "rgb_ref")
     camera.check_image(rgb_other, "rgb_other")
+    if config.detector == "klt":
+        tracks = build_tracks(
+            [rgb_ref, rgb_other], [T_world_ref, T_world_other], camera, reference=0, config=config,
+            features=None if features is None else [features[0], features[1]],
+        )
+        seen = np.isfinite(tracks[:, 1, 0])
+        return triangulate_matches(
+            tracks[seen, 0], tracks[seen, 1], camera, T_world_ref, T_world_other, config=config
+        )
     fa, fb = features if features is not None else (
         detect_features(rgb_ref, config=config),
         detect_features(rgb_other, config=config),
@@ -684,12 +693,18 @@ def triangulate_tracks(
     prob.pixel_sigma = sigma_px
     _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
     S, A, inv = prob.schur(h_rr, H_xr, H_xx)
-    try:
-        S_inv = np.linalg.inv(S)
-    except np.linalg.LinAlgError:
-        S_inv = np.linalg.pinv(S)
     B = A * inv[:, None]
-    var_rho = inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
+    if config.refine_poses:
+        # joint estimate: the marginal of the inverse depth (Schur complement of the poses)
+        try:
+            S_inv = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            S_inv = np.linalg.pinv(S)
+        var_rho = inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
+    else:
+        # poses held at their given values: their whole prior uncertainty reaches the depth
+        # through d rho / d xi = -H_rho_rho^-1 H_rho_xi
+        var_rho = inv + np.sum(B**2 / np.tile(prob.prior, len(others))[None], axis=1)
     if config.variance_factor:
         # a posteriori variance factor: residuals larger than the pixel noise say the poses
         # (or the tracks) are worse than assumed, in the directions the images cannot see too

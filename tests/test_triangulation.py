@@ -9,7 +9,10 @@ from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, InvalidInputError, ShapeError
 from gpdepth3d.triangulation import (
     Features,
+    MultiViewPoints,
+    TrackTriangulator,
     TriangulationConfig,
+    build_tracks,
     detect_features,
     fundamental_from_poses,
     match_features,
@@ -17,6 +20,7 @@ from gpdepth3d.triangulation import (
     triangulate_frames,
     triangulate_matches,
     triangulate_pair,
+    triangulate_tracks,
 )
 
 CAM = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
@@ -62,7 +66,7 @@ class TestGeometry:
         rng = np.random.default_rng(1)
         X = _scene(60, seed=2)
         Ta, Tb = _pose(0.0), _pose(0.25)
-        cfg = TriangulationConfig(max_relative_sigma=1.0, max_reprojection_error=10.0, min_parallax_deg=0.5)
+        cfg = TriangulationConfig(max_relative_sigma=1.0, max_reprojection_error=10.0, min_parallax_deg=0.5, pixel_sigma=1.0)
         ua, ub = _project(X, Ta), _project(X, Tb)
         ref = triangulate_matches(ua, ub, CAM, Ta, Tb, config=cfg)
         assert len(ref) == 60
@@ -112,8 +116,10 @@ class TestGeometry:
         desc = np.eye(150, 128, dtype=np.float32) * 10  # unique descriptors: match by identity
         feats = [Features(uv, desc, "sift") for uv in uvs]
         rgbs = [np.zeros((480, 640, 3), np.uint8)] * 3
-        sparse = triangulate_frames(rgbs, poses, CAM, reference=1, features=feats)
-        pair = triangulate_pair(rgbs[1], rgbs[0], CAM, poses[1], poses[0], features=(feats[1], feats[0]))
+        # pixel noise only (tiny pose priors), as the pair's sigma
+        sift = TriangulationConfig(detector="sift", depth_sigma_floor=0.0, rotation_sigma_deg=1e-5, translation_sigma=1e-6)
+        sparse = triangulate_frames(rgbs, poses, CAM, reference=1, features=feats, config=sift)
+        pair = triangulate_pair(rgbs[1], rgbs[0], CAM, poses[1], poses[0], features=(feats[1], feats[0]), config=sift)
         assert len(sparse) >= len(pair) > 100
         z = CAM.project(X)[1]
         uv_ref = uvs[1]
@@ -142,9 +148,241 @@ class TestGeometry:
         with pytest.raises(InvalidInputError):
             TriangulationConfig(detector="surf")
         with pytest.raises(InvalidInputError):
+            TriangulationConfig(min_views=1)
+        with pytest.raises(InvalidInputError):
+            TriangulationConfig(translation_sigma=0.0)
+        with pytest.raises(InvalidInputError):
+            TriangulationConfig(depth_sigma_floor=-0.1)
+        with pytest.raises(InvalidInputError):  # KLT corners carry no descriptors to match
+            match_features(Features(ua, np.zeros((10, 0), np.float32), "klt"), Features(ub, np.zeros((10, 0), np.float32), "klt"))
+        with pytest.raises(InvalidInputError):  # features of another detector than configured
+            triangulate_frames([np.zeros((480, 640, 3), np.uint8)] * 2, [Ta, Tb], CAM, features=[Features(ua, np.zeros((10, 128), np.float32), "sift")] * 2)
+        with pytest.raises(InvalidInputError):
             TriangulationConfig(ratio=1.5)
         with pytest.raises(InvalidInputError):
             match_features(Features(ua, np.zeros((10, 32), np.uint8), "orb"), Features(ub, np.zeros((10, 128), np.float32), "sift"))
+
+
+def _rot(rx: float, ry: float, rz: float) -> np.ndarray:
+    import cv2
+
+    return cv2.Rodrigues(np.radians([rx, ry, rz]))[0]
+
+
+def _posed(t, angles_deg=(0.0, 0.0, 0.0)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = _rot(*angles_deg)
+    T[:3, 3] = t
+    return T
+
+
+def _views():
+    """Four posed views: the reference at the origin and three neighbours 8-30 cm away."""
+    return [
+        _posed([0.0, 0.0, 0.0]),
+        _posed([0.08, 0.0, 0.0], (0.0, 1.0, 0.0)),
+        _posed([0.18, 0.03, 0.01], (0.5, 2.0, 0.0)),
+        _posed([0.30, -0.02, 0.04], (0.0, 3.0, 1.0)),
+    ]
+
+
+def _tracks(X: np.ndarray, poses) -> np.ndarray:
+    return np.stack([_project(X, T) for T in poses], axis=1)
+
+
+class TestTriangulateTracks:
+    def test_exact_without_noise(self):
+        X = _scene(200, seed=10)
+        poses = _views()
+        tracks = _tracks(X, poses)
+        tracks[:50, 2] = np.nan  # not every track is seen in every view
+        for refine in (False, True):
+            cfg = TriangulationConfig(depth_sigma_floor=0.0, refine_poses=refine, max_relative_sigma=1.0)
+            mv = triangulate_tracks(tracks, poses, CAM, reference=0, config=cfg)
+            assert isinstance(mv, MultiViewPoints)
+            assert len(mv) == 200
+            np.testing.assert_allclose(mv.depth, X[mv.index, 2], rtol=1e-9)
+            np.testing.assert_allclose(mv.points_world, X[mv.index], atol=1e-8)
+            np.testing.assert_allclose(mv.poses, np.stack(poses), atol=1e-9)  # nothing to correct
+            assert np.all(mv.reprojection_error < 1e-6)
+            assert np.all(mv.n_views[:50] == 3) and np.all(mv.n_views[50:] == 4)
+        # any view can be the reference
+        mv = triangulate_tracks(tracks, poses, CAM, reference=3, config=TriangulationConfig(max_relative_sigma=1.0))
+        Tcw = np.linalg.inv(poses[3])
+        np.testing.assert_allclose(mv.depth, (X[mv.index] @ Tcw[:3, :3].T + Tcw[:3, 3])[:, 2], rtol=1e-9)
+
+    def test_wrong_matches_do_not_move_the_points(self):
+        rng = np.random.default_rng(11)
+        X = _scene(200, seed=11)
+        poses = _views()
+        tracks = _tracks(X, poses) + rng.normal(0, 0.3, (200, 4, 2))
+        tracks[:, 0] = _tracks(X, poses)[:, 0]
+        bad = np.arange(20)
+        tracks[bad, 2] += rng.choice([-1, 1], (20, 2)) * rng.uniform(15, 40, (20, 2))  # one wrong match each
+        tracks[20:30, 1:] = _tracks(X[rng.permutation(200)[:10]], poses)[:, 1:]  # wrong in every view
+        mv = triangulate_tracks(tracks, poses, CAM, reference=0)
+        err = np.abs(mv.depth - X[mv.index, 2])
+        # the tracks with one wrong observation keep their point, from the other views
+        assert np.isin(bad, mv.index).sum() >= 18
+        assert np.all(err[np.isin(mv.index, bad)] < 3 * mv.sigma[np.isin(mv.index, bad)])
+        # tracks wrong in every view are dropped or honestly uncertain; no kept point is far off
+        assert np.all(err < 4 * mv.sigma)
+        # the wrong observations were rejected: at most 3 views support the first 20
+        assert np.all(mv.n_views[np.isin(mv.index, bad)] <= 3)
+
+    def test_sigma_covers_pixel_and_pose_noise(self):
+        """+-2 sigma covers ~95 % of the errors when pixels and poses carry the assumed noise."""
+        rng = np.random.default_rng(12)
+        X = _scene(150, seed=12)
+        poses = _views()
+        clean = _tracks(X, poses)
+        cfg = TriangulationConfig(
+            pixel_sigma=0.5, rotation_sigma_deg=0.1, translation_sigma=0.005, depth_sigma_floor=0.0, max_relative_sigma=1.0
+        )
+        inside, z_scores = [], []
+        for _ in range(40):
+            noisy_poses = [poses[0]] + [
+                T @ _posed(rng.normal(0, 0.005, 3), np.degrees(rng.normal(0, np.radians(0.1), 3))) for T in poses[1:]
+            ]
+            tracks = clean + rng.normal(0, 0.5, clean.shape)
+            mv = triangulate_tracks(tracks, noisy_poses, CAM, reference=0, config=cfg)
+            e = mv.depth - X[mv.index, 2]
+            inside.append(np.abs(e) <= 2 * mv.sigma)
+            z_scores.append(e / mv.sigma)
+        coverage = np.mean(np.concatenate(inside))
+        assert 0.90 <= coverage <= 0.99
+        assert 0.8 < np.std(np.concatenate(z_scores)) < 1.25
+        # the pose uncertainty is what makes sigma grow with the depth faster than pixel noise
+        # alone does: without it (tiny pose priors) the same tracks get much smaller sigmas
+        tight = TriangulationConfig(pixel_sigma=0.5, rotation_sigma_deg=1e-5, translation_sigma=1e-6, depth_sigma_floor=0.0,
+                                    max_relative_sigma=1.0)
+        a = triangulate_tracks(clean, poses, CAM, reference=0, config=tight)
+        b = triangulate_tracks(clean, poses, CAM, reference=0, config=cfg)
+        assert np.median(b.sigma / a.sigma) > 1.5
+
+    def test_refined_poses_are_closer_to_the_truth(self):
+        X = _scene(300, seed=13)
+        poses = _views()
+        tracks = _tracks(X, poses)
+        off = [poses[0]] + [T @ _posed([0.0, 0.0, 0.0], (0.3, -0.3, 0.2)) for T in poses[1:]]
+        cfg = TriangulationConfig(refine_poses=True, rotation_sigma_deg=1.0, translation_sigma=0.01, max_relative_sigma=1.0)
+        mv = triangulate_tracks(tracks, off, CAM, reference=0, config=cfg)
+        fixed = triangulate_tracks(tracks, off, CAM, reference=0, config=TriangulationConfig(max_relative_sigma=1.0))
+
+        def angle(A, B):
+            c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2
+            return np.degrees(np.arccos(np.clip(c, -1, 1)))
+
+        for k in (1, 2, 3):
+            assert angle(mv.poses[k], poses[k]) < 0.2 * angle(off[k], poses[k])
+        assert np.median(np.abs(mv.depth / X[mv.index, 2] - 1)) < 0.5 * np.median(np.abs(fixed.depth / X[fixed.index, 2] - 1))
+
+    def test_checks_and_errors(self):
+        X = _scene(50, seed=14)
+        poses = _views()
+        tracks = _tracks(X, poses)
+        # a tiny baseline: the depths are too uncertain to keep
+        near = [poses[0], _posed([0.002, 0.0, 0.0])]
+        assert len(triangulate_tracks(_tracks(X, near), near, CAM)) == 0
+        # min_views: tracks seen in fewer views are dropped
+        t2 = tracks.copy()
+        t2[:10, 2:] = np.nan
+        mv = triangulate_tracks(t2, poses, CAM, config=TriangulationConfig(min_views=3, max_relative_sigma=1.0))
+        assert not np.isin(np.arange(10), mv.index).any() and len(mv) == 40
+        # no tracks
+        assert len(triangulate_tracks(np.zeros((0, 4, 2)), poses, CAM)) == 0
+        with pytest.raises(ShapeError):
+            triangulate_tracks(tracks[..., 0], poses, CAM)
+        with pytest.raises(ShapeError):
+            triangulate_tracks(tracks, poses[:3], CAM)
+        with pytest.raises(InvalidInputError):
+            triangulate_tracks(tracks, poses, CAM, reference=4)
+        t3 = tracks.copy()
+        t3[0, 0] = np.nan
+        with pytest.raises(InvalidInputError):
+            triangulate_tracks(t3, poses, CAM, reference=0)
+        bad = [p.copy() for p in poses]
+        bad[1][:3, :3] *= 1.1
+        with pytest.raises(CalibrationError):
+            triangulate_tracks(tracks, bad, CAM)
+
+
+SMALL = PinholeCamera(300.0, 300.0, 159.5, 119.5, 320, 240)
+
+
+def _texture(seed: int = 0) -> np.ndarray:
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (1024, 1024)).astype(np.float32), (0, 0), 2.0)
+    tex = (tex - tex.min()) / (tex.max() - tex.min()) * 255
+    return tex.astype(np.float32)
+
+
+def _render_plane(T_world_camera: np.ndarray, tex: np.ndarray, distance: float = 2.0, extent: float = 4.0):
+    """RGB image and z-depth of a textured plane z = distance (world) seen by SMALL."""
+    import cv2
+
+    u, v = SMALL.pixel_grid()
+    rays = np.stack([(u - SMALL.cx) / SMALL.fx, (v - SMALL.cy) / SMALL.fy, np.ones_like(u, dtype=float)], -1)
+    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
+    rw = rays @ R.T
+    s = (distance - t[2]) / rw[..., 2]  # the camera's z-depth (rays have z = 1)
+    X = t[0] + s * rw[..., 0]
+    Y = t[1] + s * rw[..., 1]
+    mx = ((X / extent + 0.5) * tex.shape[1]).astype(np.float32)
+    my = ((Y / extent + 0.5) * tex.shape[0]).astype(np.float32)
+    grey = cv2.remap(tex, mx, my, cv2.INTER_LINEAR)
+    rgb = np.repeat(np.clip(grey, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+    return rgb, s
+
+
+class TestTrackTriangulator:
+    def test_textured_plane(self):
+        tex = _texture()
+        poses = [_posed([0.03 * k, 0.005 * k, 0.0], (0.0, 0.3 * k, 0.0)) for k in range(6)]
+        tracker = TrackTriangulator(SMALL, TriangulationConfig(max_features=300), window=4)
+        counts, errors, inside = [], [], []
+        for k, T in enumerate(poses):
+            rgb, depth = _render_plane(T, tex)
+            sparse = tracker.add(rgb, T)
+            counts.append(len(sparse))
+            if len(sparse):
+                iu = np.rint(sparse.uv).astype(int)
+                truth = depth[iu[:, 1], iu[:, 0]]
+                errors.append(np.abs(sparse.depth - truth) / truth)
+                inside.append(np.abs(sparse.depth - truth) <= 2 * sparse.sigma)
+        assert counts[0] == 0  # nothing to triangulate against yet
+        assert min(counts[2:]) > 100
+        assert tracker.n_tracks > 150
+        assert tracker.last is not None and tracker.last.n_views.max() == 5  # tracks span the window
+        assert np.median(np.concatenate(errors)) < 0.01
+        assert np.mean(np.concatenate(inside)) > 0.95
+        tracker.reset()
+        assert tracker.n_tracks == 0 and len(tracker.add(rgb, poses[-1])) == 0
+
+    def test_batch_reference_first_frame(self):
+        tex = _texture(1)
+        poses = [_posed([0.04 * k, 0.0, 0.0]) for k in range(5)]
+        views = [_render_plane(T, tex) for T in poses]
+        sparse = triangulate_frames([v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300))
+        assert len(sparse) > 100
+        iu = np.rint(sparse.uv).astype(int)
+        truth = views[0][1][iu[:, 1], iu[:, 0]]
+        assert np.median(np.abs(sparse.depth - truth) / truth) < 0.01
+        tracks = build_tracks([v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300))
+        assert tracks.shape[1:] == (5, 2) and np.isfinite(tracks[:, 4, 0]).sum() > 100
+
+    def test_errors(self):
+        tracker = TrackTriangulator(SMALL)
+        with pytest.raises(ShapeError):
+            tracker.add(np.zeros((480, 640, 3), np.uint8), np.eye(4))
+        with pytest.raises(CalibrationError):
+            tracker.add(np.zeros((240, 320, 3), np.uint8), np.eye(4) * 2)
+        with pytest.raises(InvalidInputError):
+            TrackTriangulator(SMALL, window=0)
+        with pytest.raises(InvalidInputError):
+            TrackTriangulator("camera")  # type: ignore[arg-type]
 
 
 class TestRealFrames:
