@@ -33,7 +33,12 @@ of the selected inverse) plus the conditional prior variance.
 
 Cost with n pixels: O(n^1.5) flops and O(n log n) memory (nested dissection on a 2-D grid),
 the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 is heavy beyond
-~100 x 100 pixels). Numerics, float64 everywhere, in one of two back-ends (``backend=``):
+~100 x 100 pixels). Limits of the grid route: the precision's entries grow like
+(l / pixel)^(2 nu + 1) per axis while the covariance stays O(s^2), so in float64 the route is
+exact only while the conditioning allows (`grid_error_estimate` <= 1e-6: e.g. nu = 1.5 up to
+l ~ 10 px, nu = 2.5 up to l ~ 3 px with sparse points; more when every pixel is observed). Beyond
+that, and beyond the memory budget (`grid_bytes`, ``max_memory_mb``), the route is refused
+with a typed error (`IllConditionedError`, `ProblemTooLargeError`) instead of a wrong answer. Numerics, float64 everywhere, in one of two back-ends (``backend=``):
 
 * ``compiled`` (the default on the CPU): every (template node, tile) pair and every top node is
   one front of `gpdepth3d.gp.multifrontal`, which runs the factorisation, the solves and the
@@ -49,6 +54,10 @@ the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 i
 The set-up (tree, index maps, prior precision, read-out) runs once per resolution and kernel
 with NumPy and is cached.
 
+With few observed pixels (up to ``max_dense_points``) and any nu, the ``dense`` route computes the
+same posterior by dense algebra over those pixels (`gpdepth3d.gp.exact.dense_posterior`,
+O(m^3 + n m^2)): the residual formulation with nu = 1.5 / 2.5 and hundreds of points takes ~1 s
+at 320 x 240 instead of minutes on the grid route, and long length scales stay exact there.
 With nu = 0.5 two other routes compute the same posterior when the cost model says they are
 cheaper (``route=`` forces any): few observed pixels (the residual formulation with sparse
 points) take Woodbury over those pixels with the exponential kernel's recursive filtering
@@ -952,8 +961,14 @@ class FastEngine:
             `gpdepth3d.gp.woodbury`; for a few thousand points at most) or "neumann" (nu = 0.5,
             every pixel observed strongly enough that the precision is diagonally dominant, as
             in the paper's balanced set-up, output on the input grid: a series with a certified
-            error bound, `gpdepth3d.gp.neumann`). ``last_route`` tells which one the last call
-            took. The log marginal likelihood uses the grid or Woodbury ("neumann" forced: the grid).
+            error bound, `gpdepth3d.gp.neumann`) or "dense" (any nu, few observed pixels: dense
+            algebra over them, `gpdepth3d.gp.exact.dense_posterior`). ``last_route`` tells which
+            one the last call took. The log marginal likelihood uses the grid, Woodbury or dense
+            ("neumann" forced: the grid). A forced route that cannot compute the exact posterior
+            raises (see Raises of `solve`); "auto" picks among those that can.
+        max_dense_points: The dense route takes at most this many observed pixels.
+        max_memory_mb: Memory budget of one solve (MiB); None: half of the memory available at
+            the call. Routes whose estimated memory exceeds it are not taken.
         prior_cache_mb: Compiled back-end: memory allowed for the factor of the prior alone
             (`PriorFactor`, one per engine), which the frames of a sequence reuse for every
             front their observations do not reach. It is built from the second frame with the
@@ -1145,15 +1160,19 @@ class FastEngine:
                     costs["grid"] = _grid_seconds(h, w, k.nu, variance)
             else:
                 why["grid"] = grid_why
-            if dense_why is None:
-                costs["dense"] = _dense_seconds(m, ho * wo, variance)
-            else:
+            if dense_why is not None:
                 why["dense"] = dense_why
+            elif self.backend == "compiled" or grid_why is not None:  # torch back-end: its device unless refused
+                costs["dense"] = _dense_seconds(m, ho * wo, variance)
             if k.nu == 0.5 and self.backend == "compiled":
                 # Woodbury computes s^2 (1 - quadratic form): near a point whose noise is tiny against s
                 # that cancels (error ~1e-16 s^2 cond(A), cond(A) <= 1 + m s^2 / noise); the grid does not.
-                if (m == 0 or float(prec.max()) * float(k.outputscale) ** 2 <= _WOODBURY_MAX_SNR) and \
-                        8 * (3 * m * m + 12 * ho * wo) <= budget:
+                wbytes = 8 * (3 * m * m + 12 * ho * wo)
+                if m and float(prec.max()) * float(k.outputscale) ** 2 > _WOODBURY_MAX_SNR:
+                    why["woodbury"] = "an observation's noise is too small against the outputscale"
+                elif wbytes > budget:
+                    why["woodbury"] = f"it needs ~{wbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"
+                else:
                     costs["woodbury"] = woodbury_seconds(m, ho * wo, variance)
                 if not lml and m >= 0.9 * h * w and problem.output_is_input and 200 * h * w <= budget:
                     candidate = NeumannPosterior(problem, self._neumann_buffers)  # (nearly) every pixel observed
@@ -1162,6 +1181,7 @@ class FastEngine:
                         costs["neumann"], payload = t, candidate
                     else:
                         candidate.release()
+                        why["neumann"] = f"the series converges too slowly (rho = {candidate.rho:.3g})"
                 if "dense" in costs and "woodbury" in costs:
                     del costs["dense"]  # the same algebra, Woodbury's variance is O(m^2 + n) instead of O(n m^2)
             if not costs:
@@ -1239,6 +1259,13 @@ class FastEngine:
         Args:
             problem: The grid problem (either formulation).
             variance: Also compute the marginal variances (selected inversion).
+
+        Raises:
+            IllConditionedError: (a `ConvergenceError`) the grid route cannot represent this kernel
+                accurately in float64 and no other route applies (or "grid" is forced).
+            ProblemTooLargeError: every applicable route exceeds the memory budget (before allocating).
+            InvalidInputError: a malformed problem (`gpdepth3d.gp.exact.check_problem`) or a forced
+                route that does not apply to it.
         """
         _check_problem(problem)
         route, post = self._route(problem, variance)
