@@ -300,7 +300,9 @@ def atomic_write_set(
 
     Folders of earlier killed writers and temporary files of the names are deleted first. A
     single file with no earlier set is written as a plain file (`atomic_write`). Plain files of
-    the set left by older versions are moved into a set first, without a moment of mixing.
+    the set left by older versions are moved into a set first, without a moment of mixing. On a
+    file system without symbolic links the files are all written under temporary names and then
+    renamed (a failure still leaves the old files; only a kill between the renames can mix).
 
     Args:
         base: Path naming the set (its folder and its name), e.g. ``out/frame0``.
@@ -330,6 +332,8 @@ def atomic_write_set(
             if len(names) == 1 and not hidden["current"].is_symlink() and present in ([], names):
                 atomic_write(folder / names[0], writers[names[0]])
                 return [folder / names[0]]
+            if not _symlinks_work(folder):
+                return _write_then_rename(folder, writers, all_names)
             return _swap_in_set(base, folder, writers, all_names, hidden["current"])
         except OSError as exc:
             raise _as_output_error(base, exc) from None
@@ -380,6 +384,38 @@ def _swap_in_set(
         if n not in writers and (folder / n).is_symlink():
             with contextlib.suppress(OSError):
                 (folder / n).unlink()  # dangling now: a member of the old set only
+    return [folder / n for n in writers]
+
+
+_SYMLINKS: dict[int, bool] = {}
+
+
+def _symlinks_work(folder: Path) -> bool:
+    """Whether the file system of ``folder`` supports symbolic links (probed once per device)."""
+    dev = folder.stat().st_dev
+    if dev not in _SYMLINKS:
+        probe = folder / f".gpdepth3d-probe.{os.urandom(4).hex()}.link"
+        try:
+            os.symlink("target", probe)
+            probe.unlink()
+            _SYMLINKS[dev] = True
+        except (OSError, NotImplementedError):
+            _SYMLINKS[dev] = False
+    return _SYMLINKS[dev]
+
+
+def _write_then_rename(folder: Path, writers: Mapping[str, Callable[[Path], None]], all_names: list[str]) -> list[Path]:
+    """Fallback without symbolic links: every file to a temporary name first, then the renames.
+
+    A failed write leaves the old files untouched; only a kill between the renames can mix sets.
+    """
+    with write_together():
+        for n, write in writers.items():
+            atomic_write(folder / n, write)
+    for n in all_names:
+        if n not in writers:
+            with contextlib.suppress(FileNotFoundError):
+                (folder / n).unlink()
     return [folder / n for n in writers]
 
 

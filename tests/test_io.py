@@ -325,6 +325,20 @@ class TestOutputSets:
         gio.atomic_write_set(tmp_path / "s", self.writers("v1", ("s.txt",)), members=("s.txt", "s.csv"))
         assert (tmp_path / "s.txt").is_file() and not (tmp_path / "s.txt").is_symlink()
 
+    def test_without_symlinks_files_are_renamed_after_all_writes(self, tmp_path, monkeypatch):
+        monkeypatch.setattr(gio, "_symlinks_work", lambda folder: False)
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"] and not (tmp_path / "s.txt").is_symlink()
+
+        def fails(p):
+            raise OSError(28, "No space left on device")
+
+        with pytest.raises(gio.OutputError, match="disk full"):
+            gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: p.write_text("v2"), "s.csv": fails})
+        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
+        gio.atomic_write_set(tmp_path / "s", self.writers("v3", ("s.txt",)), members=("s.txt", "s.csv"))
+        assert self.read(tmp_path) == ["v3:s.txt", None]
+
     def test_clean_output_set_removes_only_its_leftovers(self, tmp_path):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
         (tmp_path / ".s.set-zzzzzzzz").mkdir()
