@@ -31,8 +31,10 @@ from .fusion import FusionConfig as FusionConfig
 from .fusion import TSDFFusion as TSDFFusion
 from .fusion import save_mesh as save_mesh
 from .gp.model import DepthGPConfig as DepthGPConfig
+from .mapping import FrameResult as FrameResult
 from .mapping import Mapper as Mapper
 from .mapping import MapperConfig as MapperConfig
+from .mapping import project_map_points as project_map_points
 from .mapping import sparse_from_map_points as sparse_from_map_points
 from .mde import ArrayMDE as ArrayMDE
 from .mde import ONNXDepthModel as ONNXDepthModel
@@ -50,6 +52,16 @@ from .sampling import holdout_split as holdout_split
 from .sampling import sample_band as sample_band
 from .sampling import sample_scanlines as sample_scanlines
 from .sampling import sample_uniform as sample_uniform
+from .trajectories import InvertedPoseWarning as InvertedPoseWarning
+from .trajectories import Trajectory as Trajectory
+from .trajectories import check_pose_orientation as check_pose_orientation
+from .trajectories import invert_pose as invert_pose
+from .trajectories import pose_from_tq as pose_from_tq
+from .trajectories import read_colmap_model as read_colmap_model
+from .trajectories import read_kitti_poses as read_kitti_poses
+from .trajectories import read_tum_trajectory as read_tum_trajectory
+from .trajectories import tq_from_pose as tq_from_pose
+from .trajectories import write_tum_trajectory as write_tum_trajectory
 from .triangulation import TriangulationConfig as TriangulationConfig
 from .triangulation import triangulate_frames as triangulate_frames
 

@@ -553,7 +553,7 @@ class TSDFFusion:
             colors = np.clip(np.rint(mesh.vertex.colors.numpy() * 255.0), 0, 255).astype(np.uint8)
         return trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
 
-    def extract_point_cloud(self) -> ColoredCloud:
+    def extract_point_cloud(self, *, allow_empty: bool = False) -> ColoredCloud:
         """Surface points of the volume as a `ColoredCloud`.
 
         Each point takes the values of the voxel nearest to it: the confidence is that voxel's
@@ -561,14 +561,21 @@ class TSDFFusion:
         fused depth variance (m^2) with ``config.integrate_variance``, else NaN (unknown). The
         viewing depth is not defined for a fused point (``depth`` is NaN).
 
+        Args:
+            allow_empty: Return a cloud without points (instead of raising) when no surface
+                passes ``weight_threshold``.
+
         Raises:
-            EmptyInputError: if nothing was integrated or no surface passes ``weight_threshold``.
+            EmptyInputError: if nothing was integrated, or (without ``allow_empty``) no surface
+                passes ``weight_threshold``.
         """
         from scipy.spatial import cKDTree
 
         self._check_nonempty()
         pcd = self.vbg.extract_point_cloud(float(self.config.weight_threshold)).cpu()
         if "positions" not in pcd.point or pcd.point.positions.shape[0] == 0:
+            if allow_empty:
+                return ColoredCloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0), np.zeros(0))
             raise EmptyInputError("fusion", f"a surface with weight > {self.config.weight_threshold}", "no points")
         pts = pcd.point.positions.numpy().astype(np.float64)
         n = pts.shape[0]

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
+import zipfile
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -37,14 +39,84 @@ import numpy as np
 from .camera import PinholeCamera, check_pose, transform_points
 from .cloud import ColoredCloud
 from .complete import DepthCompleter, DepthPosterior
-from .errors import EmptyInputError, InvalidInputError, ShapeError, describe
-from .fusion import FusionConfig, TSDFFusion, save_mesh
+from .errors import DataFormatError, EmptyInputError, GPDepthError, InvalidInputError, ShapeError, describe
+from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
 from .gp.model import DepthGPConfig
-from .io import atomic_write
+from .io import atomic_write, save_npz
 from .measurements import SparseDepth, project_points
-from .triangulation import Features, TriangulationConfig, detect_features, triangulate_frames
+from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation, invert_pose
+from .triangulation import TrackTriangulator, TriangulationConfig, detect_features, triangulate_frames
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class MapPointStats:
+    """What became of the SLAM map points given for one frame.
+
+    Attributes:
+        given: Points given.
+        nonfinite: Points with a NaN or inf coordinate (dropped).
+        behind: Finite points behind the camera or closer than ``min_depth`` (dropped).
+        outside: Points in front of the camera that project outside the image (dropped).
+        used: Measurements kept (after keeping the closest point per pixel).
+    """
+
+    given: int
+    nonfinite: int
+    behind: int
+    outside: int
+    used: int
+
+
+def project_map_points(
+    points_world: np.ndarray,
+    T_world_camera: np.ndarray,
+    camera: PinholeCamera,
+    *,
+    sigma: float | np.ndarray | None = None,
+    min_depth: float = 1e-3,
+) -> tuple[SparseDepth, MapPointStats]:
+    """SLAM map points (world frame) as sparse depth of one posed camera, with a count of the dropped ones.
+
+    Args:
+        points_world: (N, 3) map points in the world frame, metres.
+        T_world_camera: 4x4 pose of the camera.
+        camera: Intrinsics; points projecting outside the image or behind the camera are dropped
+            (and counted).
+        sigma: Optional per-point (N,) or shared depth standard deviation, metres.
+        min_depth: Points with z below this are dropped.
+
+    Returns:
+        (`SparseDepth` on the camera's grid, closest point per pixel; `MapPointStats`).
+    """
+    T = check_pose(T_world_camera)
+    p = np.asarray(points_world, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ShapeError("points_world", "an (N, 3) array", describe(p))
+    n = p.shape[0]
+    if sigma is not None:
+        s = np.asarray(sigma, dtype=np.float64)
+        if s.ndim > 1 or (s.ndim == 1 and s.shape[0] != n):
+            raise ShapeError("sigma", f"a scalar or shape ({n},)", describe(s))
+        sigma = np.broadcast_to(s, (n,))
+    finite = np.all(np.isfinite(p), axis=1)
+    pc = transform_points(invert_pose(T), p[finite])
+    uv, z = camera.project(pc)
+    front = z > min_depth
+    inside = front & camera.in_image(uv)
+    keep = np.flatnonzero(finite)[inside]
+    sparse = project_points(
+        pc[inside], camera, min_depth=min_depth, sigma=None if sigma is None else sigma[keep]
+    )
+    stats = MapPointStats(
+        given=int(n),
+        nonfinite=int(n - finite.sum()),
+        behind=int((~front).sum()),
+        outside=int((front & ~inside).sum()),
+        used=len(sparse),
+    )
+    return sparse, stats
 
 
 def sparse_from_map_points(
@@ -57,21 +129,20 @@ def sparse_from_map_points(
 ) -> SparseDepth:
     """SLAM map points (world frame) as sparse depth of one posed camera.
 
+    Points behind the camera, outside the image or not finite are dropped; `project_map_points`
+    returns how many of each (`Mapper.add_frame` reports them on its `FrameResult`).
+
     Args:
         points_world: (N, 3) map points in the world frame, metres.
         T_world_camera: 4x4 pose of the camera.
-        camera: Intrinsics; points projecting outside the image or behind the camera are dropped.
+        camera: Intrinsics.
         sigma: Optional per-point (N,) or shared depth standard deviation, metres.
         min_depth: Points with z below this are dropped.
 
     Returns:
         `SparseDepth` on the camera's grid (closest point per pixel).
     """
-    T = check_pose(T_world_camera)
-    p = np.asarray(points_world, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ShapeError("points_world", "an (N, 3) array", describe(p))
-    return project_points(transform_points(np.linalg.inv(T), p), camera, min_depth=min_depth, sigma=sigma)
+    return project_map_points(points_world, T_world_camera, camera, sigma=sigma, min_depth=min_depth)[0]
 
 
 def merge_sparse(*parts: SparseDepth, image_size: tuple[int, int]) -> SparseDepth:
@@ -107,8 +178,10 @@ class MapperConfig:
     """Options of the `Mapper`.
 
     Attributes:
-        gp: GP model of the refinement (default: residual formulation).
-        fusion: TSDF options (weighting "variance" uses the posterior variance).
+        gp: GP model of the refinement (default: the library's default `DepthGPConfig()`, whose
+            engine is the fast one).
+        fusion: TSDF options (weighting "variance" uses the posterior variance). With
+            ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
         triangulation: Feature triangulation options.
         refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
         triangulate: Triangulate features against earlier frames of the window.
@@ -117,19 +190,22 @@ class MapperConfig:
             used for triangulation (metres).
         working_scale: Resolution of refinement and fusion relative to the RGB images.
         max_points: At most this many measurements per frame go to the GP, the most certain
-            (smallest sigma / depth; points without sigma count as certain) - bounds the cost
-            of the dense ``exact`` engine.
+            (smallest sigma / depth; points without sigma count as certain).
+        keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the
+            working resolution (about 0.6 MB a frame at 320x240), needed by
+            `Mapper.update_poses` and `Mapper.save`.
     """
 
-    gp: DepthGPConfig = field(default_factory=DepthGPConfig.residual)
+    gp: DepthGPConfig = field(default_factory=DepthGPConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
-    triangulation: TriangulationConfig = field(default_factory=lambda: TriangulationConfig(detector="orb"))
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     refine: bool = True
     triangulate: bool = True
     window: int = 4
     min_baseline: float = 0.05
     working_scale: float = 1.0
     max_points: int = 300
+    keep_keyframes: bool = True
 
     def __post_init__(self) -> None:
         if int(self.max_points) != self.max_points or self.max_points < 1:
@@ -142,17 +218,33 @@ class MapperConfig:
             raise InvalidInputError("working_scale", "a factor in (0, 1]", self.working_scale)
 
 
+STAGES = ("mde", "points", "gp", "fusion")
+"""The timed stages of `Mapper.add_frame` (keys of `FrameResult.timings`, plus "total")."""
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """What `Mapper.add_frame` did with one frame.
 
     Attributes:
-        depth: (h, w) depth that was fused (posterior mean, or the MDE when not refining), metres.
+        depth: (h, w) depth that was fused (posterior mean, or the MDE when not refining),
+            metres; masked pixels are 0. Empty (0, 0) when the frame failed before.
         variance: (h, w) its variance, m^2 (NaN when not refining).
         mde: (h, w) MDE depth at the working resolution, metres.
         sparse: The measurements used (at the RGB resolution).
-        posterior: The GP posterior, or None when not refining.
-        timings: Seconds per stage: "mde", "triangulate", "refine", "fuse".
+        posterior: The GP posterior, or None when not refining (or the GP failed).
+        timings: Seconds per stage: "mde", "points" (map points, feature detection and
+            triangulation), "gp", "fusion" and "total".
+        keyframe_id: The frame's id in the keyframe store.
+        fused: Whether the frame reached the volume.
+        error: Why the frame was not fused (stage, error type and message; names the frame),
+            or None.
+        warnings: Problems that did not stop the frame (a failed triangulation, an inverted
+            pose, points outside the image...).
+        masked_pixels: Pixels of the depth masked before fusion because the depth was <= 0
+            or not finite (e.g. a GP mean pulled below zero by an outlier point).
+        map_points: What became of the given SLAM map points, or None when none were given.
+        pose_check: The inverted-pose check on the map points, or None.
     """
 
     depth: np.ndarray
@@ -161,10 +253,64 @@ class FrameResult:
     sparse: SparseDepth
     posterior: DepthPosterior | None
     timings: dict
+    keyframe_id: int = -1
+    fused: bool = True
+    error: str | None = None
+    warnings: tuple[str, ...] = ()
+    masked_pixels: int = 0
+    map_points: MapPointStats | None = None
+    pose_check: PoseCheck | None = None
+
+
+@dataclass
+class Keyframe:
+    """One fused frame as the keyframe store keeps it (everything at the working resolution).
+
+    Attributes:
+        keyframe_id: Its id.
+        T_world_camera: 4x4 pose it is fused with.
+        depth: (h, w) float32 fused depth, metres (0 = none).
+        variance: (h, w) float32 depth variance, m^2 (NaN when not refining).
+        rgb: (h, w, 3) uint8 colour.
+        block_keys: (M,) int64 keys of the TSDF blocks it reached.
+    """
+
+    keyframe_id: int
+    T_world_camera: np.ndarray
+    depth: np.ndarray
+    variance: np.ndarray
+    rgb: np.ndarray
+    block_keys: np.ndarray
+
+
+@dataclass(frozen=True)
+class PoseUpdate:
+    """What `Mapper.update_poses` did.
+
+    Attributes:
+        moved: Ids of the keyframes whose pose changed.
+        reintegrated: Ids of the keyframes integrated again (the moved ones and those sharing
+            a block with them), in integration order.
+        blocks: Number of TSDF blocks rebuilt.
+        seconds: Wall time.
+    """
+
+    moved: tuple[int, ...]
+    reintegrated: tuple[int, ...]
+    blocks: int
+    seconds: float
+
+
+def _describe_error(stage: str, exc: BaseException) -> str:
+    return f"{stage}: {type(exc).__name__}: {exc}"
 
 
 class Mapper:
     """Incremental dense mapping from posed RGB frames, MDE depth and sparse SLAM measurements.
+
+    Every fused frame is kept in a keyframe store (depth, variance, pose and colour at the
+    working resolution; ``config.keep_keyframes``), so that a loop closure can move poses
+    afterwards (`update_poses`) and the map can be saved and loaded (`save`, `load`).
 
     Args:
         camera: Intrinsics of the RGB images passed to `add_frame`.
@@ -193,11 +339,18 @@ class Mapper:
             camera if s == 1 else camera.resized(max(2, round(camera.width * s)), max(2, round(camera.height * s)))
         )
         self.completer = completer or (DepthCompleter(self.config.gp) if self.config.refine else None)
-        fusion_cfg = self.config.fusion if self.config.refine else replace(self.config.fusion, weighting="uniform")
+        if self.config.refine:
+            fusion_cfg = replace(self.config.fusion, integrate_variance=True)
+        else:
+            fusion_cfg = replace(self.config.fusion, weighting="uniform", integrate_variance=False)
         self.fusion = TSDFFusion(self.work_camera, fusion_cfg)
-        self._window: deque[tuple[np.ndarray, np.ndarray, Features]] = deque(maxlen=int(self.config.window))
+        self._window: deque[list] = deque(maxlen=int(self.config.window))
+        self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
+        self._next_id = 0
         self.timings: list[dict] = []
+        self.failures: list[str] = []
+        self._mesh_cache: Any = None
 
     # ------------------------------------------------------------------ per frame
     def add_frame(
@@ -209,8 +362,15 @@ class Mapper:
         sparse: SparseDepth | None = None,
         map_points_world: np.ndarray | None = None,
         map_points_sigma: float | np.ndarray | None = None,
+        keyframe_id: int | None = None,
     ) -> FrameResult:
-        """Refines and fuses one posed frame.
+        """Refines and fuses one posed frame; never stops a sequence on bad data.
+
+        Arguments are validated first (wrong types, shapes, a non-rigid pose raise). After that,
+        whatever the data does (an MDE front-end that fails, a failed triangulation, a GP mean
+        <= 0 or NaN, a frame with nothing to fuse) is recorded on the returned `FrameResult`
+        (``fused``, ``error``, ``warnings``, ``masked_pixels``) and in `failures`, naming the
+        frame, and the next frame goes on.
 
         Args:
             rgb: (H, W, 3) uint8 RGB image of ``camera``'s size.
@@ -218,75 +378,167 @@ class Mapper:
             mde_depth: (h, w) MDE depth, metres, any resolution of the same image; default: the
                 front-end's output for ``rgb``.
             sparse: Extra measurements (any resolution of the same image).
-            map_points_world: (N, 3) SLAM map points in the world frame, metres.
+            map_points_world: (N, 3) SLAM map points in the world frame, metres; points behind
+                the camera or outside the image are counted (``map_points``) and a pose under
+                which they look inverted warns (`InvertedPoseWarning`).
             map_points_sigma: Their depth sigma(s), metres (default: the model's sigma_meas).
+            keyframe_id: Id in the keyframe store (default: the next integer); the back-end's
+                keyframe id, used by `update_poses`.
 
         Returns:
-            `FrameResult` (depth fused, variance, measurements, timings).
+            `FrameResult` (depth fused, variance, measurements, timings, what went wrong).
 
         Raises:
             ShapeError: on image / depth size mismatches.
             CalibrationError: on a non-rigid pose.
-            InvalidInputError: when neither mde_depth nor a front-end is given.
-            EmptyInputError: when the frame has no depth to fuse.
+            InvalidInputError: when neither mde_depth nor a front-end is given, or the
+                keyframe id is taken.
         """
-        timings: dict[str, float] = {}
+        t_start = time.perf_counter()
+        timings = dict.fromkeys(STAGES, 0.0)
         T = check_pose(T_world_camera)
         rgb = np.asarray(rgb)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
         self.camera.check_image(rgb, "rgb")
+        if mde_depth is None and self.mde is None:
+            raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
+        if sparse is not None and not isinstance(sparse, SparseDepth):
+            raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
+        kid = self._next_id if keyframe_id is None else keyframe_id
+        if isinstance(kid, bool) or int(kid) != kid:
+            raise InvalidInputError("keyframe_id", "an integer", kid)
+        kid = int(kid)
+        if kid in self.keyframes:
+            raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
+        if mde_depth is not None:
+            mde_depth = self._check_mde(mde_depth)
         work_shape = self.work_camera.shape
+        notes: list[str] = []
+        empty = np.zeros((0, 0))
 
+        def failed(stage: str, exc: BaseException, mde: np.ndarray = empty, measurements=None, posterior=None) -> FrameResult:
+            message = f"frame {kid}: " + _describe_error(stage, exc)
+            self.failures.append(message)
+            timings["total"] = time.perf_counter() - t_start
+            self.timings.append(timings)
+            self._next_id = max(self._next_id, kid + 1)
+            return FrameResult(
+                empty, empty, mde, measurements if measurements is not None else SparseDepth.empty(self.camera.shape),
+                posterior, timings, kid, False, message, tuple(notes), 0, map_stats, pose_check,
+            )
+
+        map_stats: MapPointStats | None = None
+        pose_check: PoseCheck | None = None
+
+        # 1. MDE
         t0 = time.perf_counter()
-        if mde_depth is None:
-            if self.mde is None:
-                raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
-            mde_depth = self.mde(rgb)
+        try:
+            if mde_depth is None:
+                mde_depth = self._check_mde(self.mde(rgb))
+            mde = _resize_depth(np.where(np.isfinite(mde_depth), mde_depth, 0.0), work_shape)
+        except Exception as exc:  # noqa: BLE001 - a front-end failing on one frame must not end the run
+            timings["mde"] = time.perf_counter() - t0
+            return failed("mde", exc)
+        timings["mde"] = time.perf_counter() - t0
+
+        # 2. points
+        t0 = time.perf_counter()
+        parts = []
+        if sparse is not None:
+            parts.append(sparse.rasterize(self.camera.shape))
+        if map_points_world is not None:
+            try:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", InvertedPoseWarning)
+                    pose_check = check_pose_orientation(map_points_world, T, self.camera, frame=kid)
+                for w in caught:
+                    notes.append(str(w.message))
+                    warnings.warn(w.message, w.category, stacklevel=2)
+                points, map_stats = project_map_points(map_points_world, T, self.camera, sigma=map_points_sigma)
+                if map_stats.outside or map_stats.behind or map_stats.nonfinite:
+                    notes.append(
+                        f"frame {kid}: {map_stats.outside} of {map_stats.given} map points outside the image, "
+                        f"{map_stats.behind} behind the camera, {map_stats.nonfinite} not finite"
+                    )
+                parts.append(points)
+            except GPDepthError as exc:  # e.g. a bad sigma: the frame goes on without the map points
+                notes.append(f"frame {kid}: " + _describe_error("map points", exc))
+        if self.config.triangulate:
+            try:
+                parts.append(self._triangulate(rgb, T, kid))
+            except Exception as exc:  # noqa: BLE001 - no points from this frame; the MDE still counts
+                notes.append(f"frame {kid}: " + _describe_error("triangulation", exc))
+        measurements = merge_sparse(*parts, image_size=self.camera.shape)
+        if len(measurements) > self.config.max_points:
+            rel = np.nan_to_num(measurements.sigma / measurements.depth, nan=0.0)
+            keep = np.sort(np.argsort(rel, kind="stable")[: int(self.config.max_points)])
+            measurements = measurements.subset(keep)
+        timings["points"] = time.perf_counter() - t0
+
+        # 3. GP
+        t0 = time.perf_counter()
+        posterior = None
+        try:
+            if self.config.refine:
+                posterior = self.completer.complete(mde, measurements, output_shape=work_shape)
+                depth, variance = posterior.mean, posterior.variance
+            else:
+                depth, variance = mde, np.full(work_shape, np.nan)
+        except Exception as exc:  # noqa: BLE001 - e.g. an empty MDE frame; recorded, the run goes on
+            timings["gp"] = time.perf_counter() - t0
+            return failed("gp", exc, mde, measurements)
+        timings["gp"] = time.perf_counter() - t0
+
+        # 4. fusion (what is fused is what the keyframe store keeps: float32 at the working size)
+        t0 = time.perf_counter()
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(depth) | (depth < 0) | ((depth == 0) & (mde > 0))
+        masked = int(bad.sum())
+        if masked:
+            notes.append(f"frame {kid}: {masked} pixels with depth <= 0 or not finite masked")
+        depth32 = np.where(bad, 0.0, depth).astype(np.float32)
+        var32 = np.asarray(variance, dtype=np.float32)
+        work_rgb = self._work_rgb(rgb)
+        try:
+            stats = self._integrate(depth32, var32, T, work_rgb)
+        except Exception as exc:  # noqa: BLE001 - e.g. nothing in range; recorded, the run goes on
+            timings["fusion"] = time.perf_counter() - t0
+            result = failed("fusion", exc, mde, measurements, posterior)
+            return replace(result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked)
+        if self.config.keep_keyframes:
+            self.keyframes[kid] = Keyframe(kid, T, depth32, var32, work_rgb, stats.block_keys)
+        self._mesh_cache = None
+        timings["fusion"] = time.perf_counter() - t0
+        self.frames += 1
+        self._next_id = max(self._next_id, kid + 1)
+        timings["total"] = time.perf_counter() - t_start
+        self.timings.append(timings)
+        return FrameResult(
+            depth32.astype(np.float64), var32.astype(np.float64), mde, measurements, posterior, timings, kid, True,
+            None, tuple(notes), masked, map_stats, pose_check,
+        )
+
+    def _check_mde(self, mde_depth: np.ndarray) -> np.ndarray:
         mde_depth = np.asarray(mde_depth, dtype=np.float64)
-        if mde_depth.ndim != 2:
+        if mde_depth.ndim != 2 or min(mde_depth.shape) < 2:
             raise ShapeError("mde_depth", "a 2-D (h, w) depth map", describe(mde_depth))
         h, w = mde_depth.shape
         if abs((w / h) / (self.camera.width / self.camera.height) - 1) > 0.01:
             raise ShapeError(
                 "mde_depth", f"a depth map with the aspect ratio of the {self.camera.width}x{self.camera.height} image", (h, w)
             )
-        mde = _resize_depth(np.where(np.isfinite(mde_depth), mde_depth, 0.0), work_shape)
-        timings["mde"] = time.perf_counter() - t0
+        return mde_depth
 
-        t0 = time.perf_counter()
-        parts = []
-        if sparse is not None:
-            if not isinstance(sparse, SparseDepth):
-                raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
-            parts.append(sparse.rasterize(self.camera.shape))
-        if map_points_world is not None:
-            parts.append(sparse_from_map_points(map_points_world, T, self.camera, sigma=map_points_sigma))
-        if self.config.triangulate:
-            parts.append(self._triangulate(rgb, T))
-        measurements = merge_sparse(*parts, image_size=self.camera.shape)
-        if len(measurements) > self.config.max_points:
-            rel = np.nan_to_num(measurements.sigma / measurements.depth, nan=0.0)
-            keep = np.sort(np.argsort(rel, kind="stable")[: int(self.config.max_points)])
-            measurements = measurements.subset(keep)
-        timings["triangulate"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        posterior = None
-        if self.config.refine:
-            posterior = self.completer.complete(mde, measurements, output_shape=work_shape)
-            depth, variance = posterior.mean, posterior.variance
-        else:
-            depth, variance = mde, np.full(work_shape, np.nan)
-        timings["refine"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        work_rgb = self._work_rgb(rgb)
-        self.fusion.integrate(depth, T, rgb=work_rgb, weights=self.fusion.weights_for(variance))
-        timings["fuse"] = time.perf_counter() - t0
-        self.frames += 1
-        self.timings.append(timings)
-        return FrameResult(depth, variance, mde, measurements, posterior, timings)
+    def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None) -> IntegrationStats:
+        return self.fusion.integrate(
+            depth32,
+            T,
+            rgb=rgb,
+            weights=self.fusion.weights_for(var32),
+            variance=var32 if self.fusion.config.integrate_variance else None,
+            blocks=blocks,
+        )
 
     def _work_rgb(self, rgb: np.ndarray) -> np.ndarray:
         import cv2
@@ -295,13 +547,16 @@ class Mapper:
             return rgb
         return cv2.resize(rgb, (self.work_camera.width, self.work_camera.height), interpolation=cv2.INTER_AREA)
 
-    def _triangulate(self, rgb: np.ndarray, T: np.ndarray) -> SparseDepth:
+    def _triangulate(self, rgb: np.ndarray, T: np.ndarray, kid: int) -> SparseDepth:
         cfg = self.config
+        if cfg.triangulation.detector == "klt":
+            # multi-view tracks followed frame to frame (one KLT step per frame)
+            if getattr(self, "_tracker", None) is None:
+                self._tracker = TrackTriangulator(self.camera, cfg.triangulation, window=int(cfg.window))
+            return self._tracker.add(rgb, T)
         feats = detect_features(rgb, config=cfg.triangulation)
-        partners = [
-            item for item in self._window if np.linalg.norm(item[1][:3, 3] - T[:3, 3]) >= cfg.min_baseline
-        ]
-        self._window.append((rgb, T, feats))
+        partners = [item for item in self._window if np.linalg.norm(item[1][:3, 3] - T[:3, 3]) >= cfg.min_baseline]
+        self._window.append([rgb, T, feats, kid])
         if not partners:
             return SparseDepth.empty(self.camera.shape)
         return triangulate_frames(
@@ -313,18 +568,192 @@ class Mapper:
             features=[p[2] for p in partners] + [feats],
         )
 
+    # ------------------------------------------------------------------ loop closure
+    def update_poses(self, poses: dict) -> PoseUpdate:
+        """Moves keyframes to new poses (after a loop closure) and re-integrates what moved.
+
+        The TSDF blocks a moved keyframe reached under its old pose or reaches under its new
+        one are zeroed and rebuilt from every stored keyframe that reaches them, in the order
+        the keyframes were fused; all other blocks are left alone. The volume is then the one
+        fusing all keyframes from scratch with the new poses gives (voxel for voxel; see
+        `gpdepth3d.fusion`).
+
+        Args:
+            poses: keyframe id -> new 4x4 ``T_world_camera``.
+
+        Returns:
+            `PoseUpdate` (which keyframes moved and were re-integrated, blocks rebuilt).
+
+        Raises:
+            InvalidInputError: for an unknown keyframe id, or without a keyframe store.
+            CalibrationError: for a pose that is not rigid.
+        """
+        t0 = time.perf_counter()
+        if not self.config.keep_keyframes:
+            raise InvalidInputError("config.keep_keyframes", "True (update_poses needs the keyframe store)", False)
+        if not isinstance(poses, dict):
+            raise InvalidInputError("poses", "a dict keyframe id -> 4x4 T_world_camera", type(poses).__name__)
+        new = {}
+        for kid, T in poses.items():
+            if kid not in self.keyframes:
+                raise InvalidInputError("poses", "ids of stored keyframes", kid)
+            new[kid] = check_pose(T, f"poses[{kid}]")
+        moved = [kid for kid, T in new.items() if not np.array_equal(T, self.keyframes[kid].T_world_camera)]
+        if not moved:
+            return PoseUpdate((), (), 0, time.perf_counter() - t0)
+        affected = [self.keyframes[k].block_keys for k in moved]
+        affected += [self.fusion.block_keys(self.keyframes[k].depth, new[k]) for k in moved]
+        blocks = np.unique(np.concatenate(affected))
+        for k in moved:
+            self.keyframes[k].T_world_camera = new[k]
+        for item in self._window:
+            if item[3] in new:
+                item[1] = new[item[3]]
+        frames_before = self.fusion.frames_integrated
+        self.fusion.reset_blocks(blocks)
+        redone = []
+        for kid, kf in self.keyframes.items():
+            if kid in new and kid in moved or np.intersect1d(kf.block_keys, blocks, assume_unique=True).size:
+                stats = self._integrate(kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks)
+                if kid in moved:
+                    kf.block_keys = stats.block_keys
+                redone.append(kid)
+        self.fusion.frames_integrated = frames_before
+        self._mesh_cache = None
+        return PoseUpdate(tuple(moved), tuple(redone), int(blocks.size), time.perf_counter() - t0)
+
     # ------------------------------------------------------------------ the map
     def mesh(self) -> Any:
-        """The current map as a `trimesh.Trimesh` (world frame, metres, vertex colours)."""
-        return self.fusion.extract_mesh()
+        """The current map as a `trimesh.Trimesh` (world frame, metres, vertex colours).
+
+        A map whose surface does not yet pass the fusion's ``weight_threshold`` gives a mesh
+        without faces. The mesh is cached until the next frame or pose update.
+
+        Raises:
+            EmptyInputError: before the first fused frame.
+        """
+        if self._mesh_cache is None:
+            self._mesh_cache = self.fusion.extract_mesh(allow_empty=True)
+        return self._mesh_cache
 
     def point_cloud(self) -> ColoredCloud:
-        """The current map's surface points as a `ColoredCloud`."""
-        return self.fusion.extract_point_cloud()
+        """The current map's surface points as a `ColoredCloud`.
+
+        With refinement each point carries the fused depth variance of its voxel (the
+        keyframes' posterior variances averaged with the fusion weights, m^2); without, NaN.
+        A map whose surface does not yet pass ``weight_threshold`` gives an empty cloud.
+
+        Raises:
+            EmptyInputError: before the first fused frame.
+        """
+        return self.fusion.extract_point_cloud(allow_empty=True)
 
     def save_mesh(self, path: str | Path) -> Path:
         """Writes the current mesh (PLY, GLB or OBJ) atomically."""
         return save_mesh(self.mesh(), path)
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, folder: str | Path) -> Path:
+        """Writes the map to a folder: the TSDF volume (``volume.npz`` + ``volume.json``), the
+        keyframe store (``keyframes.npz``) and the mapper's settings (``mapper.json``), each
+        file atomically.
+
+        Returns:
+            The folder.
+        """
+        folder = Path(folder)
+        ids = list(self.keyframes)
+        kfs = [self.keyframes[k] for k in ids]
+        h, w = self.work_camera.shape
+        keys = [kf.block_keys for kf in kfs]
+        save_npz(
+            folder / "keyframes.npz",
+            ids=np.array(ids, dtype=np.int64),
+            poses=np.stack([kf.T_world_camera for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
+            depth=np.stack([kf.depth for kf in kfs]) if kfs else np.zeros((0, h, w), np.float32),
+            variance=np.stack([kf.variance for kf in kfs]) if kfs else np.zeros((0, h, w), np.float32),
+            rgb=np.stack([kf.rgb for kf in kfs]) if kfs else np.zeros((0, h, w, 3), np.uint8),
+            block_keys=np.concatenate(keys) if keys else np.zeros(0, np.int64),
+            block_counts=np.array([k.size for k in keys], dtype=np.int64),
+        )
+        self.fusion.save(folder / "volume.npz")
+        c = self.camera
+        meta = {
+            "camera": [c.fx, c.fy, c.cx, c.cy, c.width, c.height],
+            "config": _jsonable(asdict(self.config)),
+            "frames": self.frames,
+            "next_id": self._next_id,
+        }
+        atomic_write(folder / "mapper.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
+        return folder
+
+    @classmethod
+    def load(
+        cls,
+        folder: str | Path,
+        *,
+        config: MapperConfig | None = None,
+        mde: MDEFrontEnd | None = None,
+        completer: DepthCompleter | None = None,
+    ) -> "Mapper":
+        """Reads a map written by `save`; the returned `Mapper` goes on fusing and updating poses.
+
+        Args:
+            folder: The folder `save` wrote.
+            config: Options (default: the saved ones; the fusion settings always come from the
+                saved volume).
+            mde: Front-end for later frames.
+            completer: `DepthCompleter` for later frames.
+
+        Raises:
+            DataFormatError: if a file is missing or not what `save` writes.
+        """
+        folder = Path(folder)
+        for name in ("mapper.json", "keyframes.npz", "volume.npz"):
+            if not (folder / name).is_file():
+                raise DataFormatError(folder / name, "file of a saved map not found")
+        try:
+            meta = json.loads((folder / "mapper.json").read_text())
+            fx, fy, cx, cy, width, height = meta["camera"]
+            camera = PinholeCamera(float(fx), float(fy), float(cx), float(cy), int(width), int(height))
+            if config is None:
+                saved = meta["config"]
+                config = MapperConfig(
+                    gp=DepthGPConfig(**saved["gp"]),
+                    fusion=FusionConfig(**saved["fusion"]),
+                    triangulation=TriangulationConfig(**_tuples(saved["triangulation"])),
+                    **{k: v for k, v in saved.items() if k not in ("gp", "fusion", "triangulation")},
+                )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataFormatError(folder / "mapper.json", f"not a saved gpdepth3d map: {exc}") from None
+        mapper = cls(camera, config, mde=mde, completer=completer)
+        fusion = TSDFFusion.load(folder / "volume.npz")
+        if fusion.camera != mapper.work_camera:
+            raise DataFormatError(folder / "volume.npz", f"volume camera {fusion.camera} is not the map's {mapper.work_camera}")
+        mapper.fusion = fusion
+        try:
+            with np.load(folder / "keyframes.npz", allow_pickle=False) as d:
+                offsets = np.concatenate([[0], np.cumsum(d["block_counts"])])
+                keys = d["block_keys"]
+                for i, kid in enumerate(d["ids"]):
+                    mapper.keyframes[int(kid)] = Keyframe(
+                        int(kid),
+                        d["poses"][i].astype(np.float64),
+                        d["depth"][i].astype(np.float32),
+                        d["variance"][i].astype(np.float32),
+                        d["rgb"][i].astype(np.uint8),
+                        keys[offsets[i] : offsets[i + 1]].astype(np.int64),
+                    )
+        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+            raise DataFormatError(folder / "keyframes.npz", f"not a saved keyframe store: {exc}") from None
+        mapper.frames = int(meta.get("frames", len(mapper.keyframes)))
+        mapper._next_id = int(meta.get("next_id", len(mapper.keyframes)))
+        return mapper
+
+
+def _tuples(d: dict) -> dict:
+    """JSON lists back to tuples (frozen config fields)."""
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
 
 # ---------------------------------------------------------------------- evaluation
@@ -400,9 +829,16 @@ def fuse_sequence(
         metric_samples: Surface samples per mesh for the metrics.
         progress: Print one line per frame.
 
+    Bad data never ends the run: a frame that cannot be read or fused is named in
+    ``frame_errors`` and the next one goes on; a mesh without triangles (too few frames for
+    ``weight_threshold``) is listed in ``empty_meshes`` and gets no metrics (None).
+
     Returns:
-        ``meshes`` (variant -> trimesh), ``metrics`` (variant -> `mesh_metrics` against ``gt``),
-        ``timing`` (mean seconds per frame per stage), ``frames``, ``sparse_points``
+        ``meshes`` (variant -> trimesh, possibly without faces), ``metrics`` (variant ->
+        `mesh_metrics` against ``gt``, or None for an empty mesh), ``timing`` (mean seconds
+        per frame per stage; `Mapper` stages plus "fuse_uniform") and ``timing_median``,
+        ``frames``, ``frames_fused``, ``frame_errors``, ``frame_warnings``, ``masked_pixels``
+        (GP depths <= 0 or not finite masked before fusion), ``empty_meshes``, ``sparse_points``
         (mean measurements per frame) and ``depth_median_abs_error`` (per-frame median
         |depth - ground truth| in metres, averaged over frames, for "mde" and "gp"; the Kinect
         depth is registered to the colour camera by lifting and re-projecting it) and
@@ -431,17 +867,38 @@ def fuse_sequence(
     npoints = []
     depth_err: dict[str, list[float]] = {"mde": [], "gp": []}
     sparse_err: list[float] = []
+    frame_errors: list[str] = []
+    frame_warnings: list[str] = []
+    masked = 0
+    fused = 0
     for i in range(n):
-        frame = reader[i]
-        result = mapper.add_frame(frame.rgb, frame.pose)
+        try:
+            frame = reader[i]
+            result = mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i)
+        except GPDepthError as exc:  # unreadable frame, bad pose...: named, recorded, the run goes on
+            frame_errors.append(f"frame {i}: {type(exc).__name__}: {exc}")
+            continue
+        times.append(dict(result.timings))
+        frame_warnings.extend(result.warnings)
+        masked += result.masked_pixels
+        if result.error is not None:
+            frame_errors.append(result.error)
+        fused += int(result.fused)
         work_rgb = mapper._work_rgb(frame.rgb)
-        t0 = time.perf_counter()
-        extra["gp_uniform"].integrate(result.depth, frame.pose, rgb=work_rgb)
-        t_uniform = time.perf_counter() - t0
-        extra["mde"].integrate(result.mde, frame.pose, rgb=work_rgb)
-        gt = _resize_depth(frame.depth, depth_work.shape)
-        extra["gt"].integrate(gt, frame.pose, rgb=work_rgb)
-        times.append({**result.timings, "fuse_uniform": t_uniform})
+        others = [("mde", result.mde, work_rgb), ("gt", _resize_depth(frame.depth, depth_work.shape), work_rgb)]
+        if result.depth.size:
+            others.insert(0, ("gp_uniform", result.depth, work_rgb))
+        for name, depth, colour in others:
+            t0 = time.perf_counter()
+            try:
+                if depth.size:
+                    extra[name].integrate(depth, frame.pose, rgb=colour)
+            except GPDepthError as exc:
+                frame_errors.append(f"frame {i}: {name} volume: {type(exc).__name__}: {exc}")
+            if name == "gp_uniform":
+                times[-1]["fuse_uniform"] = time.perf_counter() - t0
+        if not result.depth.size:
+            continue
         # Ground truth registered to the colour camera: lift with the depth camera, project (z-buffer).
         pts, _ = frame.camera.backproject(frame.depth)
         gt_rgb = project_points(pts, work).to_depth_map()
@@ -462,24 +919,34 @@ def fuse_sequence(
         npoints.append(len(result.sparse))
         if progress:
             print(f"frame {i + 1}/{n}: {len(result.sparse)} points, " + ", ".join(f"{k} {v:.3f}s" for k, v in result.timings.items()))
-    meshes = {
-        "mde": extra["mde"].extract_mesh(),
-        "gp_uniform": extra["gp_uniform"].extract_mesh(),
-        "gp_variance": mapper.mesh(),
-        "gt": extra["gt"].extract_mesh(),
-    }
-    metrics = {
-        k: mesh_metrics(m, meshes["gt"], threshold=threshold, samples=metric_samples)
-        for k, m in meshes.items()
-        if k != "gt"
-    }
-    timing = {k: float(np.mean([t[k] for t in times])) for k in times[0]}
+    volumes = {"mde": extra["mde"], "gp_uniform": extra["gp_uniform"], "gp_variance": mapper.fusion, "gt": extra["gt"]}
+    meshes = {}
+    for name, volume in volumes.items():
+        meshes[name] = volume.extract_mesh(allow_empty=True) if volume.frames_integrated else None
+    empty = sorted(k for k, m in meshes.items() if m is None or len(m.faces) == 0)
+    metrics: dict[str, Any] = {}
+    for k, m in meshes.items():
+        if k == "gt":
+            continue
+        metrics[k] = (
+            None if k in empty or "gt" in empty else mesh_metrics(m, meshes["gt"], threshold=threshold, samples=metric_samples)
+        )
+    keys = sorted({k for t in times for k in t})
+    timing = {k: float(np.mean([t[k] for t in times if k in t])) for k in keys}
+    # the names bench/fusion.py reads
+    timing.update({"triangulate": timing.get("points", 0.0), "refine": timing.get("gp", 0.0), "fuse": timing.get("fusion", 0.0)})
     return {
         "meshes": meshes,
         "metrics": metrics,
         "timing": timing,
+        "timing_median": {k: float(np.median([t[k] for t in times if k in t])) for k in keys},
         "frames": n,
-        "sparse_points": float(np.mean(npoints)),
+        "frames_fused": fused,
+        "frame_errors": frame_errors,
+        "frame_warnings": frame_warnings,
+        "masked_pixels": masked,
+        "empty_meshes": empty,
+        "sparse_points": float(np.mean(npoints)) if npoints else 0.0,
         "depth_median_abs_error": {k: float(np.mean(v)) if v else float("nan") for k, v in depth_err.items()},
         "sparse_bias_per_frame": sparse_err,
     }
@@ -506,7 +973,7 @@ def fuse_command(
     mesh_format: Literal["ply", "glb", "obj"] = "ply",
     threshold: float = 0.05,
     metric_samples: int = 50_000,
-    engine: Literal["exact", "kissgp", "fast"] = "exact",
+    engine: Literal["exact", "kissgp", "fast"] = "fast",
 ) -> dict[str, Any]:
     """Builds meshes of a posed RGB-D sequence from MDE-only, GP-refined and ground-truth depth.
 
@@ -514,7 +981,8 @@ def fuse_command(
     from the posed RGB frames themselves (not the ground truth). Writes
     ``mesh_mde``, ``mesh_gp_uniform``, ``mesh_gp_variance``, ``mesh_gt`` (``.<mesh_format>``) and
     ``metrics.json`` (accuracy/completeness/Chamfer/precision/recall against the ground-truth
-    mesh, timings) into ``out``, all atomically.
+    mesh, timings, frames that failed) into ``out``, all atomically. A frame that fails is
+    named and skipped; a mesh without triangles (few frames) is reported, not written.
 
     Args:
         data: 7-Scenes-style sequence folder (e.g. ../shared/data/7scenes).
@@ -530,9 +998,8 @@ def fuse_command(
         mesh_format: File format of the meshes.
         threshold: Precision/recall distance, metres.
         metric_samples: Surface samples per mesh for the metrics.
-        engine: GP engine of the refinement (all give the same posterior; "exact" is dense and,
-            with at most 300 points per frame, the quickest at 320x240; use "fast" for
-            working_scale 1).
+        engine: GP engine of the refinement (all give the same posterior; "fast" is the
+            quickest; the model is the library's default `DepthGPConfig`).
 
     Returns:
         The metrics dictionary written to ``metrics.json``.
@@ -540,7 +1007,7 @@ def fuse_command(
     from .mde.tflite import FastDepthTFLite
 
     fusion = FusionConfig(voxel_size=voxel_size, truncation=truncation, depth_max=depth_max, sigma_ref=sigma_ref)
-    config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=DepthGPConfig.residual(engine=engine))
+    config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=DepthGPConfig(engine=engine))
     K = SEVEN_SCENES_RGB_K.copy()
     K[0, 0] = K[1, 1] = rgb_focal
     result = fuse_sequence(
@@ -553,18 +1020,31 @@ def fuse_command(
         metric_samples=metric_samples,
     )
     out = Path(out)
+    written = []
     for name, mesh in result["meshes"].items():
-        save_mesh(mesh, out / f"mesh_{name}.{mesh_format}")
+        if name not in result["empty_meshes"]:
+            written.append(str(save_mesh(mesh, out / f"mesh_{name}.{mesh_format}")))
     summary = {
         "data": str(data),
         "frames": result["frames"],
+        "frames_fused": result["frames_fused"],
+        "frame_errors": result["frame_errors"],
+        "masked_pixels": result["masked_pixels"],
+        "empty_meshes": result["empty_meshes"],
+        "meshes_written": written,
         "sparse_points_per_frame": result["sparse_points"],
         "depth_median_abs_error_m": result["depth_median_abs_error"],
         "metrics": result["metrics"],
         "timing_s_per_frame": result["timing"],
+        "timing_median_s_per_frame": result["timing_median"],
         "config": {"mapper": _jsonable(asdict(config)), "rgb_focal": rgb_focal, "model": str(model)},
     }
     atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    for message in result["frame_errors"]:
+        print(f"skipped {message}")
+    if result["empty_meshes"]:
+        print(f"no surface above the weight threshold yet in: {', '.join(result['empty_meshes'])} (no mesh written)")
+    print(f"{result['frames_fused']} of {result['frames']} frames fused; wrote {len(written)} meshes and {out / 'metrics.json'}")
     return summary
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.errors import CalibrationError, EmptyInputError, InvalidInputError, ShapeError
+from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.fusion import FusionConfig
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.mapping import (
@@ -18,9 +18,11 @@ from gpdepth3d.mapping import (
     fuse_command,
     merge_sparse,
     mesh_metrics,
+    project_map_points,
     sparse_from_map_points,
 )
 from gpdepth3d.measurements import SparseDepth
+from gpdepth3d.triangulation import TriangulationConfig
 
 CAM = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)
 
@@ -131,7 +133,8 @@ class TestMapper:
             err_gp = np.median(np.abs(res.depth[ok] - gt[ok]))
             assert err_gp < 0.5 * err_mde
             assert len(res.sparse) > 100 and np.all(np.isfinite(res.variance))
-            assert set(res.timings) == {"mde", "triangulate", "refine", "fuse"}
+            assert set(res.timings) == {"mde", "points", "gp", "fusion", "total"}
+            assert res.fused and res.error is None and res.map_points.given == 150 and not res.pose_check.inverted
         mesh = mapper.mesh()
         assert len(mesh.faces) > 100
         cloud = mapper.point_cloud()
@@ -147,7 +150,8 @@ class TestMapper:
             return np.full((120, 160), 2.0)  # any resolution of the same aspect ratio
 
         config = MapperConfig(
-            working_scale=0.25, max_points=80, gp=DepthGPConfig.residual(engine="exact"), fusion=FusionConfig(voxel_size=0.05, truncation=0.15)
+            working_scale=0.25, max_points=80, gp=DepthGPConfig.residual(engine="exact"), fusion=FusionConfig(voxel_size=0.05, truncation=0.15),
+            triangulation=TriangulationConfig(detector="orb"),
         )
         mapper = Mapper(cam, config, mde=front_end)
         first = mapper.add_frame(frames[0].rgb, frames[0].pose)
@@ -186,9 +190,9 @@ class TestMapper:
             Mapper(CAM, mde="fastdepth")  # type: ignore[arg-type]
         with pytest.raises(InvalidInputError):
             MapperConfig(working_scale=2.0)
-        with pytest.raises(EmptyInputError):
-            mapper.add_frame(rgb, np.eye(4), mde_depth=np.zeros((60, 80)))
-        assert mapper.frames == 0
+        empty = mapper.add_frame(rgb, np.eye(4), mde_depth=np.zeros((60, 80)))  # data, not an error
+        assert not empty.fused and empty.error.startswith("frame 0: ") and mapper.failures == [empty.error]
+        assert mapper.frames == 0 and not mapper.keyframes
 
 
 class TestFuseCommand:
@@ -208,3 +212,209 @@ class TestFuseCommand:
         for variant in ("mde", "gp_uniform", "gp_variance"):
             m = on_disk["metrics"][variant]
             assert 0 <= m["precision"] <= 1 and 0 <= m["recall"] <= 1 and m["chamfer"] > 0
+
+
+def _kinect_sparse(frame, camera: PinholeCamera, n: int, seed: int) -> SparseDepth:
+    """n Kinect depth samples of a frame as measurements (sigma 1 cm)."""
+    rng = np.random.default_rng(seed)
+    v, u = np.nonzero(frame.depth > 0)
+    i = rng.choice(len(u), n, replace=False)
+    return SparseDepth.from_arrays(u[i].astype(float), v[i].astype(float), frame.depth[v[i], u[i]], camera.shape, 0.01)
+
+
+def _world_points(frame, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pts, _ = frame.camera.backproject(frame.depth)
+    pts = pts[rng.choice(len(pts), n, replace=False)]
+    return pts @ frame.pose[:3, :3].T + frame.pose[:3, 3]
+
+
+def _small_config(**overrides) -> MapperConfig:
+    base = dict(triangulate=False, working_scale=0.25, fusion=FusionConfig(voxel_size=0.04, truncation=0.12))
+    return MapperConfig(**{**base, **overrides})
+
+
+def _sorted_voxels(fusion) -> dict:
+    vox = fusion.voxels()
+    order = np.lexsort(vox["coords"].T)
+    return {k: v[order] for k, v in vox.items()}
+
+
+class _NegativeCompleter:
+    """A completer whose posterior mean dips below zero and has NaNs (what an outlier can do)."""
+
+    def __init__(self):
+        from gpdepth3d.complete import DepthCompleter
+
+        self.inner = DepthCompleter(DepthGPConfig.residual(engine="exact"))
+
+    def complete(self, mde, sparse, *, output_shape=None):
+        from dataclasses import replace as dc_replace
+
+        post = self.inner.complete(mde, sparse, output_shape=output_shape)
+        mean = post.mean.copy()
+        mean[:2, :3] = -0.066
+        mean[5, 5] = np.nan
+        return dc_replace(post, mean=mean)
+
+
+class TestRobustness:
+    def test_outlier_map_point_does_not_crash(self, shared_data):
+        # the issue's case: one map point at 0.15 m where the surface is ~1.85 m, claimed sigma 2 mm
+        f = _frames(shared_data, (0,))[0]
+        cam = f.camera
+        v, u = np.nonzero(np.abs(f.depth - 1.85) < 0.02)
+        ray = cam.backproject_pixels(np.array([[u[0], v[0]]], float), np.array([0.15]))
+        outlier = ray @ f.pose[:3, :3].T + f.pose[:3, 3]
+        world = np.vstack([_world_points(f, 150, 0), outlier])
+        sigma = np.r_[np.full(150, 0.01), 0.002]
+        mapper = Mapper(cam, _small_config())
+        res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=world, map_points_sigma=sigma)
+        assert res.fused and res.error is None
+        assert np.all(np.isfinite(res.depth)) and res.depth.min() >= 0
+        assert res.map_points.given == 151 and res.map_points.outside == 0
+        mapper.mesh()  # one frame may not pass the weight threshold yet: a mesh without faces, not an error
+        mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=world, map_points_sigma=sigma)
+        assert len(mapper.mesh().faces) > 100 and len(mapper.point_cloud()) > 100
+
+    def test_negative_and_nan_mean_masked_and_counted(self, shared_data):
+        f = _frames(shared_data, (0,))[0]
+        mapper = Mapper(f.camera, _small_config(), completer=_NegativeCompleter())
+        res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 100, 0))
+        assert res.fused and res.masked_pixels == 7
+        assert res.depth[0, 0] == 0 and res.depth[5, 5] == 0 and np.all(np.isfinite(res.depth))
+        assert any("7 pixels" in w for w in res.warnings)
+        assert mapper.keyframes[0].depth[0, 0] == 0
+
+    def test_bad_frames_are_recorded_and_the_sequence_goes_on(self, shared_data):
+        frames = _frames(shared_data, (0, 1, 2, 3))
+        cam = frames[0].camera
+        calls = []
+
+        def flaky(rgb):
+            calls.append(1)
+            if len(calls) == 2:
+                raise RuntimeError("front-end hiccup")
+            depth = _standin_mde(frames[len(calls) - 1].depth)
+            if len(calls) == 3:
+                depth = np.zeros_like(depth)  # an empty frame
+            if len(calls) == 4:
+                depth[:100] = np.nan  # NaN depths
+            return depth
+
+        mapper = Mapper(cam, _small_config(), mde=flaky)
+        sparse = [_kinect_sparse(f, cam, 80, i) for i, f in enumerate(frames)]
+        sparse[2] = None  # frame 2: nothing at all
+        results = [mapper.add_frame(f.rgb, f.pose, sparse=s) for f, s in zip(frames, sparse)]
+        assert [r.fused for r in results] == [True, False, False, True]
+        assert results[1].error == "frame 1: mde: RuntimeError: front-end hiccup"
+        assert results[2].error.startswith("frame 2: gp: ")
+        assert mapper.failures == [results[1].error, results[2].error]
+        assert sorted(mapper.keyframes) == [0, 3] and mapper.frames == 2
+        assert len(mapper.mesh().faces) > 100
+
+    def test_inverted_pose_and_points_outside_are_reported(self, shared_data):
+        from gpdepth3d.trajectories import InvertedPoseWarning, invert_pose
+
+        f = _frames(shared_data, (0,))[0]
+        world = _world_points(f, 200, 1)
+        mapper = Mapper(f.camera, _small_config())
+        with pytest.warns(InvertedPoseWarning, match="frame 0: "):
+            res = mapper.add_frame(f.rgb, invert_pose(f.pose), mde_depth=_standin_mde(f.depth), map_points_world=world)
+        assert res.pose_check.inverted and res.pose_check.visible_inverse == 1.0
+        assert res.map_points.used < 50 and res.map_points.outside + res.map_points.behind > 150
+        assert any("looks inverted" in w for w in res.warnings) and any("outside the image" in w for w in res.warnings)
+        # a correct pose: map points with NaN rows and some outside the image are counted, not silently dropped
+        cam_pts = np.array([[5.0, 0.0, 1.0], [0.0, 0.0, -1.0], [np.nan, 0.0, 1.0]])
+        extra = cam_pts @ f.pose[:3, :3].T + f.pose[:3, 3]
+        res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=np.vstack([world, extra]))
+        assert (res.map_points.outside, res.map_points.behind, res.map_points.nonfinite) == (1, 1, 1)
+        assert not res.pose_check.inverted
+
+    def test_project_map_points_counts(self):
+        pts = CAM.backproject_pixels(np.array([[10.0, 10.0], [10.0, 10.0], [50.0, 20.0]]), np.array([2.0, 3.0, 2.5]))
+        pts = np.vstack([pts, [[100.0, 0.0, 1.0]], [[0.0, 0.0, -2.0]], [[np.inf, 0.0, 1.0]]])
+        sparse, stats = project_map_points(pts, np.eye(4), CAM, sigma=np.arange(1.0, 7.0))
+        assert (stats.given, stats.nonfinite, stats.behind, stats.outside, stats.used) == (6, 1, 1, 1, 2)
+        np.testing.assert_allclose(sorted(sparse.depth), [2.0, 2.5])
+        np.testing.assert_allclose(sparse.sigma[np.argsort(sparse.depth)], [1.0, 3.0])
+        with pytest.raises(ShapeError):
+            project_map_points(pts, np.eye(4), CAM, sigma=np.ones(4))
+
+
+class TestLoopClosure:
+    def _run(self, frames, poses, config, sparse):
+        mapper = Mapper(frames[0].camera, config)
+        for i, (f, T) in enumerate(zip(frames, poses)):
+            r = mapper.add_frame(f.rgb, T, mde_depth=_standin_mde(f.depth), sparse=sparse[i])
+            assert r.fused
+        return mapper
+
+    def test_update_poses_equals_fusing_from_scratch(self, shared_data, tmp_path: Path):
+        import cv2
+
+        frames = _frames(shared_data, (0, 4, 8, 30, 34))
+        config = _small_config(gp=DepthGPConfig.residual(engine="exact"))
+        sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
+        poses = [f.pose for f in frames]
+        mapper = self._run(frames, poses, config, sparse)
+        mesh_before = mapper.mesh()
+        moved = poses[3].copy()
+        moved[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.05, 0.0]))[0] @ moved[:3, :3]
+        moved[:3, 3] += [0.1, 0.0, 0.0]
+        new_poses = list(poses)
+        new_poses[3] = moved
+        assert mapper.update_poses({0: poses[0]}).moved == ()  # nothing moved: nothing done
+        update = mapper.update_poses({3: moved, 1: poses[1]})
+        assert update.moved == (3,) and 3 in update.reintegrated and update.blocks > 0
+        assert update.blocks < 0.8 * mapper.fusion.vbg.hashmap().size()  # only the blocks the moved frame reached
+        scratch = self._run(frames, new_poses, config, sparse)
+        a, b = _sorted_voxels(mapper.fusion), _sorted_voxels(scratch.fusion)
+        assert a.keys() == b.keys() and a["coords"].shape == b["coords"].shape
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        assert not np.array_equal(mesh_before.vertices.shape, mapper.mesh().vertices.shape) or not np.allclose(
+            np.sort(mesh_before.vertices, axis=0), np.sort(mapper.mesh().vertices, axis=0)
+        )
+        with pytest.raises(InvalidInputError):
+            mapper.update_poses({99: moved})
+        with pytest.raises(CalibrationError):
+            mapper.update_poses({3: 2 * moved})
+
+        # save and load: the same volume and keyframes; the loaded map goes on updating and fusing
+        mapper.save(tmp_path / "map")
+        assert sorted(p.name for p in (tmp_path / "map").iterdir()) == ["keyframes.npz", "mapper.json", "volume.json", "volume.npz"]
+        loaded = Mapper.load(tmp_path / "map")
+        c = _sorted_voxels(loaded.fusion)
+        for k in a:
+            np.testing.assert_array_equal(a[k], c[k], err_msg=k)
+        assert sorted(loaded.keyframes) == sorted(mapper.keyframes)
+        np.testing.assert_allclose(loaded.keyframes[3].T_world_camera, moved, atol=1e-12)  # snapped by check_pose
+        loaded.update_poses({3: poses[3]})
+        mapper.update_poses({3: poses[3]})
+        for k, v in _sorted_voxels(loaded.fusion).items():
+            np.testing.assert_array_equal(v, _sorted_voxels(mapper.fusion)[k], err_msg=k)
+        r = loaded.add_frame(frames[0].rgb, poses[0], mde_depth=_standin_mde(frames[0].depth), sparse=sparse[0])
+        assert r.fused and r.keyframe_id == 5
+        with pytest.raises(InvalidInputError):
+            loaded.add_frame(frames[0].rgb, poses[0], mde_depth=_standin_mde(frames[0].depth), keyframe_id=3)
+        with pytest.raises(DataFormatError):
+            Mapper.load(tmp_path / "nothing")
+
+    def test_point_cloud_carries_variance(self, shared_data):
+        frames = _frames(shared_data, (0, 2))
+        sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
+        mapper = self._run(frames, [f.pose for f in frames], _small_config(gp=DepthGPConfig.residual(engine="exact")), sparse)
+        cloud = mapper.point_cloud()
+        assert len(cloud) > 100 and np.all(np.isfinite(cloud.variance)) and np.all(cloud.variance > 0)
+        stored = np.concatenate([kf.variance.ravel() for kf in mapper.keyframes.values()])
+        # a voxel's variance is a weighted mean of the keyframes' pixel variances
+        assert stored.min() - 1e-9 <= cloud.variance.min() and cloud.variance.max() <= stored.max() + 1e-9
+
+    def test_without_store(self, shared_data):
+        f = _frames(shared_data, (0,))[0]
+        mapper = Mapper(f.camera, _small_config(keep_keyframes=False))
+        mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
+        assert mapper.keyframes == {}
+        with pytest.raises(InvalidInputError):
+            mapper.update_poses({0: f.pose})
