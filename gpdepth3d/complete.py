@@ -118,10 +118,13 @@ class DepthPosterior:
                 size = tuple(int(x) for x in d["sparse_image_size"])
                 sparse = SparseDepth(uvd[:, 0], uvd[:, 1], uvd[:, 2], size)
                 align = d["alignment"]
+                mean, variance, mde = (d[k].astype(np.float64) for k in ("mean", "variance", "mde"))
+                if mean.ndim != 2 or variance.shape != mean.shape or mde.shape != mean.shape:
+                    raise ValueError(f"mean {mean.shape}, variance {variance.shape}, mde {mde.shape}: not one 2-D grid")
                 return cls(
-                    mean=d["mean"].astype(np.float64),
-                    variance=d["variance"].astype(np.float64),
-                    mde=d["mde"].astype(np.float64),
+                    mean=mean,
+                    variance=variance,
+                    mde=mde,
                     sparse=sparse,
                     config=config or DepthGPConfig(),
                     depth_scale=float(d["depth_scale"]),

@@ -258,19 +258,15 @@ def clean_output_set(base: str | Path, names: Sequence[str] = ()) -> int:
     current = output_set_files(base)["current"]
     live = os.readlink(current) if current.is_symlink() else None
     patterns = [_temp_pattern(n) for n in names]
-    prefix = f".{base.name}.set-"
-    link_prefix = f".{current.name}."
+    set_folder = re.compile(rf"^\.{re.escape(base.name)}\.set-[A-Za-z0-9_]{{8}}$")
+    links = [re.compile(rf"^\.{re.escape(n)}\.[0-9a-f]{{8}}\.link$") for n in (current.name, *names)]
     removed = 0
     for entry in folder.iterdir():
         n = entry.name
-        if n.startswith(prefix) and n != live and entry.is_dir() and not entry.is_symlink():
+        if set_folder.match(n) and n != live and entry.is_dir() and not entry.is_symlink():
             shutil.rmtree(entry, ignore_errors=True)
             removed += 1
-        elif (n.startswith(link_prefix) and n.endswith(".link")) or any(p.match(n) for p in patterns):
-            with contextlib.suppress(OSError):
-                entry.unlink()
-                removed += 1
-        elif any(n.startswith(f".{m}.") and n.endswith(".link") for m in names):
+        elif any(p.match(n) for p in (*patterns, *links)):
             with contextlib.suppress(OSError):
                 entry.unlink()
                 removed += 1
