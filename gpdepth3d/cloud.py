@@ -25,6 +25,7 @@ colours and keeps the other properties in ``metadata["_ply_raw"]["vertex"]["data
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -40,6 +41,10 @@ if TYPE_CHECKING:  # pragma: no cover
 
 DEFAULT_RHO_REF = 0.05
 """Relative sigma (sigma / depth) at which the confidence is 0.5."""
+
+
+class MaskedDepthWarning(UserWarning):
+    """Depth values that break the convention (negative) were masked as "no depth"; the message counts them."""
 
 
 def confidence_from_variance(
@@ -315,7 +320,8 @@ def backproject_depth(
     """Lifts a depth map with its RGB image to a coloured cloud with per-point variance.
 
     Args:
-        depth: (H, W) z-depth, metres (0/NaN/inf = no depth); (H, W) must be the camera's.
+        depth: (H, W) z-depth, metres (0/NaN/inf = no depth; negative values are masked the
+            same way, with a `MaskedDepthWarning` counting them); (H, W) must be the camera's.
         rgb: (H, W, 3) RGB image of the same size (uint8, or float in 0..1).
         camera: Intrinsics of the depth map.
         variance: Optional (H, W) depth variance, m^2, >= 0 (InvalidInputError otherwise); pixels with
@@ -339,8 +345,16 @@ def backproject_depth(
     camera.check_image(d, "depth")
     d = d.astype(np.float64)
     finite = np.isfinite(d)
-    if np.any(d[finite] < 0):
-        raise InvalidDepthError("depth", "z-depths >= 0 (0 = no depth)", f"minimum {d[finite].min()}")
+    with np.errstate(invalid="ignore"):
+        negative = finite & (d < 0)
+    if negative.any():
+        # a posterior mean can dip below zero next to an outlier measurement: masked, counted, not fatal
+        warnings.warn(
+            f"depth: {int(negative.sum())} pixels with negative depth (minimum {d[negative].min():.3g} m) masked",
+            MaskedDepthWarning,
+            stacklevel=2,
+        )
+        d = np.where(negative, 0.0, d)
     rgb = _check_rgb(rgb, camera)
     if variance is not None:
         var = np.asarray(variance, dtype=np.float64)

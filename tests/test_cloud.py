@@ -11,6 +11,7 @@ from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.cloud import (
     DEFAULT_RHO_REF,
     ColoredCloud,
+    MaskedDepthWarning,
     backproject_depth,
     backproject_posterior,
     confidence_from_variance,
@@ -120,6 +121,17 @@ class TestBackproject:
         best = np.argmax(cloud.confidence)
         assert (int(best) // CAM.width, int(best) % CAM.width) in {(5, 4), (15, 20)}
 
+    def test_negative_and_nan_depths_masked_and_counted(self):
+        # a GP mean that dipped below zero next to an outlier point, plus NaN / inf pixels
+        depth, rgb, var = _frame(4)
+        depth[0, :3] = -0.066
+        depth[1, :2] = np.nan
+        depth[2, 0] = np.inf
+        with pytest.warns(MaskedDepthWarning, match=r"3 pixels with negative depth \(minimum -0.066 m\)"):
+            cloud = backproject_depth(depth, rgb, CAM, variance=var)
+        assert len(cloud) == depth.size - 6
+        assert np.all(cloud.depth > 0) and np.all(np.isfinite(cloud.points))
+
     def test_errors(self):
         depth, rgb, var = _frame()
         with pytest.raises(ShapeError):
@@ -132,8 +144,8 @@ class TestBackproject:
             backproject_depth(np.zeros(CAM.shape), rgb, CAM)
         with pytest.raises(EmptyInputError):
             backproject_depth(depth, rgb, CAM, variance=np.full(CAM.shape, np.nan))
-        with pytest.raises(InvalidDepthError):
-            backproject_depth(-depth, rgb, CAM)
+        with pytest.warns(MaskedDepthWarning), pytest.raises(EmptyInputError):
+            backproject_depth(-depth, rgb, CAM)  # every pixel masked: nothing left
         bad = np.eye(4)
         bad[:3, :3] *= 2.0
         with pytest.raises(CalibrationError):
