@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import DepthCompleter
-from gpdepth3d.errors import InvalidInputError, ShapeError
+from gpdepth3d.complete import DepthCompleter, build_problem
+from gpdepth3d.errors import ConvergenceError, InvalidInputError, ShapeError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
 from gpdepth3d.gp.markov import chain_precision, readout_weights, state_dim
@@ -458,3 +458,18 @@ class TestConditioningHelpers:
         assert grow[0] < grow[1] < grow[2]
         with pytest.raises(InvalidInputError, match="n"):
             chain_conditioning(0, 0.5, 1.0)
+
+    def test_fit_treats_a_refused_kernel_as_infeasible(self):
+        """fit_hyperparameters meets IllConditionedError (nu = 2.5, l = 30, every pixel observed, no dense route):
+        the objective treats it as infeasible instead of letting it escape."""
+        from gpdepth3d.gp.fit import fit_hyperparameters
+
+        rng = np.random.default_rng(9)
+        mde = 3.0 + np.cumsum(rng.normal(0, 0.02, (16, 20)), axis=1)
+        sparse = SparseDepth.from_arrays(rng.uniform(0, 19, 15), rng.uniform(0, 15, 15), rng.uniform(2.5, 3.5, 15), (16, 20))
+        engine = FastEngine(max_dense_points=0)
+        config = DepthGPConfig.paper(nu=2.5, lengthscale=30.0)
+        with pytest.raises(ConvergenceError):
+            engine.solve(build_problem(mde, sparse, config)[0])
+        fitted = fit_hyperparameters(mde, sparse, config, params=("lengthscale",), max_iterations=3, engine=engine)
+        assert isinstance(fitted, DepthGPConfig) and np.isfinite(fitted.lengthscale)

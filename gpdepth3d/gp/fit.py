@@ -24,7 +24,7 @@ from typing import Sequence
 import numpy as np
 import scipy.optimize
 
-from ..errors import InvalidInputError
+from ..errors import ConvergenceError, InvalidInputError
 from ..measurements import SparseDepth
 from .model import DepthGPConfig
 
@@ -124,7 +124,7 @@ def fit_hyperparameters(
         cfg = config.replace(**{n: float(np.exp(v)) for n, v in zip(names, x)})
         try:
             value = log_marginal_likelihood(mde_depth, sparse, cfg, engine=engine)
-        except np.linalg.LinAlgError:
+        except (np.linalg.LinAlgError, ConvergenceError):  # e.g. the grid route refused as ill-conditioned
             return 1e300
         return -value / n_obs if np.isfinite(value) else 1e300
 
