@@ -101,6 +101,12 @@ def complete_command(
     for name, value in (("--mde-png-scale", mde_png_scale), ("--sparse-png-scale", sparse_png_scale),
                         ("--gt-png-scale", gt_png_scale)):
         check_png_scale(value, name)
+    if gt_invalid_value is not None and not 0 <= gt_invalid_value <= 65535:
+        raise InvalidInputError("--gt-invalid-value", "a 16-bit PNG value 0..65535", gt_invalid_value)
+    if lidar_image_size is not None:
+        from .measurements import _as_shape
+
+        _as_shape(lidar_image_size, "--lidar-image-size")
     out_npz = check_output_path(output, "--output").with_suffix(".npz")
     check_output_targets([out_npz] + ([out_npz.with_name(out_npz.stem + s) for s in ("_mean.png", "_std.png")] if png else []))
     if (sparse is None) == (lidar is None):

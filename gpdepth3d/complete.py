@@ -113,7 +113,10 @@ class DepthPosterior:
         if not path.is_file():
             raise DataFormatError(path, "posterior file not found")
         try:
-            with np.load(path, allow_pickle=False) as d:
+            data = np.load(path, allow_pickle=False)
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise ValueError("an .npz archive expected (this is a single array)")
+            with data as d:
                 uvd = d["sparse_uvd"].astype(np.float64)
                 size = tuple(int(x) for x in d["sparse_image_size"])
                 sparse = SparseDepth(uvd[:, 0], uvd[:, 1], uvd[:, 2], size)
@@ -130,7 +133,7 @@ class DepthPosterior:
                     depth_scale=float(d["depth_scale"]),
                     alignment=AlignmentResult(float(align[0]), float(align[1]), 0),
                 )
-        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
 

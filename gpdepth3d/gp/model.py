@@ -89,8 +89,10 @@ class DepthGPConfig:
         object.__setattr__(self, "nu", float(self.nu))
         for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas"):
             value = getattr(self, name)
-            if not _is_real(value) or not np.isfinite(value) or value <= 0:
-                raise InvalidInputError(name, "a finite number > 0", f"{type(value).__name__} {value!r}")
+            if not _is_real(value) or not np.isfinite(value) or not 1e-100 <= value <= 1e100:
+                raise InvalidInputError(
+                    name, "a finite number in [1e-100, 1e100] (> 0)", f"{type(value).__name__} {value!r}"
+                )
             object.__setattr__(self, name, float(value))
         m = self.max_exact_points
         if isinstance(m, (bool, np.bool_)) or not isinstance(m, (int, np.integer)) or m < 1:
