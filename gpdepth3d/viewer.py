@@ -928,15 +928,16 @@ def check_host(host: str, *, allow_remote: bool = False) -> bool:
         infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
     except (socket.gaierror, UnicodeError, OSError) as exc:
         raise InvalidInputError("host", "an IP address or host name of this machine", f"{host!r} ({exc})") from None
-    addresses = {info[4][0] for info in infos}
-    for family, _, _, _, sockaddr in infos:
+    addresses, problem = set(), ""
+    for family, _, _, _, sockaddr in infos:  # "localhost" may name ::1 on a machine without IPv6: one is enough
         with socket.socket(family, socket.SOCK_STREAM) as sock:
             try:
                 sock.bind((sockaddr[0], 0))
+                addresses.add(sockaddr[0])
             except OSError as exc:
-                raise InvalidInputError(
-                    "host", "an address of this machine to listen on", f"{host!r} ({exc.strerror or exc})"
-                ) from None
+                problem = exc.strerror or str(exc)
+    if not addresses:
+        raise InvalidInputError("host", "an address of this machine to listen on", f"{host!r} ({problem})")
     loopback = all(ipaddress.ip_address(a.split("%")[0]).is_loopback for a in addresses)
     if not loopback and not allow_remote:
         raise InvalidInputError(
