@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -237,7 +239,8 @@ class TestTriangulateTracks:
         poses = _views()
         clean = _tracks(X, poses)
         cfg = TriangulationConfig(
-            pixel_sigma=0.5, rotation_sigma_deg=0.1, translation_sigma=0.005, depth_sigma_floor=0.0, max_relative_sigma=1.0
+            pixel_sigma=0.5, rotation_sigma_deg=0.1, translation_sigma=0.005, depth_sigma_floor=0.0, max_relative_sigma=1.0,
+            variance_factor=False,
         )
         inside, z_scores = [], []
         for _ in range(40):
@@ -259,6 +262,15 @@ class TestTriangulateTracks:
         a = triangulate_tracks(clean, poses, CAM, reference=0, config=tight)
         b = triangulate_tracks(clean, poses, CAM, reference=0, config=cfg)
         assert np.median(b.sigma / a.sigma) > 1.5
+        # the a posteriori variance factor widens sigma when the residuals exceed pixel_sigma
+        # (here: poses 0.3 deg off, far beyond their prior) and leaves it alone otherwise
+        off = [poses[0]] + [T @ _posed([0.0, 0.0, 0.0], (0.3, -0.3, 0.0)) for T in poses[1:]]
+        with_factor = replace(cfg, variance_factor=True)
+        plain = triangulate_tracks(clean, off, CAM, reference=0, config=cfg)
+        widened = triangulate_tracks(clean, off, CAM, reference=0, config=with_factor)
+        assert widened.pixel_sigma > 1.0 and np.median(widened.sigma / plain.sigma) > 1.5
+        same = triangulate_tracks(clean, poses, CAM, reference=0, config=with_factor)
+        np.testing.assert_allclose(same.sigma, b.sigma, rtol=1e-9)
 
     def test_refined_poses_are_closer_to_the_truth(self):
         X = _scene(300, seed=13)
@@ -361,6 +373,31 @@ class TestTrackTriangulator:
         tracker.reset()
         assert tracker.n_tracks == 0 and len(tracker.add(rgb, poses[-1])) == 0
 
+    def test_update_poses_after_a_loop_closure(self):
+        """Poses replaced through update_poses are the ones the next triangulation uses."""
+        tex = _texture(2)
+        poses = [_posed([0.03 * k, 0.0, 0.0]) for k in range(4)]
+        shifted = [T.copy() for T in poses]
+        for T in shifted:
+            T[:3, 3] += [0.5, 0.2, 0.0]  # the whole trajectory moved: the depths must not change
+        images = [_render_plane(T, tex)[0] for T in poses]
+        cfg = TriangulationConfig(max_features=200)
+        a = TrackTriangulator(SMALL, cfg, window=3)
+        b = TrackTriangulator(SMALL, cfg, window=3)
+        for k in range(3):
+            a.add(images[k], poses[k], key=k)
+            b.add(images[k], poses[k] if k != 1 else np.eye(4), key=k)  # frame 1 with a wrong pose
+        assert b.update_poses({1: poses[1], 99: np.eye(4)}) == 1
+        sa, sb = a.add(images[3], poses[3], key=3), b.add(images[3], poses[3], key=3)
+        np.testing.assert_allclose(sb.depth, sa.depth, rtol=1e-9)
+        assert a.update_poses({k: T for k, T in enumerate(shifted)}) == 4
+        moved = a.add(images[3], shifted[3])  # the same image again: zero parallax to itself, others moved with it
+        assert len(moved) > 50
+        # the plane is 2 m ahead of every camera
+        assert np.mean(np.abs(moved.depth / 2.0 - 1) < 0.02) > 0.95 and abs(np.median(moved.depth) - 2.0) < 0.005
+        with pytest.raises(CalibrationError):
+            a.update_poses({3: np.eye(4) * 2})
+
     def test_batch_reference_first_frame(self):
         tex = _texture(1)
         poses = [_posed([0.04 * k, 0.0, 0.0]) for k in range(5)]
@@ -415,3 +452,59 @@ class TestRealFrames:
         # SIFT's sub-pixel keypoints (errors ~0.3 sigma here), about right for ORB
         err = np.abs(z[inside][ok] - kinect[ok])
         assert 0.2 < np.median(err) / np.median(tp.sigma[inside][ok]) < 3
+
+
+def _seven_scenes(shared_data, indices):
+    from gpdepth3d.datasets.sevenscenes import SevenScenes
+    from gpdepth3d.mapping import SEVEN_SCENES_RGB_K
+
+    reader = SevenScenes(shared_data / "7scenes")
+    names = [f"frame-{5 * i:06d}" for i in indices]
+    for name in names:
+        if not (shared_data / "7scenes" / f"{name}.color.jpg").exists():
+            pytest.skip(f"7-Scenes frame {name} not found")
+    return [reader.load(name) for name in names], PinholeCamera.from_K(SEVEN_SCENES_RGB_K, 640, 480)
+
+
+def _against_kinect(frame, rgb_cam, sparse):
+    """(|depth error|, sigma) of the points with a Kinect depth: each point lifted with the colour
+    camera (f = 525) and projected into the depth camera (f = 585), as bench/fusion.py does."""
+    lifted = rgb_cam.backproject_pixels(sparse.uv, sparse.depth)
+    uv, z = frame.camera.project(lifted)
+    inside = frame.camera.in_image(uv)
+    iu = np.rint(uv[inside]).astype(int)
+    kinect = frame.depth[iu[:, 1], iu[:, 0]]
+    ok = kinect > 0
+    return np.abs(z[inside][ok] - kinect[ok]), np.asarray(sparse.sigma)[inside][ok], kinect[ok]
+
+
+class TestRealSequence:
+    def test_stream_sigma_covers_kinect(self, shared_data):
+        """7-Scenes frames 40-70 (every 5th raw frame) through the TrackTriangulator."""
+        frames, rgb_cam = _seven_scenes(shared_data, range(8, 15))
+        tracker = TrackTriangulator(rgb_cam, window=4)
+        errs, sigmas, rel, counts = [], [], [], []
+        for f in frames:
+            sparse = tracker.add(f.rgb, f.pose)
+            counts.append(len(sparse))
+            if len(sparse):
+                e, s, k = _against_kinect(f, rgb_cam, sparse)
+                errs.append(e)
+                sigmas.append(s)
+                rel.append(e / k)
+        e, s = np.concatenate(errs), np.concatenate(sigmas)
+        assert counts[0] == 0 and min(counts[2:]) > 20 and np.mean(counts[2:]) > 80
+        assert 0.85 <= np.mean(e <= 2 * s) <= 0.99
+        assert np.median(np.concatenate(rel)) < 0.08
+        # sigma is not a constant: it grows where the errors grow
+        assert np.median(e[s > np.median(s)]) > np.median(e[s <= np.median(s)])
+
+    def test_first_frame_gets_points_from_later_frames(self, shared_data):
+        frames, rgb_cam = _seven_scenes(shared_data, range(0, 9))
+        sparse = triangulate_frames([f.rgb for f in frames], [f.pose for f in frames], rgb_cam, reference=0)
+        assert len(sparse) > 100
+        e, s, k = _against_kinect(frames[0], rgb_cam, sparse)
+        assert np.median(e / k) < 0.08
+        assert 0.85 <= np.mean(e <= 2 * s) <= 0.99
+
+
