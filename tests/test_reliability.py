@@ -633,3 +633,88 @@ def test_concurrent_completes_leave_one_set(cli_inputs, tmp_path):
             _, err = p.communicate()
             assert p.returncode == 0, err
         assert assert_one_set(tmp_path / "out", "f", known) is not None
+
+
+# ------------------------------------------------------------------------------------------ CLI sweep
+def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
+    """Garbage for every option of every command (215 command lines): for the README's fuzz summary."""
+    import itertools
+
+    rng = np.random.default_rng(0)
+    np.save(t / "mde.npy", 2 + rng.random((24, 32)))
+    np.savetxt(t / "p.txt", [[3, 4, 2.0], [10, 5, 2.5]])
+    (t / "bin.txt").write_bytes(bytes(range(256)) * 4)
+    (t / "afile").write_text("x")
+    np.save(t / "c.npy", np.ones((4, 4)) * (1 + 1j))
+    np.save(t / "obj.npy", np.array([1, None], dtype=object), allow_pickle=True)
+    np.save(t / "d1.npy", np.ones(5))
+    (t / "empty.txt").write_text("")
+    seven, kitti = str(t / "no_7scenes"), str(t / "no_kitti")
+    data = os.environ.get("GPDEPTH3D_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    if Path(data).is_dir():
+        seven, kitti = f"{data}/7scenes", f"{data}/kitti_tiny"
+    o = iter(range(10**6))
+    base = lambda: ["complete", "--mde", f"{t}/mde.npy", "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"]  # noqa: E731
+    bad_values = ["nan", "-1", "0", "inf", "abc", "", "1e400", "99999999999"]
+    cases = []
+    for opt in ["--mde-png-scale", "--sparse-png-scale", "--gt-png-scale", "--gt-invalid-value"]:
+        cases += [base() + [opt, v] for v in bad_values]
+    for opt in ["--output-size", "--lidar-image-size"]:
+        cases += [base() + [opt, a, b] for a, b in itertools.product(["0", "-5", "nan", "2.5", "100000"], ["10", "abc"])]
+    for f in [f"{t}/c.npy", f"{t}/obj.npy", f"{t}/d1.npy", f"{t}/bin.txt", f"{t}/afile", f"{t}/empty.txt", "/nonexistent.npy", str(t)]:
+        cases.append(["complete", "--mde", f, "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"])
+        cases.append(base()[:4] + [f, "--output", f"{out}/o{next(o)}"])
+        cases.append(base() + ["--gt", f])
+        cases.append(base() + ["--intrinsics", f, "--sparse-points", "xyz"])
+        cases.append(["complete", "--mde", f"{t}/mde.npy", "--lidar", f, "--calib", f, "--output", f"{out}/o{next(o)}"])
+    fields = ["--model.nu", "--model.lengthscale", "--model.outputscale", "--model.sigma-dl", "--model.sigma-meas",
+              "--model.max-exact-points"]
+    for model, opt in itertools.product(["paper", "residual"], fields):
+        cases += [base() + [model, opt, v] for v in ["nan", "-1", "0", "abc", "inf", "1e-320"]]
+    for model in ["paper", "residual"]:
+        for opt, v in [("--model.units", "feet"), ("--model.align", "x"), ("--model.engine", "gpu"), ("--model.formulation", "x")]:
+            cases.append(base() + [model, opt, v])
+    cases += [base()[:-1] + [o_] for o_ in ["", f"{t}/afile/x", str(t), "/proc/x"]]
+    cases += [["view", "--posterior", "x.npz", "--duration", v] for v in ["-1", "nan", "abc"]]
+    cases += [["view", "--posterior", "x.npz", "--host", h, "--duration", "0"]
+              for h in ["999.1.1.1", "0.0.0.0", "", "::", "example.invalid", "1.2.3.4"]]
+    cases += [["view", "--posterior", "x.npz", "--port", p, "--duration", "0"] for p in ["-1", "70000", "abc"]]
+    cases += [["view", "--posterior", f"{t}/bin.txt", "--duration", "0"], ["view", "--posterior", f"{t}/mde.npy", "--duration", "0"]]
+    cases += [["demo"] + a for a in [["--output-dir", f"{t}/afile/x"], ["--output-dir", f"{out}/demo"], ["--seed", "-1"], ["--seed", "abc"]]]
+    cases += [["eval"] + a for a in [
+        ["--data", str(t)], ["--data", "/nonexistent"], ["--data", seven, "--output", f"{t}/afile"],
+        ["--data", seven, "--protocol", "bogus"], ["--data", seven, "--points", "a,b"], ["--data", seven, "--stride", "0"],
+        ["--data", seven, "--frames", "-1"], ["--data", seven, "--resolution", "nan"], ["--data", seven, "--methods", "x"]]]
+    cases += [["batch", "--data", kitti, "--output-dir", f"{out}/b"] + a for a in [
+        ["--address", "not-an-address"], ["--output-dir", f"{t}/afile/x"], ["--workers", "-1"], ["--limit", "-3"],
+        ["--repeat", "0"], ["--factor", "0"], ["--n-input", "-5"], ["--connect-timeout", "-1"]]]
+    cases += [["fuse"] + a for a in [["--data", "/nonexistent"], ["--data", str(t)], ["--out", f"{t}/afile/x"]]]
+    return cases
+
+
+@pytest.mark.skipif(not os.environ.get("GPDEPTH3D_FUZZ_CLI"), reason="the CLI sweep runs with GPDEPTH3D_FUZZ_CLI=1 (minutes)")
+def test_cli_sweep(tmp_path):
+    """Every command line of `cli_sweep_cases` exits 0 (a valid, if odd, input) or prints one line and exits 1."""
+    import contextlib
+    import io
+
+    counts = {"exit 1, one line": 0, "exit 0": 0, "unexpected": 0, "several lines": 0, "other exit": 0}
+    (tmp_path / "in").mkdir()
+    for argv in cli_sweep_cases(tmp_path / "in", tmp_path / "out"):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                rc = cli.main(argv)
+            except SystemExit as exc:
+                rc = exc.code
+        lines = [line for line in err.getvalue().splitlines()
+                 if line.strip() and not line.startswith(("gpdepth3d: warning", "INFO:")) and "%|" not in line]
+        if rc == 1 and any("unexpected" in line for line in lines):
+            key = "unexpected"
+        elif rc == 1:
+            key = "exit 1, one line" if len(lines) == 1 else "several lines"
+        else:
+            key = "exit 0" if rc == 0 else "other exit"
+        counts[key] += 1
+    print(f"CLI sweep: {sum(counts.values())} command lines: {counts}")
+    assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
