@@ -28,6 +28,9 @@ class InvalidInputError(GPDepthError, ValueError):
         self.got = got
         super().__init__(f"{argument}: expected {expected}, got {got}")
 
+    def __reduce__(self):  # picklable (Dask workers, multiprocessing) with its attributes
+        return (type(self), (self.argument, self.expected, self.got))
+
 
 class ShapeError(InvalidInputError):
     """An array has the wrong shape or two arrays do not fit together."""
@@ -52,6 +55,9 @@ class DataFormatError(GPDepthError, ValueError):
         self.path = path
         self.problem = problem
         super().__init__(f"{path}: {problem}")
+
+    def __reduce__(self):
+        return (type(self), (self.path, self.problem))
 
 
 class OutputError(GPDepthError, OSError):

@@ -718,3 +718,15 @@ def test_cli_sweep(tmp_path):
         counts[key] += 1
     print(f"CLI sweep: {sum(counts.values())} command lines: {counts}")
     assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
+
+
+def test_typed_errors_pickle_with_their_attributes():
+    """Errors cross process boundaries (Dask workers, multiprocessing) intact."""
+    import pickle
+
+    from gpdepth3d.errors import ConnectionFailedError, ProblemTooLargeError
+
+    for error in (InvalidInputError("a", "b", [1]), ShapeError("s", "t", (2,)), DataFormatError("p", "q"),
+                  OutputError("o", "disk full"), ConnectionFailedError("tcp://h:1", "no answer"), ProblemTooLargeError("big")):
+        back = pickle.loads(pickle.dumps(error))
+        assert type(back) is type(error) and str(back) == str(error) and vars(back) == vars(error)
