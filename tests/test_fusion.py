@@ -294,3 +294,17 @@ class TestPersistence:
         (tmp_path / "bad.json").write_text((tmp_path / "map" / "volume.json").read_text())
         with pytest.raises(DataFormatError):
             TSDFFusion.load(tmp_path / "bad.npz")
+
+
+class TestThreads:
+    def test_cpu_threads_restored_and_validated(self):
+        import torch
+
+        before = torch.get_num_threads()
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, cpu_threads=1))
+        fusion.integrate(_plane(), np.eye(4))
+        assert torch.get_num_threads() == before
+        with pytest.raises(InvalidInputError):
+            FusionConfig(cpu_threads=-1)
+        with pytest.raises(InvalidInputError):
+            FusionConfig(cpu_threads=1.5)
