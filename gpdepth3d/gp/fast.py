@@ -35,8 +35,8 @@ Cost with n pixels: O(n^1.5) flops and O(n log n) memory (nested dissection on a
 the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 is heavy beyond
 ~100 x 100 pixels). Limits of the grid route: the precision's entries grow like
 (l / pixel)^(2 nu + 1) per axis while the covariance stays O(s^2), so in float64 the route is
-exact only while the conditioning allows (`grid_error_estimate` <= 1e-6: e.g. nu = 1.5 up to
-l ~ 10 px, nu = 2.5 up to l ~ 3 px with sparse points; more when every pixel is observed). Beyond
+exact only while the conditioning allows (`grid_error_estimate` <= 1e-7: e.g. nu = 1.5 up to
+l ~ 7 px, nu = 2.5 up to l ~ 3 px with sparse points, l ~ 60 / 9 px with every pixel observed). Beyond
 that, and beyond the memory budget (`grid_bytes`, ``max_memory_mb``), the route is refused
 with a typed error (`IllConditionedError`, `ProblemTooLargeError`) instead of a wrong answer. Numerics, float64 everywhere, in one of two back-ends (``backend=``):
 
@@ -865,10 +865,11 @@ class IllConditionedError(ConvergenceError):
 # per axis while the covariance stays O(s^2), so rounding errors of a backward-stable Cholesky are
 # amplified by up to cond(Qv (x) Qu) (Matern 2.5 at l = 30 px: ~1e20). `grid_error_estimate` bounds
 # that amplification; the route is refused above _GRID_MAX_ERROR. Calibrated against the dense
-# engine on 20 x 24 to 48 x 64 grids (nu = 1.5, 2.5; l = 1.5-100 px; both formulations): the measured
-# error of the mean and the standard deviation, relative to s, was 1e-5 to 0.04 times the estimate,
-# so 1e-6 keeps them below ~4e-8 s.
-_GRID_MAX_ERROR = 1e-6
+# engine on 20 x 24 to 120 x 160 grids (nu = 1.5, 2.5; l = 1.5-100 px; both formulations): the
+# measured error of the mean and the standard deviation, relative to s, was 1e-5 to 0.04 times the
+# estimate with sparse points and up to ~1x with every pixel observed (nu = 2.5, l = 8-10 px), so
+# 1e-7 keeps them at ~1e-7 s or below.
+_GRID_MAX_ERROR = 1e-7
 # Memory of the grid route's numeric phase (factor, update stack, covariance fronts): measured
 # 43-64 bytes x ds^2 n log2 n for 60 x 80 to 352 x 1216 grids (ds = 1, 4, 9); 80 with margin for
 # the symbolic structure.
@@ -885,7 +886,7 @@ def grid_error_estimate(problem: GridProblem) -> float:
         problem: The grid problem.
 
     Returns:
-        The estimate (dimensionless; the grid route is used up to 1e-6).
+        The estimate (dimensionless; the grid route is used up to 1e-7).
     """
     from .markov import chain_conditioning
 
@@ -1098,7 +1099,7 @@ class FastEngine:
 
         Raises:
             IllConditionedError: The grid route is refused for this kernel (`grid_error_estimate`
-                above 1e-6) and no other route applies.
+                above 1e-7) and no other route applies.
             ProblemTooLargeError: The chosen (or every applicable) route would exceed the memory budget.
         """
         k = problem.kernel
