@@ -601,7 +601,7 @@ def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
     known = [np.load(tmp_path / n) for n in names]
     rng = random.Random(0)
     kills = 0
-    rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "6"))
+    rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "4"))
     outcome = {"killed": 0, "finished": 0, "old set": 0, "new set": 0}
     for round_ in range(rounds):
         proc = subprocess.Popen(_complete_cmd(tmp_path, out / "f", names[round_ % 4]), stdout=subprocess.DEVNULL,
