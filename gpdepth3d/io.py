@@ -11,7 +11,12 @@ File conventions:
   file with one ``u v depth [sigma]`` per line (pixels, metres).
 
 Writes go to a temporary file in the destination folder and are renamed into place, so an
-interrupted or failed write never leaves a partial file under the final name.
+interrupted or failed write never leaves a partial file under the final name. Several files that
+belong together (a posterior's ``.npz`` and PNGs) are written as one set (`atomic_write_set`:
+hidden ``.<name>.set-*`` folder, ``.<name>.current`` pointer, ``.<name>.lock``), so a kill, a full
+disk or a concurrent writer leaves the old set or the new one; `write_together` defers the renames
+of a whole block of writes (the CLI's ``eval``). A write that fails raises `OutputError` (an
+`OSError`) naming the path and the cause (disk full, permission denied, a directory in the way).
 """
 
 from __future__ import annotations
