@@ -19,12 +19,14 @@ from .complete import complete as complete
 from .datasets import Frame as Frame
 from .datasets import open_dataset as open_dataset
 from .errors import CalibrationError as CalibrationError
+from .errors import ConnectionFailedError as ConnectionFailedError
 from .errors import ConvergenceError as ConvergenceError
 from .errors import DataFormatError as DataFormatError
 from .errors import EmptyInputError as EmptyInputError
 from .errors import GPDepthError as GPDepthError
 from .errors import InvalidDepthError as InvalidDepthError
 from .errors import InvalidInputError as InvalidInputError
+from .errors import OutputError as OutputError
 from .errors import ProblemTooLargeError as ProblemTooLargeError
 from .errors import ShapeError as ShapeError
 from .fusion import FusionConfig as FusionConfig
