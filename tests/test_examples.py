@@ -35,3 +35,19 @@ class TestExample02:
         assert result["n_lidar"] > 10000
         assert result["shape"] == result["image_shape"] and result["image_shape"][1] > 1200  # KITTI sizes vary
         assert (tmp_path / "000000_posterior_mean.png").is_file()
+
+
+class TestExample03:
+    def test_loop_closure_7scenes(self, shared_data, tmp_path):
+        model = shared_data.parent / "models" / "fast_depth_224.tflite"
+        if not model.is_file():
+            pytest.skip(f"FastDepth model not found at {model}")
+        pytest.importorskip("ai_edge_litert")
+        result = load_example("03_mapping_loop_closure").main(
+            ["--data", str(shared_data / "7scenes"), "--model", str(model), "--frames", "6", "--out", str(tmp_path)]
+        )
+        assert result["identical_to_scratch"] and result["identical_after_load"]
+        assert 3 in result["reintegrated"] and result["blocks"] > 0
+        assert result["faces_before"] > 1000 and result["faces_after"] > 1000
+        names = sorted(p.name for p in tmp_path.iterdir())
+        assert names == ["map", "mesh_after.ply", "mesh_before.ply", "mesh_reference.ply"]

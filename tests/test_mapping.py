@@ -204,7 +204,7 @@ class TestFuseCommand:
         pytest.importorskip("ai_edge_litert")
         out = tmp_path / "fuse"
         summary = fuse_command(shared_data / "7scenes", out, model=model, frames=3, working_scale=0.25, voxel_size=0.05,
-                               truncation=0.15, sigma_ref=1.0, metric_samples=5000, engine="exact")
+                               truncation=0.15, sigma_ref=1.0, metric_samples=5000)
         names = sorted(p.name for p in out.iterdir())
         assert names == ["mesh_gp_uniform.ply", "mesh_gp_variance.ply", "mesh_gt.ply", "mesh_mde.ply", "metrics.json"]
         on_disk = json.loads((out / "metrics.json").read_text())
@@ -418,3 +418,43 @@ class TestLoopClosure:
         assert mapper.keyframes == {}
         with pytest.raises(InvalidInputError):
             mapper.update_poses({0: f.pose})
+
+
+class TestFuseAsTheReadmeSays:
+    @pytest.mark.slow
+    def test_readme_line_completes_all_60_frames(self, shared_data, tmp_path: Path, monkeypatch):
+        """`gpdepth3d fuse --data ../shared/data/7scenes --out fuse_out`, exactly as the README writes it
+        (run from the repository root; only the output folder is moved into tmp_path)."""
+        from gpdepth3d.cli import main
+
+        repo = Path(__file__).resolve().parents[1]
+        if shared_data.resolve() != (repo.parent / "shared" / "data").resolve():
+            pytest.skip("the README's relative paths need the data at ../shared/data")
+        if not (repo.parent / "shared" / "models" / "fast_depth_224.tflite").is_file():
+            pytest.skip("FastDepth model not found at ../shared/models/fast_depth_224.tflite")
+        pytest.importorskip("ai_edge_litert")
+        monkeypatch.chdir(repo)
+        out = tmp_path / "fuse_out"
+        assert main(["fuse", "--data", "../shared/data/7scenes", "--out", str(out)]) == 0
+        summary = json.loads((out / "metrics.json").read_text())
+        assert summary["frames"] == 60 and summary["frames_fused"] == 60 and summary["frame_errors"] == []
+        assert summary["empty_meshes"] == [] and len(summary["meshes_written"]) == 4
+        assert summary["config"]["mapper"]["gp"]["engine"] == "fast"
+        for variant in ("mde", "gp_uniform", "gp_variance"):
+            m = summary["metrics"][variant]
+            assert 0 < m["fscore"] <= 1 and m["chamfer"] > 0
+
+    @pytest.mark.slow
+    def test_few_frames_report_an_empty_mesh_instead_of_failing(self, shared_data, tmp_path: Path):
+        model = shared_data.parent / "models" / "fast_depth_224.tflite"
+        if not model.is_file():
+            pytest.skip(f"FastDepth model not found at {model}")
+        pytest.importorskip("ai_edge_litert")
+        # one frame whose variance weights (sigma_ref 1 mm) stay below the weight threshold: the
+        # variance-weighted mesh is empty, reported, not written; the others are written
+        summary = fuse_command(shared_data / "7scenes", tmp_path, model=model, frames=1, working_scale=0.25,
+                               voxel_size=0.05, truncation=0.15, sigma_ref=0.001, metric_samples=2000)
+        assert summary["frames_fused"] == 1
+        assert "gp_variance" in summary["empty_meshes"] and summary["metrics"]["gp_variance"] is None
+        assert all(Path(p).is_file() for p in summary["meshes_written"])
+        assert not (tmp_path / "mesh_gp_variance.ply").exists()
