@@ -185,3 +185,40 @@ def test_real_frame_routes_agree(seven_scenes_frame):
 def test_concurrent_callers_share_an_engine():
     problems = [sparse_problem(np.random.default_rng(40 + k), 30, 37, 20 + 5 * k, lengthscale=4.0) for k in range(6)]
     assert_thread_safe(FastEngine(route="woodbury"), problems)
+
+
+def test_failed_factorisation_is_a_typed_error(monkeypatch):
+    """A LinAlgError of the Woodbury route's Cholesky reaches the caller as ConvergenceError naming the kernel."""
+    import gpdepth3d.gp.fast as fast_module
+    from gpdepth3d.errors import ConvergenceError
+
+    def fail(*args, **kwargs):
+        raise np.linalg.LinAlgError("the observed-pixel covariance is not positive definite (dpotrf info=3)")
+
+    monkeypatch.setattr(fast_module, "WoodburyPosterior", fail)
+    problem = sparse_problem(np.random.default_rng(11), 20, 25, 30)
+    engine = FastEngine(route="woodbury")
+    with pytest.raises(ConvergenceError, match=r"woodbury route.*nu=0.5, lengthscale=5 px"):
+        engine.solve(problem)
+    with pytest.raises(ConvergenceError, match="dpotrf"):
+        engine.log_marginal_likelihood(problem)
+
+
+class TestLongLengthscales:
+    @pytest.mark.parametrize("lengthscale", [30.0, 100.0, 1000.0])
+    def test_woodbury_and_grid_agree_with_exact(self, lengthscale):
+        """nu = 0.5 stays exact at long length scales on both routes (the grid up to where its estimate allows)."""
+        problem = sparse_problem(np.random.default_rng(12), 30, 40, 60, lengthscale=lengthscale)
+        from gpdepth3d.gp.fast import IllConditionedError, grid_error_estimate
+
+        m0, v0 = ExactEngine().solve(problem)
+        for route in ("woodbury", "grid", "auto"):
+            engine = FastEngine(route=route)
+            if route == "grid" and grid_error_estimate(problem) > 1e-7:  # l = 1000 px on 30 x 40: refused, typed
+                assert lengthscale == 1000.0
+                with pytest.raises(IllConditionedError, match="lengthscale=1000 px"):
+                    engine.solve(problem)
+                continue
+            m1, v1 = engine.solve(problem)
+            np.testing.assert_allclose(m1, m0, atol=1e-8, err_msg=route)
+            np.testing.assert_allclose(np.sqrt(v1), np.sqrt(v0), atol=1e-8, err_msg=route)

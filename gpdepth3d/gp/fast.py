@@ -1194,6 +1194,19 @@ class FastEngine:
         self.last_route = choice
         return choice, payload
 
+    @staticmethod
+    def _woodbury(problem: GridProblem, buffers) -> WoodburyPosterior:
+        """`WoodburyPosterior` with a failed factorisation mapped to a typed error."""
+        try:
+            return WoodburyPosterior(problem, buffers)
+        except np.linalg.LinAlgError as err:
+            k = problem.kernel
+            raise ConvergenceError(
+                f"fast engine, woodbury route: the observed-pixel covariance of the Matern kernel nu={k.nu}, "
+                f"lengthscale={k.lengthscale:g} px, outputscale={k.outputscale:g} m is not numerically positive "
+                f"definite (largest observation precision {float(np.max(problem.precision)):.3g} 1/m^2): {err}"
+            ) from None
+
     def _budget(self) -> int:
         return int(self.max_memory_mb * 2**20) if self.max_memory_mb is not None else memory_budget()
 
@@ -1273,7 +1286,7 @@ class FastEngine:
         if route == "dense":
             return dense_posterior(problem, variance=variance)
         if route == "woodbury":
-            post = WoodburyPosterior(problem, self._woodbury_buffers)
+            post = self._woodbury(problem, self._woodbury_buffers)
             return post.mean(), (post.variance() if variance else None)
         if route == "neumann":
             try:
@@ -1318,7 +1331,7 @@ class FastEngine:
         _check_problem(problem)
         route = self._route(problem, False, lml=True)[0]
         if route == "woodbury":
-            return WoodburyPosterior(problem).log_marginal_likelihood()
+            return self._woodbury(problem, None).log_marginal_likelihood()
         if route == "dense":
             return dense_log_marginal_likelihood(problem)
         factor, tree, prior, real_vars, mu, prec, resid = self._posterior_states(problem)
