@@ -6,6 +6,11 @@ they differ only in how they compute it:
 * ``exact``: dense Cholesky, the reference for small inputs.
 * ``kissgp``: GPyTorch KISS-GP (``GridInterpolationKernel``), faithful to the paper.
 * ``fast``: exploits the pixel grid (sparse precision, or Woodbury over few points); the default.
+  Every engine validates the problem first (`gpdepth3d.gp.exact.check_problem`); where ``fast``
+  cannot compute the exact posterior (a kernel whose precision form is too ill-conditioned, a
+  problem beyond the memory budget) it takes another route (``dense`` over few observed pixels)
+  or raises a typed error (`gpdepth3d.gp.fast.IllConditionedError`, a `ConvergenceError`;
+  `ProblemTooLargeError`), never a wrong answer.
 """
 
 from __future__ import annotations
