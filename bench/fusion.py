@@ -5,6 +5,10 @@ Usage::
 
     python bench/fusion.py [--data ../shared/data/7scenes] [--model ../shared/models/fast_depth_224.tflite]
                            [--frames 60] [--threads 1] [--window 4] [--detector klt]
+                           [--gp default|residual] [--tri FIELD=VALUE ...] [--out PATH]
+
+``--gp residual`` uses ``DepthGPConfig.residual()`` instead of the library default; ``--tri``
+overrides `TriangulationConfig` fields (e.g. ``--tri variance_factor=False``).
 
 Pipeline per frame (`gpdepth3d.mapping.Mapper`, refinement and fusion at 320 x 240, voxel 2 cm,
 truncation 8 cm, depth_max 5 m):

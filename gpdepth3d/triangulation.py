@@ -101,7 +101,7 @@ class TriangulationConfig:
     depth_sigma_floor: float = 0.04
     min_depth: float = 0.1
     max_depth: float = 20.0
-    max_relative_sigma: float = 0.15
+    max_relative_sigma: float = 0.3
 
     def __post_init__(self) -> None:
         if self.detector not in ("klt", "orb", "sift"):
@@ -942,11 +942,20 @@ def build_tracks(
     Returns:
         (N, V, 2) pixel positions, NaN where a track is not seen; column ``reference`` is
         the reference keypoints.
+
+    Raises:
+        InvalidInputError: fewer than two frames, a pose count that differs, a reference out
+            of range, or features of another detector than ``config.detector``.
+        ShapeError: an image of another size than ``camera``'s.
     """
     import cv2
 
     config = config or TriangulationConfig()
     V = len(rgbs)
+    if V < 2 or len(poses) != V:
+        raise InvalidInputError("rgbs, poses", "two or more frames with one pose each", (V, len(poses)))
+    if not -V <= reference < V:
+        raise InvalidInputError("reference", f"an index into {V} frames", reference)
     ref = reference % V
     for k, im in enumerate(rgbs):
         camera.check_image(im, f"rgbs[{k}]")

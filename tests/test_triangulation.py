@@ -409,6 +409,12 @@ class TestTrackTriangulator:
         assert np.median(np.abs(sparse.depth - truth) / truth) < 0.01
         tracks = build_tracks([v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300))
         assert tracks.shape[1:] == (5, 2) and np.isfinite(tracks[:, 4, 0]).sum() > 100
+        with pytest.raises(InvalidInputError):
+            build_tracks([v[0] for v in views], poses, SMALL, reference=5)
+        with pytest.raises(InvalidInputError):
+            build_tracks([views[0][0]], poses[:1], SMALL)
+        with pytest.raises(ShapeError):
+            build_tracks([views[0][0], np.zeros((10, 10, 3), np.uint8)], poses[:2], SMALL)
 
     def test_errors(self):
         tracker = TrackTriangulator(SMALL)
