@@ -237,6 +237,8 @@ class TSDFFusion:
         dev_type = "cuda" if self._device.get_type() == o3c.Device.DeviceType.CUDA else "cpu"
         self._torch_device = f"{dev_type}:{self._device.get_id()}" if dev_type == "cuda" else "cpu"
         self.frames_integrated = 0
+        self._dirty: list[np.ndarray] = []  # block keys changed since the last incremental extraction
+        self._chunks: dict[int, tuple[np.ndarray, np.ndarray]] | None = None  # chunk key -> (triangles, colours)
 
     @property
     def _attributes(self) -> tuple[str, ...]:
@@ -340,6 +342,7 @@ class TSDFFusion:
             if keys.size:
                 var32 = None if var is None else np.where(valid, var, 0.0).astype(np.float32)
                 n = self._update(keys, d, w, color, var32, T)
+        self._dirty.append(keys)
         self.frames_integrated += 1
         return IntegrationStats(voxels=n, pixels=pixels, invalid_pixels=n_bad, block_keys=keys)
 
@@ -464,6 +467,7 @@ class TSDFFusion:
         found_np = found.cpu().numpy().astype(bool).reshape(-1)
         idx = torch.as_tensor(buf.cpu().numpy().astype(np.int64).reshape(-1)[found_np], device=self._torch_device)
         self._zero(idx)
+        self._dirty.append(keys)
         return int(idx.numel())
 
     def _band_keys(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -582,6 +586,108 @@ class TSDFFusion:
         if "colors" in mesh.vertex:
             colors = np.clip(np.rint(mesh.vertex.colors.numpy() * 255.0), 0, 255).astype(np.uint8)
         return trimesh.Trimesh(vertices, faces, vertex_colors=colors, process=False)
+
+    CHUNK_BLOCKS = 4
+    """Edge of an incremental-extraction chunk, in blocks (4 blocks of 8 voxels of 2 cm: 64 cm)."""
+
+    def extract_mesh_incremental(self, *, allow_empty: bool = False) -> "trimesh.Trimesh":
+        """The same surface as `extract_mesh`, re-extracting only the chunks changed since the last call.
+
+        The volume is cut into cubic chunks of `CHUNK_BLOCKS` blocks. A marching-cubes cell
+        belongs to the block of its lowest voxel and needs the voxels of the next block along
+        each axis, so a changed block changes the cells of its own chunk and of the chunks of
+        its 7 lower neighbours. Those chunks' blocks and a one-block halo are copied into a
+        temporary grid and meshed by Open3D; every other chunk keeps its cached triangles.
+        The first call meshes the whole volume. The result is the surface `extract_mesh` gives
+        (the same triangles), as a triangle soup: vertices are not shared between triangles.
+
+        Args:
+            allow_empty: Return a mesh without faces (instead of raising) when no surface passes
+                ``weight_threshold``.
+
+        Raises:
+            EmptyInputError: if nothing was integrated, or (without ``allow_empty``) no surface
+                passes ``weight_threshold``.
+        """
+        import torch
+        import trimesh
+
+        self._check_nonempty()
+        o3d, o3c = self._o3d, self._o3c
+        res, C = int(self.config.block_resolution), int(self.CHUNK_BLOCKS)
+        with self._threads():
+            if self._chunks is None:
+                chunks = None  # everything
+                grid = self.vbg
+            else:
+                dirty = np.unique(np.concatenate(self._dirty)) if self._dirty else np.zeros(0, np.int64)
+                if dirty.size == 0:
+                    return self._assemble(allow_empty)
+                b = _keys_to_blocks(dirty).astype(np.int64)
+                offsets = np.array([[i, j, k] for i in (0, -1) for j in (0, -1) for k in (0, -1)])
+                chunk_coords = np.unique(np.floor_divide((b[:, None, :] + offsets[None]).reshape(-1, 3), C), axis=0)
+                chunks = _blocks_to_keys(chunk_coords)
+                span = np.stack(np.meshgrid(*[np.arange(C + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+                candidates = np.unique(_blocks_to_keys((chunk_coords[:, None, :] * C + span[None]).reshape(-1, 3)))
+                blocks = o3c.Tensor(_keys_to_blocks(candidates), device=self._device)
+                buf, found = self.vbg.hashmap().find(blocks)
+                found_np = found.cpu().numpy().astype(bool).reshape(-1)
+                src = torch.as_tensor(buf.cpu().numpy().astype(np.int64).reshape(-1)[found_np], device=self._torch_device)
+                grid = o3d.t.geometry.VoxelBlockGrid(
+                    self._attributes,
+                    tuple(o3c.float32 for _ in self._attributes),
+                    tuple(3 if a == "color" else 1 for a in self._attributes),
+                    float(self.config.voxel_size),
+                    res,
+                    max(1, int(found_np.sum())),
+                    self._device,
+                )
+                if found_np.any():
+                    sub = o3c.Tensor(_keys_to_blocks(candidates[found_np]), device=self._device)
+                    dst_buf, _ = grid.hashmap().activate(sub)
+                    dst = torch.as_tensor(dst_buf.cpu().numpy().astype(np.int64).reshape(-1), device=self._torch_device)
+                    for name in self._attributes:
+                        _to_torch(grid.attribute(name))[dst] = _to_torch(self.vbg.attribute(name))[src]
+            mesh = grid.extract_triangle_mesh(float(self.config.weight_threshold)).cpu()
+        if "positions" in mesh.vertex and mesh.vertex.positions.shape[0] and mesh.triangle.indices.shape[0]:
+            vertices = mesh.vertex.positions.numpy().astype(np.float64)
+            faces = mesh.triangle.indices.numpy().astype(np.int64)
+            tri = vertices[faces]  # (m, 3, 3)
+            if "colors" in mesh.vertex:
+                col = np.clip(np.rint(mesh.vertex.colors.numpy() * 255.0), 0, 255).astype(np.uint8)[faces]
+            else:
+                col = np.full(tri.shape, 128, np.uint8)
+            owner_voxel = np.floor(tri.mean(axis=1) / float(self.config.voxel_size)).astype(np.int64)
+            owner = _blocks_to_keys(np.floor_divide(np.floor_divide(owner_voxel, res), C))
+        else:
+            tri, col, owner = np.zeros((0, 3, 3)), np.zeros((0, 3, 3), np.uint8), np.zeros(0, np.int64)
+        if chunks is None:
+            self._chunks = {}
+        else:
+            for key in chunks:
+                self._chunks.pop(int(key), None)
+            keep = np.isin(owner, chunks)
+            tri, col, owner = tri[keep], col[keep], owner[keep]
+        order = np.argsort(owner, kind="stable")
+        tri, col, owner = tri[order], col[order], owner[order]
+        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]]) if owner.size else np.zeros(0, np.int64)
+        for a, b_ in zip(starts, np.r_[starts[1:], owner.size].astype(np.int64)):
+            self._chunks[int(owner[a])] = (tri[a:b_], col[a:b_])
+        self._dirty = []
+        return self._assemble(allow_empty)
+
+    def _assemble(self, allow_empty: bool) -> "trimesh.Trimesh":
+        import trimesh
+
+        parts = list(self._chunks.values()) if self._chunks else []
+        if not parts:
+            if allow_empty:
+                return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
+            raise EmptyInputError("fusion", f"a surface with weight > {self.config.weight_threshold}", "no triangles")
+        tri = np.concatenate([p[0] for p in parts]).reshape(-1, 3)
+        col = np.concatenate([p[1] for p in parts]).reshape(-1, 3)
+        faces = np.arange(tri.shape[0], dtype=np.int64).reshape(-1, 3)
+        return trimesh.Trimesh(tri, faces, vertex_colors=col, process=False)
 
     def extract_point_cloud(self, *, allow_empty: bool = False) -> ColoredCloud:
         """Surface points of the volume as a `ColoredCloud`.

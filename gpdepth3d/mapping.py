@@ -350,7 +350,6 @@ class Mapper:
         self._next_id = 0
         self.timings: list[dict] = []
         self.failures: list[str] = []
-        self._mesh_cache: Any = None
 
     # ------------------------------------------------------------------ per frame
     def add_frame(
@@ -508,7 +507,6 @@ class Mapper:
             return replace(result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked)
         if self.config.keep_keyframes:
             self.keyframes[kid] = Keyframe(kid, T, depth32, var32, work_rgb, stats.block_keys)
-        self._mesh_cache = None
         timings["fusion"] = time.perf_counter() - t0
         self.frames += 1
         self._next_id = max(self._next_id, kid + 1)
@@ -619,22 +617,22 @@ class Mapper:
                     kf.block_keys = stats.block_keys
                 redone.append(kid)
         self.fusion.frames_integrated = frames_before
-        self._mesh_cache = None
         return PoseUpdate(tuple(moved), tuple(redone), int(blocks.size), time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ the map
     def mesh(self) -> Any:
         """The current map as a `trimesh.Trimesh` (world frame, metres, vertex colours).
 
-        A map whose surface does not yet pass the fusion's ``weight_threshold`` gives a mesh
-        without faces. The mesh is cached until the next frame or pose update.
+        Extraction is incremental (`TSDFFusion.extract_mesh_incremental`): only the chunks of
+        the volume that frames or pose updates changed since the last call are meshed again,
+        the rest comes from a cache; the surface is the one a full extraction gives, as a
+        triangle soup (``mesh.merge_vertices()`` shares the vertices). A map whose surface does
+        not yet pass the fusion's ``weight_threshold`` gives a mesh without faces.
 
         Raises:
             EmptyInputError: before the first fused frame.
         """
-        if self._mesh_cache is None:
-            self._mesh_cache = self.fusion.extract_mesh(allow_empty=True)
-        return self._mesh_cache
+        return self.fusion.extract_mesh_incremental(allow_empty=True)
 
     def point_cloud(self) -> ColoredCloud:
         """The current map's surface points as a `ColoredCloud`.
