@@ -410,6 +410,23 @@ class TestRefusals:
         with pytest.raises(InvalidInputError, match="max_dense_points"):
             FastEngine(max_dense_points="many")
 
+    def test_buffers_already_held_are_not_counted_again(self, monkeypatch):
+        """A second frame of a resolution reuses the grid buffers of the first: a budget that has shrunk since
+        (the first frame's buffers are part of what is no longer free) must not refuse it."""
+        import gpdepth3d.gp.fast as fast_module
+        from gpdepth3d.errors import ProblemTooLargeError
+
+        problem = formulation_problem(np.random.default_rng(12), 40, 48, nu=0.5, lengthscale=1.5, balanced=True)
+        need = fast_module.grid_bytes((40, 48), 0.5)
+        engine = FastEngine(route="grid")
+        monkeypatch.setattr(fast_module, "memory_budget", lambda: 2 * need)
+        m0, _ = engine.solve(problem)
+        monkeypatch.setattr(fast_module, "memory_budget", lambda: need // 2)
+        m1, _ = engine.solve(problem)
+        np.testing.assert_array_equal(m1, m0)
+        with pytest.raises(ProblemTooLargeError, match="grid route is refused"):
+            FastEngine(route="grid").solve(problem)  # a fresh engine must allocate them
+
     def test_grid_bytes_estimate_bounds_the_buffers(self):
         """The estimate is an upper bound of the numeric buffers, within 2x, for nu = 0.5 and 1.5."""
         from gpdepth3d.gp.fast import _front_tree, grid_bytes

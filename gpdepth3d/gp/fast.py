@@ -1046,10 +1046,14 @@ class FastEngine:
             store.popitem(last=False)
         return value
 
-    def _tree(self, h: int, w: int, ds: int) -> _Tree:
+    def _tree_key(self, h: int, w: int, ds: int) -> tuple:
         tile = self.tile or (24 if ds == 1 else 12 if ds == 4 else 8)
         leaf = self.leaf_pixels or max(1, 40 // ds)
-        key = (h, w, ds, tile, leaf)
+        return (h, w, ds, tile, leaf)
+
+    def _tree(self, h: int, w: int, ds: int) -> _Tree:
+        key = self._tree_key(h, w, ds)
+        tile, leaf = key[3], key[4]
 
         def build():
             tree = _build_tree(h, w, ds, tile, leaf)
@@ -1113,7 +1117,7 @@ class FastEngine:
         budget = self._budget()
         # What the grid and the dense routes can take (every route computes the same posterior).
         err = grid_error_estimate(problem)
-        gbytes = grid_bytes((h, w), k.nu)
+        gbytes = 0 if self._grid_buffers_held(h, w, k.nu) else grid_bytes((h, w), k.nu)
         grid_why = None
         if err > _GRID_MAX_ERROR:
             grid_why = (f"its precision form is too ill-conditioned for the Matern kernel nu={k.nu}, "
@@ -1193,6 +1197,13 @@ class FastEngine:
                 payload = None
         self.last_route = choice
         return choice, payload
+
+    def _grid_buffers_held(self, h: int, w: int, nu: float) -> bool:
+        """True when this engine already holds the grid route's buffers for this resolution (an earlier
+        frame's, kept for reuse): the route then allocates nothing large, whatever memory is free now."""
+        tree = self._trees.get(self._tree_key(h, w, state_dim(nu) ** 2))
+        fronts = None if tree is None else tree.__dict__.get("_fronts")
+        return bool(fronts is not None and fronts.__dict__.get("_pool"))
 
     @staticmethod
     def _woodbury(problem: GridProblem, buffers) -> WoodburyPosterior:
