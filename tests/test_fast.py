@@ -490,3 +490,11 @@ class TestConditioningHelpers:
             engine.solve(build_problem(mde, sparse, config)[0])
         fitted = fit_hyperparameters(mde, sparse, config, params=("lengthscale",), max_iterations=3, engine=engine)
         assert isinstance(fitted, DepthGPConfig) and np.isfinite(fitted.lengthscale)
+
+    def test_memory_budget_is_a_share_of_available_memory(self):
+        psutil = pytest.importorskip("psutil")  # installed with dask.distributed
+
+        from gpdepth3d.gp.fast import memory_budget
+
+        avail = psutil.virtual_memory().available
+        assert 0.5 * avail < memory_budget() <= 0.8 * avail

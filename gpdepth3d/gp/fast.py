@@ -909,14 +909,14 @@ def grid_bytes(shape: tuple[int, int], nu: float) -> int:
 
 
 def memory_budget() -> int:
-    """Default memory budget of one solve (bytes): half of the memory available now."""
+    """Default memory budget of one solve (bytes): three quarters of the memory available now."""
     try:
         import psutil
 
         avail = int(psutil.virtual_memory().available)
     except Exception:  # pragma: no cover - psutil missing or no /proc
         avail = int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    return avail // 2
+    return avail * 3 // 4
 
 
 def _dense_seconds(m: int, n_out: int, variance: bool) -> float:
@@ -968,8 +968,9 @@ class FastEngine:
             ("neumann" forced: the grid). A forced route that cannot compute the exact posterior
             raises (see Raises of `solve`); "auto" picks among those that can.
         max_dense_points: The dense route takes at most this many observed pixels.
-        max_memory_mb: Memory budget of one solve (MiB); None: half of the memory available at
-            the call. Routes whose estimated memory exceeds it are not taken.
+        max_memory_mb: Memory budget of one solve (MiB); None: three quarters of the memory
+            available at the call (`memory_budget`; buffers the engine already holds for the
+            resolution are not counted). Routes whose estimated memory exceeds it are not taken.
         prior_cache_mb: Compiled back-end: memory allowed for the factor of the prior alone
             (`PriorFactor`, one per engine), which the frames of a sequence reuse for every
             front their observations do not reach. It is built from the second frame with the
