@@ -460,3 +460,22 @@ class TestFuseAsTheReadmeSays:
         assert "gp_variance" in summary["empty_meshes"] and summary["metrics"]["gp_variance"] is None
         assert all(Path(p).is_file() for p in summary["meshes_written"])
         assert not (tmp_path / "mesh_gp_variance.ply").exists()
+
+
+class TestVioSparse:
+    def test_points_outside_the_image_are_counted(self, shared_data):
+        """vio_sparse's SLAM points (camera frame): about a third project outside the image; they are counted."""
+        files = sorted((shared_data / "vio_sparse" / "depth_sparse").glob("*.txt"))
+        if not files:
+            pytest.skip("vio_sparse not found")
+        cam = PinholeCamera(577.591, 578.73, 318.905, 242.684, 640, 480)
+        given = outside = used = 0
+        for f in files:
+            pts = np.loadtxt(f)[:, 1:4]
+            sparse, stats = project_map_points(pts, np.eye(4), cam)
+            assert stats.given == len(pts) and stats.used == len(sparse)
+            assert stats.used <= stats.given - stats.nonfinite - stats.behind - stats.outside
+            uv, _ = cam.project(pts)
+            assert stats.outside == int(np.sum((pts[:, 2] > 1e-3) & ~cam.in_image(uv)))
+            given, outside, used = given + stats.given, outside + stats.outside, used + stats.used
+        assert 0.25 < outside / given < 0.5 and used > 0.5 * (given - outside)
