@@ -52,7 +52,8 @@ class TriangulationConfig:
     Attributes:
         detector: "klt" (Shi-Tomasi corners followed by pyramidal Lucas-Kanade: sub-pixel
             tracks, the default), "orb" or "sift" (descriptor matching, OpenCV).
-        max_features: Most keypoints detected per image.
+        max_features: Most keypoints detected per image (tracks kept alive for "klt");
+            None: 400 for "klt", 3000 for "orb" / "sift".
         min_corner_distance: Smallest distance between two "klt" corners, pixels.
         klt_window: Lucas-Kanade window side, pixels.
         klt_levels: Lucas-Kanade pyramid levels above the image.
@@ -83,7 +84,7 @@ class TriangulationConfig:
     """
 
     detector: Literal["klt", "orb", "sift"] = "klt"
-    max_features: int = 400
+    max_features: int | None = None
     min_corner_distance: float = 8.0
     klt_window: int = 11
     klt_levels: int = 3
@@ -106,6 +107,8 @@ class TriangulationConfig:
     def __post_init__(self) -> None:
         if self.detector not in ("klt", "orb", "sift"):
             raise InvalidInputError("detector", "'klt', 'orb' or 'sift'", self.detector)
+        if self.max_features is None:
+            object.__setattr__(self, "max_features", 400 if self.detector == "klt" else 3000)
         for name, low in (("max_features", 8), ("klt_window", 5), ("klt_levels", 0), ("min_views", 2)):
             value = getattr(self, name)
             if int(value) != value or value < low:
