@@ -222,3 +222,19 @@ class TestLongLengthscales:
             m1, v1 = engine.solve(problem)
             np.testing.assert_allclose(m1, m0, atol=1e-8, err_msg=route)
             np.testing.assert_allclose(np.sqrt(v1), np.sqrt(v0), atol=1e-8, err_msg=route)
+
+
+def test_near_noiseless_points_stay_on_the_grid_for_nu_15():
+    """With s^2 / noise ~ 1e12 the dense route's s^2 (1 - q) would cancel like Woodbury's: auto keeps the grid
+    whenever the grid can take the kernel, and the variance is right to 1e-6 relative at the points."""
+    rng = np.random.default_rng(13)
+    problem = sparse_problem(rng, 30, 40, 80, nu=1.5, lengthscale=2.0)
+    problem.precision[problem.precision > 0] = 1e12
+    engine = FastEngine()
+    mean, var = engine.solve(problem)
+    assert engine.last_route == "grid"
+    m0, v0 = ExactEngine().solve(problem)
+    obs = problem.precision > 0
+    np.testing.assert_allclose(mean, m0, atol=1e-8)
+    np.testing.assert_allclose(var[obs], 1e-12, rtol=0.05)  # ~ the noise variance at the points
+    np.testing.assert_allclose(var[~obs], v0[~obs], rtol=1e-6)

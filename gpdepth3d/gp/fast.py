@@ -1190,6 +1190,9 @@ class FastEngine:
                         why["neumann"] = f"the series converges too slowly (rho = {candidate.rho:.3g})"
                 if "dense" in costs and "woodbury" in costs:
                     del costs["dense"]  # the same algebra, Woodbury's variance is O(m^2 + n) instead of O(n m^2)
+            if "dense" in costs and "grid" in costs and m and \
+                    float(prec.max()) * float(k.outputscale) ** 2 > _WOODBURY_MAX_SNR:
+                del costs["dense"]  # s^2 (1 - quadratic form) cancels near near-noiseless points, as Woodbury's
             if not costs:
                 self._refuse(why, problem)
             choice = min(costs, key=costs.get)
