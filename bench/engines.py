@@ -22,7 +22,7 @@ nearest valid value, Gaussian-smoothed (sigma 4 px), scaled by 1.05 and with 3 %
 noise. The model is the paper's balanced set-up for KITTI and the residual set-up for 7-Scenes
 unless named otherwise. Engines: ``fast`` (its automatic route, the row says which: the sparse
 grid precision; with nu = 0.5 Woodbury over few points or the Neumann series of an
-observation-dominated precision), ``fast-grid`` (the grid route forced), ``fast-torch`` (the grid
+observation-dominated precision; with nu > 0.5 and few points dense algebra over them), ``fast-grid`` (the grid route forced), ``fast-torch`` (the grid
 route's torch back-end), ``kissgp``, ``exact``.
 
 Each (engine, size) runs in its own subprocess: peak RSS is that process's maximum resident set
