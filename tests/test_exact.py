@@ -242,6 +242,24 @@ class TestExtremeValues:
             complete(mde, sparse, config=cfg)
 
 
+    @pytest.mark.parametrize("value", [1e300, 1e-300, 1e7])
+    @pytest.mark.parametrize("cfg", [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
+                             ids=["paper", "residual", "residual-exact"])
+    def test_one_extreme_sparse_depth(self, value, cfg):
+        """One measurement of 1e300 / 1e-300 / 1e7 m: a typed error or a finite posterior, never inf or NaN."""
+        from gpdepth3d.errors import GPDepthError
+
+        mde, sparse = inputs()
+        depth = sparse.depth.copy()
+        depth[0] = value
+        try:
+            bad = SparseDepth(sparse.u, sparse.v, depth, sparse.image_size, sparse.sigma)
+            post = complete(mde, bad, config=cfg)
+        except GPDepthError:
+            return
+        assert np.all(np.isfinite(post.mean)) and np.all(np.isfinite(post.std))
+
+
 class TestDenseAlgebra:
     def test_log_marginal_likelihood_matches_naive(self):
         from gpdepth3d.gp.exact import dense_log_marginal_likelihood
