@@ -5,10 +5,12 @@ Usage::
 
     python bench/fusion.py [--data ../shared/data/7scenes] [--model ../shared/models/fast_depth_224.tflite]
                            [--frames 60] [--threads 1] [--window 4] [--detector klt]
-                           [--gp default|residual] [--tri FIELD=VALUE ...] [--out PATH]
+                           [--gp default|residual] [--tri FIELD=VALUE ...] [--gp-set FIELD=VALUE ...]
+                           [--out PATH]
 
 ``--gp residual`` uses ``DepthGPConfig.residual()`` instead of the library default; ``--tri``
-overrides `TriangulationConfig` fields (e.g. ``--tri variance_factor=False``).
+overrides `TriangulationConfig` fields (e.g. ``--tri variance_factor=False``), ``--gp-set`` fields of
+the GP model (e.g. ``--gp-set "align='none'"``).
 
 Pipeline per frame (`gpdepth3d.mapping.Mapper`, refinement and fusion at 320 x 240, voxel 2 cm,
 truncation 8 cm, depth_max 5 m):
@@ -48,7 +50,7 @@ import argparse
 import json
 import platform
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +86,10 @@ def main() -> None:
         "--tri", action="append", default=[], metavar="FIELD=VALUE",
         help="override a TriangulationConfig field (repeatable), e.g. --tri variance_factor=True",
     )
+    parser.add_argument(
+        "--gp-set", action="append", default=[], metavar="FIELD=VALUE",
+        help="override a DepthGPConfig field of the chosen model (repeatable), e.g. --gp-set align='none'",
+    )
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "fusion.json")
     args = parser.parse_args()
 
@@ -103,11 +109,12 @@ def main() -> None:
     import ast
 
     overrides = {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.tri)}
+    gp_overrides = {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.gp_set)}
     fusion = FusionConfig(voxel_size=0.02, truncation=0.08, depth_max=5.0)
     config = MapperConfig(
         fusion=fusion,
         working_scale=0.5,
-        gp=DepthGPConfig() if args.gp == "default" else DepthGPConfig.residual(),
+        gp=replace(DepthGPConfig() if args.gp == "default" else DepthGPConfig.residual(), **gp_overrides),
         triangulation=TriangulationConfig(detector=args.detector, **overrides),
         window=args.window,
     )

@@ -883,7 +883,7 @@ def _track_klt(
     alive = np.arange(n)
     prev = start.astype(np.float32)
     params = dict(winSize=(config.klt_window, config.klt_window), maxLevel=config.klt_levels,
-                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03))
+                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03))
     h, w = shape
     for a, b in zip(order[:-1], order[1:]):
         if alive.size == 0:
@@ -1119,7 +1119,7 @@ class TrackTriangulator:
             prev = tracks[:, -1].astype(np.float32).reshape(-1, 1, 2)
             params = dict(
                 winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels,
-                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03),
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
             )
             nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._gray, gray, prev, None, **params)
             ok = st.ravel() == 1
@@ -1153,14 +1153,19 @@ class TrackTriangulator:
 
         # new corners where the image has no live track
         if tracks.shape[0] < cfg.max_features:
-            mask = np.full((h, w), 255, np.uint8)
-            r = max(1, int(round(cfg.min_corner_distance)))
-            for u, v in np.rint(tracks[:, -1]).astype(int):
-                cv2.circle(mask, (int(u), int(v)), r, 0, -1)
             # corners on the half-resolution image (4x cheaper); a track starts wherever its
-            # corner lies, so sub-pixel corner accuracy is not needed
-            small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-            small_mask = cv2.resize(mask, (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
+            # corner lies, so sub-pixel corner accuracy is not needed. No new corner within
+            # min_corner_distance of a live track (discs drawn by one dilation).
+            hs, ws = h // 2, w // 2
+            small = cv2.resize(gray, (ws, hs), interpolation=cv2.INTER_AREA)
+            small_mask = np.zeros((hs, ws), np.uint8)
+            if tracks.shape[0]:
+                iu = np.clip(np.rint(tracks[:, -1] / 2).astype(int), 0, [ws - 1, hs - 1])
+                small_mask[iu[:, 1], iu[:, 0]] = 255
+                r = max(1, int(round(cfg.min_corner_distance / 2)))
+                disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+                small_mask = cv2.dilate(small_mask, disc)
+            small_mask = 255 - small_mask
             corners = cv2.goodFeaturesToTrack(
                 small, int(cfg.max_features - tracks.shape[0]), 0.01, max(1.0, cfg.min_corner_distance / 2),
                 mask=small_mask, blockSize=3,
