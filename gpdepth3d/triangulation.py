@@ -21,11 +21,13 @@ Given posed RGB frames (``T_world_camera``, e.g. from a SLAM system) and intrins
   widen every sigma of that frame); a relative floor ``depth_sigma_floor`` is added in quadrature.
 
 Measured on the 60 shared 7-Scenes frames (the sequence's own poses, colour camera f = 525;
-bench/fusion.py; defaults): +-2 sigma of the points covers ~92 % of their errors against the
-Kinect depth; the median point is ~5 % off. What limits the accuracy there is the poses: with
-them held fixed the median per-frame bias is ~3-4 %, and refining rotations from the images made
-the depth worse (median per-frame |bias| 5 % -> 13 % with the translations held, every 3rd
-frame, 3 neighbours), so
+bench/fusion.py; defaults, `TrackTriangulator` with 4 earlier frames): +-2 sigma of the points
+covers ~93 % of their errors against the Kinect depth (first / second half of the sequence
+93 / 94 %), ~180 points a frame; the median point is ~6 % off. What limits the accuracy there is
+the poses: with them held fixed the median per-frame |bias| is ~3-4 %, and refining the
+neighbours' rotations from the images made the depth worse (median per-frame |bias| 4 % -> 16 %
+with the translations held, every 3rd frame, 3 neighbours; no better with a radial distortion
+of +-0.15 assumed), so
 ``refine_poses`` is off by default and the pose uncertainty goes into sigma instead.
 
 The two-view functions (`triangulate_matches`, `triangulate_pair`) remain: they triangulate one
