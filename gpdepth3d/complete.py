@@ -16,6 +16,7 @@ Input rules (documented once, here):
 from __future__ import annotations
 
 import time
+import warnings
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +44,11 @@ class DepthPosterior:
         depth_scale: The depth scale (metres) that relative units were multiplied by.
         alignment: Scale/shift applied to the MDE (residual formulation), else identity.
         timings: Seconds spent per stage ("fit": hyperparameter fit when config.fit, "setup", "solve").
+        rejected: (N,) bool over ``sparse``: points rejected as outliers (log_residual: their
+            leave-one-out z-score given their neighbours exceeded ``config.outlier_threshold``).
+        warnings: What the posterior could not support, one sentence each (also issued as
+            `PosteriorWarning`): an MDE whose scale disagrees with the points by more than a
+            factor of 2, almost no points, points covering little of the image, many rejected.
     """
 
     mean: np.ndarray
@@ -53,6 +59,13 @@ class DepthPosterior:
     depth_scale: float
     alignment: AlignmentResult = field(default_factory=lambda: AlignmentResult(1.0, 0.0, 0))
     timings: dict = field(default_factory=dict)
+    rejected: np.ndarray | None = None
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def n_rejected(self) -> int:
+        """Number of measurements rejected as outliers."""
+        return 0 if self.rejected is None else int(np.count_nonzero(self.rejected))
 
     @property
     def std(self) -> np.ndarray:
@@ -214,17 +227,10 @@ def _resize(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(depth, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
 
-def build_problem(
-    mde_depth: np.ndarray,
-    sparse: SparseDepth,
-    config: DepthGPConfig,
-    output_shape: tuple[int, int] | None = None,
-) -> tuple[GridProblem, SparseDepth, float, AlignmentResult]:
-    """Turns an MDE map and measurements into the `GridProblem` of ``config``'s formulation.
-
-    Returns:
-        The problem, the measurements on the GP grid, the depth scale (metres) and the alignment.
-    """
+def _frame_inputs(
+    mde_depth: np.ndarray, sparse: SparseDepth, output_shape
+) -> tuple[np.ndarray, np.ndarray, SparseDepth, tuple[int, int]]:
+    """Validates one frame's inputs: (MDE with invalid = 0, valid mask, points on the MDE grid, output shape)."""
     mde, valid = check_mde_depth(mde_depth)
     if not isinstance(sparse, SparseDepth):
         raise ShapeError("sparse", "a SparseDepth", type(sparse).__name__)
@@ -239,8 +245,26 @@ def build_problem(
     grid_sparse = sparse.rasterize((h, w))
     if not valid.any() and len(grid_sparse) == 0:
         raise EmptyInputError("mde_depth, sparse", "at least one valid MDE pixel or measurement", "none")
-    out_shape = check_output_shape(output_shape, (h, w))
+    return mde, valid, grid_sparse, check_output_shape(output_shape, (h, w))
 
+
+def build_problem(
+    mde_depth: np.ndarray,
+    sparse: SparseDepth,
+    config: DepthGPConfig,
+    output_shape: tuple[int, int] | None = None,
+) -> tuple[GridProblem, SparseDepth, float, AlignmentResult]:
+    """Turns an MDE map and measurements into the `GridProblem` of ``config``'s formulation.
+
+    Returns:
+        The problem, the measurements on the GP grid, the depth scale (metres) and the alignment.
+    """
+    if config.formulation == "log_residual":
+        raise InvalidInputError(
+            "config", "the 'balanced' or 'residual' formulation (log_residual: use DepthCompleter)", config.formulation
+        )
+    mde, valid, grid_sparse, out_shape = _frame_inputs(mde_depth, sparse, output_shape)
+    h, w = mde.shape
     scale = float(np.median(mde[valid])) if valid.any() else float(np.median(grid_sparse.depth))
     unit = scale if config.units == "relative" else 1.0
     s, sdl, smeas = config.outputscale * unit, config.sigma_dl * unit, config.sigma_meas * unit
@@ -279,6 +303,131 @@ def build_problem(
         kernel=Kernel(config.nu, config.lengthscale, s),
     )
     return problem, grid_sparse, scale, alignment
+
+
+class PosteriorWarning(UserWarning):
+    """The input of a frame cannot support a confident posterior (see `DepthPosterior.warnings`)."""
+
+
+#: Thresholds of the posterior's warnings (log_residual).
+SCALE_WARN_FACTOR = 2.0
+FEW_POINTS = 10
+COVERAGE_WARN = 0.5
+COVERAGE_REACH = 6.0  # a pixel is far from the points beyond max(H, W) / 6 (taxicab)
+REJECTED_WARN = 0.2
+
+
+def _edge_range(depth: np.ndarray, window: int) -> np.ndarray:
+    """Local depth range (max - min) over a window x window neighbourhood, metres."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    return maximum_filter(depth, window) - minimum_filter(depth, window)
+
+
+def _log_residual_posterior(
+    engine,
+    mde: np.ndarray,
+    valid: np.ndarray,
+    grid_sparse: SparseDepth,
+    out_shape: tuple[int, int],
+    config: DepthGPConfig,
+    *,
+    variance: bool,
+    frame: str | None,
+) -> tuple[np.ndarray, np.ndarray, DepthGPConfig, np.ndarray, tuple[str, ...], AlignmentResult, dict]:
+    """Posterior of the log-residual model (see `gpdepth3d.gp.model`); returns mean, variance, fitted config,
+    rejected mask, warnings, the global scale as an alignment and timings."""
+    from .gp.points import PointFit, screen_points
+
+    t0 = time.perf_counter()
+    h, w = mde.shape
+    base = _fill_invalid(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
+    rows = grid_sparse.v.astype(np.int64)
+    cols = grid_sparse.u.astype(np.int64)
+    z = grid_sparse.depth
+    resid = np.log(z) - np.log(base[rows, cols])
+    sig = grid_sparse.sigma
+    unit = 1.0 if config.units == "metres" else z
+    noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
+    start = None
+    if not config.fit:
+        s2 = config.outputscale**2
+        keep = np.ones(len(z), dtype=bool)
+        b = float(np.median(resid)) if len(z) else 0.0
+        start = PointFit(config.lengthscale, config.outputscale, config.nugget, b, s2 / max(len(z), 1), len(z))
+    if len(z) >= 3 or start is not None:
+        fit, rejected = screen_points(
+            rows, cols, resid, noise, threshold=config.outlier_threshold, nu=config.nu, start=start
+        )
+    else:  # fewer than 3 points: the configured scales, the points' median as the global scale
+        b = float(np.median(resid)) if len(z) else 0.0
+        fit = PointFit(config.lengthscale, config.outputscale, config.nugget, b, config.outputscale**2, len(z))
+        rejected = np.zeros(len(z), dtype=bool)
+    t1 = time.perf_counter()
+
+    keep = ~rejected
+    r, c = rows[keep], cols[keep]
+    precision = np.zeros((h, w))
+    precision[r, c] = 1.0 / (fit.nugget**2 + noise[keep])
+    obs = np.zeros((h, w))
+    obs[r, c] = resid[keep] - fit.log_scale
+    out_rows, out_cols = output_coordinates(h, out_shape[0]), output_coordinates(w, out_shape[1])
+    kernel = Kernel(config.nu, fit.lengthscale, fit.outputscale)
+    zeros_in, zeros_out = np.zeros((h, w)), np.zeros(out_shape)
+    problem = GridProblem(zeros_in, obs, precision, out_rows, out_cols, zeros_out, kernel)
+    g_mean, g_var = engine.solve(problem, variance=variance)
+    if variance:
+        # uncertainty of the global scale b (flat prior): Var[b] (1 - k(x)' (K + N)^-1 1)^2
+        ones = GridProblem(zeros_in, np.where(precision > 0, 1.0, 0.0), precision, out_rows, out_cols, zeros_out, kernel)
+        w1, _ = engine.solve(ones, variance=False)
+        v_log = g_var + fit.nugget**2 + fit.log_scale_var * (1.0 - w1) ** 2
+    else:
+        v_log = np.zeros(out_shape)
+    t2 = time.perf_counter()
+
+    base_out = _resize(base, out_shape)
+    mu = np.log(base_out) + fit.log_scale + g_mean
+    mean = np.exp(mu + 0.5 * v_log)
+    if variance:
+        var = np.expm1(v_log) * np.exp(2.0 * mu + v_log)
+        if config.edge_sigma > 0:
+            factor = max(out_shape[0] / h, out_shape[1] / w)
+            window = 2 * int(np.ceil(factor)) + 1
+            var = var + (config.edge_sigma * np.exp(fit.log_scale) * _edge_range(base_out, window)) ** 2
+    else:
+        var = np.full(out_shape, np.nan)
+
+    fitted = config.replace(lengthscale=fit.lengthscale, outputscale=fit.outputscale, nugget=fit.nugget)
+    name = f"frame {frame}: " if frame is not None else ""
+    messages = []
+    scale = float(np.exp(fit.log_scale))
+    n_kept = int(keep.sum())
+    if len(z) and not 1.0 / SCALE_WARN_FACTOR <= scale <= SCALE_WARN_FACTOR:
+        messages.append(
+            f"{name}the MDE's scale disagrees with the points by a factor of {scale:.2f} "
+            f"(median MDE depth {float(np.median(base)):.2f} m): check the MDE's units or model"
+        )
+    if n_kept < FEW_POINTS:
+        messages.append(
+            f"{name}only {n_kept} usable points: the posterior is the MDE with the prior's variance "
+            f"(s = {fit.outputscale:.2f} in log depth) away from them"
+        )
+    elif n_kept:
+        from scipy.ndimage import distance_transform_cdt
+
+        seen = np.ones((h, w), dtype=bool)
+        seen[r, c] = False
+        reach = max(h, w) / COVERAGE_REACH
+        far = float(np.mean(distance_transform_cdt(seen, metric="taxicab") > reach))
+        if far > COVERAGE_WARN:
+            messages.append(
+                f"{name}the points cover little of the image: {far:.0%} of it is farther than "
+                f"{reach:.0f} px from any point (the variance grows there)"
+            )
+    if len(z) and rejected.mean() > REJECTED_WARN:
+        messages.append(f"{name}{int(rejected.sum())} of {len(z)} points ({rejected.mean():.0%}) rejected as outliers")
+    alignment = AlignmentResult(scale, 0.0, n_kept)
+    return mean, var, fitted, rejected, tuple(messages), alignment, {"fit": t1 - t0, "solve": t2 - t1}
 
 
 class DepthCompleter:
@@ -324,6 +473,7 @@ class DepthCompleter:
         *,
         output_shape: tuple[int, int] | None = None,
         variance: bool = True,
+        frame: str | None = None,
     ) -> DepthPosterior:
         """Posterior depth (mean and variance) given an MDE map and sparse measurements.
 
@@ -332,7 +482,10 @@ class DepthCompleter:
             sparse: Range measurements (any resolution of the same image).
             output_shape: (Ho, Wo) of the result; default (H, W).
             variance: Compute the marginal variance (else it is NaN, and faster).
+            frame: Name of the frame, used in the posterior's warnings.
         """
+        if self.config.formulation == "log_residual":
+            return self._complete_log_residual(mde_depth, sparse, output_shape, variance, frame)
         t0 = time.perf_counter()
         config = self._frame_config(mde_depth, sparse)
         tf = time.perf_counter()
@@ -343,9 +496,7 @@ class DepthCompleter:
         if var is None:
             var = np.full(mean.shape, np.nan)
         mde, valid = check_mde_depth(mde_depth)
-        mde_out = _resize(mde, problem.out_shape)
-        if problem.out_shape != mde.shape:
-            mde_out = np.where(_resize(valid.astype(np.float64), problem.out_shape) > 0.999, mde_out, 0.0)
+        mde_out = self._mde_out(mde, valid, problem.out_shape)
         return DepthPosterior(
             mean=mean,
             variance=var,
@@ -357,6 +508,37 @@ class DepthCompleter:
             timings={"fit": tf - t0, "setup": t1 - tf, "solve": t2 - t1},
         )
 
+    def _complete_log_residual(self, mde_depth, sparse, output_shape, variance, frame) -> DepthPosterior:
+        t0 = time.perf_counter()
+        mde, valid, grid_sparse, out_shape = _frame_inputs(mde_depth, sparse, output_shape)
+        t1 = time.perf_counter()
+        mean, var, fitted, rejected, messages, alignment, times = _log_residual_posterior(
+            self.engine, mde, valid, grid_sparse, out_shape, self.config, variance=variance, frame=frame
+        )
+        for message in messages:
+            warnings.warn(message, PosteriorWarning, stacklevel=3)
+        self.fitted = fitted
+        return DepthPosterior(
+            mean=mean,
+            variance=var,
+            mde=self._mde_out(mde, valid, out_shape),
+            sparse=grid_sparse,
+            config=fitted,
+            depth_scale=float(np.median(mde[valid])) if valid.any() else float(np.median(grid_sparse.depth)),
+            alignment=alignment,
+            timings={"setup": t1 - t0, **times},
+            rejected=rejected,
+            warnings=messages,
+        )
+
+    @staticmethod
+    def _mde_out(mde: np.ndarray, valid: np.ndarray, out_shape: tuple[int, int]) -> np.ndarray:
+        """The input MDE on the output grid (0 where it had no value)."""
+        mde_out = _resize(mde, out_shape)
+        if tuple(out_shape) != mde.shape:
+            mde_out = np.where(_resize(valid.astype(np.float64), out_shape) > 0.999, mde_out, 0.0)
+        return mde_out
+
     __call__ = complete
 
 
@@ -367,9 +549,12 @@ def complete(
     config: DepthGPConfig | None = None,
     output_shape: tuple[int, int] | None = None,
     variance: bool = True,
+    frame: str | None = None,
 ) -> DepthPosterior:
     """Completes one frame: dense posterior depth and variance from an MDE map and sparse depth.
 
     See `DepthCompleter.complete` for the arguments; the module docstring states the input rules.
     """
-    return DepthCompleter(config).complete(mde_depth, sparse, output_shape=output_shape, variance=variance)
+    return DepthCompleter(config).complete(
+        mde_depth, sparse, output_shape=output_shape, variance=variance, frame=frame
+    )

@@ -21,6 +21,22 @@ Formulations:
 * ``residual`` (beyond the paper): the prior mean is the MDE (optionally scale-aligned to the
   measurements); only measurements are observations, so the GP models the spatially correlated
   error of the MDE and keeps MDE detail where no measurement speaks.
+* ``log_residual`` (the default, beyond the paper): the GP models the MDE's error as a log
+  ratio, which is what a monocular network gets wrong (scale, locally and globally)::
+
+      log d(x) = log MDE(x) + b + g(x) + w(x),   g ~ GP(0, s^2 M(du/l) M(dv/l)),  w ~ N(0, tau^2)
+      measurement j:  log z_j = log d(x_j) + e_j,  e_j ~ N(0, (sigma_j / z_j)^2)
+
+  b is a global log scale with a flat prior (generalised least squares), w the white part of the
+  MDE error (the nugget). l, s, tau and b are fitted on each frame's points by marginal
+  likelihood (`gpdepth3d.gp.points`), points whose leave-one-out z-score given their neighbours
+  exceeds ``outlier_threshold`` are rejected, and the engines solve for g with the points as
+  observations of noise tau^2 + (sigma_j / z_j)^2. The depth posterior is log-normal: mean
+  exp(mu + v/2) and variance (exp(v) - 1) exp(2 mu + v), with v = Var[g] + tau^2 + Var[b]
+  (1 - k(x)' (K + N)^-1 1)^2; an edge term (``edge_sigma`` x the local MDE depth range) is
+  added to the variance. Means are positive by construction; errors that scale with depth
+  (outdoors: a few cm at 5 m, metres at 60 m) get variances that scale with depth, and the
+  fitted length scale follows the point density (short with full LiDAR, long with 50 points).
 
 Units: with ``units="relative"`` (the default) ``outputscale``, ``sigma_dl`` and ``sigma_meas``
 are fractions of the frame's depth scale (the median valid MDE depth), which makes the paper's
@@ -41,7 +57,7 @@ import numpy as np
 
 from ..errors import InvalidInputError
 
-Formulation = Literal["balanced", "residual"]
+Formulation = Literal["log_residual", "balanced", "residual"]
 EngineName = Literal["exact", "kissgp", "fast"]
 
 
@@ -50,11 +66,14 @@ class DepthGPConfig:
     """Hyperparameters and options of the GP depth model (see the module docstring for the maths).
 
     Attributes:
-        formulation: "balanced" (paper: MDE pixels and measurements are both observations) or
-            "residual" (MDE is the prior mean, measurements the only observations).
+        formulation: "log_residual" (the default: a GP on log(depth / MDE), fitted per frame,
+            robust to bad points; see the module docstring), "balanced" (the paper: MDE pixels
+            and measurements are both observations) or "residual" (MDE is the prior mean,
+            measurements the only observations).
         nu: Matern smoothness, one of 0.5, 1.5, 2.5.
         lengthscale: Matern length scale, pixels of the GP grid.
-        outputscale: Prior standard deviation s of the field (relative or metres, see units).
+        outputscale: Prior standard deviation s of the field (relative or metres, see units;
+            log_residual: of the log ratio, dimensionless).
         sigma_dl: Noise of an MDE pixel (balanced formulation).
         sigma_meas: Noise of a range measurement (used where a point carries no sigma).
         units: "relative" (scales are fractions of the median MDE depth) or "metres".
@@ -67,23 +86,35 @@ class DepthGPConfig:
             the exact marginal likelihood (`gpdepth3d.gp.fit.fit_hyperparameters`: lengthscale,
             outputscale and, balanced, sigma_dl). A `DepthCompleter` warm-starts each frame's fit
             from the previous frame's values. Costs ~10-60 factorisations per frame.
+            log_residual: lengthscale, outputscale and nugget are fitted on the frame's points
+            (`gpdepth3d.gp.points.fit_log_residual`, a few ms).
+        nugget: log_residual: standard deviation of the white (pixel-level) part of the MDE's log
+            error, dimensionless (used as given when ``fit`` is False).
+        outlier_threshold: log_residual: a point whose leave-one-out z-score given its
+            neighbours exceeds this is rejected (reported on the posterior); None keeps all.
+        edge_sigma: log_residual: extra standard deviation at MDE depth edges, as a share of
+            the MDE's depth range over a 3-pixel window (colour and range sensors are never
+            perfectly registered, and MDE edges are blurred); 0 turns it off.
     """
 
-    formulation: Formulation = "balanced"
+    formulation: Formulation = "log_residual"
     nu: float = 0.5
-    lengthscale: float = 1.5
-    outputscale: float = 1.0
+    lengthscale: float = 32.0
+    outputscale: float = 0.2
     sigma_dl: float = 0.05
-    sigma_meas: float = 0.001
+    sigma_meas: float = 0.01
     units: Literal["relative", "metres"] = "relative"
     align: Literal["none", "scale", "scale_shift"] = "scale"
     engine: EngineName = "fast"
     max_exact_points: int = 6000
-    fit: bool = False
+    fit: bool = True
+    nugget: float = 0.02
+    outlier_threshold: float | None = 4.0
+    edge_sigma: float = 1.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.formulation, str) or self.formulation not in ("balanced", "residual"):
-            raise InvalidInputError("formulation", "'balanced' or 'residual'", self.formulation)
+        if not isinstance(self.formulation, str) or self.formulation not in ("log_residual", "balanced", "residual"):
+            raise InvalidInputError("formulation", "'log_residual', 'balanced' or 'residual'", self.formulation)
         if not _is_real(self.nu) or self.nu not in (0.5, 1.5, 2.5):
             raise InvalidInputError("nu", "0.5, 1.5 or 2.5", f"{type(self.nu).__name__} {self.nu!r}")
         object.__setattr__(self, "nu", float(self.nu))
@@ -106,11 +137,33 @@ class DepthGPConfig:
             raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", self.engine)
         if not isinstance(self.fit, (bool, np.bool_)):
             raise InvalidInputError("fit", "True or False", self.fit)
+        for name in ("nugget", "edge_sigma"):
+            value = getattr(self, name)
+            if not _is_real(value) or not np.isfinite(value) or not 0 <= value <= 1e100:
+                raise InvalidInputError(name, "a finite number >= 0", f"{type(value).__name__} {value!r}")
+            object.__setattr__(self, name, float(value))
+        t = self.outlier_threshold
+        if t is not None and (not _is_real(t) or not np.isfinite(t) or t <= 0):
+            raise InvalidInputError("outlier_threshold", "a z-score > 0, or None", f"{type(t).__name__} {t!r}")
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
-        """The paper's balanced set-up (KITTI, 1/3 resolution)."""
-        return replace(cls(), **overrides)
+        """The paper's balanced set-up exactly as it states it (KITTI, 1/3 resolution).
+
+        nu = 0.5, l = 1.5 px, s = 1, sigma_DL = 0.05, sigma_meas = 0.001 (relative units), fixed
+        hyperparameters, every point kept.
+        """
+        base = cls(
+            formulation="balanced",
+            lengthscale=1.5,
+            outputscale=1.0,
+            sigma_dl=0.05,
+            sigma_meas=0.001,
+            fit=False,
+            outlier_threshold=None,
+            edge_sigma=0.0,
+        )
+        return replace(base, **overrides)
 
     @classmethod
     def residual(cls, **overrides) -> "DepthGPConfig":
@@ -119,7 +172,15 @@ class DepthGPConfig:
         Defaults tuned on 7-Scenes with FastDepth at 320x240 (50-500 points; see README):
         l = 30 px and s = 0.2 x median depth give +-2 sigma coverage ~95 %.
         """
-        base = cls(formulation="residual", lengthscale=30.0, outputscale=0.2, sigma_meas=0.01)
+        base = cls(
+            formulation="residual",
+            lengthscale=30.0,
+            outputscale=0.2,
+            sigma_meas=0.01,
+            fit=False,
+            outlier_threshold=None,
+            edge_sigma=0.0,
+        )
         return replace(base, **overrides)
 
     def replace(self, **changes) -> "DepthGPConfig":

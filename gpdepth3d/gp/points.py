@@ -1,0 +1,261 @@
+"""Statistics of the sparse points under the log-residual model: per-frame fit and outlier rejection.
+
+The default model (`DepthGPConfig.formulation == "log_residual"`, see `gpdepth3d.gp.model`) is a
+GP on the log ratio of true to MDE depth. Its observations are the measured points only, so its
+hyperparameters and its outliers can be judged from the points alone, cheaply:
+
+* `fit_log_residual`: maximum marginal likelihood of (length scale l, nugget share eta, output
+  scale s, global log scale b) on a subset of the points. For each (l, eta) on a small grid the
+  scale s^2 and the constant b are profiled out in closed form (b by generalised least squares
+  with a flat prior, i.e. the REML-style criterion), so a fit costs a few dozen Cholesky
+  factorisations of at most ``max_points`` x ``max_points``.
+* `loo_zscores`: leave-one-out predictive z-scores of every point given its nearest
+  neighbours (local simple kriging with the fitted kernel), vectorised over points.
+* `screen_points`: the robust loop that alternates the two: a point whose LOO z-score exceeds
+  the threshold contradicts the MDE and its neighbours beyond what the model allows and is
+  rejected; the fit is repeated without the rejected points.
+
+Everything works in the GP grid's pixel units and in log-depth (dimensionless) units. This
+module needs nothing above `gpdepth3d.errors`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InvalidInputError
+from .model import matern_1d
+
+#: Length scales (GP-grid pixels) and nugget shares searched by `fit_log_residual`.
+LENGTHSCALES = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
+NUGGETS = (0.01, 0.03, 0.1, 0.3, 1.0)
+
+
+@dataclass(frozen=True)
+class PointFit:
+    """Hyperparameters of the log-residual GP fitted to one frame's points.
+
+    Attributes:
+        lengthscale: l, GP-grid pixels.
+        outputscale: s, standard deviation of the correlated log-ratio field (dimensionless).
+        nugget: tau = s * sqrt(eta), standard deviation of the white part of the MDE's log error.
+        log_scale: b, the generalised-least-squares constant of the log ratio (exp(b) is the
+            global scale that maps the MDE onto the points).
+        log_scale_var: Variance of b (flat prior), from the fitted subset.
+        n_used: Points the fit used.
+    """
+
+    lengthscale: float
+    outputscale: float
+    nugget: float
+    log_scale: float
+    log_scale_var: float
+    n_used: int
+
+
+def _correlation(rows: np.ndarray, cols: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
+    return matern_1d(np.subtract.outer(rows, rows), nu, lengthscale) * matern_1d(
+        np.subtract.outer(cols, cols), nu, lengthscale
+    )
+
+
+def _profile(resid: np.ndarray, corr: np.ndarray, noise: np.ndarray, eta: float, s2_prev: float):
+    """Profiled restricted likelihood for one (l, eta); returns (criterion, s2, b, var_b) or None."""
+    n = resid.size
+    # noise (measurement variance) is absolute; fold it in relative to the current s^2 estimate
+    C = corr.copy()
+    C[np.diag_indices(n)] += eta + noise / s2_prev
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return None
+    from scipy.linalg import solve_triangular
+
+    a1 = solve_triangular(L, np.ones(n), lower=True, check_finite=False)
+    ar = solve_triangular(L, resid, lower=True, check_finite=False)
+    q = float(a1 @ a1)
+    b = float(a1 @ ar) / q
+    a = ar - b * a1
+    s2 = max(float(a @ a) / max(n - 1, 1), 1e-12)
+    crit = 0.5 * (n - 1) * np.log(s2) + float(np.log(np.diag(L)).sum()) + 0.5 * np.log(q)
+    return crit, s2, b, s2 / q
+
+
+def fit_log_residual(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    resid: np.ndarray,
+    noise: np.ndarray,
+    *,
+    nu: float = 0.5,
+    max_points: int = 200,
+    lengthscales: tuple[float, ...] = LENGTHSCALES,
+    nuggets: tuple[float, ...] = NUGGETS,
+    rng: np.random.Generator | None = None,
+) -> PointFit:
+    """Fits (l, s, tau, b) of the log-residual GP to the points by profiled marginal likelihood.
+
+    Args:
+        rows, cols: (N,) pixel coordinates of the points on the GP grid.
+        resid: (N,) log(measured depth / MDE depth).
+        noise: (N,) measurement variance in log units ((sigma / depth)^2).
+        nu: Matern smoothness.
+        max_points: Fit on a random subset of at most this many points (cost max_points^3 per
+            grid cell).
+        lengthscales, nuggets: The grid searched (pixels; shares of s^2).
+        rng: Generator of the subset (default seeded 0: the same frame gives the same fit).
+
+    Returns:
+        The fit. With fewer than 3 points the length scale and nugget are the grid's middle
+        values, s the spread of the residuals (at least 0.1) and b their median.
+    """
+    rows = np.asarray(rows, dtype=np.float64)
+    cols = np.asarray(cols, dtype=np.float64)
+    resid = np.asarray(resid, dtype=np.float64)
+    noise = np.asarray(noise, dtype=np.float64)
+    n = resid.size
+    if not (rows.shape == cols.shape == resid.shape == noise.shape) or resid.ndim != 1:
+        raise InvalidInputError("rows, cols, resid, noise", "four (N,) arrays", (rows.shape, cols.shape, resid.shape, noise.shape))
+    if n < 3:
+        b = float(np.median(resid)) if n else 0.0
+        s = max(float(np.std(resid)) if n > 1 else 0.0, 0.1)
+        return PointFit(lengthscales[len(lengthscales) // 2], s, s * np.sqrt(nuggets[0]), b, s * s, n)
+    if n > max_points:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        pick = np.sort(rng.choice(n, size=max_points, replace=False))
+        rows, cols, resid, noise = rows[pick], cols[pick], resid[pick], noise[pick]
+        n = max_points
+    spread = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
+    s2_guess = max(spread * spread, float(np.median(noise)), 1e-6)
+    best = None
+    for lengthscale in lengthscales:
+        corr = _correlation(rows, cols, lengthscale, nu)
+        for eta in nuggets:
+            out = _profile(resid, corr, noise, eta, s2_guess)
+            if out is not None and (best is None or out[0] < best[0]):
+                best = (out[0], lengthscale, eta, *out[1:])
+    if best is None:  # every cell failed (duplicate points with no noise): fall back to a white model
+        b = float(np.median(resid))
+        return PointFit(lengthscales[0], np.sqrt(s2_guess), np.sqrt(s2_guess), b, s2_guess / n, n)
+    _, lengthscale, eta, s2, b, var_b = best
+    return PointFit(float(lengthscale), float(np.sqrt(s2)), float(np.sqrt(s2 * eta)), b, float(var_b), n)
+
+
+def loo_zscores(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    resid: np.ndarray,
+    noise: np.ndarray,
+    fit: PointFit,
+    *,
+    nu: float = 0.5,
+    neighbours: int = 16,
+    exclude: np.ndarray | None = None,
+) -> np.ndarray:
+    """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
+
+    Point i is predicted by simple kriging (mean b) from its ``neighbours`` nearest points (L1
+    pixel distance) that are not excluded; z_i = (r_i - prediction) / predictive sd, where the
+    predictive variance includes the nugget and point i's own noise. With the exponential
+    kernel's screening effect the nearest neighbours carry almost all of the weight, so this is
+    close to the exact leave-one-out of the full GP at a cost linear in N.
+
+    Args:
+        rows, cols, resid, noise: (N,) as in `fit_log_residual`.
+        fit: The fitted hyperparameters.
+        nu: Matern smoothness.
+        neighbours: Neighbours per point.
+        exclude: (N,) bool, points not to use as neighbours (their own z is still computed).
+
+    Returns:
+        (N,) z-scores (0 where no neighbour is available).
+    """
+    from scipy.spatial import cKDTree
+
+    rows = np.asarray(rows, dtype=np.float64)
+    cols = np.asarray(cols, dtype=np.float64)
+    r = np.asarray(resid, dtype=np.float64) - fit.log_scale
+    noise = np.asarray(noise, dtype=np.float64)
+    n = r.size
+    usable = np.ones(n, dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
+    pool = np.flatnonzero(usable)
+    k = min(int(neighbours), pool.size - 1 if pool.size else 0)
+    if n == 0 or k < 1:
+        return np.zeros(n)
+    tree = cKDTree(np.column_stack([rows[pool], cols[pool]]))
+    _, nn = tree.query(np.column_stack([rows, cols]), k=k + 1, p=1)
+    nn = pool[nn]
+    # drop the point itself where it is among its neighbours, keep the k nearest others
+    order = np.argsort(nn == np.arange(n)[:, None], axis=1, kind="stable")
+    nn = np.take_along_axis(nn, order, axis=1)[:, :k]
+    s2, tau2 = fit.outputscale**2, fit.nugget**2
+    R, C = rows[nn], cols[nn]
+    K = s2 * matern_1d(R[:, :, None] - R[:, None, :], nu, fit.lengthscale) * matern_1d(
+        C[:, :, None] - C[:, None, :], nu, fit.lengthscale
+    )
+    diag = np.arange(k)
+    K[:, diag, diag] += tau2 + noise[nn]
+    kx = s2 * matern_1d(rows[:, None] - R, nu, fit.lengthscale) * matern_1d(cols[:, None] - C, nu, fit.lengthscale)
+    w = np.linalg.solve(K, kx[:, :, None])[:, :, 0]
+    pred = np.sum(w * r[nn], axis=1)
+    var = s2 + tau2 + noise - np.sum(w * kx, axis=1)
+    return (r - pred) / np.sqrt(np.maximum(var, 1e-30))
+
+
+def screen_points(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    resid: np.ndarray,
+    noise: np.ndarray,
+    *,
+    threshold: float | None = 4.0,
+    nu: float = 0.5,
+    max_points: int = 200,
+    iterations: int = 3,
+    start: PointFit | None = None,
+) -> tuple[PointFit, np.ndarray]:
+    """Fits the log-residual GP robustly and flags the points that contradict it.
+
+    Up to ``iterations`` times, the hyperparameters are fitted on the kept points and every
+    point's leave-one-out z-score is computed from its kept neighbours; points with |z| >
+    ``threshold`` are rejected. The loop stops when the rejected set no longer changes. (No
+    global screen comes first: a residual far from the frame's median is often a region where
+    the MDE is badly wrong, which the points must correct, not an outlier; only disagreement
+    with the neighbours marks a point as bad.)
+
+    Args:
+        rows, cols, resid, noise: (N,) as in `fit_log_residual`.
+        threshold: |z| above which a point is rejected; None keeps every point (one fit).
+        nu: Matern smoothness.
+        max_points: Subset size of each fit.
+        iterations: Maximum fit/reject rounds.
+        start: Hyperparameters to use instead of fitting (e.g. fixed ones); rejection still runs.
+
+    Returns:
+        (the fit without the rejected points, (N,) bool mask of rejected points).
+    """
+    resid = np.asarray(resid, dtype=np.float64)
+    n = resid.size
+    rejected = np.zeros(n, dtype=bool)
+    if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
+        raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
+    fit, fitted_on = start, None
+    for _ in range(max(1, iterations) if threshold is not None else 1):
+        keep = ~rejected
+        # refit whenever the kept set changed: one gross outlier among hundreds of points is
+        # enough to inflate the fitted nugget and scale
+        if start is None and (fitted_on is None or not np.array_equal(keep, fitted_on)):
+            fit = fit_log_residual(rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points)
+            fitted_on = keep
+        if threshold is None or n < 5:
+            break
+        z = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected)
+        new = np.abs(z) > threshold
+        if np.array_equal(new, rejected):
+            break
+        rejected = new
+    if fit is None:  # pragma: no cover - the loop always runs once
+        raise AssertionError("no fit")
+    return fit, rejected

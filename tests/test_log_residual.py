@@ -1,0 +1,214 @@
+"""The default model (log_residual): point fit, leave-one-out screening, the posterior's formula,
+robustness to gross outliers, warnings, and accuracy/calibration on real frames."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import gpdepth3d as g
+from gpdepth3d.complete import PosteriorWarning
+from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp.model import matern_1d
+from gpdepth3d.gp.points import PointFit, fit_log_residual, loo_zscores, screen_points
+from gpdepth3d.measurements import SparseDepth
+
+
+def _kernel(rows, cols, l, nu=0.5):
+    return matern_1d(np.subtract.outer(rows, rows), nu, l) * matern_1d(np.subtract.outer(cols, cols), nu, l)
+
+
+def _field_sample(n, h, w, l, s, tau, b, seed):
+    """n random pixels of an (h, w) grid with log residuals drawn from the model."""
+    rng = np.random.default_rng(seed)
+    flat = rng.choice(h * w, size=n, replace=False)
+    rows, cols = (flat // w).astype(float), (flat % w).astype(float)
+    K = s * s * _kernel(rows, cols, l) + tau * tau * np.eye(n)
+    resid = b + np.linalg.cholesky(K + 1e-12 * np.eye(n)) @ rng.standard_normal(n)
+    return rows, cols, resid
+
+
+class TestFitLogResidual:
+    def test_recovers_the_generating_scales(self):
+        rows, cols, resid = _field_sample(400, 120, 160, l=16.0, s=0.25, tau=0.03, b=0.4, seed=0)
+        fit = fit_log_residual(rows, cols, resid, np.full(400, 1e-6), max_points=400)
+        assert 8.0 <= fit.lengthscale <= 32.0
+        assert 0.15 <= fit.outputscale <= 0.4
+        assert abs(fit.log_scale - 0.4) < 3 * np.sqrt(fit.log_scale_var) + 0.05
+        assert fit.n_used == 400
+
+    def test_short_and_long_fields_get_different_length_scales(self):
+        a = fit_log_residual(*_field_sample(300, 120, 160, 4.0, 0.2, 0.01, 0.0, 1), np.full(300, 1e-6), max_points=300)
+        b = fit_log_residual(*_field_sample(300, 120, 160, 64.0, 0.2, 0.01, 0.0, 1), np.full(300, 1e-6), max_points=300)
+        assert a.lengthscale * 4 <= b.lengthscale
+
+    def test_few_points_fall_back(self):
+        fit = fit_log_residual(np.array([1.0]), np.array([2.0]), np.array([0.3]), np.array([1e-4]))
+        assert fit.log_scale == pytest.approx(0.3) and fit.n_used == 1 and fit.outputscale >= 0.1
+
+    def test_mismatched_lengths_raise(self):
+        with pytest.raises(InvalidInputError, match="rows, cols, resid, noise"):
+            fit_log_residual(np.zeros(3), np.zeros(3), np.zeros(4), np.zeros(3))
+
+
+class TestLooZscores:
+    def test_equals_exact_leave_one_out_when_every_point_is_a_neighbour(self):
+        rows, cols, resid = _field_sample(12, 30, 40, 8.0, 0.3, 0.05, 0.1, 3)
+        noise = np.full(12, 1e-4)
+        fit = PointFit(8.0, 0.3, 0.05, 0.1, 0.0, 12)
+        z = loo_zscores(rows, cols, resid, noise, fit, neighbours=11)
+        K = 0.09 * _kernel(rows, cols, 8.0) + np.diag(0.0025 + noise)
+        Ki = np.linalg.inv(K)
+        r = resid - 0.1
+        exact = (Ki @ r) / np.diag(Ki) / np.sqrt(1.0 / np.diag(Ki))
+        np.testing.assert_allclose(z, exact, rtol=1e-8, atol=1e-10)
+
+    def test_flags_a_planted_outlier(self):
+        rows, cols, resid = _field_sample(300, 120, 160, 16.0, 0.2, 0.02, 0.0, 4)
+        resid[17] += 1.5
+        fit = fit_log_residual(rows, cols, resid, np.full(300, 1e-6))
+        z = loo_zscores(rows, cols, resid, np.full(300, 1e-6), fit)
+        assert np.argmax(np.abs(z)) == 17 and abs(z[17]) > 6
+
+
+class TestScreenPoints:
+    def test_rejects_gross_outliers_and_keeps_the_rest(self):
+        rows, cols, resid = _field_sample(400, 120, 160, 16.0, 0.2, 0.02, 0.0, 5)
+        rng = np.random.default_rng(5)
+        bad = rng.choice(400, 20, replace=False)
+        resid[bad] += np.log(rng.choice([0.15, 0.3, 2.5, 3.0], 20))
+        fit, rejected = screen_points(rows, cols, resid, np.full(400, 1e-6))
+        assert set(bad) <= set(np.flatnonzero(rejected))
+        assert rejected.sum() <= 20 + 4
+        assert 0.1 <= fit.outputscale <= 0.35  # fitted without the outliers
+
+    def test_threshold_none_keeps_all(self):
+        rows, cols, resid = _field_sample(50, 30, 40, 8.0, 0.2, 0.02, 0.0, 6)
+        resid[3] += 3.0
+        _, rejected = screen_points(rows, cols, resid, np.full(50, 1e-6), threshold=None)
+        assert not rejected.any()
+
+    @pytest.mark.parametrize("threshold", [0.0, -1.0, float("nan")])
+    def test_bad_threshold_raises(self, threshold):
+        with pytest.raises(InvalidInputError, match="threshold"):
+            screen_points(np.zeros(5), np.arange(5.0), np.zeros(5), np.ones(5), threshold=threshold)
+
+
+def _scene(h=24, w=32, seed=0):
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0:h, 0:w]
+    truth = 2.0 + 0.5 * np.sin(rr / 6.0) + 0.3 * cc / w
+    mde = truth * np.exp(0.15 * np.sin(cc / 9.0 + 1.0) + 0.05 * rng.standard_normal((h, w))) * 0.8
+    return truth, mde
+
+
+class TestLogResidualPosterior:
+    def test_matches_a_dense_reference(self):
+        """Fixed hyperparameters, no rejection, no edge term: the posterior is a closed form."""
+        truth, mde = _scene()
+        h, w = mde.shape
+        sp = g.sample_uniform(truth, n=40, rng=1)
+        cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
+                              nugget=0.04, sigma_meas=0.01)
+        post = g.complete(mde, sp, config=cfg)
+        rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
+        r = np.log(z) - np.log(mde[rows, cols])
+        b = np.median(r)
+        n = len(z)
+        noise = 0.04**2 + 0.01**2
+        K = 0.09 * _kernel(rows.astype(float), cols.astype(float), 6.0) + noise * np.eye(n)
+        R, C = np.mgrid[0:h, 0:w]
+        kx = 0.09 * matern_1d(R.ravel()[:, None] - rows[None], 0.5, 6.0) * matern_1d(C.ravel()[:, None] - cols[None], 0.5, 6.0)
+        Ki = np.linalg.inv(K)
+        g_mean = kx @ Ki @ (r - b)
+        g_var = 0.09 - np.sum((kx @ Ki) * kx, 1)
+        w1 = kx @ Ki @ np.ones(n)
+        v = g_var + 0.04**2 + (0.09 / n) * (1 - w1) ** 2
+        mu = np.log(mde.ravel()) + b + g_mean
+        np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
+        np.testing.assert_allclose(post.variance.ravel(), np.expm1(v) * np.exp(2 * mu + v), rtol=1e-8)
+        assert post.n_rejected == 0 and post.alignment.scale == pytest.approx(np.exp(b))
+
+    def test_engines_agree(self):
+        truth, mde = _scene(seed=2)
+        sp = g.sample_uniform(truth, n=60, rng=2)
+        a = g.complete(mde, sp)
+        b = g.complete(mde, sp, config=g.DepthGPConfig(engine="exact"))
+        np.testing.assert_allclose(a.mean, b.mean, rtol=1e-9)
+        np.testing.assert_allclose(a.variance, b.variance, rtol=1e-7)
+        assert a.config.lengthscale == b.config.lengthscale  # fitted, reported on the posterior
+
+    def test_upsampled_output(self):
+        truth, mde = _scene(seed=3)
+        sp = g.sample_uniform(truth, n=80, rng=3)
+        post = g.complete(mde, sp, output_shape=(48, 64))
+        assert post.mean.shape == (48, 64) and np.all(post.mean > 0) and np.all(post.variance > 0)
+        small = g.complete(mde, sp)
+        assert abs(np.median(post.mean) - np.median(small.mean)) < 0.02
+
+    def test_wrong_point_far_too_close_is_rejected_and_mean_stays_positive(self):
+        """The mapping crash: one point at 0.15 m where the surface is at 1.85 m, sigma 2 mm."""
+        truth, mde = _scene(seed=4)
+        sp = g.sample_uniform(truth, n=120, rng=4)
+        depth = sp.depth.copy()
+        depth[0] = 0.08 * truth[int(sp.v[0]), int(sp.u[0])]
+        bad = SparseDepth(sp.u, sp.v, depth, sp.image_size, np.full(len(depth), 0.002))
+        post = g.complete(mde, bad)
+        assert post.rejected[np.flatnonzero((post.sparse.u == sp.u[0]) & (post.sparse.v == sp.v[0]))[0]]
+        assert np.all(post.mean > 0)
+        clean = g.complete(mde, SparseDepth(sp.u, sp.v, sp.depth, sp.image_size, np.full(len(depth), 0.002)))
+        assert np.sqrt(np.mean((post.mean - truth) ** 2)) < 1.1 * np.sqrt(np.mean((clean.mean - truth) ** 2)) + 1e-3
+
+    def test_no_points_gives_the_mde_with_the_prior_variance(self):
+        truth, mde = _scene(seed=5)
+        empty = SparseDepth(np.zeros(0), np.zeros(0), np.zeros(0), (24, 32))
+        with pytest.warns(PosteriorWarning, match="only 0 usable points"):
+            post = g.complete(mde, empty)
+        s = g.DepthGPConfig().outputscale
+        np.testing.assert_allclose(np.log(post.mean), np.log(mde) + 0.5 * (s * s + 0.02**2 + s * s), rtol=1e-6)
+        assert post.warnings and post.n_rejected == 0
+
+    def test_scale_disagreement_warns_and_is_corrected(self):
+        truth, mde = _scene(seed=6)
+        sp = g.sample_uniform(truth * 7.0, n=100, rng=6)
+        with pytest.warns(PosteriorWarning, match="factor of"):
+            post = g.complete(mde, sp, frame="000042")
+        assert "frame 000042" in post.warnings[0]
+        assert abs(np.median(post.mean) / np.median(truth * 7.0) - 1) < 0.1
+
+    def test_points_in_a_corner_warn_and_variance_grows_away_from_them(self):
+        rr, cc = np.mgrid[0:60, 0:80]
+        truth = 3.0 + 0.2 * np.sin(rr / 7.0)
+        mde = truth * np.exp(0.2 * np.sin(cc / 3.0) * np.cos(rr / 4.0))
+        corner = np.where((rr < 12) & (cc < 16), truth, 0.0)
+        sp = g.sample_uniform(corner, n=60, rng=7)
+        with pytest.warns(PosteriorWarning, match="cover little of the image"):
+            post = g.complete(mde, sp, config=g.DepthGPConfig(edge_sigma=0.0))
+        assert post.std[55, 75] > 3 * post.std[5, 5]
+
+    def test_clean_frame_gives_no_warning(self):
+        truth, mde = _scene(seed=8)
+        sp = g.sample_uniform(truth, n=150, rng=8)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", PosteriorWarning)
+            post = g.complete(mde, sp)
+        assert post.warnings == ()
+
+    def test_build_problem_refuses_log_residual(self):
+        from gpdepth3d.complete import build_problem
+
+        truth, mde = _scene()
+        with pytest.raises(InvalidInputError, match="log_residual"):
+            build_problem(mde, g.sample_uniform(truth, n=5, rng=0), g.DepthGPConfig())
+
+    @pytest.mark.parametrize("field, value", [("nugget", -1.0), ("edge_sigma", float("nan")), ("outlier_threshold", 0.0)])
+    def test_config_validation(self, field, value):
+        with pytest.raises(InvalidInputError, match=field):
+            g.DepthGPConfig(**{field: value})
+
+    def test_paper_preset_is_the_paper(self):
+        p = g.DepthGPConfig.paper()
+        assert (p.formulation, p.nu, p.lengthscale, p.outputscale, p.sigma_dl, p.sigma_meas, p.fit) == (
+            "balanced", 0.5, 1.5, 1.0, 0.05, 0.001, False)
