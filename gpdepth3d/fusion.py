@@ -705,8 +705,6 @@ class TSDFFusion:
             EmptyInputError: if nothing was integrated, or (without ``allow_empty``) no surface
                 passes ``weight_threshold``.
         """
-        from scipy.spatial import cKDTree
-
         self._check_nonempty()
         pcd = self.vbg.extract_point_cloud(float(self.config.weight_threshold)).cpu()
         if "positions" not in pcd.point or pcd.point.positions.shape[0] == 0:
@@ -719,11 +717,40 @@ class TSDFFusion:
             colors = np.clip(np.rint(pcd.point.colors.numpy() * 255.0), 0, 255).astype(np.uint8)
         else:
             colors = np.full((n, 3), 128, np.uint8)
-        vox = self.voxels()
-        _, nearest = cKDTree(vox["coords"]).query(pts)
-        conf = np.clip(vox["weight"][nearest] / self.config.weight_cap, 0.0, 1.0)
-        var = vox["variance"][nearest] if "variance" in vox else np.full(n, np.nan)
+        flat = self._nearest_voxels(pts)
+        weight = self.vbg.attribute("weight").cpu().numpy().reshape(-1)[flat].astype(np.float64)
+        conf = np.clip(weight / self.config.weight_cap, 0.0, 1.0)
+        if self.config.integrate_variance:
+            var = self.vbg.attribute("variance").cpu().numpy().reshape(-1)[flat].astype(np.float64)
+        else:
+            var = np.full(n, np.nan)
         return ColoredCloud(pts, colors, var, conf, np.full(n, np.nan))
+
+    def _nearest_voxels(self, points: np.ndarray) -> np.ndarray:
+        """(N,) flat buffer indices of the voxels nearest to (N, 3) world points (on extracted surfaces).
+
+        A voxel's sample point is at ``voxel_size * index``; Open3D stores a block's voxels at
+        ``buffer_index * res^3 + (z * res + y) * res + x``. Points whose nearest voxel's block
+        does not exist fall back to a nearest-neighbour search over the observed voxels.
+        """
+        res = int(self.config.block_resolution)
+        vi = np.rint(points / float(self.config.voxel_size)).astype(np.int64)
+        blocks = np.floor_divide(vi, res)
+        local = vi - blocks * res
+        keys = _blocks_to_keys(blocks)
+        uniq, inverse = np.unique(keys, return_inverse=True)
+        buf, found = self.vbg.hashmap().find(self._o3c.Tensor(_keys_to_blocks(uniq), device=self._device))
+        buf = buf.cpu().numpy().astype(np.int64).reshape(-1)[inverse]
+        found = found.cpu().numpy().astype(bool).reshape(-1)[inverse]
+        flat = buf * res**3 + (local[:, 2] * res + local[:, 1]) * res + local[:, 0]
+        if not found.all():
+            from scipy.spatial import cKDTree
+
+            hashmap = self.vbg.hashmap()
+            coords, idx = self.vbg.voxel_coordinates_and_flattened_indices(hashmap.active_buf_indices())
+            _, near = cKDTree(coords.cpu().numpy()).query(points[~found])
+            flat[~found] = idx.cpu().numpy().astype(np.int64)[near]
+        return flat
 
     def save_mesh(self, path: str | Path) -> Path:
         """Extracts the mesh and writes it (PLY, GLB or OBJ by suffix) atomically."""
