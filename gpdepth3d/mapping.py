@@ -555,7 +555,7 @@ class Mapper:
             # multi-view tracks followed frame to frame (one KLT step per frame)
             if getattr(self, "_tracker", None) is None:
                 self._tracker = TrackTriangulator(self.camera, cfg.triangulation, window=int(cfg.window))
-            return self._tracker.add(rgb, T)
+            return self._tracker.add(rgb, T, key=kid)
         feats = detect_features(rgb, config=cfg.triangulation)
         partners = [item for item in self._window if np.linalg.norm(item[1][:3, 3] - T[:3, 3]) >= cfg.min_baseline]
         self._window.append([rgb, T, feats, kid])
@@ -611,6 +611,8 @@ class Mapper:
         for item in self._window:
             if item[3] in new:
                 item[1] = new[item[3]]
+        if getattr(self, "_tracker", None) is not None:  # the poses the next triangulations use
+            self._tracker.update_poses(new)
         frames_before = self.fusion.frames_integrated
         self.fusion.reset_blocks(blocks)
         redone = []
