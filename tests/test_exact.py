@@ -75,9 +75,9 @@ def inputs(seed=0):
 
 
 CONFIGS = [
-    DepthGPConfig(engine="exact", nu=0.5, lengthscale=1.5),
-    DepthGPConfig(engine="exact", nu=1.5, lengthscale=2.0, sigma_dl=0.1, sigma_meas=0.01),
-    DepthGPConfig(engine="exact", nu=2.5, lengthscale=1.0, outputscale=0.5, units="metres"),
+    DepthGPConfig.paper(engine="exact", nu=0.5, lengthscale=1.5),
+    DepthGPConfig.paper(engine="exact", nu=1.5, lengthscale=2.0, sigma_dl=0.1, sigma_meas=0.01),
+    DepthGPConfig.paper(engine="exact", nu=2.5, lengthscale=1.0, outputscale=0.5, units="metres"),
     DepthGPConfig.residual(engine="exact", align="none", lengthscale=3.0),
     DepthGPConfig.residual(engine="exact", align="none", nu=2.5, lengthscale=2.0, units="metres"),
 ]
@@ -161,7 +161,7 @@ class TestExactEngineSolve:
         with pytest.raises(ProblemTooLargeError):
             ExactEngine(max_cross_entries=10 * H * W - 1).solve(p)
         with pytest.raises(ProblemTooLargeError):
-            complete(*inputs(), config=DepthGPConfig(engine="exact", max_exact_points=10))
+            complete(*inputs(), config=DepthGPConfig.paper(engine="exact", max_exact_points=10))
 
     def test_build_problem_feeds_the_engine(self):
         mde, sparse = inputs()

@@ -32,7 +32,7 @@ from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.kissgp import ConvergenceError, KissGPEngine, PixelGridInterpolationKernel, default_device
 from gpdepth3d.gp.model import Kernel
 
-CONFIGS = {"balanced": DepthGPConfig(), "residual": DepthGPConfig.residual()}
+CONFIGS = {"balanced": DepthGPConfig.paper(), "residual": DepthGPConfig.residual()}
 
 
 def rms(a: np.ndarray) -> float:
