@@ -19,6 +19,20 @@ Resolution: ``camera`` describes the RGB images given to `Mapper.add_frame`; fea
 detected at that resolution, while refinement and fusion run at ``working_scale`` times it
 (e.g. 0.5 for 320x240 from 640x480).
 
+Robustness: after its arguments are validated, a frame never raises. A posterior mean <= 0 or
+not finite is masked and counted before fusion; a stage that fails (the MDE front-end, the GP,
+the fusion of a frame with nothing in range) is recorded on the `FrameResult` and in
+`Mapper.failures`, naming the frame, and the sequence goes on. Map points outside the image,
+behind the camera or not finite are counted (`MapPointStats`), and a pose under which the map
+points look inverted warns (`gpdepth3d.trajectories.InvertedPoseWarning`).
+
+Back-end interface: every fused frame is kept in a keyframe store (depth, variance, pose and
+colour at the working resolution, by keyframe id). `Mapper.update_poses` applies a loop
+closure by rebuilding only the TSDF blocks the moved keyframes reached before or reach now,
+which gives exactly the volume of fusing every keyframe from scratch with the new poses.
+`Mapper.save` / `Mapper.load` write and read the map (volume and keyframe store). Poses of a
+back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.trajectories`.
+
 `fuse_sequence` / `fuse_command` run the whole pipeline on a 7-Scenes-style sequence and build
 the meshes from MDE-only, GP-refined and ground-truth depth with accuracy/completeness metrics.
 """
