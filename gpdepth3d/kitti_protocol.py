@@ -320,7 +320,9 @@ class KittiMethods:
             return out, None, time.perf_counter() - t0
         if method in ("gp_paper", "gp_default"):
             config = self.paper if method == "gp_paper" else self.default
-            post = self._completer(config).complete(
+            completer = self._completer(config)
+            completer.fitted = None  # with config.fit: every call fits from the config, as complete() would
+            post = completer.complete(
                 setup.mde_grid, sparse, output_shape=setup.full_shape if full else None
             )
             return post.mean, post.variance, time.perf_counter() - t0
@@ -405,14 +407,33 @@ def run_kitti_protocol(
     methods = methods or KittiMethods()
     rows: list[dict] = []
     for index, (name, rgb, lidar) in enumerate(frames):
-        rng = np.random.default_rng([config.seed, index])
-        setup = prepare_kitti_frame(name, rgb, lidar, mde, factor=config.factor, holdout=config.holdout, rng=rng)
-        rows.extend(evaluate_kitti_frame(setup, config, methods=methods, rng=rng))
+        rows.extend(run_kitti_frame(name, rgb, lidar, mde, config, index=index, methods=methods))
         if progress is not None:
             progress(name)
     if not rows:
         raise EmptyInputError("frames", "at least one frame", 0)
     return rows
+
+
+def run_kitti_frame(
+    name: str,
+    rgb: np.ndarray,
+    lidar_depth: np.ndarray,
+    mde: Callable[[np.ndarray], np.ndarray],
+    config: KittiProtocolConfig | None = None,
+    *,
+    index: int = 0,
+    methods: KittiMethods | None = None,
+) -> list[dict]:
+    """The protocol on one frame, seeded by ``numpy.random.default_rng([config.seed, index])``
+    (``index`` = the frame's position in its dataset, so a frame's draws do not depend on which
+    other frames are run); rows as `evaluate_kitti_frame`."""
+    config = config or KittiProtocolConfig()
+    if isinstance(index, bool) or int(index) != index or index < 0:
+        raise InvalidInputError("index", "an integer >= 0", index)
+    rng = np.random.default_rng([config.seed, int(index)])
+    setup = prepare_kitti_frame(name, rgb, lidar_depth, mde, factor=config.factor, holdout=config.holdout, rng=rng)
+    return evaluate_kitti_frame(setup, config, methods=methods, rng=rng)
 
 
 def summarize_kitti(rows: Sequence[dict]) -> list[dict]:
