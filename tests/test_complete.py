@@ -12,7 +12,7 @@ from gpdepth3d.io import load_depth
 from gpdepth3d.measurements import SparseDepth, downsample_depth
 from gpdepth3d.metrics import calibration_metrics, depth_metrics
 
-EXACT = DepthGPConfig(engine="exact")
+EXACT = DepthGPConfig.paper(engine="exact")
 RESIDUAL = DepthGPConfig.residual(engine="exact")
 
 

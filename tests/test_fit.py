@@ -52,7 +52,7 @@ class TestLogMarginalLikelihood:
         mde = f + rng.normal(0, 0.3, small)
         r, c = np.divmod(rng.choice(small[0] * small[1], 20, replace=False), small[1])
         sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), f[r, c], small)
-        cfg = DepthGPConfig(units="metres", lengthscale=2.0, outputscale=1.2, sigma_dl=0.3, sigma_meas=0.05)
+        cfg = DepthGPConfig.paper(units="metres", lengthscale=2.0, outputscale=1.2, sigma_dl=0.3, sigma_meas=0.05)
         assert log_marginal_likelihood(mde, sparse, cfg) == pytest.approx(dense_balanced_lml(mde, sparse, cfg), rel=1e-9)
 
     def test_residual_matches_dense(self):
@@ -73,7 +73,7 @@ class TestFitHyperparameters:
     def test_recovers_balanced_parameters_and_improves_lml(self):
         rng = np.random.default_rng(2)
         mde, sparse = balanced_frame(rng, lengthscale=3.0, s=1.0, sdl=0.3, smeas=0.02)
-        start = DepthGPConfig(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02)
+        start = DepthGPConfig.paper(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02)
         fitted = fit_hyperparameters(mde, sparse, start, max_iterations=30)
         assert fitted.lengthscale == pytest.approx(3.0, rel=0.4)
         assert fitted.outputscale == pytest.approx(1.0, rel=0.4)
@@ -97,11 +97,11 @@ class TestFitHyperparameters:
     def test_bad_arguments(self):
         mde, sparse = balanced_frame(np.random.default_rng(4), n_points=10)
         with pytest.raises(InvalidInputError):
-            fit_hyperparameters(mde, sparse, DepthGPConfig(), params=("bogus",))
+            fit_hyperparameters(mde, sparse, DepthGPConfig.paper(), params=("bogus",))
         with pytest.raises(InvalidInputError):
             fit_hyperparameters(mde, sparse, DepthGPConfig.residual(), params=("sigma_dl",))
         with pytest.raises(InvalidInputError):
-            fit_hyperparameters(mde, sparse, DepthGPConfig(), max_iterations=0)
+            fit_hyperparameters(mde, sparse, DepthGPConfig.paper(), max_iterations=0)
         with pytest.raises(InvalidInputError):
             fit_hyperparameters(mde, sparse, "config")
 
@@ -112,7 +112,7 @@ class TestFitOption:
         import gpdepth3d.gp.fit as fitmod
 
         rng = np.random.default_rng(5)
-        start = DepthGPConfig(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02, fit=True)
+        start = DepthGPConfig.paper(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02, fit=True)
         completer = DepthCompleter(start)
         starts = []
         real = fitmod.fit_hyperparameters

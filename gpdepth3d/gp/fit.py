@@ -106,6 +106,13 @@ def fit_hyperparameters(
     names = tuple(params) if params is not None else _default_params(config)
     if not names or any(n not in _BOUNDS for n in names) or len(set(names)) != len(names):
         raise InvalidInputError("params", f"distinct names from {sorted(_BOUNDS)}", params)
+    if config.formulation == "log_residual":
+        raise InvalidInputError(
+            "config",
+            "the 'balanced' or 'residual' formulation (log_residual is fitted per frame on its points by "
+            "DepthCompleter, see gpdepth3d.gp.points)",
+            config.formulation,
+        )
     if config.formulation == "residual" and "sigma_dl" in names:
         raise InvalidInputError("params", "no sigma_dl in the residual formulation (MDE pixels are not observed)", names)
     if not isinstance(max_iterations, int) or max_iterations < 1:

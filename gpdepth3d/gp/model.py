@@ -109,7 +109,7 @@ class DepthGPConfig:
     max_exact_points: int = 6000
     fit: bool = True
     nugget: float = 0.02
-    outlier_threshold: float | None = 4.0
+    outlier_threshold: float | None = 3.5
     edge_sigma: float = 1.0
 
     def __post_init__(self) -> None:
