@@ -15,6 +15,7 @@ from .cloud import backproject_depth as backproject_depth
 from .cloud import backproject_posterior as backproject_posterior
 from .complete import DepthCompleter as DepthCompleter
 from .complete import DepthPosterior as DepthPosterior
+from .complete import PosteriorWarning as PosteriorWarning
 from .complete import complete as complete
 from .datasets import Frame as Frame
 from .datasets import open_dataset as open_dataset

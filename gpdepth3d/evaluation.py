@@ -73,6 +73,7 @@ METHODS: tuple[str, ...] = (
     "mde",
     "mde_scale",
     "ip_basic",
+    "gp_default",
     "gp_balanced",
     "gp_balanced_fit",
     "gp_residual",
@@ -294,6 +295,10 @@ class MethodSuite:
             return MethodOutput(fit.apply(mde), None, time.perf_counter() - t0)
         if name == "ip_basic":
             return MethodOutput(ip_basic(sparse, shape), None, time.perf_counter() - t0)
+        if name == "gp_default":  # the library's default model, warm-started along the sequence
+            completer = self._completers.setdefault("gp_default", DepthCompleter(DepthGPConfig()))
+            post = completer.complete(mde, sparse)
+            return MethodOutput(post.mean, post.variance, time.perf_counter() - t0, f"{post.n_rejected} rejected")
         if name == "gp_residual":
             post = self._completer(self.residual, len(sparse), mde.size).complete(mde, sparse)
             return MethodOutput(post.mean, post.variance, time.perf_counter() - t0)
@@ -778,7 +783,7 @@ def eval_command(
         frames: Use at most this many frames (after ``stride``).
         stride: Use every stride-th frame.
         resolution: Evaluation resolution relative to the images (0.5 = half).
-        methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_balanced,
+        methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_default, gp_balanced,
             gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
             gp_balanced_fit, which fits per frame and level: ~10-60 factorisations each).
         model: The front-end's model file (default: its file in ../models beside the data

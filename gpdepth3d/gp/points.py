@@ -54,11 +54,17 @@ class PointFit:
     log_scale_var: float
     n_used: int
 
+    @property
+    def eta(self) -> float:
+        """Nugget share (tau / s)^2."""
+        return (self.nugget / self.outputscale) ** 2 if self.outputscale > 0 else 0.0
+
 
 def _correlation(rows: np.ndarray, cols: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
-    return matern_1d(np.subtract.outer(rows, rows), nu, lengthscale) * matern_1d(
-        np.subtract.outer(cols, cols), nu, lengthscale
-    )
+    dr, dc = np.abs(np.subtract.outer(rows, rows)), np.abs(np.subtract.outer(cols, cols))
+    if nu == 0.5:  # the separable exponential is one exponential of the L1 distance
+        return np.exp(-(dr + dc) / lengthscale)
+    return matern_1d(dr, nu, lengthscale) * matern_1d(dc, nu, lengthscale)
 
 
 def _profile(resid: np.ndarray, corr: np.ndarray, noise: np.ndarray, eta: float, s2_prev: float):
@@ -90,10 +96,11 @@ def fit_log_residual(
     noise: np.ndarray,
     *,
     nu: float = 0.5,
-    max_points: int = 200,
+    max_points: int = 150,
     lengthscales: tuple[float, ...] = LENGTHSCALES,
     nuggets: tuple[float, ...] = NUGGETS,
     rng: np.random.Generator | None = None,
+    around: tuple[float, float] | None = None,
 ) -> PointFit:
     """Fits (l, s, tau, b) of the log-residual GP to the points by profiled marginal likelihood.
 
@@ -106,6 +113,9 @@ def fit_log_residual(
             grid cell).
         lengthscales, nuggets: The grid searched (pixels; shares of s^2).
         rng: Generator of the subset (default seeded 0: the same frame gives the same fit).
+        around: (l, eta) of a previous fit (the frame before in a sequence): instead of the
+            whole grid, a pattern search starts at the grid cell nearest to it and moves to the
+            best neighbouring cell until none is better (a few cells instead of all).
 
     Returns:
         The fit. With fewer than 3 points the length scale and nugget are the grid's middle
@@ -129,13 +139,38 @@ def fit_log_residual(
         n = max_points
     spread = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
     s2_guess = max(spread * spread, float(np.median(noise)), 1e-6)
-    best = None
-    for lengthscale in lengthscales:
-        corr = _correlation(rows, cols, lengthscale, nu)
-        for eta in nuggets:
-            out = _profile(resid, corr, noise, eta, s2_guess)
-            if out is not None and (best is None or out[0] < best[0]):
-                best = (out[0], lengthscale, eta, *out[1:])
+    corr_cache: dict[int, np.ndarray] = {}
+    scores: dict[tuple[int, int], tuple | None] = {}
+
+    def score(i: int, j: int):
+        if (i, j) not in scores:
+            if i not in corr_cache:
+                corr_cache[i] = _correlation(rows, cols, lengthscales[i], nu)
+            scores[(i, j)] = _profile(resid, corr_cache[i], noise, nuggets[j], s2_guess)
+        return scores[(i, j)]
+
+    if around is None:
+        cells = [(i, j) for i in range(len(lengthscales)) for j in range(len(nuggets))]
+        for cell in cells:
+            score(*cell)
+    else:  # pattern search from the previous fit
+        i = int(np.argmin(np.abs(np.log(np.asarray(lengthscales) / max(around[0], 1e-9)))))
+        j = int(np.argmin(np.abs(np.log(np.asarray(nuggets) / max(around[1], 1e-9)))))
+        while True:
+            here = score(i, j)
+            moves = [
+                (a, b)
+                for a in (i - 1, i, i + 1)
+                for b in (j - 1, j, j + 1)
+                if 0 <= a < len(lengthscales) and 0 <= b < len(nuggets) and (a, b) != (i, j)
+            ]
+            cand = [(score(a, b), (a, b)) for a, b in moves]
+            cand = [(c[0], ab) for c, ab in cand if c is not None]
+            if not cand or (here is not None and min(cand)[0] >= here[0]):
+                break
+            i, j = min(cand)[1]
+    valid = [(out[0], lengthscales[i], nuggets[j], *out[1:]) for (i, j), out in scores.items() if out is not None]
+    best = min(valid) if valid else None
     if best is None:  # every cell failed (duplicate points with no noise): fall back to a white model
         b = float(np.median(resid))
         return PointFit(lengthscales[0], np.sqrt(s2_guess), np.sqrt(s2_guess), b, s2_guess / n, n)
@@ -151,7 +186,7 @@ def loo_zscores(
     fit: PointFit,
     *,
     nu: float = 0.5,
-    neighbours: int = 16,
+    neighbours: int = 12,
     exclude: np.ndarray | None = None,
 ) -> np.ndarray:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
@@ -192,12 +227,16 @@ def loo_zscores(
     nn = np.take_along_axis(nn, order, axis=1)[:, :k]
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
-    K = s2 * matern_1d(R[:, :, None] - R[:, None, :], nu, fit.lengthscale) * matern_1d(
-        C[:, :, None] - C[:, None, :], nu, fit.lengthscale
-    )
+
+    def corr(dr: np.ndarray, dc: np.ndarray) -> np.ndarray:
+        if nu == 0.5:
+            return np.exp(-(np.abs(dr) + np.abs(dc)) / fit.lengthscale)
+        return matern_1d(dr, nu, fit.lengthscale) * matern_1d(dc, nu, fit.lengthscale)
+
+    K = s2 * corr(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :])
     diag = np.arange(k)
     K[:, diag, diag] += tau2 + noise[nn]
-    kx = s2 * matern_1d(rows[:, None] - R, nu, fit.lengthscale) * matern_1d(cols[:, None] - C, nu, fit.lengthscale)
+    kx = s2 * corr(rows[:, None] - R, cols[:, None] - C)
     w = np.linalg.solve(K, kx[:, :, None])[:, :, 0]
     pred = np.sum(w * r[nn], axis=1)
     var = s2 + tau2 + noise - np.sum(w * kx, axis=1)
@@ -212,9 +251,10 @@ def screen_points(
     *,
     threshold: float | None = 4.0,
     nu: float = 0.5,
-    max_points: int = 200,
+    max_points: int = 150,
     iterations: int = 3,
     start: PointFit | None = None,
+    around: tuple[float, float] | None = None,
 ) -> tuple[PointFit, np.ndarray]:
     """Fits the log-residual GP robustly and flags the points that contradict it.
 
@@ -232,6 +272,7 @@ def screen_points(
         max_points: Subset size of each fit.
         iterations: Maximum fit/reject rounds.
         start: Hyperparameters to use instead of fitting (e.g. fixed ones); rejection still runs.
+        around: (l, eta) to start the fits' pattern search from (see `fit_log_residual`).
 
     Returns:
         (the fit without the rejected points, (N,) bool mask of rejected points).
@@ -247,8 +288,10 @@ def screen_points(
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
         # enough to inflate the fitted nugget and scale
         if start is None and (fitted_on is None or not np.array_equal(keep, fitted_on)):
-            fit = fit_log_residual(rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points)
-            fitted_on = keep
+            fit = fit_log_residual(
+                rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points, around=around
+            )
+            fitted_on, around = keep, (fit.lengthscale, fit.eta)
         if threshold is None or n < 5:
             break
         z = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected)

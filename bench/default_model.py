@@ -1,0 +1,157 @@
+"""Measures the default model (`DepthGPConfig()`, log-residual) against its targets on real data.
+
+* 7-Scenes (../shared/data/7scenes), FastDepth at 320x240, uniform samples of the Kinect depth
+  (50 / 200 / 500 points), scored on the dense Kinect depth: RMSE, +-2 sigma coverage, and the
+  same with 5 % of the points replaced by gross outliers (depth x U(0.1, 3), the sigma of a good
+  point): RMSE rise, points rejected, smallest posterior mean.
+* vio_sparse: real SLAM points, 20 % of them held out (seeded) as ground truth; the default model
+  against FastDepth scaled to the other 80 % (robust median ratio).
+
+One DepthCompleter per protocol, as a sequence (warm-started fits). Writes
+bench/results/default_model.json and prints a table.
+
+    python bench/default_model.py [--data ../shared/data] [--stride 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import gpdepth3d as g
+from gpdepth3d.evaluation import write_json
+from gpdepth3d.mde import load_frontend
+from gpdepth3d.measurements import SparseDepth
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def corrupt(sp: SparseDepth, share: float, rng: np.random.Generator) -> SparseDepth:
+    """Replaces ``share`` of the points by gross outliers: depth x U(0.1, 3), sigma unchanged."""
+    k = int(round(share * len(sp)))
+    idx = rng.choice(len(sp), k, replace=False)
+    depth = sp.depth.copy()
+    depth[idx] *= rng.uniform(0.1, 3.0, k)
+    return SparseDepth(sp.u, sp.v, depth, sp.image_size, sp.sigma)
+
+
+def seven_scenes(data: Path, stride: int, fastdepth) -> dict:
+    frames = list(g.open_dataset(data / "7scenes"))[::stride]
+    inputs = []
+    for fr in frames:
+        small = fr.resized(0.5)
+        inputs.append((fr.name, np.asarray(fastdepth(small.rgb), dtype=np.float64), small.depth))
+    out = {}
+    for n in (50, 200, 500):
+        for share in (0.0, 0.05):
+            completer = g.DepthCompleter()
+            rows = []
+            for i, (name, mde, gt) in enumerate(inputs):
+                rng = np.random.default_rng(1000 * i + n)
+                sp = g.sample_uniform(gt, n=n, rng=rng)
+                if share:
+                    sp = corrupt(sp, share, rng)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", g.PosteriorWarning)
+                    t = time.perf_counter()
+                    post = completer(mde, sp, frame=name)
+                    seconds = time.perf_counter() - t
+                v = gt > 0
+                err = post.mean[v] - gt[v]
+                rows.append(
+                    {
+                        "frame": name,
+                        "rmse_mm": 1000 * float(np.sqrt(np.mean(err**2))),
+                        "mde_rmse_mm": 1000 * float(np.sqrt(np.mean((mde[v] - gt[v]) ** 2))),
+                        "coverage_2sigma": float(np.mean(np.abs(err) <= 2 * post.std[v])),
+                        "rejected": post.n_rejected,
+                        "min_mean_m": float(post.mean.min()),
+                        "seconds": seconds,
+                        "lengthscale": post.config.lengthscale,
+                        "outputscale": post.config.outputscale,
+                    }
+                )
+            out[f"{n}_points_outliers_{share:.2f}"] = {
+                "rmse_mm": float(np.mean([r["rmse_mm"] for r in rows])),
+                "mde_rmse_mm": float(np.mean([r["mde_rmse_mm"] for r in rows])),
+                "coverage_2sigma": float(np.mean([r["coverage_2sigma"] for r in rows])),
+                "rejected_mean": float(np.mean([r["rejected"] for r in rows])),
+                "min_mean_m": float(min(r["min_mean_m"] for r in rows)),
+                "median_seconds": float(np.median([r["seconds"] for r in rows])),
+                "frames": rows,
+            }
+    return out
+
+
+def vio(data: Path, fastdepth) -> dict:
+    completer = g.DepthCompleter()
+    rows = []
+    for i, fr in enumerate(g.open_dataset(data / "vio_sparse")):
+        mde = np.asarray(fastdepth(fr.rgb), dtype=np.float64)
+        sp = fr.sparse.rasterize(mde.shape)
+        rng = np.random.default_rng(i)
+        test = np.zeros(len(sp), dtype=bool)
+        test[rng.permutation(len(sp))[: max(1, len(sp) // 5)]] = True
+        train, held = sp.subset(~test), sp.subset(test)
+        rr, cc = held.v.astype(int), held.u.astype(int)
+        scale = float(np.median(train.depth / mde[train.v.astype(int), train.u.astype(int)]))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", g.PosteriorWarning)
+            post = completer(mde, train, frame=fr.name)
+        err = post.mean[rr, cc] - held.depth
+        rows.append(
+            {
+                "frame": fr.name,
+                "points": len(train),
+                "held_out": len(held),
+                "rmse_mm": 1000 * float(np.sqrt(np.mean(err**2))),
+                "scaled_mde_rmse_mm": 1000 * float(np.sqrt(np.mean((scale * mde[rr, cc] - held.depth) ** 2))),
+                "mde_rmse_mm": 1000 * float(np.sqrt(np.mean((mde[rr, cc] - held.depth) ** 2))),
+                "within_2sigma": int(np.sum(np.abs(err) <= 2 * post.std[rr, cc])),
+                "rejected": post.n_rejected,
+            }
+        )
+    held = sum(r["held_out"] for r in rows)
+    pooled = lambda key: 1000 * float(  # noqa: E731 - RMSE pooled over all held-out points
+        np.sqrt(sum((r[key] / 1000) ** 2 * r["held_out"] for r in rows) / held)
+    )
+    return {
+        "rmse_mm": pooled("rmse_mm"),
+        "scaled_mde_rmse_mm": pooled("scaled_mde_rmse_mm"),
+        "mde_rmse_mm": pooled("mde_rmse_mm"),
+        "coverage_2sigma": sum(r["within_2sigma"] for r in rows) / held,
+        "held_out_points": held,
+        "frames": rows,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--stride", type=int, default=3, help="every stride-th 7-Scenes frame (60 in all)")
+    parser.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "default_model.json")
+    args = parser.parse_args()
+    fastdepth = load_frontend("fastdepth", models_dir=args.data.parent / "models")
+    result = {"config": repr(g.DepthGPConfig()), "7scenes": seven_scenes(args.data, args.stride, fastdepth)}
+    result["vio_sparse"] = vio(args.data, fastdepth)
+    write_json(result, args.output)
+    print("7-Scenes (FastDepth, 320x240): RMSE mm / +-2 sigma / rejected / min mean / median s")
+    for key, r in result["7scenes"].items():
+        print(
+            f"  {key:28s} {r['rmse_mm']:6.0f} (MDE {r['mde_rmse_mm']:.0f})  {r['coverage_2sigma']:.3f}  "
+            f"{r['rejected_mean']:5.1f}  {r['min_mean_m']:.2f}  {r['median_seconds']:.3f}"
+        )
+    v = result["vio_sparse"]
+    print(
+        f"vio_sparse (20 % of {v['held_out_points']} points held out): GP {v['rmse_mm']:.0f} mm, FastDepth "
+        f"scaled {v['scaled_mde_rmse_mm']:.0f} mm, FastDepth {v['mde_rmse_mm']:.0f} mm, +-2 sigma {v['coverage_2sigma']:.3f}"
+    )
+    print(f"wrote {args.output}")
+
+
+if __name__ == "__main__":
+    main()
