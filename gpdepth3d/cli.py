@@ -10,6 +10,7 @@ import io
 import os
 import re
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated, Literal, Optional, Union
 
@@ -22,6 +23,7 @@ from .io import check_output_folder, check_output_path
 
 # The GP model as a CLI choice: `gpdepth3d complete ... model:residual --model.lengthscale 30`.
 ModelChoice = Union[
+    Annotated[DepthGPConfig, tyro.conf.subcommand("default", default=DepthGPConfig(), prefix_name=False)],
     Annotated[DepthGPConfig, tyro.conf.subcommand("paper", default=DepthGPConfig.paper(), prefix_name=False)],
     Annotated[DepthGPConfig, tyro.conf.subcommand("residual", default=DepthGPConfig.residual(), prefix_name=False)],
 ]
@@ -42,7 +44,7 @@ def complete_command(
     sparse: Optional[Path] = None,
     lidar: Optional[Path] = None,
     calib: Optional[Path] = None,
-    model: ModelChoice = DepthGPConfig.paper(),
+    model: ModelChoice = DepthGPConfig(),
     lidar_image_size: Optional[tuple[int, int]] = None,
     mde_png_scale: float = 1.0 / 256.0,
     sparse_png_scale: float = 1.0 / 256.0,
@@ -75,7 +77,8 @@ def complete_command(
         lidar_image_size: HEIGHT WIDTH of the image the calibration belongs to (default: the MDE size, refused
             when the calibration's principal point does not fit it); the projected points are then moved to the
             MDE grid, closest point per pixel.
-        model: GP model preset ("paper": balanced KISS-GP of the paper; "residual": MDE as prior mean).
+        model: GP model preset ("default": the log-residual GP fitted per frame, robust to bad points;
+            "paper": balanced KISS-GP of the paper; "residual": MDE as prior mean).
         mde_png_scale: Metres per unit of a 16-bit MDE PNG.
         sparse_png_scale: Metres per unit of a 16-bit sparse PNG.
         sparse_points: How a .txt point list is read: "uvd" (pixels + depth) or "xyz" (camera frame, needs --intrinsics).
@@ -91,7 +94,7 @@ def complete_command(
             printed as a warning) instead of refusing the file.
     """
     from .camera import PinholeCamera
-    from .complete import DepthCompleter, check_output_shape
+    from .complete import DepthCompleter, PosteriorWarning, check_output_shape
     from .errors import InvalidInputError
     from .io import check_png_scale, load_depth, load_sparse, read_matrix
     from .measurements import LidarCalibration, load_velodyne, project_points
@@ -145,12 +148,17 @@ def complete_command(
     else:
         measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points)
     completer = DepthCompleter(model)
-    posterior = completer.complete(mde_depth, measurements, output_shape=output_size)
+    with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
+        warnings.simplefilter("ignore", PosteriorWarning)
+        posterior = completer.complete(mde_depth, measurements, output_shape=output_size, frame=out_npz.stem)
     written = posterior.save(out_npz, png=png)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
         f"({model.formulation}, engine {model.engine}) in {sum(posterior.timings.values()):.2f} s"
+        + (f"; {posterior.n_rejected} rejected as outliers" if posterior.n_rejected else "")
     )
+    for message in posterior.warnings:
+        print(f"warning: {message}")
     if gt_depth is not None:
         if gt_depth.shape != posterior.shape:
             import cv2
