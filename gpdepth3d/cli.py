@@ -342,8 +342,6 @@ def main(argv: list[str] | None = None) -> int:
     GPDEPTH3D_DEBUG=1 to see the traceback of an unexpected error instead.
     """
     global _PARSE
-    import warnings
-
     show_warning = warnings.showwarning
     warnings.showwarning = _one_line_warning
     parse = _ParseErrors()
