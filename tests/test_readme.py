@@ -1,0 +1,34 @@
+"""The README's Python quick start runs exactly as written (from the repository root, on ../shared)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _python_blocks(text: str) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", text, flags=re.S)
+
+
+def test_readme_has_one_quick_start_block():
+    blocks = _python_blocks((ROOT / "README.md").read_text(encoding="utf-8"))
+    assert len(blocks) == 1 and "g.complete(" in blocks[0]
+
+
+@pytest.mark.slow
+def test_quick_start_runs_as_written(shared_data, monkeypatch):
+    if shared_data.resolve() != (ROOT.parent / "shared" / "data").resolve():
+        pytest.skip("the quick start reads ../shared/data from the repository root")
+    if not (ROOT.parent / "shared" / "models" / "rtmonodepth_s_ms_640_192.onnx").is_file():
+        pytest.skip("RT-MonoDepth-S model not found in ../shared/models")
+    block = _python_blocks((ROOT / "README.md").read_text(encoding="utf-8"))[0]
+    monkeypatch.chdir(ROOT)
+    scope: dict = {}
+    exec(compile(block, "README.md quick start", "exec"), scope)  # noqa: S102 - the README's own code
+    post = scope["post"]
+    assert post.mean.shape == (125, 414) and (post.mean > 0).all()  # the loop's last frame, at 1/3
+    assert (ROOT / "gpdepth3d_out" / "kitti0.npz").is_file()
