@@ -6,6 +6,8 @@
   point): RMSE rise, points rejected, smallest posterior mean.
 * vio_sparse: real SLAM points, 20 % of them held out (seeded) as ground truth; the default model
   against FastDepth scaled to the other 80 % (robust median ratio).
+* speed: the default model (mean + variance) on kitti_tiny frame 0 at 1/3 and full resolution at
+  the paper's densities 1/64, 1/16, 1/4 and 1, beside IP-Basic on the same input in the same run.
 
 One DepthCompleter per protocol, as a sequence (warm-started fits). Writes
 bench/results/default_model.json and prints a table.
@@ -129,6 +131,42 @@ def vio(data: Path, fastdepth) -> dict:
     }
 
 
+def speed(data: Path, rtmonodepth, repeats: int = 3) -> dict:
+    """Seconds per frame (mean + variance, best of ``repeats`` after one warm-up) of the default model
+    on kitti_tiny frame 0 at 1/3 and full resolution for each density, beside IP-Basic on the same input."""
+    from gpdepth3d.baselines import ip_basic
+
+    frame = g.open_dataset(data / "kitti_tiny")[0]
+    out = {}
+    for label, factor in (("1/3", 1 / 3), ("full", 1.0)):
+        small = frame.resized(factor) if factor != 1.0 else frame
+        mde = np.asarray(rtmonodepth(small.rgb), dtype=np.float64)
+        points = frame.sparse.rasterize(mde.shape)
+        for density in (1 / 64, 1 / 16, 1 / 4, 1.0):
+            sp = g.sample_uniform(points, density=density, rng=0)
+            completer = g.DepthCompleter()
+            timings = []
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", g.PosteriorWarning)
+                for _ in range(repeats + 1):
+                    t = time.perf_counter()
+                    post = completer(mde, sp)
+                    timings.append((time.perf_counter() - t, post.timings))
+            best = min(timings[1:], key=lambda x: x[0])
+            ip = []
+            for _ in range(repeats):
+                t = time.perf_counter()
+                ip_basic(sp, mde.shape)
+                ip.append(time.perf_counter() - t)
+            out[f"{label} {mde.shape[0]}x{mde.shape[1]} density {density:.4f}"] = {
+                "points": len(sp),
+                "seconds": best[0],
+                "stages": best[1],
+                "ip_basic_seconds": min(ip),
+            }
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
@@ -138,6 +176,7 @@ def main() -> None:
     fastdepth = load_frontend("fastdepth", models_dir=args.data.parent / "models")
     result = {"config": repr(g.DepthGPConfig()), "7scenes": seven_scenes(args.data, args.stride, fastdepth)}
     result["vio_sparse"] = vio(args.data, fastdepth)
+    result["speed_kitti"] = speed(args.data, load_frontend("rtmonodepth", models_dir=args.data.parent / "models"))
     write_json(result, args.output)
     print("7-Scenes (FastDepth, 320x240): RMSE mm / +-2 sigma / rejected / min mean / median s")
     for key, r in result["7scenes"].items():
@@ -150,6 +189,9 @@ def main() -> None:
         f"vio_sparse (20 % of {v['held_out_points']} points held out): GP {v['rmse_mm']:.0f} mm, FastDepth "
         f"scaled {v['scaled_mde_rmse_mm']:.0f} mm, FastDepth {v['mde_rmse_mm']:.0f} mm, +-2 sigma {v['coverage_2sigma']:.3f}"
     )
+    print("speed, kitti_tiny frame 0 (mean + variance, best of 3 after a warm-up): points / default / IP-Basic")
+    for key, r in result["speed_kitti"].items():
+        print(f"  {key:32s} {r['points']:6d}  {1000 * r['seconds']:8.1f} ms  {1000 * r['ip_basic_seconds']:7.1f} ms")
     print(f"wrote {args.output}")
 
 

@@ -33,7 +33,7 @@ def main() -> None:
         points="200",
         output=args.output / "bands",
         stride=args.stride,
-        methods="mde,mde_scale,ip_basic,gp_residual,gp_residual_fit",
+        methods="mde,mde_scale,ip_basic,gp_default,gp_residual,gp_residual_fit",
         qualitative=False,
     )
     write_json(results, ROOT / "bench" / "results" / "eval_7scenes.json")

@@ -415,7 +415,9 @@ def process_frame(
         inputs = loader(spec)
         if not isinstance(inputs, FrameInputs):
             raise InvalidInputError("loader", "a callable returning FrameInputs", type(inputs).__name__)
-        posterior = _completer(config).complete(inputs.mde, inputs.sparse, variance=variance or task == "eval")
+        posterior = _completer(config).complete(
+            inputs.mde, inputs.sparse, variance=variance or task == "eval", frame=spec.frame_id
+        )
         posterior.save(paths["posterior"], png=png)
         metrics = None
         if task == "eval":
@@ -739,7 +741,7 @@ def run_batch(
     Args:
         frames: Frame specs with unique ids (see `dataset_frames`).
         output_dir: Folder of the outputs (created); one run at a time per folder.
-        config: GP model; default ``DepthGPConfig.residual()``. Its ``engine`` field picks the
+        config: GP model; default ``DepthGPConfig()`` (the library's default model). Its ``engine`` field picks the
             engine ("exact" for a few thousand points, "fast" for full frames).
         loader: Picklable ``loader(spec) -> FrameInputs`` run on the workers; default
             `HoldoutInputs()`.
@@ -784,7 +786,7 @@ def run_batch(
         raise InvalidInputError("connect_timeout", "seconds > 0", connect_timeout)
     if max_in_flight is not None and (int(max_in_flight) != max_in_flight or max_in_flight < 1):
         raise InvalidInputError("max_in_flight", "an integer >= 1", max_in_flight)
-    config = config or DepthGPConfig.residual()
+    config = config or DepthGPConfig()
     if not isinstance(config, DepthGPConfig):
         raise InvalidInputError("config", "a DepthGPConfig", type(config).__name__)
     loader = loader or HoldoutInputs()
@@ -958,7 +960,7 @@ def batch_command(
     report = run_batch(
         frames,
         output_dir,
-        config=DepthGPConfig.residual() if engine is None else DepthGPConfig.residual(engine=engine),
+        config=DepthGPConfig() if engine is None else DepthGPConfig(engine=engine),
         loader=HoldoutInputs(
             factor=factor, n_input=n_input, mde=mde, seed=seed, models_dir=None if models_dir is None else str(models_dir)
         ),

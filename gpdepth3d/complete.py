@@ -358,16 +358,22 @@ def _log_residual_posterior(
     start = None
     if not config.fit:
         s2 = config.outputscale**2
-        keep = np.ones(len(z), dtype=bool)
         b = float(np.median(resid)) if len(z) else 0.0
         start = PointFit(config.lengthscale, config.outputscale, config.nugget, b, s2 / max(len(z), 1), len(z))
     if len(z) >= 3 or start is not None:
         from threadpoolctl import threadpool_limits
 
         around = (previous.lengthscale, previous.eta) if previous is not None else None
+        # a point at an MDE depth edge is judged with the edge's uncertainty (the same term the
+        # posterior's variance gets): there its neighbours may rightly disagree with it
+        screen_noise = noise
+        if config.edge_sigma > 0:
+            edge = _edge_range(np.log(base), 3)[rows, cols]
+            screen_noise = noise + (config.edge_sigma * edge) ** 2
         with threadpool_limits(1):  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
-            fit, rejected = screen_points(
-                rows, cols, resid, noise, threshold=config.outlier_threshold, nu=config.nu, start=start, around=around
+            fit, rejected, _ = screen_points(
+                rows, cols, resid, screen_noise, threshold=config.outlier_threshold, nu=config.nu, start=start,
+                around=around,
             )
     else:  # fewer than 3 points: the configured scales, the points' median as the global scale
         b = float(np.median(resid)) if len(z) else 0.0
@@ -411,7 +417,7 @@ def _log_residual_posterior(
     name = f"frame {frame}: " if frame is not None else ""
     messages = []
     scale = float(np.exp(fit.log_scale))
-    n_kept = int(keep.sum())
+    n_kept = int(np.count_nonzero(~rejected))
     if len(z) and not 1.0 / SCALE_WARN_FACTOR <= scale <= SCALE_WARN_FACTOR:
         messages.append(
             f"{name}the MDE's scale disagrees with the points by a factor of {scale:.2f} "

@@ -44,6 +44,8 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
     }
     posteriors = {}
     runs = {
+        "gp-default": (DepthGPConfig(), frame.lidar),
+        f"gp-default-{n}pt": (DepthGPConfig(), thin),
         "gp-paper": (DepthGPConfig.paper(), frame.lidar),
         "gp-residual": (DepthGPConfig.residual(), frame.lidar),
         f"gp-res-{n}pt": (DepthGPConfig.residual(), thin),

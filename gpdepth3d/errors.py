@@ -100,6 +100,11 @@ class ConnectionFailedError(GPDepthError, ConnectionError):
 class ProblemTooLargeError(GPDepthError, MemoryError):
     """A problem exceeds the size an engine accepts (for example the dense `exact` engine)."""
 
+    def __reduce__(self):
+        # an explicit reduction: tblib's exception pickling (installed by Dask's workers) otherwise
+        # rebuilds it with MemoryError.__new__, which refuses subclasses
+        return (type(self), self.args)
+
 
 class ConvergenceError(GPDepthError, ArithmeticError):
     """An iterative solver (conjugate gradients) did not reach its tolerance within its iteration limit."""

@@ -498,7 +498,7 @@ class Mapper:
         posterior = None
         try:
             if self.config.refine:
-                posterior = self.completer.complete(mde, measurements, output_shape=work_shape)
+                posterior = self.completer.complete(mde, measurements, output_shape=work_shape, frame=str(kid))
                 depth, variance = posterior.mean, posterior.variance
             else:
                 depth, variance = mde, np.full(work_shape, np.nan)

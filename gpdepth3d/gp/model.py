@@ -28,10 +28,11 @@ Formulations:
       measurement j:  log z_j = log d(x_j) + e_j,  e_j ~ N(0, (sigma_j / z_j)^2)
 
   b is a global log scale with a flat prior (generalised least squares), w the white part of the
-  MDE error (the nugget). l, s, tau and b are fitted on each frame's points by marginal
-  likelihood (`gpdepth3d.gp.points`), points whose leave-one-out z-score given their neighbours
-  exceeds ``outlier_threshold`` are rejected, and the engines solve for g with the points as
-  observations of noise tau^2 + (sigma_j / z_j)^2. The depth posterior is log-normal: mean
+  MDE error (the nugget). b is estimated on each frame's points (their median log ratio; with
+  ``fit=True`` l, s, tau and b are fitted by marginal likelihood, `gpdepth3d.gp.points`), points
+  whose leave-one-out z-score given their neighbours exceeds ``outlier_threshold`` are rejected
+  (judged with the edge term below added to their noise), and the engines solve for g with the
+  points as observations of noise tau^2 + (sigma_j / z_j)^2. The depth posterior is log-normal: mean
   exp(mu + v/2) and variance (exp(v) - 1) exp(2 mu + v), with v = Var[g] + tau^2 + Var[b]
   (1 - k(x)' (K + N)^-1 1)^2; an edge term (``edge_sigma`` x the local MDE depth range) is
   added to the variance. Means are positive by construction; errors that scale with depth
@@ -66,8 +67,8 @@ class DepthGPConfig:
     """Hyperparameters and options of the GP depth model (see the module docstring for the maths).
 
     Attributes:
-        formulation: "log_residual" (the default: a GP on log(depth / MDE), fitted per frame,
-            robust to bad points; see the module docstring), "balanced" (the paper: MDE pixels
+        formulation: "log_residual" (the default: a GP on log(depth / MDE), robust to bad
+            points; see the module docstring), "balanced" (the paper: MDE pixels
             and measurements are both observations) or "residual" (MDE is the prior mean,
             measurements the only observations).
         nu: Matern smoothness, one of 0.5, 1.5, 2.5.
@@ -107,7 +108,7 @@ class DepthGPConfig:
     align: Literal["none", "scale", "scale_shift"] = "scale"
     engine: EngineName = "fast"
     max_exact_points: int = 6000
-    fit: bool = True
+    fit: bool = False
     nugget: float = 0.02
     outlier_threshold: float | None = 3.5
     edge_sigma: float = 1.0

@@ -89,6 +89,26 @@ def _profile(resid: np.ndarray, corr: np.ndarray, noise: np.ndarray, eta: float,
     return crit, s2, b, s2 / q
 
 
+def _fit_subset(rows: np.ndarray, cols: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of a subset for the fit: random seed points, each with its nearest neighbour.
+
+    A purely random subset of dense points (full LiDAR) has no close pairs, so the likelihood
+    cannot see the short-range correlation and calls it nugget; pairing every seed with its
+    nearest point keeps the points' own spacing in the subset.
+    """
+    from scipy.spatial import cKDTree
+
+    n = rows.size
+    seeds = rng.choice(n, size=size // 2, replace=False)
+    xy = np.column_stack([rows, cols])
+    _, nn = cKDTree(xy).query(xy[seeds], k=2, p=1)
+    pick = np.unique(np.concatenate([seeds, nn[:, 1]]))
+    if pick.size < size:  # duplicates: fill up with random other points
+        rest = np.setdiff1d(np.arange(n), pick)
+        pick = np.union1d(pick, rng.choice(rest, size=min(size - pick.size, rest.size), replace=False))
+    return pick
+
+
 def fit_log_residual(
     rows: np.ndarray,
     cols: np.ndarray,
@@ -109,8 +129,8 @@ def fit_log_residual(
         resid: (N,) log(measured depth / MDE depth).
         noise: (N,) measurement variance in log units ((sigma / depth)^2).
         nu: Matern smoothness.
-        max_points: Fit on a random subset of at most this many points (cost max_points^3 per
-            grid cell).
+        max_points: Fit on a subset of at most this many points (cost max_points^3 per grid
+            cell): half random seeds, half their nearest neighbours.
         lengthscales, nuggets: The grid searched (pixels; shares of s^2).
         rng: Generator of the subset (default seeded 0: the same frame gives the same fit).
         around: (l, eta) of a previous fit (the frame before in a sequence): instead of the
@@ -133,10 +153,9 @@ def fit_log_residual(
         s = max(float(np.std(resid)) if n > 1 else 0.0, 0.1)
         return PointFit(lengthscales[len(lengthscales) // 2], s, s * np.sqrt(nuggets[0]), b, s * s, n)
     if n > max_points:
-        rng = rng if rng is not None else np.random.default_rng(0)
-        pick = np.sort(rng.choice(n, size=max_points, replace=False))
+        pick = _fit_subset(rows, cols, max_points, rng if rng is not None else np.random.default_rng(0))
         rows, cols, resid, noise = rows[pick], cols[pick], resid[pick], noise[pick]
-        n = max_points
+        n = pick.size
     spread = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
     s2_guess = max(spread * spread, float(np.median(noise)), 1e-6)
     corr_cache: dict[int, np.ndarray] = {}
@@ -255,7 +274,7 @@ def screen_points(
     iterations: int = 3,
     start: PointFit | None = None,
     around: tuple[float, float] | None = None,
-) -> tuple[PointFit, np.ndarray]:
+) -> tuple[PointFit, np.ndarray, np.ndarray]:
     """Fits the log-residual GP robustly and flags the points that contradict it.
 
     Up to ``iterations`` times, the hyperparameters are fitted on the kept points and every
@@ -275,14 +294,15 @@ def screen_points(
         around: (l, eta) to start the fits' pattern search from (see `fit_log_residual`).
 
     Returns:
-        (the fit without the rejected points, (N,) bool mask of rejected points).
+        (the fit without the flagged points, (N,) bool mask of the flagged points, (N,) their
+        final leave-one-out z-scores, 0 where not computed).
     """
     resid = np.asarray(resid, dtype=np.float64)
     n = resid.size
     rejected = np.zeros(n, dtype=bool)
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
-    fit, fitted_on = start, None
+    fit, fitted_on, z = start, None, None
     for _ in range(max(1, iterations) if threshold is not None else 1):
         keep = ~rejected
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
@@ -299,6 +319,8 @@ def screen_points(
         if np.array_equal(new, rejected):
             break
         rejected = new
+    if z is None or threshold is None:
+        z = np.zeros(n)
     if fit is None:  # pragma: no cover - the loop always runs once
         raise AssertionError("no fit")
-    return fit, rejected
+    return fit, rejected, z
