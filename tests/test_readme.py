@@ -32,3 +32,44 @@ def test_quick_start_runs_as_written(shared_data, monkeypatch):
     post = scope["post"]
     assert post.mean.shape == (125, 414) and (post.mean > 0).all()  # the loop's last frame, at 1/3
     assert (ROOT / "gpdepth3d_out" / "kitti0.npz").is_file()
+
+
+def _command_lines(text: str) -> list[str]:
+    lines, inside = [], False
+    for raw in text.splitlines():
+        if raw.startswith("```"):
+            inside = raw.strip() == "```bash" if not inside else False
+            continue
+        line = raw.split("  #")[0].strip()
+        if inside and line.startswith("gpdepth3d "):
+            lines.append(line)
+    return lines
+
+
+def test_readme_command_lines_are_found():
+    lines = _command_lines((ROOT / "README.md").read_text(encoding="utf-8"))
+    assert {line.split()[1] for line in lines} >= {"demo", "complete", "view", "eval", "fuse", "batch"}
+
+
+@pytest.mark.slow
+def test_readme_command_lines_run_as_written(shared_data, monkeypatch, capsys):
+    """Each `gpdepth3d ...` line of the README through the CLI entry point, in order, from the repository root
+    (`fuse`'s line is run by tests/test_mapping.py; `batch --help` exits 0 through argparse/tyro)."""
+    import shlex
+
+    from gpdepth3d.cli import main
+
+    if shared_data.resolve() != (ROOT.parent / "shared" / "data").resolve():
+        pytest.skip("the README's command lines read ../shared/data from the repository root")
+    monkeypatch.chdir(ROOT)
+    for line in _command_lines((ROOT / "README.md").read_text(encoding="utf-8")):
+        argv = shlex.split(line)[1:]
+        if argv[0] == "fuse":
+            continue
+        try:
+            code = main(argv)
+        except SystemExit as exc:  # --help
+            code = exc.code
+        out = capsys.readouterr()
+        assert code in (0, None), f"{line}\n{out.out[-2000:]}\n{out.err[-2000:]}"
+    assert (ROOT / "gpdepth3d_out" / "k0.npz").is_file()
