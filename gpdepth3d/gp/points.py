@@ -207,7 +207,9 @@ def loo_zscores(
     nu: float = 0.5,
     neighbours: int = 12,
     exclude: np.ndarray | None = None,
-) -> np.ndarray:
+    only: np.ndarray | None = None,
+    radius: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
     Point i is predicted by simple kriging (mean b) from its ``neighbours`` nearest points (L1
@@ -222,9 +224,12 @@ def loo_zscores(
         nu: Matern smoothness.
         neighbours: Neighbours per point.
         exclude: (N,) bool, points not to use as neighbours (their own z is still computed).
+        only: Indices of the points whose z-score to compute (default all; the others get 0).
+        radius: Also return each computed point's L1 distance to its farthest neighbour used.
 
     Returns:
-        (N,) z-scores (0 where no neighbour is available).
+        (N,) z-scores (0 where no neighbour is available or not computed); with ``radius``,
+        also the (N,) neighbourhood radii (inf where not computed).
     """
     from scipy.spatial import cKDTree
 
@@ -236,14 +241,18 @@ def loo_zscores(
     usable = np.ones(n, dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
     pool = np.flatnonzero(usable)
     k = min(int(neighbours), pool.size - 1 if pool.size else 0)
-    if n == 0 or k < 1:
-        return np.zeros(n)
+    targets = np.arange(n) if only is None else np.asarray(only, dtype=np.int64)
+    out, reach = np.zeros(n), np.full(n, np.inf)
+    if n == 0 or k < 1 or targets.size == 0:
+        return (out, reach) if radius else out
     tree = cKDTree(np.column_stack([rows[pool], cols[pool]]))
-    _, nn = tree.query(np.column_stack([rows, cols]), k=k + 1, p=1)
+    dist, nn = tree.query(np.column_stack([rows[targets], cols[targets]]), k=k + 1, p=1)
     nn = pool[nn]
     # drop the point itself where it is among its neighbours, keep the k nearest others
-    order = np.argsort(nn == np.arange(n)[:, None], axis=1, kind="stable")
+    order = np.argsort(nn == targets[:, None], axis=1, kind="stable")
     nn = np.take_along_axis(nn, order, axis=1)[:, :k]
+    dist = np.take_along_axis(dist, order, axis=1)[:, :k]
+    rows_t, cols_t = rows[targets], cols[targets]
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
 
@@ -255,11 +264,13 @@ def loo_zscores(
     K = s2 * corr(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :])
     diag = np.arange(k)
     K[:, diag, diag] += tau2 + noise[nn]
-    kx = s2 * corr(rows[:, None] - R, cols[:, None] - C)
+    kx = s2 * corr(rows_t[:, None] - R, cols_t[:, None] - C)
     w = np.linalg.solve(K, kx[:, :, None])[:, :, 0]
     pred = np.sum(w * r[nn], axis=1)
-    var = s2 + tau2 + noise - np.sum(w * kx, axis=1)
-    return (r - pred) / np.sqrt(np.maximum(var, 1e-30))
+    var = s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1)
+    out[targets] = (r[targets] - pred) / np.sqrt(np.maximum(var, 1e-30))
+    reach[targets] = dist[:, -1]
+    return (out, reach) if radius else out
 
 
 def screen_points(
@@ -302,20 +313,35 @@ def screen_points(
     rejected = np.zeros(n, dtype=bool)
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
-    fit, fitted_on, z = start, None, None
+    fit, fitted_on, z, reach, changed = start, None, None, None, None
     for _ in range(max(1, iterations) if threshold is not None else 1):
         keep = ~rejected
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
         # enough to inflate the fitted nugget and scale
-        if start is None and (fitted_on is None or not np.array_equal(keep, fitted_on)):
+        refit = start is None and (fitted_on is None or not np.array_equal(keep, fitted_on))
+        if refit:
             fit = fit_log_residual(
                 rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points, around=around
             )
             fitted_on, around = keep, (fit.lengthscale, fit.eta)
         if threshold is None or n < 5:
             break
-        z = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected)
+        only = None
+        if z is not None and not refit:
+            # same fit: only points that a newly flagged or cleared point can enter or leave the
+            # neighbourhood of (it lies within their neighbourhood radius), and those points, change
+            from scipy.spatial import cKDTree
+
+            moved = np.flatnonzero(changed)
+            d, _ = cKDTree(np.column_stack([rows[moved], cols[moved]])).query(np.column_stack([rows, cols]), k=1, p=1)
+            only = np.flatnonzero((d <= reach) | changed)
+        z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected, only=only, radius=True)
+        if only is None:
+            z, reach = z_new, reach_new
+        else:
+            z[only], reach[only] = z_new[only], reach_new[only]
         new = np.abs(z) > threshold
+        changed = new != rejected
         if np.array_equal(new, rejected):
             break
         rejected = new
