@@ -315,6 +315,7 @@ FEW_POINTS = 10
 COVERAGE_WARN = 0.5
 COVERAGE_REACH = 6.0  # a pixel is far from the points beyond max(H, W) / 6 (taxicab)
 REJECTED_WARN = 0.2
+SCALE_VAR_SHARE = 0.05  # Var[b] below this share of tau^2: bounded, not solved for
 
 
 def _edge_range(depth: np.ndarray, window: int) -> np.ndarray:
@@ -393,10 +394,16 @@ def _log_residual_posterior(
     problem = GridProblem(zeros_in, obs, precision, out_rows, out_cols, zeros_out, kernel)
     g_mean, g_var = engine.solve(problem, variance=variance)
     if variance:
-        # uncertainty of the global scale b (flat prior): Var[b] (1 - k(x)' (K + N)^-1 1)^2
-        ones = GridProblem(zeros_in, np.where(precision > 0, 1.0, 0.0), precision, out_rows, out_cols, zeros_out, kernel)
-        w1, _ = engine.solve(ones, variance=False)
-        v_log = g_var + fit.nugget**2 + fit.log_scale_var * (1.0 - w1) ** 2
+        # uncertainty of the global scale b (flat prior): Var[b] (1 - k(x)' (K + N)^-1 1)^2. The
+        # factor is in [0, 1]; when Var[b] is at most 5 % of the nugget variance (thousands of
+        # points) its bound Var[b] is used instead of a second solve (variance high by <= 5 %)
+        if fit.log_scale_var <= SCALE_VAR_SHARE * fit.nugget**2:
+            b_term = fit.log_scale_var
+        else:
+            ones = GridProblem(zeros_in, np.where(precision > 0, 1.0, 0.0), precision, out_rows, out_cols, zeros_out, kernel)
+            w1, _ = engine.solve(ones, variance=False)
+            b_term = fit.log_scale_var * (1.0 - w1) ** 2
+        v_log = g_var + fit.nugget**2 + b_term
     else:
         v_log = np.zeros(out_shape)
     t2 = time.perf_counter()

@@ -133,6 +133,26 @@ class TestLogResidualPosterior:
         np.testing.assert_allclose(post.variance.ravel(), np.expm1(v) * np.exp(2 * mu + v), rtol=1e-8)
         assert post.n_rejected == 0 and post.alignment.scale == pytest.approx(np.exp(b))
 
+    def test_many_points_bound_the_scale_term(self):
+        """With Var[b] <= 5 % of tau^2 the scale term is bounded by Var[b], not solved for: variance high by <= 5 %."""
+        truth, mde = _scene()
+        h, w = mde.shape
+        sp = g.sample_uniform(truth, n=600, rng=5)
+        cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
+                              nugget=0.06, sigma_meas=0.01)
+        post = g.complete(mde, sp, config=cfg)
+        rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
+        n = len(z)
+        K = 0.09 * _kernel(rows.astype(float), cols.astype(float), 6.0) + (0.06**2 + 0.01**2) * np.eye(n)
+        R, C = np.mgrid[0:h, 0:w]
+        kx = 0.09 * matern_1d(R.ravel()[:, None] - rows[None], 0.5, 6.0) * matern_1d(C.ravel()[:, None] - cols[None], 0.5, 6.0)
+        Ki = np.linalg.inv(K)
+        w1 = kx @ Ki @ np.ones(n)
+        exact = 0.09 - np.sum((kx @ Ki) * kx, 1) + 0.06**2 + (0.09 / n) * (1 - w1) ** 2
+        got = np.log1p(post.variance.ravel() / post.mean.ravel() ** 2)  # log-normal: var / mean^2 = expm1(v)
+        ratio = got / exact
+        assert 0.09 / n <= 0.05 * 0.06**2 and ratio.min() > 1 - 1e-6 and ratio.max() < 1.05
+
     @pytest.mark.parametrize("fit", [False, True])
     def test_engines_agree(self, fit):
         truth, mde = _scene(seed=2)
