@@ -498,7 +498,9 @@ class Mapper:
         posterior = None
         try:
             if self.config.refine:
-                posterior = self.completer.complete(mde, measurements, output_shape=work_shape, frame=str(kid))
+                # the frame's name goes into the posterior's warnings (a duck-typed completer may not take it)
+                named = {"frame": str(kid)} if isinstance(self.completer, DepthCompleter) else {}
+                posterior = self.completer.complete(mde, measurements, output_shape=work_shape, **named)
                 depth, variance = posterior.mean, posterior.variance
             else:
                 depth, variance = mde, np.full(work_shape, np.nan)
