@@ -192,12 +192,12 @@ class MapperConfig:
     """Options of the `Mapper`.
 
     Attributes:
-        gp: GP model of the refinement: the library's default model on the fast engine, with
-            ``fit=False`` (the default hyperparameters instead of a per-frame marginal-likelihood
-            fit). Measured on 10 frames of 7-Scenes at 320x240 (FastDepth, 150 Kinect samples,
-            one torch thread, busy shared machine): the per-frame fit cost 528-654 ms of CPU a
-            frame, fit=False 31 ms, with the same median error (65 / 66 mm) and +-2 sigma
-            coverage (0.94 / 0.96); the outlier of the mapping tests is rejected either way.
+        gp: GP model of the refinement: the library's default model (`DepthGPConfig()`, fixed
+            hyperparameters, on the fast engine). Measured on 10 frames of 7-Scenes at 320x240
+            (FastDepth, 150 Kinect samples, one torch thread, busy shared machine) before the
+            fit was made cheaper: a per-frame fit (``fit=True``) cost 528-654 ms of CPU a frame,
+            fixed values 31 ms, with the same median error (65 / 66 mm) and +-2 sigma coverage
+            (0.94 / 0.96); the outlier of the mapping tests is rejected either way.
         fusion: TSDF options (weighting "variance" uses the posterior variance). With
             ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
         triangulation: Feature triangulation options.
@@ -214,7 +214,7 @@ class MapperConfig:
             `Mapper.update_poses` and `Mapper.save`.
     """
 
-    gp: DepthGPConfig = field(default_factory=lambda: DepthGPConfig(fit=False))
+    gp: DepthGPConfig = field(default_factory=DepthGPConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     refine: bool = True
