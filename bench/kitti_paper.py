@@ -23,7 +23,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from gpdepth3d.datasets import open_dataset
-from gpdepth3d.evaluation import write_json
+from gpdepth3d.evaluation import write_csv, write_json
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import atomic_write
 from gpdepth3d.kitti_protocol import (
@@ -136,7 +136,8 @@ def _write(output, results, rows, seconds, config, default, same, mde, started, 
     for name, rs in rows.items():
         summary = summarize_kitti(rs)
         frames = list(dict.fromkeys(r["frame"] for r in rs))
-        results["datasets"][name] = {"frames": frames, "seconds": seconds[name], "summary": summary, "rows": rs}
+        rows_csv = write_csv(rs, output.with_name(f"{output.name}_rows_{name}.csv"))  # every cell of every frame
+        results["datasets"][name] = {"frames": frames, "seconds": seconds[name], "summary": summary, "rows": rows_csv.name}
         md += ["", f"## {name} ({len(frames)} frames: {', '.join(frames)}; {seconds[name]:.0f} s)", ""]
         for res, what in (("full", "full resolution"), ("grid", "1/3 resolution")):
             md += [f"### RMSE (mm), uniform densities, {what}", "", paper_table(summary, resolution=res), ""]
