@@ -106,29 +106,30 @@ def _scene(h=24, w=32, seed=0):
     return truth, mde
 
 
+def _dense_log_posterior(mde, sp, *, l, s, tau, sigma):
+    """Independent dense reference of the log-residual posterior with fixed hyperparameters and b = the
+    points' median log ratio: (mu, v) of the log depth at every pixel (row-major), and b."""
+    h, w = mde.shape
+    rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
+    r = np.log(z) - np.log(mde[rows, cols])
+    b, n = np.median(r), len(z)
+    K = s * s * _kernel(rows.astype(float), cols.astype(float), l) + (tau**2 + sigma**2) * np.eye(n)
+    R, C = np.mgrid[0:h, 0:w]
+    kx = s * s * matern_1d(R.ravel()[:, None] - rows[None], 0.5, l) * matern_1d(C.ravel()[:, None] - cols[None], 0.5, l)
+    A = kx @ np.linalg.inv(K)
+    v = s * s - np.sum(A * kx, 1) + tau**2 + (s * s / n) * (1 - A @ np.ones(n)) ** 2
+    return np.log(mde.ravel()) + b + A @ (r - b), v, b
+
+
 class TestLogResidualPosterior:
     def test_matches_a_dense_reference(self):
         """Fixed hyperparameters, no rejection, no edge term: the posterior is a closed form."""
         truth, mde = _scene()
-        h, w = mde.shape
         sp = g.sample_uniform(truth, n=40, rng=1)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
                               nugget=0.04, sigma_meas=0.01)
         post = g.complete(mde, sp, config=cfg)
-        rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
-        r = np.log(z) - np.log(mde[rows, cols])
-        b = np.median(r)
-        n = len(z)
-        noise = 0.04**2 + 0.01**2
-        K = 0.09 * _kernel(rows.astype(float), cols.astype(float), 6.0) + noise * np.eye(n)
-        R, C = np.mgrid[0:h, 0:w]
-        kx = 0.09 * matern_1d(R.ravel()[:, None] - rows[None], 0.5, 6.0) * matern_1d(C.ravel()[:, None] - cols[None], 0.5, 6.0)
-        Ki = np.linalg.inv(K)
-        g_mean = kx @ Ki @ (r - b)
-        g_var = 0.09 - np.sum((kx @ Ki) * kx, 1)
-        w1 = kx @ Ki @ np.ones(n)
-        v = g_var + 0.04**2 + (0.09 / n) * (1 - w1) ** 2
-        mu = np.log(mde.ravel()) + b + g_mean
+        mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01)
         np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
         np.testing.assert_allclose(post.variance.ravel(), np.expm1(v) * np.exp(2 * mu + v), rtol=1e-8)
         assert post.n_rejected == 0 and post.alignment.scale == pytest.approx(np.exp(b))
@@ -136,22 +137,14 @@ class TestLogResidualPosterior:
     def test_many_points_bound_the_scale_term(self):
         """With Var[b] <= 5 % of tau^2 the scale term is bounded by Var[b], not solved for: variance high by <= 5 %."""
         truth, mde = _scene()
-        h, w = mde.shape
         sp = g.sample_uniform(truth, n=600, rng=5)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
                               nugget=0.06, sigma_meas=0.01)
         post = g.complete(mde, sp, config=cfg)
-        rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
-        n = len(z)
-        K = 0.09 * _kernel(rows.astype(float), cols.astype(float), 6.0) + (0.06**2 + 0.01**2) * np.eye(n)
-        R, C = np.mgrid[0:h, 0:w]
-        kx = 0.09 * matern_1d(R.ravel()[:, None] - rows[None], 0.5, 6.0) * matern_1d(C.ravel()[:, None] - cols[None], 0.5, 6.0)
-        Ki = np.linalg.inv(K)
-        w1 = kx @ Ki @ np.ones(n)
-        exact = 0.09 - np.sum((kx @ Ki) * kx, 1) + 0.06**2 + (0.09 / n) * (1 - w1) ** 2
+        _, exact, _ = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.06, sigma=0.01)
         got = np.log1p(post.variance.ravel() / post.mean.ravel() ** 2)  # log-normal: var / mean^2 = expm1(v)
         ratio = got / exact
-        assert 0.09 / n <= 0.05 * 0.06**2 and ratio.min() > 1 - 1e-6 and ratio.max() < 1.05
+        assert 0.09 / len(sp) <= 0.05 * 0.06**2 and ratio.min() > 1 - 1e-6 and ratio.max() < 1.05
 
     @pytest.mark.parametrize("fit", [False, True])
     def test_engines_agree(self, fit):
