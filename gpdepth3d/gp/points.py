@@ -60,10 +60,10 @@ class PointFit:
         return (self.nugget / self.outputscale) ** 2 if self.outputscale > 0 else 0.0
 
 
-def _correlation(rows: np.ndarray, cols: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
-    dr, dc = np.abs(np.subtract.outer(rows, rows)), np.abs(np.subtract.outer(cols, cols))
+def _correlation(dr: np.ndarray, dc: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
+    """Separable Matern correlation of row and column offsets (any matching shapes)."""
     if nu == 0.5:  # the separable exponential is one exponential of the L1 distance
-        return np.exp(-(dr + dc) / lengthscale)
+        return np.exp(-(np.abs(dr) + np.abs(dc)) / lengthscale)
     return matern_1d(dr, nu, lengthscale) * matern_1d(dc, nu, lengthscale)
 
 
@@ -164,7 +164,9 @@ def fit_log_residual(
     def score(i: int, j: int):
         if (i, j) not in scores:
             if i not in corr_cache:
-                corr_cache[i] = _correlation(rows, cols, lengthscales[i], nu)
+                corr_cache[i] = _correlation(
+                    np.subtract.outer(rows, rows), np.subtract.outer(cols, cols), lengthscales[i], nu
+                )
             scores[(i, j)] = _profile(resid, corr_cache[i], noise, nuggets[j], s2_guess)
         return scores[(i, j)]
 
@@ -255,16 +257,10 @@ def loo_zscores(
     rows_t, cols_t = rows[targets], cols[targets]
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
-
-    def corr(dr: np.ndarray, dc: np.ndarray) -> np.ndarray:
-        if nu == 0.5:
-            return np.exp(-(np.abs(dr) + np.abs(dc)) / fit.lengthscale)
-        return matern_1d(dr, nu, fit.lengthscale) * matern_1d(dc, nu, fit.lengthscale)
-
-    K = s2 * corr(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :])
+    K = s2 * _correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, nu)
     diag = np.arange(k)
     K[:, diag, diag] += tau2 + noise[nn]
-    kx = s2 * corr(rows_t[:, None] - R, cols_t[:, None] - C)
+    kx = s2 * _correlation(rows_t[:, None] - R, cols_t[:, None] - C, fit.lengthscale, nu)
     w = np.linalg.solve(K, kx[:, :, None])[:, :, 0]
     pred = np.sum(w * r[nn], axis=1)
     var = s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1)
