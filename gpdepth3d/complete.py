@@ -316,6 +316,7 @@ COVERAGE_WARN = 0.5
 COVERAGE_REACH = 6.0  # a pixel is far from the points beyond max(H, W) / 6 (taxicab)
 REJECTED_WARN = 0.2
 SCALE_VAR_SHARE = 0.05  # Var[b] below this share of tau^2: bounded, not solved for
+WEIGHT_FLOOR = 1e-3  # depth-aware correlation: pixels whose kriging weights sum below this keep rho = 1
 
 
 def _edge_range(depth: np.ndarray, window: int) -> np.ndarray:
@@ -393,22 +394,45 @@ def _log_residual_posterior(
     zeros_in, zeros_out = np.zeros((h, w)), np.zeros(out_shape)
     problem = GridProblem(zeros_in, obs, precision, out_rows, out_cols, zeros_out, kernel)
     g_mean, g_var = engine.solve(problem, variance=variance)
+    base_out = _resize(base, out_shape)
+    lz = config.depth_lengthscale
+    w1 = None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
+    rho = 1.0  # depth-aware correlation factor of each output pixel with the points
+    if lz is not None and len(r):
+        # depth-aware correlation (gp.model): rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), zbar the
+        # kriging-weighted mean log MDE depth of the points that inform x
+        log_base = np.log(base)
+        z_pts = log_base[r, c]
+        z_ref = float(np.median(z_pts))
+        ones_obs = np.where(precision > 0, 1.0, 0.0)
+        z_obs = np.zeros((h, w))
+        z_obs[r, c] = z_pts - z_ref
+        w1, _ = engine.solve(GridProblem(zeros_in, ones_obs, precision, out_rows, out_cols, zeros_out, kernel), variance=False)
+        wz, _ = engine.solve(GridProblem(zeros_in, z_obs, precision, out_rows, out_cols, zeros_out, kernel), variance=False)
+        log_out = np.log(base_out)
+        informed = np.abs(w1) >= WEIGHT_FLOOR  # elsewhere g's posterior is its prior whatever rho is
+        z_bar = np.where(informed, z_ref + wz / np.where(informed, w1, 1.0), log_out)
+        rho = np.exp(-np.abs(log_out - z_bar) / lz)
+        g_mean = rho * g_mean
+        if variance:
+            s2 = fit.outputscale**2
+            g_var = s2 - rho**2 * (s2 - g_var)
     if variance:
-        # uncertainty of the global scale b (flat prior): Var[b] (1 - k(x)' (K + N)^-1 1)^2. The
+        # uncertainty of the global scale b (flat prior): Var[b] (1 - rho k(x)' (K + N)^-1 1)^2. The
         # factor is in [0, 1]; when Var[b] is at most 5 % of the nugget variance (thousands of
         # points) its bound Var[b] is used instead of a second solve (variance high by <= 5 %)
         if fit.log_scale_var <= SCALE_VAR_SHARE * fit.nugget**2:
             b_term = fit.log_scale_var
         else:
-            ones = GridProblem(zeros_in, np.where(precision > 0, 1.0, 0.0), precision, out_rows, out_cols, zeros_out, kernel)
-            w1, _ = engine.solve(ones, variance=False)
-            b_term = fit.log_scale_var * (1.0 - w1) ** 2
+            if w1 is None:
+                ones = GridProblem(zeros_in, np.where(precision > 0, 1.0, 0.0), precision, out_rows, out_cols, zeros_out, kernel)
+                w1, _ = engine.solve(ones, variance=False)
+            b_term = fit.log_scale_var * (1.0 - rho * w1) ** 2
         v_log = g_var + fit.nugget**2 + b_term
     else:
         v_log = np.zeros(out_shape)
     t2 = time.perf_counter()
 
-    base_out = _resize(base, out_shape)
     mu = np.log(base_out) + fit.log_scale + g_mean
     mean = np.exp(mu + 0.5 * v_log)
     if variance:

@@ -127,19 +127,52 @@ class TestLogResidualPosterior:
         truth, mde = _scene()
         sp = g.sample_uniform(truth, n=40, rng=1)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.04, sigma_meas=0.01)
+                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=None)
         post = g.complete(mde, sp, config=cfg)
         mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01)
         np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
         np.testing.assert_allclose(post.variance.ravel(), np.expm1(v) * np.exp(2 * mu + v), rtol=1e-8)
         assert post.n_rejected == 0 and post.alignment.scale == pytest.approx(np.exp(b))
 
+    def test_depth_aware_correlation_matches_the_product_kernel(self):
+        """Points sharing one MDE depth: the posterior is the product kernel's, s^2 M(du) M(dv) exp(-|dz| / l_z)."""
+        h, w, lz = 24, 32, 0.7
+        rr, cc = np.mgrid[0:h, 0:w]
+        mde = np.where(rr >= 12, 2.0, 2.0 * np.exp(1.2 * np.sin(cc / 5.0) + 0.4 * rr / h))
+        truth = mde * np.exp(0.2 + 0.1 * np.cos(cc / 7.0))
+        sp = g.sample_uniform(np.where(rr >= 12, truth, 0.0), n=40, rng=3)
+        cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
+                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=lz)
+        post = g.complete(mde, sp, config=cfg)
+        rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
+        r = np.log(z) - np.log(mde[rows, cols])
+        b, n, s, tau = np.median(r), len(z), 0.3, 0.04
+        K = s * s * _kernel(rows.astype(float), cols.astype(float), 6.0) + (tau**2 + 0.01**2) * np.eye(n)
+        kx = s * s * matern_1d(rr.ravel()[:, None] - rows[None], 0.5, 6.0) * matern_1d(cc.ravel()[:, None] - cols[None], 0.5, 6.0)
+        kx = kx * np.exp(-np.abs(np.log(mde.ravel()) - np.log(2.0)) / lz)[:, None]
+        A = kx @ np.linalg.inv(K)
+        mu = np.log(mde.ravel()) + b + A @ (r - b)
+        v = s * s - np.sum(A * kx, 1) + tau**2 + (s * s / n) * (1 - A @ np.ones(n)) ** 2
+        np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
+        np.testing.assert_allclose(post.variance.ravel(), np.expm1(v) * np.exp(2 * mu + v), rtol=1e-8)
+        # right above the points but at another depth: the correction fades and the variance returns to the prior's
+        off = np.abs(np.log(mde) - np.log(2.0)) > 1.0
+        near = off & (rr >= 9) & (rr < 12)
+        assert near.any()
+        stationary = g.complete(mde, sp, config=cfg.replace(depth_lengthscale=None))
+        def correction(p):  # E[g] at the pixels: log-normal median minus the scaled MDE
+            v = np.log1p(p.variance[near] / p.mean[near] ** 2)
+            return np.log(p.mean[near]) - v / 2 - np.log(mde[near]) - b
+
+        assert np.all(np.abs(correction(post)) < 0.5 * np.abs(correction(stationary)))
+        assert np.all(post.variance[near] > stationary.variance[near])
+
     def test_many_points_bound_the_scale_term(self):
         """With Var[b] <= 5 % of tau^2 the scale term is bounded by Var[b], not solved for: variance high by <= 5 %."""
         truth, mde = _scene()
         sp = g.sample_uniform(truth, n=600, rng=5)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.06, sigma_meas=0.01)
+                              nugget=0.06, sigma_meas=0.01, depth_lengthscale=None)
         post = g.complete(mde, sp, config=cfg)
         _, exact, _ = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.06, sigma=0.01)
         got = np.log1p(post.variance.ravel() / post.mean.ravel() ** 2)  # log-normal: var / mean^2 = expm1(v)
@@ -219,7 +252,8 @@ class TestLogResidualPosterior:
         with pytest.raises(InvalidInputError, match="log_residual"):
             build_problem(mde, g.sample_uniform(truth, n=5, rng=0), g.DepthGPConfig())
 
-    @pytest.mark.parametrize("field, value", [("nugget", -1.0), ("edge_sigma", float("nan")), ("outlier_threshold", 0.0)])
+    @pytest.mark.parametrize("field, value", [("nugget", -1.0), ("edge_sigma", float("nan")), ("outlier_threshold", 0.0),
+                                              ("depth_lengthscale", 0.0), ("depth_lengthscale", "1")])
     def test_config_validation(self, field, value):
         with pytest.raises(InvalidInputError, match=field):
             g.DepthGPConfig(**{field: value})

@@ -35,7 +35,22 @@ Formulations:
   points as observations of noise tau^2 + (sigma_j / z_j)^2. The depth posterior is log-normal: mean
   exp(mu + v/2) and variance (exp(v) - 1) exp(2 mu + v), with v = Var[g] + tau^2 + Var[b]
   (1 - k(x)' (K + N)^-1 1)^2; an edge term (``edge_sigma`` x the local MDE depth range) is
-  added to the variance. Means are positive by construction; errors that scale with depth
+  added to the variance.
+
+  Depth-aware correlation (``depth_lengthscale`` l_z, log-depth units): a correction learned on
+  points at one depth should not carry to pixels at a very different depth (the road at 10 m
+  says little about a building at 30 m right above it; a table's points little about the wall
+  behind it). The cross-covariance of a pixel with the points is multiplied by
+  rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), where zbar(x) is the kriging-weighted mean log
+  MDE depth of the points that inform x (two mean-only solves: the weights applied to log MDE
+  and to ones). Then E[g(x)] = rho(x) E_0[g(x)], Var[g(x)] = s^2 - rho(x)^2 (s^2 - Var_0[g(x)])
+  and the scale term's weights become rho(x) k(x)' (K + N)^-1 1, with E_0, Var_0 the
+  stationary posterior: exactly the posterior of the product kernel
+  s^2 M(du/l) M(dv/l) exp(-|dz|/l_z) when the informing points share one MDE depth. A pixel at
+  a depth no point speaks for returns to the prior (the scaled MDE, the prior variance) instead
+  of inheriting a correction.
+
+  Means are positive by construction; errors that scale with depth
   (outdoors: a few cm at 5 m, metres at 60 m) get variances that scale with depth, and the
   fitted length scale follows the point density (short with full LiDAR, long with 50 points).
 
@@ -96,6 +111,9 @@ class DepthGPConfig:
         edge_sigma: log_residual: extra standard deviation at MDE depth edges, as a share of
             the MDE's depth range over a 3-pixel window (colour and range sensors are never
             perfectly registered, and MDE edges are blurred); 0 turns it off.
+        depth_lengthscale: log_residual: length scale of the depth-aware correlation in log-depth
+            units (0.7: corrections fade to 1/e across a factor of 2 in MDE depth); None turns it
+            off (the stationary pixel kernel alone). Costs two mean-only solves per frame.
     """
 
     formulation: Formulation = "log_residual"
@@ -112,6 +130,7 @@ class DepthGPConfig:
     nugget: float = 0.02
     outlier_threshold: float | None = 3.5
     edge_sigma: float = 1.0
+    depth_lengthscale: float | None = 0.7
 
     def __post_init__(self) -> None:
         if not isinstance(self.formulation, str) or self.formulation not in ("log_residual", "balanced", "residual"):
@@ -146,6 +165,13 @@ class DepthGPConfig:
         t = self.outlier_threshold
         if t is not None and (not _is_real(t) or not np.isfinite(t) or t <= 0):
             raise InvalidInputError("outlier_threshold", "a z-score > 0, or None", f"{type(t).__name__} {t!r}")
+        lz = self.depth_lengthscale
+        if lz is not None:
+            if not _is_real(lz) or not np.isfinite(lz) or lz <= 0:
+                raise InvalidInputError(
+                    "depth_lengthscale", "a log-depth length scale > 0, or None", f"{type(lz).__name__} {lz!r}"
+                )
+            object.__setattr__(self, "depth_lengthscale", float(lz))
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
@@ -163,6 +189,7 @@ class DepthGPConfig:
             fit=False,
             outlier_threshold=None,
             edge_sigma=0.0,
+            depth_lengthscale=None,
         )
         return replace(base, **overrides)
 
@@ -181,6 +208,7 @@ class DepthGPConfig:
             fit=False,
             outlier_threshold=None,
             edge_sigma=0.0,
+            depth_lengthscale=None,
         )
         return replace(base, **overrides)
 
