@@ -13,10 +13,10 @@ from typing import Iterator
 
 import numpy as np
 
-from .complete import DepthCompleter
-from .gp.model import DepthGPConfig
-from .mde.align import align_depth
-from .metrics import calibration_metrics, depth_metrics
+from ..completion.complete import DepthCompleter
+from ..gp.model import DepthGPConfig
+from ..mde.align import align_depth
+from ..metrics import calibration_metrics, depth_metrics
 from .synthetic import make_scene
 
 
@@ -75,7 +75,7 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
 
 def _extras(frame, posteriors, output_dir: Path) -> list[Path]:
     """Figure and confidence-weighted point cloud of the residual posterior."""
-    from .cloud import backproject_posterior
+    from ..mapping.cloud import backproject_posterior
     from .evaluation import plot_qualitative
 
     post = posteriors["gp-residual"]

@@ -41,9 +41,9 @@ from typing import Iterator, Literal
 
 import numpy as np
 
-from .camera import PinholeCamera
-from .errors import InvalidInputError
-from .measurements import SparseDepth, project_points
+from ..camera import PinholeCamera
+from ..errors import InvalidInputError
+from ..measurements import SparseDepth, project_points
 
 SceneKind = Literal["street", "room"]
 
