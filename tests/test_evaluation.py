@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.evaluation: methods, protocols, tables, files, and an end-to-end run."""
+"""Tests of gpdepth3d.experiments.evaluation: methods, protocols, tables, files, and an end-to-end run."""
 
 from __future__ import annotations
 
@@ -12,11 +12,10 @@ import pytest
 
 from gpdepth3d.datasets import Frame
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.evaluation import (
+from gpdepth3d.experiments.evaluation import (
     METHODS,
     MethodSuite,
     draw_sparse,
-    eval_command,
     evaluate,
     level_label,
     markdown_table,
@@ -27,7 +26,8 @@ from gpdepth3d.evaluation import (
     write_csv,
     write_json,
 )
-from gpdepth3d.complete import DepthCompleter
+from gpdepth3d.cli.eval import eval_command
+from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.mde import ArrayMDE

@@ -27,14 +27,15 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
-import gpdepth3d.batch
+import gpdepth3d.experiments.batch
 import gpdepth3d.datasets
 import gpdepth3d.viewer
 from gpdepth3d import cli
 from gpdepth3d import io as gio
 from gpdepth3d.camera import PinholeCamera, check_pose
-from gpdepth3d.cloud import backproject_depth
-from gpdepth3d.complete import DepthPosterior, check_output_shape, complete
+from gpdepth3d.mapping.cloud import backproject_depth
+from gpdepth3d.completion.complete import DepthPosterior, complete
+from gpdepth3d.completion.problem import check_output_shape
 from gpdepth3d.errors import (
     CalibrationError,
     DataFormatError,
@@ -420,12 +421,9 @@ def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
 
 def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, monkeypatch):
     """eval's files are written together: a full disk at the third file leaves none of them."""
-    import functools
+    import gpdepth3d.cli.eval as eval_cli
 
-    import gpdepth3d.evaluation as ev
-
-    @functools.wraps(ev.eval_command)  # the real options; the body writes three files, the third onto a full disk
-    def fake_eval(data, *, output, **kwargs):
+    def fake_run(data, *, output, **kwargs):  # the library's run: three files, the third onto a full disk
         gio.atomic_write(Path(output) / "results.csv", lambda p: p.write_text("a"))
         gio.atomic_write(Path(output) / "summary.csv", lambda p: p.write_text("b"))
 
@@ -434,7 +432,7 @@ def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, 
 
         gio.atomic_write(Path(output) / "results.json", full)
 
-    monkeypatch.setattr(ev, "eval_command", fake_eval)
+    monkeypatch.setattr(eval_cli, "run_evaluation", fake_run)
     assert cli.main(["eval", "--data", str(cli_inputs), "--output", str(tmp_path / "ev")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "disk full" in err[0]
