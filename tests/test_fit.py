@@ -1,4 +1,4 @@
-"""Tests of hyperparameter fitting (gpdepth3d.completion.fit) on data sampled from the model."""
+"""Tests of hyperparameter fitting: gpdepth3d.completion.fit on data sampled from the model, gpdepth3d.gp.fit alone."""
 
 from __future__ import annotations
 

@@ -169,9 +169,9 @@ API_CASES = [
     ("load posterior of mixed shapes", lambda t: DepthPosterior.load(_mixed_posterior(t)), DataFormatError, "2-D grid"),
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
-    ("batch address", lambda t: g.batch.check_address("not-an-address"), InvalidInputError, "address"),
-    ("batch address no port", lambda t: g.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
-    ("batch output under a file", lambda t: g.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
+    ("batch address", lambda t: g.experiments.batch.check_address("not-an-address"), InvalidInputError, "address"),
+    ("batch address no port", lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
+    ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
 ]
 
 

@@ -72,7 +72,7 @@ _TEMP_FILE = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
 
 
 class FramesFailedError(GPDepthError):
-    """Some frames of a batch failed (raised by `batch_command` after the others were written)."""
+    """Some frames of a batch failed (raised by ``gpdepth3d batch``, `gpdepth3d.cli.batch`, after the others were written)."""
 
 
 # ---------------------------------------------------------------------------------- frames

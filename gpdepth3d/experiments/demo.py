@@ -1,6 +1,6 @@
 """The built-in demo: the whole flow on a SIMULATED street scene, no data or arguments needed.
 
-It makes a synthetic frame (`gpdepth3d.synthetic`: ray-cast scene, simulated 64-beam LiDAR,
+It makes a synthetic frame (`gpdepth3d.experiments.synthetic`: ray-cast scene, simulated 64-beam LiDAR,
 simulated MDE), completes it with the paper's balanced GP and with the residual GP, prints
 the metrics of each against the exact ground truth, and writes the posteriors, a figure and
 a confidence-weighted point cloud.

@@ -5,13 +5,13 @@ computed against the same ground truth. Methods (`METHODS`):
 
 * ``mde``: the MDE alone.
 * ``mde_scale``: the MDE times one robust global scale fitted to the sparse points.
-* ``ip_basic``: IP-Basic (Ku et al. 2018) from the sparse points only (`gpdepth3d.baselines`).
+* ``ip_basic``: IP-Basic (Ku et al. 2018) from the sparse points only (`gpdepth3d.experiments.baselines`).
 * ``gp_balanced``: the paper's balanced GP (`DepthGPConfig.paper`), MDE pixels and points both
   observations; solved on a GP grid of ``balanced_factor`` times the evaluation resolution (the
   paper worked at 1/3 KITTI resolution) with the output at full evaluation resolution.
 * ``gp_balanced_fit``: the same with ``config.fit``: length scale, output scale and sigma_DL
   fitted per frame by maximising the exact marginal likelihood of all its observations
-  (`gpdepth3d.gp.fit.fit_hyperparameters`, starting from the paper's values).
+  (`gpdepth3d.completion.fit.fit_hyperparameters`, starting from the paper's values).
 * ``gp_residual``: the residual GP (`DepthGPConfig.residual`): scale-aligned MDE as prior mean,
   the GP models its additive error.
 * ``gp_residual_fit``: the residual GP with its length scale, output scale and a nugget

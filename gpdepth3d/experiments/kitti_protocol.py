@@ -19,7 +19,7 @@ Protocol (one frame, `prepare_kitti_frame`):
    of rows / columns (`gpdepth3d.sampling.sample_band`; all of the band's points when it holds
    fewer), the paper's biased measurements.
 
-Methods (`METHODS`): the MDE alone, IP-Basic (`gpdepth3d.baselines.ip_basic`, from the points
+Methods (`METHODS`): the MDE alone, IP-Basic (`gpdepth3d.experiments.baselines.ip_basic`, from the points
 only), the paper's balanced GP (`DepthGPConfig.paper()`) and the library's default
 (`DepthGPConfig()`). Each is scored at the grid resolution and at full resolution: the GPs
 predict the full-resolution grid themselves (``output_shape``); IP-Basic's grid output is resized

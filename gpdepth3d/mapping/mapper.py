@@ -11,9 +11,9 @@ Per frame: (1) the MDE depth (given, or from the front-end callable ``rgb -> dep
 (2) sparse measurements from any of: a `SparseDepth`, SLAM map points in world coordinates
 (transformed by the pose and projected, `sparse_from_map_points`), and features the library
 triangulates itself between this frame and earlier frames of a sliding window
-(`gpdepth3d.triangulation`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
+(`gpdepth3d.mapping.triangulation`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
 sequence); (4) TSDF fusion of the posterior mean with per-pixel weights from its variance
-(`gpdepth3d.fusion`).
+(`gpdepth3d.mapping.fusion`).
 
 Resolution: ``camera`` describes the RGB images given to `Mapper.add_frame`; features are
 detected at that resolution, while refinement and fusion run at ``working_scale`` times it
@@ -24,16 +24,16 @@ not finite is masked and counted before fusion; a stage that fails (the MDE fron
 the fusion of a frame with nothing in range) is recorded on the `FrameResult` and in
 `Mapper.failures`, naming the frame, and the sequence goes on. Map points outside the image,
 behind the camera or not finite are counted (`MapPointStats`), and a pose under which the map
-points look inverted warns (`gpdepth3d.trajectories.InvertedPoseWarning`).
+points look inverted warns (`gpdepth3d.mapping.trajectories.InvertedPoseWarning`).
 
 Back-end interface: every fused frame is kept in a keyframe store (depth, variance, pose and
 colour at the working resolution, by keyframe id). `Mapper.update_poses` applies a loop
 closure by rebuilding only the TSDF blocks the moved keyframes reached before or reach now,
 which gives exactly the volume of fusing every keyframe from scratch with the new poses.
 `Mapper.save` / `Mapper.load` write and read the map (volume and keyframe store). Poses of a
-back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.trajectories`.
+back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.mapping.trajectories`.
 
-`fuse_sequence` / `fuse_command` run the whole pipeline on a 7-Scenes-style sequence and build
+`fuse_sequence` (and ``gpdepth3d fuse``, `gpdepth3d.cli.fuse`) run the whole pipeline on a 7-Scenes-style sequence and build
 the meshes from MDE-only, GP-refined and ground-truth depth with accuracy/completeness metrics.
 """
 
@@ -594,7 +594,7 @@ class Mapper:
         one are zeroed and rebuilt from every stored keyframe that reaches them, in the order
         the keyframes were fused; all other blocks are left alone. The volume is then the one
         fusing all keyframes from scratch with the new poses gives (voxel for voxel; see
-        `gpdepth3d.fusion`).
+        `gpdepth3d.mapping.fusion`).
 
         Args:
             poses: keyframe id -> new 4x4 ``T_world_camera``.

@@ -25,7 +25,7 @@ What the page shows, for one frame or a posed sequence (all frames in the world 
 * a point size slider (metres).
 
 Point positions are sent as float32 (viser's default float16 has a spacing of 3 cm at 50 m).
-Back-projection uses `gpdepth3d.cloud.backproject_depth`; clouds are subsampled with a pixel
+Back-projection uses `gpdepth3d.mapping.cloud.backproject_depth`; clouds are subsampled with a pixel
 stride so that each layer holds at most ``ViewerConfig.max_points`` points.
 """
 
