@@ -9,6 +9,7 @@ from ..experiments.batch import REPORT_NAME, FramesFailedError, HoldoutInputs, c
 from ..gp.model import DepthGPConfig
 from ..io import check_output_folder
 
+
 def batch_command(
     *,
     data: Path,

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ..io import check_output_folder
 
+
 def demo_command(*, output_dir: Path = Path("gpdepth3d_demo"), seed: int = 0) -> None:
     """Run the whole flow on built-in synthetic data (no arguments needed) and say where the outputs are.
 

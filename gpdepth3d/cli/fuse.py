@@ -11,6 +11,7 @@ from ..io import atomic_write
 from ..mapping.fusion import FusionConfig, save_mesh
 from ..mapping.mapper import SEVEN_SCENES_RGB_K, MapperConfig, _jsonable, fuse_sequence
 
+
 def fuse_command(
     data: Path,
     out: Path = Path("fuse_out"),

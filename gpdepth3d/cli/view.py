@@ -13,6 +13,7 @@ from ..errors import InvalidInputError
 from ..io import load_pose, load_poses, read_matrix
 from ..viewer.app import ColorBy, Layout, ViewerConfig, ViewerFrame, check_host, port_taken, show
 
+
 def view_command(
     *,
     posterior: tuple[Path, ...] = (),

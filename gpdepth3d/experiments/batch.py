@@ -899,4 +899,3 @@ def _run_dask(client, todo: list[FrameSpec], output_dir: str, kwargs: dict, wind
         client.cancel(list(queue.futures))
         raise
     return results
-

@@ -966,4 +966,3 @@ def port_taken(host: str, port: int) -> bool:
         except OSError:
             return True
     return False
-
