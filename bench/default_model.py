@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import gpdepth3d as g
-from gpdepth3d.evaluation import write_json
+from gpdepth3d.experiments.evaluation import write_json
 from gpdepth3d.mde import load_frontend
 from gpdepth3d.measurements import SparseDepth
 
@@ -134,7 +134,7 @@ def vio(data: Path, fastdepth) -> dict:
 def speed(data: Path, rtmonodepth, repeats: int = 3) -> dict:
     """Seconds per frame (mean + variance, best of ``repeats`` after one warm-up) of the default model
     on kitti_tiny frame 0 at 1/3 and full resolution for each density, beside IP-Basic on the same input."""
-    from gpdepth3d.baselines import ip_basic
+    from gpdepth3d.experiments.baselines import ip_basic
 
     frame = g.open_dataset(data / "kitti_tiny")[0]
     out = {}

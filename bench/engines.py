@@ -96,7 +96,7 @@ def load_frame(data: Path, size: str):
 
 def make(engine: str, config):
     """A completer running ``engine``: exact, kissgp, fast (automatic route), fast-grid or fast-torch."""
-    from gpdepth3d.complete import DepthCompleter
+    from gpdepth3d.completion.complete import DepthCompleter
     from gpdepth3d.gp.fast import FastEngine
 
     completer = DepthCompleter(config.replace(engine=engine.split("-")[0], max_exact_points=100_000))
@@ -111,7 +111,7 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
     """Runs one (engine, size) cell in this process; returns its measurements."""
     import torch  # noqa: F401  (one-time import, not part of the first-frame time)
 
-    from gpdepth3d.complete import DepthCompleter
+    from gpdepth3d.completion.complete import DepthCompleter
 
     mde, sparse, config = load_frame(data, size)
     base_rss = _rss_mb()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gpdepth3d.evaluation import eval_command, write_json
+from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,18 +24,20 @@ def main() -> None:
     args = parser.parse_args()
     data = args.data / "7scenes"
     results = {}
-    results["uniform"] = eval_command(
-        data, protocol="uniform", points="50,200,500", output=args.output / "uniform", stride=args.stride
+    results["uniform"] = run_evaluation(
+        data, protocols=["uniform"], levels=[50, 200, 500], output=args.output / "uniform", stride=args.stride
     )
-    results["bands"] = eval_command(
+    print(markdown_table(results["uniform"]))
+    results["bands"] = run_evaluation(
         data,
-        protocol="hband,vband",
-        points="200",
+        protocols=["hband", "vband"],
+        levels=[200],
         output=args.output / "bands",
         stride=args.stride,
-        methods="mde,mde_scale,ip_basic,gp_default,gp_residual,gp_residual_fit",
+        methods=["mde", "mde_scale", "ip_basic", "gp_default", "gp_residual", "gp_residual_fit"],
         qualitative=False,
     )
+    print(markdown_table(results["bands"]))
     write_json(results, ROOT / "bench" / "results" / "eval_7scenes.json")
 
 

@@ -1,6 +1,6 @@
 """Do hyperparameters fitted per frame beat the fixed ones on real data? (7-Scenes, FastDepth.)
 
-Runs the evaluation (`gpdepth3d.evaluation.eval_command`) at 320x240 with 200 points, uniform and
+Runs the evaluation (`gpdepth3d.experiments.evaluation.run_evaluation`) at 320x240 with 200 points, uniform and
 in the lower half-band, for the paper's balanced GP with its fixed values (``gp_balanced``) and
 fitted per frame by maximum marginal likelihood (``gp_balanced_fit``: ``DepthGPConfig(fit=True)``),
 and the residual GP fixed / fitted. Writes bench/results/fit_7scenes.json.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gpdepth3d.evaluation import eval_command, write_json
+from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,10 +24,12 @@ def main() -> None:
     parser.add_argument("--stride", type=int, default=12, help="use every stride-th frame")
     parser.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "fit_7scenes")
     args = parser.parse_args()
-    rows = eval_command(
-        args.data / "7scenes", protocol="uniform,hband", points="200", output=args.output, stride=args.stride,
-        methods="mde,gp_balanced,gp_balanced_fit,gp_residual,gp_residual_fit", qualitative=False, progress=False,
+    rows = run_evaluation(
+        args.data / "7scenes", protocols=["uniform", "hband"], levels=[200], output=args.output, stride=args.stride,
+        methods=["mde", "gp_balanced", "gp_balanced_fit", "gp_residual", "gp_residual_fit"], qualitative=False,
+        progress=False,
     )
+    print(markdown_table(rows))
     write_json({"dataset": "7scenes", "mde": "FastDepth TFLite", "resolution": "320x240", "command": "python bench/fit.py",
                 "rows": rows},
                ROOT / "bench" / "results" / "fit_7scenes.json")

@@ -71,7 +71,7 @@ def rms(a) -> float:
 def agreement(mde, sparse, config, crop, device) -> dict:
     """kissgp vs exact on a crop: relative mean RMS and variance relative errors."""
     from gpdepth3d import SparseDepth
-    from gpdepth3d.complete import build_problem
+    from gpdepth3d.completion.complete import build_problem
     from gpdepth3d.gp.exact import ExactEngine
     from gpdepth3d.gp.kissgp import KissGPEngine
 
@@ -95,7 +95,7 @@ def agreement(mde, sparse, config, crop, device) -> dict:
 
 
 def run_case(name, mde, sparse, config, device, variance: bool, crop) -> dict:
-    from gpdepth3d.complete import build_problem
+    from gpdepth3d.completion.complete import build_problem
     from gpdepth3d.gp.kissgp import KissGPEngine
 
     problem, *_ = build_problem(mde, sparse, config)

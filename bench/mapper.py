@@ -67,9 +67,9 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     from gpdepth3d.camera import PinholeCamera
     from gpdepth3d.datasets.sevenscenes import SevenScenes
-    from gpdepth3d.fusion import TSDFFusion
+    from gpdepth3d.mapping.fusion import TSDFFusion
     from gpdepth3d.io import atomic_write
-    from gpdepth3d.mapping import SEVEN_SCENES_RGB_K, STAGES, Mapper, MapperConfig, _jsonable
+    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, STAGES, Mapper, MapperConfig, _jsonable
     from gpdepth3d.mde.tflite import FastDepthTFLite
 
     reader = SevenScenes(args.data)

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> dict:
     rng = np.random.default_rng(0)
 
     if args.data is None:
-        from gpdepth3d.synthetic import make_scene
+        from gpdepth3d.experiments.synthetic import make_scene
 
         frame = make_scene(0, kind="room")
         gt, mde = frame.depth_gt, frame.mde

@@ -5,20 +5,13 @@ measurements (LiDAR, SLAM features) following Yoon & Kim, IROS 2020 (KISS-GP), a
 result into confidence-weighted point clouds and TSDF maps. Units and frame conventions are
 stated once in `gpdepth3d.camera`. Importing the package loads neither torch nor Open3D; the
 modules that need them import them when used.
+
+Layers (each folder one layer; imports point down only, checked by tests/test_layers.py):
+foundations (`errors`, `camera`, `measurements`, `sampling`, `metrics`, `io`) < `mde`, `datasets`
+< `gp` (needs only `errors`) < `completion` < `mapping` < `experiments` < `cli`, `viewer`.
+The public API below is re-exported explicitly from the modules that define it.
 """
 
-from .baselines import ip_basic as ip_basic
-from .camera import PinholeCamera as PinholeCamera
-from .camera import check_pose as check_pose
-from .cloud import ColoredCloud as ColoredCloud
-from .cloud import backproject_depth as backproject_depth
-from .cloud import backproject_posterior as backproject_posterior
-from .complete import DepthCompleter as DepthCompleter
-from .complete import DepthPosterior as DepthPosterior
-from .complete import PosteriorWarning as PosteriorWarning
-from .complete import complete as complete
-from .datasets import Frame as Frame
-from .datasets import open_dataset as open_dataset
 from .errors import CalibrationError as CalibrationError
 from .errors import ConnectionFailedError as ConnectionFailedError
 from .errors import ConvergenceError as ConvergenceError
@@ -30,42 +23,54 @@ from .errors import InvalidInputError as InvalidInputError
 from .errors import OutputError as OutputError
 from .errors import ProblemTooLargeError as ProblemTooLargeError
 from .errors import ShapeError as ShapeError
-from .fusion import FusionConfig as FusionConfig
-from .fusion import TSDFFusion as TSDFFusion
-from .fusion import save_mesh as save_mesh
-from .gp.model import DepthGPConfig as DepthGPConfig
-from .mapping import FrameResult as FrameResult
-from .mapping import Mapper as Mapper
-from .mapping import MapperConfig as MapperConfig
-from .mapping import project_map_points as project_map_points
-from .mapping import sparse_from_map_points as sparse_from_map_points
-from .mde import ArrayMDE as ArrayMDE
-from .mde import ONNXDepthModel as ONNXDepthModel
-from .mde import RTMonoDepthONNX as RTMonoDepthONNX
-from .mde import load_frontend as load_frontend
-from .mde import align_depth as align_depth
-from .measurements import LidarCalibration as LidarCalibration
-from .measurements import SparseDepth as SparseDepth
+from .camera import check_pose as check_pose
+from .camera import PinholeCamera as PinholeCamera
 from .measurements import downsample_depth as downsample_depth
+from .measurements import LidarCalibration as LidarCalibration
 from .measurements import load_velodyne as load_velodyne
 from .measurements import project_points as project_points
-from .metrics import calibration_metrics as calibration_metrics
-from .metrics import depth_metrics as depth_metrics
+from .measurements import SparseDepth as SparseDepth
 from .sampling import holdout_split as holdout_split
 from .sampling import sample_band as sample_band
 from .sampling import sample_scanlines as sample_scanlines
 from .sampling import sample_uniform as sample_uniform
-from .trajectories import InvertedPoseWarning as InvertedPoseWarning
-from .trajectories import Trajectory as Trajectory
-from .trajectories import check_pose_orientation as check_pose_orientation
-from .trajectories import invert_pose as invert_pose
-from .trajectories import pose_from_tq as pose_from_tq
-from .trajectories import read_colmap_model as read_colmap_model
-from .trajectories import read_kitti_poses as read_kitti_poses
-from .trajectories import read_tum_trajectory as read_tum_trajectory
-from .trajectories import tq_from_pose as tq_from_pose
-from .trajectories import write_tum_trajectory as write_tum_trajectory
-from .triangulation import TriangulationConfig as TriangulationConfig
-from .triangulation import triangulate_frames as triangulate_frames
+from .metrics import calibration_metrics as calibration_metrics
+from .metrics import depth_metrics as depth_metrics
+from .mde import align_depth as align_depth
+from .mde import ArrayMDE as ArrayMDE
+from .mde import load_frontend as load_frontend
+from .mde import ONNXDepthModel as ONNXDepthModel
+from .mde import RTMonoDepthONNX as RTMonoDepthONNX
+from .datasets import Frame as Frame
+from .datasets import open_dataset as open_dataset
+from .gp.model import DepthGPConfig as DepthGPConfig
+from .completion.complete import complete as complete
+from .completion.complete import DepthCompleter as DepthCompleter
+from .completion.complete import DepthPosterior as DepthPosterior
+from .completion.complete import PosteriorWarning as PosteriorWarning
+from .mapping.cloud import backproject_depth as backproject_depth
+from .mapping.cloud import backproject_posterior as backproject_posterior
+from .mapping.cloud import ColoredCloud as ColoredCloud
+from .mapping.fusion import FusionConfig as FusionConfig
+from .mapping.fusion import save_mesh as save_mesh
+from .mapping.fusion import TSDFFusion as TSDFFusion
+from .mapping.mapper import FrameResult as FrameResult
+from .mapping.mapper import Mapper as Mapper
+from .mapping.mapper import MapperConfig as MapperConfig
+from .mapping.mapper import project_map_points as project_map_points
+from .mapping.mapper import sparse_from_map_points as sparse_from_map_points
+from .mapping.trajectories import check_pose_orientation as check_pose_orientation
+from .mapping.trajectories import invert_pose as invert_pose
+from .mapping.trajectories import InvertedPoseWarning as InvertedPoseWarning
+from .mapping.trajectories import pose_from_tq as pose_from_tq
+from .mapping.trajectories import read_colmap_model as read_colmap_model
+from .mapping.trajectories import read_kitti_poses as read_kitti_poses
+from .mapping.trajectories import read_tum_trajectory as read_tum_trajectory
+from .mapping.trajectories import tq_from_pose as tq_from_pose
+from .mapping.trajectories import Trajectory as Trajectory
+from .mapping.trajectories import write_tum_trajectory as write_tum_trajectory
+from .mapping.triangulation import triangulate_frames as triangulate_frames
+from .mapping.triangulation import TriangulationConfig as TriangulationConfig
+from .experiments.baselines import ip_basic as ip_basic
 
 __version__ = "0.1.0"

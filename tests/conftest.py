@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.synthetic import SyntheticFrame, make_scene
+from gpdepth3d.experiments.synthetic import SyntheticFrame, make_scene
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,7 +86,7 @@ def tiny_street_frame() -> SyntheticFrame:
 
 @pytest.fixture
 def break_writes(monkeypatch):
-    """``break_writes("gpdepth3d.cloud")`` makes ``open`` inside that module return files whose writes
+    """``break_writes("gpdepth3d.mapping.cloud")`` makes ``open`` inside that module return files whose writes
     store half the data and then raise ``OSError("disk full")`` (to test that failed exports leave no file)."""
     real_open = open
 

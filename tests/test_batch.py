@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.batch: frame specs, holdout inputs, resumable runs, failures, kill and resume.
+"""Tests of gpdepth3d.experiments.batch: frame specs, holdout inputs, resumable runs, failures, kill and resume.
 
 The data is a tiny KITTI-like folder written per test session (45 x 150 frames, 1/3 resolution
 = 15 x 50 GP grid, 40 input points), so every frame takes milliseconds and the Dask tests are
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d import DepthGPConfig, complete
-from gpdepth3d.batch import (
+from gpdepth3d.experiments.batch import (
     LOCK_NAME,
     REPORT_NAME,
     SETTINGS_NAME,
@@ -31,7 +31,6 @@ from gpdepth3d.batch import (
     FrameSpec,
     HoldoutInputs,
     aggregate_metrics,
-    batch_command,
     check_frame_id,
     dataset_frames,
     evaluate_posterior,
@@ -42,7 +41,8 @@ from gpdepth3d.batch import (
     remove_stale_temp_files,
     run_batch,
 )
-from gpdepth3d.complete import DepthPosterior
+from gpdepth3d.cli.batch import batch_command
+from gpdepth3d.completion.complete import DepthPosterior
 from gpdepth3d.errors import DataFormatError, EmptyInputError, InvalidInputError
 from gpdepth3d.io import load_depth
 from gpdepth3d.measurements import SparseDepth
@@ -302,7 +302,7 @@ class TestRunBatchInProcess:
         assert same.n_skipped == 1
         other_engine = run_batch(frames, tmp_path, config=CONFIG.replace(engine="fast"), loader=LOADER, workers=0)
         assert other_engine.n_skipped == 1, "engines compute the same posterior: resuming with another is allowed"
-        assert fingerprint(process_frame) == "gpdepth3d.batch.process_frame"
+        assert fingerprint(process_frame) == "gpdepth3d.experiments.batch.process_frame"
 
     def test_a_second_run_on_a_locked_folder_is_refused(self, tiny_kitti, tmp_path):
         fcntl = pytest.importorskip("fcntl")
@@ -409,7 +409,7 @@ KILL_SCRIPT = textwrap.dedent(
     from pathlib import Path
 
     from gpdepth3d import DepthGPConfig
-    from gpdepth3d.batch import HoldoutInputs, dataset_frames, run_batch
+    from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch
 
 
     @dataclass(frozen=True)
@@ -532,19 +532,19 @@ def test_frame_inputs_is_the_loader_contract():
 class TestChecks:
     @pytest.mark.parametrize("good", ["tcp://10.0.0.5:8786", "127.0.0.1:8786", "tls://sched.example.org:1", "tcp://[::1]:8786"])
     def test_addresses_accepted(self, good):
-        from gpdepth3d.batch import check_address
+        from gpdepth3d.experiments.batch import check_address
 
         assert check_address(f" {good} ") == good
 
     @pytest.mark.parametrize("bad", ["not-an-address", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://h:1", "", 8786])
     def test_addresses_refused(self, bad):
-        from gpdepth3d.batch import check_address
+        from gpdepth3d.experiments.batch import check_address
 
         with pytest.raises(InvalidInputError, match="address"):
             check_address(bad)
 
     def test_make_output_dir_and_frame_done(self, tmp_path):
-        from gpdepth3d.batch import frame_done, make_output_dir
+        from gpdepth3d.experiments.batch import frame_done, make_output_dir
         from gpdepth3d.errors import OutputError
 
         out = make_output_dir(tmp_path / "a" / "b")

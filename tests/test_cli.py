@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from gpdepth3d.cli import main
-from gpdepth3d.complete import DepthPosterior
+from gpdepth3d.completion.complete import DepthPosterior
 from gpdepth3d.io import load_depth
 from gpdepth3d.measurements import downsample_depth
 
@@ -52,8 +52,8 @@ class TestCompleteCommand:
         np.testing.assert_allclose(png, post.mean, atol=1 / 256)
 
     def test_fitted_hyperparameters_from_the_command_line(self, shared_data, tmp_path, capsys):
-        from gpdepth3d.complete import DepthCompleter
-        from gpdepth3d.gp.fit import log_marginal_likelihood
+        from gpdepth3d.completion.complete import DepthCompleter
+        from gpdepth3d.completion.fit import log_marginal_likelihood
         from gpdepth3d.gp.model import DepthGPConfig
         from gpdepth3d.io import load_sparse
 

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.cloud: back-projection, confidence, filtering, transforms, PLY export."""
+"""Tests of gpdepth3d.mapping.cloud: back-projection, confidence, filtering, transforms, PLY export."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.cloud import (
+from gpdepth3d.mapping.cloud import (
     DEFAULT_RHO_REF,
     ColoredCloud,
     MaskedDepthWarning,
@@ -106,7 +106,7 @@ class TestBackproject:
         assert np.all(np.isnan(cloud.variance)) and np.all(cloud.confidence == 1.0)
 
     def test_posterior(self):
-        from gpdepth3d.complete import complete
+        from gpdepth3d.completion.complete import complete
         from gpdepth3d.gp.model import DepthGPConfig
         from gpdepth3d.measurements import SparseDepth
 
@@ -231,7 +231,7 @@ class TestColoredCloud:
         with pytest.raises(InvalidInputError):
             cloud.save_ply(tmp_path / "cloud.txt")
 
-        break_writes("gpdepth3d.cloud")
+        break_writes("gpdepth3d.mapping.cloud")
         with pytest.raises(OSError):
             cloud.save_ply(tmp_path / "broken.ply")
         assert list(tmp_path.iterdir()) == []

@@ -1,11 +1,11 @@
-"""Tests of gpdepth3d.complete: input rules, build_problem, complete(), DepthCompleter, DepthPosterior."""
+"""Tests of gpdepth3d.completion.complete: input rules, build_problem, complete(), DepthCompleter, DepthPosterior."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import DepthCompleter, DepthPosterior, build_problem, check_mde_depth, complete
+from gpdepth3d.completion.complete import DepthCompleter, DepthPosterior, build_problem, check_mde_depth, complete
 from gpdepth3d.errors import DataFormatError, EmptyInputError, InvalidDepthError, ShapeError
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import load_depth

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.evaluation: methods, protocols, tables, files, and an end-to-end run."""
+"""Tests of gpdepth3d.experiments.evaluation: methods, protocols, tables, files, and an end-to-end run."""
 
 from __future__ import annotations
 
@@ -12,11 +12,10 @@ import pytest
 
 from gpdepth3d.datasets import Frame
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.evaluation import (
+from gpdepth3d.experiments.evaluation import (
     METHODS,
     MethodSuite,
     draw_sparse,
-    eval_command,
     evaluate,
     level_label,
     markdown_table,
@@ -27,7 +26,8 @@ from gpdepth3d.evaluation import (
     write_csv,
     write_json,
 )
-from gpdepth3d.complete import DepthCompleter
+from gpdepth3d.cli.eval import eval_command
+from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.mde import ArrayMDE
@@ -157,7 +157,7 @@ class TestEvaluateAndOutputs:
 
 
 class TestEvalCommand:
-    def test_two_frames_end_to_end(self, shared_data, tmp_path):
+    def test_two_frames_end_to_end(self, shared_data, tmp_path, capsys):
         pytest.importorskip("ai_edge_litert")
         data = shared_data / "7scenes"
         if not (shared_data.parent / "models" / "fast_depth_224.tflite").is_file():
@@ -169,6 +169,8 @@ class TestEvalCommand:
         )
         for name in ("results.csv", "summary.csv", "results.json", "summary.md", "rmse_uniform.png", "qualitative.png"):
             assert (out / name).is_file(), name
+        printed = capsys.readouterr().out  # the CLI prints the table the library wrote to summary.md
+        assert printed.strip() == (out / "summary.md").read_text().strip() == markdown_table(summary)
         result = json.loads((out / "results.json").read_text())
         assert result["frames"] == ["frame-000000", "frame-000150"]
         assert len(result["rows"]) == 2 * 2 * 6
@@ -188,3 +190,24 @@ class TestEvalCommand:
             eval_command(data, methods="mde,magic", output=tmp_path)
         with pytest.raises(InvalidInputError):
             eval_command(data, mde="midas", output=tmp_path)
+
+
+class TestRunEvaluation:
+    """The library's whole run (the CLI's `eval_command` only splits its comma lists and prints)."""
+
+    def test_bad_arguments_before_any_work(self, tmp_path):
+        from gpdepth3d.experiments.evaluation import run_evaluation
+
+        missing = tmp_path / "no_such_dataset"  # the arguments are checked before the dataset is opened
+        for kwargs, name in (
+            ({"protocols": ["zigzag"]}, "protocols"),
+            ({"methods": ["mde", "magic"]}, "methods"),
+            ({"levels": [50, float("nan")]}, "levels"),
+            ({"levels": ["50"]}, "levels"),
+            ({"stride": 0}, "stride"),
+            ({"frames": 0}, "frames"),
+            ({"mde": "midas"}, "mde"),
+        ):
+            with pytest.raises(InvalidInputError, match=name):
+                run_evaluation(missing, output=tmp_path / "out", **kwargs)
+        assert not (tmp_path / "out").exists()

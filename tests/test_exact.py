@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from gpdepth3d.complete import build_problem, complete
+from gpdepth3d.completion.complete import build_problem, complete
 from gpdepth3d.errors import ProblemTooLargeError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel

@@ -1,13 +1,13 @@
-"""Tests of hyperparameter fitting (gpdepth3d.gp.fit) on data sampled from the model."""
+"""Tests of hyperparameter fitting: gpdepth3d.completion.fit on data sampled from the model, gpdepth3d.gp.fit alone."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import build_problem
+from gpdepth3d.completion.complete import build_problem
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.gp.fit import fit_hyperparameters, log_marginal_likelihood
+from gpdepth3d.completion.fit import fit_hyperparameters, log_marginal_likelihood
 from gpdepth3d.gp.model import DepthGPConfig, matern_1d
 from gpdepth3d.measurements import SparseDepth
 
@@ -108,8 +108,8 @@ class TestFitHyperparameters:
 
 class TestFitOption:
     def test_config_fit_fits_each_frame_warm_started(self, monkeypatch):
-        from gpdepth3d.complete import DepthCompleter
-        import gpdepth3d.gp.fit as fitmod
+        from gpdepth3d.completion.complete import DepthCompleter
+        import gpdepth3d.completion.fit as fitmod
 
         rng = np.random.default_rng(5)
         start = DepthGPConfig.paper(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02, fit=True)
@@ -138,3 +138,89 @@ class TestFitOption:
     def test_fit_flag_is_validated(self):
         with pytest.raises(InvalidInputError, match="fit"):
             DepthGPConfig(fit="yes")
+
+
+class TestFitParams:
+    def test_defaults_per_formulation_and_checks(self):
+        from gpdepth3d.gp.fit import fit_params
+
+        assert fit_params(DepthGPConfig.paper()) == ("lengthscale", "outputscale", "sigma_dl")
+        assert fit_params(DepthGPConfig.residual()) == ("lengthscale", "outputscale")
+        assert fit_params(DepthGPConfig.paper(), ["sigma_meas"]) == ("sigma_meas",)
+        for bad in ([], ["nu"], ["lengthscale", "lengthscale"]):
+            with pytest.raises(InvalidInputError, match="params"):
+                fit_params(DepthGPConfig.paper(), bad)
+        with pytest.raises(InvalidInputError, match="sigma_dl"):
+            fit_params(DepthGPConfig.residual(), ["sigma_dl"])
+        with pytest.raises(InvalidInputError, match="log_residual"):
+            fit_params(DepthGPConfig())
+        with pytest.raises(InvalidInputError, match="config"):
+            fit_params({"lengthscale": 1.0})
+
+
+class TestPairedLogLikelihood:
+    def test_matches_scipy_normal(self):
+        from scipy.stats import norm
+
+        from gpdepth3d.gp.fit import paired_log_likelihood
+
+        rng = np.random.default_rng(0)
+        a, b, var = rng.normal(5, 1, 20), rng.normal(5, 1, 20), rng.uniform(0.01, 2.0, 20)
+        expected = norm.logpdf(a - b, scale=np.sqrt(var)).sum()
+        assert paired_log_likelihood(a, b, var) == pytest.approx(expected, rel=1e-12)
+        assert paired_log_likelihood(np.zeros(0), np.zeros(0), np.zeros(0)) == 0.0
+
+    def test_bad_arguments(self):
+        from gpdepth3d.gp.fit import paired_log_likelihood
+
+        with pytest.raises(InvalidInputError, match="a, b, variance"):
+            paired_log_likelihood(np.zeros(3), np.zeros(2), np.ones(3))
+        with pytest.raises(InvalidInputError, match="variance"):
+            paired_log_likelihood(np.zeros(2), np.zeros(2), np.array([1.0, 0.0]))
+
+
+class TestMaximiseLogMarginalLikelihood:
+    """The optimiser alone, on arrays: a known likelihood surface in the config's fields."""
+
+    def test_finds_the_maximum_and_stays_in_bounds(self):
+        from gpdepth3d.gp.fit import FIT_BOUNDS, maximise_log_marginal_likelihood
+
+        start = DepthGPConfig.paper(lengthscale=1.0, outputscale=0.5)
+
+        def lml(cfg):  # peak at lengthscale 7, outputscale 2000 (beyond its upper bound 1e3)
+            return -50 * (np.log(cfg.lengthscale) - np.log(7.0)) ** 2 - (np.log(cfg.outputscale) - np.log(2000.0)) ** 2
+
+        fitted = maximise_log_marginal_likelihood(lml, start, ["lengthscale", "outputscale"], n_obs=3)
+        assert fitted.lengthscale == pytest.approx(7.0, rel=1e-3)
+        assert fitted.outputscale == pytest.approx(FIT_BOUNDS["outputscale"][1], rel=1e-6)
+        assert fitted.sigma_dl == start.sigma_dl and fitted.formulation == start.formulation
+
+    def test_failing_configs_count_as_unlikely_and_the_start_is_kept(self):
+        from gpdepth3d.errors import ConvergenceError
+        from gpdepth3d.gp.fit import maximise_log_marginal_likelihood
+
+        start = DepthGPConfig.paper(lengthscale=3.0)
+
+        def lml(cfg):
+            if cfg.lengthscale != start.lengthscale:
+                raise (np.linalg.LinAlgError if cfg.lengthscale > 3.0 else ConvergenceError)("refused")
+            return -1.0
+
+        fitted = maximise_log_marginal_likelihood(lml, start, ["lengthscale"])
+        assert fitted.lengthscale == pytest.approx(3.0, rel=1e-12)
+        # a likelihood worse everywhere than at the start: the start is returned
+        fitted = maximise_log_marginal_likelihood(
+            lambda cfg: 0.0 if cfg.lengthscale == 3.0 else float("nan"), start, ["lengthscale"]
+        )
+        assert fitted.lengthscale == pytest.approx(3.0, rel=1e-12)
+
+    def test_bad_arguments(self):
+        from gpdepth3d.gp.fit import maximise_log_marginal_likelihood
+
+        cfg = DepthGPConfig.paper()
+        with pytest.raises(InvalidInputError, match="max_iterations"):
+            maximise_log_marginal_likelihood(lambda c: 0.0, cfg, ["lengthscale"], max_iterations=0)
+        with pytest.raises(InvalidInputError, match="n_obs"):
+            maximise_log_marginal_likelihood(lambda c: 0.0, cfg, ["lengthscale"], n_obs=0)
+        with pytest.raises(InvalidInputError, match="params"):
+            maximise_log_marginal_likelihood(lambda c: 0.0, cfg, ["nu"])

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.fusion: per-pixel weighted TSDF integration, extraction, export, errors."""
+"""Tests of gpdepth3d.mapping.fusion: per-pixel weighted TSDF integration, extraction, export, errors."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
-from gpdepth3d.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
+from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
 PLANE_Z = 1.511  # not on a voxel boundary
@@ -188,7 +188,7 @@ class TestExport:
             save_mesh("not a mesh", tmp_path / "m.ply")
         with pytest.raises(EmptyInputError):
             save_mesh(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "m.ply")
-        break_writes("gpdepth3d.fusion")
+        break_writes("gpdepth3d.mapping.fusion")
         with pytest.raises(OSError):
             save_mesh(mesh, tmp_path / "m.glb")
         assert list(tmp_path.iterdir()) == []

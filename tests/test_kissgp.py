@@ -25,7 +25,7 @@ import pytest
 import torch
 
 from gpdepth3d import DepthGPConfig, SparseDepth, complete
-from gpdepth3d.complete import build_problem
+from gpdepth3d.completion.complete import build_problem
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
 from gpdepth3d.gp.exact import ExactEngine

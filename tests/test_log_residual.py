@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
-from gpdepth3d.complete import PosteriorWarning
+from gpdepth3d.completion.complete import PosteriorWarning
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import matern_1d
 from gpdepth3d.gp.points import PointFit, fit_log_residual, loo_zscores, screen_points
@@ -246,7 +246,7 @@ class TestLogResidualPosterior:
         assert post.warnings == ()
 
     def test_build_problem_refuses_log_residual(self):
-        from gpdepth3d.complete import build_problem
+        from gpdepth3d.completion.complete import build_problem
 
         truth, mde = _scene()
         with pytest.raises(InvalidInputError, match="log_residual"):

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping: SLAM map points, the incremental Mapper, mesh metrics, fuse_command."""
+"""Tests of gpdepth3d.mapping: SLAM map points, the incremental Mapper, mesh metrics, `gpdepth3d fuse`."""
 
 from __future__ import annotations
 
@@ -10,19 +10,19 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
-from gpdepth3d.fusion import FusionConfig
+from gpdepth3d.mapping.fusion import FusionConfig
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.mapping import (
     Mapper,
     MapperConfig,
-    fuse_command,
     merge_sparse,
     mesh_metrics,
     project_map_points,
     sparse_from_map_points,
 )
+from gpdepth3d.cli.fuse import fuse_command
 from gpdepth3d.measurements import SparseDepth
-from gpdepth3d.triangulation import TriangulationConfig
+from gpdepth3d.mapping.triangulation import TriangulationConfig
 
 CAM = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)
 
@@ -246,7 +246,7 @@ class _NegativeCompleter:
     """A completer whose posterior mean dips below zero and has NaNs (what an outlier can do)."""
 
     def __init__(self):
-        from gpdepth3d.complete import DepthCompleter
+        from gpdepth3d.completion.complete import DepthCompleter
 
         self.inner = DepthCompleter(DepthGPConfig.residual(engine="exact"))
 
@@ -316,7 +316,7 @@ class TestRobustness:
         assert len(mapper.mesh().faces) > 100
 
     def test_inverted_pose_and_points_outside_are_reported(self, shared_data):
-        from gpdepth3d.trajectories import InvertedPoseWarning, invert_pose
+        from gpdepth3d.mapping.trajectories import InvertedPoseWarning, invert_pose
 
         f = _frames(shared_data, (0,))[0]
         world = _world_points(f, 200, 1)

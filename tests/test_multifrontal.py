@@ -144,7 +144,7 @@ class TestBackends:
 
 
 def test_completer_reuses_per_resolution_setup_and_buffers():
-    from gpdepth3d.complete import DepthCompleter
+    from gpdepth3d.completion.complete import DepthCompleter
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.measurements import SparseDepth
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import DepthCompleter
+from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine

@@ -199,7 +199,7 @@ class TestCompleteCommand:
     def test_complete_runs_the_network(self, models_dir, kitti_rgb, kitti_lidar, tmp_path, capsys):
         """`gpdepth3d complete --rgb IMAGE --mde rtmonodepth ...` on a crop of a kitti_tiny frame."""
         from gpdepth3d.cli import main
-        from gpdepth3d.complete import DepthPosterior
+        from gpdepth3d.completion.complete import DepthPosterior
 
         rgb, lidar = kitti_rgb[183:375, 300:940], kitti_lidar[183:375, 300:940]
         cv2.imwrite(str(tmp_path / "rgb.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -233,7 +233,8 @@ class TestCompleteCommand:
 class TestEvalAndBatchWithNetwork:
     def test_eval_command_rtmonodepth(self, shared_data, models_dir, tmp_path):
         """`gpdepth3d eval --data kitti_tiny --mde rtmonodepth` runs the network (one frame, two cheap methods)."""
-        from gpdepth3d.evaluation import default_model_path, eval_command
+        from gpdepth3d.cli.eval import eval_command
+        from gpdepth3d.experiments.evaluation import default_model_path
 
         data = shared_data / "kitti_tiny"
         assert default_model_path(data, "rtmonodepth") == models_dir / RTMONODEPTH_FILES[True]
@@ -250,7 +251,7 @@ class TestEvalAndBatchWithNetwork:
         assert (tmp_path / "results.json").is_file()
 
     def test_batch_loader_runs_the_network(self, shared_data, models_dir):
-        from gpdepth3d.batch import FrameSpec, HoldoutInputs
+        from gpdepth3d.experiments.batch import FrameSpec, HoldoutInputs
 
         loader = HoldoutInputs(mde="rtmonodepth", models_dir=str(models_dir), n_input=100)
         spec = FrameSpec("f0", str(shared_data / "kitti_tiny"), "0000000000", "kitti_tiny")

@@ -27,14 +27,15 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
-import gpdepth3d.batch
+import gpdepth3d.experiments.batch
 import gpdepth3d.datasets
 import gpdepth3d.viewer
 from gpdepth3d import cli
 from gpdepth3d import io as gio
 from gpdepth3d.camera import PinholeCamera, check_pose
-from gpdepth3d.cloud import backproject_depth
-from gpdepth3d.complete import DepthPosterior, check_output_shape, complete
+from gpdepth3d.mapping.cloud import backproject_depth
+from gpdepth3d.completion.complete import DepthPosterior, complete
+from gpdepth3d.completion.problem import check_output_shape
 from gpdepth3d.errors import (
     CalibrationError,
     DataFormatError,
@@ -168,9 +169,9 @@ API_CASES = [
     ("load posterior of mixed shapes", lambda t: DepthPosterior.load(_mixed_posterior(t)), DataFormatError, "2-D grid"),
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
-    ("batch address", lambda t: g.batch.check_address("not-an-address"), InvalidInputError, "address"),
-    ("batch address no port", lambda t: g.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
-    ("batch output under a file", lambda t: g.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
+    ("batch address", lambda t: g.experiments.batch.check_address("not-an-address"), InvalidInputError, "address"),
+    ("batch address no port", lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
+    ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
 ]
 
 
@@ -420,12 +421,9 @@ def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
 
 def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, monkeypatch):
     """eval's files are written together: a full disk at the third file leaves none of them."""
-    import functools
+    import gpdepth3d.cli.eval as eval_cli
 
-    import gpdepth3d.evaluation as ev
-
-    @functools.wraps(ev.eval_command)  # the real options; the body writes three files, the third onto a full disk
-    def fake_eval(data, *, output, **kwargs):
+    def fake_run(data, *, output, **kwargs):  # the library's run: three files, the third onto a full disk
         gio.atomic_write(Path(output) / "results.csv", lambda p: p.write_text("a"))
         gio.atomic_write(Path(output) / "summary.csv", lambda p: p.write_text("b"))
 
@@ -434,7 +432,7 @@ def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, 
 
         gio.atomic_write(Path(output) / "results.json", full)
 
-    monkeypatch.setattr(ev, "eval_command", fake_eval)
+    monkeypatch.setattr(eval_cli, "run_evaluation", fake_run)
     assert cli.main(["eval", "--data", str(cli_inputs), "--output", str(tmp_path / "ev")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "disk full" in err[0]

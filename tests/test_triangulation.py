@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.triangulation: geometry, checks, uncertainty propagation, real 7-Scenes frames."""
+"""Tests of gpdepth3d.mapping.triangulation: geometry, checks, uncertainty propagation, real 7-Scenes frames."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, InvalidInputError, ShapeError
-from gpdepth3d.triangulation import (
+from gpdepth3d.mapping.triangulation import (
     Features,
     MultiViewPoints,
     TrackTriangulator,

@@ -17,8 +17,8 @@ import pytest
 import tyro
 
 from gpdepth3d.camera import PinholeCamera, transform_points
-from gpdepth3d.cloud import backproject_depth
-from gpdepth3d.complete import DepthPosterior, complete
+from gpdepth3d.mapping.cloud import backproject_depth
+from gpdepth3d.completion.complete import DepthPosterior, complete
 from gpdepth3d.errors import (
     CalibrationError,
     DataFormatError,
@@ -29,7 +29,7 @@ from gpdepth3d.errors import (
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import load_pose, load_poses
 from gpdepth3d.metrics import depth_metrics
-from gpdepth3d.synthetic import make_scene
+from gpdepth3d.experiments.synthetic import make_scene
 from gpdepth3d.viewer import (
     COLORMAPS,
     MISSING_COLOR,
@@ -39,8 +39,8 @@ from gpdepth3d.viewer import (
     default_camera,
     load_mesh,
     show,
-    view_command,
 )
+from gpdepth3d.cli.view import view_command
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [

@@ -1,111 +1,45 @@
-"""Hyperparameter fitting by maximising the exact log marginal likelihood of one frame.
+"""Marginal-likelihood maximisation over a `DepthGPConfig`'s hyperparameters (arrays only).
 
-The log marginal likelihood (LML) of the model is computed exactly from the sparse precision of
-the `fast` engine (no subsampling, no stochastic trace estimates)::
-
-    log p(y) = log N(y; f*, W^-1) + log N(f*; m, Q^-1) - log N(f*; f*, P^-1)
-
-at the posterior mean f* (any f would do; f* is numerically best), with log det P from the
-multifrontal Cholesky factor and log det Q from the 1-D chains. In the balanced formulation a
-pixel with an MDE depth and a measurement holds two observations; the engine combines them into
-one precision-weighted observation, so the LML adds the exact factor
-N(y_mde - y_meas; 0, sigma_dl^2 + sigma_meas^2) of each such pixel (it depends on sigma_dl).
-
-The optimiser is SciPy's L-BFGS-B on the logarithms of the free parameters with finite-difference
-gradients (each evaluation is one sparse factorisation). Cost: about 20-60 factorisations, so
-fit on a crop of a large frame (e.g. 1/3 KITTI resolution) and reuse the values for the
-sequence.
+The optimiser knows nothing about images or measurements: it is given the log marginal
+likelihood as a function of the configuration (`gpdepth3d.completion.fit` builds that function
+from an MDE map and measurements) and searches the logarithms of the free parameters with
+SciPy's L-BFGS-B and finite-difference gradients. `paired_log_likelihood` is the exact factor
+that two observations on one pixel add to the LML once the engine has combined them into one
+precision-weighted observation.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import scipy.optimize
 
 from ..errors import ConvergenceError, InvalidInputError
-from ..measurements import SparseDepth
 from .model import DepthGPConfig
 
-_BOUNDS = {
+FIT_BOUNDS: dict[str, tuple[float, float]] = {
     "lengthscale": (0.2, 500.0),
     "outputscale": (1e-4, 1e3),
     "sigma_dl": (1e-5, 1e2),
     "sigma_meas": (1e-6, 1e2),
 }
+"""Search interval of each fittable field (in the config's units; lengthscale in GP-grid pixels)."""
 
 
-def _default_params(config: DepthGPConfig) -> tuple[str, ...]:
-    if config.formulation == "balanced":
-        return ("lengthscale", "outputscale", "sigma_dl")
-    return ("lengthscale", "outputscale")
+def fit_params(config: DepthGPConfig, params: Sequence[str] | None = None) -> tuple[str, ...]:
+    """Checks the names of the fields to fit; None gives the formulation's default set.
 
+    The defaults are lengthscale, outputscale and sigma_dl (balanced) or lengthscale and
+    outputscale (residual).
 
-def log_marginal_likelihood(mde_depth: np.ndarray, sparse: SparseDepth, config: DepthGPConfig, *, engine=None) -> float:
-    """Exact log marginal likelihood (nats) of a frame's observations under ``config``.
-
-    In the balanced formulation the observations are every valid MDE pixel and every
-    measurement (two observations on one pixel count as two); in the residual formulation the
-    measurements, given the (aligned) MDE as prior mean.
-
-    Args:
-        mde_depth: (H, W) MDE depth, metres (0/NaN/inf = none).
-        sparse: Measurements (any resolution of the same image).
-        config: The model; its ``engine`` is ignored (the fast engine computes the LML).
-        engine: Optional `FastEngine` to reuse (its caches make repeated calls cheaper).
+    Raises:
+        InvalidInputError: ``config`` is not a `DepthGPConfig`, its formulation is
+            ``log_residual`` (fitted per frame on its points instead), a name is unknown or
+            repeated, or sigma_dl is asked for in the residual formulation.
     """
-    from ..complete import build_problem, check_mde_depth
-    from .fast import FastEngine
-
-    engine = engine or FastEngine()
-    problem, grid_sparse, scale, _ = build_problem(mde_depth, sparse, config)
-    lml = engine.log_marginal_likelihood(problem)
-    if config.formulation == "balanced" and len(grid_sparse):
-        mde, valid = check_mde_depth(mde_depth)
-        r = grid_sparse.v.astype(np.int64)
-        c = grid_sparse.u.astype(np.int64)
-        unit = scale if config.units == "relative" else 1.0
-        smeas = np.where(np.isfinite(grid_sparse.sigma), grid_sparse.sigma, config.sigma_meas * unit)
-        both = valid[r, c]
-        var = (config.sigma_dl * unit) ** 2 + smeas[both] ** 2
-        diff = mde[r[both], c[both]] - grid_sparse.depth[both]
-        lml += float(np.sum(-0.5 * diff**2 / var - 0.5 * np.log(2 * np.pi * var)))
-    return float(lml)
-
-
-def fit_hyperparameters(
-    mde_depth: np.ndarray,
-    sparse: SparseDepth,
-    config: DepthGPConfig,
-    *,
-    params: Sequence[str] | None = None,
-    max_iterations: int = 50,
-    engine=None,
-) -> DepthGPConfig:
-    """Fits the model's hyperparameters to one frame by maximising the exact marginal likelihood.
-
-    Args:
-        mde_depth: (H, W) MDE depth, metres (0/NaN/inf = none).
-        sparse: Measurements (any resolution of the same image).
-        config: Starting point and fixed settings (formulation, nu, units, align).
-        params: Names of the fitted fields; default lengthscale, outputscale and sigma_dl
-            (balanced) or lengthscale and outputscale (residual). Allowed: lengthscale,
-            outputscale, sigma_dl, sigma_meas.
-        max_iterations: L-BFGS-B iteration limit.
-        engine: Optional `FastEngine` to reuse.
-
-    Returns:
-        ``config`` with the fitted fields replaced (in ``config.units``; lengthscale in
-        GP-grid pixels). The LML at the result is never lower than at ``config``.
-    """
-    from .fast import FastEngine
-
     if not isinstance(config, DepthGPConfig):
         raise InvalidInputError("config", "a DepthGPConfig", type(config).__name__)
-    names = tuple(params) if params is not None else _default_params(config)
-    if not names or any(n not in _BOUNDS for n in names) or len(set(names)) != len(names):
-        raise InvalidInputError("params", f"distinct names from {sorted(_BOUNDS)}", params)
     if config.formulation == "log_residual":
         raise InvalidInputError(
             "config",
@@ -113,24 +47,70 @@ def fit_hyperparameters(
             "DepthCompleter, see gpdepth3d.gp.points)",
             config.formulation,
         )
+    if params is None:
+        return ("lengthscale", "outputscale", "sigma_dl") if config.formulation == "balanced" else ("lengthscale", "outputscale")
+    names = tuple(params)
+    if not names or any(n not in FIT_BOUNDS for n in names) or len(set(names)) != len(names):
+        raise InvalidInputError("params", f"distinct names from {sorted(FIT_BOUNDS)}", params)
     if config.formulation == "residual" and "sigma_dl" in names:
         raise InvalidInputError("params", "no sigma_dl in the residual formulation (MDE pixels are not observed)", names)
-    if not isinstance(max_iterations, int) or max_iterations < 1:
+    return names
+
+
+def paired_log_likelihood(a: np.ndarray, b: np.ndarray, variance: np.ndarray) -> float:
+    """Sum of log N(a - b; 0, variance) (nats): what two observations of one value add to the LML.
+
+    Args:
+        a: (n,) first observations (e.g. MDE depths at measured pixels).
+        b: (n,) second observations of the same values (the measurements).
+        variance: (n,) sum of the two observations' noise variances, > 0.
+    """
+    a, b, variance = (np.asarray(x, dtype=np.float64) for x in (a, b, variance))
+    if not (a.shape == b.shape == variance.shape) or a.ndim != 1:
+        raise InvalidInputError("a, b, variance", "three 1-D arrays of one length", (a.shape, b.shape, variance.shape))
+    if not np.all(variance > 0):
+        raise InvalidInputError("variance", "variances > 0", float(variance.min()))
+    diff = a - b
+    return float(np.sum(-0.5 * diff**2 / variance - 0.5 * np.log(2 * np.pi * variance)))
+
+
+def maximise_log_marginal_likelihood(
+    lml: Callable[[DepthGPConfig], float],
+    config: DepthGPConfig,
+    params: Sequence[str],
+    *,
+    max_iterations: int = 50,
+    n_obs: int = 1,
+) -> DepthGPConfig:
+    """Maximises ``lml(config)`` over the fields ``params`` (L-BFGS-B on their logarithms).
+
+    Args:
+        lml: The log marginal likelihood (nats) of a configuration. A configuration for which it
+            raises `numpy.linalg.LinAlgError` or `ConvergenceError`, or returns a non-finite
+            value, counts as infinitely unlikely.
+        config: Starting point and fixed settings.
+        params: Names of the fitted fields (checked with `fit_params`).
+        max_iterations: L-BFGS-B iteration limit.
+        n_obs: Number of observations; the objective is the LML per observation, which keeps
+            L-BFGS-B's first steps sensible.
+
+    Returns:
+        ``config`` with the fitted fields replaced, each within `FIT_BOUNDS`. The LML at the
+        result is never lower than at ``config`` (clipped to the bounds).
+    """
+    names = fit_params(config, params)
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int) or max_iterations < 1:
         raise InvalidInputError("max_iterations", "an integer >= 1", max_iterations)
-    engine = engine or FastEngine()
+    if isinstance(n_obs, bool) or not isinstance(n_obs, (int, np.integer)) or n_obs < 1:
+        raise InvalidInputError("n_obs", "an integer >= 1", n_obs)
     x0 = np.log([getattr(config, n) for n in names])
-    bounds = [tuple(np.log(_BOUNDS[n])) for n in names]
+    bounds = [tuple(np.log(FIT_BOUNDS[n])) for n in names]
     x0 = np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
-
-    from ..complete import check_mde_depth
-
-    # per-observation scale keeps L-BFGS-B's first steps sensible
-    n_obs = max(1, int(check_mde_depth(mde_depth)[1].sum()) * (config.formulation == "balanced") + len(sparse))
 
     def objective(x: np.ndarray) -> float:
         cfg = config.replace(**{n: float(np.exp(v)) for n, v in zip(names, x)})
         try:
-            value = log_marginal_likelihood(mde_depth, sparse, cfg, engine=engine)
+            value = lml(cfg)
         except (np.linalg.LinAlgError, ConvergenceError):  # e.g. the grid route refused as ill-conditioned
             return 1e300
         return -value / n_obs if np.isfinite(value) else 1e300

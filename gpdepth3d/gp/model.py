@@ -99,7 +99,7 @@ class DepthGPConfig:
             "kissgp" (GPyTorch KISS-GP, as the paper), "fast" (grid-structured, the default).
         max_exact_points: The exact engine refuses problems with more observed pixels.
         fit: Fit the hyperparameters to each frame before computing its posterior, by maximising
-            the exact marginal likelihood (`gpdepth3d.gp.fit.fit_hyperparameters`: lengthscale,
+            the exact marginal likelihood (`gpdepth3d.completion.fit.fit_hyperparameters`: lengthscale,
             outputscale and, balanced, sigma_dl). A `DepthCompleter` warm-starts each frame's fit
             from the previous frame's values. Costs ~10-60 factorisations per frame.
             log_residual: lengthscale, outputscale and nugget are fitted on the frame's points

@@ -5,7 +5,6 @@ Heavy back-ends (TFLite, onnxruntime, torch) are imported only when their front-
 Named presets of the real networks: `load_frontend` ("fastdepth", "rtmonodepth", ...).
 """
 
-import os
 from pathlib import Path
 
 from .align import AlignmentResult as AlignmentResult
@@ -15,6 +14,7 @@ from .array import ArrayMDE as ArrayMDE
 from .array import FileMDE as FileMDE
 from .base import MDE as MDE
 from .base import check_rgb as check_rgb
+from .base import default_models_dir as default_models_dir
 from .onnx import ONNXDepthModel as ONNXDepthModel
 from .onnx import RTMonoDepthONNX as RTMonoDepthONNX
 from ..errors import DataFormatError, InvalidInputError
@@ -32,20 +32,6 @@ FRONTEND_FILES: dict[str, str] = {
     "rtmonodepth-mono": "rtmonodepth_s_m_640_192.onnx",
 }
 """File name of each named front-end's model (in `default_models_dir`)."""
-
-
-def default_models_dir() -> Path:
-    """The folder of the real networks: ``$GPDEPTH3D_MODELS``, else the first existing of
-    ``../shared/models`` (from the working directory) and ``shared/models`` beside the repository
-    (``<repo>/../shared/models``); the first candidate when none exists."""
-    env = os.environ.get("GPDEPTH3D_MODELS")
-    if env:
-        return Path(env)
-    candidates = [Path.cwd().parent / "shared" / "models", Path(__file__).resolve().parents[3] / "shared" / "models"]
-    for c in candidates:
-        if c.is_dir():
-            return c
-    return candidates[0]
 
 
 def load_frontend(name_or_path: "str | Path", *, models_dir: "str | Path | None" = None, num_threads: "int | None" = None):

@@ -9,6 +9,8 @@ residual formulation does this itself, see ``DepthGPConfig.align``).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -58,3 +60,17 @@ def finish_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     d = d.astype(np.float64)
     d[~np.isfinite(d) | (d < 0)] = 0.0
     return d
+
+
+def default_models_dir() -> Path:
+    """The folder of the real networks: ``$GPDEPTH3D_MODELS``, else the first existing of
+    ``../shared/models`` (from the working directory) and ``shared/models`` beside the repository
+    (``<repo>/../shared/models``); the first candidate when none exists."""
+    env = os.environ.get("GPDEPTH3D_MODELS")
+    if env:
+        return Path(env)
+    candidates = [Path.cwd().parent / "shared" / "models", Path(__file__).resolve().parents[3] / "shared" / "models"]
+    for c in candidates:
+        if c.is_dir():
+            return c
+    return candidates[0]

@@ -225,7 +225,7 @@ class RTMonoDepthONNX(ONNXDepthModel):
         num_threads: int | None = None,
     ):
         if model_path is None:
-            from . import default_models_dir
+            from .base import default_models_dir
 
             model_path = Path(models_dir) if models_dir is not None else default_models_dir()
             model_path = model_path / RTMONODEPTH_FILES[bool(metric)]

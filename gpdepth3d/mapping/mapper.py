@@ -11,9 +11,9 @@ Per frame: (1) the MDE depth (given, or from the front-end callable ``rgb -> dep
 (2) sparse measurements from any of: a `SparseDepth`, SLAM map points in world coordinates
 (transformed by the pose and projected, `sparse_from_map_points`), and features the library
 triangulates itself between this frame and earlier frames of a sliding window
-(`gpdepth3d.triangulation`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
+(`gpdepth3d.mapping.triangulation`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
 sequence); (4) TSDF fusion of the posterior mean with per-pixel weights from its variance
-(`gpdepth3d.fusion`).
+(`gpdepth3d.mapping.fusion`).
 
 Resolution: ``camera`` describes the RGB images given to `Mapper.add_frame`; features are
 detected at that resolution, while refinement and fusion run at ``working_scale`` times it
@@ -24,16 +24,16 @@ not finite is masked and counted before fusion; a stage that fails (the MDE fron
 the fusion of a frame with nothing in range) is recorded on the `FrameResult` and in
 `Mapper.failures`, naming the frame, and the sequence goes on. Map points outside the image,
 behind the camera or not finite are counted (`MapPointStats`), and a pose under which the map
-points look inverted warns (`gpdepth3d.trajectories.InvertedPoseWarning`).
+points look inverted warns (`gpdepth3d.mapping.trajectories.InvertedPoseWarning`).
 
 Back-end interface: every fused frame is kept in a keyframe store (depth, variance, pose and
 colour at the working resolution, by keyframe id). `Mapper.update_poses` applies a loop
 closure by rebuilding only the TSDF blocks the moved keyframes reached before or reach now,
 which gives exactly the volume of fusing every keyframe from scratch with the new poses.
 `Mapper.save` / `Mapper.load` write and read the map (volume and keyframe store). Poses of a
-back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.trajectories`.
+back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.mapping.trajectories`.
 
-`fuse_sequence` / `fuse_command` run the whole pipeline on a 7-Scenes-style sequence and build
+`fuse_sequence` (and ``gpdepth3d fuse``, `gpdepth3d.cli.fuse`) run the whole pipeline on a 7-Scenes-style sequence and build
 the meshes from MDE-only, GP-refined and ground-truth depth with accuracy/completeness metrics.
 """
 
@@ -50,14 +50,14 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 
-from .camera import PinholeCamera, check_pose, transform_points
+from ..camera import PinholeCamera, check_pose, transform_points
 from .cloud import ColoredCloud
-from .complete import DepthCompleter, DepthPosterior
-from .errors import DataFormatError, EmptyInputError, GPDepthError, InvalidInputError, ShapeError, describe
+from ..completion.complete import DepthCompleter, DepthPosterior
+from ..errors import DataFormatError, EmptyInputError, GPDepthError, InvalidInputError, ShapeError, describe
 from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
-from .gp.model import DepthGPConfig
-from .io import atomic_write, save_npz
-from .measurements import SparseDepth, project_points
+from ..gp.model import DepthGPConfig
+from ..io import atomic_write, save_npz
+from ..measurements import SparseDepth, project_points
 from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation, invert_pose
 from .triangulation import TrackTriangulator, TriangulationConfig, detect_features, triangulate_frames
 
@@ -594,7 +594,7 @@ class Mapper:
         one are zeroed and rebuilt from every stored keyframe that reaches them, in the order
         the keyframes were fused; all other blocks are left alone. The volume is then the one
         fusing all keyframes from scratch with the new poses gives (voxel for voxel; see
-        `gpdepth3d.fusion`).
+        `gpdepth3d.mapping.fusion`).
 
         Args:
             poses: keyframe id -> new 4x4 ``T_world_camera``.
@@ -865,7 +865,7 @@ def fuse_sequence(
         ``sparse_bias_per_frame`` (per frame with measurements: median signed relative error
         of the measurements against the Kinect depth).
     """
-    from .datasets.sevenscenes import SevenScenes
+    from ..datasets.sevenscenes import SevenScenes
 
     config = config or MapperConfig(working_scale=0.5)
     reader = SevenScenes(data)
@@ -976,96 +976,6 @@ SEVEN_SCENES_RGB_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0
 """Colour-camera intrinsics used for 7-Scenes RGB (the dataset's K, f = 585, is the depth camera's;
 triangulating the RGB frames with f = 525 agrees with the Kinect depth, with f = 585 it is ~15-40 %
 too far and fails the epipolar check; see the mapping tests)."""
-
-
-def fuse_command(
-    data: Path,
-    out: Path = Path("fuse_out"),
-    *,
-    model: Path = Path("../shared/models/fast_depth_224.tflite"),
-    frames: int | None = None,
-    working_scale: float = 0.5,
-    voxel_size: float = 0.02,
-    truncation: float = 0.08,
-    depth_max: float = 5.0,
-    sigma_ref: float = 0.1,
-    rgb_focal: float = 525.0,
-    mesh_format: Literal["ply", "glb", "obj"] = "ply",
-    threshold: float = 0.05,
-    metric_samples: int = 50_000,
-    engine: Literal["exact", "kissgp", "fast"] = "fast",
-) -> dict[str, Any]:
-    """Builds meshes of a posed RGB-D sequence from MDE-only, GP-refined and ground-truth depth.
-
-    The MDE is FastDepth (TFLite); the sparse points are features the library triangulates
-    from the posed RGB frames themselves (not the ground truth). Writes
-    ``mesh_mde``, ``mesh_gp_uniform``, ``mesh_gp_variance``, ``mesh_gt`` (``.<mesh_format>``) and
-    ``metrics.json`` (accuracy/completeness/Chamfer/precision/recall against the ground-truth
-    mesh, timings, frames that failed) into ``out``, all atomically. A frame that fails is
-    named and skipped; a mesh without triangles (few frames) is reported, not written.
-
-    Args:
-        data: 7-Scenes-style sequence folder (e.g. ../shared/data/7scenes).
-        out: Output folder.
-        model: FastDepth TFLite model file.
-        frames: Use only the first this many frames (default: all).
-        working_scale: Resolution of refinement and fusion relative to the images (0.5 = 320x240).
-        voxel_size: TSDF voxel size, metres.
-        truncation: TSDF truncation distance, metres.
-        depth_max: Depths beyond this are not fused, metres.
-        sigma_ref: Variance weighting: sigma (metres) at which a pixel counts half.
-        rgb_focal: Focal length of the colour camera, pixels (7-Scenes: 525; the given K is the depth camera's).
-        mesh_format: File format of the meshes.
-        threshold: Precision/recall distance, metres.
-        metric_samples: Surface samples per mesh for the metrics.
-        engine: GP engine of the refinement (all give the same posterior; "fast" is the
-            quickest; the model is `MapperConfig`'s default).
-
-    Returns:
-        The metrics dictionary written to ``metrics.json``.
-    """
-    from .mde.tflite import FastDepthTFLite
-
-    fusion = FusionConfig(voxel_size=voxel_size, truncation=truncation, depth_max=depth_max, sigma_ref=sigma_ref)
-    config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=replace(MapperConfig().gp, engine=engine))
-    K = SEVEN_SCENES_RGB_K.copy()
-    K[0, 0] = K[1, 1] = rgb_focal
-    result = fuse_sequence(
-        data,
-        mde=FastDepthTFLite(model),
-        rgb_K=K,
-        config=config,
-        max_frames=frames,
-        threshold=threshold,
-        metric_samples=metric_samples,
-    )
-    out = Path(out)
-    written = []
-    for name, mesh in result["meshes"].items():
-        if name not in result["empty_meshes"]:
-            written.append(str(save_mesh(mesh, out / f"mesh_{name}.{mesh_format}")))
-    summary = {
-        "data": str(data),
-        "frames": result["frames"],
-        "frames_fused": result["frames_fused"],
-        "frame_errors": result["frame_errors"],
-        "masked_pixels": result["masked_pixels"],
-        "empty_meshes": result["empty_meshes"],
-        "meshes_written": written,
-        "sparse_points_per_frame": result["sparse_points"],
-        "depth_median_abs_error_m": result["depth_median_abs_error"],
-        "metrics": result["metrics"],
-        "timing_s_per_frame": result["timing"],
-        "timing_median_s_per_frame": result["timing_median"],
-        "config": {"mapper": _jsonable(asdict(config)), "rgb_focal": rgb_focal, "model": str(model)},
-    }
-    atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
-    for message in result["frame_errors"]:
-        print(f"skipped {message}")
-    if result["empty_meshes"]:
-        print(f"no surface above the weight threshold yet in: {', '.join(result['empty_meshes'])} (no mesh written)")
-    print(f"{result['frames_fused']} of {result['frames']} frames fused; wrote {len(written)} meshes and {out / 'metrics.json'}")
-    return summary
 
 
 def _jsonable(x: Any) -> Any:

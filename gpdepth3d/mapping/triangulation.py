@@ -42,9 +42,9 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from .camera import PinholeCamera, check_pose
-from .errors import InvalidInputError, ShapeError, describe
-from .measurements import SparseDepth
+from ..camera import PinholeCamera, check_pose
+from ..errors import InvalidInputError, ShapeError, describe
+from ..measurements import SparseDepth
 
 
 @dataclass(frozen=True)

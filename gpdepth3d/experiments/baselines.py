@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InvalidDepthError, InvalidInputError, ShapeError, describe
-from .measurements import SparseDepth
+from ..errors import InvalidDepthError, InvalidInputError, ShapeError, describe
+from ..measurements import SparseDepth
 
 DIAMOND_5 = np.array(
     [[0, 0, 1, 0, 0], [0, 1, 1, 1, 0], [1, 1, 1, 1, 1], [0, 1, 1, 1, 0], [0, 0, 1, 0, 0]], dtype=np.uint8

@@ -19,7 +19,7 @@ Protocol (one frame, `prepare_kitti_frame`):
    of rows / columns (`gpdepth3d.sampling.sample_band`; all of the band's points when it holds
    fewer), the paper's biased measurements.
 
-Methods (`METHODS`): the MDE alone, IP-Basic (`gpdepth3d.baselines.ip_basic`, from the points
+Methods (`METHODS`): the MDE alone, IP-Basic (`gpdepth3d.experiments.baselines.ip_basic`, from the points
 only), the paper's balanced GP (`DepthGPConfig.paper()`) and the library's default
 (`DepthGPConfig()`). Each is scored at the grid resolution and at full resolution: the GPs
 predict the full-resolution grid themselves (``output_shape``); IP-Basic's grid output is resized
@@ -43,11 +43,11 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from .baselines import ip_basic
-from .errors import EmptyInputError, InvalidInputError, ShapeError, describe
-from .gp.model import DepthGPConfig
-from .measurements import SparseDepth, downsample_depth
-from .metrics import calibration_metrics, depth_metrics
-from .sampling import PAPER_DENSITIES, SeedLike, holdout_split, make_rng, sample_band, sample_uniform
+from ..errors import EmptyInputError, InvalidInputError, ShapeError, describe
+from ..gp.model import DepthGPConfig
+from ..measurements import SparseDepth, downsample_depth
+from ..metrics import calibration_metrics, depth_metrics
+from ..sampling import PAPER_DENSITIES, SeedLike, holdout_split, make_rng, sample_band, sample_uniform
 
 KITTI_PROTOCOLS: tuple[str, ...] = ("uniform", "hband", "vband")
 """Input protocols: uniform densities, a horizontal band of rows, a vertical band of columns."""
@@ -294,7 +294,7 @@ class KittiMethods:
         self.default = self.default or DepthGPConfig()
 
     def _completer(self, config):
-        from .complete import DepthCompleter
+        from ..completion.complete import DepthCompleter
 
         if config not in self._completers:
             self._completers[config] = DepthCompleter(config)
@@ -531,7 +531,7 @@ def plot_kitti(summary: Sequence[dict], path: str | Path, *, title: str = "") ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import atomic_path
+    from ..io import atomic_path
 
     protocols = list(dict.fromkeys(s["protocol"] for s in summary))
     if not protocols:

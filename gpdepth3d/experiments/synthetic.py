@@ -41,9 +41,9 @@ from typing import Iterator, Literal
 
 import numpy as np
 
-from .camera import PinholeCamera
-from .errors import InvalidInputError
-from .measurements import SparseDepth, project_points
+from ..camera import PinholeCamera
+from ..errors import InvalidInputError
+from ..measurements import SparseDepth, project_points
 
 SceneKind = Literal["street", "room"]
 
@@ -679,7 +679,7 @@ def _check_seed(seed) -> int:
 
 def _notes(kind: str, seed: int, lidar: LidarModel, mde: MDESimulation, index: int) -> str:
     return (
-        f"SIMULATED data (gpdepth3d.synthetic, kind={kind!r}, seed={seed}, frame {index}): a ray-cast scene "
+        f"SIMULATED data (gpdepth3d.experiments.synthetic, kind={kind!r}, seed={seed}, frame {index}): a ray-cast scene "
         "of planes and boxes, not a real recording. depth_gt: exact pixel-centre z-depth (0 = sky / beyond "
         f"max_depth). lidar: simulated {len(lidar.elevations_deg)}-beam spinning LiDAR "
         f"(azimuth step {lidar.azimuth_step_deg} deg, noise {lidar.noise} m, "

@@ -5,13 +5,13 @@ computed against the same ground truth. Methods (`METHODS`):
 
 * ``mde``: the MDE alone.
 * ``mde_scale``: the MDE times one robust global scale fitted to the sparse points.
-* ``ip_basic``: IP-Basic (Ku et al. 2018) from the sparse points only (`gpdepth3d.baselines`).
+* ``ip_basic``: IP-Basic (Ku et al. 2018) from the sparse points only (`gpdepth3d.experiments.baselines`).
 * ``gp_balanced``: the paper's balanced GP (`DepthGPConfig.paper`), MDE pixels and points both
   observations; solved on a GP grid of ``balanced_factor`` times the evaluation resolution (the
   paper worked at 1/3 KITTI resolution) with the output at full evaluation resolution.
 * ``gp_balanced_fit``: the same with ``config.fit``: length scale, output scale and sigma_DL
   fitted per frame by maximising the exact marginal likelihood of all its observations
-  (`gpdepth3d.gp.fit.fit_hyperparameters`, starting from the paper's values).
+  (`gpdepth3d.completion.fit.fit_hyperparameters`, starting from the paper's values).
 * ``gp_residual``: the residual GP (`DepthGPConfig.residual`): scale-aligned MDE as prior mean,
   the GP models its additive error.
 * ``gp_residual_fit``: the residual GP with its length scale, output scale and a nugget
@@ -29,7 +29,7 @@ held-out share of the dataset's own sparse points (KITTI, SLAM features), see
 Results: one row per (frame, protocol, level, method) with every `depth_metrics` and
 `calibration_metrics` value, aggregated per (protocol, level, method) as the mean over frames;
 written as CSV and JSON (atomically), a markdown table, an RMSE-vs-density PNG per protocol and
-a qualitative figure. The command-line entry is `eval_command`.
+a qualitative figure. A whole run: `run_evaluation` (the command line: ``gpdepth3d eval``).
 """
 
 from __future__ import annotations
@@ -46,19 +46,19 @@ from typing import Callable, Iterable, Literal, Sequence
 import numpy as np
 
 from .baselines import ip_basic
-from .complete import DepthCompleter
-from .datasets import Frame, open_dataset
-from .errors import (
+from ..completion.complete import DepthCompleter
+from ..datasets import Frame, open_dataset
+from ..errors import (
     EmptyInputError,
     InvalidInputError,
     ProblemTooLargeError,
 )
-from .gp.model import DepthGPConfig
-from .io import atomic_path, atomic_write
-from .mde.align import align_depth
-from .measurements import SparseDepth
-from .metrics import METRIC_NAMES, calibration_metrics, depth_metrics
-from .sampling import (
+from ..gp.model import DepthGPConfig
+from ..io import atomic_path, atomic_write
+from ..mde.align import align_depth
+from ..measurements import SparseDepth
+from ..metrics import METRIC_NAMES, calibration_metrics, depth_metrics
+from ..sampling import (
     PAPER_DENSITIES,
     SeedLike,
     make_rng,
@@ -183,8 +183,8 @@ def fit_residual_points(
     import scipy.linalg
     import scipy.optimize
 
-    from .complete import check_mde_depth
-    from .gp.model import matern_1d
+    from ..completion.complete import check_mde_depth
+    from ..gp.model import matern_1d
 
     if config.formulation != "residual":
         raise InvalidInputError("config", "a residual-formulation config", config.formulation)
@@ -277,7 +277,7 @@ class MethodSuite:
         if cfg not in self._completers:
             completer = DepthCompleter(cfg)
             if engine == "fast" and self.device is not None:
-                from .gp.fast import FastEngine
+                from ..gp.fast import FastEngine
 
                 completer.engine = FastEngine(device=self.device)
             self._completers[cfg] = completer
@@ -705,7 +705,7 @@ def plot_qualitative(
 def default_model_path(data: Path, name: str = "fastdepth") -> Path:
     """Where the model of front-end ``name`` (`gpdepth3d.mde.FRONTENDS`) is looked for:
     ``<data>/../../models``, ``<data>/../models`` or ``<data>/models``."""
-    from .mde import FRONTEND_FILES
+    from ..mde import FRONTEND_FILES
 
     if name not in FRONTEND_FILES:
         raise InvalidInputError("name", f"a front-end from {sorted(FRONTEND_FILES)}", name)
@@ -746,46 +746,54 @@ class DegradedGroundTruthMDE:
         return d * self.scale * np.exp(self.noise * low)
 
 
-# ----------------------------------------------------------------------------- CLI entry
-def eval_command(
-    data: Path,
+# ----------------------------------------------------------------------------- a whole run
+DEFAULT_METHODS: tuple[str, ...] = tuple(m for m in METHODS if m != "gp_balanced_fit")
+"""The methods of `run_evaluation` by default: all but gp_balanced_fit (it fits per frame and level)."""
+
+FRONTEND_NAMES: tuple[str, ...] = ("fastdepth", "rtmonodepth", "rtmonodepth-mono", "gt-degraded")
+"""The MDE choices of `run_evaluation`: the named networks and the ground-truth stand-in."""
+
+
+def run_evaluation(
+    data: str | Path,
     *,
-    mde: Literal["fastdepth", "rtmonodepth", "rtmonodepth-mono", "gt-degraded"] = "fastdepth",
-    protocol: str = "uniform",
-    points: str = "",
-    output: Path = Path("eval_output"),
+    mde: str = "fastdepth",
+    protocols: Sequence[str] = ("uniform",),
+    levels: Sequence[float] | None = None,
+    output: str | Path = "eval_output",
     frames: int | None = None,
     stride: int = 1,
     resolution: float = 0.5,
-    methods: str = ",".join(m for m in METHODS if m != "gp_balanced_fit"),
-    model: Path | None = None,
+    methods: Sequence[str] = DEFAULT_METHODS,
+    model: str | Path | None = None,
     seed: int = 0,
     device: str | None = None,
     qualitative: bool = True,
     progress: bool = True,
 ) -> list[dict]:
-    """Evaluates depth completion on a dataset folder: prints a table, writes CSV/JSON/PNG.
+    """Evaluates depth completion on a dataset folder and writes CSV/JSON/markdown/PNG results.
+
+    Writes into ``output``: results.csv (one row per frame, protocol, level and method),
+    summary.csv, results.json, summary.md (`markdown_table` of the summary), rmse_<protocol>.png
+    and, with ``qualitative``, qualitative.png (the first frame).
 
     Args:
         data: Dataset folder (7scenes, kitti_tiny, kitti_object, ibims_sample, vio_sparse;
             the layout is detected).
-        mde: Monocular front-end: "fastdepth" (TFLite FastDepth, indoor), "rtmonodepth" (ONNX
-            RT-MonoDepth-S, KITTI, metric), "rtmonodepth-mono" (its mono-only model: relative
-            depth) or "gt-degraded" (a blurred, mis-scaled ground truth; datasets with dense
-            ground truth only).
-        protocol: Comma-separated protocols: uniform (N points), density (the paper's eight
+        mde: Monocular front-end (`FRONTEND_NAMES`): "fastdepth" (TFLite FastDepth, indoor),
+            "rtmonodepth" (ONNX RT-MonoDepth-S, KITTI, metric), "rtmonodepth-mono" (its
+            mono-only model: relative depth) or "gt-degraded" (a blurred, mis-scaled ground
+            truth; datasets with dense ground truth only).
+        protocols: Names from `PROTOCOLS`: uniform (N points), density (the paper's eight
             densities, shares of the available points), hband (lower half rows), vband (left
             half columns), scanlines (every k-th LiDAR beam; KITTI).
-        points: Comma-separated levels, e.g. "50,200,500" (points), "0.0156,0.25" (density)
-            or "1,2,4" (scan lines: keep every k-th beam); empty = the protocol's defaults.
-        output: Output folder for results.csv, summary.csv, results.json, rmse_<protocol>.png,
-            qualitative.png.
+        levels: The levels of every protocol, e.g. (50, 200, 500) points, (0.0156, 0.25)
+            densities or (1, 2, 4) scan-line strides; None = each protocol's defaults.
+        output: Output folder.
         frames: Use at most this many frames (after ``stride``).
         stride: Use every stride-th frame.
         resolution: Evaluation resolution relative to the images (0.5 = half).
-        methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_default, gp_balanced,
-            gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
-            gp_balanced_fit, which fits per frame and level: ~10-60 factorisations each).
+        methods: Names from `METHODS` (default `DEFAULT_METHODS`).
         model: The front-end's model file (default: its file in ../models beside the data
             folder's parent, i.e. shared/models; see `default_model_path`).
         seed: Seed of the sampling.
@@ -797,36 +805,35 @@ def eval_command(
         The summary rows (one per protocol, level and method).
     """
     data = Path(data)
-    dataset = open_dataset(data)
-    protocols = [p.strip() for p in protocol.split(",") if p.strip()]
+    protocols = list(protocols) if not isinstance(protocols, str) else [protocols]
     for p in protocols:
         if p not in PROTOCOLS:
-            raise InvalidInputError("protocol", f"comma-separated names from {PROTOCOLS}", protocol)
-    method_list = [m.strip() for m in methods.split(",") if m.strip()]
+            raise InvalidInputError("protocols", f"names from {PROTOCOLS}", protocols)
+    method_list = list(methods) if not isinstance(methods, str) else [methods]
     for m in method_list:
         if m not in METHODS:
-            raise InvalidInputError("methods", f"comma-separated names from {METHODS}", methods)
-    try:
-        level_values = [float(x) for x in points.split(",") if x.strip()]
-    except ValueError:
-        raise InvalidInputError("points", "comma-separated numbers such as '50,200,500'", points) from None
+            raise InvalidInputError("methods", f"names from {METHODS}", methods)
+    level_values = list(levels) if levels is not None else []
+    if not all(isinstance(x, (int, float, np.integer, np.floating)) and math.isfinite(x) for x in level_values):
+        raise InvalidInputError("levels", "finite numbers such as (50, 200, 500)", levels)
     if int(stride) != stride or stride < 1:
         raise InvalidInputError("stride", "an integer >= 1", stride)
     if frames is not None and (int(frames) != frames or frames < 1):
         raise InvalidInputError("frames", "a number of frames >= 1", frames)
+    if mde not in FRONTEND_NAMES:
+        raise InvalidInputError("mde", " or ".join(repr(n) for n in FRONTEND_NAMES), mde)
+    dataset = open_dataset(data)
     indices = list(range(0, len(dataset), stride))[: frames if frames is not None else None]
 
     degraded = None
     if mde in ("fastdepth", "rtmonodepth", "rtmonodepth-mono"):
-        from .mde import load_frontend
+        from ..mde import load_frontend
 
         path = Path(model) if model is not None else default_model_path(data, mde)
         front = load_frontend(mde, models_dir=path.parent) if model is None else load_frontend(path)
-    elif mde == "gt-degraded":
+    else:
         degraded = DegradedGroundTruthMDE(seed=seed)
         front = degraded
-    else:
-        raise InvalidInputError("mde", "'fastdepth', 'rtmonodepth', 'rtmonodepth-mono' or 'gt-degraded'", mde)
 
     def frame_iter():
         for i in indices:
@@ -901,5 +908,4 @@ def eval_command(
             output / "qualitative.png",
             title=f"{s.frame.name}: {method}, {protocol_name} {level_label(protocol_name, level)}",
         )
-    print(table)
     return summary

@@ -1,7 +1,7 @@
 """Interactive browser viewer (viser): GP-refined vs MDE-only depth in 3D.
 
 `show` starts a viser web server (``http://127.0.0.1:8080`` by default) and returns a `Viewer`
-handle; ``gpdepth3d view`` (`view_command`) does the same from files written by
+handle; ``gpdepth3d view`` (`gpdepth3d.cli.view`) does the same from files written by
 ``gpdepth3d complete`` (posterior ``.npz``) and ``gpdepth3d fuse`` (meshes, PLY/GLB/OBJ).
 
 What the page shows, for one frame or a posed sequence (all frames in the world frame):
@@ -25,7 +25,7 @@ What the page shows, for one frame or a posed sequence (all frames in the world 
 * a point size slider (metres).
 
 Point positions are sent as float32 (viser's default float16 has a spacing of 3 cm at 50 m).
-Back-projection uses `gpdepth3d.cloud.backproject_depth`; clouds are subsampled with a pixel
+Back-projection uses `gpdepth3d.mapping.cloud.backproject_depth`; clouds are subsampled with a pixel
 stride so that each layer holds at most ``ViewerConfig.max_points`` points.
 """
 
@@ -42,14 +42,14 @@ from typing import TYPE_CHECKING, Any, Literal, Optional, Sequence
 
 import numpy as np
 
-from .camera import PinholeCamera, check_pose
-from .io import load_pose, load_poses, read_matrix
-from .errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
+from ..camera import PinholeCamera, check_pose
+from ..io import load_pose
+from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
 
-    from .complete import DepthPosterior
+    from ..completion.complete import DepthPosterior
 
 ColorBy = Literal["rgb", "depth", "sigma", "error"]
 Layout = Literal["side-by-side", "overlay"]
@@ -172,8 +172,8 @@ class ViewerFrame:
             gt_invalid_value: Raw PNG value marking invalid ground truth (65535 for 7-Scenes).
             T_world_camera: 4x4 pose, or a text file holding it (4x4, or 12 numbers = 3x4).
         """
-        from .complete import DepthPosterior
-        from .io import load_depth, load_rgb
+        from ..completion.complete import DepthPosterior
+        from ..io import load_depth, load_rgb
 
         post = DepthPosterior.load(posterior)
         image = load_rgb(rgb) if rgb is not None else None
@@ -279,8 +279,8 @@ def _lift_map(
     extras: dict[str, np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Back-projects a depth map with `cloud.backproject_depth`; samples per-pixel ``extras`` at each point."""
-    from .cloud import backproject_depth
-    from .camera import transform_points
+    from ..mapping.cloud import backproject_depth
+    from ..camera import transform_points
 
     try:
         cloud = backproject_depth(depth, rgb, camera, stride=stride)
@@ -296,7 +296,7 @@ def _lift_map(
 
 def _frame_layers(frame: ViewerFrame, stride: int) -> dict[str, _Layer]:
     """The four point layers of one frame."""
-    from .camera import transform_points
+    from ..camera import transform_points
 
     post = frame.posterior
     ho, wo = post.shape
@@ -468,7 +468,7 @@ class Viewer:
         return any(f.depth_gt is not None for f in self.frames)
 
     def _compute_metrics(self) -> dict[str, dict[str, float]]:
-        from .metrics import calibration_metrics, depth_metrics
+        from ..metrics import calibration_metrics, depth_metrics
 
         rows: dict[str, list[dict[str, float]]] = {"mde": [], "gp": [], "calibration": []}
         for f in self.frames:
@@ -966,101 +966,3 @@ def port_taken(host: str, port: int) -> bool:
         except OSError:
             return True
     return False
-
-
-def view_command(
-    *,
-    posterior: tuple[Path, ...] = (),
-    rgb: tuple[Path, ...] = (),
-    intrinsics: Optional[Path] = None,
-    gt: tuple[Path, ...] = (),
-    gt_png_scale: float = 1.0 / 256.0,
-    gt_invalid_value: Optional[int] = None,
-    poses: tuple[Path, ...] = (),
-    mesh: tuple[Path, ...] = (),
-    host: str = "127.0.0.1",
-    port: int = 8080,
-    layout: Layout = "side-by-side",
-    color_by: ColorBy = "rgb",
-    max_points: int = 400_000,
-    duration: Optional[float] = None,
-    allow_remote: bool = False,
-) -> None:
-    """Open the 3D viewer in the browser: GP-refined vs MDE-only point clouds, measurements, meshes.
-
-    Serves http://HOST:PORT until Ctrl-C (or --duration seconds). Give one --posterior for a frame,
-    several (with --poses) for a sequence; --rgb, --gt and --poses are matched to them by order.
-
-    Args:
-        posterior: Posterior .npz files written by `gpdepth3d complete`.
-        rgb: The frames' images (same order as --posterior).
-        intrinsics: 3x3 K as text for the RGB image size (or the posterior size without --rgb); without it a
-            60 degree horizontal field of view is assumed.
-        gt: Ground-truth depth maps (.npy/.npz metres or 16-bit .png), same order.
-        gt_png_scale: Metres per unit of a 16-bit ground-truth PNG (1/1000 for Kinect millimetres).
-        gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
-        poses: Camera-to-world poses: one 4x4 (or 3x4) text file per frame, or one file with a 3x4 pose per line.
-        mesh: Meshes written by `gpdepth3d fuse` (.ply/.glb/.obj), world frame.
-        host: Interface to listen on (127.0.0.1 = this machine only; another address, such as 0.0.0.0, serves the
-            scene to the network and needs --allow-remote).
-        port: TCP port of the page (when it is taken the next free one is used, and said).
-        layout: "side-by-side" or "overlay".
-        color_by: Initial colouring: rgb, depth, sigma or error (needs --gt).
-        max_points: Most points per layer; frames are subsampled to stay below it.
-        duration: Stop after this many seconds (default: run until Ctrl-C).
-        allow_remote: Allow a --host other than loopback: everyone who can reach this machine sees the scene.
-    """
-    if duration is not None and (
-        isinstance(duration, bool) or not isinstance(duration, (int, float)) or math.isnan(duration) or duration < 0
-    ):
-        raise InvalidInputError("--duration", "seconds >= 0 (or no --duration: until Ctrl-C)", duration)
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-        raise InvalidInputError("--port", "a TCP port 0..65535", port)
-    local = check_host(host, allow_remote=allow_remote)  # before loading anything: fails at once
-    if not local:
-        print(
-            f"view: WARNING: serving on {host}:{port} to the network (--allow-remote): anyone who can reach this "
-            "machine can see the scene",
-            file=sys.stderr,
-        )
-    n = len(posterior)
-    if color_by == "error" and not gt:
-        raise InvalidInputError("--color-by", "rgb, depth or sigma without --gt", color_by)
-    for name, items in (("rgb", rgb), ("gt", gt)):
-        if items and len(items) != n:
-            raise InvalidInputError(f"--{name}", f"{n} files (one per --posterior)", f"{len(items)} files")
-    if len(poses) == 1 and n > 1:
-        pose_list: list[Optional[np.ndarray]] = list(load_poses(poses[0]))
-        if len(pose_list) != n:
-            raise InvalidInputError("--poses", f"{n} poses (one per --posterior)", f"{len(pose_list)} lines")
-    elif poses:
-        if len(poses) != n:
-            raise InvalidInputError("--poses", f"{n} files (one per --posterior)", f"{len(poses)} files")
-        pose_list = [load_pose(p) for p in poses]
-    else:
-        pose_list = [None] * n
-    K = None
-    if intrinsics is not None:
-        K = read_matrix(Path(intrinsics), (3, 3), "intrinsics")
-    elif n:
-        print("view: no --intrinsics; assuming a 60 degree horizontal field of view")
-    frames = [
-        ViewerFrame.from_files(
-            path,
-            K=K,
-            rgb=rgb[i] if rgb else None,
-            depth_gt=gt[i] if gt else None,
-            gt_png_scale=gt_png_scale,
-            gt_invalid_value=gt_invalid_value,
-            T_world_camera=pose_list[i],
-        )
-        for i, path in enumerate(posterior)
-    ]
-    config = ViewerConfig(layout=layout, color_by=color_by, max_points=max_points)
-    taken = port_taken(host, port)
-    with show(frames, meshes=list(mesh), config=config, host=host, port=port, allow_remote=allow_remote) as viewer:
-        if taken or (port and viewer.port != port):
-            print(f"view: port {port} is taken (by another program); using port {viewer.port} instead")
-        print(f"viewer running at {viewer.url} ({'Ctrl-C to stop' if duration is None else f'{duration:g} s'})")
-        viewer.wait(duration)
-    print("viewer stopped")

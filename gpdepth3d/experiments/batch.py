@@ -56,10 +56,10 @@ from typing import Any, Callable, Iterator, Literal, Optional, Sequence
 
 import numpy as np
 
-from .errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
-from .gp.model import DepthGPConfig
-from .io import atomic_write, check_output_folder, write_problem
-from .measurements import SparseDepth, downsample_depth
+from ..errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
+from ..gp.model import DepthGPConfig
+from ..io import atomic_write, write_problem
+from ..measurements import SparseDepth, downsample_depth
 
 Task = Literal["complete", "eval"]
 TASKS = ("complete", "eval")
@@ -72,7 +72,7 @@ _TEMP_FILE = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
 
 
 class FramesFailedError(GPDepthError):
-    """Some frames of a batch failed (raised by `batch_command` after the others were written)."""
+    """Some frames of a batch failed (raised by ``gpdepth3d batch``, `gpdepth3d.cli.batch`, after the others were written)."""
 
 
 # ---------------------------------------------------------------------------------- frames
@@ -123,7 +123,7 @@ def dataset_frames(
     Returns:
         The specs, in dataset order (repeats of the whole dataset one after the other).
     """
-    from .datasets import detect_format, open_dataset
+    from ..datasets import detect_format, open_dataset
 
     if int(repeat) != repeat or repeat < 1:
         raise InvalidInputError("repeat", "an integer >= 1", repeat)
@@ -175,7 +175,7 @@ class FrameInputs:
 
 @lru_cache(maxsize=8)
 def _reader(root: str, kind: str | None):
-    from .datasets import open_dataset
+    from ..datasets import open_dataset
 
     return open_dataset(root, kind)
 
@@ -183,7 +183,7 @@ def _reader(root: str, kind: str | None):
 @lru_cache(maxsize=4)
 def _frontend(name: str, models_dir: str | None):
     """One network front-end per name and worker process."""
-    from .mde import load_frontend
+    from ..mde import load_frontend
 
     return load_frontend(name, models_dir=models_dir)
 
@@ -272,7 +272,7 @@ class HoldoutInputs:
             dense_gt: (H, W) dense ground truth (metres, 0 = invalid), or None.
             mde_map: (H, W) network MDE (metres) for ``mde="rtmonodepth"/"fastdepth"``.
         """
-        from .sampling import holdout_split, sample_uniform
+        from ..sampling import holdout_split, sample_uniform
 
         if points is None and dense_gt is None:
             raise InvalidInputError("frame", "sparse points or a dense depth map", "neither")
@@ -369,7 +369,7 @@ _COMPLETERS_LOCK = threading.Lock()
 
 def _completer(config: DepthGPConfig):
     """One `DepthCompleter` per configuration and worker process (engines cache per-resolution set-up)."""
-    from .complete import DepthCompleter
+    from ..completion.complete import DepthCompleter
 
     with _COMPLETERS_LOCK:
         if config not in _COMPLETERS:
@@ -447,8 +447,8 @@ def evaluate_posterior(mean: np.ndarray, variance: np.ndarray, gt: np.ndarray | 
     Calibration keys get a ``cal_`` prefix except ``nll`` and the coverages; ``n`` is the number
     of ground-truth pixels.
     """
-    from .errors import EmptyInputError
-    from .metrics import calibration_metrics, depth_metrics
+    from ..errors import EmptyInputError
+    from ..metrics import calibration_metrics, depth_metrics
 
     if gt is None:
         raise EmptyInputError("gt", "ground truth for task='eval' (a loader that returns FrameInputs.gt)", None)
@@ -647,7 +647,8 @@ def _warm_up() -> None:
     import scipy.linalg  # noqa: F401
     import scipy.ndimage  # noqa: F401
 
-    from . import complete, datasets, metrics, sampling  # noqa: F401
+    from .. import datasets, metrics, sampling  # noqa: F401
+    from ..completion import complete  # noqa: F401
 
 
 _ADDRESS = re.compile(r"(?:(tcp|tls|ws|wss|ucx)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?")
@@ -898,83 +899,3 @@ def _run_dask(client, todo: list[FrameSpec], output_dir: str, kwargs: dict, wind
         client.cancel(list(queue.futures))
         raise
     return results
-
-
-# ---------------------------------------------------------------------------------- command
-def batch_command(
-    *,
-    data: Path,
-    output_dir: Path,
-    dataset: Optional[Literal["kitti_tiny", "kitti_object", "7scenes", "ibims_sample", "vio_sparse"]] = None,
-    task: Literal["complete", "eval"] = "complete",
-    workers: int = 2,
-    address: Optional[str] = None,
-    limit: Optional[int] = None,
-    repeat: int = 1,
-    engine: Optional[Literal["exact", "kissgp", "fast"]] = None,
-    factor: int = 3,
-    n_input: int = 500,
-    mde: Literal["none", "standin", "rtmonodepth", "fastdepth"] = "none",
-    models_dir: Optional[Path] = None,
-    seed: int = 0,
-    png: bool = False,
-    progress: bool = True,
-    connect_timeout: float = 10.0,
-) -> None:
-    """Complete or evaluate every frame of a dataset folder on Dask (resumable; re-run to finish).
-
-    Writes OUTPUT_DIR/<frame>.npz (posterior mean, variance, std in metres / m^2), with --task eval also
-    OUTPUT_DIR/<frame>.metrics.json, and OUTPUT_DIR/batch_report.json (counts, failures, mean metrics).
-    Frames already done are skipped, so a killed run resumes where it stopped. Inputs: --n-input
-    measurements sampled from the frame's LiDAR (20 % held out as ground truth for eval) or from its dense
-    depth; with --mde rtmonodepth (outdoor) or fastdepth (indoor) the network's depth of each frame's image
-    is the MDE, with --mde standin a STAND-IN MDE (densified input points with a smooth scale error).
-    Exits with an error if any frame failed.
-
-    Args:
-        data: Dataset folder (kitti_tiny, 7scenes, ibims_sample, vio_sparse, kitti_object layouts).
-        output_dir: Output folder (created).
-        dataset: Dataset kind; default: detected from the folder.
-        task: "complete" (posteriors) or "eval" (posteriors + per-frame metrics + aggregate).
-        workers: Local Dask worker processes (0 = no Dask, in this process); ignored with --address.
-        address: Scheduler address of a running Dask cluster, e.g. tcp://10.0.0.5:8786 (the data and output
-            folders must be visible to its workers at the same paths).
-        limit: Process at most this many frames (after --repeat).
-        repeat: Repeat the dataset's frames this many times under new ids (benchmarks).
-        engine: GP engine: "exact" (dense, up to a few thousand points), "fast" (grid, full frames), "kissgp";
-            default: `DepthGPConfig`'s default engine.
-        factor: Downsample the dataset resolution by this integer factor (3 = the paper's 1/3).
-        n_input: Measurements given as input per frame.
-        mde: "rtmonodepth" (RT-MonoDepth-S, outdoor) or "fastdepth" (indoor) run on each frame's image, "none"
-            (no MDE) or "standin" (clearly a stand-in, see above).
-        models_dir: Folder of the networks (default: $GPDEPTH3D_MODELS or ../shared/models).
-        seed: Seed of the per-frame sampling.
-        png: Also write 16-bit PNGs of mean and std.
-        progress: Show the progress bar.
-        connect_timeout: Seconds to wait for the scheduler at --address before giving up.
-    """
-    if address is not None:
-        check_address(address)  # before reading the dataset
-    check_output_folder(output_dir, "--output-dir")
-    frames = dataset_frames(data, dataset, repeat=repeat, limit=limit)
-    report = run_batch(
-        frames,
-        output_dir,
-        config=DepthGPConfig() if engine is None else DepthGPConfig(engine=engine),
-        loader=HoldoutInputs(
-            factor=factor, n_input=n_input, mde=mde, seed=seed, models_dir=None if models_dir is None else str(models_dir)
-        ),
-        task=task,
-        workers=workers,
-        address=address,
-        png=png,
-        progress=progress,
-        connect_timeout=connect_timeout,
-    )
-    print(report.summary())
-    print(f"wrote {report.n_computed} frame(s) and {Path(output_dir) / REPORT_NAME}")
-    if report.failures:
-        raise FramesFailedError(
-            f"{len(report.failures)} of {report.n_frames} frames failed (first: {report.failures[0].frame_id}: "
-            f"{report.failures[0].error}); see {Path(output_dir) / REPORT_NAME}; re-run to retry them"
-        )

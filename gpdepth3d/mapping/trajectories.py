@@ -28,9 +28,9 @@ from typing import Literal
 
 import numpy as np
 
-from .camera import PinholeCamera, check_pose, transform_points
-from .errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
-from .io import atomic_path
+from ..camera import PinholeCamera, check_pose, transform_points
+from ..errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
+from ..io import atomic_path
 
 QuaternionOrder = Literal["xyzw", "wxyz"]
 

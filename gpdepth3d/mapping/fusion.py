@@ -60,15 +60,15 @@ from typing import TYPE_CHECKING, Any, Iterator, Literal
 
 import numpy as np
 
-from .camera import PinholeCamera, check_pose
+from ..camera import PinholeCamera, check_pose
 from .cloud import ColoredCloud
-from .errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
-from .io import atomic_path, atomic_write
+from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
+from ..io import atomic_path, atomic_write
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
 
-    from .complete import DepthPosterior
+    from ..completion.complete import DepthPosterior
 
 Weighting = Literal["uniform", "variance"]
 

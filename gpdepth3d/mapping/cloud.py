@@ -32,12 +32,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .camera import PinholeCamera, check_pose, transform_points
-from .errors import DataFormatError, EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
-from .io import atomic_path
+from ..camera import PinholeCamera, check_pose, transform_points
+from ..errors import DataFormatError, EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
+from ..io import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .complete import DepthPosterior
+    from ..completion.complete import DepthPosterior
 
 DEFAULT_RHO_REF = 0.05
 """Relative sigma (sigma / depth) at which the confidence is 0.5."""

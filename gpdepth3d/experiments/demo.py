@@ -1,6 +1,6 @@
 """The built-in demo: the whole flow on a SIMULATED street scene, no data or arguments needed.
 
-It makes a synthetic frame (`gpdepth3d.synthetic`: ray-cast scene, simulated 64-beam LiDAR,
+It makes a synthetic frame (`gpdepth3d.experiments.synthetic`: ray-cast scene, simulated 64-beam LiDAR,
 simulated MDE), completes it with the paper's balanced GP and with the residual GP, prints
 the metrics of each against the exact ground truth, and writes the posteriors, a figure and
 a confidence-weighted point cloud.
@@ -13,10 +13,10 @@ from typing import Iterator
 
 import numpy as np
 
-from .complete import DepthCompleter
-from .gp.model import DepthGPConfig
-from .mde.align import align_depth
-from .metrics import calibration_metrics, depth_metrics
+from ..completion.complete import DepthCompleter
+from ..gp.model import DepthGPConfig
+from ..mde.align import align_depth
+from ..metrics import calibration_metrics, depth_metrics
 from .synthetic import make_scene
 
 
@@ -75,7 +75,7 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
 
 def _extras(frame, posteriors, output_dir: Path) -> list[Path]:
     """Figure and confidence-weighted point cloud of the residual posterior."""
-    from .cloud import backproject_posterior
+    from ..mapping.cloud import backproject_posterior
     from .evaluation import plot_qualitative
 
     post = posteriors["gp-residual"]

@@ -1,0 +1,16 @@
+"""Depth completion: build a frame's GP problem, solve it, the posterior (layer above `gpdepth3d.gp`).
+
+Modules: `problem` (validated inputs -> `GridProblem`), `complete` (`complete()`,
+`DepthCompleter`, `DepthPosterior`), `fit` (hyperparameters fitted to a frame). The function
+`complete` is re-exported by `gpdepth3d` itself, not here: in this package the name
+``complete`` is the module.
+"""
+
+from .complete import DepthCompleter as DepthCompleter
+from .complete import DepthPosterior as DepthPosterior
+from .complete import PosteriorWarning as PosteriorWarning
+from .fit import fit_hyperparameters as fit_hyperparameters
+from .fit import log_marginal_likelihood as log_marginal_likelihood
+from .problem import build_problem as build_problem
+from .problem import check_mde_depth as check_mde_depth
+from .problem import check_output_shape as check_output_shape

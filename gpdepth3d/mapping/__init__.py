@@ -1,0 +1,19 @@
+"""From posteriors to 3D: coloured clouds, TSDF fusion, triangulation, trajectories, the `Mapper`.
+
+Modules: `cloud`, `fusion`, `triangulation`, `trajectories` and `mapper` (the incremental
+`Mapper`, SLAM map points, `fuse_sequence`). The mapper's public names are re-exported here.
+"""
+
+from .mapper import SEVEN_SCENES_RGB_K as SEVEN_SCENES_RGB_K
+from .mapper import STAGES as STAGES
+from .mapper import FrameResult as FrameResult
+from .mapper import Keyframe as Keyframe
+from .mapper import MapPointStats as MapPointStats
+from .mapper import Mapper as Mapper
+from .mapper import MapperConfig as MapperConfig
+from .mapper import PoseUpdate as PoseUpdate
+from .mapper import fuse_sequence as fuse_sequence
+from .mapper import merge_sparse as merge_sparse
+from .mapper import mesh_metrics as mesh_metrics
+from .mapper import project_map_points as project_map_points
+from .mapper import sparse_from_map_points as sparse_from_map_points
