@@ -203,19 +203,17 @@ def main() -> None:
         if f and k:
             speedups[size] = {"mean": k["mean_s"] / f["mean_s"], "mean_var": k["mean_var_s"] / f["mean_var_s"]}
             _say(f"speed-up fast vs kissgp on {size}: mean x{speedups[size]['mean']:.0f}, mean+var x{speedups[size]['mean_var']:.0f}")
-    from gpdepth3d.io import atomic_path
+    from gpdepth3d.io import write_json
 
     result = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
         "note": "the 2-core machine was shared with other jobs; load_average_1min per row",
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "mde": "simulated from the sensor depth (filled, Gaussian sigma 4 px, x1.05, 3 % noise)",
+        "mde": "simulated from the sensor depth by gpdepth3d.experiments.synthetic.simulate_mde (nearest fill, Gaussian sigma 4 px, x1.05, 3 % noise)",
         "rows": rows,
         "speedup_fast_vs_kissgp": speedups,
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=2))
+    write_json(path, result)
     _say(f"wrote {path}")
 
 
