@@ -28,6 +28,7 @@ from gpdepth3d.experiments.evaluation import (
 from gpdepth3d.cli.eval import eval_command
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.gp.model import DepthGPConfig
+from gpdepth3d.io import write_json
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.mde import ArrayMDE
 from gpdepth3d.sampling import sample_uniform
