@@ -58,12 +58,12 @@ def plain_loop(frames, out: Path, config, loader) -> float:
     """Seconds for the frames done one after the other in this process with one thread."""
     from threadpoolctl import threadpool_limits
 
-    from gpdepth3d.experiments.batch import _warm_up, process_frame
+    from gpdepth3d.experiments.batch import warm_up, process_frame
     from gpdepth3d.gp import make_engine
 
     # Load every native library first: threadpoolctl limits only the pools loaded when it is
     # entered (scipy.linalg's BLAS would otherwise come in during frame 1 with all cores).
-    _warm_up()
+    warm_up()
     make_engine(config)
     try:
         import torch
@@ -97,7 +97,8 @@ def main() -> None:
 
     import distributed
 
-    from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch, write_json
+    from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch
+    from gpdepth3d.io import write_json
     from gpdepth3d.gp.model import DepthGPConfig
 
     if not args.data.is_dir():

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 import gpdepth3d as g
-from gpdepth3d.experiments.evaluation import write_json
+from gpdepth3d.io import write_json
 from gpdepth3d.mde import load_frontend
 from gpdepth3d.measurements import SparseDepth
 
@@ -177,7 +177,7 @@ def main() -> None:
     result = {"config": repr(g.DepthGPConfig()), "7scenes": seven_scenes(args.data, args.stride, fastdepth)}
     result["vio_sparse"] = vio(args.data, fastdepth)
     result["speed_kitti"] = speed(args.data, load_frontend("rtmonodepth", models_dir=args.data.parent / "models"))
-    write_json(result, args.output)
+    write_json(args.output, result)
     print("7-Scenes (FastDepth, 320x240): RMSE mm / +-2 sigma / rejected / min mean / median s")
     for key, r in result["7scenes"].items():
         print(

@@ -11,7 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation, write_json
+from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation
+from gpdepth3d.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,7 +39,7 @@ def main() -> None:
         qualitative=False,
     )
     print(markdown_table(results["bands"]))
-    write_json(results, ROOT / "bench" / "results" / "eval_7scenes.json")
+    write_json(ROOT / "bench" / "results" / "eval_7scenes.json", results)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation, write_json
+from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation
+from gpdepth3d.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,9 +31,9 @@ def main() -> None:
         progress=False,
     )
     print(markdown_table(rows))
-    write_json({"dataset": "7scenes", "mde": "FastDepth TFLite", "resolution": "320x240", "command": "python bench/fit.py",
-                "rows": rows},
-               ROOT / "bench" / "results" / "fit_7scenes.json")
+    write_json(ROOT / "bench" / "results" / "fit_7scenes.json",
+               {"dataset": "7scenes", "mde": "FastDepth TFLite", "resolution": "320x240", "command": "python bench/fit.py",
+                "rows": rows})
 
 
 if __name__ == "__main__":

@@ -23,9 +23,9 @@ from dataclasses import asdict
 from pathlib import Path
 
 from gpdepth3d.datasets import open_dataset
-from gpdepth3d.experiments.evaluation import write_csv, write_json
+from gpdepth3d.experiments.evaluation import write_csv
 from gpdepth3d.gp.model import DepthGPConfig
-from gpdepth3d.io import atomic_write
+from gpdepth3d.io import atomic_write, write_json
 from gpdepth3d.experiments.kitti_protocol import (
     PAPER_KITTI_RMSE_MM,
     KittiMethods,
@@ -149,7 +149,7 @@ def _write(output, results, rows, seconds, config, default, same, mde, started, 
         plotted += [dict(s, dataset=name) for s in summary]
     results["status"] = status
     results["seconds"] = time.perf_counter() - t0
-    write_json(results, output.with_suffix(".json"))
+    write_json(output.with_suffix(".json"), results)
     text = "\n".join(md) + "\n"
     atomic_write(output.with_suffix(".md"), lambda tmp: tmp.write_text(text))
     plot_kitti(plotted, output, title=f"RT-MonoDepth-S; ground truth: 20 % of the LiDAR held out; GP at 1/3 ({status})")

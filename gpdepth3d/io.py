@@ -175,6 +175,37 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
     return Path(path)
 
 
+def to_jsonable(x):
+    """A JSON-ready copy of ``x``: numpy scalars and arrays to Python numbers and lists, tuples to
+    lists, paths to strings, NaN and +-inf to None (JSON has no such numbers); dict keys kept."""
+    if isinstance(x, dict):
+        return {k: to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return to_jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return to_jsonable(x.item())
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def write_json(path: str | Path, data, *, indent: int = 2) -> Path:
+    """Writes ``data`` as indented JSON (`to_jsonable` first: NaN as null), atomically; returns the path.
+
+    Raises:
+        TypeError: ``data`` holds something JSON cannot represent (e.g. an object).
+        OutputError: the file cannot be written.
+    """
+    import json
+
+    text = json.dumps(to_jsonable(data), indent=indent, allow_nan=False)
+    return atomic_write(path, lambda tmp: tmp.write_text(text + "\n"))
+
+
 @contextlib.contextmanager
 def write_together() -> Iterator[None]:
     """Defers the renames of every `atomic_path` write inside the block until the block succeeds.

@@ -11,8 +11,8 @@ or a `SparseDepth` such as a projected LiDAR scan), returns a `SparseDepth` and 
   (Fig. 4 of Yoon & Kim 2020).
 * `sample_scanlines`: keep every k-th LiDAR beam; the beam of each projected point is recovered
   from its elevation angle in the LiDAR frame (`lidar_elevation`, `beam_ids`).
-* `holdout_split`: complete from one share of the points and evaluate on the rest (for data
-  without dense ground truth, such as ``kitti_tiny``).
+* `holdout_split` (`holdout_mask`): complete from one share of the points and evaluate on the rest
+  (for data without dense ground truth, such as ``kitti_tiny``).
 """
 
 from __future__ import annotations
@@ -266,6 +266,33 @@ def sample_scanlines(
     return sparse.subset((beams - offset) % keep_every == 0)
 
 
+def holdout_mask(n: int, *, holdout: float = 0.2, rng: SeedLike = 0) -> np.ndarray:
+    """Which of ``n`` measurements are held out: a seeded random ``holdout`` share, at least one kept.
+
+    The one hold-out rule (`holdout_split`, the evaluation's frames): round(holdout * n)
+    measurements, at least 1 and at most n - 1, chosen by one ``permutation(n)`` of ``rng``.
+
+    Args:
+        n: Number of measurements, >= 2.
+        holdout: Share held out, in (0, 1).
+        rng: Seed or Generator.
+
+    Returns:
+        (n,) bool, True = held out.
+    """
+    if not np.isfinite(holdout) or not 0 < holdout < 1:
+        raise InvalidInputError("holdout", "a share in (0, 1)", holdout)
+    if isinstance(n, (bool, np.bool_)) or not isinstance(n, (int, np.integer)):
+        raise InvalidInputError("n", "an integer number of measurements", describe(n))
+    if n < 2:
+        raise EmptyInputError("sparse", "at least two measurements to split", int(n))
+    n_out = min(n - 1, max(1, int(round(holdout * n))))
+    perm = make_rng(rng).permutation(n)
+    test = np.zeros(n, dtype=bool)
+    test[perm[:n_out]] = True
+    return test
+
+
 def holdout_split(
     sparse: SparseDepth, *, holdout: float = 0.2, rng: SeedLike = 0
 ) -> tuple[SparseDepth, SparseDepth]:
@@ -273,18 +300,11 @@ def holdout_split(
 
     Args:
         sparse: All measurements.
-        holdout: Share held out, in (0, 1).
+        holdout: Share held out, in (0, 1) (`holdout_mask`).
         rng: Seed or Generator.
 
     Returns:
         (input points, held-out points); disjoint, together all points.
     """
-    if not np.isfinite(holdout) or not 0 < holdout < 1:
-        raise InvalidInputError("holdout", "a share in (0, 1)", holdout)
-    if len(sparse) < 2:
-        raise EmptyInputError("sparse", "at least two measurements to split", len(sparse))
-    n_out = min(len(sparse) - 1, max(1, int(round(holdout * len(sparse)))))
-    perm = make_rng(rng).permutation(len(sparse))
-    test = np.zeros(len(sparse), dtype=bool)
-    test[perm[:n_out]] = True
+    test = holdout_mask(len(sparse), holdout=holdout, rng=rng)
     return sparse.subset(~test), sparse.subset(test)

@@ -24,11 +24,11 @@ from gpdepth3d.experiments.evaluation import (
     relative_residual,
     summarize,
     write_csv,
-    write_json,
 )
 from gpdepth3d.cli.eval import eval_command
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.gp.model import DepthGPConfig
+from gpdepth3d.io import write_json
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.mde import ArrayMDE
 from gpdepth3d.sampling import sample_uniform
@@ -140,7 +140,7 @@ class TestEvaluateAndOutputs:
         with open(p) as f:
             read = list(csv.DictReader(f))
         assert len(read) == len(summary) and float(read[0]["rmse"]) == pytest.approx(summary[0]["rmse"])
-        j = write_json({"summary": summary}, tmp_path / "s.json")
+        j = write_json(tmp_path / "s.json", {"summary": summary})
         loaded = json.loads(j.read_text())
         assert loaded["summary"][0]["nll"] is None  # NaN written as null
         png = plot_rmse_vs_level(summary, "uniform", tmp_path / "plot.png")

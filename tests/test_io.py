@@ -393,3 +393,26 @@ class TestDepthPngValues:
         with pytest.raises(gio.InvalidInputError, match="png_scale"):
             gio.check_png_scale(bad)
         assert gio.check_png_scale(np.float32(0.5)) == 0.5
+
+
+class TestWriteJson:
+    def test_numpy_nan_paths_tuples(self, tmp_path):
+        import json
+
+        from gpdepth3d.io import to_jsonable, write_json
+
+        data = {"a": np.float32(1.5), "b": np.int64(3), "c": float("nan"), "d": (1, np.inf), "e": np.arange(3),
+                "f": tmp_path, "g": [np.bool_(True)]}
+        path = write_json(tmp_path / "x.json", data)
+        assert path == tmp_path / "x.json"
+        loaded = json.loads(path.read_text())
+        assert loaded == {"a": 1.5, "b": 3, "c": None, "d": [1, None], "e": [0, 1, 2], "f": str(tmp_path), "g": [True]}
+        assert to_jsonable(data) == loaded
+        assert path.read_text().endswith("\n") and not list(tmp_path.glob(".*tmp*"))
+
+    def test_unserialisable_raises_and_writes_nothing(self, tmp_path):
+        from gpdepth3d.io import write_json
+
+        with pytest.raises(TypeError):
+            write_json(tmp_path / "x.json", {"a": object()})
+        assert not list(tmp_path.iterdir())

@@ -3,7 +3,7 @@
 Every module under gpdepth3d/ is parsed with `ast` (nothing is imported): every import
 statement counts, at module level, inside functions and under ``if TYPE_CHECKING``, relative or
 absolute. Layer ranks (DESIGN.md, "Layers"): errors 0; camera, measurements, sampling, metrics,
-io 1; mde, datasets 2; gp 3 (and gp may import only errors); completion 4; mapping 5;
+io, depthmap 1; mde, datasets 2; gp 3 (and gp may import only errors); completion 4; mapping 5;
 experiments 6; cli, viewer 7; the package's own ``__init__`` (the public re-exports) 8.
 """
 
@@ -25,6 +25,7 @@ RANKS: dict[str, int] = {
     "sampling": 1,
     "metrics": 1,
     "io": 1,
+    "depthmap": 1,
     "mde": 2,
     "datasets": 2,
     "gp": 3,

@@ -182,3 +182,19 @@ class TestTorchModuleMDE:
             TorchModuleMDE(self._net(1.0), output="metres")
         with pytest.raises(InvalidInputError):
             resize_preprocess((0, 5))
+
+
+class TestDefaultModelsDir:
+    def test_near_a_data_folder(self, tmp_path, monkeypatch):
+        from gpdepth3d.mde import default_models_dir
+
+        monkeypatch.delenv("GPDEPTH3D_MODELS", raising=False)
+        data = tmp_path / "shared" / "data" / "7scenes"
+        data.mkdir(parents=True)
+        (tmp_path / "shared" / "models").mkdir()
+        assert default_models_dir(near=data) == tmp_path / "shared" / "models"
+        (tmp_path / "shared" / "models").rmdir()
+        (tmp_path / "shared" / "data" / "models").mkdir()  # the next candidate: <near>/../models
+        assert default_models_dir(near=data) == tmp_path / "shared" / "data" / "models"
+        monkeypatch.setenv("GPDEPTH3D_MODELS", str(tmp_path / "elsewhere"))
+        assert default_models_dir(near=data) == tmp_path / "elsewhere"  # the environment always wins

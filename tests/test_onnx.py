@@ -234,12 +234,9 @@ class TestEvalAndBatchWithNetwork:
     def test_eval_command_rtmonodepth(self, shared_data, models_dir, tmp_path):
         """`gpdepth3d eval --data kitti_tiny --mde rtmonodepth` runs the network (one frame, two cheap methods)."""
         from gpdepth3d.cli.eval import eval_command
-        from gpdepth3d.experiments.evaluation import default_model_path
 
         data = shared_data / "kitti_tiny"
-        assert default_model_path(data, "rtmonodepth") == models_dir / RTMONODEPTH_FILES[True]
-        with pytest.raises(InvalidInputError, match="name"):
-            default_model_path(data, "midas")
+        assert gpdepth3d.mde.default_models_dir(near=data) == models_dir  # the rule run_evaluation uses
         summary = eval_command(
             data, mde="rtmonodepth", protocol="uniform", points="200", output=tmp_path, frames=1,
             methods="mde,mde_scale", qualitative=False, progress=False,

@@ -190,6 +190,24 @@ class TestHoldout:
         a2, b2 = holdout_split(s, holdout=0.2, rng=0)
         assert _keys(b) == _keys(b2)
 
+    def test_mask_is_the_split(self):
+        from gpdepth3d.sampling import holdout_mask
+
+        s = SparseDepth.from_depth_map(DENSE)
+        mask = holdout_mask(len(s), holdout=0.2, rng=3)
+        assert mask.dtype == bool and mask.sum() == round(0.2 * len(s))
+        a, b = holdout_split(s, holdout=0.2, rng=3)
+        assert _keys(b) == _keys(s.subset(mask)) and _keys(a) == _keys(s.subset(~mask))
+        # at least one point kept and one held out, whatever the share
+        assert holdout_mask(2, holdout=0.99, rng=0).sum() == 1 and holdout_mask(2, holdout=0.01, rng=0).sum() == 1
+        assert not np.array_equal(mask, holdout_mask(len(s), holdout=0.2, rng=4))
+        with pytest.raises(InvalidInputError, match="n"):
+            holdout_mask(2.0, holdout=0.5)
+        with pytest.raises(EmptyInputError):
+            holdout_mask(1, holdout=0.5)
+        with pytest.raises(InvalidInputError, match="holdout"):
+            holdout_mask(10, holdout=0.0)
+
     def test_errors(self):
         s = SparseDepth.from_depth_map(DENSE)
         with pytest.raises(InvalidInputError):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import check_pose, transform_points
-from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.errors import EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.measurements import LidarCalibration, project_points
 from gpdepth3d.experiments.synthetic import (
     HDL64_ELEVATIONS_DEG,
@@ -209,6 +209,21 @@ class TestSimulateMDE:
         out = simulate_mde(gt, sim, np.random.default_rng(0), fill_depth=50.0)
         np.testing.assert_allclose(out[1:], gt[1:], rtol=1e-12)
         np.testing.assert_allclose(out[0], 50.0)
+
+    def test_nearest_fill_without_fill_depth(self):
+        gt = np.full((20, 30), 4.0)
+        gt[:, 20:] = 8.0
+        gt[:, 18:22] = 0.0  # a hole between the two depths
+        gt[0, 0] = np.nan
+        sim = MDESimulation(scale=1.0, blur_sigma=0.0, field_amplitude=0.0, noise=0.0)
+        out = simulate_mde(gt, sim, np.random.default_rng(0))
+        np.testing.assert_allclose(out[:, :18], 4.0)
+        np.testing.assert_allclose(out[:, 18:20], 4.0)  # nearest is the left side
+        np.testing.assert_allclose(out[:, 20:], 8.0)
+        with pytest.raises(EmptyInputError):
+            simulate_mde(np.zeros((4, 4)), sim, np.random.default_rng(0))
+        with pytest.raises(ShapeError):
+            simulate_mde(np.ones(4), sim, np.random.default_rng(0))
 
     def test_scale_error_only(self):
         gt = np.linspace(1.0, 5.0, 600).reshape(20, 30)

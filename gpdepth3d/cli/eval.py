@@ -54,7 +54,7 @@ def eval_command(
             gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
             gp_balanced_fit, which fits per frame and level: ~10-60 factorisations each).
         model: The front-end's model file (default: its file in ../models beside the data
-            folder's parent, i.e. shared/models; see `default_model_path`).
+            folder's parent, i.e. shared/models; see `gpdepth3d.mde.default_models_dir`).
         seed: Seed of the sampling.
         device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
         qualitative: Also draw the qualitative figure of the first frame.

@@ -28,7 +28,8 @@ from ..gp import make_engine
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
-from .problem import _fill_invalid, _frame_inputs, _resize, build_problem, check_mde_depth
+from ..depthmap import fill_nearest, resize_map
+from .problem import _frame_inputs, build_problem, check_mde_depth
 
 
 @dataclass(frozen=True)
@@ -195,7 +196,7 @@ def _log_residual_posterior(
 
     t0 = time.perf_counter()
     h, w = mde.shape
-    base = _fill_invalid(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
+    base = fill_nearest(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
     rows = grid_sparse.v.astype(np.int64)
     cols = grid_sparse.u.astype(np.int64)
     z = grid_sparse.depth
@@ -240,7 +241,7 @@ def _log_residual_posterior(
     zeros_in, zeros_out = np.zeros((h, w)), np.zeros(out_shape)
     problem = GridProblem(zeros_in, obs, precision, out_rows, out_cols, zeros_out, kernel)
     g_mean, g_var = engine.solve(problem, variance=variance)
-    base_out = _resize(base, out_shape)
+    base_out = resize_map(base, out_shape)
     lz = config.depth_lengthscale
     w1 = None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
     rho = 1.0  # depth-aware correlation factor of each output pixel with the points
@@ -436,9 +437,9 @@ class DepthCompleter:
     @staticmethod
     def _mde_out(mde: np.ndarray, valid: np.ndarray, out_shape: tuple[int, int]) -> np.ndarray:
         """The input MDE on the output grid (0 where it had no value)."""
-        mde_out = _resize(mde, out_shape)
+        mde_out = resize_map(mde, out_shape)
         if tuple(out_shape) != mde.shape:
-            mde_out = np.where(_resize(valid.astype(np.float64), out_shape) > 0.999, mde_out, 0.0)
+            mde_out = np.where(resize_map(valid.astype(np.float64), out_shape) > 0.999, mde_out, 0.0)
         return mde_out
 
     __call__ = complete

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..depthmap import fill_nearest, resize_map
 from ..errors import EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
 from ..mde.align import AlignmentResult, align_depth
@@ -68,24 +69,6 @@ def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(valid, d, 0.0), valid
 
 
-def _fill_invalid(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Fills invalid pixels with the nearest valid depth (for use as a prior mean)."""
-    if valid.all():
-        return depth
-    from scipy.ndimage import distance_transform_edt
-
-    _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
-    return depth[ri, ci]
-
-
-def _resize(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    if depth.shape == tuple(shape):
-        return depth
-    import cv2
-
-    return cv2.resize(depth, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
-
-
 def _frame_inputs(
     mde_depth: np.ndarray, sparse: SparseDepth, output_shape
 ) -> tuple[np.ndarray, np.ndarray, SparseDepth, tuple[int, int]]:
@@ -148,10 +131,10 @@ def build_problem(
     else:
         if len(grid_sparse):
             alignment = align_depth(mde[rows, cols], grid_sparse.depth, config.align)
-        base = _fill_invalid(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
+        base = fill_nearest(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
         prior = alignment.apply(base)
         precision, obs = meas_prec, meas_val
-        out_prior = _resize(prior, out_shape)
+        out_prior = resize_map(prior, out_shape)
     problem = GridProblem(
         prior_mean=prior,
         obs=obs,

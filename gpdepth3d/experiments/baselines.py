@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..depthmap import fill_nearest
 from ..errors import InvalidDepthError, InvalidInputError, ShapeError, describe
 from ..measurements import SparseDepth
 
@@ -57,7 +58,6 @@ def ip_basic(
         all 0 when there is none).
     """
     import cv2
-    from scipy.ndimage import distance_transform_edt
 
     if isinstance(sparse, SparseDepth):
         depth = sparse.to_depth_map(shape)
@@ -95,8 +95,7 @@ def ip_basic(
     inv[empty] = cv2.dilate(inv, np.ones((31, 31), np.uint8))[empty]  # 6
     empty = inv <= 0
     if empty.any():  # addition: nearest filled pixel
-        _, (ri, ci) = distance_transform_edt(empty, return_indices=True)
-        inv = inv[ri, ci]
+        inv = fill_nearest(inv, ~empty)
     if blur:  # 7
         med = cv2.medianBlur(inv, 5)
         inv = np.where(inv > 0, med, inv)

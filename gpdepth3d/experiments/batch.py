@@ -42,6 +42,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import re
 import threading
@@ -58,8 +59,10 @@ import numpy as np
 
 from ..errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
 from ..gp.model import DepthGPConfig
-from ..io import atomic_write, write_problem
+from ..io import to_jsonable, write_json, write_problem
 from ..measurements import SparseDepth, downsample_depth
+from .frames import holdout_lidar, mde_to_grid
+from .scoring import CALIBRATION_NAMES, metric_row
 
 Task = Literal["complete", "eval"]
 TASKS = ("complete", "eval")
@@ -272,32 +275,30 @@ class HoldoutInputs:
             dense_gt: (H, W) dense ground truth (metres, 0 = invalid), or None.
             mde_map: (H, W) network MDE (metres) for ``mde="rtmonodepth"/"fastdepth"``.
         """
-        from ..sampling import holdout_split, sample_uniform
+        from ..sampling import sample_uniform
 
         if points is None and dense_gt is None:
             raise InvalidInputError("frame", "sparse points or a dense depth map", "neither")
         rng = np.random.default_rng(frame_seed(self.seed, frame_id))
-        source = downsample_depth(points if points is not None else dense_gt, self.factor)
-        shape = source.shape
-        available = SparseDepth.from_depth_map(source)
         if dense_gt is not None:
+            source = downsample_depth(points if points is not None else dense_gt, self.factor)
+            pool = SparseDepth.from_depth_map(source)
+            n_available = len(pool)
             gt = downsample_depth(dense_gt, self.factor)
-            pool = available
         else:
-            pool, held_out = holdout_split(available, holdout=self.holdout, rng=rng)
-            gt = held_out.to_depth_map(shape)
+            split = holdout_lidar(points, factor=self.factor, holdout=self.holdout, rng=rng)
+            pool, gt, n_available = split.available, split.gt_grid, split.n_grid
+        shape = gt.shape
         sparse = sample_uniform(pool, n=self.n_input, rng=rng)
         if self.mde in ("rtmonodepth", "fastdepth"):
-            import cv2
-
             if mde_map is None:
                 raise InvalidInputError("mde_map", f"the network's depth map for mde={self.mde!r}", None)
-            mde = cv2.resize(np.asarray(mde_map, np.float64), shape[::-1], interpolation=cv2.INTER_AREA)
+            mde = mde_to_grid(mde_map, self.factor)
         else:
             mde = self._standin(sparse, rng) if self.mde == "standin" else np.zeros(shape)
         info = {
             "shape": list(shape),
-            "n_available": len(available),
+            "n_available": n_available,
             "n_input": len(sparse),
             "n_gt": int(np.count_nonzero(gt)),
             "gt": "dense" if dense_gt is not None else "holdout",
@@ -306,17 +307,20 @@ class HoldoutInputs:
         return FrameInputs(mde=mde, sparse=sparse, gt=gt, info=info)
 
     def _standin(self, sparse: SparseDepth, rng: np.random.Generator) -> np.ndarray:
-        from scipy.ndimage import distance_transform_edt, gaussian_filter
+        from .synthetic import MDESimulation, simulate_mde
 
         shape = sparse.image_size
         if len(sparse) == 0:
             return np.zeros(shape)
-        grid = sparse.to_depth_map(shape)
-        _, (ri, ci) = distance_transform_edt(grid <= 0, return_indices=True)
-        dense = grid[ri, ci]
-        noise = gaussian_filter(rng.standard_normal(shape), sigma=max(shape) / 8.0, mode="reflect")
-        noise *= self.standin_error / max(float(noise.std()), 1e-12)
-        return dense * np.exp(noise)
+        # an error field of correlation length max(H, W) / 8 * sqrt(2) (Gaussian sigma max(H, W) / 8)
+        sim = MDESimulation(
+            scale=1.0,
+            blur_sigma=0.0,
+            field_amplitude=self.standin_error,
+            field_lengthscale=max(shape) / 8.0 * np.sqrt(2.0) / shape[1],
+            noise=0.0,
+        )
+        return simulate_mde(sparse.to_depth_map(shape), sim, rng)
 
 
 # ---------------------------------------------------------------------------------- one frame
@@ -377,22 +381,6 @@ def _completer(config: DepthGPConfig):
         return _COMPLETERS[config]
 
 
-def _json_default(x: Any):
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"not JSON-serialisable: {type(x).__name__}")
-
-
-def write_json(path: str | Path, data: Any) -> Path:
-    """Writes ``data`` as indented JSON atomically."""
-    text = json.dumps(data, indent=2, default=_json_default)
-    return atomic_write(path, lambda tmp: tmp.write_text(text + "\n"))
-
-
 def process_frame(
     spec: FrameSpec,
     output_dir: str,
@@ -444,20 +432,15 @@ def process_frame(
 def evaluate_posterior(mean: np.ndarray, variance: np.ndarray, gt: np.ndarray | None) -> dict[str, float]:
     """Depth metrics (`depth_metrics`) and variance calibration (`calibration_metrics`) against ``gt``.
 
-    Calibration keys get a ``cal_`` prefix except ``nll`` and the coverages; ``n`` is the number
-    of ground-truth pixels.
+    The `gpdepth3d.experiments.scoring.metric_row` of the frame with every depth metric, ``n``
+    (the number of ground-truth pixels) and every calibration key.
     """
     from ..errors import EmptyInputError
-    from ..metrics import calibration_metrics, depth_metrics
+    from ..metrics import METRIC_NAMES
 
     if gt is None:
         raise EmptyInputError("gt", "ground truth for task='eval' (a loader that returns FrameInputs.gt)", None)
-    out = dict(depth_metrics(mean, gt))
-    cal = calibration_metrics(mean, variance, gt)
-    for key, value in cal.items():
-        if key != "n":
-            out[key] = value
-    return out
+    return metric_row(mean, variance, gt, depth_keys=METRIC_NAMES + ("n",), calibration_keys=CALIBRATION_NAMES)
 
 
 # ---------------------------------------------------------------------------------- report
@@ -548,7 +531,8 @@ def aggregate_metrics(output_dir: str | Path, frame_ids: Sequence[str]) -> Optio
     if not rows:
         return None
     keys = [k for k in rows[0] if k != "n"]
-    agg = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    # NaN is written as null (`gpdepth3d.io.write_json`)
+    agg = {k: float(np.mean([math.nan if r[k] is None else r[k] for r in rows])) for k in keys}
     agg["frames"] = len(rows)
     agg["pixels"] = int(sum(r.get("n", 0) for r in rows))
     return agg
@@ -610,7 +594,7 @@ def check_settings(output_dir: str | Path, config: DepthGPConfig, loader: Any) -
             old = json.loads(path.read_text())
         except ValueError:
             old = None
-        if old != settings:
+        if old != to_jsonable(settings):
             raise InvalidInputError(
                 "config, loader",
                 f"the settings the outputs in {output_dir} were made with ({old}); use a new output_dir",
@@ -642,7 +626,7 @@ def _import_dask():
     return distributed
 
 
-def _warm_up() -> None:
+def warm_up() -> None:
     """Imports what a frame needs, on each worker at start-up (not during the first frame)."""
     import scipy.linalg  # noqa: F401
     import scipy.ndimage  # noqa: F401
@@ -699,7 +683,7 @@ def _client(workers: int, address: str | None, connect_timeout: float = 10.0) ->
         )
         try:
             with distributed.Client(cluster) as client:
-                client.run(_warm_up)
+                client.run(warm_up)
                 yield client, workers
         finally:
             cluster.close()
@@ -718,7 +702,7 @@ def _client(workers: int, address: str | None, connect_timeout: float = 10.0) ->
                 except (OSError, TimeoutError, asyncio.TimeoutError):
                     raise ConnectionFailedError(address, f"the scheduler has no worker after {connect_timeout:g} s") from None
                 threads = sum(client.nthreads().values())
-            client.run(_warm_up)
+            client.run(warm_up)
             yield client, threads
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..completion.complete import DepthCompleter
 from ..gp.model import DepthGPConfig
 from ..mde.align import align_depth
-from ..metrics import calibration_metrics, depth_metrics
+from .scoring import metric_row
 from .synthetic import make_scene
 
 
@@ -58,8 +58,8 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
     header = f"{'method':<16}{'RMSE mm':>10}{'MAE mm':>10}{'REL':>8}{'d1':>7}{'±2σ cov':>9}"
     yield header
     for name, (pred, var) in results.items():
-        m = depth_metrics(pred, frame.depth_gt)
-        cov = f"{calibration_metrics(pred, var, frame.depth_gt)['coverage_2sigma']:>9.3f}" if var is not None else f"{'-':>9}"
+        m = metric_row(pred, var, frame.depth_gt, depth_keys=("rmse", "mae", "rel", "delta1"), calibration_keys=("coverage_2sigma",))
+        cov = f"{m['coverage_2sigma']:>9.3f}" if var is not None else f"{'-':>9}"
         yield f"{name:<16}{m['rmse']:>10.0f}{m['mae']:>10.0f}{m['rel']:>8.3f}{m['delta1']:>7.3f}{cov}"
     for name, post in posteriors.items():
         yield f"{name}: solved in {post.timings['solve'] * 1000:.0f} ms (engine {post.config.engine})"

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import csv
 import io as _io
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -46,18 +45,22 @@ from typing import Callable, Iterable, Literal, Sequence
 import numpy as np
 
 from .baselines import ip_basic
+from .scoring import CALIBRATION_NAMES as CALIBRATION_NAMES
+from .scoring import metric_row
+from .synthetic import MDESimulation, simulate_mde
 from ..completion.complete import DepthCompleter
 from ..datasets import Frame, open_dataset
+from ..depthmap import fill_nearest, resize_map
 from ..errors import (
     EmptyInputError,
     InvalidInputError,
     ProblemTooLargeError,
 )
 from ..gp.model import DepthGPConfig
-from ..io import atomic_path, atomic_write
+from ..io import atomic_path, atomic_write, write_json
 from ..mde.align import align_depth
 from ..measurements import SparseDepth
-from ..metrics import METRIC_NAMES, calibration_metrics, depth_metrics
+from ..metrics import METRIC_NAMES
 from ..sampling import (
     PAPER_DENSITIES,
     SeedLike,
@@ -66,6 +69,7 @@ from ..sampling import (
     sample_scanlines,
     sample_uniform,
     beam_ids,
+    holdout_mask,
     lidar_elevation,
 )
 
@@ -81,7 +85,6 @@ METHODS: tuple[str, ...] = (
     "gp_relative",
 )
 PROTOCOLS: tuple[str, ...] = ("uniform", "density", "hband", "vband", "scanlines")
-CALIBRATION_NAMES = ("nll", "coverage_1sigma", "coverage_2sigma", "z_rms")
 ProtocolName = Literal["uniform", "density", "hband", "vband", "scanlines"]
 
 
@@ -132,10 +135,7 @@ def relative_residual(
     if not valid.any():
         raise EmptyInputError("mde", "at least one valid MDE pixel", "none")
     if not valid.all():
-        from scipy.ndimage import distance_transform_edt
-
-        _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
-        m = np.where(valid, m, 0.0)[ri, ci]
+        m = fill_nearest(np.where(valid, m, 0.0), valid)
     g = sparse.rasterize(m.shape)
     r, c = g.v.astype(np.int64), g.u.astype(np.int64)
     md = m[r, c]
@@ -315,11 +315,9 @@ class MethodSuite:
             )
             return MethodOutput(mean, var, time.perf_counter() - t0)
         if name in ("gp_balanced", "gp_balanced_fit"):
-            import cv2
-
             h, w = shape
             gh, gw = max(2, round(h * self.balanced_factor)), max(2, round(w * self.balanced_factor))
-            small = mde if (gh, gw) == shape else cv2.resize(mde, (gw, gh), interpolation=cv2.INTER_AREA)
+            small = resize_map(mde, (gh, gw), shrink="area", grow="area")
             n_obs = int(np.sum(np.isfinite(small) & (small > 0)))
             completer = self._completer(self.balanced, n_obs, h * w)
             if name == "gp_balanced_fit":  # a fresh fit per frame (no warm start across frames)
@@ -443,10 +441,7 @@ def prepare_frame(
         else:
             g = full.rasterize(small.shape)
             grid_beams = None
-        idx = rng.permutation(len(g))
-        n_out = min(len(g) - 1, max(1, int(round(holdout * len(g)))))
-        test = np.zeros(len(g), dtype=bool)
-        test[idx[:n_out]] = True
+        test = holdout_mask(len(g), holdout=holdout, rng=rng)
         available = g.subset(~test)
         gt = g.subset(test).to_depth_map()
         beams = grid_beams[~test] if grid_beams is not None else None
@@ -528,13 +523,7 @@ def evaluate(
                         row.update(seconds=math.nan, note=f"skipped: {exc}")
                         rows.append(row)
                         continue
-                    row.update(depth_metrics(out.mean, setup.gt))
-                    row.pop("n", None)
-                    if out.variance is not None and np.all(np.isfinite(out.variance)):
-                        cal = calibration_metrics(out.mean, out.variance, setup.gt)
-                        row.update({k: cal[k] for k in CALIBRATION_NAMES})
-                    else:
-                        row.update({k: math.nan for k in CALIBRATION_NAMES})
+                    row.update(metric_row(out.mean, out.variance, setup.gt))
                     row.update(seconds=out.seconds, note=out.note)
                     rows.append(row)
                     outputs[(protocol, float(level), method)] = (out, sparse)
@@ -578,24 +567,6 @@ def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
     for r in rows:
         writer.writerow({k: r.get(k) for k in keys})
     return atomic_write(path, lambda tmp: tmp.write_text(buf.getvalue()))
-
-
-def write_json(data, path: str | Path) -> Path:
-    """Writes JSON atomically (NaN as null)."""
-
-    def clean(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, (np.floating, np.integer)):
-            return clean(x.item())
-        return x
-
-    text = json.dumps(clean(data), indent=1)
-    return atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def markdown_table(summary: Sequence[dict], *, metrics: Sequence[str] | None = None) -> str:
@@ -701,26 +672,15 @@ def plot_qualitative(
     return Path(path).with_suffix(".png")
 
 
-# ----------------------------------------------------------------------------- MDE by name
-def default_model_path(data: Path, name: str = "fastdepth") -> Path:
-    """Where the model of front-end ``name`` (`gpdepth3d.mde.FRONTENDS`) is looked for:
-    ``<data>/../../models``, ``<data>/../models`` or ``<data>/models``."""
-    from ..mde import FRONTEND_FILES
-
-    if name not in FRONTEND_FILES:
-        raise InvalidInputError("name", f"a front-end from {sorted(FRONTEND_FILES)}", name)
-    for base in (data.parent.parent / "models", data.parent / "models", data / "models"):
-        p = base / FRONTEND_FILES[name]
-        if p.is_file():
-            return p
-    return data.parent.parent / "models" / FRONTEND_FILES[name]
-
-
+# ----------------------------------------------------------------------------- stand-in MDE
 class DegradedGroundTruthMDE:
     """A stand-in MDE built from the ground truth (for tests and ablations, not a real network).
 
-    The current frame's dense ground truth (set ``frame``) is smoothed at ``blur`` of the image
-    size, multiplied by ``scale`` and by a smooth random multiplicative error of ``noise``.
+    The current frame's dense ground truth (set ``frame``; holes filled from the nearest valid
+    pixel) through `gpdepth3d.experiments.synthetic.simulate_mde`: blurred (``blur`` = Gaussian
+    sigma as a fraction of the image width), multiplied by ``scale`` and by a smooth random
+    log-depth error of standard deviation ``noise`` (correlation length a quarter of the width);
+    the same error field for every frame of a run (``seed``).
     """
 
     def __init__(self, *, scale: float = 1.15, noise: float = 0.1, blur: float = 0.03, seed: int = 0):
@@ -728,22 +688,15 @@ class DegradedGroundTruthMDE:
         self.frame: Frame | None = None
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
-        import cv2
-        from scipy.ndimage import distance_transform_edt
-
         if self.frame is None or self.frame.depth is None:
             raise InvalidInputError("mde", "'gt-degraded' only with a dataset with dense ground truth", None)
-        gt = cv2.resize(self.frame.depth.astype(np.float32), (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
-        valid = gt > 0
-        if not valid.any():
+        gt = resize_map(self.frame.depth.astype(np.float32), rgb.shape[:2], shrink="nearest", grow="nearest")
+        if not (gt > 0).any():
             raise EmptyInputError("ground truth", "valid pixels", 0)
-        _, (ri, ci) = distance_transform_edt(~valid, return_indices=True)
-        d = gt[ri, ci].astype(np.float64)
-        k = max(1, int(self.blur * max(d.shape))) | 1
-        d = cv2.GaussianBlur(d, (0, 0), k)
-        rng = np.random.default_rng(self.seed)
-        low = cv2.resize(rng.normal(0, 1, (4, 4)), (d.shape[1], d.shape[0]), interpolation=cv2.INTER_CUBIC)
-        return d * self.scale * np.exp(self.noise * low)
+        sim = MDESimulation(
+            scale=self.scale, blur_sigma=self.blur, field_amplitude=self.noise, field_lengthscale=0.25, noise=0.0
+        )
+        return simulate_mde(gt, sim, np.random.default_rng(self.seed))
 
 
 # ----------------------------------------------------------------------------- a whole run
@@ -794,8 +747,8 @@ def run_evaluation(
         stride: Use every stride-th frame.
         resolution: Evaluation resolution relative to the images (0.5 = half).
         methods: Names from `METHODS` (default `DEFAULT_METHODS`).
-        model: The front-end's model file (default: its file in ../models beside the data
-            folder's parent, i.e. shared/models; see `default_model_path`).
+        model: The front-end's model file (default: its file in the folder of
+            `gpdepth3d.mde.default_models_dir` near ``data``, i.e. shared/models).
         seed: Seed of the sampling.
         device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
         qualitative: Also draw the qualitative figure of the first frame.
@@ -827,10 +780,9 @@ def run_evaluation(
 
     degraded = None
     if mde in ("fastdepth", "rtmonodepth", "rtmonodepth-mono"):
-        from ..mde import load_frontend
+        from ..mde import default_models_dir, load_frontend
 
-        path = Path(model) if model is not None else default_model_path(data, mde)
-        front = load_frontend(mde, models_dir=path.parent) if model is None else load_frontend(path)
+        front = load_frontend(mde, models_dir=default_models_dir(near=data)) if model is None else load_frontend(model)
     else:
         degraded = DegradedGroundTruthMDE(seed=seed)
         front = degraded
@@ -878,6 +830,7 @@ def run_evaluation(
     write_csv(rows, output / "results.csv")
     write_csv(summary, output / "summary.csv")
     write_json(
+        output / "results.json",
         {
             "data": str(data),
             "dataset": type(dataset).__name__,
@@ -888,7 +841,6 @@ def run_evaluation(
             "summary": summary,
             "rows": rows,
         },
-        output / "results.json",
     )
     table = markdown_table(summary)
     atomic_write(output / "summary.md", lambda tmp: tmp.write_text(table + "\n"))

@@ -43,11 +43,15 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from .baselines import ip_basic
+from .frames import HoldoutLidar as HoldoutLidar
+from .frames import holdout_lidar as holdout_lidar
+from .frames import mde_to_grid
+from .scoring import metric_row
+from ..depthmap import resize_map
 from ..errors import EmptyInputError, InvalidInputError, ShapeError, describe
 from ..gp.model import DepthGPConfig
-from ..measurements import SparseDepth, downsample_depth
-from ..metrics import calibration_metrics, depth_metrics
-from ..sampling import PAPER_DENSITIES, SeedLike, holdout_split, make_rng, sample_band, sample_uniform
+from ..measurements import SparseDepth
+from ..sampling import PAPER_DENSITIES, SeedLike, make_rng, sample_band, sample_uniform
 
 KITTI_PROTOCOLS: tuple[str, ...] = ("uniform", "hband", "vband")
 """Input protocols: uniform densities, a horizontal band of rows, a vertical band of columns."""
@@ -128,59 +132,6 @@ def density_label(density: float) -> str:
 
 
 # ----------------------------------------------------------------------------- sampling
-@dataclass(frozen=True)
-class HoldoutLidar:
-    """LiDAR split into input pool and ground truth at two resolutions.
-
-    Attributes:
-        available: Points that may be given as input, on the (h, w) grid.
-        gt_grid: (h, w) held-out depth on the grid, metres (0 = none).
-        gt_full: (h * factor, w * factor) full-resolution LiDAR depth inside held-out blocks (0 = none).
-        n_grid: Number of LiDAR pixels on the grid before the split.
-    """
-
-    available: SparseDepth
-    gt_grid: np.ndarray
-    gt_full: np.ndarray
-    n_grid: int
-
-
-def holdout_lidar(lidar_depth: np.ndarray, *, factor: int = 3, holdout: float = 0.2, rng: SeedLike = 0) -> HoldoutLidar:
-    """Shrinks a projected LiDAR map (closest point per block) and holds out a share of it.
-
-    Args:
-        lidar_depth: (H, W) projected LiDAR z-depth, metres (0/NaN = no point).
-        factor: Block size; the grid is (H // factor, W // factor), trailing rows/columns dropped.
-        holdout: Share of the grid's LiDAR pixels held out, in (0, 1).
-        rng: Seed or Generator of the split.
-
-    Returns:
-        `HoldoutLidar`; ``available`` and the held-out pixels are disjoint and together all grid
-        pixels with a point; ``gt_full`` holds every full-resolution point of a held-out block.
-
-    Raises:
-        ShapeError: if ``lidar_depth`` is not 2-D or smaller than one block.
-        EmptyInputError: if fewer than two grid pixels have a point.
-    """
-    d = np.asarray(lidar_depth, dtype=np.float64)
-    if d.ndim != 2:
-        raise ShapeError("lidar_depth", "an (H, W) depth map in metres", describe(d))
-    grid = downsample_depth(d, factor)
-    h, w = grid.shape
-    available_all = SparseDepth.from_depth_map(grid)
-    if len(available_all) < 2:
-        raise EmptyInputError("lidar_depth", "at least two LiDAR pixels on the grid to hold some out", len(available_all))
-    pool, held = holdout_split(available_all, holdout=holdout, rng=rng)
-    gt_grid = np.zeros((h, w))
-    gt_grid[held.v.astype(np.int64), held.u.astype(np.int64)] = held.depth
-    full = d[: h * factor, : w * factor]
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(full) & (full > 0)
-    held_blocks = np.repeat(np.repeat(gt_grid > 0, factor, axis=0), factor, axis=1)
-    gt_full = np.where(valid & held_blocks, full, 0.0)
-    return HoldoutLidar(pool, gt_grid, gt_full, len(available_all))
-
-
 def draw_input(
     protocol: str,
     density: float,
@@ -260,8 +211,6 @@ def prepare_kitti_frame(
         holdout: Share of grid LiDAR pixels held out.
         rng: Seed or Generator of the hold-out split.
     """
-    import cv2
-
     rgb = np.asarray(rgb)
     d = np.asarray(lidar_depth)
     if rgb.ndim != 3 or rgb.shape[:2] != d.shape:
@@ -272,7 +221,7 @@ def prepare_kitti_frame(
     if depth.shape != rgb.shape[:2]:
         raise ShapeError("mde", f"a front-end returning the image size {rgb.shape[:2]}", describe(depth))
     mde_full = np.ascontiguousarray(depth[: h * factor, : w * factor])
-    mde_grid = cv2.resize(mde_full, (w, h), interpolation=cv2.INTER_AREA) if factor > 1 else mde_full.copy()
+    mde_grid = mde_to_grid(depth, factor)
     return KittiFrameSetup(name, mde_grid, mde_full, split)
 
 
@@ -304,8 +253,6 @@ class KittiMethods:
         self, method: str, setup: KittiFrameSetup, sparse: SparseDepth, resolution: str
     ) -> tuple[np.ndarray, np.ndarray | None, float]:
         """(mean, variance or None, seconds) of ``method`` at ``resolution`` ("grid" or "full")."""
-        import cv2
-
         if resolution not in RESOLUTIONS:
             raise InvalidInputError("resolution", f"one of {RESOLUTIONS}", resolution)
         full = resolution == "full"
@@ -315,8 +262,7 @@ class KittiMethods:
         if method == "ip_basic":
             out = ip_basic(sparse, setup.grid_shape)
             if full:
-                H, W = setup.full_shape
-                out = cv2.resize(out, (W, H), interpolation=cv2.INTER_LINEAR)
+                out = resize_map(out, setup.full_shape)
             return out, None, time.perf_counter() - t0
         if method in ("gp_paper", "gp_default"):
             config = self.paper if method == "gp_paper" else self.default
@@ -363,13 +309,7 @@ def evaluate_kitti_frame(
                         "n_gt": int(np.count_nonzero(gt)),
                     }
                     mean, var, seconds = methods.run(method, setup, sparse, res)
-                    m = depth_metrics(mean, gt)
-                    row.update({k: m[k] for k in METRICS})
-                    if var is not None and np.all(np.isfinite(var)):
-                        c = calibration_metrics(mean, var, gt)
-                        row.update({k: c[k] for k in CALIBRATION})
-                    else:
-                        row.update({k: math.nan for k in CALIBRATION})
+                    row.update(metric_row(mean, var, gt, depth_keys=METRICS, calibration_keys=CALIBRATION))
                     row["min_mean"] = float(np.min(mean))
                     row["seconds"] = seconds
                     row["gt"] = config.gt_description()

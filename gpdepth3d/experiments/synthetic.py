@@ -42,7 +42,8 @@ from typing import Iterator, Literal
 import numpy as np
 
 from ..camera import PinholeCamera
-from ..errors import InvalidInputError
+from ..depthmap import fill_nearest
+from ..errors import InvalidInputError, ShapeError, describe
 from ..measurements import SparseDepth, project_points
 
 SceneKind = Literal["street", "room"]
@@ -636,14 +637,34 @@ def scan_lidar(
 
 
 def simulate_mde(
-    depth_gt: np.ndarray, sim: MDESimulation, rng: np.random.Generator, *, fill_depth: float
+    depth_gt: np.ndarray, sim: MDESimulation, rng: np.random.Generator, *, fill_depth: float | None = None
 ) -> np.ndarray:
-    """Simulated monocular depth (metres, > 0 everywhere) from ground truth; see `MDESimulation`."""
+    """Simulated monocular depth (metres, > 0 everywhere) from ground truth; see `MDESimulation`.
+
+    The one MDE stand-in of the project (the synthetic scenes, the ``gt-degraded`` front-end of
+    `gpdepth3d.experiments.evaluation`, the ``standin`` of `gpdepth3d.experiments.batch`, the
+    benchmarks and examples): never a network, always labelled as simulated.
+
+    Args:
+        depth_gt: (H, W) depth, metres (0/NaN = none; e.g. ground truth or densifiable points).
+        sim: The error model.
+        rng: Generator of the error field, then of the white noise.
+        fill_depth: Depth of the pixels without one (e.g. the sky's far limit); None = the
+            nearest pixel with a depth (`gpdepth3d.depthmap.fill_nearest`).
+
+    Raises:
+        ShapeError: ``depth_gt`` is not 2-D.
+        EmptyInputError: ``fill_depth`` is None and no pixel has a depth.
+    """
     import cv2
 
     gt = np.asarray(depth_gt, dtype=np.float64)
+    if gt.ndim != 2:
+        raise ShapeError("depth_gt", "an (H, W) depth map in metres", describe(gt))
     h, w = gt.shape
-    filled = np.where(gt > 0, gt, fill_depth)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(gt) & (gt > 0)
+    filled = fill_nearest(gt, valid) if fill_depth is None else np.where(valid, gt, fill_depth)
     sigma = sim.blur_sigma * w
     blurred = cv2.GaussianBlur(filled, (0, 0), sigmaX=sigma, sigmaY=sigma) if sigma > 0.05 else filled
     field = _smooth_field((h, w), sim.field_lengthscale * w, rng) * sim.field_amplitude

@@ -62,14 +62,26 @@ def finish_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return d
 
 
-def default_models_dir() -> Path:
-    """The folder of the real networks: ``$GPDEPTH3D_MODELS``, else the first existing of
-    ``../shared/models`` (from the working directory) and ``shared/models`` beside the repository
-    (``<repo>/../shared/models``); the first candidate when none exists."""
+def default_models_dir(near: str | Path | None = None) -> Path:
+    """The folder of the real networks (the one rule for finding the model files).
+
+    ``$GPDEPTH3D_MODELS`` when set; else the first existing of, with ``near`` (a data folder
+    such as ``shared/data/7scenes``), ``<near>/../../models``, ``<near>/../models`` and
+    ``<near>/models``, then ``../shared/models`` (from the working directory) and
+    ``shared/models`` beside the repository (``<repo>/../shared/models``); the first candidate
+    when none exists.
+
+    Args:
+        near: A data folder whose neighbourhood is searched first (None = skip).
+    """
     env = os.environ.get("GPDEPTH3D_MODELS")
     if env:
         return Path(env)
-    candidates = [Path.cwd().parent / "shared" / "models", Path(__file__).resolve().parents[3] / "shared" / "models"]
+    candidates = []
+    if near is not None:
+        near = Path(near)
+        candidates += [near.parent.parent / "models", near.parent / "models", near / "models"]
+    candidates += [Path.cwd().parent / "shared" / "models", Path(__file__).resolve().parents[3] / "shared" / "models"]
     for c in candidates:
         if c.is_dir():
             return c
