@@ -14,10 +14,9 @@ computed against the same ground truth. Methods (`METHODS`):
   (`gpdepth3d.completion.fit.fit_hyperparameters`, starting from the paper's values).
 * ``gp_residual``: the residual GP (`DepthGPConfig.residual`): scale-aligned MDE as prior mean,
   the GP models its additive error.
-* ``gp_residual_fit``: the residual GP with its length scale, output scale and a nugget
-  (white MDE error + measurement noise) fitted per frame by maximising the exact marginal
-  likelihood of the measured residuals (`fit_residual_points`; cheap: only the n measured
-  pixels enter it).
+* ``gp_residual_fit``: the residual GP with its length scale, output scale and measurement
+  noise (which absorbs the MDE's white error) fitted per frame by maximising the exact marginal
+  likelihood (`gpdepth3d.completion.fit.fit_hyperparameters`, the library's one fitter).
 * ``gp_relative``: beyond both: the residual GP on the *ratio* depth / MDE (a multiplicative
   MDE error, whose size grows with depth as a monocular network's does), plus a white-noise
   MDE component (pixel-level error the smooth field cannot explain). See `relative_residual`.
@@ -49,6 +48,7 @@ from .scoring import CALIBRATION_NAMES as CALIBRATION_NAMES
 from .scoring import metric_row
 from .synthetic import MDESimulation, simulate_mde
 from ..completion.complete import DepthCompleter
+from ..completion.fit import fit_hyperparameters
 from ..datasets import Frame, open_dataset
 from ..depthmap import fill_nearest, resize_map
 from ..errors import (
@@ -149,90 +149,6 @@ def relative_residual(
     return m * post.mean, m**2 * (post.variance + white**2)
 
 
-def fit_residual_points(
-    mde: np.ndarray,
-    sparse: SparseDepth,
-    config: DepthGPConfig,
-    *,
-    max_points: int = 400,
-    restarts: Sequence[float] = (40.0, 120.0),
-    rng: SeedLike = 0,
-) -> tuple[DepthGPConfig, float]:
-    """Fits the residual GP's hyperparameters to one frame by exact marginal likelihood.
-
-    In the residual formulation only the measurements are observations, so the marginal
-    likelihood is that of the n residuals r = z - align(MDE) at the measured pixels under
-    N(0, s^2 C_l + (sigma_meas^2 + w^2) I): an n x n Cholesky per evaluation. The length scale
-    l (GP-grid pixels), the output scale s and the nugget w (white MDE error, the part of the
-    MDE error that is not spatially correlated) are fitted by L-BFGS-B on their logarithms,
-    from several starting length scales; the measurement noise sigma_meas stays as configured.
-
-    Args:
-        mde: (H, W) MDE depth, metres.
-        sparse: Measurements (any resolution of the same image).
-        config: Residual-formulation config (alignment, nu, units, sigma_meas, start values).
-        max_points: Fit on a random subset of at most this many points (cost n^3).
-        restarts: Starting length scales, GP-grid pixels.
-        rng: Seed or Generator of the subset.
-
-    Returns:
-        (config with the fitted lengthscale and outputscale and sigma_meas replaced by
-        sqrt(sigma_meas^2 + w^2), all in ``config.units``; w in the same units).
-        With fewer than 5 points ``config`` is returned unchanged (and w = 0).
-    """
-    import scipy.linalg
-    import scipy.optimize
-
-    from ..completion.complete import check_mde_depth
-    from ..gp.model import matern_1d
-
-    if config.formulation != "residual":
-        raise InvalidInputError("config", "a residual-formulation config", config.formulation)
-    m, valid = check_mde_depth(mde)
-    g = sparse.rasterize(m.shape)
-    r_idx, c_idx = g.v.astype(np.int64), g.u.astype(np.int64)
-    keep = valid[r_idx, c_idx]
-    if int(keep.sum()) < 5:
-        return config, 0.0
-    if keep.sum() > max_points:
-        chosen = make_rng(rng).choice(np.nonzero(keep)[0], size=max_points, replace=False)
-        keep = np.zeros_like(keep)
-        keep[chosen] = True
-    rows, cols, z = r_idx[keep].astype(float), c_idx[keep].astype(float), g.depth[keep]
-    md = m[r_idx[keep], c_idx[keep]]
-    resid = z - align_depth(md, z, config.align).apply(md)
-    unit = float(np.median(m[valid])) if config.units == "relative" else 1.0
-    sig = g.sigma[keep]
-    meas_var = np.where(np.isfinite(sig), sig**2, (config.sigma_meas * unit) ** 2)
-    dr, dc = np.subtract.outer(rows, rows), np.subtract.outer(cols, cols)
-    resid = resid / unit
-    meas_var = meas_var / unit**2
-
-    def nlml(x: np.ndarray) -> float:
-        l, s, w = np.exp(x)
-        K = s * s * matern_1d(dr, config.nu, l) * matern_1d(dc, config.nu, l)
-        K[np.diag_indices_from(K)] += meas_var + w * w
-        try:
-            L = np.linalg.cholesky(K)
-        except np.linalg.LinAlgError:
-            return 1e30
-        a = scipy.linalg.solve_triangular(L, resid, lower=True, check_finite=False)
-        return float(0.5 * a @ a + np.log(np.diag(L)).sum())
-
-    bounds = [(np.log(1.0), np.log(4.0 * max(m.shape))), (np.log(1e-3), np.log(3.0)), (np.log(1e-4), np.log(1.0))]
-    best = None
-    for l0 in restarts:
-        x0 = np.log([min(max(l0, 1.5), 3.0 * max(m.shape)), max(config.outputscale, 2e-3), 0.02])
-        res = scipy.optimize.minimize(nlml, x0, method="L-BFGS-B", bounds=bounds, options={"maxiter": 40})
-        if best is None or res.fun < best.fun:
-            best = res
-    l, s, w = (float(v) for v in np.exp(best.x))
-    fitted = config.replace(
-        lengthscale=l, outputscale=s, sigma_meas=float(np.sqrt(config.sigma_meas**2 + w * w))
-    )
-    return fitted, w
-
-
 @dataclass
 class MethodSuite:
     """Runs the methods of `METHODS` on one frame with shared engines (caches survive frames).
@@ -303,7 +219,8 @@ class MethodSuite:
             post = self._completer(self.residual, len(sparse), mde.size).complete(mde, sparse)
             return MethodOutput(post.mean, post.variance, time.perf_counter() - t0)
         if name == "gp_residual_fit":
-            fitted, _ = fit_residual_points(mde, sparse, self.residual)
+            # the library's one fitter (exact marginal likelihood; sigma_meas absorbs the MDE's white error)
+            fitted = fit_hyperparameters(mde, sparse, self.residual, params=("lengthscale", "outputscale", "sigma_meas"))
             # the fitted config differs per frame: no caching of completers for it
             engine = self._completer(self.residual, len(sparse), mde.size).config.engine
             post = DepthCompleter(fitted.replace(engine=engine)).complete(mde, sparse)
