@@ -104,9 +104,15 @@ def view_command(
     ]
     config = ViewerConfig(layout=layout, color_by=color_by, max_points=max_points)
     taken = port_taken(host, port)
-    with show(frames, meshes=list(mesh), config=config, host=host, port=port, allow_remote=allow_remote) as viewer:
+    with show(
+        frames, meshes=list(mesh), config=config, host=host, port=port, allow_remote=allow_remote, background=True
+    ) as viewer:
         if taken or (port and viewer.port != port):
             print(f"view: port {port} is taken (by another program); using port {viewer.port} instead")
-        print(f"viewer running at {viewer.url} ({'Ctrl-C to stop' if duration is None else f'{duration:g} s'})")
+        print(f"viewer running at {viewer.url} ({'Ctrl-C to stop' if duration is None else f'{duration:g} s'})",
+              flush=True)
+        viewer.wait_loaded()
+        print(f"view: {len(frames)} frame(s) and {len(mesh)} mesh(es) on the page "
+              f"({viewer.events[-1][1]:.1f} s after the server started)", flush=True)
         viewer.wait(duration)
     print("viewer stopped")

@@ -31,6 +31,7 @@ stride so that each layer holds at most ``ViewerConfig.max_points`` points.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import threading
@@ -399,6 +400,11 @@ class Viewer:
             "filter_mde", "point_size".
         metrics: {"mde": ..., "gp": ...} `depth_metrics` (mean over frames with ground truth)
             plus "calibration" (`calibration_metrics` means); empty without ground truth.
+        loaded: Set when every frame is on the page (or the loading failed: `load_error`).
+        load_error: The exception that stopped a background loading, else None.
+        events: (what, seconds since the start) of what the page was sent, in order: "loading"
+            (the loading text), "preview" (a sequence's first frame), "panel" (the controls),
+            "cloud:<layer>" (each point layer), "loaded".
     """
 
     def __init__(
@@ -408,6 +414,8 @@ class Viewer:
         config: ViewerConfig,
         host: str,
         port: int,
+        *,
+        background: bool = False,
     ):
         import viser
 
@@ -416,25 +424,75 @@ class Viewer:
         self._lock = threading.RLock()
         self._stopped = False
         self._syncing = False  # set while the Python API moves a GUI control (its callback then does nothing)
-        self._prepare_layers()
-        self.metrics = self._compute_metrics()
+        self.loaded = threading.Event()
+        self.load_error: Optional[BaseException] = None
+        self.events: list[tuple[str, float]] = []
+        self._t0 = time.monotonic()
+        # The server and a loading text first: a browser that connects now sees the state at once.
         self.server = viser.ViserServer(host=host, port=port, label=config.title, verbose=False)
+        self.url = f"http://{host}:{self.server.get_port()}"
+        self._loading_text = self.server.gui.add_markdown(self._loading_message(0))
+        self._event("loading")
+        if background:
+            threading.Thread(target=self._load, args=(list(meshes), True), name="gpdepth3d-viewer-load", daemon=True).start()
+        else:
+            self._load(list(meshes), False)
+
+    def _event(self, what: str) -> None:
+        """Records what the page was sent, in order, with the seconds since the viewer started."""
+        self.events.append((what, time.monotonic() - self._t0))
+
+    def _loading_message(self, done: int) -> str:
+        n = len(self.frames)
+        if n == 0:
+            return "**Loading meshes …**"
+        return f"**Loading frame {min(done + 1, n)} of {n} …**"
+
+    def _load(self, meshes: list[Any], background: bool) -> None:
+        """Prepares the layers frame by frame (the loading text follows), then the panel, then the clouds."""
         try:
-            self.url = f"http://{host}:{self.server.get_port()}"
+            self._prepare_layers()
+            self.metrics = self._compute_metrics()
+            self._build_gui(meshes)
+            self._event("panel")
             self._build_scene(meshes)
-            self._build_gui()
-            self.set_layout(config.layout)
             self._update_shown()
-        except BaseException:
-            self.server.stop()
-            raise
+            self._loading_text.remove()
+            self._event("loaded")
+        except BaseException as exc:
+            self.load_error = exc
+            if not background:
+                self.server.stop()
+                self.loaded.set()
+                raise
+            with contextlib.suppress(Exception):
+                self._loading_text.content = f"**Loading failed:** {exc}"
+        finally:
+            self.loaded.set()
+
+    def wait_loaded(self, timeout: Optional[float] = None) -> None:
+        """Blocks until every frame is on the page (at once unless `show` ran with ``background=True``).
+
+        Raises:
+            TimeoutError: when ``timeout`` seconds pass first.
+            Exception: the error that stopped the loading (a bad mesh file, say).
+        """
+        if not self.loaded.wait(timeout):
+            raise TimeoutError(f"the viewer was still loading after {timeout} s")
+        if self.load_error is not None:
+            raise self.load_error
 
     # ------------------------------------------------------------------ data
     def _prepare_layers(self) -> None:
         frames = self.frames
         total = sum(f.posterior.shape[0] * f.posterior.shape[1] for f in frames)
         self.stride = max(1, math.ceil(math.sqrt(total / self.config.max_points))) if total else 1
-        per_frame = [_frame_layers(f, self.stride) for f in frames]
+        per_frame = []
+        for i, f in enumerate(frames):
+            per_frame.append(_frame_layers(f, self.stride))
+            if i == 0 and len(frames) > 1:
+                self._show_preview(per_frame[0]["gp"], f)
+            self._loading_text.content = self._loading_message(i + 1)
         self._layers = {k: _Layer.concat([p[k] for p in per_frame]) for k in LAYER_LABELS}
         gp = self._layers["gp"]
         all_depth = np.concatenate([gp.depth, self._layers["mde"].depth, self._layers["gt"].depth])
@@ -461,6 +519,24 @@ class Viewer:
             self._point_size = 1.5 * self.stride * (float(np.median(footprints)) if footprints else 0.01)
         else:
             self._point_size = 0.01
+
+    def _show_preview(self, layer: _Layer, frame: ViewerFrame) -> None:
+        """The first frame's GP cloud in RGB at once, while the other frames load (removed when they are in)."""
+        if len(layer) == 0:
+            return
+        mean = frame.posterior.mean
+        median = float(np.median(mean[mean > 0])) if np.any(mean > 0) else 1.0
+        size = 1.5 * self.stride * median / (frame.camera.fx * frame.posterior.shape[1] / frame.camera.width)
+        self._preview = self.server.scene.add_point_cloud(
+            "/preview", layer.points, layer.rgb, point_size=size, point_shape="square", precision="float32",
+            point_shading="flat",
+        )
+        self._event("preview")
+
+    def _group_keys(self, meshes: Sequence[Any]) -> list[str]:
+        """The groups the scene will have, in order (known before the scene is built)."""
+        keys = [k for k in LAYER_LABELS if len(self._layers[k])]
+        return keys + (["cameras"] if self.frames else []) + (["meshes"] if meshes else [])
 
     @property
     def has_gt(self) -> bool:
@@ -517,14 +593,18 @@ class Viewer:
             extent, centre, height = 1.0, T0[:3, 3] + forward, 1.0
         self._spacing = 1.15 * extent
 
+        preview = getattr(self, "_preview", None)
         self.groups: dict[str, Any] = {}
         self.point_clouds: dict[str, Any] = {}
         self._labels: list[Any] = []
+        # Each group is created at its place in the layout, labels shown only side by side: the page
+        # never draws the layers (and their labels) on top of each other while the scene arrives.
+        side = self.config.layout == "side-by-side"
         for key, label in LAYER_LABELS.items():
             layer = self._layers[key]
             if len(layer) == 0:
                 continue
-            self.groups[key] = scene.add_frame(f"/{key}", show_axes=False)
+            self.groups[key] = scene.add_frame(f"/{key}", show_axes=False, position=self._group_position(key))
             self.point_clouds[key] = scene.add_point_cloud(
                 f"/{key}/points",
                 layer.points,
@@ -536,14 +616,18 @@ class Viewer:
             )
             if key != "sparse":
                 self._labels.append(scene.add_label(
-                    f"/{key}/label", label, position=centre + up * 0.6 * height, anchor="bottom-center"
+                    f"/{key}/label", label, position=centre + up * 0.6 * height, anchor="bottom-center", visible=side
                 ))
+            self._event(f"cloud:{key}")
+        if preview is not None:
+            preview.remove()
+            self._preview = None
         if "sparse" in self.point_clouds:
             self.point_clouds["sparse"].point_size = 3.0 * self._point_size
 
         self.frustums = []
         if self.frames:
-            self.groups["cameras"] = scene.add_frame("/cameras", show_axes=False)
+            self.groups["cameras"] = scene.add_frame("/cameras", show_axes=False, position=self._group_position("cameras"))
             scale = self.config.frustum_scale or 0.05 * max(extent, height)
             for i, f in enumerate(self.frames):
                 cam = f.camera
@@ -569,12 +653,13 @@ class Viewer:
 
         self.meshes = []
         if loaded:
-            self.groups["meshes"] = scene.add_frame("/meshes", show_axes=False)
+            self.groups["meshes"] = scene.add_frame("/meshes", show_axes=False, position=self._group_position("meshes"))
             for i, mesh in enumerate(loaded):
                 self.meshes.append(scene.add_mesh_trimesh(f"/meshes/{i:03d}", mesh))
             self._labels.append(
                 scene.add_label(
-                    "/meshes/label", "Fused mesh", position=centre + up * 0.6 * height, anchor="bottom-center"
+                    "/meshes/label", "Fused mesh", position=centre + up * 0.6 * height, anchor="bottom-center",
+                    visible=side,
                 )
             )
 
@@ -592,19 +677,24 @@ class Viewer:
         self.server.initial_camera.position = tuple(float(x) for x in position)
         self.server.initial_camera.up = tuple(float(x) for x in up)
 
+    def _group_position(self, group: str, layout: Optional[str] = None) -> tuple[float, float, float]:
+        shift = self._slot(group) * self._spacing if (layout or self.config.layout) == "side-by-side" else 0.0
+        return tuple(float(x) for x in self._right * shift)
+
     def _slot(self, group: str) -> float:
         if group == "meshes":  # right of everything else
             return 1.0 + max((_SLOTS[k] for k in self.groups if k in _SLOTS), default=-1.0)
         return float(_SLOTS[group])
 
     # ------------------------------------------------------------------ GUI
-    def _build_gui(self) -> None:
+    def _build_gui(self, meshes: Sequence[Any]) -> None:
         gui = self.server.gui
+        groups = self._group_keys(meshes)
         self.controls: dict[str, Any] = {}
         names = dict(LAYER_LABELS, cameras="Cameras", meshes="Fused meshes")
         with gui.add_folder("Layers"):
             for key in ("mde", "gp", "sparse", "gt", "cameras", "meshes"):
-                if key not in self.groups:
+                if key not in groups:
                     continue
                 box = gui.add_checkbox(names[key], True)
                 box.on_update(lambda _e, key=key, box=box: self._from_gui(partial(self.set_visible, key), box.value))
@@ -637,7 +727,7 @@ class Viewer:
             sigma.on_update(lambda _e: self._from_gui(self.set_max_sigma, sigma.value))
             self.controls["max_sigma"] = sigma
             self._sigma_top = top
-            if "mde" in self.groups:
+            if "mde" in groups:
                 filt = gui.add_checkbox("Filter MDE too", False, hint="Hide the same pixels in the MDE-only cloud.")
                 filt.on_update(lambda _e: self._from_gui(self.set_filter_mde, filt.value))
                 self.controls["filter_mde"] = filt
@@ -749,12 +839,14 @@ class Viewer:
 
     def visible_count(self, layer: str) -> int:
         """Number of points the browser draws for a layer ("mde", "gp", "sparse", "gt")."""
+        self._require_loaded()
         if layer not in self.point_clouds:
             raise InvalidInputError("layer", f"one of {tuple(self.point_clouds)}", layer)
         return int(self.point_clouds[layer].points.shape[0])
 
     def set_max_sigma(self, value: float) -> None:
         """Hides GP-refined points with posterior sigma above ``value`` metres (>= the slider top: none hidden)."""
+        self._require_loaded()
         value = float(value)
         if not np.isfinite(value) or value < 0:
             raise InvalidInputError("value", "a sigma threshold >= 0 (metres)", value)
@@ -765,6 +857,7 @@ class Viewer:
 
     def set_filter_mde(self, value: bool) -> None:
         """Whether the sigma threshold also hides the same pixels in the MDE-only cloud."""
+        self._require_loaded()
         with self._lock:
             self._filter_mde = bool(value)
             self._sync("filter_mde", bool(value))
@@ -772,6 +865,7 @@ class Viewer:
 
     def set_color_by(self, mode: str) -> None:
         """Colours every layer by "rgb", "depth", "sigma" or "error" (needs ground truth)."""
+        self._require_loaded()
         modes = tuple(m for m in COLOR_MODES if m != "error" or self.has_gt)
         if mode not in modes:
             raise InvalidInputError("mode", f"one of {modes}", mode)
@@ -783,6 +877,7 @@ class Viewer:
 
     def set_layout(self, layout: str) -> None:
         """Places the layers "side-by-side" (shifted along the first camera's x axis) or "overlay"."""
+        self._require_loaded()
         if layout not in LAYOUTS:
             raise InvalidInputError("layout", f"one of {LAYOUTS}", layout)
         with self._lock:
@@ -795,6 +890,7 @@ class Viewer:
 
     def set_point_size(self, size: float) -> None:
         """Sets the point size of the clouds, metres (measurements are drawn 3x larger)."""
+        self._require_loaded()
         size = float(size)
         if not np.isfinite(size) or size <= 0:
             raise InvalidInputError("size", "a point size > 0 (metres)", size)
@@ -806,11 +902,16 @@ class Viewer:
 
     def set_visible(self, group: str, visible: bool) -> None:
         """Shows or hides a group ("mde", "gp", "sparse", "gt", "cameras", "meshes")."""
+        self._require_loaded()
         if group not in self.groups:
             raise InvalidInputError("group", f"one of {tuple(self.groups)}", group)
         with self._lock:
             self.groups[group].visible = bool(visible)
             self._sync(f"show_{group}", bool(visible))
+
+    def _require_loaded(self) -> None:
+        if not self.loaded.is_set() or self.load_error is not None:
+            self.wait_loaded()
 
     def _from_gui(self, setter: Any, value: Any) -> None:
         if not self._syncing:
@@ -864,8 +965,13 @@ def show(
     host: str = "127.0.0.1",
     port: int = 8080,
     allow_remote: bool = False,
+    background: bool = False,
 ) -> Viewer:
-    """Starts the browser viewer for one frame or a posed sequence; returns at once.
+    """Starts the browser viewer for one frame or a posed sequence.
+
+    The server starts first and the page shows "Loading frame k of n …" while the frames are prepared;
+    then the panel, then the clouds (MDE-only first). For a sequence, the first frame's GP cloud is
+    shown as soon as it is ready. ``Viewer.events`` records that order.
 
     Example:
         >>> frame = ViewerFrame(posterior, camera, rgb=rgb, depth_gt=gt)  # doctest: +SKIP
@@ -882,6 +988,9 @@ def show(
         port: TCP port; 0 lets the system pick a free one, and a taken port makes viser try the
             next ones (`Viewer.port` and `Viewer.url` tell the port in use).
         allow_remote: Allow a non-loopback ``host`` (the scene is then served to the network).
+        background: Return as soon as the server runs and prepare the frames in a thread (the page
+            shows the progress; `Viewer.wait_loaded` waits for it and raises its error); the setters
+            wait for it. Default: return when everything is on the page.
 
     Returns:
         The running `Viewer`; call ``stop()`` (or leave its ``with`` block) to free the port.
@@ -903,7 +1012,7 @@ def show(
     if isinstance(port, (bool, np.bool_)) or not isinstance(port, (int, np.integer)) or not 0 <= port <= 65535:
         raise InvalidInputError("port", "a TCP port 0..65535", describe(port))
     check_host(host, allow_remote=allow_remote)
-    return Viewer(frames, meshes, config or ViewerConfig(), host, int(port))
+    return Viewer(frames, meshes, config or ViewerConfig(), host, int(port), background=bool(background))
 
 
 def check_host(host: str, *, allow_remote: bool = False) -> bool:
