@@ -269,7 +269,7 @@ class TestRunBatchInProcess:
         (data / "velodyne_02" / "b.npz").write_bytes(b"not a zip")
         out = tmp_path / "out"
         with pytest.raises(FramesFailedError, match=r"1 of 3 frames failed \(first: b: DataFormatError"):
-            batch_command(data=data, output_dir=out, workers=0, n_input=40, engine="exact", progress=False)
+            batch_command(data=data, output=out, workers=0, n_input=40, gp=DepthGPConfig(engine="exact"), progress=False)
         assert npz_ids(out) == ["a", "c"]
         report = json.loads((out / REPORT_NAME).read_text())
         assert [f["frame_id"] for f in report["failures"]] == ["b"]

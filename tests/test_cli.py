@@ -36,11 +36,14 @@ class TestCompleteCommand:
         gt, mde = _write_7scenes_inputs(shared_data, tmp_path)
         code = main([
             "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "points.txt"),
-            "--output", str(tmp_path / "out" / "frame0"), "--gt", str(tmp_path / "gt.npy"), "residual",
+            "--output", str(tmp_path / "out" / "frame0"), "--gt", str(tmp_path / "gt.npy"), "--preset", "residual",
         ])
         assert code == 0
         out = capsys.readouterr().out
-        assert "wrote" in out and "rmse" in out
+        assert "wrote" in out and "RMSE [mm]" in out and "iRMSE [1/km]" in out  # units in the table header
+        for kind in ("depth", "sigma", "error"):  # previews a person can look at, beside the 16-bit PNGs
+            preview = tmp_path / "out" / f"frame0_{kind}_preview.png"
+            assert preview.is_file() and f"wrote {preview}" in out
         post = DepthPosterior.load(tmp_path / "out" / "frame0.npz")
         assert post.mean.shape == gt.shape
         valid = gt > 0
@@ -60,7 +63,7 @@ class TestCompleteCommand:
         gt, mde = _write_7scenes_inputs(shared_data, tmp_path, n_points=150)
         code = main([
             "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "points.txt"),
-            "--output", str(tmp_path / "fit"), "--no-png", "residual", "--model.fit",
+            "--output", str(tmp_path / "fit"), "--no-png", "--preset", "residual", "--gp.fit",
         ])
         assert code == 0 and "wrote" in capsys.readouterr().out
         post = DepthPosterior.load(tmp_path / "fit.npz")
@@ -89,7 +92,7 @@ class TestCompleteCommand:
         code = main([
             "complete", "--mde", str(tmp_path / "mde.npy"), "--lidar", str(folder / "000000.bin"),
             "--calib", str(folder / "calib_000000.txt"), "--lidar-image-size", "375", "1242",
-            "--output", str(tmp_path / "kitti"), "--no-png", "residual",
+            "--output", str(tmp_path / "kitti"), "--no-png", "--preset", "residual",
         ])
         assert code == 0
         post = DepthPosterior.load(tmp_path / "kitti.npz")
@@ -163,10 +166,10 @@ class TestOneLineErrors:
         )
 
     def test_bad_option_value_is_one_line_exit_1(self, tmp_path, capsys):
-        code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "paper", "--model.nu", "3.7"])
+        code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "--preset", "paper", "--gp.nu", "3.7"])
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 1 and len(err) == 1
-        assert err[0] == "gpdepth3d: error: Value error: Error parsing --model: nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d --help)"
+        assert err[0] == "gpdepth3d: error: Value error: Error parsing --gp: nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d --help)"
 
     def test_help_is_untouched(self, capsys):
         import pytest
@@ -198,7 +201,7 @@ class TestOneLineErrors:
         np.save(tmp_path / "mde.npy", np.full((12, 16), 2.0))
         np.savetxt(tmp_path / "p.txt", [[1, 1, 2.0], [2, 2, np.nan], [40, 2, 2.0]])
         argv = ["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "p.txt"),
-                "--output", str(tmp_path / "o"), "residual", "--model.engine", "exact"]
+                "--output", str(tmp_path / "o"), "--preset", "residual", "--gp.engine", "exact"]
         assert main(argv) == 1 and "2 of 3 rows" in capsys.readouterr().err
         assert main(argv[:7] + ["--drop-invalid-points"] + argv[7:]) == 0
         err = capsys.readouterr().err.strip().splitlines()
@@ -209,7 +212,7 @@ class TestOneLineErrors:
 class TestDemoCommand:
     def test_demo_runs_from_the_installed_entry_point(self, tmp_path):
         proc = subprocess.run(
-            [sys.executable, "-m", "gpdepth3d.cli", "demo", "--output-dir", str(tmp_path / "demo")],
+            [sys.executable, "-m", "gpdepth3d.cli", "demo", "--output", str(tmp_path / "demo")],
             capture_output=True, text=True, timeout=600,
         )
         assert proc.returncode == 0, proc.stderr

@@ -358,8 +358,8 @@ def _complete_args(t: Path, out: Path, *extra: str, mde: str = "mde.npy", points
 
 # (id, argv builder (inputs folder, output folder), text of the one-line error)
 CLI_CASES = [
-    ("bad option value", lambda t, o: _complete_args(t, o / "x", "paper", "--model.nu", "3.7"), "nu"),
-    ("non-number option", lambda t, o: _complete_args(t, o / "x", "paper", "--model.lengthscale", "abc"), "lengthscale"),
+    ("bad option value", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--gp.nu", "3.7"), "nu"),
+    ("non-number option", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--gp.lengthscale", "abc"), "lengthscale"),
     ("unknown option", lambda t, o: ["complete", "--mdee", "x.npy"], "--mde"),
     ("mde of strings", lambda t, o: _complete_args(t, o / "x", mde="strs.npy"), "dtype"),
     ("binary calib", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "binary.txt"), "--output", str(o / "x")], "binary"),
@@ -370,7 +370,7 @@ CLI_CASES = [
     ("gt png scale negative", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "mde.npy"), "--gt-png-scale", "-1"), "--gt-png-scale"),
     ("gt missing", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "missing.png")), "not found"),
     ("gt corrupt", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "binary.txt")), "binary.txt"),
-    ("depth over 256 m with png", lambda t, o: _complete_args(t, o / "x", mde="far.npy", points="points_far.txt") + ["residual", "--model.engine", "exact"], "256"),
+    ("depth over 256 m with png", lambda t, o: _complete_args(t, o / "x", mde="far.npy", points="points_far.txt") + ["--preset", "residual", "--gp.engine", "exact"], "256"),
     ("output empty", lambda t, o: _complete_args(t, Path("")), "name"),
     ("output is a directory", lambda t, o: _complete_args(t, (o / "d.npz").mkdir() or o / "d"), "directory"),
     ("output under a file", lambda t, o: _complete_args(t, t / "a_file" / "x"), "file"),
@@ -381,9 +381,14 @@ CLI_CASES = [
     ("view bad host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "999.1.1.1", "--duration", "1"], "host"),
     ("view remote host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "0.0.0.0", "--duration", "1"], "--allow-remote"),
     ("eval onto a file", lambda t, o: ["eval", "--data", str(t), "--output", str(t / "a_file")], "a file is in the way"),
-    ("demo onto a file", lambda t, o: ["demo", "--output-dir", str(t / "a_file" / "d")], "is a file"),
-    ("batch onto a file", lambda t, o: ["batch", "--data", str(t), "--output-dir", str(t / "a_file" / "b"), "--workers", "0"], "file"),
-    ("batch bad address", lambda t, o: ["batch", "--data", str(t), "--output-dir", str(o / "b"), "--address", "not-an-address"], "address"),
+    ("demo onto a file", lambda t, o: ["demo", "--output", str(t / "a_file" / "d")], "is a file"),
+    ("batch onto a file", lambda t, o: ["batch", "--data", str(t), "--output", str(t / "a_file" / "b"), "--workers", "0"], "file"),
+    ("batch bad address", lambda t, o: ["batch", "--data", str(t), "--output", str(o / "b"), "--address", "not-an-address"], "address"),
+    ("unknown preset", lambda t, o: _complete_args(t, o / "x", "--preset", "nope"), "--preset"),
+    ("two presets", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--preset=residual"), "--preset"),
+    ("preset without a name", lambda t, o: _complete_args(t, o / "x", "--preset"), "--preset"),
+    ("front-end without --rgb", lambda t, o: ["complete", "--mde", "fastdepth", "--sparse", str(t / "points.txt"), "--output", str(o / "x")], "--rgb"),
+    ("unknown front-end", lambda t, o: ["complete", "--mde", "nonet", "--rgb", str(t / "mde.npy"), "--sparse", str(t / "points.txt"), "--output", str(o / "x")], "nonet"),
 ]
 
 
@@ -412,7 +417,7 @@ def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(np, "savez_compressed", full)
-    argv = _complete_args(cli_inputs, tmp_path / "x") + ["residual", "--model.engine", "exact"]
+    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--gp.engine", "exact"]
     assert cli.main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "disk full" in err[0]
@@ -580,7 +585,7 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
 
 def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
     return [sys.executable, "-m", "gpdepth3d.cli", "complete", "--mde", str(inputs / mde), "--sparse",
-            str(inputs / "points.txt"), "--output", str(out), "residual", "--model.engine", "exact"]
+            str(inputs / "points.txt"), "--output", str(out), "--preset", "residual", "--gp.engine", "exact"]
 
 
 @pytest.mark.slow
@@ -665,28 +670,28 @@ def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
         cases.append(base() + ["--gt", f])
         cases.append(base() + ["--intrinsics", f, "--sparse-points", "xyz"])
         cases.append(["complete", "--mde", f"{t}/mde.npy", "--lidar", f, "--calib", f, "--output", f"{out}/o{next(o)}"])
-    fields = ["--model.nu", "--model.lengthscale", "--model.outputscale", "--model.sigma-dl", "--model.sigma-meas",
-              "--model.max-exact-points"]
+    fields = ["--gp.nu", "--gp.lengthscale", "--gp.outputscale", "--gp.sigma-dl", "--gp.sigma-meas",
+              "--gp.max-exact-points"]
     for model, opt in itertools.product(["paper", "residual"], fields):
-        cases += [base() + [model, opt, v] for v in ["nan", "-1", "0", "abc", "inf", "1e-320"]]
+        cases += [base() + ["--preset", model, opt, v] for v in ["nan", "-1", "0", "abc", "inf", "1e-320"]]
     for model in ["paper", "residual"]:
-        for opt, v in [("--model.units", "feet"), ("--model.align", "x"), ("--model.engine", "gpu"), ("--model.formulation", "x")]:
-            cases.append(base() + [model, opt, v])
+        for opt, v in [("--gp.units", "feet"), ("--gp.align", "x"), ("--gp.engine", "gpu"), ("--gp.formulation", "x")]:
+            cases.append(base() + ["--preset", model, opt, v])
     cases += [base()[:-1] + [o_] for o_ in ["", f"{t}/afile/x", str(t), "/proc/x"]]
     cases += [["view", "--posterior", "x.npz", "--duration", v] for v in ["-1", "nan", "abc"]]
     cases += [["view", "--posterior", "x.npz", "--host", h, "--duration", "0"]
               for h in ["999.1.1.1", "0.0.0.0", "", "::", "example.invalid", "1.2.3.4"]]
     cases += [["view", "--posterior", "x.npz", "--port", p, "--duration", "0"] for p in ["-1", "70000", "abc"]]
     cases += [["view", "--posterior", f"{t}/bin.txt", "--duration", "0"], ["view", "--posterior", f"{t}/mde.npy", "--duration", "0"]]
-    cases += [["demo"] + a for a in [["--output-dir", f"{t}/afile/x"], ["--output-dir", f"{out}/demo"], ["--seed", "-1"], ["--seed", "abc"]]]
+    cases += [["demo"] + a for a in [["--output", f"{t}/afile/x"], ["--output", f"{out}/demo"], ["--seed", "-1"], ["--seed", "abc"]]]
     cases += [["eval"] + a for a in [
         ["--data", str(t)], ["--data", "/nonexistent"], ["--data", seven, "--output", f"{t}/afile"],
         ["--data", seven, "--protocol", "bogus"], ["--data", seven, "--points", "a,b"], ["--data", seven, "--stride", "0"],
         ["--data", seven, "--frames", "-1"], ["--data", seven, "--resolution", "nan"], ["--data", seven, "--methods", "x"]]]
-    cases += [["batch", "--data", kitti, "--output-dir", f"{out}/b"] + a for a in [
-        ["--address", "not-an-address"], ["--output-dir", f"{t}/afile/x"], ["--workers", "-1"], ["--limit", "-3"],
+    cases += [["batch", "--data", kitti, "--output", f"{out}/b"] + a for a in [
+        ["--address", "not-an-address"], ["--output", f"{t}/afile/x"], ["--workers", "-1"], ["--frames", "-3"],
         ["--repeat", "0"], ["--factor", "0"], ["--n-input", "-5"], ["--connect-timeout", "-1"]]]
-    cases += [["fuse"] + a for a in [["--data", "/nonexistent"], ["--data", str(t)], ["--out", f"{t}/afile/x"]]]
+    cases += [["fuse"] + a for a in [["--data", "/nonexistent"], ["--data", str(t)], ["--output", f"{t}/afile/x"]]]
     return cases
 
 

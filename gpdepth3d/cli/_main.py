@@ -130,6 +130,21 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"gpdepth3d: warning: {message}", file=file or sys.stderr)
 
 
+COMPILE_NOTICE = "compiling kernels (once, ~1 min) ..."
+"""Printed before numba first compiles one of the fast engine's kernels (a cold cache), never on warm runs."""
+
+
+def _compile_notice(argv: list[str]):
+    """Prints `COMPILE_NOTICE` once when a command compiles kernels (not for `view` or --help: no numba import)."""
+    import contextlib
+
+    if not argv or argv[0] not in ("complete", "demo", "eval", "fuse", "batch") or "--help" in argv or "-h" in argv:
+        return contextlib.nullcontext()
+    from ..gp.compile_notice import on_first_compile
+
+    return on_first_compile(lambda _name: print(COMPILE_NOTICE, flush=True))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``gpdepth3d`` command.
 
@@ -144,7 +159,15 @@ def main(argv: list[str] | None = None) -> int:
     _PARSE = parse
     sys.stderr = parse  # type: ignore[assignment]
     try:
-        tyro.extras.subcommand_cli_from_dict(_commands(), args=argv, prog="gpdepth3d")
+        from ._options import normalize_argv
+
+        argv, notes = normalize_argv(list(sys.argv[1:] if argv is None else argv))
+        for note in notes:
+            print(f"gpdepth3d: note: {note}", file=parse.real)
+        with _compile_notice(argv):
+            tyro.extras.subcommand_cli_from_dict(
+                _commands(), args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,)
+            )
     except SystemExit as exc:
         if parse.parsing and exc.code not in (0, None):
             parse.parsing = False

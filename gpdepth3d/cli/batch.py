@@ -8,19 +8,20 @@ from typing import Literal, Optional
 from ..experiments.batch import REPORT_NAME, FramesFailedError, HoldoutInputs, check_address, dataset_frames, run_batch
 from ..gp.model import DepthGPConfig
 from ..io import check_output_folder
+from ._options import GPPreset
 
 
 def batch_command(
     *,
     data: Path,
-    output_dir: Path,
+    output: Path,
     dataset: Optional[Literal["kitti_tiny", "kitti_object", "7scenes", "ibims_sample", "vio_sparse"]] = None,
     task: Literal["complete", "eval"] = "complete",
-    workers: int = 2,
+    workers: Optional[int] = None,
     address: Optional[str] = None,
-    limit: Optional[int] = None,
+    frames: Optional[int] = None,
     repeat: int = 1,
-    engine: Optional[Literal["exact", "kissgp", "fast"]] = None,
+    gp: GPPreset = DepthGPConfig(),
     factor: int = 3,
     n_input: int = 500,
     mde: Literal["none", "standin", "rtmonodepth", "fastdepth"] = "none",
@@ -32,26 +33,28 @@ def batch_command(
 ) -> None:
     """Complete or evaluate every frame of a dataset folder on Dask (resumable; re-run to finish).
 
-    Writes OUTPUT_DIR/<frame>.npz (posterior mean, variance, std in metres / m^2), with --task eval also
-    OUTPUT_DIR/<frame>.metrics.json, and OUTPUT_DIR/batch_report.json (counts, failures, mean metrics).
+    Writes OUTPUT/<frame>.npz (posterior mean, variance, std in metres / m^2), with --task eval also
+    OUTPUT/<frame>.metrics.json, and OUTPUT/batch_report.json (counts, failures, mean metrics).
     Frames already done are skipped, so a killed run resumes where it stopped. Inputs: --n-input
     measurements sampled from the frame's LiDAR (20 % held out as ground truth for eval) or from its dense
     depth; with --mde rtmonodepth (outdoor) or fastdepth (indoor) the network's depth of each frame's image
     is the MDE, with --mde standin a STAND-IN MDE (densified input points with a smooth scale error).
-    Exits with an error if any frame failed.
+    Exits with an error if any frame failed. The GP is --preset default|paper|residual (default
+    `DepthGPConfig()`), its fields --gp.FIELD, e.g. --gp.engine exact.
 
     Args:
         data: Dataset folder (kitti_tiny, 7scenes, ibims_sample, vio_sparse, kitti_object layouts).
-        output_dir: Output folder (created).
+        output: Output folder (created).
         dataset: Dataset kind; default: detected from the folder.
         task: "complete" (posteriors) or "eval" (posteriors + per-frame metrics + aggregate).
-        workers: Local Dask worker processes (0 = no Dask, in this process); ignored with --address.
+        workers: Local Dask worker processes (default: the number of CPUs, as `run_batch`; 0 = no Dask, in this
+            process); ignored with --address.
         address: Scheduler address of a running Dask cluster, e.g. tcp://10.0.0.5:8786 (the data and output
             folders must be visible to its workers at the same paths).
-        limit: Process at most this many frames (after --repeat).
+        frames: Process at most this many frames (after --repeat).
         repeat: Repeat the dataset's frames this many times under new ids (benchmarks).
-        engine: GP engine: "exact" (dense, up to a few thousand points), "fast" (grid, full frames), "kissgp";
-            default: `DepthGPConfig`'s default engine.
+        gp: The GP: --preset default|paper|residual, then --gp.FIELD (--gp.engine: "exact" for up to a few
+            thousand points, "fast" for full frames, "kissgp").
         factor: Downsample the dataset resolution by this integer factor (3 = the paper's 1/3).
         n_input: Measurements given as input per frame.
         mde: "rtmonodepth" (RT-MonoDepth-S, outdoor) or "fastdepth" (indoor) run on each frame's image, "none"
@@ -64,12 +67,12 @@ def batch_command(
     """
     if address is not None:
         check_address(address)  # before reading the dataset
-    check_output_folder(output_dir, "--output-dir")
-    frames = dataset_frames(data, dataset, repeat=repeat, limit=limit)
+    check_output_folder(output, "--output")
+    specs = dataset_frames(data, dataset, repeat=repeat, limit=frames)
     report = run_batch(
-        frames,
-        output_dir,
-        config=DepthGPConfig() if engine is None else DepthGPConfig(engine=engine),
+        specs,
+        output,
+        config=gp,
         loader=HoldoutInputs(
             factor=factor, n_input=n_input, mde=mde, seed=seed, models_dir=None if models_dir is None else str(models_dir)
         ),
@@ -81,9 +84,9 @@ def batch_command(
         connect_timeout=connect_timeout,
     )
     print(report.summary())
-    print(f"wrote {report.n_computed} frame(s) and {Path(output_dir) / REPORT_NAME}")
+    print(f"wrote {report.n_computed} frame(s) and {Path(output) / REPORT_NAME} (in {Path(output).resolve()})")
     if report.failures:
         raise FramesFailedError(
             f"{len(report.failures)} of {report.n_frames} frames failed (first: {report.failures[0].frame_id}: "
-            f"{report.failures[0].error}); see {Path(output_dir) / REPORT_NAME}; re-run to retry them"
+            f"{report.failures[0].error}); see {Path(output) / REPORT_NAME}; re-run to retry them"
         )

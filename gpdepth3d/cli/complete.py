@@ -5,39 +5,39 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Union
+from typing import Literal, Optional
 
 import numpy as np
-import tyro
 
 from ..errors import OutputError
 from ..gp.model import DepthGPConfig
 from ..io import check_output_path
+from ._options import GPPreset
 
-# The GP model as a CLI choice: `gpdepth3d complete ... model:residual --model.lengthscale 30`.
-ModelChoice = Union[
-    Annotated[DepthGPConfig, tyro.conf.subcommand("default", default=DepthGPConfig(), prefix_name=False)],
-    Annotated[DepthGPConfig, tyro.conf.subcommand("paper", default=DepthGPConfig.paper(), prefix_name=False)],
-    Annotated[DepthGPConfig, tyro.conf.subcommand("residual", default=DepthGPConfig.residual(), prefix_name=False)],
-]
+METRIC_COLUMNS: dict[str, str] = {
+    "rmse": "RMSE [mm]", "mae": "MAE [mm]", "irmse": "iRMSE [1/km]", "imae": "iMAE [1/km]", "rel": "REL [-]",
+    "delta1": "δ1 [-]",
+}
+"""The metrics table's columns and their headers with units."""
+
+DEPTH_FILE_SUFFIXES = (".npy", ".npz", ".png")
+"""`--mde` values with these suffixes are depth maps to read; anything else names a front-end."""
 
 
 def _print_metrics(rows: dict[str, dict[str, float]]) -> None:
-    keys = ("rmse", "mae", "irmse", "imae", "rel", "delta1")
-    print(f"{'method':<12}" + "".join(f"{k:>10}" for k in keys))
+    print(f"{'method':<8}" + "".join(f"{h:>14}" for h in METRIC_COLUMNS.values()))
     for name, m in rows.items():
-        print(f"{name:<12}" + "".join(f"{m[k]:>10.3f}" for k in keys))
-    print("(rmse, mae in mm; irmse, imae in 1/km; rel fraction; delta1 share)")
+        print(f"{name:<8}" + "".join(f"{m[k]:>14.3f}" for k in METRIC_COLUMNS))
 
 
 def complete_command(
     *,
-    mde: Path,
+    mde: str,
     output: Path,
     sparse: Optional[Path] = None,
     lidar: Optional[Path] = None,
     calib: Optional[Path] = None,
-    model: ModelChoice = DepthGPConfig(),
+    gp: GPPreset = DepthGPConfig(),
     lidar_image_size: Optional[tuple[int, int]] = None,
     mde_png_scale: float = 1.0 / 256.0,
     sparse_png_scale: float = 1.0 / 256.0,
@@ -51,16 +51,20 @@ def complete_command(
     rgb: Optional[Path] = None,
     models_dir: Optional[Path] = None,
     drop_invalid_points: bool = False,
+    preview: bool = True,
 ) -> None:
-    """Complete one frame: MDE depth + sparse depth -> posterior mean and variance.
+    """Complete one frame: an RGB image through a front-end (or an MDE depth map) + sparse depth -> depth and sigma.
 
-    Writes OUTPUT.npz (mean, variance, std, mde, in metres / m^2) and, with --png, OUTPUT_mean.png and
-    OUTPUT_std.png (16-bit, KITTI convention value = metres * 256). Prints metrics when --gt is given.
+    Writes OUTPUT.npz (mean, variance, std, mde, in metres / m^2), with --png OUTPUT_mean.png and
+    OUTPUT_std.png (16-bit, KITTI convention value = metres * 256), and colourised previews with colour bars
+    (OUTPUT_depth_preview.png, OUTPUT_sigma_preview.png, with --gt OUTPUT_error_preview.png). Prints metrics
+    when --gt is given, then every file it wrote. The GP is a preset, --preset default|paper|residual (default:
+    `DepthGPConfig()`), whose fields can be changed with --gp.FIELD VALUE, e.g. --preset residual --gp.fit.
 
     Args:
-        mde: MDE depth map (.npy/.npz in metres, or 16-bit .png with --mde-png-scale); with --rgb instead a
-            front-end that is run on the image: "rtmonodepth" (KITTI, outdoor), "rtmonodepth-mono", "fastdepth"
-            (NYU, indoor) or a .onnx/.tflite model file.
+        mde: The monocular depth: a front-end run on --rgb, "fastdepth" (FastDepth TFLite, NYU, indoor; needs the
+            [tflite] extra), "rtmonodepth" (RT-MonoDepth-S ONNX, KITTI, outdoor), "rtmonodepth-mono" or a
+            .onnx/.tflite model file; or a depth map file (.npy/.npz in metres, 16-bit .png with --mde-png-scale).
         output: Output path (the .npz suffix is added).
         sparse: Sparse depth: a sparse depth map (.npy/.npz/.png) or a point list (.npz with u, v, depth; .txt lines
             "u v depth [sigma]" in MDE pixels and metres, or "X Y Z" camera-frame metres with --sparse-points xyz).
@@ -70,8 +74,8 @@ def complete_command(
         lidar_image_size: HEIGHT WIDTH of the image the calibration belongs to (default: the MDE size, refused
             when the calibration's principal point does not fit it); the projected points are then moved to the
             MDE grid, closest point per pixel.
-        model: GP model preset ("default": the log-residual GP fitted per frame, robust to bad points;
-            "paper": balanced KISS-GP of the paper; "residual": MDE as prior mean).
+        gp: The GP: --preset "default" (log-residual, `DepthGPConfig()`, robust to bad points), "paper" (the
+            paper's balanced GP) or "residual" (MDE as prior mean), then --gp.FIELD to change one of its fields.
         mde_png_scale: Metres per unit of a 16-bit MDE PNG.
         sparse_png_scale: Metres per unit of a 16-bit sparse PNG.
         sparse_points: How a .txt point list is read: "uvd" (pixels + depth) or "xyz" (camera frame, needs --intrinsics).
@@ -85,6 +89,7 @@ def complete_command(
         models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
         drop_invalid_points: Drop point-list rows with a NaN/negative depth or outside the image (their count is
             printed as a warning) instead of refusing the file.
+        preview: Also write the colourised previews (PNG with colour bars).
     """
     from ..camera import PinholeCamera
     from ..completion.complete import DepthCompleter, PosteriorWarning
@@ -104,17 +109,29 @@ def complete_command(
         from ..measurements import _as_shape
 
         _as_shape(lidar_image_size, "--lidar-image-size")
+    from ..experiments.previews import preview_paths, write_previews
+
     out_npz = check_output_path(output, "--output").with_suffix(".npz")
-    check_output_targets([out_npz] + ([out_npz.with_name(out_npz.stem + s) for s in ("_mean.png", "_std.png")] if png else []))
+    base = out_npz.with_suffix("")
+    check_output_targets(
+        [out_npz] + ([out_npz.with_name(out_npz.stem + s) for s in ("_mean.png", "_std.png")] if png else [])
+        + (preview_paths(base, with_error=gt is not None) if preview else [])
+    )
     if (sparse is None) == (lidar is None):
         raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
-    if rgb is not None:
+    is_file = Path(mde).suffix.lower() in DEPTH_FILE_SUFFIXES
+    if not is_file:
+        if rgb is None:
+            raise InvalidInputError(
+                "--rgb", f"an RGB image for the front-end --mde {mde} (or --mde a depth map .npy/.npz/.png)", None
+            )
         from ..io import load_rgb
         from ..mde import load_frontend
 
-        mde_depth = load_frontend(str(mde), models_dir=models_dir)(load_rgb(rgb))
+        network = load_frontend(mde, models_dir=models_dir)
+        mde_depth = network(load_rgb(rgb))
     else:
-        mde_depth = load_depth(mde, png_scale=mde_png_scale)
+        mde_depth = load_depth(Path(mde), png_scale=mde_png_scale)
     out_shape = check_output_shape(output_size, mde_depth.shape)
     gt_depth = None
     if gt is not None:
@@ -141,14 +158,14 @@ def complete_command(
         measurements = project_points(xyz, camera)
     else:
         measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points)
-    completer = DepthCompleter(model)
+    completer = DepthCompleter(gp)
     with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
         warnings.simplefilter("ignore", PosteriorWarning)
         posterior = completer.complete(mde_depth, measurements, output_shape=output_size, frame=out_npz.stem)
     written = posterior.save(out_npz, png=png)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
-        f"({model.formulation}, engine {model.engine}) in {sum(posterior.timings.values()):.2f} s"
+        f"({gp.formulation}, engine {gp.engine}) in {sum(posterior.timings.values()):.2f} s"
         + (f"; {posterior.n_rejected} rejected as outliers" if posterior.n_rejected else "")
     )
     for message in posterior.warnings:
@@ -161,8 +178,13 @@ def complete_command(
         rows = {"mde": depth_metrics(posterior.mde, gt_depth), "gp": depth_metrics(posterior.mean, gt_depth)}
         _print_metrics(rows)
         cal = calibration_metrics(posterior.mean, posterior.variance, gt_depth)
-        print(f"calibration: +-1 sigma {cal['coverage_1sigma']:.3f}, +-2 sigma {cal['coverage_2sigma']:.3f}, "
-              f"NLL {cal['nll']:.3f}")
+        print(f"calibration: +-1 sigma coverage {cal['coverage_1sigma']:.3f} (calibrated 0.683), +-2 sigma "
+              f"{cal['coverage_2sigma']:.3f} (0.954), NLL {cal['nll']:.3f} [nats per pixel]")
+    if preview:
+        written = list(written) + write_previews(
+            base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth
+        )
+    print(f"wrote {len(written)} files in {out_npz.parent.resolve()}:")
     for path in written:
         print(f"wrote {path}")
 

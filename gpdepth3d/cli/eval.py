@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
-from typing import Literal
 
 from ..errors import InvalidInputError
 from ..experiments.evaluation import DEFAULT_METHODS, markdown_table, run_evaluation
@@ -17,7 +17,7 @@ def _names(text: str) -> list[str]:
 def eval_command(
     data: Path,
     *,
-    mde: Literal["fastdepth", "rtmonodepth", "rtmonodepth-mono", "gt-degraded"] = "fastdepth",
+    mde: str = "fastdepth",
     protocol: str = "uniform",
     points: str = "",
     output: Path = Path("eval_output"),
@@ -25,7 +25,6 @@ def eval_command(
     stride: int = 1,
     resolution: float = 0.5,
     methods: str = ",".join(DEFAULT_METHODS),
-    model: Path | None = None,
     seed: int = 0,
     device: str | None = None,
     qualitative: bool = True,
@@ -36,10 +35,11 @@ def eval_command(
     Args:
         data: Dataset folder (7scenes, kitti_tiny, kitti_object, ibims_sample, vio_sparse;
             the layout is detected).
-        mde: Monocular front-end: "fastdepth" (TFLite FastDepth, indoor), "rtmonodepth" (ONNX
-            RT-MonoDepth-S, KITTI, metric), "rtmonodepth-mono" (its mono-only model: relative
-            depth) or "gt-degraded" (a blurred, mis-scaled ground truth; datasets with dense
-            ground truth only).
+        mde: Monocular front-end: "fastdepth" (TFLite FastDepth, indoor; the [tflite] extra),
+            "rtmonodepth" (ONNX RT-MonoDepth-S, KITTI, metric), "rtmonodepth-mono" (its mono-only
+            model: relative depth), a .tflite/.onnx model file, or "gt-degraded" (a blurred,
+            mis-scaled ground truth; datasets with dense ground truth only). The named models are
+            read from the models folder beside the data folder's parent (shared/models).
         protocol: Comma-separated protocols: uniform (N points), density (the paper's eight
             densities, shares of the available points), hband (lower half rows), vband (left
             half columns), scanlines (every k-th LiDAR beam; KITTI).
@@ -53,8 +53,6 @@ def eval_command(
         methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_default, gp_balanced,
             gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
             gp_balanced_fit, which fits per frame and level: ~10-60 factorisations each).
-        model: The front-end's model file (default: its file in ../models beside the data
-            folder's parent, i.e. shared/models; see `gpdepth3d.mde.default_models_dir`).
         seed: Seed of the sampling.
         device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
         qualitative: Also draw the qualitative figure of the first frame.
@@ -68,6 +66,10 @@ def eval_command(
     except ValueError:
         raise InvalidInputError("points", "comma-separated numbers such as '50,200,500'", points) from None
     check_output_folder(Path(output), "--output")
+    model = None
+    if Path(mde).suffix.lower() in (".tflite", ".onnx"):  # a model file: its kind from the suffix
+        model, mde = Path(mde), "fastdepth" if Path(mde).suffix.lower() == ".tflite" else "rtmonodepth"
+    started = time.time()
     with write_together():  # all of eval's files appear together, or none (full disk, a failing plot)
         summary = run_evaluation(
             data,
@@ -86,4 +88,6 @@ def eval_command(
             progress=progress,
         )
     print(markdown_table(summary))
+    written = sorted(p for p in Path(output).iterdir() if p.is_file() and p.stat().st_mtime >= started - 1.0)
+    print(f"wrote {len(written)} files in {Path(output).resolve()}: {', '.join(p.name for p in written)}")
     return summary

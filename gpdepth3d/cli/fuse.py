@@ -3,20 +3,24 @@
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal
 
+from ..gp.model import DepthGPConfig
 from ..io import atomic_write
 from ..mapping.fusion import FusionConfig, save_mesh
 from ..mapping.mapper import SEVEN_SCENES_RGB_K, MapperConfig, _jsonable, fuse_sequence
+from ._options import GPPreset
 
 
 def fuse_command(
     data: Path,
-    out: Path = Path("fuse_out"),
+    output: Path = Path("fuse_out"),
     *,
-    model: Path = Path("../shared/models/fast_depth_224.tflite"),
+    mde: str = "fastdepth",
+    models_dir: Path | None = None,
+    gp: GPPreset = DepthGPConfig(),
     frames: int | None = None,
     working_scale: float = 0.5,
     voxel_size: float = 0.02,
@@ -27,21 +31,25 @@ def fuse_command(
     mesh_format: Literal["ply", "glb", "obj"] = "ply",
     threshold: float = 0.05,
     metric_samples: int = 50_000,
-    engine: Literal["exact", "kissgp", "fast"] = "fast",
 ) -> dict[str, Any]:
     """Builds meshes of a posed RGB-D sequence from MDE-only, GP-refined and ground-truth depth.
 
-    The MDE is FastDepth (TFLite); the sparse points are features the library triangulates
-    from the posed RGB frames themselves (not the ground truth). Writes
+    The MDE is a front-end run on every image (default FastDepth, TFLite); the sparse points are
+    features the library triangulates from the posed RGB frames themselves (not the ground truth);
+    the GP is --preset default|paper|residual (default `DepthGPConfig()`, the library's and
+    `MapperConfig`'s), its fields --gp.FIELD (e.g. --gp.engine exact). Writes
     ``mesh_mde``, ``mesh_gp_uniform``, ``mesh_gp_variance``, ``mesh_gt`` (``.<mesh_format>``) and
     ``metrics.json`` (accuracy/completeness/Chamfer/precision/recall against the ground-truth
-    mesh, timings, frames that failed) into ``out``, all atomically. A frame that fails is
+    mesh, timings, frames that failed) into ``output``, all atomically. A frame that fails is
     named and skipped; a mesh without triangles (few frames) is reported, not written.
 
     Args:
         data: 7-Scenes-style sequence folder (e.g. ../shared/data/7scenes).
-        out: Output folder.
-        model: FastDepth TFLite model file.
+        output: Output folder.
+        mde: Monocular front-end: "fastdepth" (FastDepth TFLite, indoor; the [tflite] extra), "rtmonodepth"
+            (RT-MonoDepth-S ONNX, outdoor) or a .tflite/.onnx model file.
+        models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
+        gp: The GP: --preset default|paper|residual, then --gp.FIELD.
         frames: Use only the first this many frames (default: all).
         working_scale: Resolution of refinement and fusion relative to the images (0.5 = 320x240).
         voxel_size: TSDF voxel size, metres.
@@ -52,28 +60,29 @@ def fuse_command(
         mesh_format: File format of the meshes.
         threshold: Precision/recall distance, metres.
         metric_samples: Surface samples per mesh for the metrics.
-        engine: GP engine of the refinement (all give the same posterior; "fast" is the
-            quickest; the model is `MapperConfig`'s default).
 
     Returns:
         The metrics dictionary written to ``metrics.json``.
     """
-    from ..mde.tflite import FastDepthTFLite
+    from ..io import check_output_folder
+    from ..mde import load_frontend
 
+    check_output_folder(Path(output), "--output")
+    network = load_frontend(mde, models_dir=models_dir)
     fusion = FusionConfig(voxel_size=voxel_size, truncation=truncation, depth_max=depth_max, sigma_ref=sigma_ref)
-    config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=replace(MapperConfig().gp, engine=engine))
+    config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=gp)
     K = SEVEN_SCENES_RGB_K.copy()
     K[0, 0] = K[1, 1] = rgb_focal
     result = fuse_sequence(
         data,
-        mde=FastDepthTFLite(model),
+        mde=network,
         rgb_K=K,
         config=config,
         max_frames=frames,
         threshold=threshold,
         metric_samples=metric_samples,
     )
-    out = Path(out)
+    out = Path(output)
     written = []
     for name, mesh in result["meshes"].items():
         if name not in result["empty_meshes"]:
@@ -91,12 +100,15 @@ def fuse_command(
         "metrics": result["metrics"],
         "timing_s_per_frame": result["timing"],
         "timing_median_s_per_frame": result["timing_median"],
-        "config": {"mapper": _jsonable(asdict(config)), "rgb_focal": rgb_focal, "model": str(model)},
+        "config": {"mapper": _jsonable(asdict(config)), "rgb_focal": rgb_focal, "mde": str(mde)},
     }
     atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
     for message in result["frame_errors"]:
         print(f"skipped {message}")
     if result["empty_meshes"]:
         print(f"no surface above the weight threshold yet in: {', '.join(result['empty_meshes'])} (no mesh written)")
-    print(f"{result['frames_fused']} of {result['frames']} frames fused; wrote {len(written)} meshes and {out / 'metrics.json'}")
+    print(f"{result['frames_fused']} of {result['frames']} frames fused; wrote {len(written)} meshes and "
+          f"{out / 'metrics.json'} (in {out.resolve()})")
+    for path in written:
+        print(f"wrote {path}")
     return summary

@@ -486,10 +486,17 @@ def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
     return atomic_write(path, lambda tmp: tmp.write_text(buf.getvalue()))
 
 
+TABLE_UNITS: dict[str, str] = {
+    "rmse": "mm", "mae": "mm", "irmse": "1/km", "imae": "1/km", "rel": "-", "delta1": "%", "delta2": "%",
+    "delta3": "%", "nll": "nats/px", "coverage_1sigma": "%", "coverage_2sigma": "%",
+}
+"""Units of the columns of `markdown_table` (shown in its header)."""
+
+
 def markdown_table(summary: Sequence[dict], *, metrics: Sequence[str] | None = None) -> str:
     """A markdown table of the summary: one row per (protocol, level, method)."""
     metrics = list(metrics or ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_1sigma", "coverage_2sigma"))
-    head = ["protocol", "level", "method", "points"] + metrics
+    head = ["protocol", "level", "method", "points"] + [f"{k} [{TABLE_UNITS[k]}]" if k in TABLE_UNITS else k for k in metrics]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for s in summary:
         cells = [s["protocol"], s["label"], s["method"], f"{s['n_points']:.0f}"]

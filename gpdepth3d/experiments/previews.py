@@ -1,0 +1,132 @@
+"""Colourised previews of a depth posterior that a person can look at (PNG, colour bar, units).
+
+The 16-bit PNGs of `DepthPosterior.save` (KITTI convention, metres x 256) look black in an image
+viewer; these previews show the same maps with a colour map, a labelled colour bar and the units:
+
+* ``BASE_depth_preview.png``: the MDE and the GP posterior mean side by side on one depth scale (turbo);
+* ``BASE_sigma_preview.png``: the posterior standard deviation (viridis);
+* ``BASE_error_preview.png`` (with ground truth): |GP mean − ground truth| and |MDE − ground truth|
+  on one scale (magma), grey where there is no ground truth.
+
+Drawn with matplotlib's Agg canvas (no display, no pyplot state) and written atomically
+(`gpdepth3d.io.atomic_write`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import InvalidInputError, ShapeError, describe
+from ..io import atomic_write
+
+PREVIEW_SUFFIXES: dict[str, str] = {
+    "depth": "_depth_preview.png",
+    "sigma": "_sigma_preview.png",
+    "error": "_error_preview.png",
+}
+"""File name suffix of each preview (appended to the output base name)."""
+
+
+def preview_paths(base: str | Path, *, with_error: bool = False) -> list[Path]:
+    """The preview files `write_previews` writes for ``base`` (``dir/name``, no suffix)."""
+    base = Path(base)
+    kinds = ("depth", "sigma", "error") if with_error else ("depth", "sigma")
+    return [base.with_name(base.name + PREVIEW_SUFFIXES[k]) for k in kinds]
+
+
+def _map(value: np.ndarray, argument: str, shape: Optional[tuple[int, ...]]) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64) if value is not None else None
+    if a is None or a.ndim != 2 or min(a.shape) < 1:
+        raise ShapeError(argument, "a 2-D (H, W) map in metres", describe(value))
+    if shape is not None and a.shape != shape:
+        raise ShapeError(argument, f"a map of the mean's shape {shape}", describe(a))
+    return a
+
+
+def _range(values: list[np.ndarray], lo_q: float, hi_q: float) -> tuple[float, float]:
+    v = np.concatenate([x[np.isfinite(x)].ravel() for x in values])
+    if v.size == 0:
+        return 0.0, 1.0
+    lo, hi = (float(np.percentile(v, lo_q)), float(np.percentile(v, hi_q)))
+    return lo, hi if hi > lo else lo + max(abs(lo), 1.0) * 1e-3
+
+
+def _figure(panels: list[tuple[str, np.ndarray]], cmap: str, vmin: float, vmax: float, label: str, path: Path) -> Path:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    import matplotlib
+
+    h, w = panels[0][1].shape
+    aspect = h / w
+    n = len(panels)
+    width = 6.0 * n if w >= h else 4.0 * n
+    fig = Figure(figsize=(width + 1.2, max(2.2, width / n * aspect + 1.0)), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, n, squeeze=False)[0]
+    colormap = matplotlib.colormaps[cmap].with_extremes(bad=(0.6, 0.6, 0.6))
+    image = None
+    for ax, (title, values) in zip(axes, panels):
+        image = ax.imshow(np.ma.masked_invalid(values), cmap=colormap, vmin=vmin, vmax=vmax, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    bar = fig.colorbar(image, ax=list(axes), fraction=0.046 / n if n > 1 else 0.046, pad=0.02)
+    bar.set_label(label)
+    atomic_write(path, lambda p: fig.savefig(p, format="png", bbox_inches="tight", pad_inches=0.05))
+    return path
+
+
+def write_previews(
+    base: str | Path,
+    mean: np.ndarray,
+    std: np.ndarray,
+    *,
+    mde: Optional[np.ndarray] = None,
+    depth_gt: Optional[np.ndarray] = None,
+) -> list[Path]:
+    """Writes colourised PNG previews of a depth posterior, each with a colour bar and its units.
+
+    Args:
+        base: Output base path (``dir/name``); the files are ``name`` + `PREVIEW_SUFFIXES`.
+        mean: (H, W) posterior mean z-depth, metres (<= 0 or NaN: no depth, drawn grey).
+        std: (H, W) posterior standard deviation, metres.
+        mde: Optional (H, W) MDE depth, metres, drawn beside the mean on the same scale.
+        depth_gt: Optional (H, W) ground-truth depth, metres (0 or NaN = none): adds the error preview.
+
+    Returns:
+        The paths written (depth, sigma, then error with ground truth).
+
+    Raises:
+        ShapeError: a map that is not 2-D or not of the mean's shape.
+        OutputError: a file that cannot be written (nothing is left half-written).
+    """
+    mean = _map(mean, "mean", None)
+    std = _map(std, "std", mean.shape)
+    if mde is not None:
+        mde = _map(mde, "mde", mean.shape)
+    if depth_gt is not None:
+        depth_gt = _map(depth_gt, "depth_gt", mean.shape)
+    if not isinstance(base, (str, Path)) or not str(base):
+        raise InvalidInputError("base", "an output path without suffix", describe(base))
+    with np.errstate(invalid="ignore"):
+        shown = np.where(mean > 0, mean, np.nan)
+        mde_shown = np.where(mde > 0, mde, np.nan) if mde is not None else None
+    paths = preview_paths(base, with_error=depth_gt is not None)
+    depth_panels = ([("MDE", mde_shown)] if mde_shown is not None else []) + [("GP posterior mean", shown)]
+    lo, hi = _range([p[1] for p in depth_panels], 2, 98)
+    _figure(depth_panels, "turbo", lo, hi, "z-depth [m]", paths[0])
+    sig = np.where(np.isfinite(std) & (std >= 0), std, np.nan)
+    _, top = _range([sig], 0, 98)
+    _figure([("GP posterior σ", sig)], "viridis", 0.0, top, "σ [m]", paths[1])
+    if depth_gt is not None:
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(depth_gt) & (depth_gt > 0)
+            err = np.where(valid, np.abs(shown - depth_gt), np.nan)
+            panels = [("|GP mean − ground truth|", err)]
+            if mde_shown is not None:
+                panels.insert(0, ("|MDE − ground truth|", np.where(valid, np.abs(mde_shown - depth_gt), np.nan)))
+        _, top = _range([p[1] for p in panels], 0, 95)
+        _figure(panels, "magma", 0.0, top, "|error| [m]", paths[2])
+    return paths
