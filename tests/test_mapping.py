@@ -425,7 +425,7 @@ class TestLoopClosure:
 class TestFuseAsTheReadmeSays:
     @pytest.mark.slow
     def test_readme_line_completes_all_60_frames(self, shared_data, tmp_path: Path, monkeypatch):
-        """`gpdepth3d fuse --data ../shared/data/7scenes --out fuse_out`, exactly as the README writes it
+        """`gpdepth3d fuse --data ../shared/data/7scenes --output fuse_out`, exactly as the README writes it
         (run from the repository root; only the output folder is moved into tmp_path)."""
         from gpdepth3d.cli import main
 
@@ -437,7 +437,7 @@ class TestFuseAsTheReadmeSays:
         pytest.importorskip("ai_edge_litert")
         monkeypatch.chdir(repo)
         out = tmp_path / "fuse_out"
-        assert main(["fuse", "--data", "../shared/data/7scenes", "--out", str(out)]) == 0
+        assert main(["fuse", "--data", "../shared/data/7scenes", "--output", str(out)]) == 0
         summary = json.loads((out / "metrics.json").read_text())
         assert summary["frames"] == 60 and summary["frames_fused"] == 60 and summary["frame_errors"] == []
         assert summary["empty_meshes"] == [] and len(summary["meshes_written"]) == 4

@@ -32,6 +32,8 @@ def test_quick_start_runs_as_written(shared_data, monkeypatch):
     post = scope["post"]
     assert post.mean.shape == (125, 414) and (post.mean > 0).all()  # the loop's last frame, at 1/3
     assert (ROOT / "gpdepth3d_out" / "kitti0.npz").is_file()
+    for kind in ("depth", "sigma"):
+        assert (ROOT / "gpdepth3d_out" / f"kitti0_{kind}_preview.png").is_file()
 
 
 def _command_lines(text: str) -> list[str]:
@@ -72,4 +74,26 @@ def test_readme_command_lines_run_as_written(shared_data, monkeypatch, capsys):
             code = exc.code
         out = capsys.readouterr()
         assert code in (0, None), f"{line}\n{out.out[-2000:]}\n{out.err[-2000:]}"
-    assert (ROOT / "gpdepth3d_out" / "k0.npz").is_file()
+        assert "deprecated" not in out.err, line  # the README speaks the current vocabulary
+        if argv[0] in ("demo", "complete", "eval", "batch"):  # every command says what it wrote and where
+            assert "wrote" in out.out, line
+    out_dir = ROOT / "gpdepth3d_out"
+    assert (out_dir / "k0.npz").is_file()
+    for name in ("k0_depth_preview.png", "k0_sigma_preview.png", "ibims.npz", "ibims_error_preview.png"):
+        assert (out_dir / name).is_file(), name
+    assert sorted(p.name for p in (out_dir / "batch").glob("*.npz")) == sorted(
+        f"{p.stem}.npz" for p in sorted((ROOT.parent / "shared" / "data" / "kitti_tiny" / "image_02").glob("*.png"))[:3]
+    )
+
+
+def test_readme_lines_use_one_vocabulary():
+    """No deprecated spelling in the README's command lines; --output wherever a command writes."""
+    from gpdepth3d.cli._options import RENAMED
+
+    for line in _command_lines((ROOT / "README.md").read_text(encoding="utf-8")):
+        words = line.split()
+        old = {flag for flags in RENAMED.values() for flag in flags if not flag.endswith(".")}
+        assert not old & set(words), line
+        assert not any(w.startswith("--model.") for w in words), line
+        if words[1] in ("complete", "batch", "fuse"):
+            assert "--output" in words, line

@@ -84,6 +84,8 @@ def batch_command(
         connect_timeout=connect_timeout,
     )
     print(report.summary())
+    if report.aggregate:
+        print("  (units: rmse, mae mm; irmse, imae 1/km; rel, delta1, coverage_2sigma fractions; nll nats per pixel)")
     print(f"wrote {report.n_computed} frame(s) and {Path(output) / REPORT_NAME} (in {Path(output).resolve()})")
     if report.failures:
         raise FramesFailedError(

@@ -16,6 +16,7 @@ import numpy as np
 from ..completion.complete import DepthCompleter
 from ..gp.model import DepthGPConfig
 from ..mde.align import align_depth
+from .previews import write_previews
 from .scoring import metric_row
 from .synthetic import make_scene
 
@@ -55,11 +56,11 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
         posteriors[name] = post
         results[name] = (post.mean, post.variance)
 
-    header = f"{'method':<16}{'RMSE mm':>10}{'MAE mm':>10}{'REL':>8}{'d1':>7}{'±2σ cov':>9}"
+    header = f"{'method':<16}{'RMSE [mm]':>10}{'MAE [mm]':>10}{'REL [-]':>8}{'δ1 [-]':>7}{'±2σ cov [-]':>12}"
     yield header
     for name, (pred, var) in results.items():
         m = metric_row(pred, var, frame.depth_gt, depth_keys=("rmse", "mae", "rel", "delta1"), calibration_keys=("coverage_2sigma",))
-        cov = f"{m['coverage_2sigma']:>9.3f}" if var is not None else f"{'-':>9}"
+        cov = f"{m['coverage_2sigma']:>12.3f}" if var is not None else f"{'-':>12}"
         yield f"{name:<16}{m['rmse']:>10.0f}{m['mae']:>10.0f}{m['rel']:>8.3f}{m['delta1']:>7.3f}{cov}"
     for name, post in posteriors.items():
         yield f"{name}: solved in {post.timings['solve'] * 1000:.0f} ms (engine {post.config.engine})"
@@ -67,6 +68,11 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
     written: list[Path] = []
     for name, post in posteriors.items():
         written += post.save(output_dir / name, png=True)
+    # what a person can look at: colourised depth, sigma and error of the default model, with colour bars
+    written += write_previews(
+        output_dir / "gp-default", posteriors["gp-default"].mean, posteriors["gp-default"].std,
+        mde=frame.mde, depth_gt=frame.depth_gt,
+    )
     written += _extras(frame, posteriors, output_dir)
     for path in written:
         yield f"wrote {path}"
