@@ -170,7 +170,9 @@ class TestEvalCommand:
         for name in ("results.csv", "summary.csv", "results.json", "summary.md", "rmse_uniform.png", "qualitative.png"):
             assert (out / name).is_file(), name
         printed = capsys.readouterr().out  # the CLI prints the table the library wrote to summary.md
-        assert printed.strip() == (out / "summary.md").read_text().strip() == markdown_table(summary)
+        table, wrote = printed.strip().rsplit("\n", 1)
+        assert table == (out / "summary.md").read_text().strip() == markdown_table(summary)
+        assert wrote.startswith(f"wrote 6 files in {out.resolve()}: ") and "summary.md" in wrote  # and where
         result = json.loads((out / "results.json").read_text())
         assert result["frames"] == ["frame-000000", "frame-000150"]
         assert len(result["rows"]) == 2 * 2 * 6
