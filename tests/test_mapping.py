@@ -205,7 +205,7 @@ class TestFuseCommand:
             pytest.skip(f"FastDepth model not found at {model}")
         pytest.importorskip("ai_edge_litert")
         out = tmp_path / "fuse"
-        summary = fuse_command(shared_data / "7scenes", out, model=model, frames=3, working_scale=0.25, voxel_size=0.05,
+        summary = fuse_command(shared_data / "7scenes", out, mde=str(model), frames=3, working_scale=0.25, voxel_size=0.05,
                                truncation=0.15, sigma_ref=1.0, metric_samples=5000)
         names = sorted(p.name for p in out.iterdir())
         assert names == ["mesh_gp_uniform.ply", "mesh_gp_variance.ply", "mesh_gt.ply", "mesh_mde.ply", "metrics.json"]
@@ -454,7 +454,7 @@ class TestFuseAsTheReadmeSays:
         pytest.importorskip("ai_edge_litert")
         # one frame whose variance weights (sigma_ref 1 mm) stay below the weight threshold: the
         # variance-weighted mesh is empty, reported, not written; the others are written
-        summary = fuse_command(shared_data / "7scenes", tmp_path, model=model, frames=1, working_scale=0.25,
+        summary = fuse_command(shared_data / "7scenes", tmp_path, mde=str(model), frames=1, working_scale=0.25,
                                voxel_size=0.05, truncation=0.15, sigma_ref=0.001, metric_samples=2000)
         assert summary["frames_fused"] == 1
         assert "gp_variance" in summary["empty_meshes"] and summary["metrics"]["gp_variance"] is None
