@@ -218,7 +218,10 @@ def loo_zscores(
     pixel distance) that are not excluded; z_i = (r_i - prediction) / predictive sd, where the
     predictive variance includes the nugget and point i's own noise. With the exponential
     kernel's screening effect the nearest neighbours carry almost all of the weight, so this is
-    close to the exact leave-one-out of the full GP at a cost linear in N.
+    close to the exact leave-one-out of the full GP at a cost linear in N. The neighbours come
+    from a k-d tree (`scipy.spatial.cKDTree`), the kriging from compiled loops
+    (`gpdepth3d.gp._loo`, one k x k Cholesky per point; a neighbourhood whose matrix is not
+    numerically positive definite is solved by least squares instead).
 
     Args:
         rows, cols, resid, noise: (N,) as in `fit_log_residual`.
@@ -254,19 +257,32 @@ def loo_zscores(
     order = np.argsort(nn == targets[:, None], axis=1, kind="stable")
     nn = np.take_along_axis(nn, order, axis=1)[:, :k]
     dist = np.take_along_axis(dist, order, axis=1)[:, :k]
-    rows_t, cols_t = rows[targets], cols[targets]
+    from ._loo import loo_predict
+    from .multifrontal import numeric_section
+
+    with numeric_section():
+        z = loo_predict(rows, cols, r, noise, targets, nn, outputscale=fit.outputscale, nugget=fit.nugget,
+                        lengthscale=fit.lengthscale, nu=nu)
+    bad = ~np.isfinite(z)
+    if np.any(bad):  # a neighbourhood whose matrix is not numerically positive definite
+        z[bad] = _loo_lstsq(rows, cols, r, noise, targets[bad], nn[bad], fit, nu)
+    out[targets] = z
+    reach[targets] = dist[:, -1]
+    return (out, reach) if radius else out
+
+
+def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> np.ndarray:
+    """Leave-one-out z-scores of ``targets`` from their neighbours ``nn`` by least squares (NumPy)."""
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
     K = s2 * _correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, nu)
-    diag = np.arange(k)
+    diag = np.arange(nn.shape[1])
     K[:, diag, diag] += tau2 + noise[nn]
-    kx = s2 * _correlation(rows_t[:, None] - R, cols_t[:, None] - C, fit.lengthscale, nu)
-    w = np.linalg.solve(K, kx[:, :, None])[:, :, 0]
+    kx = s2 * _correlation(rows[targets][:, None] - R, cols[targets][:, None] - C, fit.lengthscale, nu)
+    w = np.stack([np.linalg.lstsq(Ki, ki, rcond=None)[0] for Ki, ki in zip(K, kx)])
     pred = np.sum(w * r[nn], axis=1)
     var = s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1)
-    out[targets] = (r[targets] - pred) / np.sqrt(np.maximum(var, 1e-30))
-    reach[targets] = dist[:, -1]
-    return (out, reach) if radius else out
+    return (r[targets] - pred) / np.sqrt(np.maximum(var, 1e-30))
 
 
 def screen_points(
