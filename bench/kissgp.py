@@ -81,16 +81,16 @@ def agreement(mde, sparse, config, crop, device) -> dict:
     problem, *_ = build_problem(mde[r0:r1, c0:c1], sub, config)
     me, ve = ExactEngine(max_points=10_000).solve(problem)
     engine = KissGPEngine(device=device)
-    mk, vk = engine.solve(problem)
+    mk, vk = solution = engine.solve(problem)
     rel = np.abs(vk - ve) / ve
     return {
         "crop": [[r0, r1], [c0, c1]],
-        "observed": engine.last_stats["observed"],
+        "observed": solution.info.details["observed"],
         "mean_rel_rms": rms(mk - me) / rms(me - me.mean()),
         "var_rel_median": float(np.median(rel)),
         "var_rel_p95": float(np.percentile(rel, 95)),
         "var_rel_max": float(rel.max()),
-        "variance_method": engine.last_stats.get("variance_method"),
+        "variance_method": solution.info.details.get("variance_method"),
     }
 
 
@@ -101,9 +101,8 @@ def run_case(name, mde, sparse, config, device, variance: bool, crop) -> dict:
     problem, *_ = build_problem(mde, sparse, config)
     engine = KissGPEngine(device=device)
     t = time.perf_counter()
-    engine.solve(problem, variance=False)
+    stats_mean = engine.solve(problem, variance=False).info.details
     t_mean = time.perf_counter() - t
-    stats_mean = dict(engine.last_stats)
     row = {
         "case": name,
         "shape": list(problem.shape),
@@ -115,9 +114,8 @@ def run_case(name, mde, sparse, config, device, variance: bool, crop) -> dict:
     }
     if variance:
         t = time.perf_counter()
-        engine.solve(problem, variance=True)
+        st = engine.solve(problem, variance=True).info.details
         row["time_mean_variance_s"] = time.perf_counter() - t
-        st = engine.last_stats
         row.update(
             variance_method=st.get("variance_method"),
             cg_iterations_variance=st.get("cg_iterations_variance"),

@@ -282,7 +282,7 @@ class TestDenseAlgebra:
         p = with_changes(grid_problem(n_obs=9, shape=(8, 9)), kernel=Kernel(2.5, 30.0, 0.7))
         engine = FastEngine()
         assert engine.log_marginal_likelihood(p) == pytest.approx(dense_log_marginal_likelihood(p), rel=1e-12)
-        assert engine.last_route == "dense"
+        assert engine.plan(p, lml=True) == "dense"
 
     def test_dense_bytes_grows_with_points_and_outputs(self):
         from gpdepth3d.gp.exact import dense_bytes

@@ -164,8 +164,8 @@ class TestKissGPEngine:
         problem, *_ = build_problem(mde[:16, :20], sub, CONFIGS["balanced"])
         me, ve = ExactEngine().solve(problem)
         engine = KissGPEngine(device="cpu", variance_method=method)
-        mk, vk = engine.solve(problem)
-        assert engine.last_stats["variance_method"] == method
+        mk, vk = solution = engine.solve(problem)
+        assert solution.info.details["variance_method"] == method
         assert rms(mk - me) <= 1e-5 * rms(me - me.mean())
         assert relative_error(vk, ve).max() <= 1e-2
 
@@ -183,9 +183,10 @@ class TestKissGPEngine:
         _, mde, sparse = crop
         problem, *_ = build_problem(mde, sparse, CONFIGS["balanced"])
         engine = KissGPEngine(device="cpu")
-        mean, var = engine.solve(problem, variance=False)
+        mean, var = solution = engine.solve(problem, variance=False)
         assert var is None and mean.shape == (48, 64)
-        stats = engine.last_stats
+        stats = solution.info.details
+        assert solution.info.engine == "kissgp" and solution.info.seconds["total"] > 0
         assert stats["observed"] == 48 * 64 and 0 < stats["cg_iterations_mean"] < 1000
         assert stats["cg_residual_mean"] <= 1e-7
 

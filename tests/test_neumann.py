@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpdepth3d.completion.complete import DepthCompleter
+from gpdepth3d.completion.complete import DepthCompleter, build_problem
 from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
 from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
@@ -86,27 +87,24 @@ class TestRoute:
     def test_auto_takes_neumann_for_the_papers_set_up(self):
         problem = balanced_problem(np.random.default_rng(4), 60, 90)
         engine = FastEngine()
-        mean, var = engine.solve(problem)
-        assert engine.last_route == "neumann"
+        mean, var = solution = engine.solve(problem)
+        assert solution.info.route == "neumann"
         m_grid, v_grid = FastEngine(route="grid").solve(problem)
         np.testing.assert_allclose(mean, m_grid, atol=1e-12)
         np.testing.assert_allclose(var, v_grid, rtol=1e-10)
-        mean_only, none = engine.solve(problem, variance=False)
-        assert none is None and engine.last_route == "neumann"
+        mean_only, none = solution = engine.solve(problem, variance=False)
+        assert none is None and solution.info.route == "neumann"
         np.testing.assert_array_equal(mean_only, mean)
 
     def test_auto_falls_back_to_the_grid(self):
         rng = np.random.default_rng(5)
         engine = FastEngine()
-        engine.solve(balanced_problem(rng, 60, 90, hole=6))  # a block without MDE: not dominant
-        assert engine.last_route == "grid"
-        engine.solve(balanced_problem(rng, 60, 90, out=(120, 180)))  # another output grid
-        assert engine.last_route == "grid"
-        engine.solve(balanced_problem(rng, 60, 90, lengthscale=40.0, s=3.0))  # strong smoothing: slow series
-        assert engine.last_route == "grid"
+        assert engine.solve(balanced_problem(rng, 60, 90, hole=6)).info.route == "grid"  # a block without MDE
+        assert engine.solve(balanced_problem(rng, 60, 90, out=(120, 180))).info.route == "grid"  # another output grid
+        # strong smoothing: slow series
+        assert engine.solve(balanced_problem(rng, 60, 90, lengthscale=40.0, s=3.0)).info.route == "grid"
         problem = balanced_problem(rng, 60, 90)
-        engine.log_marginal_likelihood(problem)
-        assert engine.last_route == "grid"
+        assert engine.plan(problem, lml=True) == "grid"
 
     def test_forced_route_errors(self):
         rng = np.random.default_rng(6)
@@ -118,7 +116,7 @@ class TestRoute:
         problem = balanced_problem(rng, 10, 12)
         assert forced.log_marginal_likelihood(problem) == pytest.approx(
             FastEngine(route="grid").log_marginal_likelihood(problem), rel=1e-12)
-        assert forced.last_route == "grid"  # the series has no log-determinant
+        assert forced.plan(problem, lml=True) == "grid"  # the series has no log-determinant
         nu15 = balanced_problem(rng, 10, 12)
         nu15 = GridProblem(nu15.prior_mean, nu15.obs, nu15.precision, nu15.out_rows, nu15.out_cols,
                            nu15.out_prior_mean, Kernel(1.5, 1.5, 1.0))
@@ -138,10 +136,9 @@ def test_real_kitti_frame_routes_agree(shared_data):
     mde = gaussian_filter(lidar[ri, ci], 4.0) * 1.05
     sparse = SparseDepth.from_depth_map(lidar)
     auto = DepthCompleter(DepthGPConfig.paper())
-    grid = DepthCompleter(DepthGPConfig.paper())
-    grid.engine = FastEngine(route="grid")
+    grid = DepthCompleter(DepthGPConfig.paper(), engine=EngineConfig(route="grid"))
     a, g = auto(mde, sparse), grid(mde, sparse)
-    assert auto.engine.last_route == "neumann"
+    assert auto.engine.plan(build_problem(mde, sparse, DepthGPConfig.paper())[0]) == "neumann"
     depth_range = float(np.ptp(lidar[lidar > 0]))
     assert np.max(np.abs(a.mean - g.mean)) < 1e-10 * depth_range
     np.testing.assert_allclose(a.std, g.std, rtol=1e-10)

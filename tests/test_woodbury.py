@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpdepth3d.completion.complete import DepthCompleter
+from gpdepth3d.completion.complete import DepthCompleter, build_problem
 from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
 from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
@@ -124,20 +125,18 @@ class TestRoute:
         rng = np.random.default_rng(7)
         engine = FastEngine()
         sparse = sparse_problem(rng, 120, 160, 150, lengthscale=20.0)
-        mean, var = engine.solve(sparse)
-        assert engine.last_route == "woodbury"
+        mean, var = solution = engine.solve(sparse)
+        assert solution.info.route == "woodbury"
         m_grid, v_grid = FastEngine(route="grid").solve(sparse)
         np.testing.assert_allclose(mean, m_grid, atol=1e-9)
         np.testing.assert_allclose(var, v_grid, rtol=1e-8)
         dense = sparse_problem(rng, 40, 50, 1500)  # most pixels observed
-        engine.solve(dense)
-        assert engine.last_route == "grid"
-        engine.solve(sparse_problem(rng, 120, 160, 150, nu=1.5))
-        assert engine.last_route == "dense"  # nu = 1.5, few points: dense algebra over them
+        assert engine.solve(dense).info.route == "grid"
+        # nu = 1.5, few points: dense algebra over them
+        assert engine.solve(sparse_problem(rng, 120, 160, 150, nu=1.5)).info.route == "dense"
         tiny_noise = sparse_problem(rng, 120, 160, 150, lengthscale=20.0)
         tiny_noise.precision[tiny_noise.precision > 0] = 1e12  # s^2 / noise ~ 6e11: cancellation
-        engine.solve(tiny_noise)
-        assert engine.last_route == "grid"
+        assert engine.solve(tiny_noise).info.route == "grid"
 
     def test_cost_model_grows_with_points(self):
         assert woodbury_seconds(100, 76800, True) < woodbury_seconds(1000, 76800, True) < woodbury_seconds(4000, 76800, True)
@@ -172,11 +171,10 @@ def test_real_frame_routes_agree(seven_scenes_frame):
     sparse = SparseDepth.from_arrays(c[pick].astype(float), r[pick].astype(float), depth[r[pick], c[pick]], depth.shape)
     mde = np.where(depth > 0, depth, np.median(depth[depth > 0])) * 1.08
     config = DepthGPConfig.residual()
-    grid = DepthCompleter(config)
-    grid.engine = FastEngine(route="grid")
+    grid = DepthCompleter(config, engine=EngineConfig(route="grid"))
     auto = DepthCompleter(config)
     a, g = auto(mde, sparse), grid(mde, sparse)
-    assert auto.engine.last_route == "woodbury"
+    assert auto.engine.plan(build_problem(mde, sparse, config)[0]) == "woodbury"
     np.testing.assert_allclose(a.mean, g.mean, atol=1e-9)
     np.testing.assert_allclose(a.std, g.std, rtol=1e-8)
     assert np.sqrt(np.mean((a.mean - depth) ** 2, where=depth > 0)) < np.sqrt(np.mean((mde - depth) ** 2, where=depth > 0))
@@ -231,8 +229,8 @@ def test_near_noiseless_points_stay_on_the_grid_for_nu_15():
     problem = sparse_problem(rng, 30, 40, 80, nu=1.5, lengthscale=2.0)
     problem.precision[problem.precision > 0] = 1e12
     engine = FastEngine()
-    mean, var = engine.solve(problem)
-    assert engine.last_route == "grid"
+    mean, var = solution = engine.solve(problem)
+    assert solution.info.route == "grid"
     m0, v0 = ExactEngine().solve(problem)
     obs = problem.precision > 0
     np.testing.assert_allclose(mean, m0, atol=1e-8)

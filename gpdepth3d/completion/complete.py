@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataFormatError, InvalidInputError, describe
-from ..gp import make_engine
+from ..gp import EngineConfig, make_engine
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
@@ -240,22 +240,31 @@ def _log_residual_posterior(
     kernel = Kernel(config.nu, fit.lengthscale, fit.outputscale)
     zeros_in, zeros_out = np.zeros((h, w)), np.zeros(out_shape)
     problem = GridProblem(zeros_in, obs, precision, out_rows, out_cols, zeros_out, kernel)
-    g_mean, g_var = engine.solve(problem, variance=variance)
     base_out = resize_map(base, out_shape)
     lz = config.depth_lengthscale
-    w1 = None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
-    rho = 1.0  # depth-aware correlation factor of each output pixel with the points
-    if lz is not None and len(r):
+    depth_aware = lz is not None and len(r) > 0
+    # the scale term below needs k(x)' (K + N)^-1 1 unless Var[b] is small; the depth-aware
+    # correlation needs it and the kriging-weighted log MDE depth: further right-hand sides of
+    # the one engine call, sharing its factorisation
+    scale_term = variance and fit.log_scale_var > SCALE_VAR_SHARE * fit.nugget**2
+    extra = ()
+    if depth_aware:
         # depth-aware correlation (gp.model): rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), zbar the
         # kriging-weighted mean log MDE depth of the points that inform x
         log_base = np.log(base)
         z_pts = log_base[r, c]
         z_ref = float(np.median(z_pts))
-        ones_obs = np.where(precision > 0, 1.0, 0.0)
         z_obs = np.zeros((h, w))
         z_obs[r, c] = z_pts - z_ref
-        w1, _ = engine.solve(GridProblem(zeros_in, ones_obs, precision, out_rows, out_cols, zeros_out, kernel), variance=False)
-        wz, _ = engine.solve(GridProblem(zeros_in, z_obs, precision, out_rows, out_cols, zeros_out, kernel), variance=False)
+        extra = (np.where(precision > 0, 1.0, 0.0), z_obs)
+    elif scale_term:
+        extra = (np.where(precision > 0, 1.0, 0.0),)
+    solution = engine.solve(problem, variance=variance, extra_obs=extra)
+    g_mean, g_var = solution.mean, solution.variance
+    w1 = solution.extra_means[0] if extra else None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
+    rho = 1.0  # depth-aware correlation factor of each output pixel with the points
+    if depth_aware:
+        wz = solution.extra_means[1]
         log_out = np.log(base_out)
         informed = np.abs(w1) >= WEIGHT_FLOOR  # elsewhere g's posterior is its prior whatever rho is
         z_bar = np.where(informed, z_ref + wz / np.where(informed, w1, 1.0), log_out)
@@ -267,13 +276,10 @@ def _log_residual_posterior(
     if variance:
         # uncertainty of the global scale b (flat prior): Var[b] (1 - rho k(x)' (K + N)^-1 1)^2. The
         # factor is in [0, 1]; when Var[b] is at most 5 % of the nugget variance (thousands of
-        # points) its bound Var[b] is used instead of a second solve (variance high by <= 5 %)
-        if fit.log_scale_var <= SCALE_VAR_SHARE * fit.nugget**2:
+        # points) its bound Var[b] is used instead (variance high by <= 5 %)
+        if not scale_term:
             b_term = fit.log_scale_var
         else:
-            if w1 is None:
-                ones = GridProblem(zeros_in, np.where(precision > 0, 1.0, 0.0), precision, out_rows, out_cols, zeros_out, kernel)
-                w1, _ = engine.solve(ones, variance=False)
             b_term = fit.log_scale_var * (1.0 - rho * w1) ** 2
         v_log = g_var + fit.nugget**2 + b_term
     else:
@@ -331,18 +337,19 @@ class DepthCompleter:
     precision and the output read-out of the ``fast`` engine) is kept between calls, so the frames
     of a sequence after the first are cheaper. With ``config.fit`` each frame's hyperparameters
     are fitted by maximum marginal likelihood, warm-started from the previous frame's values
-    (`fitted`; set it to None to start again from ``config``).
+    (`fitted`; set it to None to start again from ``config``). ``engine`` (a
+    `gpdepth3d.gp.EngineConfig`) sets the engine's options: device, back-end, route, limits.
 
     Example:
         >>> completer = DepthCompleter(DepthGPConfig(engine="exact"))
         >>> posterior = completer(mde_depth, sparse)  # doctest: +SKIP
     """
 
-    def __init__(self, config: DepthGPConfig | None = None):
+    def __init__(self, config: DepthGPConfig | None = None, *, engine: EngineConfig | None = None):
         if config is not None and not isinstance(config, DepthGPConfig):
             raise InvalidInputError("config", "a DepthGPConfig (or None for the defaults)", describe(config))
         self.config = config or DepthGPConfig()
-        self.engine = make_engine(self.config)
+        self.engine = make_engine(self.config, engine)
         self.fitted: DepthGPConfig | None = None
         self._fit_engine = None
         self._point_fit = None

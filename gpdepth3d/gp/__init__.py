@@ -15,6 +15,9 @@ they differ only in how they compute it:
 
 from __future__ import annotations
 
+from .engine import EngineConfig as EngineConfig
+from .engine import Solution as Solution
+from .engine import SolveInfo as SolveInfo
 from .model import DepthGPConfig as DepthGPConfig
 from .model import GridProblem as GridProblem
 from .model import Kernel as Kernel
@@ -22,18 +25,49 @@ from .model import matern_1d as matern_1d
 from ..errors import InvalidInputError
 
 
-def make_engine(config: DepthGPConfig):
-    """Builds the engine named by ``config.engine`` (imports heavy back-ends lazily)."""
-    if config.engine == "exact":
+def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None):
+    """Builds the engine of a model config with the engine options (imports heavy back-ends lazily).
+
+    Args:
+        config: The model's `DepthGPConfig` (its ``engine`` names the engine unless
+            ``options.name`` does, its ``max_exact_points`` bounds ``exact``), or an
+            `EngineConfig` alone (then ``options`` must be None), or None (the ``fast`` engine).
+        options: The engine's options (`EngineConfig`); None: the defaults.
+
+    Returns:
+        An ``ExactEngine``, ``KissGPEngine`` or ``FastEngine``.
+
+    Raises:
+        InvalidInputError: ``config`` or ``options`` of another type, or an option the engine
+            rejects (e.g. a device torch does not see).
+    """
+    if isinstance(config, EngineConfig):
+        if options is not None:
+            raise InvalidInputError("options", "None when config is an EngineConfig", type(options).__name__)
+        config, options = None, config
+    if config is not None and not isinstance(config, DepthGPConfig):
+        raise InvalidInputError("config", "a DepthGPConfig, an EngineConfig or None", type(config).__name__)
+    if options is None:
+        options = EngineConfig()
+    elif not isinstance(options, EngineConfig):
+        raise InvalidInputError("options", "an EngineConfig or None", type(options).__name__)
+    name = options.name or (config.engine if config is not None else "fast")
+    extra = dict(options.options)
+    if name == "exact":
         from .exact import ExactEngine
 
-        return ExactEngine(max_points=config.max_exact_points)
-    if config.engine == "kissgp":
+        limit = options.max_exact_points or (config.max_exact_points if config is not None else 6000)
+        return ExactEngine(max_points=limit, **extra)
+    if name == "kissgp":
         from .kissgp import KissGPEngine
 
-        return KissGPEngine()
-    if config.engine == "fast":
+        return KissGPEngine(device=options.device, **extra)
+    if name == "fast":
         from .fast import FastEngine
 
-        return FastEngine()
-    raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", config.engine)
+        return FastEngine(
+            device=options.device, backend=options.backend, route=options.route, threads=options.threads,
+            max_dense_points=options.max_dense_points, max_memory_mb=options.max_memory_mb,
+            lattice=options.lattice, **extra,
+        )
+    raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", name)

@@ -8,10 +8,13 @@ meant for small crops and for checking the other engines. It refuses larger prob
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.linalg
 
 from ..errors import ConvergenceError, InvalidDepthError, InvalidInputError, ProblemTooLargeError, ShapeError
+from .engine import Solution, SolveInfo, check_extra_obs
 from .model import GridProblem
 
 # Ranges every engine accepts (metres): beyond them s^2, 1/s^2 or the products of the algebra
@@ -103,31 +106,57 @@ def dense_posterior(
         variance: Also compute the marginal variances (m^2).
         max_cross_entries: Output pixels x observed pixels handled per block (bounds the memory).
     """
+    mean, var, _ = dense_solve(problem, variance=variance, max_cross_entries=max_cross_entries)
+    return mean, var
+
+
+def dense_solve(
+    problem: GridProblem,
+    *,
+    variance: bool = True,
+    extra_obs: tuple = (),
+    max_cross_entries: int = 60_000_000,
+) -> tuple[np.ndarray, np.ndarray | None, tuple]:
+    """`dense_posterior` with further observation vectors sharing the factorisation.
+
+    Args:
+        problem: The grid problem.
+        variance: Also compute the marginal variances.
+        extra_obs: (H, W) observation arrays; for each, the posterior mean with ``problem``'s
+            prior mean, precision and kernel.
+        max_cross_entries: As in `dense_posterior`.
+
+    Returns:
+        (mean, variance or None, one mean per ``extra_obs``).
+    """
     k = problem.kernel
     s2 = float(k.outputscale) ** 2
     ho, wo = problem.out_shape
     m = ho * wo
+    out_prior = np.asarray(problem.out_prior_mean, np.float64)
     if not np.any(problem.precision > 0):
-        mean = np.asarray(problem.out_prior_mean, np.float64).copy()
-        return mean, (np.full((ho, wo), s2) if variance else None)
+        return out_prior.copy(), (np.full((ho, wo), s2) if variance else None), tuple(out_prior.copy() for _ in extra_obs)
     rows, cols, chol, resid = _factor(problem)
     n = rows.shape[0]
-    alpha = scipy.linalg.cho_solve(chol, resid, check_finite=False)
+    prior_obs = np.asarray(problem.prior_mean, np.float64)[rows, cols]
+    rhs = np.stack([resid] + [np.asarray(e, np.float64)[rows, cols] - prior_obs for e in extra_obs], axis=1)
+    alpha = scipy.linalg.cho_solve(chol, rhs, check_finite=False)  # (n, 1 + extras)
     kr = k.factor(problem.out_rows, rows)  # (Ho, n)
     kc = k.factor(problem.out_cols, cols)  # (Wo, n)
-    mean = np.empty(m)
+    means = np.empty((m, alpha.shape[1]))
     var = np.empty(m) if variance else None
     rows_per_block = max(1, max_cross_entries // max(n * wo, 1) // 4)
     for r0 in range(0, ho, rows_per_block):
         r1 = min(ho, r0 + rows_per_block)
         cross = (kr[r0:r1, None, :] * kc[None, :, :]).reshape(-1, n)  # (b, n) correlations
         sl = slice(r0 * wo, r1 * wo)
-        mean[sl] = cross @ alpha
+        means[sl] = cross @ alpha
         if var is not None:
             half = scipy.linalg.solve_triangular(chol[0], cross.T, lower=True, check_finite=False)
             var[sl] = s2 * np.maximum(1.0 - np.einsum("ij,ij->j", half, half), 0.0)
-    mean = np.asarray(problem.out_prior_mean, np.float64).ravel() + mean
-    return mean.reshape(ho, wo), (var.reshape(ho, wo) if var is not None else None)
+    means = out_prior.reshape(-1, 1) + means
+    extras = tuple(means[:, j].reshape(ho, wo) for j in range(1, means.shape[1]))
+    return means[:, 0].reshape(ho, wo), (var.reshape(ho, wo) if var is not None else None), extras
 
 
 def dense_log_marginal_likelihood(problem: GridProblem) -> float:
@@ -155,18 +184,32 @@ class ExactEngine:
     name = "exact"
 
     def __init__(self, max_points: int = 6000, max_cross_entries: int = 60_000_000):
+        for name, value in (("max_points", max_points), ("max_cross_entries", max_cross_entries)):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise InvalidInputError(name, "an integer >= 1", value)
         self.max_points = max_points
         self.max_cross_entries = max_cross_entries
 
-    def solve(self, problem: GridProblem, *, variance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def solve(self, problem: GridProblem, *, variance: bool = True, extra_obs=()) -> Solution:
         """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None).
+
+        Args:
+            problem: The grid problem.
+            variance: Also compute the marginal variances.
+            extra_obs: Further (H, W) observation arrays; their posterior means share the
+                factorisation (`Solution.extra_means`).
+
+        Returns:
+            A `Solution` (unpacks as ``mean, variance``); its route is "dense".
 
         Raises:
             ProblemTooLargeError: More observed pixels or cross entries than the limits.
             ConvergenceError: The kernel matrix plus noise is not numerically positive definite.
             InvalidInputError: A malformed problem (see `check_problem`).
         """
+        t0 = time.perf_counter()
         check_problem(problem)
+        extra = check_extra_obs(problem, extra_obs)
         n = int(np.count_nonzero(problem.precision > 0))
         ho, wo = problem.out_shape
         m = ho * wo
@@ -176,4 +219,7 @@ class ExactEngine:
                 f"({self.max_points} observed pixels, {self.max_cross_entries} cross entries); "
                 "use engine='fast' or a smaller crop"
             )
-        return dense_posterior(problem, variance=variance, max_cross_entries=self.max_cross_entries)
+        mean, var, extras = dense_solve(problem, variance=variance, extra_obs=extra,
+                                        max_cross_entries=self.max_cross_entries)
+        info = SolveInfo("exact", "dense", {"total": time.perf_counter() - t0}, {"observed": n})
+        return Solution(mean, var, info, extras)

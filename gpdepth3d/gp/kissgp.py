@@ -95,6 +95,7 @@ import linear_operator
 from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
 
 from ..errors import ConvergenceError, InvalidInputError
+from .engine import Solution, SolveInfo, check_extra_obs
 from .model import GridProblem
 from .exact import check_problem
 
@@ -180,8 +181,8 @@ class KissGPEngine:
     """GP posterior with GPyTorch KISS-GP (the paper's method), exact on the pixel grid.
 
     See the module docstring for the model, the set-up and its one approximation (upsampled
-    output). After each `solve`, `last_stats` holds the CG iteration counts, the achieved
-    relative residuals and the timings.
+    output). Each `solve` returns, with the posterior, the CG iteration counts, the achieved
+    relative residuals and the timings (``Solution.info``).
 
     Args:
         device: Torch device ("cpu", "cuda", "cuda:1"); default "cuda" if available else "cpu".
@@ -262,7 +263,6 @@ class KissGPEngine:
         self.toeplitz = None if toeplitz is None else bool(toeplitz)
         self.max_cholesky_size = int(max_cholesky_size)
         self.probe_spacing = int(probe_spacing)
-        self.last_stats: dict = {}
 
     # ------------------------------------------------------------------ helpers
     def _tensor(self, a) -> torch.Tensor:
@@ -294,13 +294,25 @@ class KissGPEngine:
         return x, iterations, float(resid.max()) if resid.numel() else 0.0
 
     # ------------------------------------------------------------------ solve
-    def solve(self, problem: GridProblem, *, variance: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def solve(self, problem: GridProblem, *, variance: bool = True, extra_obs=()) -> Solution:
         """Posterior mean (Ho, Wo) in metres and marginal variance (Ho, Wo) in m^2 (or None).
+
+        Args:
+            problem: The grid problem.
+            variance: Also compute the marginal variances.
+            extra_obs: Further (H, W) observation arrays; their posterior means come from the
+                same CG run (one column each, `Solution.extra_means`).
+
+        Returns:
+            A `Solution` (unpacks as ``mean, variance``); route "kissgp", ``info.details`` the CG
+            iteration counts, the achieved relative residuals, the variance method and the
+            device; ``info.seconds`` "mean", "variance" and "total".
 
         Raises:
             ConvergenceError: CG did not reach its tolerance within `max_cg_iterations`.
         """
         check_problem(problem)
+        extra = check_extra_obs(problem, extra_obs)
         t0 = time.perf_counter()
         k = problem.kernel
         s = float(k.outputscale)
@@ -328,9 +340,9 @@ class KissGPEngine:
         with torch.no_grad():
             if n == 0:
                 prior_var = covar(test_x, diag=True).to_dense().reshape(ho, wo)
-                self.last_stats = {**stats, "cg_iterations_mean": 0, "cg_iterations_variance": 0}
+                stats.update(cg_iterations_mean=0, cg_iterations_variance=0)
                 var = (s * s * prior_var).cpu().numpy() if variance else None
-                return prior_out.copy(), var
+                return Solution(prior_out.copy(), var, self._info(stats, t0), tuple(prior_out.copy() for _ in extra))
 
             A = covar(train_x).evaluate_kernel().add_diagonal(noise)
             precond = None
@@ -341,7 +353,8 @@ class KissGPEngine:
                     precond = A._preconditioner()[0]
             stats["preconditioner"] = "pivoted_cholesky" if precond is not None else "none"
             t1 = time.perf_counter()
-            alpha, iters, resid = self._cg(A, y.unsqueeze(-1), self.cg_tolerance, precond)
+            rhs = [y] + [self._tensor((e[rows, cols] - problem.prior_mean[rows, cols]) / s) for e in extra]
+            alpha, iters, resid = self._cg(A, torch.stack(rhs, dim=1), self.cg_tolerance, precond)
             stats.update(cg_iterations_mean=iters, cg_residual_mean=resid)
             if not resid <= max(10 * self.cg_tolerance, 1e-12):
                 raise ConvergenceError(
@@ -349,8 +362,9 @@ class KissGPEngine:
                     f"(tolerance {self.cg_tolerance:g}); raise max_cg_iterations or check the noise levels"
                 )
             cross = covar(test_x, train_x).evaluate_kernel()
-            mean = cross._matmul(alpha).squeeze(-1).reshape(ho, wo)
-            mean_np = prior_out + s * mean.cpu().numpy()
+            means = cross._matmul(alpha).cpu().numpy()  # (Ho Wo, 1 + extras)
+            mean_np = prior_out + s * means[:, 0].reshape(ho, wo)
+            extra_means = tuple(prior_out + s * means[:, j].reshape(ho, wo) for j in range(1, means.shape[1]))
             t2 = time.perf_counter()
             stats["time_mean"] = t2 - t1
             var_np = None
@@ -367,9 +381,15 @@ class KissGPEngine:
                     var = self._variance_love(model, test_x, stats)
                 var_np = s * s * var.clamp_min(0.0).reshape(ho, wo).cpu().numpy()
             stats["time_variance"] = time.perf_counter() - t2
-            stats["time_total"] = time.perf_counter() - t0
-        self.last_stats = stats
-        return mean_np, var_np
+        return Solution(mean_np, var_np, self._info(stats, t0), extra_means)
+
+    @staticmethod
+    def _info(stats: dict, t0: float) -> SolveInfo:
+        """The call's `SolveInfo` from its statistics (times "time_*" become ``seconds``)."""
+        seconds = {k[5:]: v for k, v in stats.items() if k.startswith("time_")}
+        seconds["total"] = time.perf_counter() - t0
+        details = {k: v for k, v in stats.items() if not k.startswith("time_")}
+        return SolveInfo("kissgp", "kissgp", seconds, details)
 
     def _check_variance_cg(self, resid: float, iters: int) -> None:
         if not resid <= max(10 * self.variance_cg_tolerance, 1e-12):

@@ -249,11 +249,17 @@ class NeumannPosterior:
             t += n * cells * 8 * 0.7e-9
         return t
 
-    def mean(self, terms: int) -> np.ndarray:
-        """Posterior mean (H, W) in metres with ``terms`` terms of the series."""
+    def mean(self, terms: int, obs: np.ndarray | None = None) -> np.ndarray:
+        """Posterior mean (H, W) in metres with ``terms`` terms of the series.
+
+        Args:
+            terms: Terms of the series (`terms`).
+            obs: Another (H, W) observation array to use instead of the problem's (same precision).
+        """
         p = self.problem
         prec = np.asarray(p.precision, np.float64)
-        b = np.where(prec > 0, prec * (np.asarray(p.obs, np.float64) - np.asarray(p.prior_mean, np.float64)), 0.0)
+        y = np.asarray(p.obs if obs is None else obs, np.float64)
+        b = np.where(prec > 0, prec * (y - np.asarray(p.prior_mean, np.float64)), 0.0)
         with numeric_section():
             z = _neumann_mean(self.coef, b * self.isq, int(terms))
         return np.asarray(p.out_prior_mean, np.float64) + z * self.isq

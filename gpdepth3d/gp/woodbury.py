@@ -214,14 +214,15 @@ class _Axis:
         return np.zeros(shape), np.zeros((self.n + 1, other.n, 3))
 
 
-def woodbury_seconds(m: int, n_out: int, variance: bool) -> float:
+def woodbury_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
     """Cost model of `WoodburyPosterior` with m observed pixels and n_out output pixels (seconds).
 
     Measured on the 2-core CI machine at 320 x 240 with 500-4000 points: the Cholesky factor
     (m^3 / 3 flops) at ~15 GFLOPS, the filters ~20 ns an output pixel; for the variance the
-    inverse (2 m^3 / 3 flops) at ~25 GFLOPS and ~40 ns a splatted pair.
+    inverse (2 m^3 / 3 flops) at ~25 GFLOPS and ~40 ns a splatted pair. Each of ``extra``
+    further means: two triangular solves (2 m^2 flops) and a filter pass.
     """
-    t = m**3 / 3 / 15e9 + n_out * 20e-9
+    t = m**3 / 3 / 15e9 + n_out * 20e-9 + extra * (2 * m * m / 5e9 + n_out * 20e-9)
     if variance:
         t += 2 * m**3 / 3 / 25e9 + m * (m + 1) / 2 * 40e-9 + n_out * 20e-9
     return t
@@ -279,17 +280,28 @@ class WoodburyPosterior:
             self._store["free"] = (buf, g)  # all zero again
         return self._unsort(out)
 
-    def mean(self) -> np.ndarray:
-        """Posterior mean (Ho, Wo), metres."""
+    def mean(self, obs: np.ndarray | None = None) -> np.ndarray:
+        """Posterior mean (Ho, Wo), metres.
+
+        Args:
+            obs: Another (H, W) observation array to use instead of the problem's (the same
+                precision, prior mean and kernel: the factorisation is shared).
+        """
         ra, ca = self._rows_axis, self._cols_axis
         prior = np.asarray(self.problem.out_prior_mean, np.float64)
         if not self.m:
             return prior.copy()
+        alpha = self.alpha
+        if obs is not None:
+            p = self.problem
+            rows, cols = self.rr.astype(np.int64), self.cc.astype(np.int64)
+            resid = np.asarray(obs, np.float64)[rows, cols] - np.asarray(p.prior_mean, np.float64)[rows, cols]
+            alpha, _ = scipy.linalg.lapack.dpotrs(self.L, resid, lower=1)
         ri, rv = ra.impulses(self.rr, self.inv_l, interval=False)
         ci, cv = ca.impulses(self.cc, self.inv_l, interval=False)
         buf, g = ra.workspace(ca, self._store)
         with numeric_section():
-            _splat_points(self.alpha, ri, rv, ci, cv, buf)
+            _splat_points(alpha, ri, rv, ci, cv, buf)
             return prior + self._filtered(buf, g, self.inv_l, False)
 
     def variance(self) -> np.ndarray:

@@ -1,0 +1,159 @@
+"""What every engine shares: its options (`EngineConfig`) and what one call returns (`Solution`).
+
+An engine (``exact``, ``kissgp``, ``fast``) has one method that matters::
+
+    solution = engine.solve(problem, variance=True, extra_obs=())
+
+It computes the posterior of a `GridProblem` and returns a `Solution`: the mean and the
+marginal variance on the output grid, the posterior means of any further observation vectors
+(``extra_obs``: the same precision and kernel, so the factorisation is shared), and the facts of
+this call (`SolveInfo`: the route taken, the seconds per stage). Nothing about a call is stored
+on the engine, so one engine can serve several callers. A `Solution` unpacks as
+``mean, variance = engine.solve(problem)``.
+
+The engine's options (device, back-end, route, limits) live in an `EngineConfig`, apart from
+the model (`gpdepth3d.gp.model.DepthGPConfig`); `gpdepth3d.gp.make_engine` builds an engine from
+both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Iterator
+
+import numpy as np
+
+from ..errors import InvalidInputError, ShapeError, describe
+
+ENGINE_NAMES = ("exact", "kissgp", "fast")
+FAST_BACKENDS = ("auto", "compiled", "torch")
+FAST_ROUTES = ("auto", "grid", "woodbury", "neumann", "dense")
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Options of the engine that computes a posterior (not of the model it computes).
+
+    Attributes:
+        name: "exact", "kissgp" or "fast"; None takes the model config's ``engine``.
+        device: Torch device of the ``fast`` engine's torch back-end and of ``kissgp`` ("cpu",
+            "cuda", "cuda:1"); None: the CPU for ``fast``, CUDA when available for ``kissgp``.
+        backend: ``fast``: "auto" (compiled on the CPU, torch elsewhere), "compiled" or "torch".
+        route: ``fast``: "auto" (the cheapest exact route by its cost model), "grid",
+            "woodbury", "neumann" or "dense" (see `gpdepth3d.gp.fast.FastEngine`).
+        lattice: ``fast`` grid route: "observed" (the default: the sub-grid spanning the
+            observed pixels, the rest read out exactly by the Markov property) or "full" (the
+            whole GP grid, as before; for checks).
+        threads: ``fast`` torch back-end: torch CPU threads during a call (None: unchanged).
+        max_dense_points: ``fast``: most observed pixels of the dense route.
+        max_memory_mb: ``fast``: memory budget of one call (MiB); None: 3/4 of the free memory.
+        max_exact_points: ``exact``: most observed pixels; None takes the model config's
+            ``max_exact_points``.
+        options: Further keyword arguments of the engine's constructor (e.g. ``kissgp``'s
+            ``cg_tolerance``, ``fast``'s ``tile``), passed as given.
+    """
+
+    name: str | None = None
+    device: str | None = None
+    backend: str = "auto"
+    route: str = "auto"
+    lattice: str = "observed"
+    threads: int | None = 1
+    max_dense_points: int = 6000
+    max_memory_mb: float | None = None
+    max_exact_points: int | None = None
+    options: dict = field(default_factory=dict, hash=False)
+
+    def __post_init__(self) -> None:
+        if self.name is not None and self.name not in ENGINE_NAMES:
+            raise InvalidInputError("name", f"None or one of {ENGINE_NAMES}", self.name)
+        if self.device is not None and not isinstance(self.device, str):
+            object.__setattr__(self, "device", str(self.device))  # a torch.device
+        if self.backend not in FAST_BACKENDS:
+            raise InvalidInputError("backend", f"one of {FAST_BACKENDS}", self.backend)
+        if self.route not in FAST_ROUTES:
+            raise InvalidInputError("route", f"one of {FAST_ROUTES}", self.route)
+        if self.lattice not in ("observed", "full"):
+            raise InvalidInputError("lattice", "'observed' or 'full'", self.lattice)
+        if not isinstance(self.options, dict) or not all(isinstance(k, str) for k in self.options):
+            raise InvalidInputError("options", "a dict of keyword arguments", describe(self.options))
+        for name in ("max_exact_points",):
+            v = getattr(self, name)
+            if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1):
+                raise InvalidInputError(name, "None or an integer >= 1", v)
+
+    def replace(self, **changes) -> "EngineConfig":
+        """A copy with some fields changed."""
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class SolveInfo:
+    """Facts of one `solve` call.
+
+    Attributes:
+        engine: The engine's name.
+        route: How the posterior was computed (``fast``: "grid", "woodbury", "neumann" or
+            "dense"; ``exact``: "dense"; ``kissgp``: "kissgp").
+        seconds: Wall-clock seconds per stage (engine-specific keys; "total" always).
+        details: Other facts of the call (``kissgp``: CG iterations and residuals; ``fast``:
+            observed pixels, the lattice of the grid route).
+    """
+
+    engine: str
+    route: str
+    seconds: dict = field(default_factory=dict)
+    details: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Solution:
+    """Posterior of one `GridProblem` (what ``engine.solve`` returns).
+
+    Attributes:
+        mean: (Ho, Wo) posterior mean.
+        variance: (Ho, Wo) posterior marginal variance, or None when not asked for.
+        info: The facts of the call (`SolveInfo`).
+        extra_means: One (Ho, Wo) posterior mean per observation vector of ``extra_obs``.
+
+    As the ``(mean, variance)`` pair the engines returned before: ``mean, var =
+    engine.solve(problem)`` and ``solution[0]`` / ``solution[1]`` work.
+    """
+
+    mean: np.ndarray
+    variance: np.ndarray | None
+    info: SolveInfo
+    extra_means: tuple = ()
+
+    def __iter__(self) -> Iterator[Any]:
+        yield self.mean
+        yield self.variance
+
+    def __len__(self) -> int:
+        return 2
+
+    def __getitem__(self, index):
+        return (self.mean, self.variance)[index]
+
+
+def check_extra_obs(problem, extra_obs) -> tuple[np.ndarray, ...]:
+    """Validates ``extra_obs`` of a solve: (H, W) finite arrays (values matter where observed).
+
+    Raises:
+        ShapeError: not a sequence of arrays of the problem's grid shape.
+        InvalidInputError: non-finite values at observed pixels.
+    """
+    if extra_obs is None:
+        return ()
+    if isinstance(extra_obs, np.ndarray) or not hasattr(extra_obs, "__iter__"):
+        raise ShapeError("extra_obs", "a sequence of (H, W) observation arrays", describe(extra_obs))
+    out = []
+    observed = np.asarray(problem.precision) > 0
+    for i, obs in enumerate(extra_obs):
+        a = np.asarray(obs, dtype=np.float64)
+        if a.shape != problem.shape:
+            raise ShapeError(f"extra_obs[{i}]", f"shape {problem.shape}", describe(a))
+        if not np.all(np.isfinite(a[observed])):
+            raise InvalidInputError(f"extra_obs[{i}]", "finite values at the observed pixels", "non-finite values")
+        out.append(a)
+    return tuple(out)
