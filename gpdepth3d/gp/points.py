@@ -211,6 +211,7 @@ def loo_zscores(
     exclude: np.ndarray | None = None,
     only: np.ndarray | None = None,
     radius: bool = False,
+    tree=None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
@@ -231,6 +232,8 @@ def loo_zscores(
         exclude: (N,) bool, points not to use as neighbours (their own z is still computed).
         only: Indices of the points whose z-score to compute (default all; the others get 0).
         radius: Also return each computed point's L1 distance to its farthest neighbour used.
+        tree: A `scipy.spatial.cKDTree` of the (row, col) of the usable points in index order, if
+            the caller has one (default: built here).
 
     Returns:
         (N,) z-scores (0 where no neighbour is available or not computed); with ``radius``,
@@ -250,7 +253,8 @@ def loo_zscores(
     out, reach = np.zeros(n), np.full(n, np.inf)
     if n == 0 or k < 1 or targets.size == 0:
         return (out, reach) if radius else out
-    tree = cKDTree(np.column_stack([rows[pool], cols[pool]]))
+    if tree is None:
+        tree = cKDTree(np.column_stack([rows[pool], cols[pool]]))
     dist, nn = tree.query(np.column_stack([rows[targets], cols[targets]]), k=k + 1, p=1)
     nn = pool[nn]
     # drop the point itself where it is among its neighbours, keep the k nearest others
@@ -326,6 +330,9 @@ def screen_points(
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, changed = start, None, None, None, None
+    everyone = None  # k-d tree of all points: the first round's neighbours, the points near a moved one
+    from scipy.spatial import cKDTree
+
     for _ in range(max(1, iterations) if threshold is not None else 1):
         keep = ~rejected
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
@@ -342,12 +349,18 @@ def screen_points(
         if z is not None and not refit:
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
-            from scipy.spatial import cKDTree
-
+            # (candidates: the points within the largest radius of a moved point, from a tree of all points)
             moved = np.flatnonzero(changed)
-            d, _ = cKDTree(np.column_stack([rows[moved], cols[moved]])).query(np.column_stack([rows, cols]), k=1, p=1)
-            only = np.flatnonzero((d <= reach) | changed)
-        z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected, only=only, radius=True)
+            xy = everyone.data
+            radius = float(np.max(reach[np.isfinite(reach)], initial=0.0))
+            near = everyone.query_ball_point(xy[moved], r=radius * (1 + 1e-12) + 1e-12, p=1)
+            cand = np.unique(np.concatenate([np.asarray(c, dtype=np.int64) for c in near] + [moved]))
+            d, _ = cKDTree(xy[moved]).query(xy[cand], k=1, p=1)
+            only = np.union1d(cand[d <= reach[cand]], moved)
+        if everyone is None:
+            everyone = cKDTree(np.column_stack([rows, cols]).astype(np.float64))
+        z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected, only=only, radius=True,
+                                       tree=None if rejected.any() else everyone)
         if only is None:
             z, reach = z_new, reach_new
         else:
