@@ -1,11 +1,28 @@
-"""Benchmark of the GP engines (exact, kissgp, fast) on real frames: time, peak memory, error vs exact.
+"""Benchmark of the GP engines on real frames: the default model's speed targets, and engine against engine.
 
-Usage::
+Two suites, one run each:
 
-    python bench/engines.py [--data ../shared/data] [--engines fast,fast-grid,fast-torch,kissgp,exact] [--repeats 3]
+``--suite kitti`` (the default): issue 13's speed target. kitti_tiny frame 0 with RT-MonoDepth-S,
+prepared as the paper's KITTI protocol does (`gpdepth3d.kitti_protocol`: the GP grid at 1/3
+resolution, 125 x 414; 20 % of the LiDAR held out; uniform inputs from the rest), at the
+paper's eight densities (1/64 ... all of the LiDAR) and two outputs: the 1/3 grid and the full
+image (375 x 1242, predicted from the 1/3 grid). Per cell, mean + variance through
+`DepthCompleter` (validation, screening, set-up and read-out included; best of ``--repeats``
+after a warm-up): the default model (`DepthGPConfig()`), the paper preset
+(`DepthGPConfig.paper()`), IP-Basic on the same points in the same run (on the 1/3 grid, resized
+to full resolution for the full output, as the protocol scores it), and KISS-GP computing the
+default model (one call per cell in its own process, ``--kissgp-timeout`` seconds at most;
+denser cells of a resolution are skipped after one times out). Targets: <= 50 ms at 1/3 and
+<= 200 ms at full resolution, within 10 x IP-Basic. Results: a table on stdout and
+``bench/results/engines_kitti.json`` (with the default model's stages and the engine's route
+and stage times per cell).
 
-Inputs (real sensor data, simulated MDE):
+``--suite engines``: every engine on simulated-MDE frames (time, peak memory, error against exact
+on a crop), written to ``bench/results/engines.json``:
 
+    python bench/engines.py --suite engines [--engines fast,fast-grid,fast-torch,kissgp,exact] [--repeats 3]
+
+Inputs of that suite (real sensor data, simulated MDE):
 * ``kitti_third``: KITTI raw 2011_09_26_0023 frame 0, LiDAR projected into camera 02, cropped to
   the depth-completion frame (bottom 352 x 1216) and reduced 3x keeping the closest point per
   block: 117 x 405 pixels, ~15k points (the paper's set-up; denser than the ~5k of a single 64-beam
@@ -33,6 +50,8 @@ row has its date and the machine's load average). The error vs exact is measured
 the full frames): RMS difference of the means in % of the crop's depth range, and the largest
 relative difference of the standard deviations. Results: a table on stdout and
 ``bench/results/engines.json`` (written atomically).
+
+    python bench/engines.py [--data ../shared/data] [--suite kitti] [--repeats 3] [--kissgp-timeout 120]
 """
 
 from __future__ import annotations
@@ -50,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
 SIZES = ("kitti_third", "kitti_full", "7scenes_half", "7scenes_half_balanced", "7scenes_half_nu15", "7scenes_half_nu25")
 CROP = (40, 48)
 
@@ -95,14 +115,10 @@ def load_frame(data: Path, size: str):
 def make(engine: str, config):
     """A completer running ``engine``: exact, kissgp, fast (automatic route), fast-grid or fast-torch."""
     from gpdepth3d.completion.complete import DepthCompleter
-    from gpdepth3d.gp.fast import FastEngine
+    from gpdepth3d.gp import EngineConfig
 
-    completer = DepthCompleter(config.replace(engine=engine.split("-")[0], max_exact_points=100_000))
-    if engine == "fast-torch":
-        completer.engine = FastEngine(backend="torch", route="grid")
-    elif engine == "fast-grid":
-        completer.engine = FastEngine(route="grid")
-    return completer
+    options = {"fast-torch": EngineConfig(backend="torch", route="grid"), "fast-grid": EngineConfig(route="grid")}
+    return DepthCompleter(config.replace(engine=engine.split("-")[0], max_exact_points=100_000), engine=options.get(engine))
 
 
 def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
@@ -129,9 +145,10 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
             tv.append(time.perf_counter() - t0)
         out["mean_s"], out["mean_var_s"] = min(tm), min(tv)
         out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - base_rss
-        route = getattr(completer.engine, "last_route", None)
-        if route:
-            out["route"] = route
+        if hasattr(completer.engine, "plan") and config.formulation != "log_residual":
+            from gpdepth3d.completion.complete import build_problem
+
+            out["route"] = completer.engine.plan(build_problem(mde, sparse, config)[0])
     # error vs exact on a crop around the image centre row band
     h, w = mde.shape
     r0, c0 = (h - CROP[0]) // 2 + h // 6, (w - CROP[1]) // 2
@@ -151,9 +168,11 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
         DepthCompleter(config.replace(engine="exact"))(crop_mde, crop_sparse)
         out["crop_mean_var_s"] = time.perf_counter() - t0
         return out
+    from gpdepth3d.gp import EngineConfig
+
     crop_completer = make(engine, config)
     if out.get("route"):  # the crop is checked on the route the full frame took
-        crop_completer.engine.route = out["route"]
+        crop_completer = DepthCompleter(config.replace(engine="fast"), engine=EngineConfig(route=out["route"]))
     got = crop_completer(crop_mde, crop_sparse)
     rng_depth = float(np.ptp(ref.mean))
     out["crop_mean_rms_pct_range"] = float(100 * np.sqrt(np.mean((got.mean - ref.mean) ** 2)) / rng_depth)
@@ -161,22 +180,13 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
-    parser.add_argument("--engines", default="fast,fast-grid,fast-torch,kissgp,exact")
-    parser.add_argument("--sizes", default=",".join(SIZES))
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per (engine, size) cell")
-    parser.add_argument("--worker", nargs=2, metavar=("ENGINE", "SIZE"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.worker:
-        print(json.dumps(worker(args.worker[0], args.worker[1], args.data, args.repeats)))
-        return
+def engines_main(args) -> None:
+    """The ``engines`` suite (see the module docstring)."""
     rows = []
     for size in args.sizes.split(","):
         for engine in args.engines.split(","):
-            cmd = [sys.executable, __file__, "--data", str(args.data), "--repeats", str(args.repeats), "--worker", engine, size]
+            cmd = [sys.executable, __file__, "--suite", "engines", "--data", str(args.data), "--repeats", str(args.repeats),
+                   "--worker", engine, size]
             try:
                 res = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
                 if res.returncode != 0:
@@ -236,6 +246,155 @@ def _fmt(r: dict) -> str:
     return (f"{engine:16s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  first {r['first_s'] * 1e3:9.1f} ms  "
             f"mean {r['mean_s'] * 1e3:9.1f} ms  mean+var {r['mean_var_s'] * 1e3:9.1f} ms  peak {r['peak_rss_mb']:7.1f} MB  "
             f"crop err: mean {r['crop_mean_rms_pct_range']:.1e} % of range, std {r['crop_std_max_rel']:.1e} rel")
+
+
+# ----------------------------------------------------------------------------- the kitti suite
+
+
+def _frontend(models: Path):
+    from gpdepth3d.mde import RTMonoDepthONNX
+
+    return RTMonoDepthONNX(models_dir=models, providers=["CPUExecutionProvider"])
+
+
+def kissgp_cell(data: Path, models: Path, resolution: str, density: float) -> dict:
+    """One KISS-GP call on the default model (run in its own process by `kitti_main`)."""
+    from _kitti_speed import completer, draw, kitti_setup, time_completer
+
+    from gpdepth3d.gp import EngineConfig
+    from gpdepth3d.gp.model import DepthGPConfig
+
+    setup, _ = kitti_setup(data, _frontend(models))
+    c = completer(DepthGPConfig(engine="kissgp"), EngineConfig(device="cpu"))
+    out = time_completer(c, setup, draw(setup, density), None if resolution == "1/3" else setup.full_shape, 1,
+                         warmup=False)
+    out.pop("posterior")
+    return out
+
+
+def kitti_main(args) -> None:
+    """The ``kitti`` suite (see the module docstring)."""
+    from _kitti_speed import completer, draw, ip_basic_seconds, kitti_setup, machine, time_completer
+
+    from gpdepth3d.gp.model import DepthGPConfig
+    from gpdepth3d.sampling import PAPER_DENSITIES
+
+    models = args.models or args.data.parent / "models"
+    densities = [float(x) for x in args.densities.split(",")] if args.densities else list(PAPER_DENSITIES)
+    result = {**machine(), "suite": "kitti", "repeats": args.repeats}
+    setup, mde_seconds = kitti_setup(args.data, _frontend(models))
+    result["frame"] = {"dataset": "kitti_tiny", "name": setup.name, "grid": list(setup.grid_shape),
+                       "full": list(setup.full_shape), "available_points": len(setup.lidar.available),
+                       "mde": "RT-MonoDepth-S (onnxruntime, CPU)", "mde_seconds": mde_seconds}
+    rows = []
+    _say(f"kitti_tiny {setup.name}, GP grid {setup.grid_shape[0]}x{setup.grid_shape[1]}, mean + variance, "
+         f"best of {args.repeats} after a warm-up (ms; x = ratio to IP-Basic in this run)")
+    _say(f"{'output':6s} {'density':>8s} {'points':>6s} {'IP-Basic':>9s} {'default':>9s} {'x':>5s} {'paper':>9s} "
+         f"{'x':>5s} {'kissgp':>10s}  default's stages (ms), route")
+    for res in ("1/3", "full"):
+        out_shape = None if res == "1/3" else setup.full_shape
+        default = completer(DepthGPConfig())
+        paper = completer(DepthGPConfig.paper())
+        kiss_stopped = args.kissgp_timeout <= 0
+        for density in densities:
+            sparse = draw(setup, density)
+            row = {"resolution": res, "density": density, "points": len(sparse)}
+            row["ip_basic_seconds"], _ = ip_basic_seconds(setup, sparse, res == "full", args.repeats)
+            for name, c in (("default", default), ("paper", paper)):
+                r = time_completer(c, setup, sparse, out_shape, args.repeats)
+                r.pop("posterior")
+                r["ratio_to_ip_basic"] = r["seconds"] / row["ip_basic_seconds"]
+                row[name] = r
+            if kiss_stopped:
+                row["kissgp"] = {"skipped": "an earlier cell timed out" if args.kissgp_timeout > 0 else "--kissgp-timeout 0"}
+            else:
+                cmd = [sys.executable, __file__, "--data", str(args.data), "--models", str(models),
+                       "--kissgp-cell", res, repr(density)]
+                try:
+                    done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.kissgp_timeout)
+                    if done.returncode != 0:
+                        row["kissgp"] = {"error": (done.stderr.strip().splitlines() or ["?"])[-1][:300]}
+                    else:
+                        row["kissgp"] = json.loads(done.stdout.strip().splitlines()[-1])
+                        row["kissgp"]["ratio_to_ip_basic"] = row["kissgp"]["seconds"] / row["ip_basic_seconds"]
+                except subprocess.TimeoutExpired:
+                    row["kissgp"] = {"timeout_seconds": args.kissgp_timeout}
+                    kiss_stopped = True
+            row["load_average_1min"] = os.getloadavg()[0]
+            rows.append(row)
+            _say(_fmt_kitti(row))
+            result["rows"] = rows
+            _write_json(result, args.output)
+    result["targets"] = _targets(rows)
+    _write_json(result, args.output)
+    for line in result["targets"]["summary"]:
+        _say(line)
+    _say(f"wrote {args.output}")
+
+
+def _targets(rows: list[dict]) -> dict:
+    """Issue 13's speed targets against this run: <= 50 ms at 1/3, <= 200 ms at full resolution, <= 10 x IP-Basic."""
+    limit = {"1/3": 0.050, "full": 0.200}
+    out: dict = {"summary": []}
+    for res in ("1/3", "full"):
+        cells = [r for r in rows if r["resolution"] == res]
+        if not cells:
+            continue
+        slow = [r for r in cells if r["default"]["seconds"] > limit[res]]
+        far = [r for r in cells if r["default"]["ratio_to_ip_basic"] > 10]
+        out[res] = {"cells": len(cells), "over_time_limit": [r["density"] for r in slow],
+                    "over_10x_ip_basic": [r["density"] for r in far],
+                    "worst_seconds": max(r["default"]["seconds"] for r in cells),
+                    "worst_ratio_to_ip_basic": max(r["default"]["ratio_to_ip_basic"] for r in cells)}
+        out["summary"].append(
+            f"default model, output {res}: {len(cells) - len(slow)}/{len(cells)} cells <= {1e3 * limit[res]:.0f} ms, "
+            f"{len(cells) - len(far)}/{len(cells)} within 10x IP-Basic (worst {1e3 * out[res]['worst_seconds']:.0f} ms, "
+            f"{out[res]['worst_ratio_to_ip_basic']:.1f}x)")
+    return out
+
+
+def _fmt_kitti(r: dict) -> str:
+    d, p, k = r["default"], r["paper"], r["kissgp"]
+    ks = f"{1e3 * k['seconds']:8.0f}ms" if "seconds" in k else ("timeout" if "timeout_seconds" in k else "-")
+    stages = " ".join(f"{name}={1e3 * v:.0f}" for name, v in d["stages"].items())
+    return (f"{r['resolution']:6s} {r['density']:8.4f} {r['points']:6d} {1e3 * r['ip_basic_seconds']:9.1f} "
+            f"{1e3 * d['seconds']:9.1f} {d['ratio_to_ip_basic']:5.1f} {1e3 * p['seconds']:9.1f} {p['ratio_to_ip_basic']:5.1f} "
+            f"{ks:>10s}  {stages}, {d['route']}; paper {p['route']}")
+
+
+def _write_json(result: dict, path: Path) -> None:
+    from gpdepth3d.io import atomic_path
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=2, default=float))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--suite", choices=("kitti", "engines"), default="kitti")
+    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
+    parser.add_argument("--models", type=Path, default=None, help="kitti: models folder (default: <data>/../models)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--densities", default="", help="kitti: comma-separated shares (default: the paper's eight)")
+    parser.add_argument("--kissgp-timeout", type=float, default=120.0, help="kitti: seconds per KISS-GP cell (0: none)")
+    parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "engines_kitti.json",
+                        help="kitti: the result file")
+    parser.add_argument("--engines", default="fast,fast-grid,fast-torch,kissgp,exact", help="engines suite")
+    parser.add_argument("--sizes", default=",".join(SIZES), help="engines suite")
+    parser.add_argument("--timeout", type=float, default=900.0, help="engines suite: seconds per (engine, size) cell")
+    parser.add_argument("--worker", nargs=2, metavar=("ENGINE", "SIZE"), help=argparse.SUPPRESS)
+    parser.add_argument("--kissgp-cell", nargs=2, metavar=("RESOLUTION", "DENSITY"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.kissgp_cell:
+        models = args.models or args.data.parent / "models"
+        print(json.dumps(kissgp_cell(args.data, models, args.kissgp_cell[0], float(args.kissgp_cell[1])), default=float))
+    elif args.worker:
+        print(json.dumps(worker(args.worker[0], args.worker[1], args.data, args.repeats)))
+    elif args.suite == "engines":
+        engines_main(args)
+    else:
+        kitti_main(args)
 
 
 if __name__ == "__main__":
