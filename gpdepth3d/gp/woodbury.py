@@ -46,7 +46,9 @@ _LOG_2PI = float(np.log(2 * np.pi))
 # column operator Y (0 = C interval, 1 = F after, 2 = B before). Per axis, C and F impulses are
 # stored at their output index i (index n = trash), B impulses at i + 1 (index 0 = trash), so the
 # C start and the B impulse of a point share a cell, as do the C end and the F impulse: a pair
-# writes 16 values into 4 cells.
+# writes 16 values into 4 cells. Only the rows that hold an impulse (at most two per point row)
+# are stored: buf (nq, Wo + 1, 9) with qmap (Ho + 1,) the stored row of each row index (-1 =
+# none), so the column pass costs nq Wo, not Ho Wo (with full-resolution output, ~5x less).
 
 
 @nb.njit(cache=True, nogil=True)
@@ -103,16 +105,17 @@ def _splat_points(alpha, ri, rv, ci, cv, buf):
 
 
 @nb.njit(cache=True, nogil=True)
-def _filter(buf, lam_r, lam_c, g, out, interval):
+def _filter(buf, lam_r, lam_c, g, out, interval, qmap):
     """out (Ho, Wo) = sum_X rowop_X(sum_Y colop_Y(slot 3 X + Y of buf)), buf as laid out above.
 
     C: cumulative sum; F: y_i = lam[i] y_{i-1} + u_i; B: y_i = lam[i + 1] y_{i+1} + u_{i+1 stored}.
-    lam (n + 1,): lam[i] = e^{-rate (x_i - x_{i-1})}, lam[0] and lam[n] unused / 0. g (Ho + 1,
-    Wo, 3) is scratch: the column pass per row operator. interval=False skips the C slots (the
-    mean has none). buf is left all zero (read and cleared).
+    lam (n + 1,): lam[i] = e^{-rate (x_i - x_{i-1})}, lam[0] and lam[n] unused / 0. buf (nq, Wo + 1,
+    9): the stored rows (qmap (Ho + 1,): row index -> stored row or -1); g (nq, Wo, 3) is scratch:
+    the column pass per row operator. interval=False skips the C slots (the mean has none). buf
+    is left all zero (read and cleared).
     """
     hs, ws, _ = buf.shape
-    h, w = hs - 1, ws - 1
+    h, w = out.shape[0], ws - 1
     for s in range(hs):  # columns: C and F forward, B backward (B input stored at i + 1)
         c0 = c1 = c2 = f0 = f1 = f2 = 0.0
         for i in range(w):
@@ -142,17 +145,29 @@ def _filter(buf, lam_r, lam_c, g, out, interval):
     rowf = np.zeros(w)
     for i in range(h):  # rows: C and F forward
         li = lam_r[i]
-        for c in range(w):
-            if interval:
-                rowc[c] += g[i, c, 0]
-            rowf[c] = li * rowf[c] + g[i, c, 1]
-            out[i, c] = rowc[c] + rowf[c]
+        q = qmap[i]
+        if q >= 0:
+            for c in range(w):
+                if interval:
+                    rowc[c] += g[q, c, 0]
+                rowf[c] = li * rowf[c] + g[q, c, 1]
+                out[i, c] = rowc[c] + rowf[c]
+        else:
+            for c in range(w):
+                rowf[c] = li * rowf[c]
+                out[i, c] = rowc[c] + rowf[c]
     rowf[:] = 0.0
     for i in range(h - 1, -1, -1):  # rows: B backward
         li = lam_r[i + 1]
-        for c in range(w):
-            rowf[c] = li * rowf[c] + g[i + 1, c, 2]
-            out[i, c] += rowf[c]
+        q = qmap[i + 1]
+        if q >= 0:
+            for c in range(w):
+                rowf[c] = li * rowf[c] + g[q, c, 2]
+                out[i, c] += rowf[c]
+        else:
+            for c in range(w):
+                rowf[c] = li * rowf[c]
+                out[i, c] += rowf[c]
 
 
 @nb.njit(cache=True, nogil=True)
@@ -201,7 +216,7 @@ class _Axis:
         return np.stack([ge, end]).astype(np.int64), np.stack([vb, vf])
 
     def workspace(self, other: "_Axis", store: dict | None):
-        """All-zero impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3).
+        """All-zero impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3) (the filters use their first rows).
 
         Taken from ``store["free"]`` when it has this shape (``dict.pop``: one taker at a time), else
         new. `_filter` clears the buffer as it reads it, and `WoodburyPosterior._filtered` puts
@@ -212,6 +227,14 @@ class _Axis:
         if free is not None and free[0].shape == shape:
             return free
         return np.zeros(shape), np.zeros((self.n + 1, other.n, 3))
+
+
+def _stored_rows(ri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(qmap (n + 1,): the stored row of each row storage index or -1, ri mapped to stored rows) (see the layout)."""
+    used = np.unique(ri)
+    qmap = np.full(n + 1, -1, dtype=np.int64)
+    qmap[used] = np.arange(used.size)
+    return qmap, qmap[ri]
 
 
 def woodbury_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
@@ -272,10 +295,11 @@ class WoodburyPosterior:
         out[np.ix_(ra.order, ca.order)] = img
         return out
 
-    def _filtered(self, buf: np.ndarray, g: np.ndarray, rate: float, interval: bool) -> np.ndarray:
+    def _filtered(self, buf: np.ndarray, g: np.ndarray, rate: float, interval: bool, qmap: np.ndarray) -> np.ndarray:
         ra, ca = self._rows_axis, self._cols_axis
         out = np.empty((ra.n, ca.n))
-        _filter(buf, ra.decay(rate), ca.decay(rate), g, out, interval)
+        nq = int(qmap.max()) + 1
+        _filter(buf[:nq], ra.decay(rate), ca.decay(rate), g[:nq], out, interval, qmap)
         if self._store is not None:
             self._store["free"] = (buf, g)  # all zero again
         return self._unsort(out)
@@ -299,10 +323,11 @@ class WoodburyPosterior:
             alpha, _ = scipy.linalg.lapack.dpotrs(self.L, resid, lower=1)
         ri, rv = ra.impulses(self.rr, self.inv_l, interval=False)
         ci, cv = ca.impulses(self.cc, self.inv_l, interval=False)
+        qmap, ri = _stored_rows(ri, ra.n)
         buf, g = ra.workspace(ca, self._store)
         with numeric_section():
             _splat_points(alpha, ri, rv, ci, cv, buf)
-            return prior + self._filtered(buf, g, self.inv_l, False)
+            return prior + self._filtered(buf, g, self.inv_l, False, qmap)
 
     def variance(self) -> np.ndarray:
         """Posterior marginal variance (Ho, Wo), m^2."""
@@ -312,11 +337,12 @@ class WoodburyPosterior:
         rate = 2.0 * self.inv_l
         ri, rv = ra.impulses(self.rr, rate, interval=True)
         ci, cv = ca.impulses(self.cc, rate, interval=True)
+        qmap, ri = _stored_rows(ri, ra.n)
         buf, g = ra.workspace(ca, self._store)
         with numeric_section():
             Minv = inverse_from_cholesky(np.array(self.L, order="F"))
             _splat_pairs(Minv, self.A, self.cc, ri, rv, ci, cv, buf)  # rr is sorted (row-major order)
-            corr = self._filtered(buf, g, rate, True)
+            corr = self._filtered(buf, g, rate, True, qmap)
         return np.maximum(self.s2 * (1.0 - corr), 0.0)
 
     def log_marginal_likelihood(self) -> float:
