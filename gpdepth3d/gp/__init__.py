@@ -1,7 +1,9 @@
 """The GP depth model and the engines that compute its posterior.
 
-All engines take a `GridProblem` and return the same posterior (mean, marginal variance);
-they differ only in how they compute it:
+All engines take a `GridProblem` and return the same posterior as a `Solution` (mean, marginal
+variance, the means of further observation vectors, and `SolveInfo`: the route and stage times
+of that call; it unpacks as ``mean, variance``). `make_engine` builds one from the model config
+and an `EngineConfig` (device, back-end, route, limits). They differ only in how they compute it:
 
 * ``exact``: dense Cholesky, the reference for small inputs.
 * ``kissgp``: GPyTorch KISS-GP (``GridInterpolationKernel``), faithful to the paper.

@@ -66,6 +66,13 @@ precision that the observations make diagonally dominant (the paper's balanced s
 stencil's couplings are ~2 % of the diagonal) takes a Neumann series with a certified bound
 (`gpdepth3d.gp.neumann`, O(n) with a few terms; the omitted terms are bounded by 1e-13 of the
 scaled mean and 2e-9 of each variance).
+
+The grid route factorises only the lattice spanning the observed pixels (``lattice="observed"``,
+`observed_lattice`: LiDAR leaves the top third of a KITTI frame empty, so 93 of its 125 rows at
+1/3 resolution): the field is Markov along each axis, so the posterior there is the whole grid's,
+and the pixels outside are read out exactly from the lattice's edge states like any off-grid
+output. Several observation vectors with one precision (``extra_obs``) share every route's
+factorisation.
 """
 
 from __future__ import annotations
@@ -1015,8 +1022,9 @@ class FastEngine:
             every pixel observed strongly enough that the precision is diagonally dominant, as
             in the paper's balanced set-up, output on the input grid: a series with a certified
             error bound, `gpdepth3d.gp.neumann`) or "dense" (any nu, few observed pixels: dense
-            algebra over them, `gpdepth3d.gp.exact.dense_posterior`). ``last_route`` tells which
-            one the last call took. The log marginal likelihood uses the grid, Woodbury or dense
+            algebra over them, `gpdepth3d.gp.exact.dense_posterior`). Each call's
+            ``Solution.info.route`` tells which one it took (`plan` tells beforehand); the engine
+            keeps no per-call state. The log marginal likelihood uses the grid, Woodbury or dense
             ("neumann" forced: the grid). A forced route that cannot compute the exact posterior
             raises (see Raises of `solve`); "auto" picks among those that can.
         max_dense_points: The dense route takes at most this many observed pixels.
@@ -1028,6 +1036,13 @@ class FastEngine:
             front their observations do not reach. It is built from the second frame with the
             same resolution and kernel on, when at least a quarter of the fronts are unreached
             (the residual formulation with sparse points); 0 disables it.
+        lattice: Grid route: "observed" (the default) factorises only the sub-grid spanning the
+            observed pixels (`observed_lattice`; the pixels around it are read out exactly, as
+            an output grid other than the input grid is), "full" the whole GP grid.
+
+    ``solve(problem, variance=True, extra_obs=())`` returns a `gpdepth3d.gp.engine.Solution`;
+    the means of ``extra_obs`` (further observation vectors with the same precision) reuse the
+    call's factorisation (the default model's scale term needs one).
     """
 
     name = "fast"
@@ -1523,14 +1538,16 @@ class FastEngine:
 
 # Cost model of the grid route (nu = 0.5) that picks a route: nested dissection of an n-pixel
 # grid takes ~22 n^1.5 flops to factorise and ~60 n^1.5 more for the selected inverse (dense-front
-# counts over this module's trees, 64 x 64 to 352 x 1216), sustained at ~12 GFLOPS on the 2-core
-# CI machine (1.8 GFLOP in ~130 ms at 320 x 240).
-_GRID_FLOPS_PER_S = 12e9
+# counts over this module's trees, 64 x 64 to 352 x 1216), sustained at ~12-15 GFLOPS on the 2-core
+# CI machine (1.8 GFLOP in ~130 ms at 320 x 240; the default model on kitti_tiny's 93 x 414 lattice
+# of its LiDAR points, 2.3 GFLOP, in 45-60 ms).
+_GRID_FLOPS_PER_S = 14e9
 # A forward and backward solve over the factor (per n log2 n of the lattice's n nodes), the mean's
-# read-out (per output pixel and right-hand side) and the variance's (per output pixel and ds).
+# read-out (per output pixel and right-hand side) and the variance's (per output pixel and ds):
+# kitti_tiny, 375 x 1242 output from a 93 x 414 lattice, 10-15 ms more than the 1/3 output.
 _GRID_SOLVE_S = 2.5e-8
-_READOUT_MEAN_S = 2e-8
-_READOUT_VAR_S = 4e-8
+_READOUT_MEAN_S = 1e-8
+_READOUT_VAR_S = 1e-8
 # "auto" leaves problems with a point of signal-to-noise variance ratio s^2 / noise above this to
 # the grid route (Woodbury's cancellation would cost more than ~1e-6 of the variance there).
 _WOODBURY_MAX_SNR = 1e8

@@ -241,13 +241,14 @@ def woodbury_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> floa
     """Cost model of `WoodburyPosterior` with m observed pixels and n_out output pixels (seconds).
 
     Measured on the 2-core CI machine at 320 x 240 with 500-4000 points: the Cholesky factor
-    (m^3 / 3 flops) at ~15 GFLOPS, the filters ~20 ns an output pixel; for the variance the
-    inverse (2 m^3 / 3 flops) at ~25 GFLOPS and ~40 ns a splatted pair. Each of ``extra``
-    further means: two triangular solves (2 m^2 flops) and a filter pass.
+    (m^3 / 3 flops) at ~15 GFLOPS; for the variance the inverse (2 m^3 / 3 flops) at ~25 GFLOPS
+    and ~40 ns a splatted pair. The filters (kitti_tiny, 125 x 414 and 375 x 1242 outputs,
+    200-1600 points): ~10 ns an output pixel for a mean, ~25 ns for the variance. Each of
+    ``extra`` further means: two triangular solves (2 m^2 flops) and a mean's filter.
     """
-    t = m**3 / 3 / 15e9 + n_out * 20e-9 + extra * (2 * m * m / 5e9 + n_out * 20e-9)
+    t = m**3 / 3 / 15e9 + (1 + extra) * n_out * 10e-9 + extra * 2 * m * m / 5e9
     if variance:
-        t += 2 * m**3 / 3 / 25e9 + m * (m + 1) / 2 * 40e-9 + n_out * 20e-9
+        t += 2 * m**3 / 3 / 25e9 + m * (m + 1) / 2 * 40e-9 + n_out * 25e-9
     return t
 
 
