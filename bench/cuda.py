@@ -12,9 +12,9 @@ On one machine with a CUDA GPU (run it there; without one it records that and st
   (`EngineConfig(device="cuda")`: the torch back-end, grid route), best of ``--repeats`` after
   a warm-up, with the largest relative difference of the CUDA posterior's mean and variance
   from the CPU one.
-* **KISS-GP** (GPyTorch) on CUDA for the same cells, one call each after a warm-up at the
-  lowest density, cells of a (model, resolution) skipped after one exceeds ``--kissgp-cell``
-  seconds; its agreement with the CPU fast engine.
+* **KISS-GP** (GPyTorch) on CUDA for the same cells, one call each in its own process (after a
+  warm-up solve at the lowest density), killed after ``--kissgp-timeout`` seconds, the denser
+  cells of that (model, output) then skipped; its agreement with the CPU fast engine.
 
 Writes bench/results/cuda.json (``--output``) after every section, so a run cut short leaves
 what it measured, and prints a table.
@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _kitti_speed import REPO, completer, draw, kitti_setup, machine, max_rel, time_completer  # noqa: E402
 
 DENSITIES = (1 / 64, 1 / 16, 1 / 4, 1.0)
+ARGS = None  # the parsed command line (for the KISS-GP cells' processes)
 
 
 def _write(result: dict, path: Path) -> None:
@@ -94,7 +95,6 @@ def engine_rows(setup, device: str, repeats: int, kissgp_cell: float, kissgp_tot
         for name, config in models.items():
             cpu = completer(config)
             gpu = completer(config, EngineConfig(device=device, backend="torch"))
-            kiss = completer(config.replace(engine="kissgp"), EngineConfig(device=device))
             for density in DENSITIES:
                 sparse = draw(setup, density)
                 row = {"model": name, "resolution": res, "density": density, "points": len(sparse)}
@@ -106,22 +106,63 @@ def engine_rows(setup, device: str, repeats: int, kissgp_cell: float, kissgp_tot
                                       "variance_max_rel": max_rel(pg.variance, pc.variance)}
                 key = (name, res)
                 if key in kiss_stop or kiss_spent > kissgp_total:
-                    row["kissgp_cuda"] = {"skipped": "an earlier cell of this model and resolution took over "
-                                          f"{kissgp_cell:g} s" if key in kiss_stop else "total KISS-GP budget spent"}
+                    row["kissgp_cuda"] = {"skipped": "an earlier cell of this model and resolution timed out"
+                                          if key in kiss_stop else "total KISS-GP budget spent"}
                 else:
-                    try:
-                        k = time_completer(kiss, setup, sparse, out_shape, 1, warmup=density == DENSITIES[0], sync=sync)
-                        pk = k.pop("posterior")
-                        k["vs_cpu_fast"] = {"mean_max_rel": max_rel(pk.mean, pc.mean),
-                                            "variance_max_rel": max_rel(pk.variance, pc.variance)}
-                        row["kissgp_cuda"] = k
-                        kiss_spent += k["seconds"] + k.get("first_seconds", 0.0)
-                        if k["seconds"] > kissgp_cell:
-                            kiss_stop.add(key)
-                    except Exception as exc:
-                        row["kissgp_cuda"] = {"error": f"{type(exc).__name__}: {exc}"[:300]}
+                    t = time.perf_counter()
+                    row["kissgp_cuda"] = _kissgp_subprocess(name, res, density, device, kissgp_cell)
+                    kiss_spent += time.perf_counter() - t
+                    if "timeout_seconds" in row["kissgp_cuda"]:
+                        kiss_stop.add(key)
+                    elif "mean" in row["kissgp_cuda"]:
+                        pk = row["kissgp_cuda"]
+                        pk["vs_cpu_fast"] = {"mean_max_rel": max_rel(pk.pop("mean"), pc.mean),
+                                             "variance_max_rel": max_rel(pk.pop("variance"), pc.variance)}
                 rows.append(row)
                 done(row)
+
+
+def _kissgp_subprocess(model: str, res: str, density: float, device: str, timeout: float) -> dict:
+    """One KISS-GP cell in its own process (a warm-up solve first), killed after ``timeout`` seconds."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "cell.npz"
+        cmd = [sys.executable, __file__, "--data", str(ARGS.data), "--models", str(ARGS.models_dir), "--device", device,
+               "--kissgp-cell", model, res, repr(density), str(out)]
+        try:
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return {"timeout_seconds": timeout}
+        if done.returncode != 0:
+            return {"error": (done.stderr.strip().splitlines() or ["?"])[-1][:300]}
+        row = json.loads(done.stdout.strip().splitlines()[-1])
+        with np.load(out) as z:
+            row["mean"], row["variance"] = z["mean"], z["variance"]
+        return row
+
+
+def kissgp_cell(data: Path, models: Path, model: str, res: str, density: float, device: str, out: Path) -> dict:
+    """The KISS-GP cell run by `_kissgp_subprocess`: a warm-up solve at the lowest density, then the cell."""
+    from gpdepth3d.gp import EngineConfig
+    from gpdepth3d.gp.model import DepthGPConfig
+    from gpdepth3d.mde import RTMonoDepthONNX
+
+    setup, _ = kitti_setup(data, RTMonoDepthONNX(models_dir=models, providers=["CPUExecutionProvider"]))
+    config = (DepthGPConfig() if model == "default" else DepthGPConfig.paper()).replace(engine="kissgp")
+    c = completer(config, EngineConfig(device=device))
+    time_completer(c, setup, draw(setup, DENSITIES[0]), None, 1, warmup=False)  # CUDA context, kernels
+    sync = None
+    if device.startswith("cuda"):
+        import torch
+
+        sync = torch.cuda.synchronize
+    r = time_completer(c, setup, draw(setup, density), None if res == "1/3" else setup.full_shape, 1, warmup=False,
+                       sync=sync)
+    post = r.pop("posterior")
+    np.savez(out, mean=post.mean, variance=post.variance)
+    return r
 
 
 def _fmt(r: dict) -> str:
@@ -137,12 +178,21 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
     parser.add_argument("--models", type=Path, default=None, help="models folder (default: <data>/../models)")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--kissgp-cell", type=float, default=30.0, help="skip denser KISS-GP cells after one takes longer (s)")
-    parser.add_argument("--kissgp-total", type=float, default=180.0, help="KISS-GP seconds in all")
+    parser.add_argument("--kissgp-timeout", type=float, default=40.0,
+                        help="seconds per KISS-GP cell (own process); denser cells of the model and output are skipped after one times out")
+    parser.add_argument("--kissgp-total", type=float, default=180.0, help="no new KISS-GP cell after this many seconds of them")
     parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "cuda.json")
     parser.add_argument("--device", default="cuda", help="torch device of the GPU columns ('cpu': a dry run)")
+    parser.add_argument("--kissgp-cell", nargs=4, metavar=("MODEL", "RES", "DENSITY", "OUT"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     models = args.models or args.data.parent / "models"
+    global ARGS
+    ARGS = args
+    args.models_dir = models
+    if args.kissgp_cell:
+        m, res, density, out = args.kissgp_cell
+        print(json.dumps(kissgp_cell(args.data, models, m, res, float(density), args.device, Path(out)), default=float))
+        return
 
     def say(line: str) -> None:
         print(line, flush=True)
@@ -177,7 +227,7 @@ def main() -> None:
         say(_fmt(row))
         _write(result, args.output)
 
-    engine_rows(setup, args.device, args.repeats, args.kissgp_cell, args.kissgp_total, result["rows"], done)
+    engine_rows(setup, args.device, args.repeats, args.kissgp_timeout, args.kissgp_total, result["rows"], done)
     result["seconds_total"] = time.perf_counter() - t0
     _write(result, args.output)
     say(f"wrote {args.output}")
