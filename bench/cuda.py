@@ -41,11 +41,10 @@ ARGS = None  # the parsed command line (for the KISS-GP cells' processes)
 
 
 def _write(result: dict, path: Path) -> None:
-    from gpdepth3d.io import atomic_path
+    from gpdepth3d.io import write_json
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=2, default=float))
+    write_json(path, result)
 
 
 def onnx_section(data: Path, models: Path) -> tuple[dict, object]:

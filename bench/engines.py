@@ -3,7 +3,7 @@
 Two suites, one run each:
 
 ``--suite kitti`` (the default): issue 13's speed target. kitti_tiny frame 0 with RT-MonoDepth-S,
-prepared as the paper's KITTI protocol does (`gpdepth3d.kitti_protocol`: the GP grid at 1/3
+prepared as the paper's KITTI protocol does (`gpdepth3d.experiments.kitti_protocol`: the GP grid at 1/3
 resolution, 125 x 414; 20 % of the LiDAR held out; uniform inputs from the rest), at the
 paper's eight densities (1/64 ... all of the LiDAR) and two outputs: the 1/3 grid and the full
 image (375 x 1242, predicted from the 1/3 grid). Per cell, mean + variance through
@@ -363,11 +363,10 @@ def _fmt_kitti(r: dict) -> str:
 
 
 def _write_json(result: dict, path: Path) -> None:
-    from gpdepth3d.io import atomic_path
+    from gpdepth3d.io import write_json
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=2, default=float))
+    write_json(path, result)
 
 
 def main() -> None:

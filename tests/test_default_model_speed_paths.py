@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import DepthCompleter, _edge_range
+from gpdepth3d.completion.complete import DepthCompleter, _edge_range
 from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.gp.points import PointFit, _correlation, loo_zscores
@@ -25,7 +25,7 @@ def kitti(shared_data):
     """(KittiFrameSetup, {density: SparseDepth}) of kitti_tiny frame 0."""
     pytest.importorskip("onnxruntime")
     from gpdepth3d.datasets import open_dataset
-    from gpdepth3d.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
+    from gpdepth3d.experiments.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
     from gpdepth3d.mde import RTMonoDepthONNX
 
     models = shared_data.parent / "models"

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gpdepth3d.complete import DepthCompleter
+from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError, ShapeError
 from gpdepth3d.gp import EngineConfig, Solution, SolveInfo, make_engine
 from gpdepth3d.gp.exact import ExactEngine, dense_posterior, dense_solve
