@@ -149,8 +149,11 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
     from gpdepth3d.measurements import SparseDepth
 
     rng = np.random.default_rng(7)
-    completer = DepthCompleter(DepthGPConfig.residual(engine="fast", lengthscale=5.0))
-    engine = completer.engine = FastEngine(route="grid")  # 50 points: "auto" would take the Woodbury route
+    from gpdepth3d.gp import EngineConfig
+
+    # 50 points: "auto" would take the Woodbury route
+    completer = DepthCompleter(DepthGPConfig.residual(engine="fast", lengthscale=5.0), engine=EngineConfig(route="grid"))
+    engine = completer.engine
 
     def frame():
         mde = rng.uniform(2.0, 4.0, (30, 40))

@@ -191,12 +191,10 @@ class MethodSuite:
             engine = "fast"
         cfg = config.replace(engine=engine)
         if cfg not in self._completers:
-            completer = DepthCompleter(cfg)
-            if engine == "fast" and self.device is not None:
-                from ..gp.fast import FastEngine
+            from ..gp import EngineConfig
 
-                completer.engine = FastEngine(device=self.device)
-            self._completers[cfg] = completer
+            options = EngineConfig(device=self.device) if engine == "fast" and self.device is not None else None
+            self._completers[cfg] = DepthCompleter(cfg, engine=options)
         return self._completers[cfg]
 
     def run(self, name: str, mde: np.ndarray, sparse: SparseDepth) -> MethodOutput:
