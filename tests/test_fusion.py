@@ -337,3 +337,72 @@ class TestIncrementalMesh:
         np.testing.assert_allclose(_centroids(inc), _centroids(full), atol=1e-9)
         # colours come along
         assert inc.visual.vertex_colors.shape[0] == len(inc.vertices)
+
+
+class TestCompiledUpdate:
+    """The CPU's compiled voxel update and band search against the torch implementation (CUDA's).
+
+    The camera's principal point is off the half pixel and the poses rotate, so that (almost) no
+    voxel projects exactly onto a half pixel: float32 (torch) and float64 (here) round such ties
+    either way.
+    """
+
+    CAM = PinholeCamera(120.0, 121.0, 39.37, 29.61, 80, 60)
+
+    @staticmethod
+    def _frames(rng):
+        import cv2
+
+        poses = []
+        for k, (x, y) in enumerate([(0.0113, 0.0031), (0.0712, 0.0207), (-0.0493, 0.0411)]):
+            T = _shift(x, y)
+            T[:3, :3] = cv2.Rodrigues(np.array([0.013 * k + 0.002, -0.07 * k + 0.003, 0.021 * k]))[0]
+            poses.append(T)
+        depths = []
+        cam = TestCompiledUpdate.CAM
+        for _ in poses:
+            d = 1.3 + 0.6 * rng.random() + 0.2 * np.sin(np.arange(cam.width) / 5.0)[None, :] * np.ones((cam.height, 1))
+            d[rng.random(cam.shape) < 0.05] = 0.0  # holes
+            depths.append(d)
+        return poses, depths
+
+    def test_band_blocks_are_the_torch_ones(self):
+        rng = np.random.default_rng(11)
+        poses, depths = self._frames(rng)
+        fusion = TSDFFusion(self.CAM, FusionConfig(voxel_size=0.02, truncation=0.08, block_resolution=4))
+        for d, T in zip(depths, poses):
+            d32 = d.astype(np.float32)
+            ours, ref = fusion._band_keys(d32, T), fusion._band_keys_torch(d32, T)
+            assert np.all(np.diff(ours) > 0)  # sorted, unique
+            # float64 here, float32 in torch: a sample on a block face may fall either side
+            common = np.intersect1d(ours, ref).size
+            assert common >= 0.995 * max(ours.size, ref.size) and ours.size > 50
+        assert fusion._band_keys(np.zeros(self.CAM.shape, np.float32), np.eye(4)).size == 0
+
+    @pytest.mark.parametrize("color, variance", [(True, True), (False, False)])
+    def test_voxels_match_the_torch_update(self, color, variance):
+        rng = np.random.default_rng(12)
+        poses, depths = self._frames(rng)
+        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, integrate_color=color, integrate_variance=variance, weight_cap=2.5)
+        cam = self.CAM
+        compiled, reference = TSDFFusion(cam, cfg), TSDFFusion(cam, cfg)
+        reference._update = reference._update_torch  # type: ignore[method-assign]
+        reference._band_keys = compiled._band_keys  # the same blocks for both: compare the update alone
+        for d, T in zip(depths, poses):
+            kw = dict(rgb=rng.integers(0, 255, cam.shape + (3,), dtype=np.uint8), weights=rng.uniform(0.2, 1.0, cam.shape))
+            if variance:
+                kw["variance"] = rng.uniform(0.001, 0.02, cam.shape)
+            n1, n2 = compiled.integrate(d, T, **kw).voxels, reference.integrate(d, T, **kw).voxels
+            assert abs(n1 - n2) <= 0.001 * n2 and n1 > 1000
+        a, b = _sorted_voxels(compiled), _sorted_voxels(reference)
+        assert a.keys() == b.keys()
+        # the same voxels observed, with the same values, up to voxels whose projection lies
+        # within float32 rounding of a half pixel
+        ca, cb = {tuple(c) for c in np.round(a["coords"], 4)}, {tuple(c) for c in np.round(b["coords"], 4)}
+        assert len(ca ^ cb) <= 0.002 * len(cb)
+        ka = {c: i for i, c in enumerate(map(tuple, np.round(a["coords"], 4)))}
+        pairs = np.array([(ka[c], j) for j, c in enumerate(map(tuple, np.round(b["coords"], 4))) if c in ka])
+        assert len(pairs) >= 0.998 * len(cb)
+        for k in a:
+            close = np.isclose(a[k][pairs[:, 0]], b[k][pairs[:, 1]], rtol=1e-5, atol=1e-5).reshape(len(pairs), -1)
+            assert np.all(close, axis=1).mean() > 0.995, k

@@ -58,6 +58,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Literal
 
+import numba as nb
 import numpy as np
 
 from ..camera import PinholeCamera, check_pose
@@ -388,9 +389,38 @@ class TSDFFusion:
     def _update(
         self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray
     ) -> int:
-        """The voxel update of one frame over the blocks ``keys`` (see the module docstring)."""
-        # The voxel update runs in torch on zero-copy (DLPack) views of the grid's buffers: the
-        # same code on CPU and CUDA, and much faster on the CPU than Open3D's indexing ops.
+        """The voxel update of one frame over the blocks ``keys`` (see the module docstring).
+
+        On the CPU a compiled loop (`_update_voxels`, numba) visits every voxel of the blocks
+        once; on CUDA the same update runs as torch tensor operations (`_update_torch`).
+        """
+        if self._torch_device != "cpu":
+            return self._update_torch(keys, d, w, color, var, T)
+        buf = self._activate(keys).cpu().numpy().astype(np.int64).reshape(-1)
+        blocks = _keys_to_blocks(keys).astype(np.int64)
+        T_cw = np.linalg.inv(T)
+        cfg = self.config
+        tsdf = _to_torch(self.vbg.attribute("tsdf")).view(-1).numpy()
+        weight = _to_torch(self.vbg.attribute("weight")).view(-1).numpy()
+        col = _to_torch(self.vbg.attribute("color")).view(-1).numpy() if cfg.integrate_color else np.zeros(0, np.float32)
+        vvox = _to_torch(self.vbg.attribute("variance")).view(-1).numpy() if cfg.integrate_variance else np.zeros(0, np.float32)
+        cam = self.camera
+        return int(
+            _update_voxels(
+                blocks, buf, int(cfg.block_resolution), float(cfg.voxel_size), T_cw[:3, :3].copy(), T_cw[:3, 3].copy(),
+                float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
+                np.ascontiguousarray(d, np.float32), np.ascontiguousarray(w, np.float32),
+                np.zeros((0, 0, 3), np.float32) if color is None else np.ascontiguousarray(color, np.float32),
+                np.zeros((0, 0), np.float32) if var is None else np.ascontiguousarray(var, np.float32),
+                float(cfg.truncation), float(cfg.weight_cap), tsdf, weight, col, vvox,
+            )
+        )
+
+    def _update_torch(
+        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray
+    ) -> int:
+        """`_update` as torch tensor operations (CUDA, and the CPU reference in the tests)."""
+        # The voxel update runs in torch on zero-copy (DLPack) views of the grid's buffers.
         import torch
 
         cfg, tdev = self.config, self._torch_device
@@ -476,8 +506,23 @@ class TSDFFusion:
         Open3D's ``compute_unique_block_coordinates`` samples the band too sparsely (with a
         truncation of several blocks it skips blocks in the middle of the band, so some voxels
         in the band would never be updated); here every valid pixel's ray is sampled through
-        [depth - truncation, depth + truncation] at steps of two voxels.
+        [depth - truncation, depth + truncation] at steps of two voxels. On the CPU a compiled
+        loop marks the blocks in a dense grid over the frame's bounding box (`_band_blocks`, no
+        sort); on CUDA torch computes one key per sample and keeps the unique ones.
         """
+        if self._torch_device == "cpu":
+            cfg, cam = self.config, self.camera
+            steps = int(np.ceil(2 * cfg.truncation / (2 * cfg.voxel_size))) + 1
+            blocks = _band_blocks(
+                np.ascontiguousarray(depth, np.float32), float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
+                np.ascontiguousarray(T[:3, :3], np.float64), np.ascontiguousarray(T[:3, 3], np.float64),
+                float(cfg.truncation), steps, float(cfg.voxel_size * cfg.block_resolution),
+            )
+            return _blocks_to_keys(blocks)  # the grid is walked in key order: sorted, unique
+        return self._band_keys_torch(depth, T)
+
+    def _band_keys_torch(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """`_band_keys` with torch (CUDA, and the CPU reference in the tests)."""
         import torch
 
         cfg, tdev = self.config, self._torch_device
@@ -804,6 +849,133 @@ class TSDFFusion:
         fusion = cls(camera, config, _vbg=vbg)
         fusion.frames_integrated = int(meta["frames_integrated"])
         return fusion
+
+
+# ---------------------------------------------------------------------- compiled CPU kernels
+@nb.njit(cache=True, nogil=True)
+def _update_voxels(
+    blocks, buf, res, voxel_size, R_cw, t_cw, fx, fy, cx, cy, depth, wpix, color, var, trunc, cap, tsdf, weight, col, vvox
+):  # pragma: no cover - compiled; tested against the torch update
+    """The projective TSDF update of every voxel of the given blocks (see the module docstring).
+
+    ``blocks`` (M, 3) block coordinates, ``buf`` (M,) their buffer indices; a voxel (x, y, z)
+    of block b sits at ``(b * res + (x, y, z)) * voxel_size`` and is stored at
+    ``buf * res^3 + (z * res + y) * res + x`` (Open3D's layout). ``color`` / ``var`` of size 0
+    skip those attributes. Returns the number of voxel updates.
+    """
+    h, w = depth.shape
+    has_color = color.shape[0] > 0
+    has_var = var.shape[0] > 0
+    n = 0
+    r3 = res * res * res
+    # camera coordinates of voxel (x, y, z) of a block: origin + x * ex + y * ey + z * ez
+    ex = R_cw[:, 0] * voxel_size
+    ey = R_cw[:, 1] * voxel_size
+    ez = R_cw[:, 2] * voxel_size
+    for m in range(blocks.shape[0]):
+        base = buf[m] * r3
+        o0 = blocks[m, 0] * res
+        o1 = blocks[m, 1] * res
+        o2 = blocks[m, 2] * res
+        for z in range(res):
+            for y in range(res):
+                # the block's voxel (0, y, z) in the camera frame
+                gx, gy, gz = o0 * voxel_size, (o1 + y) * voxel_size, (o2 + z) * voxel_size
+                qx = R_cw[0, 0] * gx + R_cw[0, 1] * gy + R_cw[0, 2] * gz + t_cw[0]
+                qy = R_cw[1, 0] * gx + R_cw[1, 1] * gy + R_cw[1, 2] * gz + t_cw[1]
+                qz = R_cw[2, 0] * gx + R_cw[2, 1] * gy + R_cw[2, 2] * gz + t_cw[2]
+                for x in range(res):
+                    pz = qz + x * ex[2]
+                    if pz <= 1e-6:
+                        continue
+                    inv = 1.0 / pz
+                    u = np.rint(fx * (qx + x * ex[0]) * inv + cx)
+                    v = np.rint(fy * (qy + x * ex[1]) * inv + cy)
+                    if u < 0 or v < 0 or u >= w or v >= h:
+                        continue
+                    iu = int(u)
+                    iv = int(v)
+                    reading = depth[iv, iu]
+                    wn = wpix[iv, iu]
+                    if reading <= 0 or wn <= 0:
+                        continue
+                    sdf = reading - pz
+                    if sdf < -trunc:
+                        continue
+                    if sdf > trunc:
+                        sdf = trunc
+                    sdf /= trunc
+                    idx = base + (z * res + y) * res + x
+                    wold = weight[idx]
+                    wsum = wold + wn
+                    tsdf[idx] = (tsdf[idx] * wold + sdf * wn) / wsum
+                    if has_color:
+                        for c in range(3):
+                            col[3 * idx + c] = (col[3 * idx + c] * wold + color[iv, iu, c] * wn) / wsum
+                    if has_var:
+                        vvox[idx] = (vvox[idx] * wold + var[iv, iu] * wn) / wsum
+                    weight[idx] = min(wsum, cap)
+                    n += 1
+    return n
+
+
+@nb.njit(cache=True, nogil=True)
+def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, steps, block_size):  # pragma: no cover - compiled
+    """(M, 3) int64 coordinates of the blocks that samples of every valid pixel's ray through
+    [depth - trunc, depth + trunc] (``steps`` samples) fall into, in key order (x, then y, then z).
+
+    Two passes over the samples: the bounding box of their blocks, then marks in a dense grid
+    over it, read out in order (no sort, no hash).
+    """
+    h, w = depth.shape
+    lo = np.full(3, np.iinfo(np.int64).max, np.int64)
+    hi = np.full(3, np.iinfo(np.int64).min, np.int64)
+    b = np.zeros(3, np.int64)
+    t0, t1, t2 = t[0] / block_size, t[1] / block_size, t[2] / block_size
+    for sweep in range(2):
+        if sweep == 1:
+            if lo[0] > hi[0]:
+                return np.zeros((0, 3), np.int64)
+            nx, ny, nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
+            grid = np.zeros((nx, ny, nz), np.bool_)
+        for v in range(h):
+            ry = (v - cy) / fy
+            for u in range(w):
+                d = depth[v, u]
+                if d <= 0:
+                    continue
+                rx = (u - cx) / fx
+                # the ray's direction in blocks per metre of depth, its origin in blocks
+                d0 = (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) / block_size
+                d1 = (R[1, 0] * rx + R[1, 1] * ry + R[1, 2]) / block_size
+                d2 = (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]) / block_size
+                for k in range(steps):
+                    off = -trunc + 2.0 * trunc * k / (steps - 1) if steps > 1 else 0.0
+                    s = max(d + off, 1e-3)
+                    b[0] = int(np.floor(t0 + s * d0))
+                    b[1] = int(np.floor(t1 + s * d1))
+                    b[2] = int(np.floor(t2 + s * d2))
+                    if sweep == 0:
+                        for a in range(3):
+                            lo[a] = min(lo[a], b[a])
+                            hi[a] = max(hi[a], b[a])
+                    else:
+                        grid[b[0] - lo[0], b[1] - lo[1], b[2] - lo[2]] = True
+    count = 0
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if grid[i, j, k]:
+                    count += 1
+    out = np.zeros((count, 3), np.int64)
+    m = 0
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                if grid[i, j, k]:
+                    out[m, 0], out[m, 1], out[m, 2] = i + lo[0], j + lo[1], k + lo[2]
+                    m += 1
+    return out
 
 
 def _to_torch(tensor: Any) -> Any:
