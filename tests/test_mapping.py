@@ -479,3 +479,122 @@ class TestVioSparse:
             assert stats.outside == int(np.sum((pts[:, 2] > 1e-3) & ~cam.in_image(uv)))
             given, outside, used = given + stats.given, outside + stats.outside, used + stats.used
         assert 0.25 < outside / given < 0.5 and used > 0.5 * (given - outside)
+
+
+class TestFixedLag:
+    """The Mapper's fixed lag: a frame is triangulated from earlier and later views, then fused."""
+
+    def _config(self, **kw) -> MapperConfig:
+        base = dict(working_scale=0.25, window=3, lag=2, gp=DepthGPConfig.residual(engine="exact"),
+                    fusion=FusionConfig(voxel_size=0.04, truncation=0.12))
+        return MapperConfig(**{**base, **kw})
+
+    def test_frames_come_back_after_lag_calls_with_points_from_both_sides(self, shared_data):
+        from gpdepth3d.mapping import SEVEN_SCENES_RGB_K
+
+        frames = _frames(shared_data, range(40, 46))
+        cam = PinholeCamera.from_K(SEVEN_SCENES_RGB_K, 640, 480)
+        mapper = Mapper(cam, self._config())
+        results = []
+        for i, f in enumerate(frames):
+            r = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), keyframe_id=10 + i)
+            if i < 2:
+                assert r is None and mapper.pending == tuple(range(10, 11 + i))
+            else:
+                assert r.keyframe_id == 10 + i - 2 and mapper.pending == (10 + i - 1, 10 + i)
+                results.append(r)
+            assert set(mapper.timings[-1]) == {"mde", "points", "gp", "fusion", "total"}
+        with pytest.raises(InvalidInputError):  # a waiting frame's id is taken too
+            mapper.add_frame(frames[0].rgb, frames[0].pose, mde_depth=_standin_mde(frames[0].depth), keyframe_id=15)
+        assert mapper.pending == (14, 15)
+        rest = mapper.flush()
+        assert [r.keyframe_id for r in rest] == [14, 15] and mapper.pending == () and mapper.flush() == []
+        results += rest
+        assert [r.keyframe_id for r in results] == list(range(10, 16)) and all(r.fused for r in results)
+        assert sorted(mapper.keyframes) == list(range(10, 16)) and mapper.frames == 6
+        # every frame has triangulated points, the first one too (it has later views), near the Kinect depth
+        for r, f in zip(results, frames):
+            assert len(r.sparse) > 30, r.keyframe_id
+            lifted = cam.backproject_pixels(r.sparse.uv, r.sparse.depth)
+            uv, z = f.camera.project(lifted)
+            inside = f.camera.in_image(uv)
+            iu = np.rint(uv[inside]).astype(int)
+            k = f.depth[iu[:, 1], iu[:, 0]]
+            ok = k > 0
+            assert np.median(np.abs(z[inside][ok] - k[ok]) / k[ok]) < 0.12, r.keyframe_id
+        assert len(mapper.mesh().faces) > 100
+
+    def test_lag_zero_is_immediate_and_a_failed_frame_keeps_its_turn(self, shared_data):
+        frames = _frames(shared_data, range(40, 44))
+        calls = []
+
+        def flaky(rgb):
+            calls.append(1)
+            if len(calls) == 2:
+                raise RuntimeError("front-end hiccup")
+            return _standin_mde(frames[len(calls) - 1].depth)
+
+        lagged = Mapper(frames[0].camera, self._config(lag=1), mde=flaky)
+        out = [lagged.add_frame(f.rgb, f.pose) for f in frames] + lagged.flush()
+        assert out[0] is None and [r.keyframe_id for r in out[1:]] == [0, 1, 2, 3]
+        assert [r.fused for r in out[1:]] == [True, False, True, True]
+        assert out[2].error == "frame 1: mde: RuntimeError: front-end hiccup" and lagged.failures == [out[2].error]
+        immediate = Mapper(frames[0].camera, self._config(lag=0))
+        r = immediate.add_frame(frames[0].rgb, frames[0].pose, mde_depth=_standin_mde(frames[0].depth))
+        assert r.keyframe_id == 0 and r.fused and immediate.pending == () and immediate.flush() == []
+
+    def test_update_poses_of_a_waiting_frame(self, shared_data):
+        frames = _frames(shared_data, range(40, 44))
+        mapper = Mapper(frames[0].camera, self._config())
+        for f in frames[:3]:
+            mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
+        assert mapper.pending == (1, 2)
+        moved = frames[2].pose.copy()
+        moved[:3, 3] += [0.02, 0.0, 0.0]
+        update = mapper.update_poses({2: moved})
+        assert update.moved == ()  # not in the volume yet: nothing to re-integrate
+        mapper.flush()
+        np.testing.assert_allclose(mapper.keyframes[2].T_world_camera, moved, atol=1e-9)
+        with pytest.raises(InvalidInputError):
+            mapper.update_poses({7: moved})
+
+    def test_config(self):
+        for bad in (-1, 1.5, True):
+            with pytest.raises(InvalidInputError):
+                MapperConfig(lag=bad)
+        with pytest.raises(InvalidInputError):
+            MapperConfig(fuse_depth="mode")  # type: ignore[arg-type]
+        assert MapperConfig().lag == 4 and MapperConfig().window == 8 and MapperConfig().fuse_depth == "median"
+
+
+class TestFusedDepth:
+    def test_median_of_the_log_normal_posterior(self):
+        from types import SimpleNamespace
+
+        from gpdepth3d.mapping import fused_depth
+
+        rng = np.random.default_rng(0)
+        mu, v = rng.normal(0.5, 0.2, (6, 7)), rng.uniform(0.0, 0.3, (6, 7))  # log depth: mean, variance
+        mean, var = np.exp(mu + v / 2), (np.exp(v) - 1) * np.exp(2 * mu + v)  # the log-normal's moments
+        post = SimpleNamespace(mean=mean, variance=var, config=DepthGPConfig())
+        np.testing.assert_allclose(fused_depth(post), np.exp(mu), rtol=1e-12)  # the median: exp(mu)
+        np.testing.assert_array_equal(fused_depth(post, "mean"), mean)
+        gaussian = SimpleNamespace(mean=mean, variance=var, config=DepthGPConfig.residual())
+        np.testing.assert_array_equal(fused_depth(gaussian), mean)
+        mean[0, 0], mean[0, 1] = -0.1, np.nan  # left for the fusion to mask
+        out = fused_depth(post)
+        assert out[0, 0] == -0.1 and np.isnan(out[0, 1])
+        with pytest.raises(InvalidInputError):
+            fused_depth(post, "mode")  # type: ignore[arg-type]
+
+    def test_mapper_fuses_the_median(self, shared_data):
+        from gpdepth3d.mapping import fused_depth
+
+        f = _frames(shared_data, (0,))[0]
+        for estimate in ("median", "mean"):
+            mapper = Mapper(f.camera, _small_config(fuse_depth=estimate))
+            res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 60, 0))
+            expected = fused_depth(res.posterior, estimate)
+            np.testing.assert_allclose(res.depth, expected.astype(np.float32), rtol=1e-6)
+            if estimate == "median":
+                assert np.all(res.depth <= res.posterior.mean + 1e-6) and np.any(res.depth < 0.999 * res.posterior.mean)

@@ -416,6 +416,37 @@ class TestTrackTriangulator:
         with pytest.raises(ShapeError):
             build_tracks([views[0][0], np.zeros((10, 10, 3), np.uint8)], poses[:2], SMALL)
 
+    def test_lag_triangulates_each_frame_from_views_on_both_sides(self):
+        tex = _texture(3)
+        poses = [_posed([0.03 * k, 0.004 * k, 0.0], (0.0, 0.2 * k, 0.0)) for k in range(7)]
+        views = [_render_plane(T, tex) for T in poses]
+        tracker = TrackTriangulator(SMALL, TriangulationConfig(max_features=300), window=3, lag=2)
+        got = {}
+        for k, (T, (rgb, _)) in enumerate(zip(poses, views)):
+            sparse = tracker.add(rgb, T, key=f"f{k}")
+            if k < 2:  # the frame's later views have not come yet
+                assert len(sparse) == 0 and tracker.last_key is None and tracker.pending == k + 1
+            else:
+                assert tracker.last_key == f"f{k - 2}" and tracker.pending == 2
+                got[tracker.last_key] = (sparse, tracker.last)
+        rest = tracker.flush()
+        assert [k for k, _ in rest] == ["f5", "f6"] and tracker.pending == 0 and tracker.flush() == []
+        got.update({k: (s, None) for k, s in rest})
+        assert sorted(got) == [f"f{k}" for k in range(7)]
+        for k in range(7):
+            sparse = got[f"f{k}"][0]
+            assert len(sparse) > 100, k  # the first frame too: it has later views
+            iu = np.rint(sparse.uv).astype(int)
+            truth = views[k][1][iu[:, 1], iu[:, 0]]
+            assert np.median(np.abs(sparse.depth - truth) / truth) < 0.01
+        # frame 3 is seen from up to 3 earlier and 2 later views (6 with itself)
+        assert got["f3"][1].n_views.max() == 6
+        # lag 0 is the frame just added
+        plain = TrackTriangulator(SMALL, TriangulationConfig(max_features=300), window=3)
+        for k in range(3):
+            s0 = plain.add(views[k][0], poses[k], key=k)
+        assert plain.last_key == 2 and len(s0) > 100 and plain.flush() == []
+
     def test_errors(self):
         tracker = TrackTriangulator(SMALL)
         with pytest.raises(ShapeError):
@@ -424,6 +455,10 @@ class TestTrackTriangulator:
             tracker.add(np.zeros((240, 320, 3), np.uint8), np.eye(4) * 2)
         with pytest.raises(InvalidInputError):
             TrackTriangulator(SMALL, window=0)
+        with pytest.raises(InvalidInputError):
+            TrackTriangulator(SMALL, lag=-1)
+        with pytest.raises(InvalidInputError):
+            TrackTriangulator(SMALL, lag=1.5)  # type: ignore[arg-type]
         with pytest.raises(InvalidInputError):
             TrackTriangulator("camera")  # type: ignore[arg-type]
 
