@@ -4,7 +4,7 @@ per-frame depth RMSE, sigma coverage of the points, points per frame, triangulat
 Usage::
 
     python bench/fusion.py [--data ../shared/data/7scenes] [--model ../shared/models/fast_depth_224.tflite]
-                           [--frames 60] [--threads 1] [--window 4] [--detector klt]
+                           [--frames 60] [--threads 1] [--window N] [--lag N] [--fuse-depth median|mean] [--detector klt]
                            [--gp default|residual] [--tri FIELD=VALUE ...] [--gp-set FIELD=VALUE ...]
                            [--out PATH]
 
@@ -18,11 +18,13 @@ truncation 8 cm, depth_max 5 m):
 * MDE: FastDepth (int8 TFLite, real network) on the RGB image.
 * Sparse points: the Mapper's own triangulation (`gpdepth3d.mapping.triangulation`): with the default
   ``detector="klt"`` a `TrackTriangulator` follows corners frame to frame and triangulates each
-  track from every view of the last ``--window`` frames it was seen in, with the sequence's
-  poses (no ground truth); per-point sigma from pixel noise and pose uncertainty.
+  track from every view it was seen in among the ``--window`` frames before and the ``--lag``
+  frames after the frame (the Mapper's fixed lag), with the sequence's poses (no ground truth);
+  per-point sigma from pixel noise and pose uncertainty.
 * Refinement: the library's default GP, ``DepthGPConfig()`` (whatever the default is at the
   time of the run; it is written into the JSON).
-* Fusion: variance-weighted TSDF (the Mapper's volume); MDE-only with uniform weights as the
+* Fusion: variance-weighted TSDF of the posterior median (the Mapper's volume and
+  ``fuse_depth``); MDE-only with uniform weights as the
   baseline; the reference mesh is fused from the Kinect depth with the depth camera's
   intrinsics (f = 585). The colour camera is taken as f = 525 (`SEVEN_SCENES_RGB_K`).
 
@@ -37,7 +39,8 @@ Measured:
   and over even / odd frames (hold-outs: the sigma model's constants were set on the whole
   sequence; the halves show whether they carry over);
 * points per frame (frames without points), median per-frame |bias| of the points;
-* seconds per keyframe of each Mapper stage (mean and median; "points" is the triangulation).
+* seconds per `Mapper.add_frame` call of each stage (mean and median; "points" is the tracking
+  step and the triangulation; with the Mapper's lag a call adds one frame and fuses an earlier one).
 
 The machine these numbers come from is shared (2 cores, several jobs), so timings are noisy:
 compare ratios within one run. Results: a summary on stdout and ``bench/results/fusion.json``
@@ -76,7 +79,9 @@ def main() -> None:
     parser.add_argument("--model", type=Path, default=REPO.parent / "shared" / "models" / "fast_depth_224.tflite")
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--window", type=int, default=4)
+    parser.add_argument("--window", type=int, default=None, help="earlier views (default: MapperConfig's)")
+    parser.add_argument("--lag", type=int, default=None, help="later views (default: MapperConfig's)")
+    parser.add_argument("--fuse-depth", choices=["median", "mean"], default=None, help="default: MapperConfig's")
     parser.add_argument("--detector", choices=["klt", "orb", "sift"], default="klt")
     parser.add_argument(
         "--gp", choices=["default", "residual"], default="default",
@@ -116,7 +121,7 @@ def main() -> None:
         working_scale=0.5,
         gp=replace(DepthGPConfig() if args.gp == "default" else DepthGPConfig.residual(), **gp_overrides),
         triangulation=TriangulationConfig(detector=args.detector, **overrides),
-        window=args.window,
+        **{k: v for k, v in (("window", args.window), ("lag", args.lag), ("fuse_depth", args.fuse_depth)) if v is not None},
     )
     reader = SevenScenes(args.data)
     n = min(len(reader), args.frames)
@@ -131,16 +136,19 @@ def main() -> None:
 
     rows = []
     t_start = time.perf_counter()
-    for i in range(n):
-        frame = reader[i]
-        result = mapper.add_frame(frame.rgb, frame.pose)
+    call_timings = []
+    frames = {}
+
+    def record(result) -> None:
+        i = result.keyframe_id
+        frame = frames.pop(i)
         work_rgb = mapper._work_rgb(frame.rgb)
         mde_volume.integrate(result.mde, frame.pose, rgb=work_rgb)
         gt_volume.integrate(_resize_depth(frame.depth, depth_work.shape), frame.pose, rgb=work_rgb)
         pts, _ = frame.camera.backproject(frame.depth)
         gt_rgb = project_points(pts, work).to_depth_map()
         ok = gt_rgb > 0
-        row = {"frame": i, "points": len(result.sparse), "timings": dict(result.timings)}
+        row = {"frame": i, "points": len(result.sparse)}
         if ok.any() and result.depth.size:
             for name, depth in (("gp", result.depth), ("mde", result.mde)):
                 e = depth[ok] - gt_rgb[ok]
@@ -157,11 +165,20 @@ def main() -> None:
             row["bias"] = float(np.median(err / kinect[good])) if good.any() else float("nan")
         rows.append(row)
         print(
-            f"frame {i}: {row['points']} points, "
-            + ", ".join(f"{k} {1e3 * v:.0f} ms" for k, v in result.timings.items())
+            f"frame {i}: {row['points']} points"
             + (f", rmse gp {row['rmse_gp']:.3f} mde {row['rmse_mde']:.3f}" if "rmse_gp" in row else ""),
             flush=True,
         )
+
+    for i in range(n):
+        frames[i] = reader[i]
+        result = mapper.add_frame(frames[i].rgb, frames[i].pose, keyframe_id=i)
+        call_timings.append(dict(mapper.timings[-1]))
+        if result is not None:
+            record(result)
+    for result in mapper.flush():
+        record(result)
+    rows.sort(key=lambda r: r["frame"])
     wall = time.perf_counter() - t_start
 
     meshes = {"mde": mde_volume.extract_mesh(), "gp_variance": mapper.mesh(), "gt": gt_volume.extract_mesh()}
@@ -176,13 +193,13 @@ def main() -> None:
         v = [r[key] for r in rows if key in r]
         return float(np.mean(v)) if v else float("nan")
 
-    stages = sorted({k for r in rows for k in r["timings"]})
-    timing = {k: {"mean": float(np.mean([r["timings"][k] for r in rows if k in r["timings"]])),
-                  "median": float(np.median([r["timings"][k] for r in rows if k in r["timings"]]))} for k in stages}
+    stages = sorted({k for t in call_timings for k in t})
+    timing = {k: {"mean": float(np.mean([t[k] for t in call_timings if k in t])),
+                  "median": float(np.median([t[k] for t in call_timings if k in t]))} for k in stages}
     bias = np.array([r["bias"] for r in rows if "bias" in r])
     npts = np.array([r["points"] for r in rows])
-    # the first frame of a stream gets no points from the Mapper (nothing before it); the
-    # batch function uses the later frames instead:
+    # for comparison, the batch function on the first frame with the 8 frames after it (the
+    # Mapper with lag > 0 triangulates the first frame from its later frames too):
     first_frames = [reader[k] for k in range(min(n, 9))]
     sd0 = triangulate_frames([f.rgb for f in first_frames], [f.pose for f in first_frames], rgb_cam, reference=0)
     z0, k0 = _kinect_at(first_frames[0], rgb_cam, depth_cam, sd0.uv, np.asarray(sd0.depth))

@@ -5,12 +5,15 @@ Usage::
     python bench/mapper.py [--data ../shared/data/7scenes] [--model ../shared/models/fast_depth_224.tflite]
                            [--frames 60] [--threads 1] [--out bench/results/mapper.json]
 
-Per frame, with the library's defaults (`MapperConfig()`: the default `DepthGPConfig()` on the fast
-engine, the default triangulation, variance-weighted TSDF with 2 cm voxels) at
-``working_scale=0.5`` (320 x 240 from the 640 x 480 RGB): the stages of `Mapper.add_frame`,
-"mde" (FastDepth int8 TFLite on the RGB image), "points" (feature detection and triangulation
-against the window of earlier frames), "gp" (posterior mean and variance), "fusion" (TSDF
-integration with per-pixel weights and the keyframe store), and "total".
+Per `Mapper.add_frame` call, with the library's defaults (`MapperConfig()`: the default
+`DepthGPConfig()` on the fast engine, KLT tracks with 8 earlier and 4 later views (the fixed lag:
+a call adds one frame and refines and fuses the frame added 4 calls earlier), variance-weighted
+TSDF of the posterior median with 2 cm voxels) at ``working_scale=0.5`` (320 x 240 from the
+640 x 480 RGB): the stages "mde" (FastDepth int8 TFLite on the RGB image added), "points" (one
+KLT step, new corners, the fused frame's triangulation), "gp" (posterior mean and variance),
+"fusion" (TSDF integration with per-pixel weights and the keyframe store), and "total"; the
+calls that only add a frame (the first 4) count with their MDE and points. `Mapper.flush`
+(the last 4 frames) is timed once.
 
 After every frame `Mapper.mesh` (incremental extraction) is timed; after the sequence a full
 extraction and `Mapper.point_cloud` once, then one loop closure: the pose
@@ -77,27 +80,37 @@ def main(argv: list[str] | None = None) -> dict:
     frames = [reader[i] for i in range(n)]
     camera = PinholeCamera.from_K(SEVEN_SCENES_RGB_K, frames[0].camera.width, frames[0].camera.height)
     config = MapperConfig(working_scale=0.5)
-    mapper = Mapper(camera, config, mde=FastDepthTFLite(args.model))
-    mapper.add_frame(frames[0].rgb, frames[0].pose, keyframe_id=-1)  # warm-up (JIT, caches): not timed, not kept
-    mapper = Mapper(camera, config, mde=mapper.mde, completer=mapper.completer)
-    results, cpu, mesh_incremental = [], [], []
+    warm = Mapper(camera, config, mde=FastDepthTFLite(args.model))
+    for k in range(min(n, config.lag + 2)):  # warm-up (JIT, caches, every stage once): not timed, not kept
+        warm.add_frame(frames[k].rgb, frames[k].pose, keyframe_id=-1 - k)
+    mapper = Mapper(camera, config, mde=warm.mde, completer=warm.completer)
+    results, calls, cpu, mesh_incremental = [], [], [], []
     for i, f in enumerate(frames):
         c0 = time.process_time()
-        results.append(mapper.add_frame(f.rgb, f.pose, keyframe_id=i))
+        r = mapper.add_frame(f.rgb, f.pose, keyframe_id=i)  # with the lag: fuses frame i - lag
         cpu.append(time.process_time() - c0)
-        r = results[-1]
-        t0 = time.perf_counter()
-        mapper.mesh()  # incremental: only the chunks this frame changed
-        mesh_incremental.append(time.perf_counter() - t0)
-        print(f"frame {i:2d}: {len(r.sparse):4d} points, " + ", ".join(f"{k} {1000 * v:6.1f}" for k, v in r.timings.items())
-              + f" ms (process CPU {1000 * cpu[-1]:.0f} ms), mesh() {1000 * mesh_incremental[-1]:.0f} ms"
-              + ("" if r.fused else f"  NOT FUSED: {r.error}"))
+        calls.append(dict(mapper.timings[-1]))
+        if mapper.frames:
+            t0 = time.perf_counter()
+            mapper.mesh()  # incremental: only the chunks this frame changed
+            mesh_incremental.append(time.perf_counter() - t0)
+        if r is not None:
+            results.append(r)
+        print(f"call {i:2d}: " + (f"frame {r.keyframe_id:2d} fused, {len(r.sparse):4d} points, " if r is not None else "(frame waits), ")
+              + ", ".join(f"{k} {1000 * v:6.1f}" for k, v in calls[-1].items())
+              + f" ms (process CPU {1000 * cpu[-1]:.0f} ms)" + (f", mesh() {1000 * mesh_incremental[-1]:.0f} ms" if r is not None else "")
+              + ("" if r is None or r.fused else f"  NOT FUSED: {r.error}"))
+    t0 = time.perf_counter()
+    results += mapper.flush()
+    t_flush = time.perf_counter() - t0
+    mapper.mesh()  # the flushed frames' chunks
+    fusing = [t for t in calls if t["gp"] > 0 or t["fusion"] > 0]  # the calls that fused a frame
     keys = list(STAGES) + ["total"]
     per_stage = {
         k: {
-            "median_ms": 1000 * float(np.median([r.timings[k] for r in results])),
-            "mean_ms": 1000 * float(np.mean([r.timings[k] for r in results])),
-            "p90_ms": 1000 * float(np.percentile([r.timings[k] for r in results], 90)),
+            "median_ms": 1000 * float(np.median([t[k] for t in calls])),
+            "mean_ms": 1000 * float(np.mean([t[k] for t in calls])),
+            "p90_ms": 1000 * float(np.percentile([t[k] for t in calls], 90)),
         }
         for k in keys
     }
@@ -133,7 +146,14 @@ def main(argv: list[str] | None = None) -> dict:
         "resolution": list(mapper.work_camera.shape),
         "points_per_frame_median": float(np.median([len(r.sparse) for r in results])),
         "masked_pixels": int(sum(r.masked_pixels for r in results)),
+        "lag": config.lag,
+        "window": config.window,
         "add_frame_ms": per_stage,
+        "flush_s": t_flush,
+        "add_frame_total_ms_calls_that_fused": {
+            "calls": len(fusing),
+            "median": 1000 * float(np.median([t["total"] for t in fusing])) if fusing else None,
+        },
         "add_frame_process_cpu_ms": {"median": 1000 * float(np.median(cpu)), "mean": 1000 * float(np.mean(cpu))},
         "mesh_incremental_after_each_frame_ms": {
             "median": 1000 * float(np.median(mesh_incremental)),

@@ -598,3 +598,69 @@ class TestFusedDepth:
             np.testing.assert_allclose(res.depth, expected.astype(np.float32), rtol=1e-6)
             if estimate == "median":
                 assert np.all(res.depth <= res.posterior.mean + 1e-6) and np.any(res.depth < 0.999 * res.posterior.mean)
+
+
+class TestMapScale:
+    """`map_scale`: a frame's measurements against the keyframes already fused."""
+
+    @staticmethod
+    def _scene(n_keyframes: int = 5):
+        """Keyframes looking at a tilted plane from nearby poses (depth maps exact, variance 1 %)."""
+        from gpdepth3d.mapping import Keyframe
+
+        cam = PinholeCamera(60.0, 60.0, 31.5, 23.5, 64, 48)
+        normal, offset = np.array([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0]), 2.0  # n . x = offset (world)
+
+        def depth_map(T):
+            u, v = np.meshgrid(np.arange(cam.width), np.arange(cam.height))
+            rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u, float)], -1)
+            rw = rays @ T[:3, :3].T
+            return (offset - normal @ T[:3, 3]) / (rw @ normal)  # z along each ray: z = t for rays with z = 1
+
+        stored = []
+        for k in range(n_keyframes):
+            T = np.eye(4)
+            T[:3, 3] = [0.05 * k, 0.02 * k, 0.0]
+            d = depth_map(T).astype(np.float32)
+            stored.append(Keyframe(k, T, d, (0.01 * d) ** 2, np.zeros(cam.shape + (3,), np.uint8), np.zeros(0, np.int64)))
+        T = np.eye(4)
+        T[:3, 3] = [0.12, 0.05, 0.0]
+        return cam, stored, T, depth_map(T)
+
+    def test_recovers_a_common_scale_error(self):
+        from dataclasses import replace as dc_replace
+
+        from gpdepth3d.mapping import map_scale
+
+        cam, stored, T, truth = self._scene()
+        rng = np.random.default_rng(0)
+        u, v = rng.integers(0, cam.width, 200), rng.integers(0, cam.height, 200)
+        for factor in (1.0, 1.2, 0.85):
+            sparse = SparseDepth.from_arrays(u.astype(float), v.astype(float), factor * truth[v, u], cam.shape, 0.02)
+            log_s, used = map_scale(sparse, T, cam, stored, cam)
+            assert used == 5 and log_s == pytest.approx(np.log(factor), abs=0.01)
+        # only the most recent keyframes; too few of them, too few points, unsure keyframes: no result
+        assert map_scale(sparse, T, cam, stored, cam, recent=2) == (0.0, 0)
+        assert map_scale(sparse.subset(np.arange(10)), T, cam, stored, cam) == (0.0, 0)
+        unsure = [dc_replace(kf, variance=(0.5 * kf.depth) ** 2) for kf in stored]
+        assert map_scale(sparse, T, cam, unsure, cam) == (0.0, 0)
+
+    def test_mapper_pulls_a_frames_points_halfway_to_the_map(self, shared_data):
+        frames = _frames(shared_data, (0, 1, 2, 3, 4))
+        cam = frames[0].camera
+        sparse = [_kinect_sparse(f, cam, 150, i) for i, f in enumerate(frames)]
+        results = {}
+        for weight in (0.0, 0.5):
+            mapper = Mapper(cam, _small_config(triangulate=True, lag=0, map_scale_weight=weight))
+            mapper._triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
+            scaled = {i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma) for i, s in enumerate(sparse)}
+            for i, f in enumerate(frames):
+                results[weight, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
+        assert all(results[0.0, i].map_scale == 1.0 for i in range(5))
+        assert [results[0.5, i].map_scale for i in range(3)] == [1.0] * 3  # fewer than 3 keyframes before them
+        assert results[0.5, 4].map_scale == pytest.approx(np.sqrt(1.3), rel=0.03)  # halfway, in log
+        np.testing.assert_allclose(np.sort(results[0.5, 4].sparse.depth), np.sort(1.3 * sparse[4].depth / results[0.5, 4].map_scale), rtol=1e-9)
+        with pytest.raises(InvalidInputError):
+            MapperConfig(map_scale_weight=1.5)
+        with pytest.raises(InvalidInputError):
+            MapperConfig(map_scale_keyframes=0)

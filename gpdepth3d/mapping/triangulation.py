@@ -533,10 +533,20 @@ class _Problem:
         self.pixel_sigma = float(pixel_sigma)
         self.prior = np.r_[np.full(3, 1.0 / rot_sigma**2), np.full(3, 1.0 / trans_sigma**2)]
 
+    def rotated_rays(self, R=None):
+        """(N, J, 3) reference rays rotated into every neighbour (cached for the current R)."""
+        R = self.R if R is None else R
+        cached = getattr(self, "_rx", None)
+        if cached is not None and cached[0] is R:
+            return cached[1]
+        Rx = np.matmul(self.xbar[None], np.swapaxes(R, 1, 2)).transpose(1, 0, 2)  # einsum("jab,nb->nja")
+        self._rx = (R, Rx)
+        return Rx
+
     def project(self, rho, R=None, t=None):
         R = self.R if R is None else R
         t = self.t if t is None else t
-        p = np.einsum("jab,nb->nja", R, self.xbar) + rho[:, None, None] * t[None]
+        p = self.rotated_rays(R) + rho[:, None, None] * t[None]
         z = p[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = p[..., :2] / z[..., None] * self.f + self.c
@@ -561,8 +571,9 @@ class _Problem:
         e = self.prior_residual(R, t)
         return data + np.sum(e**2 * self.prior)
 
-    def normal_equations(self, rho, weights):
-        """Gauss-Newton blocks with per-observation weights (N, J)."""
+    def normal_equations(self, rho, weights, poses: bool = True):
+        """Gauss-Newton blocks with per-observation weights (N, J); ``poses=False`` leaves out
+        the pose-pose blocks and the right-hand sides (returned as None)."""
         p, z, r, valid = self.residuals(rho)
         w = np.where(valid, weights, 0.0)
         fz = self.f / self.pixel_sigma
@@ -573,16 +584,22 @@ class _Problem:
         Jp[..., 1, 1] = fz[1] * iz
         Jp[..., 0, 2] = -fz[0] * p[..., 0] * iz**2
         Jp[..., 1, 2] = -fz[1] * p[..., 1] * iz**2
-        J_rho = np.einsum("njab,jb->nja", Jp, self.t)  # (N, J, 2)
-        Rx = np.einsum("jab,nb->nja", self.R, self.xbar)
-        J_theta = -np.einsum("njab,njbc->njac", Jp, _skew(Rx))
+        J_rho = np.matmul(Jp, self.t[None, :, :, None])[..., 0]  # (N, J, 2)
+        Rx = self.rotated_rays()
+        J_theta = -np.matmul(Jp, _skew(Rx))
         J_t = Jp * rho[:, None, None, None]
         J_xi = np.concatenate([J_theta, J_t], axis=-1)  # (N, J, 2, 6)
-        h_rr = np.einsum("nj,nja,nja->n", w, J_rho, J_rho)
-        b_r = np.einsum("nj,nja,nja->n", w, J_rho, r)
-        H_xr = np.einsum("nj,njak,nja->njk", w, J_xi, J_rho)  # (N, J, 6)
-        H_xx = np.einsum("nj,njak,njal->jkl", w, J_xi, J_xi)  # (J, 6, 6)
-        b_x = np.einsum("nj,njak,nja->jk", w, J_xi, r)
+        wJ_rho = w[..., None] * J_rho
+        h_rr = np.sum(wJ_rho * J_rho, axis=(1, 2))
+        H_xr = np.matmul(wJ_rho[..., None, :], J_xi)[..., 0, :]  # (N, J, 6)
+        if not poses:
+            return r, valid, h_rr, None, H_xr, None, None
+        b_r = np.sum(w[..., None] * J_rho * r, axis=(1, 2))
+        n, nj = w.shape
+        Jx = J_xi.transpose(1, 0, 2, 3).reshape(nj, 2 * n, 6)  # (J, 2N, 6)
+        wx = np.repeat(w.T, 2, axis=1)[..., None]  # (J, 2N, 1), a weight per residual row
+        H_xx = np.matmul(np.swapaxes(Jx, 1, 2), wx * Jx)  # (J, 6, 6)
+        b_x = np.matmul(np.swapaxes(Jx, 1, 2), wx[..., 0, None] * r.transpose(1, 0, 2).reshape(nj, 2 * n, 1))[..., 0]
         e = self.prior_residual()
         H_xx = H_xx + np.eye(6)[None] * self.prior[None, :, None]
         b_x = b_x + e * self.prior[None]
@@ -717,10 +734,13 @@ def triangulate_tracks(
         seen = float(config.pixel_sigma)
     sigma_px = max(float(config.pixel_sigma), seen)
     prob.pixel_sigma = sigma_px
-    _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
-    S, A, inv = prob.schur(h_rr, H_xr, H_xx)
+    _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64), poses=config.refine_poses)
+    n_pts, nj = H_xr.shape[:2]
+    A = H_xr.reshape(n_pts, nj * 6)
+    inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
     B = A * inv[:, None]
     if config.refine_poses:
+        S, _, _ = prob.schur(h_rr, H_xr, H_xx)
         # joint estimate: the marginal of the inverse depth (Schur complement of the poses)
         try:
             S_inv = np.linalg.inv(S)
