@@ -366,18 +366,33 @@ class TestCompiledUpdate:
             depths.append(d)
         return poses, depths
 
-    def test_band_blocks_are_the_torch_ones(self):
+    def test_band_blocks_are_the_torch_ones_and_cover_the_band(self):
         rng = np.random.default_rng(11)
         poses, depths = self._frames(rng)
-        fusion = TSDFFusion(self.CAM, FusionConfig(voxel_size=0.02, truncation=0.08, block_resolution=4))
+        cfg = FusionConfig(voxel_size=0.02, truncation=0.08, block_resolution=4)
+        fusion = TSDFFusion(self.CAM, cfg)
+        cam, bs = self.CAM, cfg.voxel_size * cfg.block_resolution
         for d, T in zip(depths, poses):
             d32 = d.astype(np.float32)
             ours, ref = fusion._band_keys(d32, T), fusion._band_keys_torch(d32, T)
             assert np.all(np.diff(ours) > 0)  # sorted, unique
-            # float64 here, float32 in torch: a sample on a block face may fall either side
+            # the same samples (float rounding may put one on either side of a block face)
             common = np.intersect1d(ours, ref).size
             assert common >= 0.995 * max(ours.size, ref.size) and ours.size > 50
+            # the band itself: every valid pixel's ray densely through [d - trunc, d + trunc]
+            v, u = np.nonzero(d32 > 0)
+            rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(u.size)], 1)
+            offs = np.linspace(-cfg.truncation, cfg.truncation, 33)
+            pts = (rays[:, None, :] * (d32[v, u][:, None, None] + offs[None, :, None])).reshape(-1, 3)
+            dense = np.unique(_keys_of(pts @ T[:3, :3].T + T[:3, 3], bs))
+            assert np.isin(dense, ours).mean() > 0.9  # tiles' centre rays: slivers at block faces are missed
+            fusion.BAND_CONSERVATIVE = True
+            wide, wide_ref = fusion._band_keys(d32, T), fusion._band_keys_torch(d32, T)
+            fusion.BAND_CONSERVATIVE = False
+            assert np.isin(dense, wide).mean() > 0.995 and np.isin(ours, wide).all()
+            assert np.intersect1d(wide, wide_ref).size >= 0.995 * max(wide.size, wide_ref.size)
         assert fusion._band_keys(np.zeros(self.CAM.shape, np.float32), np.eye(4)).size == 0
+        assert fusion._band_keys_torch(np.zeros(self.CAM.shape, np.float32), np.eye(4)).size == 0
 
     @pytest.mark.parametrize("color, variance", [(True, True), (False, False)])
     def test_voxels_match_the_torch_update(self, color, variance):
@@ -406,3 +421,9 @@ class TestCompiledUpdate:
         for k in a:
             close = np.isclose(a[k][pairs[:, 0]], b[k][pairs[:, 1]], rtol=1e-5, atol=1e-5).reshape(len(pairs), -1)
             assert np.all(close, axis=1).mean() > 0.995, k
+
+
+def _keys_of(points: np.ndarray, block_size: float) -> np.ndarray:
+    from gpdepth3d.fusion import _blocks_to_keys
+
+    return _blocks_to_keys(np.floor(points / block_size).astype(np.int64))

@@ -500,61 +500,87 @@ class TSDFFusion:
         self._dirty.append(keys)
         return int(idx.numel())
 
+    BAND_TILE = 3
+    """Pixels per side of the tiles whose centre rays sample the truncation band (`_band_keys`)."""
+
+    BAND_CONSERVATIVE = False
+    """`_band_keys`: also take every block the tile's other pixel rays may reach (see there)."""
+
     def _band_keys(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
         """(M,) sorted int64 keys of the blocks the truncation band of a depth frame touches.
 
         Open3D's ``compute_unique_block_coordinates`` samples the band too sparsely (with a
         truncation of several blocks it skips blocks in the middle of the band, so some voxels
-        in the band would never be updated); here every valid pixel's ray is sampled through
-        [depth - truncation, depth + truncation] at steps of two voxels. On the CPU a compiled
-        loop marks the blocks in a dense grid over the frame's bounding box (`_band_blocks`, no
-        sort); on CUDA torch computes one key per sample and keeps the unique ones.
+        in the band would never be updated). Here the image is cut into `BAND_TILE` x
+        `BAND_TILE` pixel tiles and the ray through each tile's centre is sampled from the
+        tile's smallest valid depth minus the truncation to its largest plus the truncation,
+        at steps of at most two voxels. Measured on 10 of the shared 7-Scenes frames (320x240,
+        2 cm voxels, 16 cm blocks) against every pixel's ray sampled densely through its band:
+        298 of 10706 band blocks missed (slivers at block faces; sampling every pixel's ray at
+        two-voxel steps, as before: 69), the block search ~4x faster (9 -> 2 ms a frame), the
+        same mesh over 60 frames (F at 5 cm 0.226 vs 0.228). With `BAND_CONSERVATIVE` each
+        sample also marks every block within the distance the tile's other rays can be from
+        it: 1 block missed, 12 % more blocks than the band needs, and the mesh lost F 0.02
+        (more free space carved in front of inconsistent surfaces). On the CPU a compiled loop marks the blocks in a dense grid over
+        the frame's bounding box (`_band_blocks`, no sort); on CUDA torch computes the same
+        samples and keeps the unique keys.
         """
+        cfg, cam = self.config, self.camera
+        step = 2.0 * cfg.voxel_size
         if self._torch_device == "cpu":
-            cfg, cam = self.config, self.camera
-            steps = int(np.ceil(2 * cfg.truncation / (2 * cfg.voxel_size))) + 1
             blocks = _band_blocks(
                 np.ascontiguousarray(depth, np.float32), float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
                 np.ascontiguousarray(T[:3, :3], np.float64), np.ascontiguousarray(T[:3, 3], np.float64),
-                float(cfg.truncation), steps, float(cfg.voxel_size * cfg.block_resolution),
+                float(cfg.truncation), step, float(cfg.voxel_size * cfg.block_resolution), int(self.BAND_TILE),
+                bool(self.BAND_CONSERVATIVE),
             )
             return _blocks_to_keys(blocks)  # the grid is walked in key order: sorted, unique
         return self._band_keys_torch(depth, T)
 
     def _band_keys_torch(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """`_band_keys` with torch (CUDA, and the CPU reference in the tests)."""
+        """`_band_keys` with torch (CUDA, and the CPU reference in the tests): the same samples."""
         import torch
 
-        cfg, tdev = self.config, self._torch_device
-        v, u = np.nonzero(depth > 0)  # row-major: neighbours along a row follow each other
-        if u.size == 0:
+        cfg, cam, tdev = self.config, self.camera, self._torch_device
+        tile = int(self.BAND_TILE)
+        d = torch.as_tensor(np.asarray(depth, np.float32), device=tdev)
+        h, w = d.shape
+        valid = d > 0
+        big = torch.where(valid, d, torch.full_like(d, float("inf")))[None, None]
+        dmin = -torch.nn.functional.max_pool2d(-big, tile, ceil_mode=True)[0, 0]
+        dmax = torch.nn.functional.max_pool2d(torch.where(valid, d, torch.full_like(d, -1.0))[None, None], tile, ceil_mode=True)[0, 0]
+        ty, tx = torch.nonzero(dmax > 0, as_tuple=True)
+        if ty.numel() == 0:
             return np.zeros(0, np.int64)
-        z = torch.as_tensor(depth[v, u], dtype=torch.float32, device=tdev)
-        rays = torch.stack(
-            [
-                torch.as_tensor((u - self.camera.cx) / self.camera.fx, dtype=torch.float32, device=tdev),
-                torch.as_tensor((v - self.camera.cy) / self.camera.fy, dtype=torch.float32, device=tdev),
-                torch.ones(u.shape[0], dtype=torch.float32, device=tdev),
-            ],
-            dim=1,
-        )
-        trunc = float(cfg.truncation)
-        steps = int(np.ceil(2 * trunc / (2 * cfg.voxel_size))) + 1
-        offsets = torch.linspace(-trunc, trunc, steps, dtype=torch.float32, device=tdev)
-        Twc = torch.as_tensor(T, dtype=torch.float32, device=tdev)
+        dmin, dmax = dmin[ty, tx].double(), dmax[ty, tx].double()
+        u0, v0 = tx * tile, ty * tile
+        u1, v1 = torch.clamp(u0 + tile, max=w), torch.clamp(v0 + tile, max=h)
+        rx = (0.5 * (u0 + u1 - 1).double() - cam.cx) / cam.fx
+        ry = (0.5 * (v0 + v1 - 1).double() - cam.cy) / cam.fy
+        Tw = torch.as_tensor(T, dtype=torch.float64, device=tdev)
         block_size = float(cfg.voxel_size * cfg.block_resolution)
-        # Unique block coordinates via one int64 key per block (much faster than unique rows).
-        # Consecutive pixels of a row mostly fall into the same block: dropping repeats of the
-        # previous key first shrinks the one sort below by an order of magnitude (same set).
+        rays = torch.stack([rx, ry, torch.ones_like(rx)], dim=1) @ Tw[:3, :3].T / block_size  # blocks per metre
+        origin = Tw[:3, 3] / block_size
+        a0 = torch.clamp(dmin - cfg.truncation, min=1e-3)
+        a1 = dmax + cfg.truncation
+        step = 2.0 * cfg.voxel_size
+        n = torch.ceil((a1 - a0) / step).long() + 1
+        spread = np.sqrt(2.0) * 0.5 * (tile - 1) / min(cam.fx, cam.fy) / block_size if self.BAND_CONSERVATIVE else 0.0
         keys = []
-        for off in offsets:
-            pts = rays * torch.clamp(z + off, min=1e-3)[:, None]
-            world = pts @ Twc[:3, :3].T + Twc[:3, 3]
-            b = torch.floor(world / block_size).to(torch.int64) + _KEY_BIAS
-            k = (b[:, 0] * _KEY_SPAN + b[:, 1]) * _KEY_SPAN + b[:, 2]
-            change = torch.ones_like(k, dtype=torch.bool)
-            change[1:] = k[1:] != k[:-1]
-            keys.append(k[change])
+        for k in range(int(n.max())):
+            on = n > k
+            s = a0[on] + (a1[on] - a0[on]) * k / (n[on] - 1).double()
+            c = origin + s[:, None] * rays[on]
+            r = (s * spread)[:, None]
+            lo, hi = torch.floor(c - r).long(), torch.floor(c + r).long()
+            span = int((hi - lo).max()) + 1
+            for di in range(span):
+                for dj in range(span):
+                    for dq in range(span):
+                        b = lo + torch.tensor([di, dj, dq], device=tdev)
+                        ok = torch.all(b <= hi, dim=1)
+                        b = b[ok] + _KEY_BIAS
+                        keys.append((b[:, 0] * _KEY_SPAN + b[:, 1]) * _KEY_SPAN + b[:, 2])
         return torch.unique(torch.cat(keys)).cpu().numpy()
 
     def weights_for(self, variance: np.ndarray | None) -> np.ndarray | None:
@@ -920,47 +946,67 @@ def _update_voxels(
 
 
 @nb.njit(cache=True, nogil=True)
-def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, steps, block_size):  # pragma: no cover - compiled
-    """(M, 3) int64 coordinates of the blocks that samples of every valid pixel's ray through
-    [depth - trunc, depth + trunc] (``steps`` samples) fall into, in key order (x, then y, then z).
+def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, conservative):  # pragma: no cover - compiled
+    """(M, 3) int64 coordinates of the blocks the truncation band of a depth frame reaches, in
+    key order (x, then y, then z).
 
-    Two passes over the samples: the bounding box of their blocks, then marks in a dense grid
-    over it, read out in order (no sort, no hash).
+    The image is cut into ``tile`` x ``tile`` pixel tiles; the ray through a tile's centre is
+    sampled from (its smallest valid depth - trunc) to (its largest + trunc), at most ``step``
+    metres apart; with ``conservative`` each sample also marks every block within the distance
+    the tile's other pixel rays can be from it at that depth. Two passes over the samples: the bounding box of their
+    blocks, then marks in a dense grid over it, read out in order (no sort, no hash).
     """
     h, w = depth.shape
     lo = np.full(3, np.iinfo(np.int64).max, np.int64)
     hi = np.full(3, np.iinfo(np.int64).min, np.int64)
-    b = np.zeros(3, np.int64)
     t0, t1, t2 = t[0] / block_size, t[1] / block_size, t[2] / block_size
+    th, tw = (h + tile - 1) // tile, (w + tile - 1) // tile
+    # pixel centres of a tile lie within (tile - 1) / 2 pixels of its centre in u and v: at depth
+    # s their rays are within sqrt(2) * s * (tile - 1) / 2 / f metres of the centre ray
+    spread = np.sqrt(2.0) * 0.5 * (tile - 1) / min(fx, fy) / block_size if conservative else 0.0
+    nx = ny = nz = 0
+    grid = np.zeros((1, 1, 1), np.bool_)
     for sweep in range(2):
         if sweep == 1:
             if lo[0] > hi[0]:
                 return np.zeros((0, 3), np.int64)
             nx, ny, nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
             grid = np.zeros((nx, ny, nz), np.bool_)
-        for v in range(h):
-            ry = (v - cy) / fy
-            for u in range(w):
-                d = depth[v, u]
-                if d <= 0:
+        for ty in range(th):
+            v0, v1 = ty * tile, min(h, ty * tile + tile)
+            for tx in range(tw):
+                u0, u1 = tx * tile, min(w, tx * tile + tile)
+                dmin, dmax = np.inf, -1.0
+                for v in range(v0, v1):
+                    for u in range(u0, u1):
+                        d = depth[v, u]
+                        if d > 0:
+                            dmin = min(dmin, d)
+                            dmax = max(dmax, d)
+                if dmax < 0:
                     continue
-                rx = (u - cx) / fx
-                # the ray's direction in blocks per metre of depth, its origin in blocks
+                rx = (0.5 * (u0 + u1 - 1) - cx) / fx
+                ry = (0.5 * (v0 + v1 - 1) - cy) / fy
+                # the ray's direction in blocks per metre of depth
                 d0 = (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) / block_size
                 d1 = (R[1, 0] * rx + R[1, 1] * ry + R[1, 2]) / block_size
                 d2 = (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]) / block_size
-                for k in range(steps):
-                    off = -trunc + 2.0 * trunc * k / (steps - 1) if steps > 1 else 0.0
-                    s = max(d + off, 1e-3)
-                    b[0] = int(np.floor(t0 + s * d0))
-                    b[1] = int(np.floor(t1 + s * d1))
-                    b[2] = int(np.floor(t2 + s * d2))
-                    if sweep == 0:
-                        for a in range(3):
-                            lo[a] = min(lo[a], b[a])
-                            hi[a] = max(hi[a], b[a])
-                    else:
-                        grid[b[0] - lo[0], b[1] - lo[1], b[2] - lo[2]] = True
+                a0 = max(dmin - trunc, 1e-3)
+                a1 = dmax + trunc
+                n = int(np.ceil((a1 - a0) / step)) + 1
+                for k in range(n):
+                    s = a0 + (a1 - a0) * k / (n - 1)
+                    r = s * spread  # the tile's other rays are within r of this sample (blocks)
+                    c0, c1, c2 = t0 + s * d0, t1 + s * d1, t2 + s * d2
+                    for i in range(int(np.floor(c0 - r)), int(np.floor(c0 + r)) + 1):
+                        for j in range(int(np.floor(c1 - r)), int(np.floor(c1 + r)) + 1):
+                            for q in range(int(np.floor(c2 - r)), int(np.floor(c2 + r)) + 1):
+                                if sweep == 0:
+                                    lo[0], hi[0] = min(lo[0], i), max(hi[0], i)
+                                    lo[1], hi[1] = min(lo[1], j), max(hi[1], j)
+                                    lo[2], hi[2] = min(lo[2], q), max(hi[2], q)
+                                else:
+                                    grid[i - lo[0], j - lo[1], q - lo[2]] = True
     count = 0
     for i in range(nx):
         for j in range(ny):
@@ -976,7 +1022,6 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, steps, block_size):  # prag
                     out[m, 0], out[m, 1], out[m, 2] = i + lo[0], j + lo[1], k + lo[2]
                     m += 1
     return out
-
 
 def _to_torch(tensor: Any) -> Any:
     """A zero-copy torch view of an Open3D tensor (writes go to the Open3D buffer)."""

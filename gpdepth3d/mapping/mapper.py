@@ -5,15 +5,18 @@ A `Mapper` takes posed frames one by one::
     mapper = Mapper(camera, MapperConfig(), mde=FastDepthTFLite(model_path))
     for rgb, T_world_camera, slam_points in stream:
         mapper.add_frame(rgb, T_world_camera, map_points_world=slam_points)
-        mesh = mapper.mesh()          # at any time
+        mesh = mapper.mesh()          # at any time (the frames fused so far)
+    mapper.flush()                    # the last frames, which waited for later views
 
 Per frame: (1) the MDE depth (given, or from the front-end callable ``rgb -> depth``);
 (2) sparse measurements from any of: a `SparseDepth`, SLAM map points in world coordinates
 (transformed by the pose and projected, `sparse_from_map_points`), and features the library
-triangulates itself between this frame and earlier frames of a sliding window
-(`gpdepth3d.mapping.triangulation`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
-sequence); (4) TSDF fusion of the posterior mean with per-pixel weights from its variance
-(`gpdepth3d.mapping.fusion`).
+triangulates itself from KLT tracks through up to ``window`` earlier and ``lag`` later frames
+(`gpdepth3d.mapping.triangulation`; with ``lag`` > 0 a frame is refined and fused ``lag`` calls
+after it was added, see `MapperConfig.lag`), their depth scale pulled towards the keyframes
+already fused (`map_scale`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
+sequence); (4) TSDF fusion of the posterior median (`fused_depth`) with per-pixel weights from
+its variance (`gpdepth3d.mapping.fusion`).
 
 Resolution: ``camera`` describes the RGB images given to `Mapper.add_frame`; features are
 detected at that resolution, while refinement and fusion run at ``working_scale`` times it
@@ -447,15 +450,20 @@ def map_scale(
         return 0.0, 0
     pts = transform_points(T, camera.backproject_pixels(sparse.uv, np.asarray(sparse.depth, dtype=np.float64)))
     logs = []
+    h, w = work_camera.shape
     for kf in list(stored)[-int(recent):]:
-        pc = transform_points(invert_pose(kf.T_world_camera), pts)
-        uv, z = work_camera.project(pc)
-        inside = work_camera.in_image(uv) & (z > 1e-3)
+        R, t = kf.T_world_camera[:3, :3], kf.T_world_camera[:3, 3]  # stored poses are rigid (checked when added)
+        pc = (pts - t) @ R
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.rint(work_camera.fx * pc[:, 0] / z + work_camera.cx)
+            v = np.rint(work_camera.fy * pc[:, 1] / z + work_camera.cy)
+        inside = (z > 1e-3) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
         if inside.sum() < min_points:
             continue
-        iu = np.rint(uv[inside]).astype(np.int64)
-        d = kf.depth[iu[:, 1], iu[:, 0]].astype(np.float64)
-        var = kf.variance[iu[:, 1], iu[:, 0]].astype(np.float64)
+        iu, iv = u[inside].astype(np.int64), v[inside].astype(np.int64)
+        d = kf.depth[iv, iu].astype(np.float64)
+        var = kf.variance[iv, iu].astype(np.float64)
         with np.errstate(invalid="ignore"):
             ok = (d > 0) & np.isfinite(var) & (var <= (max_relative_sigma * d) ** 2)
         if ok.sum() >= min_points:
@@ -703,6 +711,7 @@ class Mapper:
         kid, T = entry.kid, entry.T
         notes = entry.notes
         empty = np.zeros((0, 0))
+        t_prep = time.perf_counter()
         scale = 1.0
         parts = list(entry.parts)
         if entry.triangulated is not None and len(entry.triangulated):
@@ -720,6 +729,7 @@ class Mapper:
             rel = np.nan_to_num(measurements.sigma / measurements.depth, nan=0.0)
             keep = np.sort(np.argsort(rel, kind="stable")[: int(self.config.max_points)])
             measurements = measurements.subset(keep)
+        timings["points"] += time.perf_counter() - t_prep  # the frame's measurements: map scale, merge, selection
 
         def failed(stage: str, exc: BaseException, mde: np.ndarray = empty, posterior=None) -> FrameResult:
             message = f"frame {kid}: " + _describe_error(stage, exc)
