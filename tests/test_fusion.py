@@ -424,6 +424,6 @@ class TestCompiledUpdate:
 
 
 def _keys_of(points: np.ndarray, block_size: float) -> np.ndarray:
-    from gpdepth3d.fusion import _blocks_to_keys
+    from gpdepth3d.mapping.fusion import _blocks_to_keys
 
     return _blocks_to_keys(np.floor(points / block_size).astype(np.int64))

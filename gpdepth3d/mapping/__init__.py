@@ -13,6 +13,8 @@ from .mapper import Mapper as Mapper
 from .mapper import MapperConfig as MapperConfig
 from .mapper import PoseUpdate as PoseUpdate
 from .mapper import fuse_sequence as fuse_sequence
+from .mapper import fused_depth as fused_depth
+from .mapper import map_scale as map_scale
 from .mapper import merge_sparse as merge_sparse
 from .mapper import mesh_metrics as mesh_metrics
 from .mapper import project_map_points as project_map_points
