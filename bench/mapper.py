@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
     from gpdepth3d.datasets.sevenscenes import SevenScenes
     from gpdepth3d.mapping.fusion import TSDFFusion
     from gpdepth3d.io import atomic_write
-    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, STAGES, Mapper, MapperConfig, _jsonable
+    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, STAGES, Mapper, MapperConfig
     from gpdepth3d.mde.tflite import FastDepthTFLite
 
     reader = SevenScenes(args.data)
@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "torch_threads": args.threads,
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "note": "shared 2-core machine"},
-        "config": _jsonable(asdict(config)),
+        "config": asdict(config),
         "front_end": f"FastDepthTFLite({args.model.name})",
     }
     atomic_write(args.out, lambda p: p.write_text(json.dumps(summary, indent=2)))

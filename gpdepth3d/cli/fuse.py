@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal
 
 from ..gp.model import DepthGPConfig
-from ..io import atomic_write
+from ..io import write_json
 from ..mapping.fusion import FusionConfig, save_mesh
-from ..mapping.mapper import SEVEN_SCENES_RGB_K, MapperConfig, _jsonable, fuse_sequence
+from ..mapping.mapper import SEVEN_SCENES_RGB_K, MapperConfig, fuse_sequence
 from ._options import GPPreset
 
 
@@ -100,9 +99,9 @@ def fuse_command(
         "metrics": result["metrics"],
         "timing_s_per_frame": result["timing"],
         "timing_median_s_per_frame": result["timing_median"],
-        "config": {"mapper": _jsonable(asdict(config)), "rgb_focal": rgb_focal, "mde": str(mde)},
+        "config": {"mapper": asdict(config), "rgb_focal": rgb_focal, "mde": str(mde)},
     }
-    atomic_write(out / "metrics.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    write_json(out / "metrics.json", summary)
     for message in result["frame_errors"]:
         print(f"skipped {message}")
     if result["empty_meshes"]:

@@ -64,7 +64,7 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose
 from .cloud import ColoredCloud
 from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
-from ..io import atomic_path, atomic_write
+from ..io import atomic_path, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
@@ -845,7 +845,7 @@ class TSDFFusion:
         }
         with atomic_path(path) as tmp:
             self.vbg.save(str(tmp))
-        atomic_write(path.with_suffix(".json"), lambda p: p.write_text(json.dumps(meta, indent=2)))
+        write_json(path.with_suffix(".json"), meta)
         return path
 
     @classmethod

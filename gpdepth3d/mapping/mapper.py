@@ -59,7 +59,7 @@ from ..completion.complete import DepthCompleter, DepthPosterior
 from ..errors import DataFormatError, EmptyInputError, GPDepthError, InvalidInputError, ShapeError, describe
 from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
 from ..gp.model import DepthGPConfig
-from ..io import atomic_write, save_npz
+from ..io import save_npz, write_json
 from ..measurements import SparseDepth, project_points
 from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation, invert_pose
 from .triangulation import TrackTriangulator, TriangulationConfig, detect_features, triangulate_frames
@@ -956,11 +956,11 @@ class Mapper:
         c = self.camera
         meta = {
             "camera": [c.fx, c.fy, c.cx, c.cy, c.width, c.height],
-            "config": _jsonable(asdict(self.config)),
+            "config": asdict(self.config),
             "frames": self.frames,
             "next_id": self._next_id,
         }
-        atomic_write(folder / "mapper.json", lambda p: p.write_text(json.dumps(meta, indent=2)))
+        write_json(folder / "mapper.json", meta)
         return folder
 
     @classmethod
@@ -1249,13 +1249,3 @@ SEVEN_SCENES_RGB_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0
 """Colour-camera intrinsics used for 7-Scenes RGB (the dataset's K, f = 585, is the depth camera's;
 triangulating the RGB frames with f = 525 agrees with the Kinect depth, with f = 585 it is ~15-40 %
 too far and fails the epipolar check; see the mapping tests)."""
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    return x
