@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -189,6 +191,26 @@ class TestDepthPosteriorSaveLoad:
         np.testing.assert_allclose(load_depth(written[1]), post.mean, atol=0.5 / 256)
         np.testing.assert_allclose(load_depth(written[2]), post.std, atol=0.5 / 256)
         assert load_depth(written[0]).shape == (8, 10)  # the npz opens as a depth map (its mean)
+
+    def test_round_trip_keeps_the_config_the_rejections_and_the_warnings(self, tmp_path):
+        """The file carries the config that made it (not a default), the rejected points and the warnings."""
+        mde, sparse = small_inputs()
+        depth = sparse.depth.copy()
+        depth[0] *= 0.05  # one gross outlier
+        cfg = DepthGPConfig(lengthscale=5.0, nugget=0.03)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            post = complete(mde, SparseDepth(sparse.u, sparse.v, depth, sparse.image_size), config=cfg)
+        assert post.solve is not None and post.solve.route in ("grid", "woodbury", "neumann", "dense")
+        written = post.save(tmp_path / "post")
+        back = DepthPosterior.load(written[0])
+        assert back.config == post.config and back.config != DepthGPConfig() and back.config.lengthscale == 5.0
+        np.testing.assert_array_equal(back.rejected, post.rejected)
+        assert back.warnings == post.warnings and back.solve is None
+        assert DepthPosterior.load(written[0], config=RESIDUAL).config == RESIDUAL  # an explicit config wins
+        np.savez(tmp_path / "bad.npz", **{**dict(np.load(written[0])), "config_json": np.array('{"nu": 7}')})
+        with pytest.raises(DataFormatError, match="nu"):
+            DepthPosterior.load(tmp_path / "bad.npz")
 
     def test_load_errors(self, tmp_path):
         with pytest.raises(DataFormatError):

@@ -15,16 +15,17 @@ Input rules (documented once, here):
 
 from __future__ import annotations
 
+import json
 import time
 import warnings
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, InvalidInputError, describe
-from ..gp import EngineConfig, make_engine
+from ..errors import DataFormatError, GPDepthError, InvalidInputError, describe
+from ..gp import EngineConfig, SolveInfo, make_engine
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
@@ -51,6 +52,8 @@ class DepthPosterior:
         warnings: What the posterior could not support, one sentence each (also issued as
             `PosteriorWarning`): an MDE whose scale disagrees with the points by more than a
             factor of 2, almost no points, points covering little of the image, many rejected.
+        solve: The engine's facts of this call (`gpdepth3d.gp.SolveInfo`: route, seconds per
+            stage); None for a posterior read from a file.
     """
 
     mean: np.ndarray
@@ -63,6 +66,7 @@ class DepthPosterior:
     timings: dict = field(default_factory=dict)
     rejected: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
+    solve: SolveInfo | None = None
 
     @property
     def n_rejected(self) -> int:
@@ -111,6 +115,9 @@ class DepthPosterior:
                 sparse_image_size=np.array(self.sparse.image_size),
                 depth_scale=np.float64(self.depth_scale),
                 alignment=np.array([self.alignment.scale, self.alignment.shift]),
+                config_json=np.array(json.dumps(asdict(self.config))),
+                rejected=np.zeros(len(self.sparse), bool) if self.rejected is None else np.asarray(self.rejected, bool),
+                warnings=np.array(self.warnings, dtype=str),
             )
         }
         if png:
@@ -123,7 +130,11 @@ class DepthPosterior:
 
     @classmethod
     def load(cls, path: str | Path, config: DepthGPConfig | None = None) -> "DepthPosterior":
-        """Reads a posterior written by `save` (the config is not stored; pass it if needed)."""
+        """Reads a posterior written by `save`, with the config that made it.
+
+        ``config`` replaces the stored config (files written before it was stored get
+        ``config`` or `DepthGPConfig()`).
+        """
         path = Path(path)
         if not path.is_file():
             raise DataFormatError(path, "posterior file not found")
@@ -139,6 +150,13 @@ class DepthPosterior:
                 mean, variance, mde = (d[k].astype(np.float64) for k in ("mean", "variance", "mde"))
                 if mean.ndim != 2 or variance.shape != mean.shape or mde.shape != mean.shape:
                     raise ValueError(f"mean {mean.shape}, variance {variance.shape}, mde {mde.shape}: not one 2-D grid")
+                if config is None and "config_json" in d.files:
+                    stored = json.loads(str(d["config_json"]))
+                    known = {f.name for f in fields(DepthGPConfig)}
+                    config = DepthGPConfig(**{k: v for k, v in stored.items() if k in known})
+                rejected = d["rejected"].astype(bool) if "rejected" in d.files else None
+                if rejected is not None and rejected.shape != (len(sparse),):
+                    raise ValueError(f"rejected {rejected.shape}: not one flag per point ({len(sparse)})")
                 return cls(
                     mean=mean,
                     variance=variance,
@@ -147,8 +165,10 @@ class DepthPosterior:
                     config=config or DepthGPConfig(),
                     depth_scale=float(d["depth_scale"]),
                     alignment=AlignmentResult(float(align[0]), float(align[1]), 0),
+                    rejected=rejected,
+                    warnings=tuple(str(w) for w in d["warnings"]) if "warnings" in d.files else (),
                 )
-        except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile, GPDepthError) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
 
@@ -189,7 +209,7 @@ def _log_residual_posterior(
 
     Returns:
         mean, variance, the `PointFit`, the fitted config, the rejected mask, the warnings, the
-        global scale as an alignment and the timings. ``previous`` (a `PointFit`) starts the fit's
+        global scale as an alignment, the timings and the engine's `SolveInfo`. ``previous`` (a `PointFit`) starts the fit's
         search from a previous frame's values.
     """
     from ..gp.points import PointFit, screen_points
@@ -327,7 +347,8 @@ def _log_residual_posterior(
     if len(z) and rejected.mean() > REJECTED_WARN:
         messages.append(f"{name}{int(rejected.sum())} of {len(z)} points ({rejected.mean():.0%}) rejected as outliers")
     alignment = AlignmentResult(scale, 0.0, n_kept)
-    return mean, var, fit, fitted, rejected, tuple(messages), alignment, {"fit": t1 - t0, "solve": t2 - t1}
+    times = {"fit": t1 - t0, "solve": t2 - t1}
+    return mean, var, fit, fitted, rejected, tuple(messages), alignment, times, solution.info
 
 
 class DepthCompleter:
@@ -393,7 +414,8 @@ class DepthCompleter:
         tf = time.perf_counter()
         problem, grid_sparse, scale, alignment = build_problem(mde_depth, sparse, config, output_shape)
         t1 = time.perf_counter()
-        mean, var = self.engine.solve(problem, variance=variance)
+        solution = self.engine.solve(problem, variance=variance)
+        mean, var = solution.mean, solution.variance
         t2 = time.perf_counter()
         if var is None:
             var = np.full(mean.shape, np.nan)
@@ -408,13 +430,14 @@ class DepthCompleter:
             depth_scale=scale,
             alignment=alignment,
             timings={"fit": tf - t0, "setup": t1 - tf, "solve": t2 - t1},
+            solve=solution.info,
         )
 
     def _complete_log_residual(self, mde_depth, sparse, output_shape, variance, frame) -> DepthPosterior:
         t0 = time.perf_counter()
         mde, valid, grid_sparse, out_shape = _frame_inputs(mde_depth, sparse, output_shape)
         t1 = time.perf_counter()
-        mean, var, fit, fitted, rejected, messages, alignment, times = _log_residual_posterior(
+        mean, var, fit, fitted, rejected, messages, alignment, times, info = _log_residual_posterior(
             self.engine,
             mde,
             valid,
@@ -439,6 +462,7 @@ class DepthCompleter:
             timings={"setup": t1 - t0, **times},
             rejected=rejected,
             warnings=messages,
+            solve=info,
         )
 
     @staticmethod
