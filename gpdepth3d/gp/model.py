@@ -42,8 +42,8 @@ Formulations:
   says little about a building at 30 m right above it; a table's points little about the wall
   behind it). The cross-covariance of a pixel with the points is multiplied by
   rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), where zbar(x) is the kriging-weighted mean log
-  MDE depth of the points that inform x (two mean-only solves: the weights applied to log MDE
-  and to ones). Then E[g(x)] = rho(x) E_0[g(x)], Var[g(x)] = s^2 - rho(x)^2 (s^2 - Var_0[g(x)])
+  MDE depth of the points that inform x (two further right-hand sides of the one solve: the
+  weights applied to log MDE and to ones). Then E[g(x)] = rho(x) E_0[g(x)], Var[g(x)] = s^2 - rho(x)^2 (s^2 - Var_0[g(x)])
   and the scale term's weights become rho(x) k(x)' (K + N)^-1 1, with E_0, Var_0 the
   stationary posterior: exactly the posterior of the product kernel
   s^2 M(du/l) M(dv/l) exp(-|dz|/l_z) when the informing points share one MDE depth. A pixel at
@@ -113,7 +113,7 @@ class DepthGPConfig:
             perfectly registered, and MDE edges are blurred); 0 turns it off.
         depth_lengthscale: log_residual: length scale of the depth-aware correlation in log-depth
             units (0.7: corrections fade to 1/e across a factor of 2 in MDE depth); None turns it
-            off (the stationary pixel kernel alone). Costs two mean-only solves per frame.
+            off (the stationary pixel kernel alone). Costs two further right-hand sides of the solve.
     """
 
     formulation: Formulation = "log_residual"
