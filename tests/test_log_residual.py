@@ -262,3 +262,12 @@ class TestLogResidualPosterior:
         p = g.DepthGPConfig.paper()
         assert (p.formulation, p.nu, p.lengthscale, p.outputscale, p.sigma_dl, p.sigma_meas, p.fit) == (
             "balanced", 0.5, 1.5, 1.0, 0.05, 0.001, False)
+
+
+def test_edge_range_at_points_equals_the_filtered_map():
+    """The screening's edge term, computed at the points only, is the 3 x 3 max - min filter's value there (borders too)."""
+    from gpdepth3d.completion.complete import _edge_range, _edge_range_at
+
+    depth = np.random.default_rng(0).uniform(0.5, 20.0, (17, 23))
+    rows, cols = np.divmod(np.arange(17 * 23), 23)
+    np.testing.assert_array_equal(_edge_range_at(depth, rows, cols), _edge_range(depth, 3)[rows, cols])

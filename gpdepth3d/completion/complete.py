@@ -186,6 +186,26 @@ SCALE_VAR_SHARE = 0.05  # Var[b] below this share of tau^2: bounded, not solved 
 WEIGHT_FLOOR = 1e-3  # depth-aware correlation: pixels whose kriging weights sum below this keep rho = 1
 
 
+def _edge_range_at(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """`_edge_range` over a 3 x 3 window, at the pixels (rows, cols) only (borders: the edge pixel repeated)."""
+    h, w = depth.shape
+    around = [depth[np.clip(rows + dr, 0, h - 1), np.clip(cols + dc, 0, w - 1)] for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
+    return np.max(around, axis=0) - np.min(around, axis=0)
+
+
+_BLAS_CONTROLLER = None
+
+
+def _single_threaded_blas():
+    """Context limiting BLAS to one thread (the controller found once: finding the libraries costs ~3 ms)."""
+    global _BLAS_CONTROLLER
+    if _BLAS_CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS_CONTROLLER = ThreadpoolController()
+    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
+
+
 def _edge_range(depth: np.ndarray, window: int) -> np.ndarray:
     """Local depth range (max - min) over a window x window neighbourhood, metres."""
     from scipy.ndimage import maximum_filter, minimum_filter
@@ -230,16 +250,14 @@ def _log_residual_posterior(
         b = float(np.median(resid)) if len(z) else 0.0
         start = PointFit(config.lengthscale, config.outputscale, config.nugget, b, s2 / max(len(z), 1), len(z))
     if len(z) >= 3 or start is not None:
-        from threadpoolctl import threadpool_limits
-
         around = (previous.lengthscale, previous.eta) if previous is not None else None
         # a point at an MDE depth edge is judged with the edge's uncertainty (the same term the
         # posterior's variance gets): there its neighbours may rightly disagree with it
         screen_noise = noise
         if config.edge_sigma > 0:
-            edge = _edge_range(np.log(base), 3)[rows, cols]
+            edge = _edge_range_at(np.log(base), rows, cols)
             screen_noise = noise + (config.edge_sigma * edge) ** 2
-        with threadpool_limits(1):  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
+        with _single_threaded_blas():  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
             fit, rejected, _ = screen_points(
                 rows, cols, resid, screen_noise, threshold=config.outlier_threshold, nu=config.nu, start=start,
                 around=around,
