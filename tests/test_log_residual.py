@@ -106,9 +106,10 @@ def _scene(h=24, w=32, seed=0):
     return truth, mde
 
 
-def _dense_log_posterior(mde, sp, *, l, s, tau, sigma):
+def _dense_log_posterior(mde, sp, *, l, s, tau, sigma, depth_factor=None):
     """Independent dense reference of the log-residual posterior with fixed hyperparameters and b = the
-    points' median log ratio: (mu, v) of the log depth at every pixel (row-major), and b."""
+    points' median log ratio: (mu, v) of the log depth at every pixel (row-major), and b. ``depth_factor``
+    (one value per pixel, row-major) multiplies each pixel's cross-covariance with the points."""
     h, w = mde.shape
     rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
     r = np.log(z) - np.log(mde[rows, cols])
@@ -116,6 +117,8 @@ def _dense_log_posterior(mde, sp, *, l, s, tau, sigma):
     K = s * s * _kernel(rows.astype(float), cols.astype(float), l) + (tau**2 + sigma**2) * np.eye(n)
     R, C = np.mgrid[0:h, 0:w]
     kx = s * s * matern_1d(R.ravel()[:, None] - rows[None], 0.5, l) * matern_1d(C.ravel()[:, None] - cols[None], 0.5, l)
+    if depth_factor is not None:
+        kx = kx * depth_factor[:, None]
     A = kx @ np.linalg.inv(K)
     v = s * s - np.sum(A * kx, 1) + tau**2 + (s * s / n) * (1 - A @ np.ones(n)) ** 2
     return np.log(mde.ravel()) + b + A @ (r - b), v, b
@@ -144,15 +147,8 @@ class TestLogResidualPosterior:
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
                               nugget=0.04, sigma_meas=0.01, depth_lengthscale=lz)
         post = g.complete(mde, sp, config=cfg)
-        rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
-        r = np.log(z) - np.log(mde[rows, cols])
-        b, n, s, tau = np.median(r), len(z), 0.3, 0.04
-        K = s * s * _kernel(rows.astype(float), cols.astype(float), 6.0) + (tau**2 + 0.01**2) * np.eye(n)
-        kx = s * s * matern_1d(rr.ravel()[:, None] - rows[None], 0.5, 6.0) * matern_1d(cc.ravel()[:, None] - cols[None], 0.5, 6.0)
-        kx = kx * np.exp(-np.abs(np.log(mde.ravel()) - np.log(2.0)) / lz)[:, None]
-        A = kx @ np.linalg.inv(K)
-        mu = np.log(mde.ravel()) + b + A @ (r - b)
-        v = s * s - np.sum(A * kx, 1) + tau**2 + (s * s / n) * (1 - A @ np.ones(n)) ** 2
+        rho = np.exp(-np.abs(np.log(mde.ravel()) - np.log(2.0)) / lz)
+        mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01, depth_factor=rho)
         np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
         np.testing.assert_allclose(post.variance.ravel(), np.expm1(v) * np.exp(2 * mu + v), rtol=1e-8)
         # right above the points but at another depth: the correction fades and the variance returns to the prior's
