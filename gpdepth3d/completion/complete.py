@@ -286,17 +286,16 @@ def _log_residual_posterior(
     # the one engine call, sharing its factorisation
     scale_term = variance and fit.log_scale_var > SCALE_VAR_SHARE * fit.nugget**2
     extra = ()
+    if depth_aware or scale_term:
+        extra = (np.where(precision > 0, 1.0, 0.0),)
     if depth_aware:
         # depth-aware correlation (gp.model): rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), zbar the
         # kriging-weighted mean log MDE depth of the points that inform x
-        log_base = np.log(base)
-        z_pts = log_base[r, c]
+        z_pts = np.log(base[r, c])
         z_ref = float(np.median(z_pts))
         z_obs = np.zeros((h, w))
         z_obs[r, c] = z_pts - z_ref
-        extra = (np.where(precision > 0, 1.0, 0.0), z_obs)
-    elif scale_term:
-        extra = (np.where(precision > 0, 1.0, 0.0),)
+        extra += (z_obs,)
     solution = engine.solve(problem, variance=variance, extra_obs=extra)
     g_mean, g_var = solution.mean, solution.variance
     w1 = solution.extra_means[0] if extra else None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
