@@ -130,7 +130,8 @@ class TestLogResidualPosterior:
         truth, mde = _scene()
         sp = g.sample_uniform(truth, n=40, rng=1)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=None)
+                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=None,
+                              mde_slope_sigma=None)
         post = g.complete(mde, sp, config=cfg)
         mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01)
         np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
@@ -145,7 +146,8 @@ class TestLogResidualPosterior:
         truth = mde * np.exp(0.2 + 0.1 * np.cos(cc / 7.0))
         sp = g.sample_uniform(np.where(rr >= 12, truth, 0.0), n=40, rng=3)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=lz)
+                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=lz,
+                              mde_slope_sigma=None)
         post = g.complete(mde, sp, config=cfg)
         rho = np.exp(-np.abs(np.log(mde.ravel()) - np.log(2.0)) / lz)
         mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01, depth_factor=rho)
@@ -168,7 +170,8 @@ class TestLogResidualPosterior:
         truth, mde = _scene()
         sp = g.sample_uniform(truth, n=600, rng=5)
         cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.06, sigma_meas=0.01, depth_lengthscale=None)
+                              nugget=0.06, sigma_meas=0.01, depth_lengthscale=None,
+                              mde_slope_sigma=None)
         post = g.complete(mde, sp, config=cfg)
         _, exact, _ = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.06, sigma=0.01)
         got = np.log1p(post.variance.ravel() / post.mean.ravel() ** 2)  # log-normal: var / mean^2 = expm1(v)

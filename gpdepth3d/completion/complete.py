@@ -19,7 +19,7 @@ import json
 import time
 import warnings
 import zipfile
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +54,9 @@ class DepthPosterior:
             factor of 2, almost no points, points covering little of the image, many rejected.
         solve: The engine's facts of this call (`gpdepth3d.gp.SolveInfo`: route, seconds per
             stage); None for a posterior read from a file.
+        mde_slope: log_residual: the MDE's log-depth coefficient fitted to this frame
+            (`gpdepth3d.gp.slope`; 1 when not fitted): below 1 the points say the MDE over-states
+            the depth differences of the scene.
     """
 
     mean: np.ndarray
@@ -67,6 +70,7 @@ class DepthPosterior:
     rejected: np.ndarray | None = None
     warnings: tuple[str, ...] = ()
     solve: SolveInfo | None = None
+    mde_slope: float = 1.0
 
     @property
     def n_rejected(self) -> int:
@@ -115,6 +119,7 @@ class DepthPosterior:
                 sparse_image_size=np.array(self.sparse.image_size),
                 depth_scale=np.float64(self.depth_scale),
                 alignment=np.array([self.alignment.scale, self.alignment.shift]),
+                mde_slope=np.float64(self.mde_slope),
                 config_json=np.array(json.dumps(asdict(self.config))),
                 rejected=np.zeros(len(self.sparse), bool) if self.rejected is None else np.asarray(self.rejected, bool),
                 warnings=np.array(self.warnings, dtype=str),
@@ -167,6 +172,7 @@ class DepthPosterior:
                     alignment=AlignmentResult(float(align[0]), float(align[1]), 0),
                     rejected=rejected,
                     warnings=tuple(str(w) for w in d["warnings"]) if "warnings" in d.files else (),
+                    mde_slope=float(d["mde_slope"]) if "mde_slope" in d.files else 1.0,
                 )
         except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile, GPDepthError) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
@@ -229,10 +235,11 @@ def _log_residual_posterior(
 
     Returns:
         mean, variance, the `PointFit`, the fitted config, the rejected mask, the warnings, the
-        global scale as an alignment, the timings and the engine's `SolveInfo`. ``previous`` (a `PointFit`) starts the fit's
+        global scale as an alignment, the timings, the engine's `SolveInfo` and the MDE's slope. ``previous`` (a `PointFit`) starts the fit's
         search from a previous frame's values.
     """
     from ..gp.points import PointFit, screen_points
+    from ..gp.slope import fit_mde_slope
 
     t0 = time.perf_counter()
     h, w = mde.shape
@@ -240,10 +247,31 @@ def _log_residual_posterior(
     rows = grid_sparse.v.astype(np.int64)
     cols = grid_sparse.u.astype(np.int64)
     z = grid_sparse.depth
-    resid = np.log(z) - np.log(base[rows, cols])
     sig = grid_sparse.sigma
     unit = 1.0 if config.units == "metres" else z
     noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
+    log_raw = np.log(base)
+    # the MDE's log-depth coefficient of this frame (gp.slope): the MDE is re-sloped about the
+    # points' median log depth before anything else looks at it, and once more without the
+    # points the screen rejects (one point at a tenth of its depth can still tilt a robust fit)
+    slope = None
+    fit_slope = config.mde_slope_sigma is not None and len(z) >= 3
+    if fit_slope:
+        slope_noise = noise
+        if config.edge_sigma > 0:
+            slope_noise = noise + (config.edge_sigma * _edge_range_at(log_raw, rows, cols)) ** 2
+        slope_kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
+
+        def fitted_slope(use):
+            with _single_threaded_blas():
+                return fit_mde_slope(
+                    rows[use], cols[use], np.log(z[use]), log_raw[rows[use], cols[use]], slope_noise[use],
+                    slope_kernel, config.nugget, prior_sigma=config.mde_slope_sigma,
+                )
+
+        slope = fitted_slope(np.ones(len(z), dtype=bool))
+        base = np.exp(slope.apply(log_raw))
+    resid = np.log(z) - np.log(base[rows, cols])
     start = None
     if not config.fit:
         s2 = config.outputscale**2
@@ -266,6 +294,16 @@ def _log_residual_posterior(
         b = float(np.median(resid)) if len(z) else 0.0
         fit = PointFit(config.lengthscale, config.outputscale, config.nugget, b, config.outputscale**2, len(z))
         rejected = np.zeros(len(z), dtype=bool)
+    if fit_slope and rejected.any() and np.count_nonzero(~rejected) >= 3:
+        before = resid
+        slope = fitted_slope(~rejected)
+        base = np.exp(slope.apply(log_raw))
+        resid = np.log(z) - np.log(base[rows, cols])
+        # the global scale follows: the same statistic as above (fixed: all points' median; fitted:
+        # moved by the kept points' median change)
+        b = float(np.median(resid)) if not config.fit else fit.log_scale + float(np.median((resid - before)[~rejected]))
+        fit = replace(fit, log_scale=b)
+    a = slope.slope if slope is not None else 1.0
     t1 = time.perf_counter()
 
     keep = ~rejected
@@ -285,27 +323,30 @@ def _log_residual_posterior(
     # correlation needs it and the kriging-weighted log MDE depth: further right-hand sides of
     # the one engine call, sharing its factorisation
     scale_term = variance and fit.log_scale_var > SCALE_VAR_SHARE * fit.nugget**2
+    slope_term = variance and slope is not None and len(r) > 0
     extra = ()
-    if depth_aware or scale_term:
+    if depth_aware or scale_term or slope_term:
         extra = (np.where(precision > 0, 1.0, 0.0),)
-    if depth_aware:
-        # depth-aware correlation (gp.model): rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), zbar the
-        # kriging-weighted mean log MDE depth of the points that inform x
-        z_pts = np.log(base[r, c])
-        z_ref = float(np.median(z_pts))
-        z_obs = np.zeros((h, w))
-        z_obs[r, c] = z_pts - z_ref
-        extra += (z_obs,)
+    if depth_aware or slope_term:
+        # the kriging-weighted (centred, not re-sloped) log MDE depth of the points: the
+        # depth-aware correlation's zbar and the slope's variance term
+        x_pts = log_raw[r, c]
+        centre = slope.centre if slope is not None else float(np.median(x_pts))
+        x_obs = np.zeros((h, w))
+        x_obs[r, c] = x_pts - centre
+        extra += (x_obs,)
+        x_out = np.log(resize_map(np.exp(log_raw), out_shape) if slope is not None else base_out) - centre
     solution = engine.solve(problem, variance=variance, extra_obs=extra)
     g_mean, g_var = solution.mean, solution.variance
     w1 = solution.extra_means[0] if extra else None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
+    wx = solution.extra_means[1] if len(extra) > 1 else None  # k(x)' (K + N)^-1 (x - c) at each output pixel
     rho = 1.0  # depth-aware correlation factor of each output pixel with the points
     if depth_aware:
-        wz = solution.extra_means[1]
-        log_out = np.log(base_out)
+        # depth-aware correlation (gp.model): rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), zbar the
+        # kriging-weighted mean log MDE depth of the points that inform x (both re-sloped by a)
         informed = np.abs(w1) >= WEIGHT_FLOOR  # elsewhere g's posterior is its prior whatever rho is
-        z_bar = np.where(informed, z_ref + wz / np.where(informed, w1, 1.0), log_out)
-        rho = np.exp(-np.abs(log_out - z_bar) / lz)
+        gap = np.where(informed, x_out - wx / np.where(informed, w1, 1.0), 0.0)
+        rho = np.exp(-a * np.abs(gap) / lz)
         g_mean = rho * g_mean
         if variance:
             s2 = fit.outputscale**2
@@ -319,6 +360,9 @@ def _log_residual_posterior(
         else:
             b_term = fit.log_scale_var * (1.0 - rho * w1) ** 2
         v_log = g_var + fit.nugget**2 + b_term
+        if slope_term:
+            # uncertainty of the slope a: Var[a] (x(x) - c - rho k(x)' (K + N)^-1 (x - c))^2
+            v_log = v_log + slope.slope_var * (x_out - rho * wx) ** 2
     else:
         v_log = np.zeros(out_shape)
     t2 = time.perf_counter()
@@ -365,7 +409,7 @@ def _log_residual_posterior(
         messages.append(f"{name}{int(rejected.sum())} of {len(z)} points ({rejected.mean():.0%}) rejected as outliers")
     alignment = AlignmentResult(scale, 0.0, n_kept)
     times = {"fit": t1 - t0, "solve": t2 - t1}
-    return mean, var, fit, fitted, rejected, tuple(messages), alignment, times, solution.info
+    return mean, var, fit, fitted, rejected, tuple(messages), alignment, times, solution.info, a
 
 
 class DepthCompleter:
@@ -454,7 +498,7 @@ class DepthCompleter:
         t0 = time.perf_counter()
         mde, valid, grid_sparse, out_shape = _frame_inputs(mde_depth, sparse, output_shape)
         t1 = time.perf_counter()
-        mean, var, fit, fitted, rejected, messages, alignment, times, info = _log_residual_posterior(
+        mean, var, fit, fitted, rejected, messages, alignment, times, info, slope = _log_residual_posterior(
             self.engine,
             mde,
             valid,
@@ -480,6 +524,7 @@ class DepthCompleter:
             rejected=rejected,
             warnings=messages,
             solve=info,
+            mde_slope=slope,
         )
 
     @staticmethod

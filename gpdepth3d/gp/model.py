@@ -50,6 +50,15 @@ Formulations:
   a depth no point speaks for returns to the prior (the scaled MDE, the prior variance) instead
   of inheriting a correction.
 
+  MDE slope (``mde_slope_sigma``): the MDE's log depth enters with a coefficient a fitted per
+  frame (`gpdepth3d.gp.slope`: generalised least squares on the points, prior N(1,
+  mde_slope_sigma^2), Huber-robust, refitted without the rejected points), i.e. the MDE is
+  re-sloped about the points' median log depth c to c + a (log MDE - c) before the model above
+  sees it; the variance gains Var[a] (log MDE(x) - c - k(x)' (K + N)^-1 (log MDE - c))^2 and the
+  depth-aware gap is measured on the re-sloped MDE. A network that over-states the depth
+  differences of a scene (FastDepth on 7-Scenes: a = 0.4-0.7) is then trusted for its shape as
+  far as the points confirm it; a = 1 is the plain model (KITTI with a KITTI-trained network).
+
   Means are positive by construction; errors that scale with depth
   (outdoors: a few cm at 5 m, metres at 60 m) get variances that scale with depth, and the
   fitted length scale follows the point density (short with full LiDAR, long with 50 points).
@@ -114,6 +123,9 @@ class DepthGPConfig:
         depth_lengthscale: log_residual: length scale of the depth-aware correlation in log-depth
             units (0.7: corrections fade to 1/e across a factor of 2 in MDE depth); None turns it
             off (the stationary pixel kernel alone). Costs two further right-hand sides of the solve.
+        mde_slope_sigma: log_residual: prior standard deviation of the MDE's log-depth coefficient
+            around 1, fitted per frame on the points (`gpdepth3d.gp.slope`); None fixes it at 1
+            (the MDE's depth ordering taken as exact).
     """
 
     formulation: Formulation = "log_residual"
@@ -131,6 +143,7 @@ class DepthGPConfig:
     outlier_threshold: float | None = 3.5
     edge_sigma: float = 1.0
     depth_lengthscale: float | None = 0.7
+    mde_slope_sigma: float | None = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.formulation, str) or self.formulation not in ("log_residual", "balanced", "residual"):
@@ -172,6 +185,13 @@ class DepthGPConfig:
                     "depth_lengthscale", "a log-depth length scale > 0, or None", f"{type(lz).__name__} {lz!r}"
                 )
             object.__setattr__(self, "depth_lengthscale", float(lz))
+        sa = self.mde_slope_sigma
+        if sa is not None:
+            if not _is_real(sa) or not np.isfinite(sa) or sa <= 0:
+                raise InvalidInputError(
+                    "mde_slope_sigma", "a standard deviation > 0, or None", f"{type(sa).__name__} {sa!r}"
+                )
+            object.__setattr__(self, "mde_slope_sigma", float(sa))
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
@@ -190,6 +210,7 @@ class DepthGPConfig:
             outlier_threshold=None,
             edge_sigma=0.0,
             depth_lengthscale=None,
+            mde_slope_sigma=None,
         )
         return replace(base, **overrides)
 
@@ -209,6 +230,7 @@ class DepthGPConfig:
             outlier_threshold=None,
             edge_sigma=0.0,
             depth_lengthscale=None,
+            mde_slope_sigma=None,
         )
         return replace(base, **overrides)
 
