@@ -60,9 +60,9 @@ def fit_mde_slope(
     nugget: float,
     *,
     prior_sigma: float,
-    max_points: int = 400,
+    max_points: int = 200,
     huber: float = 2.0,
-    iterations: int = 4,
+    iterations: int = 3,
 ) -> SlopeFit:
     """Fits the MDE's log-depth coefficient of one frame by robust generalised least squares.
 
