@@ -159,3 +159,13 @@ def test_sparse_without_points_and_outliers():
     with pytest.warns(g.PosteriorWarning):
         post = g.complete(mde, empty)
     assert post.mde_slope == 1.0
+
+
+def test_an_mde_the_points_contradict_warns(recwarn):
+    """Disparity passed as depth: the points run against the MDE's ordering, the slope goes negative and says so."""
+    truth, _ = _scene()
+    disparity = 1.0 / truth
+    with pytest.warns(g.PosteriorWarning, match=r"frame 7: the points follow the MDE's depth differences only weakly"):
+        post = g.complete(disparity, g.sample_uniform(truth, n=80, rng=5), frame="7")
+    assert post.mde_slope < 0.2
+    assert np.sqrt(np.mean((post.mean - truth) ** 2)) < 0.5 * np.sqrt(np.mean((disparity * np.median(truth / disparity) - truth) ** 2))

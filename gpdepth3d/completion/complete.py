@@ -51,7 +51,8 @@ class DepthPosterior:
             leave-one-out z-score given their neighbours exceeded ``config.outlier_threshold``).
         warnings: What the posterior could not support, one sentence each (also issued as
             `PosteriorWarning`): an MDE whose scale disagrees with the points by more than a
-            factor of 2, almost no points, points covering little of the image, many rejected.
+            factor of 2, almost no points, points covering little of the image, many rejected, an
+            MDE whose depth differences the points barely follow (fitted slope < 0.2).
         solve: The engine's facts of this call (`gpdepth3d.gp.SolveInfo`: route, seconds per
             stage); None for a posterior read from a file.
         mde_slope: log_residual: the MDE's log-depth coefficient fitted to this frame
@@ -189,6 +190,7 @@ COVERAGE_WARN = 0.5
 COVERAGE_REACH = 6.0  # a pixel is far from the points beyond max(H, W) / 6 (taxicab)
 REJECTED_WARN = 0.2
 SCALE_VAR_SHARE = 0.05  # Var[b] below this share of tau^2: bounded, not solved for
+SLOPE_WARN = 0.2  # a fitted MDE slope below this: the MDE's shape is barely used
 WEIGHT_FLOOR = 1e-3  # depth-aware correlation: pixels whose kriging weights sum below this keep rho = 1
 
 
@@ -405,6 +407,11 @@ def _log_residual_posterior(
                 f"{name}the points cover little of the image: {far:.0%} of it is farther than "
                 f"{reach:.0f} px from any point (the variance grows there)"
             )
+    if slope is not None and slope.slope < SLOPE_WARN:
+        messages.append(
+            f"{name}the points follow the MDE's depth differences only weakly (slope {slope.slope:.2f} in log "
+            f"depth; 1 = fully): its shape is barely used, check that it is depth (not disparity) of this image"
+        )
     if len(z) and rejected.mean() > REJECTED_WARN:
         messages.append(f"{name}{int(rejected.sum())} of {len(z)} points ({rejected.mean():.0%}) rejected as outliers")
     alignment = AlignmentResult(scale, 0.0, n_kept)
