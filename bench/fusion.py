@@ -106,7 +106,8 @@ def main() -> None:
     from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
-    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _jsonable, _resize_depth, mesh_metrics
+    from gpdepth3d.io import to_jsonable
+    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth, mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
     from gpdepth3d.mapping.triangulation import TriangulationConfig, triangulate_frames
@@ -233,7 +234,7 @@ def main() -> None:
         "wall_s": wall,
         "torch_threads": args.threads,
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "note": "shared 2-core machine, timings noisy"},
-        "config": _jsonable(asdict(config)),
+        "config": to_jsonable(asdict(config)),
         "gp_model": args.gp,
         "front_end": f"FastDepthTFLite({args.model.name})",
         "sparse_source": f"library triangulation ({args.detector}) from the sequence's RGB frames and poses",
