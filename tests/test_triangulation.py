@@ -272,6 +272,64 @@ class TestTriangulateTracks:
         same = triangulate_tracks(clean, poses, CAM, reference=0, config=with_factor)
         np.testing.assert_allclose(same.sigma, b.sigma, rtol=1e-9)
 
+    def test_held_pose_kernels_match_the_dense_normal_equations(self):
+        """The compiled held-pose path (refinement, variance, checks) agrees with `_Problem`'s numpy algebra."""
+        from gpdepth3d.mapping.triangulation import (
+            _held_pose_depths, _held_pose_variance, _linear_inverse_depth, _point_checks, _Problem,
+        )
+
+        rng = np.random.default_rng(14)
+        X = _scene(120, seed=14)
+        poses = _views()
+        tracks = _tracks(X, poses) + rng.normal(0, 0.4, (120, 4, 2))
+        tracks[:, 0] = _tracks(X, poses)[:, 0]
+        tracks[:10, 2] += 25.0  # outliers the refinement drops
+        tracks[10:30, 3] = np.nan
+        Ts = np.stack(poses)
+        T_jr = np.linalg.inv(Ts[1:]) @ Ts[0]
+        xbar = np.column_stack([(tracks[:, 0, 0] - CAM.cx) / CAM.fx, (tracks[:, 0, 1] - CAM.cy) / CAM.fy, np.ones(120)])
+        mask = np.all(np.isfinite(tracks[:, 1:]), axis=-1)
+        obs = np.where(mask[..., None], tracks[:, 1:], 0.0)
+        prob = _Problem(xbar, obs, mask, T_jr[:, :3, :3], T_jr[:, :3, 3], CAM, 0.5, np.radians(0.1), 0.005)
+        rho0 = _linear_inverse_depth(xbar, obs, mask, prob.R, prob.t, prob.f, prob.c)
+        np.testing.assert_allclose(1 / rho0[30:], X[30:, 2], rtol=0.05)  # the linear start is close
+        rho, r, valid = _held_pose_depths(xbar, obs, mask, prob.R, prob.t, prob.f, prob.c, 0.5, rho0, 2.0, 3.0)
+        assert not valid[:10, 1].any() and valid[10:, 1].all() and not valid[10:30, 2].any()
+
+        # the same robust Gauss-Newton with _Problem's Jacobians: 3 steps, outliers > 3 px dropped, 1 step
+        def steps(x, k):
+            for _ in range(k):
+                _, _, res, ok = prob.residuals(x)
+                _, _, h, b, _, _, _ = prob.normal_equations(x, 1.0 / (1.0 + np.sum(res**2, -1) / 4.0) * ok)
+                x_new = x - np.where(h > 0, b / np.where(h > 0, h, 1.0), 0.0)
+                x = np.where(x_new > 0.1 * x, x_new, 0.5 * x)
+            return x
+
+        x = steps(rho0, 3)
+        _, _, res, ok = prob.residuals(x)
+        prob.mask = mask & ok & (np.linalg.norm(res, axis=-1) * 0.5 <= 3.0)
+        x = steps(x, 1)
+        np.testing.assert_allclose(rho, x, rtol=1e-10)
+        _, _, r_np, valid_np = prob.residuals(rho)
+        np.testing.assert_array_equal(valid, valid_np)
+        np.testing.assert_allclose(r, r_np, rtol=1e-10, atol=1e-10)
+        # variance: 1 / h + the poses' prior through d rho / d xi = -h^-1 H_rho_xi (unit weights)
+        prob.pixel_sigma = 0.8
+        _, _, h, _, H_xr, _, _ = prob.normal_equations(rho, valid.astype(float))
+        expected = 1 / h + np.sum((H_xr / h[:, None, None]) ** 2 / prob.prior, axis=(1, 2))
+        var = _held_pose_variance(xbar, rho, valid, prob.R, prob.t, prob.f / 0.8, 1.0 / prob.prior)
+        np.testing.assert_allclose(var, expected, rtol=1e-10)
+        # checks: views, parallax against each neighbour centre, in front, RMS residual
+        Xr = xbar / rho[:, None]
+        n_views, parallax, front, rms = _point_checks(Xr, r, valid, prob.R, prob.t, 0.05)
+        np.testing.assert_array_equal(n_views, 1 + valid.sum(1))
+        centres = Ts[1:, :3, 3]  # the reference is the world frame here
+        rays = Xr[:, None] - centres[None]
+        cos = np.einsum("na,nja->nj", Xr, rays) / (np.linalg.norm(Xr, axis=1)[:, None] * np.linalg.norm(rays, axis=-1))
+        np.testing.assert_allclose(parallax, np.degrees(np.arccos(np.where(valid, cos, 1.0))).max(1), rtol=1e-9)
+        assert front.all()
+        np.testing.assert_allclose(rms, np.sqrt(np.sum(r**2, axis=(1, 2)) / valid.sum(1)), rtol=1e-12)
+
     def test_refined_poses_are_closer_to_the_truth(self):
         X = _scene(300, seed=13)
         poses = _views()

@@ -47,6 +47,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Literal, Sequence
 
+import numba as nb
 import numpy as np
 
 from ..camera import PinholeCamera, check_pose
@@ -578,9 +579,8 @@ class _Problem:
         e = self.prior_residual(R, t)
         return data + np.sum(e**2 * self.prior)
 
-    def normal_equations(self, rho, weights, poses: bool = True):
-        """Gauss-Newton blocks with per-observation weights (N, J); ``poses=False`` leaves out
-        the pose-pose blocks and the right-hand sides (returned as None)."""
+    def normal_equations(self, rho, weights):
+        """Gauss-Newton blocks (depth-depth, pose-depth, pose-pose, right-hand sides) with per-observation weights (N, J)."""
         p, z, r, valid = self.residuals(rho)
         w = np.where(valid, weights, 0.0)
         fz = self.f / self.pixel_sigma
@@ -599,8 +599,6 @@ class _Problem:
         wJ_rho = w[..., None] * J_rho
         h_rr = np.sum(wJ_rho * J_rho, axis=(1, 2))
         H_xr = np.matmul(wJ_rho[..., None, :], J_xi)[..., 0, :]  # (N, J, 6)
-        if not poses:
-            return r, valid, h_rr, None, H_xr, None, None
         b_r = np.sum(w[..., None] * J_rho * r, axis=(1, 2))
         n, nj = w.shape
         Jx = J_xi.transpose(1, 0, 2, 3).reshape(nj, 2 * n, 6)  # (J, 2N, 6)
@@ -699,7 +697,6 @@ def triangulate_tracks(
     obs = tracks[keep][:, others]
     mask = mask[keep]
     obs = np.where(mask[..., None], obs, 0.0)
-    T_rw = np.linalg.inv(Ts[ref])
     T_jr = np.linalg.inv(Ts[others]) @ Ts[ref]  # reference camera -> neighbour camera
     xbar = np.column_stack(
         [(uv_ref[:, 0] - camera.cx) / camera.fx, (uv_ref[:, 1] - camera.cy) / camera.fy, np.ones(len(keep))]
@@ -708,7 +705,7 @@ def triangulate_tracks(
         xbar, obs, mask, T_jr[:, :3, :3], T_jr[:, :3, 3], camera,
         config.pixel_sigma, np.radians(config.rotation_sigma_deg), config.translation_sigma,
     )
-    rho = _linear_inverse_depth(prob, mask.astype(np.float64))
+    rho = _linear_inverse_depth(xbar, obs, mask, prob.R, prob.t, prob.f, prob.c)
     rho_ok = np.isfinite(rho) & (rho > 0)
     rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
     mask &= rho_ok[:, None]
@@ -719,18 +716,19 @@ def triangulate_tracks(
     if config.refine_poses:
         for scale, iters in ((8.0, 4), (final_scale, 6)):
             rho = _levenberg_marquardt(prob, rho, scale, iters)
-    else:
-        rho = _gauss_newton_depths(prob, rho, final_scale, 3)
-    _, _, r, valid = prob.residuals(rho)
-    err_px = np.linalg.norm(r, axis=-1) * prob.pixel_sigma
-    prob.mask = mask = mask & valid & (err_px <= config.max_reprojection_error)
-    if config.refine_poses:
+        _, _, r, valid = prob.residuals(rho)
+        err_px = np.linalg.norm(r, axis=-1) * prob.pixel_sigma
+        prob.mask = mask = mask & valid & (err_px <= config.max_reprojection_error)
         rho = _levenberg_marquardt(prob, rho, final_scale, 3)
+        _, _, r, valid = prob.residuals(rho)
     else:
-        rho = _gauss_newton_depths(prob, rho, final_scale, 1)
+        # poses held: independent 1-D problems, one compiled loop over the tracks
+        rho, r, valid = _held_pose_depths(
+            xbar, obs, mask, prob.R, prob.t, prob.f, prob.c, prob.pixel_sigma, rho, final_scale,
+            float(config.max_reprojection_error),
+        )
 
     # Noise level actually seen (Rayleigh median of 2-D residual norms), dof-corrected.
-    _, _, r, valid = prob.residuals(rho)
     n_obs = int(valid.sum())
     live = valid.any(axis=1)
     n_par = int(live.sum()) + 6 * len(others)
@@ -740,13 +738,13 @@ def triangulate_tracks(
     else:
         seen = float(config.pixel_sigma)
     sigma_px = max(float(config.pixel_sigma), seen)
-    prob.pixel_sigma = sigma_px
-    _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64), poses=config.refine_poses)
-    n_pts, nj = H_xr.shape[:2]
-    A = H_xr.reshape(n_pts, nj * 6)
-    inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
-    B = A * inv[:, None]
     if config.refine_poses:
+        prob.pixel_sigma = sigma_px
+        _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
+        n_pts, nj = H_xr.shape[:2]
+        A = H_xr.reshape(n_pts, nj * 6)
+        inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
+        B = A * inv[:, None]
         S, _, _ = prob.schur(h_rr, H_xr, H_xx)
         # joint estimate: the marginal of the inverse depth (Schur complement of the poses)
         try:
@@ -757,29 +755,19 @@ def triangulate_tracks(
     else:
         # poses held at their given values: their whole prior uncertainty reaches the depth
         # through d rho / d xi = -H_rho_rho^-1 H_rho_xi
-        var_rho = inv + np.sum(B**2 / np.tile(prob.prior, len(others))[None], axis=1)
+        var_rho = _held_pose_variance(xbar, rho, valid, prob.R, prob.t, prob.f / sigma_px, 1.0 / prob.prior)
     if config.variance_factor:
         # a posteriori variance factor: residuals larger than the pixel noise say the poses
         # (or the tracks) are worse than assumed, in the directions the images cannot see too
         var_rho = var_rho * max(1.0, seen / float(config.pixel_sigma)) ** 2
 
-    n_views = 1 + valid.sum(axis=1)
     depth = np.where(rho > 0, 1.0 / np.where(rho > 0, rho, 1.0), np.nan)
     with np.errstate(invalid="ignore"):
         sigma_geo = np.sqrt(np.maximum(var_rho, 0.0)) * depth**2
     sigma = np.hypot(sigma_geo, config.depth_sigma_floor * depth)
     # geometry checks
     Xr = xbar * depth[:, None]
-    Xj = np.einsum("jab,nb->nja", prob.R, Xr) + prob.t[None]  # (N, J, 3) in the neighbours
-    cam_c = -np.einsum("jba,jb->ja", prob.R, prob.t)  # neighbour centres in the reference frame
-    ray_o = Xr[:, None, :] - cam_c[None]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cosang = np.einsum("na,nja->nj", Xr, ray_o) / (
-            np.linalg.norm(Xr, axis=1)[:, None] * np.linalg.norm(ray_o, axis=-1)
-        )
-    parallax = np.degrees(np.arccos(np.clip(np.where(valid, cosang, 1.0), -1.0, 1.0))).max(axis=1)
-    front = np.all(~valid | (Xj[..., 2] > config.min_depth * 0.5), axis=1)
-    rms = np.sqrt(np.sum(np.where(valid, np.sum(r**2, axis=-1), 0.0), axis=1) / np.maximum(valid.sum(axis=1), 1))
+    n_views, parallax, front, rms = _point_checks(Xr, r, valid, prob.R, prob.t, 0.5 * config.min_depth)
     good = (
         (n_views >= config.min_views)
         & np.isfinite(depth)
@@ -811,52 +799,229 @@ def triangulate_tracks(
     )
 
 
-def _linear_inverse_depth(prob: _Problem, weights: np.ndarray) -> np.ndarray:
+# ---------------------------------------------------------------------- compiled kernels (poses held)
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _residual(Rx0, Rx1, Rx2, rho, t, obs0, obs1, f, c, pixel_sigma):  # pragma: no cover - compiled
+    """A point on its reference ray at inverse depth rho in one neighbour: (p, residual / pixel_sigma, valid)."""
+    p0 = Rx0 + rho * t[0]
+    p1 = Rx1 + rho * t[1]
+    p2 = Rx2 + rho * t[2]
+    r0 = (p0 / p2 * f[0] + c[0] - obs0) / pixel_sigma
+    r1 = (p1 / p2 * f[1] + c[1] - obs1) / pixel_sigma
+    ok = p2 > 1e-9 and np.isfinite(r0) and np.isfinite(r1)
+    return p0, p1, p2, r0, r1, ok
+
+
+@nb.njit(cache=True, nogil=True)
+def _rotated_rays(xbar, R, Rx):  # pragma: no cover - compiled
+    """Rx[j] = R[j] @ xbar for every neighbour j (into ``Rx``, (J, 3))."""
+    for j in range(R.shape[0]):
+        for a in range(3):
+            Rx[j, a] = R[j, a, 0] * xbar[0] + R[j, a, 1] * xbar[1] + R[j, a, 2] * xbar[2]
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _linear_inverse_depth(xbar, obs, mask, R, t, f, c):  # pragma: no cover - compiled
     """Multi-view DLT of each track's inverse depth along its reference ray (closed form).
 
     For an observation (x, y) (normalised) in neighbour j: x (r3.xbar + rho t3) = r1.xbar + rho t1
     and the same in y; each row is linear in rho and scaled by the focal length over the
     point's depth proxy, so that the least-squares residual is in pixels. Two passes, the
-    second weighting each observation by a Cauchy weight of its first-pass residual.
+    second weighting each observation by a Cauchy weight of its first-pass residual (4 px).
+    Returns (N,) inverse depths (NaN or <= 0 where the views do not determine one).
     """
-    R, t = prob.R, prob.t
-    xy = (prob.uv - prob.c) / prob.f  # (N, J, 2)
-    Rx = np.einsum("jab,nb->nja", R, prob.xbar)
-    a = xy * t[None, :, 2:3] - t[None, :, :2]  # (N, J, 2)
-    b = Rx[..., :2] - xy * Rx[..., 2:3]
-    sw = (np.maximum(Rx[..., 2:3], 1e-6) ** -1) * prob.f
-    a, b = a * sw, b * sw
-    w = weights
-    rho = np.full(prob.xbar.shape[0], np.nan)
-    for _ in range(2):
-        num = np.einsum("nj,nja,nja->n", w, a, b)
-        den = np.einsum("nj,nja,nja->n", w, a, a)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho = num / den
-        res = np.linalg.norm(a * rho[:, None, None] - b, axis=-1)
-        w = weights / (1.0 + (np.nan_to_num(res, nan=1e6) / 4.0) ** 2)
+    n, nj = mask.shape
+    rho = np.full(n, np.nan)
+    Rx = np.empty((nj, 3))
+    a = np.empty((nj, 2))
+    b = np.empty((nj, 2))
+    w = np.empty(nj)
+    for i in range(n):
+        _rotated_rays(xbar[i], R, Rx)
+        for j in range(nj):
+            sw = 1.0 / max(Rx[j, 2], 1e-6)
+            for q in range(2):
+                xy = (obs[i, j, q] - c[q]) / f[q]
+                a[j, q] = (xy * t[j, 2] - t[j, q]) * (sw * f[q])
+                b[j, q] = (Rx[j, q] - xy * Rx[j, 2]) * (sw * f[q])
+            w[j] = 1.0 if mask[i, j] else 0.0
+        r = np.nan
+        for _ in range(2):
+            num = 0.0
+            den = 0.0
+            for j in range(nj):
+                num += w[j] * (a[j, 0] * b[j, 0] + a[j, 1] * b[j, 1])
+                den += w[j] * (a[j, 0] * a[j, 0] + a[j, 1] * a[j, 1])
+            r = num / den
+            for j in range(nj):
+                e0 = a[j, 0] * r - b[j, 0]
+                e1 = a[j, 1] * r - b[j, 1]
+                res = np.sqrt(e0 * e0 + e1 * e1)
+                if np.isnan(res):
+                    res = 1e6
+                elif np.isinf(res):
+                    res = 1.7976931348623157e308
+                w[j] = (1.0 if mask[i, j] else 0.0) / (1.0 + (res / 4.0) ** 2)
+        rho[i] = r
     return rho
 
 
-def _gauss_newton_depths(prob: _Problem, rho: np.ndarray, scale: float, iterations: int) -> np.ndarray:
-    """Robust Gauss-Newton on the inverse depths alone (poses held): independent 1-D problems."""
-    f = prob.f / prob.pixel_sigma
-    for _ in range(iterations):
-        p, z, r, valid = prob.residuals(rho)
-        iz2 = np.where(valid, 1.0 / np.where(valid, z, 1.0) ** 2, 0.0)
-        t = prob.t[None]
-        J = np.stack(
-            [f[0] * (t[..., 0] * p[..., 2] - p[..., 0] * t[..., 2]), f[1] * (t[..., 1] * p[..., 2] - p[..., 1] * t[..., 2])],
-            -1,
-        ) * iz2[..., None]
-        w = _cauchy_weights(r, scale) * valid
-        h = np.sum(w * np.sum(J * J, axis=-1), axis=1)
-        b = np.sum(w * np.sum(J * r, axis=-1), axis=1)
-        step = np.where(h > 0, -b / np.where(h > 0, h, 1.0), 0.0)
-        # keep the inverse depth positive (halve steps that would cross zero)
-        rho_new = rho + step
-        rho = np.where(rho_new > 0.1 * rho, rho_new, 0.5 * rho)
-    return rho
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _held_pose_depths(xbar, obs, mask, R, t, f, c, pixel_sigma, rho0, scale, max_error):  # pragma: no cover - compiled
+    """Robust (Cauchy) Gauss-Newton of each track's inverse depth with the poses held.
+
+    Per track (independent 1-D problems): 3 Gauss-Newton steps from ``rho0``, observations off
+    by more than ``max_error`` pixels dropped, one more step. A step that would bring the
+    inverse depth below a tenth of its value halves it instead.
+
+    Returns:
+        rho (N,), the residuals (N, J, 2) in units of ``pixel_sigma`` (0 where not valid) and
+        valid (N, J): observed, kept, in front of the neighbour, finite.
+    """
+    n, nj = mask.shape
+    rho = rho0.copy()
+    r_out = np.zeros((n, nj, 2))
+    valid = np.zeros((n, nj), np.bool_)
+    Rx = np.empty((nj, 3))
+    m = np.empty(nj, np.bool_)
+    fs0 = f[0] / pixel_sigma
+    fs1 = f[1] / pixel_sigma
+    s2 = scale * scale
+    for i in range(n):
+        _rotated_rays(xbar[i], R, Rx)
+        for j in range(nj):
+            m[j] = mask[i, j]
+        x = rho[i]
+        for it in range(5):
+            if it == 3:  # drop the outliers of the first 3 steps
+                for j in range(nj):
+                    if m[j]:
+                        _, _, _, r0, r1, ok = _residual(Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma)
+                        m[j] = ok and np.sqrt(r0 * r0 + r1 * r1) * pixel_sigma <= max_error
+                continue
+            h = 0.0
+            g = 0.0
+            for j in range(nj):
+                if not m[j]:
+                    continue
+                p0, p1, p2, r0, r1, ok = _residual(Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma)
+                if not ok:
+                    continue
+                iz2 = 1.0 / p2**2
+                J0 = fs0 * (t[j, 0] * p2 - p0 * t[j, 2]) * iz2
+                J1 = fs1 * (t[j, 1] * p2 - p1 * t[j, 2]) * iz2
+                wc = 1.0 / (1.0 + (r0 * r0 + r1 * r1) / s2)
+                h += wc * (J0 * J0 + J1 * J1)
+                g += wc * (J0 * r0 + J1 * r1)
+            step = -g / h if h > 0 else 0.0
+            x_new = x + step
+            x = x_new if x_new > 0.1 * x else 0.5 * x
+        rho[i] = x
+        for j in range(nj):
+            if m[j]:
+                _, _, _, r0, r1, ok = _residual(Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma)
+                if ok:
+                    valid[i, j] = True
+                    r_out[i, j, 0] = r0
+                    r_out[i, j, 1] = r1
+    return rho, r_out, valid
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _held_pose_variance(xbar, rho, valid, R, t, fs, prior_var):  # pragma: no cover - compiled
+    """(N,) variance of each inverse depth with the poses held at their given values.
+
+    Pixel noise through the Gauss-Newton information h = sum J_rho^2 (``fs`` = focal length
+    over the pixel sigma) plus every neighbour's pose prior (``prior_var``: 6 variances,
+    rotation vector then translation) through d rho / d xi = -h^-1 H_rho_xi:
+    var = 1/h + sum_j,k (H_rho_xi[j, k] / h)^2 prior_var[k].
+    """
+    n, nj = valid.shape
+    out = np.zeros(n)
+    Rx = np.empty((nj, 3))
+    H = np.zeros((nj, 6))
+    for i in range(n):
+        _rotated_rays(xbar[i], R, Rx)
+        x = rho[i]
+        h = 0.0
+        for j in range(nj):
+            for k in range(6):
+                H[j, k] = 0.0
+            if not valid[i, j]:
+                continue
+            p0 = Rx[j, 0] + x * t[j, 0]
+            p1 = Rx[j, 1] + x * t[j, 1]
+            p2 = Rx[j, 2] + x * t[j, 2]
+            iz = 1.0 / p2
+            # d(residual)/dp rows: (a, 0, -a p0 iz) and (0, b, -b p1 iz)
+            a0 = fs[0] * iz
+            a2 = -fs[0] * p0 * iz * iz
+            b1 = fs[1] * iz
+            b2 = -fs[1] * p1 * iz * iz
+            j_rho0 = a0 * t[j, 0] + a2 * t[j, 2]
+            j_rho1 = b1 * t[j, 1] + b2 * t[j, 2]
+            h += j_rho0 * j_rho0 + j_rho1 * j_rho1
+            # rotation: -Jp @ skew(Rx); translation: Jp * rho
+            H[j, 0] = j_rho0 * a2 * Rx[j, 1] + j_rho1 * (b2 * Rx[j, 1] - b1 * Rx[j, 2])
+            H[j, 1] = j_rho0 * (a0 * Rx[j, 2] - a2 * Rx[j, 0]) - j_rho1 * b2 * Rx[j, 0]
+            H[j, 2] = j_rho1 * b1 * Rx[j, 0] - j_rho0 * a0 * Rx[j, 1]
+            H[j, 3] = j_rho0 * a0 * x
+            H[j, 4] = j_rho1 * b1 * x
+            H[j, 5] = (j_rho0 * a2 + j_rho1 * b2) * x
+        inv = 1.0 / h if h > 0 else 0.0
+        v = inv
+        for j in range(nj):
+            for k in range(6):
+                e = H[j, k] * inv
+                v += e * e * prior_var[k]
+        out[i] = v
+    return out
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _point_checks(Xr, r, valid, R, t, min_front):  # pragma: no cover - compiled
+    """Per point (Xr: (N, 3) in the reference camera): views, parallax, in front, RMS residual.
+
+    Returns:
+        n_views (N,) (the reference included), the largest angle (degrees) between the
+        reference ray and a supporting neighbour's ray (NaN for a NaN point), whether the point
+        lies deeper than ``min_front`` in every supporting neighbour, and the RMS of the
+        residuals ``r`` over the supporting views.
+    """
+    n, nj = valid.shape
+    n_views = np.ones(n, np.int64)
+    parallax = np.zeros(n)
+    front = np.ones(n, np.bool_)
+    rms = np.zeros(n)
+    centre = np.empty((nj, 3))  # neighbour centres in the reference frame: -R^T t
+    for j in range(nj):
+        for a in range(3):
+            centre[j, a] = -(R[j, 0, a] * t[j, 0] + R[j, 1, a] * t[j, 1] + R[j, 2, a] * t[j, 2])
+    for i in range(n):
+        x0, x1, x2 = Xr[i, 0], Xr[i, 1], Xr[i, 2]
+        nx = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        best = 0.0
+        ss = 0.0
+        count = 0
+        for j in range(nj):
+            if not valid[i, j]:
+                continue
+            count += 1
+            ss += r[i, j, 0] * r[i, j, 0] + r[i, j, 1] * r[i, j, 1]
+            zj = R[j, 2, 0] * x0 + R[j, 2, 1] * x1 + R[j, 2, 2] * x2 + t[j, 2]
+            if not zj > min_front:
+                front[i] = False
+            o0, o1, o2 = x0 - centre[j, 0], x1 - centre[j, 1], x2 - centre[j, 2]
+            cosang = (x0 * o0 + x1 * o1 + x2 * o2) / (nx * np.sqrt(o0 * o0 + o1 * o1 + o2 * o2))
+            ang = np.degrees(np.arccos(min(max(cosang, -1.0), 1.0)))
+            if np.isnan(ang) or np.isnan(best):
+                best = np.nan
+            elif ang > best:
+                best = ang
+        n_views[i] = 1 + count
+        parallax[i] = best
+        rms[i] = np.sqrt(ss / max(count, 1))
+    return n_views, parallax, front, rms
 
 
 def _levenberg_marquardt(prob: _Problem, rho: np.ndarray, scale: float, iterations: int) -> np.ndarray:
