@@ -645,6 +645,14 @@ class TestMapScale:
         unsure = [dc_replace(kf, variance=(0.5 * kf.depth) ** 2) for kf in stored]
         assert map_scale(sparse, T, cam, unsure, cam) == (0.0, 0)
 
+    def test_median_helper_is_numpys_median(self):
+        from gpdepth3d.mapping.mapper import _median
+
+        rng = np.random.default_rng(3)
+        for n in (1, 2, 5, 20, 301):
+            x = rng.normal(size=n)
+            assert _median(x) == np.median(x)
+
     def test_mapper_pulls_a_frames_points_halfway_to_the_map(self, shared_data):
         frames = _frames(shared_data, (0, 1, 2, 3, 4))
         cam = frames[0].camera

@@ -448,29 +448,41 @@ def map_scale(
     T = check_pose(T_world_camera)
     if len(sparse) < min_points:
         return 0.0, 0
+    kfs = list(stored)[-int(recent):]
+    if len(kfs) < min_keyframes:
+        return 0.0, 0
     pts = transform_points(T, camera.backproject_pixels(sparse.uv, np.asarray(sparse.depth, dtype=np.float64)))
-    logs = []
+    # the points in every keyframe's camera at once (stored poses are rigid: checked when added)
+    poses = np.stack([kf.T_world_camera for kf in kfs])
+    pc = np.matmul(pts[None] - poses[:, None, :3, 3], poses[:, :3, :3])  # (K, N, 3)
+    z = pc[..., 2]
     h, w = work_camera.shape
-    for kf in list(stored)[-int(recent):]:
-        R, t = kf.T_world_camera[:3, :3], kf.T_world_camera[:3, 3]  # stored poses are rigid (checked when added)
-        pc = (pts - t) @ R
-        z = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.rint(work_camera.fx * pc[:, 0] / z + work_camera.cx)
-            v = np.rint(work_camera.fy * pc[:, 1] / z + work_camera.cy)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint(work_camera.fx * pc[..., 0] / z + work_camera.cx)
+        v = np.rint(work_camera.fy * pc[..., 1] / z + work_camera.cy)
         inside = (z > 1e-3) & (u >= 0) & (v >= 0) & (u <= w - 1) & (v <= h - 1)
-        if inside.sum() < min_points:
-            continue
-        iu, iv = u[inside].astype(np.int64), v[inside].astype(np.int64)
+    logs = []
+    for k in np.nonzero(np.count_nonzero(inside, axis=1) >= min_points)[0]:
+        kf, ins = kfs[k], inside[k]
+        iu, iv = u[k, ins].astype(np.int64), v[k, ins].astype(np.int64)
         d = kf.depth[iv, iu].astype(np.float64)
         var = kf.variance[iv, iu].astype(np.float64)
         with np.errstate(invalid="ignore"):
             ok = (d > 0) & np.isfinite(var) & (var <= (max_relative_sigma * d) ** 2)
-        if ok.sum() >= min_points:
-            logs.append(float(np.median(np.log(z[inside][ok] / d[ok]))))
+        if np.count_nonzero(ok) >= min_points:
+            logs.append(_median(np.log(z[k, ins][ok] / d[ok])))
     if len(logs) < min_keyframes:
         return 0.0, 0
     return float(np.median(logs)), len(logs)
+
+
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a 1-D array without NaN (the same value, a tenth of the overhead)."""
+    m = x.size // 2
+    if x.size % 2:
+        return float(np.partition(x, m)[m])
+    p = np.partition(x, (m - 1, m))
+    return float((p[m - 1] + p[m]) / 2)
 
 
 def _describe_error(stage: str, exc: BaseException) -> str:
