@@ -953,8 +953,9 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, con
     The image is cut into ``tile`` x ``tile`` pixel tiles; the ray through a tile's centre is
     sampled from (its smallest valid depth - trunc) to (its largest + trunc), at most ``step``
     metres apart; with ``conservative`` each sample also marks every block within the distance
-    the tile's other pixel rays can be from it at that depth. Two passes over the samples: the bounding box of their
-    blocks, then marks in a dense grid over it, read out in order (no sort, no hash).
+    the tile's other pixel rays can be from it at that depth. The samples' blocks are marked in
+    a dense grid over the bounding box of the rays' end samples (the samples in between lie
+    between them; one block of margin for rounding), read out in order (no sort, no hash).
     """
     h, w = depth.shape
     lo = np.full(3, np.iinfo(np.int64).max, np.int64)
@@ -964,56 +965,67 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, con
     # pixel centres of a tile lie within (tile - 1) / 2 pixels of its centre in u and v: at depth
     # s their rays are within sqrt(2) * s * (tile - 1) / 2 / f metres of the centre ray
     spread = np.sqrt(2.0) * 0.5 * (tile - 1) / min(fx, fy) / block_size if conservative else 0.0
-    nx = ny = nz = 0
-    grid = np.zeros((1, 1, 1), np.bool_)
-    for sweep in range(2):
-        if sweep == 1:
-            if lo[0] > hi[0]:
-                return np.zeros((0, 3), np.int64)
-            nx, ny, nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
-            grid = np.zeros((nx, ny, nz), np.bool_)
-        for ty in range(th):
-            v0, v1 = ty * tile, min(h, ty * tile + tile)
-            for tx in range(tw):
-                u0, u1 = tx * tile, min(w, tx * tile + tile)
-                dmin, dmax = np.inf, -1.0
-                for v in range(v0, v1):
-                    for u in range(u0, u1):
-                        d = depth[v, u]
-                        if d > 0:
-                            dmin = min(dmin, d)
-                            dmax = max(dmax, d)
-                if dmax < 0:
-                    continue
-                rx = (0.5 * (u0 + u1 - 1) - cx) / fx
-                ry = (0.5 * (v0 + v1 - 1) - cy) / fy
-                # the ray's direction in blocks per metre of depth
-                d0 = (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) / block_size
-                d1 = (R[1, 0] * rx + R[1, 1] * ry + R[1, 2]) / block_size
-                d2 = (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]) / block_size
-                a0 = max(dmin - trunc, 1e-3)
-                a1 = dmax + trunc
-                n = int(np.ceil((a1 - a0) / step)) + 1
-                for k in range(n):
-                    s = a0 + (a1 - a0) * k / (n - 1)
-                    r = s * spread  # the tile's other rays are within r of this sample (blocks)
-                    c0, c1, c2 = t0 + s * d0, t1 + s * d1, t2 + s * d2
-                    for i in range(int(np.floor(c0 - r)), int(np.floor(c0 + r)) + 1):
-                        for j in range(int(np.floor(c1 - r)), int(np.floor(c1 + r)) + 1):
-                            for q in range(int(np.floor(c2 - r)), int(np.floor(c2 + r)) + 1):
-                                if sweep == 0:
-                                    lo[0], hi[0] = min(lo[0], i), max(hi[0], i)
-                                    lo[1], hi[1] = min(lo[1], j), max(hi[1], j)
-                                    lo[2], hi[2] = min(lo[2], q), max(hi[2], q)
-                                else:
-                                    grid[i - lo[0], j - lo[1], q - lo[2]] = True
-    count = 0
+    # per tile: the ray's direction (blocks per metre of depth), its band [a0, a1], samples n (0: no depth)
+    ray = np.empty((th, tw, 3))
+    band = np.empty((th, tw, 2))
+    count = np.zeros((th, tw), np.int64)
+    for ty in range(th):
+        v0, v1 = ty * tile, min(h, ty * tile + tile)
+        for tx in range(tw):
+            u0, u1 = tx * tile, min(w, tx * tile + tile)
+            dmin, dmax = np.inf, -1.0
+            for v in range(v0, v1):
+                for u in range(u0, u1):
+                    d = depth[v, u]
+                    if d > 0:
+                        dmin = min(dmin, d)
+                        dmax = max(dmax, d)
+            if dmax < 0:
+                continue
+            rx = (0.5 * (u0 + u1 - 1) - cx) / fx
+            ry = (0.5 * (v0 + v1 - 1) - cy) / fy
+            d0 = (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) / block_size
+            d1 = (R[1, 0] * rx + R[1, 1] * ry + R[1, 2]) / block_size
+            d2 = (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]) / block_size
+            a0 = max(dmin - trunc, 1e-3)
+            a1 = dmax + trunc
+            n = int(np.ceil((a1 - a0) / step)) + 1
+            ray[ty, tx, 0], ray[ty, tx, 1], ray[ty, tx, 2] = d0, d1, d2
+            band[ty, tx, 0], band[ty, tx, 1] = a0, a1
+            count[ty, tx] = n
+            for k in (0, n - 1):
+                s = a0 + (a1 - a0) * k / (n - 1)
+                r = s * spread
+                c0, c1, c2 = t0 + s * d0, t1 + s * d1, t2 + s * d2
+                lo[0], hi[0] = min(lo[0], int(np.floor(c0 - r)) - 1), max(hi[0], int(np.floor(c0 + r)) + 1)
+                lo[1], hi[1] = min(lo[1], int(np.floor(c1 - r)) - 1), max(hi[1], int(np.floor(c1 + r)) + 1)
+                lo[2], hi[2] = min(lo[2], int(np.floor(c2 - r)) - 1), max(hi[2], int(np.floor(c2 + r)) + 1)
+    if lo[0] > hi[0]:
+        return np.zeros((0, 3), np.int64)
+    nx, ny, nz = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
+    grid = np.zeros((nx, ny, nz), np.bool_)
+    for ty in range(th):
+        for tx in range(tw):
+            n = count[ty, tx]
+            if n == 0:
+                continue
+            d0, d1, d2 = ray[ty, tx, 0], ray[ty, tx, 1], ray[ty, tx, 2]
+            a0, a1 = band[ty, tx, 0], band[ty, tx, 1]
+            for k in range(n):
+                s = a0 + (a1 - a0) * k / (n - 1)
+                r = s * spread  # the tile's other rays are within r of this sample (blocks)
+                c0, c1, c2 = t0 + s * d0, t1 + s * d1, t2 + s * d2
+                for i in range(int(np.floor(c0 - r)), int(np.floor(c0 + r)) + 1):
+                    for j in range(int(np.floor(c1 - r)), int(np.floor(c1 + r)) + 1):
+                        for q in range(int(np.floor(c2 - r)), int(np.floor(c2 + r)) + 1):
+                            grid[i - lo[0], j - lo[1], q - lo[2]] = True
+    total = 0
     for i in range(nx):
         for j in range(ny):
             for k in range(nz):
                 if grid[i, j, k]:
-                    count += 1
-    out = np.zeros((count, 3), np.int64)
+                    total += 1
+    out = np.zeros((total, 3), np.int64)
     m = 0
     for i in range(nx):
         for j in range(ny):
@@ -1022,6 +1034,7 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, con
                     out[m, 0], out[m, 1], out[m, 2] = i + lo[0], j + lo[1], k + lo[2]
                     m += 1
     return out
+
 
 def _to_torch(tensor: Any) -> Any:
     """A zero-copy torch view of an Open3D tensor (writes go to the Open3D buffer)."""
