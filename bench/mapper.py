@@ -23,7 +23,8 @@ new poses.
 
 The process CPU time of each ``add_frame`` is recorded too (with one torch thread it is close to
 the wall time an otherwise idle machine would show). Timings are wall-clock seconds on whatever machine runs it (the 2-core development machine is
-shared by several jobs: compare ratios within one run). Results: a table on stdout and
+shared by several jobs: compare ratios within one run; the 1-minute load average before and
+after the timed calls is recorded). Results: a table on stdout and
 ``bench/results/mapper.json`` (written atomically).
 """
 
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
 from dataclasses import asdict, replace
@@ -84,6 +86,7 @@ def main(argv: list[str] | None = None) -> dict:
     for k in range(min(n, config.lag + 2)):  # warm-up (JIT, caches, every stage once): not timed, not kept
         warm.add_frame(frames[k].rgb, frames[k].pose, keyframe_id=-1 - k)
     mapper = Mapper(camera, config, mde=warm.mde, completer=warm.completer)
+    load_before = os.getloadavg()
     results, calls, cpu, mesh_incremental = [], [], [], []
     for i, f in enumerate(frames):
         c0 = time.process_time()
@@ -100,6 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
               + ", ".join(f"{k} {1000 * v:6.1f}" for k, v in calls[-1].items())
               + f" ms (process CPU {1000 * cpu[-1]:.0f} ms)" + (f", mesh() {1000 * mesh_incremental[-1]:.0f} ms" if r is not None else "")
               + ("" if r is None or r.fused else f"  NOT FUSED: {r.error}"))
+    load_after = os.getloadavg()
     t0 = time.perf_counter()
     results += mapper.flush()
     t_flush = time.perf_counter() - t0
@@ -178,12 +182,14 @@ def main(argv: list[str] | None = None) -> dict:
         },
         "torch_threads": args.threads,
         "machine": {"platform": platform.platform(), "python": platform.python_version(), "note": "shared 2-core machine"},
+        "load_average_1min": {"before": load_before[0], "after": load_after[0]},  # other jobs on the machine
         "config": asdict(config),
         "front_end": f"FastDepthTFLite({args.model.name})",
     }
     atomic_write(args.out, lambda p: p.write_text(json.dumps(summary, indent=2)))
 
-    print(f"\n7-Scenes, {n} frames at {mapper.work_camera.width}x{mapper.work_camera.height}, "
+    print(f"\nload average (1 min) {load_before[0]:.2f} before the timed calls, {load_after[0]:.2f} after")
+    print(f"7-Scenes, {n} frames at {mapper.work_camera.width}x{mapper.work_camera.height}, "
           f"{summary['frames_fused']} fused, median {summary['points_per_frame_median']:.0f} points a frame")
     print(f"{'stage':<8}{'median ms':>11}{'mean ms':>10}{'p90 ms':>9}")
     for k in keys:
