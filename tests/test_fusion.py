@@ -217,6 +217,33 @@ class TestRobustness:
         a, b = _sorted_voxels(fusion), _sorted_voxels(clean)
         np.testing.assert_array_equal(a["tsdf"], b["tsdf"])
 
+    def test_pixels_out_of_range_unweighted_or_without_variance_are_not_fused(self):
+        rng = np.random.default_rng(5)
+        depth = _plane() + rng.uniform(-0.05, 0.05, CAM.shape)
+        depth[3, :4] = 0.05  # below depth_min
+        depth[4, :3] = 6.0  # beyond depth_max
+        depth[5, 0] = -1.0  # invalid, counted
+        weights = rng.uniform(0.2, 1.0, CAM.shape)
+        weights[6, :5] = 0.0
+        variance = np.full(CAM.shape, 1e-4, np.float32)
+        variance[7, :2] = np.nan
+        variance[8, :6] = -1.0
+        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True, depth_max=5.0)
+        fusion = TSDFFusion(CAM, cfg)
+        stats = fusion.integrate(depth.astype(np.float32), np.eye(4), weights=weights, variance=variance)
+        kept = (depth > cfg.depth_min) & (depth < cfg.depth_max) & (weights > 0) & np.isfinite(variance) & (variance >= 0)
+        assert stats.invalid_pixels == 1 and stats.pixels == kept.sum() == CAM.width * CAM.height - 21
+        # the same voxels as the frame with those pixels set to no depth
+        clean = TSDFFusion(CAM, cfg)
+        clean.integrate(np.where(kept, depth, 0.0).astype(np.float32), np.eye(4), weights=weights,
+                        variance=np.where(kept, variance, 0.0))
+        a, b = _sorted_voxels(fusion), _sorted_voxels(clean)
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
+        weights[9, 9] = np.nan
+        with pytest.raises(InvalidInputError, match="weights"):
+            fusion.integrate(depth, np.eye(4), weights=weights, variance=variance)
+
     def test_empty_mesh_allowed(self):
         fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=5.0))
         fusion.integrate(_plane(), np.eye(4), weights=np.full(CAM.shape, 0.1))

@@ -291,35 +291,28 @@ class TSDFFusion:
         if d.ndim != 2:
             raise ShapeError("depth", "a 2-D (H, W) depth map", describe(d))
         self.camera.check_image(d, "depth")
-        d = d.astype(np.float64)
-        with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(d) | (d < 0)
-        n_bad = int(bad.sum())
         if weights is None:
             w = np.ones(d.shape)
         else:
-            w = np.asarray(weights, dtype=np.float64)
+            w = np.ascontiguousarray(weights, dtype=np.float64)
             if w.shape != d.shape:
                 raise ShapeError("weights", f"the shape of depth {d.shape}", describe(w))
-            if np.any(~np.isfinite(w)) or np.any(w < 0):
-                raise InvalidInputError("weights", "finite weights >= 0", "negative or non-finite weights")
-        var = None
+        var = np.zeros((0, 0))
         if cfg.integrate_variance:
             if variance is None:
                 raise InvalidInputError("variance", "an (H, W) variance map (config.integrate_variance is on)", None)
-            var = np.asarray(variance, dtype=np.float64)
+            var = np.ascontiguousarray(variance, dtype=np.float64)
             if var.shape != d.shape:
                 raise ShapeError("variance", f"the shape of depth {d.shape}", describe(var))
-            with np.errstate(invalid="ignore"):
-                w = np.where(np.isfinite(var) & (var >= 0), w, 0.0)
-        with np.errstate(invalid="ignore"):
-            valid = ~bad & (d > cfg.depth_min) & (d < cfg.depth_max) & (w > 0)
-        if not valid.any():
+        d, w, var32, n_bad, pixels, bad_weights = _masked_frame(
+            np.ascontiguousarray(d, dtype=np.float64), w, var, float(cfg.depth_min), float(cfg.depth_max)
+        )
+        if bad_weights:
+            raise InvalidInputError("weights", "finite weights >= 0", "negative or non-finite weights")
+        if pixels == 0:
             raise EmptyInputError(
                 "depth", f"at least one pixel with depth in ({cfg.depth_min}, {cfg.depth_max}) m and weight > 0", "none"
             )
-        d = np.where(valid, d, 0.0).astype(np.float32)
-        w = np.where(valid, w, 0.0).astype(np.float32)
         color = None
         if cfg.integrate_color:
             if rgb is None:
@@ -333,7 +326,6 @@ class TSDFFusion:
                 color = rgb[..., :3].astype(np.float32)
                 if not np.issubdtype(rgb.dtype, np.integer):
                     color = color * 255.0
-        pixels = int(valid.sum())
 
         with self._threads():
             keys = self._band_keys(d, T)
@@ -341,8 +333,7 @@ class TSDFFusion:
                 keys = np.intersect1d(keys, np.asarray(blocks, dtype=np.int64), assume_unique=False)
             n = 0
             if keys.size:
-                var32 = None if var is None else np.where(valid, var, 0.0).astype(np.float32)
-                n = self._update(keys, d, w, color, var32, T)
+                n = self._update(keys, d, w, color, var32 if cfg.integrate_variance else None, T)
         self._dirty.append(keys)
         self.frames_integrated += 1
         return IntegrationStats(voxels=n, pixels=pixels, invalid_pixels=n_bad, block_keys=keys)
@@ -878,6 +869,43 @@ class TSDFFusion:
 
 
 # ---------------------------------------------------------------------- compiled CPU kernels
+@nb.njit(cache=True, nogil=True)
+def _masked_frame(depth, weights, variance, depth_min, depth_max):  # pragma: no cover - compiled; tested through integrate
+    """The pixels a frame fuses, in one pass (float64 inputs of one shape; ``variance`` may be (0, 0)).
+
+    A pixel is fused when its depth is finite, in (depth_min, depth_max), its weight > 0 and
+    (with a variance) its variance finite and >= 0. Returns float32 depth, weight and variance
+    (0 where not fused; the variance (0, 0) without one), the number of negative or non-finite
+    depths, the number of pixels fused, and whether any weight is negative or not finite.
+    """
+    h, w = depth.shape
+    has_var = variance.shape[0] > 0
+    d32 = np.zeros((h, w), np.float32)
+    w32 = np.zeros((h, w), np.float32)
+    v32 = np.zeros((h, w) if has_var else (0, 0), np.float32)
+    n_bad = 0
+    pixels = 0
+    bad_weights = False
+    for i in range(h):
+        for j in range(w):
+            d = depth[i, j]
+            wt = weights[i, j]
+            if not (np.isfinite(wt) and wt >= 0):
+                bad_weights = True
+            if not (np.isfinite(d) and d >= 0):
+                n_bad += 1
+                continue
+            if has_var and not (np.isfinite(variance[i, j]) and variance[i, j] >= 0):
+                continue
+            if d > depth_min and d < depth_max and wt > 0:
+                d32[i, j] = d
+                w32[i, j] = wt
+                if has_var:
+                    v32[i, j] = variance[i, j]
+                pixels += 1
+    return d32, w32, v32, n_bad, pixels, bad_weights
+
+
 @nb.njit(cache=True, nogil=True)
 def _update_voxels(
     blocks, buf, res, voxel_size, R_cw, t_cw, fx, fy, cx, cy, depth, wpix, color, var, trunc, cap, tsdf, weight, col, vvox
