@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import InvalidInputError, ShapeError, describe
 from .model import Kernel
@@ -60,7 +61,7 @@ def fit_mde_slope(
     nugget: float,
     *,
     prior_sigma: float,
-    max_points: int = 200,
+    max_points: int = 150,
     huber: float = 2.0,
     iterations: int = 3,
 ) -> SlopeFit:
@@ -114,16 +115,16 @@ def fit_mde_slope(
     marginal = np.sqrt(kernel.outputscale**2 + white)
     beta = np.zeros(2)
     M = prior_prec
+    rhs = np.column_stack([H, yc])
     for it in range(max(1, int(iterations))):
         S = K + np.diag(white / weights)
         try:
-            L = np.linalg.cholesky(S)
+            factor = cho_factor(S, lower=True, check_finite=False)
         except np.linalg.LinAlgError:
-            L = np.linalg.cholesky(S + np.eye(len(yc)) * 1e-10 * np.trace(S) / len(yc))
-        A = np.linalg.solve(L, H)
-        b = np.linalg.solve(L, yc)
-        M = A.T @ A + prior_prec
-        beta = np.linalg.solve(M, A.T @ b)
+            factor = cho_factor(S + np.eye(len(yc)) * 1e-10 * np.trace(S) / len(yc), lower=True, check_finite=False)
+        Z = cho_solve(factor, rhs, check_finite=False)  # S^-1 [H, y]
+        M = H.T @ Z[:, :2] + prior_prec
+        beta = np.linalg.solve(M, H.T @ Z[:, 2])
         if it + 1 < iterations:
             t = np.abs(yc - H @ beta) / marginal
             new = np.where(t <= huber, 1.0, huber / np.maximum(t, 1e-300))
