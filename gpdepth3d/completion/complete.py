@@ -30,6 +30,7 @@ from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
 from ..depthmap import fill_nearest, resize_map
+from ._assemble import assemble
 from .problem import _frame_inputs, build_problem, check_mde_depth
 
 
@@ -272,8 +273,8 @@ def _log_residual_posterior(
                 )
 
         slope = fitted_slope(np.ones(len(z), dtype=bool))
-        base = np.exp(slope.apply(log_raw))
-    resid = np.log(z) - np.log(base[rows, cols])
+    log_base = slope.apply(log_raw) if slope is not None else log_raw  # the (re-sloped) log MDE
+    resid = np.log(z) - log_base[rows, cols]
     start = None
     if not config.fit:
         s2 = config.outputscale**2
@@ -285,7 +286,7 @@ def _log_residual_posterior(
         # posterior's variance gets): there its neighbours may rightly disagree with it
         screen_noise = noise
         if config.edge_sigma > 0:
-            edge = _edge_range_at(np.log(base), rows, cols)
+            edge = _edge_range_at(log_base, rows, cols)
             screen_noise = noise + (config.edge_sigma * edge) ** 2
         with _single_threaded_blas():  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
             fit, rejected, _ = screen_points(
@@ -299,8 +300,8 @@ def _log_residual_posterior(
     if fit_slope and rejected.any() and np.count_nonzero(~rejected) >= 3:
         before = resid
         slope = fitted_slope(~rejected)
-        base = np.exp(slope.apply(log_raw))
-        resid = np.log(z) - np.log(base[rows, cols])
+        log_base = slope.apply(log_raw)
+        resid = np.log(z) - log_base[rows, cols]
         # the global scale follows: the same statistic as above (fixed: all points' median; fitted:
         # moved by the kept points' median change)
         b = float(np.median(resid)) if not config.fit else fit.log_scale + float(np.median((resid - before)[~rejected]))
@@ -318,7 +319,11 @@ def _log_residual_posterior(
     kernel = Kernel(config.nu, fit.lengthscale, fit.outputscale)
     zeros_in, zeros_out = np.zeros((h, w)), np.zeros(out_shape)
     problem = GridProblem(zeros_in, obs, precision, out_rows, out_cols, zeros_out, kernel)
-    base_out = resize_map(base, out_shape)
+    same_grid = tuple(out_shape) == (h, w)
+    base_out = np.exp(log_base) if slope is not None else base
+    if not same_grid:
+        base_out = resize_map(base_out, out_shape)
+    log_out = log_base if same_grid else np.log(base_out)
     lz = config.depth_lengthscale
     depth_aware = lz is not None and len(r) > 0
     # the scale term below needs k(x)' (K + N)^-1 1 unless Var[b] is small; the depth-aware
@@ -337,48 +342,31 @@ def _log_residual_posterior(
         x_obs = np.zeros((h, w))
         x_obs[r, c] = x_pts - centre
         extra += (x_obs,)
-        x_out = np.log(resize_map(np.exp(log_raw), out_shape) if slope is not None else base_out) - centre
+        if slope is None:
+            x_out = log_out - centre
+        else:
+            x_out = (log_raw if same_grid else np.log(resize_map(base, out_shape))) - centre
     solution = engine.solve(problem, variance=variance, extra_obs=extra)
-    g_mean, g_var = solution.mean, solution.variance
     w1 = solution.extra_means[0] if extra else None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
     wx = solution.extra_means[1] if len(extra) > 1 else None  # k(x)' (K + N)^-1 (x - c) at each output pixel
-    rho = 1.0  # depth-aware correlation factor of each output pixel with the points
-    if depth_aware:
-        # depth-aware correlation (gp.model): rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), zbar the
-        # kriging-weighted mean log MDE depth of the points that inform x (both re-sloped by a)
-        informed = np.abs(w1) >= WEIGHT_FLOOR  # elsewhere g's posterior is its prior whatever rho is
-        gap = np.where(informed, x_out - wx / np.where(informed, w1, 1.0), 0.0)
-        rho = np.exp(-a * np.abs(gap) / lz)
-        g_mean = rho * g_mean
-        if variance:
-            s2 = fit.outputscale**2
-            g_var = s2 - rho**2 * (s2 - g_var)
-    if variance:
-        # uncertainty of the global scale b (flat prior): Var[b] (1 - rho k(x)' (K + N)^-1 1)^2. The
-        # factor is in [0, 1]; when Var[b] is at most 5 % of the nugget variance (thousands of
-        # points) its bound Var[b] is used instead (variance high by <= 5 %)
-        if not scale_term:
-            b_term = fit.log_scale_var
-        else:
-            b_term = fit.log_scale_var * (1.0 - rho * w1) ** 2
-        v_log = g_var + fit.nugget**2 + b_term
-        if slope_term:
-            # uncertainty of the slope a: Var[a] (x(x) - c - rho k(x)' (K + N)^-1 (x - c))^2
-            v_log = v_log + slope.slope_var * (x_out - rho * wx) ** 2
-    else:
-        v_log = np.zeros(out_shape)
+    # per pixel, in one compiled pass (completion._assemble): the depth-aware correlation rho(x) =
+    # exp(-a |x - c - wx / w1| / l_z) (gp.model: zbar(x) the kriging-weighted log MDE depth of the
+    # points that inform x; rho = 1 where their weights sum below WEIGHT_FLOOR: there g's posterior is
+    # its prior whatever rho is) scales E[g] and pulls Var[g] back to the prior; the global scale b
+    # (flat prior) adds Var[b] (1 - rho k(x)' (K + N)^-1 1)^2 - bounded by Var[b] when Var[b] is at most
+    # 5 % of the nugget variance (thousands of points: variance high by <= 5 %); the slope a adds
+    # Var[a] (x(x) - c - rho k(x)' (K + N)^-1 (x - c))^2; the depth is log-normal
+    mean, var = assemble(
+        log_out, solution.mean, solution.variance, w1, wx, x_out if (depth_aware or slope_term) else None,
+        b=fit.log_scale, s2=fit.outputscale**2, tau2=fit.nugget**2, var_b=fit.log_scale_var,
+        var_a=slope.slope_var if slope_term else 0.0, a=a, lz=lz if depth_aware else None, floor=WEIGHT_FLOOR,
+        scale_term=scale_term, slope_term=slope_term, variance=variance,
+    )
+    if variance and config.edge_sigma > 0:
+        factor = max(out_shape[0] / h, out_shape[1] / w)
+        window = 2 * int(np.ceil(factor)) + 1
+        var += (config.edge_sigma * np.exp(fit.log_scale) * _edge_range(base_out, window)) ** 2
     t2 = time.perf_counter()
-
-    mu = np.log(base_out) + fit.log_scale + g_mean
-    mean = np.exp(mu + 0.5 * v_log)
-    if variance:
-        var = np.expm1(v_log) * np.exp(2.0 * mu + v_log)
-        if config.edge_sigma > 0:
-            factor = max(out_shape[0] / h, out_shape[1] / w)
-            window = 2 * int(np.ceil(factor)) + 1
-            var = var + (config.edge_sigma * np.exp(fit.log_scale) * _edge_range(base_out, window)) ** 2
-    else:
-        var = np.full(out_shape, np.nan)
 
     fitted = config.replace(lengthscale=fit.lengthscale, outputscale=fit.outputscale, nugget=fit.nugget)
     name = f"frame {frame}: " if frame is not None else ""
