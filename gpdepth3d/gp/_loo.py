@@ -1,4 +1,11 @@
-"""Compiled leave-one-out kriging: the numeric kernel of `gpdepth3d.gp.points.loo_zscores`.
+"""Compiled leave-one-out kriging: the numeric kernels of `gpdepth3d.gp.points.loo_zscores`.
+
+Neighbours (`grid_neighbours`): the k nearest usable points of each target in L1 pixel distance,
+ties at equal distance broken by (row, column, index): the neighbourhood of a point is a function
+of the point set alone, whichever search finds it, and does not depend on the points' order. For points on integer pixels the
+search scans rings of equal L1 distance around each target in a bucket image of the points (a
+cell per pixel), in parallel over targets: O(points within the k-th neighbour's distance) per
+target, against a k-d tree's O(log N) queries with large constants.
 
 For every target point i with neighbours N (found by the caller), the simple-kriging weights
 w = (K_NN + diag(tau^2 + noise_N))^-1 k_Ni of the separable Matern kernel, the prediction
@@ -95,6 +102,89 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
         quad += y[a] * kx[a]
     var = s2 + tau2 + noise[i] - quad
     z[q] = (r[i] - pred) / math.sqrt(max(var, 1e-30))
+
+
+@nb.njit(parallel=True, **_FLAGS)
+def _ring_search(r, c, width, start, members, targets, k, nn, dist):
+    """k nearest members of each target by (L1 distance, row, column, index) (see `_ring_one`)."""
+    t = targets.size
+    chunk = 512
+    for c0 in nb.prange((t + chunk - 1) // chunk):
+        for q in range(c0 * chunk, min(t, (c0 + 1) * chunk)):
+            _ring_one(q, r, c, width, start, members, targets, k, nn, dist)
+
+
+@nb.njit(**_FLAGS)
+def _ring_one(q, r, c, width, start, members, targets, k, nn, dist):
+    """nn[q] / dist[q]: the k nearest members of target q, scanning rings of equal L1 distance outwards.
+
+    ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
+    rows; the members of cell x are members[start[x]:start[x + 1]] in index order. A ring is
+    visited row by row from the top, left before right, so its members come in (row, column,
+    index) order, which is the tie order. With fewer than k members (other than the target) the
+    rest of the row is -1.
+    """
+    height = (start.size - 1) // width
+    i = targets[q]
+    ri, ci = r[i], c[i]
+    dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
+    count = 0
+    d = 0
+    while count < k and d <= dmax:
+        for dr in range(max(-d, -ri), min(d, height - 1 - ri) + 1):
+            rem = d - abs(dr)
+            row = (ri + dr) * width
+            for side in range(2 if rem > 0 else 1):
+                cc = ci - rem if side == 0 else ci + rem
+                if cc < 0 or cc >= width:
+                    continue
+                for a in range(start[row + cc], start[row + cc + 1]):
+                    p = members[a]
+                    if p != i and count < k:
+                        nn[q, count] = p
+                        dist[q, count] = d
+                        count += 1
+            if count == k:
+                break
+        d += 1
+    for a in range(count, k):
+        nn[q, a] = -1
+        dist[q, a] = -1
+
+
+#: `grid_neighbours` builds a bucket image of at most this many cells per point plus 2**20
+#: (beyond it, points spread thinly over a huge coordinate range, `points.loo_zscores` uses a k-d tree).
+GRID_CELLS_PER_POINT = 64
+
+
+def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
+    """The k nearest usable points of each target in L1 distance, ties broken by (row, column, index).
+
+    Args:
+        rows, cols: (N,) integer-valued pixel coordinates of all points (any origin).
+        usable: (N,) bool, the points that may be neighbours.
+        targets: (T,) indices of the points whose neighbours to find (a target is never its own
+            neighbour; another point on the same pixel is one, at distance 0).
+        k: Neighbours per target, at least 1 and at most the usable points other than any target.
+
+    Returns:
+        (nn (T, k) int64, dist (T, k) float64): each row's neighbours sorted by (L1 distance, row,
+        column, index), and their distances.
+    """
+    r = np.asarray(rows, dtype=np.float64).astype(np.int64)
+    c = np.asarray(cols, dtype=np.float64).astype(np.int64)
+    r, c = r - r.min(), c - c.min()
+    height, width = int(r.max()) + 1, int(c.max()) + 1
+    pool = np.flatnonzero(usable)
+    cell = r[pool] * width + c[pool]
+    members = pool[np.argsort(cell, kind="stable")]  # by cell, then by index
+    start = np.zeros(height * width + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cell, minlength=height * width), out=start[1:])
+    targets = np.ascontiguousarray(targets, dtype=np.int64)
+    nn = np.empty((targets.size, k), dtype=np.int64)
+    dist = np.empty((targets.size, k), dtype=np.int64)
+    _ring_search(r, c, width, start, members, targets, int(k), nn, dist)
+    return nn, dist.astype(np.float64)
 
 
 def loo_predict(

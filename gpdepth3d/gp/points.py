@@ -28,6 +28,8 @@ import numpy as np
 from ..errors import InvalidInputError
 from .model import matern_1d
 
+#: Neighbours of each point in `screen_points`' leave-one-out z-scores.
+_NEIGHBOURS = 12
 #: Length scales (GP-grid pixels) and nugget shares searched by `fit_log_residual`.
 LENGTHSCALES = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
 NUGGETS = (0.01, 0.03, 0.1, 0.3, 1.0)
@@ -211,18 +213,18 @@ def loo_zscores(
     exclude: np.ndarray | None = None,
     only: np.ndarray | None = None,
     radius: bool = False,
-    tree=None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
     Point i is predicted by simple kriging (mean b) from its ``neighbours`` nearest points (L1
-    pixel distance) that are not excluded; z_i = (r_i - prediction) / predictive sd, where the
-    predictive variance includes the nugget and point i's own noise. With the exponential
-    kernel's screening effect the nearest neighbours carry almost all of the weight, so this is
-    close to the exact leave-one-out of the full GP at a cost linear in N. The neighbours come
-    from a k-d tree (`scipy.spatial.cKDTree`), the kriging from compiled loops
-    (`gpdepth3d.gp._loo`, one k x k Cholesky per point; a neighbourhood whose matrix is not
-    numerically positive definite is solved by least squares instead).
+    pixel distance; at equal distance the upper, then the left point first) that are not excluded; z_i =
+    (r_i - prediction) / predictive sd, where the predictive variance includes the nugget and
+    point i's own noise. With the exponential kernel's screening effect the nearest neighbours
+    carry almost all of the weight, so this is close to the exact leave-one-out of the full GP
+    at a cost linear in N. The neighbours come from a ring search over a bucket image of the
+    points (`neighbours_of`), the kriging from compiled loops (`gpdepth3d.gp._loo`, one k x k
+    Cholesky per point; a neighbourhood whose matrix is not numerically positive definite is
+    solved by least squares instead).
 
     Args:
         rows, cols, resid, noise: (N,) as in `fit_log_residual`.
@@ -232,35 +234,24 @@ def loo_zscores(
         exclude: (N,) bool, points not to use as neighbours (their own z is still computed).
         only: Indices of the points whose z-score to compute (default all; the others get 0).
         radius: Also return each computed point's L1 distance to its farthest neighbour used.
-        tree: A `scipy.spatial.cKDTree` of the (row, col) of the usable points in index order, if
-            the caller has one (default: built here).
 
     Returns:
         (N,) z-scores (0 where no neighbour is available or not computed); with ``radius``,
         also the (N,) neighbourhood radii (inf where not computed).
     """
-    from scipy.spatial import cKDTree
-
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     r = np.asarray(resid, dtype=np.float64) - fit.log_scale
     noise = np.asarray(noise, dtype=np.float64)
     n = r.size
     usable = np.ones(n, dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
-    pool = np.flatnonzero(usable)
-    k = min(int(neighbours), pool.size - 1 if pool.size else 0)
+    pool = int(np.count_nonzero(usable))
+    k = min(int(neighbours), pool - 1 if pool else 0)
     targets = np.arange(n) if only is None else np.asarray(only, dtype=np.int64)
     out, reach = np.zeros(n), np.full(n, np.inf)
     if n == 0 or k < 1 or targets.size == 0:
         return (out, reach) if radius else out
-    if tree is None:
-        tree = cKDTree(np.column_stack([rows[pool], cols[pool]]))
-    dist, nn = tree.query(np.column_stack([rows[targets], cols[targets]]), k=k + 1, p=1)
-    nn = pool[nn]
-    # drop the point itself where it is among its neighbours, keep the k nearest others
-    order = np.argsort(nn == targets[:, None], axis=1, kind="stable")
-    nn = np.take_along_axis(nn, order, axis=1)[:, :k]
-    dist = np.take_along_axis(dist, order, axis=1)[:, :k]
+    nn, dist = neighbours_of(rows, cols, usable, targets, k)
     from ._loo import loo_predict
     from .multifrontal import numeric_section
 
@@ -273,6 +264,52 @@ def loo_zscores(
     out[targets] = z
     reach[targets] = dist[:, -1]
     return (out, reach) if radius else out
+
+
+def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
+    """The k nearest usable points of each target in L1 distance, ties broken by (row, column, index).
+
+    The tie rule makes a neighbourhood a function of the point set alone (not of a search
+    structure, nor of the points' order but for points on one pixel), so screening rounds that
+    recompute only some points agree with a full recompute.
+    Points on integer pixels (the GP grid's) are searched by rings in a bucket image
+    (`gpdepth3d.gp._loo.grid_neighbours`); others (or points spread over a coordinate range of
+    more than ``GRID_CELLS_PER_POINT`` cells per point) with a k-d tree and the same rule.
+
+    Args:
+        rows, cols: (N,) pixel coordinates of all points.
+        usable: (N,) bool, the points that may be neighbours.
+        targets: (T,) indices of the points whose neighbours to find (never their own neighbour).
+        k: Neighbours per target, 1 <= k <= the usable points other than any target.
+
+    Returns:
+        (nn (T, k) int64, dist (T, k) float64), each row sorted by (distance, row, column, index).
+    """
+    from ._loo import GRID_CELLS_PER_POINT, grid_neighbours
+
+    rows = np.asarray(rows, dtype=np.float64)
+    cols = np.asarray(cols, dtype=np.float64)
+    targets = np.asarray(targets, dtype=np.int64)
+    on_pixels = bool(np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols)))
+    cells = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
+    if on_pixels and cells <= GRID_CELLS_PER_POINT * rows.size + 2**20:
+        return grid_neighbours(rows, cols, usable, targets, k)
+    from scipy.spatial import cKDTree
+
+    pool = np.flatnonzero(usable)
+    xy = np.column_stack([rows, cols])
+    tree = cKDTree(xy[pool])
+    far, _ = tree.query(xy[targets], k=k + 1, p=1)  # the k nearest others lie within the (k + 1)-th distance
+    near = tree.query_ball_point(xy[targets], r=far[:, -1] * (1 + 1e-9) + 1e-9, p=1)
+    nn = np.empty((targets.size, k), dtype=np.int64)
+    dist = np.empty((targets.size, k))
+    for q, (i, cand) in enumerate(zip(targets, near)):
+        cand = pool[np.asarray(cand, dtype=np.int64)]
+        cand = cand[cand != i]
+        d = np.abs(rows[cand] - rows[i]) + np.abs(cols[cand] - cols[i])
+        pick = np.lexsort((cand, cols[cand], rows[cand], d))[:k]
+        nn[q], dist[q] = cand[pick], d[pick]
+    return nn, dist
 
 
 def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> np.ndarray:
@@ -330,9 +367,10 @@ def screen_points(
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, changed = start, None, None, None, None
-    everyone = None  # k-d tree of all points: the first round's neighbours, the points near a moved one
     from scipy.spatial import cKDTree
 
+    xy = np.column_stack([rows, cols]).astype(np.float64)
+    k_used = None
     for _ in range(max(1, iterations) if threshold is not None else 1):
         keep = ~rejected
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
@@ -346,21 +384,17 @@ def screen_points(
         if threshold is None or n < 5:
             break
         only = None
-        if z is not None and not refit:
+        k_now = min(_NEIGHBOURS, int(np.count_nonzero(keep)) - 1)
+        if z is not None and not refit and k_now == k_used:
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
-            # (candidates: the points within the largest radius of a moved point, from a tree of all points)
             moved = np.flatnonzero(changed)
-            xy = everyone.data
             radius = float(np.max(reach[np.isfinite(reach)], initial=0.0))
-            near = everyone.query_ball_point(xy[moved], r=radius * (1 + 1e-12) + 1e-12, p=1)
-            cand = np.unique(np.concatenate([np.asarray(c, dtype=np.int64) for c in near] + [moved]))
-            d, _ = cKDTree(xy[moved]).query(xy[cand], k=1, p=1)
-            only = np.union1d(cand[d <= reach[cand]], moved)
-        if everyone is None:
-            everyone = cKDTree(np.column_stack([rows, cols]).astype(np.float64))
-        z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, exclude=rejected, only=only, radius=True,
-                                       tree=None if rejected.any() else everyone)
+            d, _ = cKDTree(xy[moved]).query(xy, k=1, p=1, distance_upper_bound=radius * (1 + 1e-12) + 1e-12)
+            only = np.union1d(np.flatnonzero(np.isfinite(d) & (d <= reach)), moved)
+        k_used = k_now
+        z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=_NEIGHBOURS, exclude=rejected,
+                                       only=only, radius=True)
         if only is None:
             z, reach = z_new, reach_new
         else:
