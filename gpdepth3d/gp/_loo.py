@@ -152,11 +152,6 @@ def _ring_one(q, r, c, width, start, members, targets, k, nn, dist):
         dist[q, a] = -1
 
 
-#: `grid_neighbours` builds a bucket image of at most this many cells per point plus 2**20
-#: (beyond it, points spread thinly over a huge coordinate range, `points.loo_zscores` uses a k-d tree).
-GRID_CELLS_PER_POINT = 64
-
-
 def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
     """The k nearest usable points of each target in L1 distance, ties broken by (row, column, index).
 

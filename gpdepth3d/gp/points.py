@@ -266,6 +266,19 @@ def loo_zscores(
     return (out, reach) if radius else out
 
 
+#: Image searches (`neighbours_of`, `_distance_to`) cover the box around the points; they are used
+#: for points on integer pixels whose box has at most this many cells per point (plus 2**20).
+GRID_CELLS_PER_POINT = 64
+
+
+def _on_pixel_grid(rows: np.ndarray, cols: np.ndarray) -> bool:
+    """True when the points lie on integer pixels in a box small enough for an image search."""
+    if rows.size == 0 or not (np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols))):
+        return False
+    cells = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
+    return cells <= GRID_CELLS_PER_POINT * rows.size + 2**20
+
+
 def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
     """The k nearest usable points of each target in L1 distance, ties broken by (row, column, index).
 
@@ -285,14 +298,12 @@ def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, target
     Returns:
         (nn (T, k) int64, dist (T, k) float64), each row sorted by (distance, row, column, index).
     """
-    from ._loo import GRID_CELLS_PER_POINT, grid_neighbours
+    from ._loo import grid_neighbours
 
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.int64)
-    on_pixels = bool(np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols)))
-    cells = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
-    if on_pixels and cells <= GRID_CELLS_PER_POINT * rows.size + 2**20:
+    if _on_pixel_grid(rows, cols):
         return grid_neighbours(rows, cols, usable, targets, k)
     from scipy.spatial import cKDTree
 
@@ -324,6 +335,32 @@ def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> n
     pred = np.sum(w * r[nn], axis=1)
     var = s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1)
     return (r[targets] - pred) / np.sqrt(np.maximum(var, 1e-30))
+
+
+def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
+
+    Points on integer pixels: an exact city-block distance transform of the box around them;
+    others: a k-d tree of the sources.
+    """
+    rows = np.asarray(rows, dtype=np.float64)
+    cols = np.asarray(cols, dtype=np.float64)
+    if sources.size == 0:
+        return np.full(rows.size, np.inf)
+    if _on_pixel_grid(rows, cols):
+        from scipy.ndimage import distance_transform_cdt
+
+        r = (rows - rows.min()).astype(np.int64)
+        c = (cols - cols.min()).astype(np.int64)
+        free = np.ones((int(r.max()) + 1, int(c.max()) + 1), dtype=bool)
+        free[r[sources], c[sources]] = False
+        return distance_transform_cdt(free, metric="taxicab")[r, c].astype(np.float64)
+    from scipy.spatial import cKDTree
+
+    bound = float(np.max(reach[np.isfinite(reach)], initial=0.0))
+    xy = np.column_stack([rows, cols])
+    d, _ = cKDTree(xy[sources]).query(xy, k=1, p=1, distance_upper_bound=bound * (1 + 1e-12) + 1e-12)
+    return d
 
 
 def screen_points(
@@ -367,9 +404,6 @@ def screen_points(
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, changed = start, None, None, None, None
-    from scipy.spatial import cKDTree
-
-    xy = np.column_stack([rows, cols]).astype(np.float64)
     k_used = None
     for _ in range(max(1, iterations) if threshold is not None else 1):
         keep = ~rejected
@@ -389,9 +423,7 @@ def screen_points(
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
             moved = np.flatnonzero(changed)
-            radius = float(np.max(reach[np.isfinite(reach)], initial=0.0))
-            d, _ = cKDTree(xy[moved]).query(xy, k=1, p=1, distance_upper_bound=radius * (1 + 1e-12) + 1e-12)
-            only = np.union1d(np.flatnonzero(np.isfinite(d) & (d <= reach)), moved)
+            only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach) <= reach), moved)
         k_used = k_now
         z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=_NEIGHBOURS, exclude=rejected,
                                        only=only, radius=True)
