@@ -40,18 +40,28 @@ def _corr(dr: float, dc: float, inv_l: float, nu: float, er, ec) -> float:
     return (1.0 + a + a * a / 3.0) * (1.0 + b + b * b / 3.0) * math.exp(-(a + b))
 
 
+#: Targets per parallel chunk; fewer targets than this run on the calling thread (waking the
+#: worker threads costs more than the work, and much more on a busy machine).
+CHUNK = 512
+
+
+@nb.njit(**_FLAGS)
+def _loo_range(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec):
+    """z[q] for the targets lo <= q < hi (see `loo_predict`)."""
+    k = nn.shape[1]
+    A = np.empty((k, k))
+    y = np.empty(k)
+    kx = np.empty(k)
+    for q in range(lo, hi):
+        _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, z)
+
+
 @nb.njit(parallel=True, **_FLAGS)
-def _loo_kernel(rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec):
-    t, k = nn.shape
-    z = np.empty(t)
-    chunk = 512
-    for c0 in nb.prange((t + chunk - 1) // chunk):
-        A = np.empty((k, k))
-        y = np.empty(k)
-        kx = np.empty(k)
-        for q in range(c0 * chunk, min(t, (c0 + 1) * chunk)):
-            _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, z)
-    return z
+def _loo_parallel(z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec):
+    t = nn.shape[0]
+    for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
+        _loo_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu,
+                   er, ec)
 
 
 @nb.njit(**_FLAGS)
@@ -104,14 +114,18 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
     z[q] = (r[i] - pred) / math.sqrt(max(var, 1e-30))
 
 
+@nb.njit(**_FLAGS)
+def _ring_range(lo, hi, r, c, width, start, members, targets, k, nn, dist):
+    """`_ring_one` for the targets lo <= q < hi."""
+    for q in range(lo, hi):
+        _ring_one(q, r, c, width, start, members, targets, k, nn, dist)
+
+
 @nb.njit(parallel=True, **_FLAGS)
-def _ring_search(r, c, width, start, members, targets, k, nn, dist):
-    """k nearest members of each target by (L1 distance, row, column, index) (see `_ring_one`)."""
+def _ring_parallel(r, c, width, start, members, targets, k, nn, dist):
     t = targets.size
-    chunk = 512
-    for c0 in nb.prange((t + chunk - 1) // chunk):
-        for q in range(c0 * chunk, min(t, (c0 + 1) * chunk)):
-            _ring_one(q, r, c, width, start, members, targets, k, nn, dist)
+    for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
+        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, targets, k, nn, dist)
 
 
 @nb.njit(**_FLAGS)
@@ -178,7 +192,10 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     targets = np.ascontiguousarray(targets, dtype=np.int64)
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)
-    _ring_search(r, c, width, start, members, targets, int(k), nn, dist)
+    if targets.size <= CHUNK:
+        _ring_range(0, targets.size, r, c, width, start, members, targets, int(k), nn, dist)
+    else:
+        _ring_parallel(r, c, width, start, members, targets, int(k), nn, dist)
     return nn, dist.astype(np.float64)
 
 
@@ -218,8 +235,12 @@ def loo_predict(
         if span_r + span_c <= 1e6:  # tables e^{-d / l} over every offset that occurs
             er = np.exp(-np.arange(int(span_r) + 1) / float(lengthscale))
             ec = np.exp(-np.arange(int(span_c) + 1) / float(lengthscale))
-    return _loo_kernel(
-        rows, cols, np.ascontiguousarray(r, dtype=np.float64), np.ascontiguousarray(noise, dtype=np.float64),
-        np.ascontiguousarray(targets, dtype=np.int64), np.ascontiguousarray(nn, dtype=np.int64),
-        float(outputscale) ** 2, float(nugget) ** 2, 1.0 / float(lengthscale), float(nu), er, ec,
-    )
+    args = (rows, cols, np.ascontiguousarray(r, dtype=np.float64), np.ascontiguousarray(noise, dtype=np.float64),
+            np.ascontiguousarray(targets, dtype=np.int64), np.ascontiguousarray(nn, dtype=np.int64),
+            float(outputscale) ** 2, float(nugget) ** 2, 1.0 / float(lengthscale), float(nu), er, ec)
+    z = np.empty(nn.shape[0])
+    if nn.shape[0] <= CHUNK:
+        _loo_range(0, nn.shape[0], z, *args)
+    else:
+        _loo_parallel(z, *args)
+    return z
