@@ -1343,15 +1343,25 @@ class FastEngine:
             ) from None
         return factor, tree, prior, real_vars
 
-    def _posterior_states(self, problem: GridProblem):
+    def _posterior_states(self, problem: GridProblem, extra: tuple = ()):
+        """Factor and posterior state means of ``problem`` and of each further observation array in ``extra``
+        (the compiled back-end solves them all in one pass over the factor)."""
         factor, tree, prior, real_vars = self.factorize(problem)
         prec = np.asarray(problem.precision, dtype=np.float64)
-        resid = np.where(prec > 0, np.asarray(problem.obs, np.float64) - np.asarray(problem.prior_mean, np.float64), 0.0)
-        b = np.zeros(tree.nvar)
-        b[real_vars.ravel()] = (prec * resid).ravel()
+        prior_mean = np.asarray(problem.prior_mean, np.float64)
+        observed = prec > 0
+        resid = np.where(observed, np.asarray(problem.obs, np.float64) - prior_mean, 0.0)
+        b = np.zeros((tree.nvar, 1 + len(extra)))
+        b[real_vars.ravel(), 0] = (prec * resid).ravel()
+        for j, e in enumerate(extra):
+            b[real_vars.ravel(), 1 + j] = np.where(observed, prec * (e - prior_mean), 0.0).ravel()
         with self._threads():
-            mu = factor.solve(b)
-        return factor, tree, prior, real_vars, mu, prec, resid
+            if self.backend == "compiled":
+                x = factor.solve(b)
+                mus = [x[:, j] for j in range(x.shape[1])]
+            else:
+                mus = [factor.solve(b[:, j]) for j in range(b.shape[1])]
+        return factor, tree, prior, real_vars, mus, prec, resid
 
     def plan(self, problem: GridProblem, *, variance: bool = True, extra: int = 0, lml: bool = False) -> str:
         """The route that `solve` (or, with ``lml``, `log_marginal_likelihood`) takes for ``problem``.
@@ -1463,14 +1473,7 @@ class FastEngine:
         if problem is not original:  # the extra observations on the lattice too
             r0, r1, c0, c1 = self._lattice_box(original, problem)
             extra = tuple(e[r0:r1, c0:c1] for e in extra)
-        factor, tree, prior, real_vars, mu, prec, _ = self._posterior_states(problem)
-        mus = [mu]
-        prior_mean = np.asarray(problem.prior_mean, np.float64)
-        with self._threads():
-            for e in extra:
-                b = np.zeros(tree.nvar)
-                b[real_vars.ravel()] = np.where(prec > 0, prec * (e - prior_mean), 0.0).ravel()
-                mus.append(factor.solve(b))
+        factor, tree, prior, real_vars, mus, prec, _ = self._posterior_states(problem, extra)
         seconds["factor"] = time.perf_counter() - t
         t = time.perf_counter()
         h, w = problem.shape
@@ -1519,7 +1522,7 @@ class FastEngine:
         if route == "dense":
             return dense_log_marginal_likelihood(problem)
         problem = sub  # the observed pixels' likelihood on the lattice that spans them
-        factor, tree, prior, real_vars, mu, prec, resid = self._posterior_states(problem)
+        factor, tree, prior, real_vars, (mu,), prec, resid = self._posterior_states(problem)
         k = problem.kernel
         d = state_dim(k.nu)
         s2 = float(k.outputscale) ** 2

@@ -245,73 +245,88 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
 
 
 @nb.njit(**_FLAGS)
-def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp, seq_slot, acc):
-    """Forward substitution L z = y over the fronts of ``order``, in place.
+def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp, seq_slot, acc):
+    """Forward substitution L Z = Y over the fronts of ``order``, in place, for ``nrhs`` right-hand sides.
 
-    Updates of variables with ``seq_slot[v] >= 0`` are summed into ``acc`` instead of ``y`` (they
-    belong to fronts that other threads also update); pass an empty ``acc`` to update ``y``.
+    ``y`` holds the right-hand sides column after column (column j of variable v at j * nvar + v,
+    nvar = y.size // nrhs), so each front is read once for all of them. Updates of variables
+    with ``seq_slot[v] >= 0`` are summed into ``acc`` (column j at j * nseq + slot) instead of
+    ``y`` (they belong to fronts that other threads also update); pass an empty ``acc`` to
+    update ``y``.
     """
     ch = _CHARS
-    ip = np.zeros(4, dtype=np.int32)
+    ip = np.zeros(8, dtype=np.int32)
     dp = _CONST
     cL, cN = ch.ctypes.data, ch.ctypes.data + 1
     one, zero = dp.ctypes.data, dp.ctypes.data + 16
     private = acc.size > 0
+    ldy = y.size // nrhs
+    nseq = acc.size // nrhs
     for f in order:
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
-        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 1
+        ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, nrhs, ldy
         L = lbuf.ctypes.data + l_ptr[f] * 8
-        _dtrmv(cL, cN, cN, ip.ctypes.data, L, ip.ctypes.data + 4, y.ctypes.data + s * 8, ip.ctypes.data + 12)
+        ys = y.ctypes.data + s * 8
+        _dtrmm(cL, cL, cN, cN, ip.ctypes.data, ip.ctypes.data + 12, one, L, ip.ctypes.data + 4, ys, ip.ctypes.data + 16)
         if nbf > 0:
-            _dgemv(cN, ip.ctypes.data + 8, ip.ctypes.data, one, L + no * 8, ip.ctypes.data + 4,
-                   y.ctypes.data + s * 8, ip.ctypes.data + 12, zero, tmp.ctypes.data, ip.ctypes.data + 12)
+            _dgemm(cN, cN, ip.ctypes.data + 8, ip.ctypes.data + 12, ip.ctypes.data, one, L + no * 8, ip.ctypes.data + 4,
+                   ys, ip.ctypes.data + 16, zero, tmp.ctypes.data, ip.ctypes.data + 8)
             b0 = bnd_ptr[f]
-            for i in range(nbf):
-                v = bnd[b0 + i]
-                if private and seq_slot[v] >= 0:
-                    acc[seq_slot[v]] += tmp[i]
-                else:
-                    y[v] -= tmp[i]
+            for j in range(nrhs):
+                for i in range(nbf):
+                    v = bnd[b0 + i]
+                    if private and seq_slot[v] >= 0:
+                        acc[j * nseq + seq_slot[v]] += tmp[j * nbf + i]
+                    else:
+                        y[j * ldy + v] -= tmp[j * nbf + i]
 
 
 @nb.njit(**_FLAGS)
-def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp):
-    """Backward substitution L^T x = z over the fronts of ``order`` (processed in reverse), in place."""
+def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp):
+    """Backward substitution L^T X = Z over the fronts of ``order`` (processed in reverse), in place
+    (``y`` as in `_forward_run`)."""
     ch = _CHARS
-    ip = np.zeros(4, dtype=np.int32)
+    ip = np.zeros(8, dtype=np.int32)
     dp = _CONST
     cL, cN, cT = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
+    ldy = y.size // nrhs
     for k in range(order.size - 1, -1, -1):
         f = order[k]
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
-        ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 1
+        ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, nrhs, ldy
         L = lbuf.ctypes.data + l_ptr[f] * 8
+        ys = y.ctypes.data + s * 8
         if nbf > 0:
             b0 = bnd_ptr[f]
-            for i in range(nbf):
-                tmp[i] = y[bnd[b0 + i]]
-            _dgemv(cT, ip.ctypes.data + 8, ip.ctypes.data, mone, L + no * 8, ip.ctypes.data + 4,
-                   tmp.ctypes.data, ip.ctypes.data + 12, one, y.ctypes.data + s * 8, ip.ctypes.data + 12)
-        _dtrmv(cL, cT, cN, ip.ctypes.data, L, ip.ctypes.data + 4, y.ctypes.data + s * 8, ip.ctypes.data + 12)
+            for j in range(nrhs):
+                for i in range(nbf):
+                    tmp[j * nbf + i] = y[j * ldy + bnd[b0 + i]]
+            _dgemm(cT, cN, ip.ctypes.data, ip.ctypes.data + 12, ip.ctypes.data + 8, mone, L + no * 8, ip.ctypes.data + 4,
+                   tmp.ctypes.data, ip.ctypes.data + 8, one, ys, ip.ctypes.data + 16)
+        _dtrmm(cL, cL, cT, cN, ip.ctypes.data, ip.ctypes.data + 12, one, L, ip.ctypes.data + 4, ys, ip.ctypes.data + 16)
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
-def _solve(bin_ptr, bin_order, seq_order, seq_vars, seq_slot, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp,
-           acc):
-    """Solves (L L^T) x = y in place: subtrees in parallel, then their ancestors, and back."""
+def _solve(bin_ptr, bin_order, seq_order, seq_vars, seq_slot, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs,
+           tmp, acc):
+    """Solves (L L^T) X = Y in place (``y`` as in `_forward_run`): subtrees in parallel, then their
+    ancestors, and back."""
     nbins = bin_ptr.size - 1
+    ldy = y.size // nrhs
+    nseq = seq_vars.size
     for b in nb.prange(nbins):
         acc[b, :] = 0.0
-        _forward_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y,
-                     tmp[b], seq_slot, acc[b])
+        _forward_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs,
+                     tmp[b], seq_slot, acc[b, : nseq * nrhs])
     for b in range(nbins):
-        for k in range(seq_vars.size):
-            y[seq_vars[k]] -= acc[b, k]
-    _forward_run(seq_order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp[0], seq_slot, acc[0, :0])
-    _backward_run(seq_order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, tmp[0])
+        for j in range(nrhs):
+            for k in range(nseq):
+                y[j * ldy + seq_vars[k]] -= acc[b, j * nseq + k]
+    _forward_run(seq_order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp[0], seq_slot, acc[0, :0])
+    _backward_run(seq_order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp[0])
     for b in nb.prange(nbins):
-        _backward_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y,
+        _backward_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs,
                       tmp[b])
 
 
@@ -768,16 +783,18 @@ class FrontalFactor:
         self.logdet = float(logdet) - t.nvar * np.log(self.scale2)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """x = A^-1 b for b (nvar,)."""
+        """x = A^-1 b for b (nvar,) or (nvar, r): r right-hand sides in one pass over the factor."""
         t = self.tree
-        y = np.array(b, dtype=np.float64, copy=True) * self.scale2
+        b = np.asarray(b, dtype=np.float64)
+        nrhs = 1 if b.ndim == 1 else b.shape[1]
+        y = np.ascontiguousarray(b.T, dtype=np.float64).ravel() * self.scale2  # column after column
         nbins = t.bin_ptr.size - 1
-        tmp = np.empty((nbins, max(1, int(t.nb.max(initial=0)))))
-        acc = np.empty((nbins, max(1, t.seq_vars.size)))
+        tmp = np.empty((nbins, max(1, int(t.nb.max(initial=0))) * nrhs))
+        acc = np.empty((nbins, max(1, t.seq_vars.size * nrhs)))
         with numeric_section():
             _solve(t.bin_ptr, t.bin_order, t.seq_order, t.seq_vars, t.seq_slot, t.st, t.no, t.nb, t.nf, t.bnd_ptr,
-                   t.bnd, t.l_ptr, self.lbuf, y, tmp, acc)
-        return y
+                   t.bnd, t.l_ptr, self.lbuf, y, nrhs, tmp, acc)
+        return y if b.ndim == 1 else y.reshape(nrhs, -1).T
 
     def selected_inverse(self, readout=None) -> tuple[np.ndarray, np.ndarray | None]:
         """diag(A^-1) (nvar,) and, given a read-out ``(ptr, out index, positions, weights, n_out)``,
