@@ -363,10 +363,12 @@ def _prior_parts(st, no_, nb_, nf_, l_ptr, lbuf, w_ptr, prior_w, lam_ptr, prior_
 
 @nb.njit(**_FLAGS)
 def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, touched, prior_w,
-                w_ptr, prior_lam, lam_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
+                w_ptr, prior_lam, lam_ptr, children_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
     """Selected inverse over the fronts of ``order`` (processed in reverse, i.e. pre-order):
     diag(P^-1) and the read-out quadratic forms. Fronts that no observation reaches (``touched``
-    non-empty and False) take W and L11^-T L11^-1 from the prior factor."""
+    non-empty and False) take W and L11^-T L11^-1 from the prior factor. A leaf front without
+    read-outs needs only the diagonal of its Sigma_JJ (no child reads its covariance front):
+    diag(L11^-T L11^-1) - diag(Sigma_BJ^T W), without the no x no products."""
     ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)
     dp = _CONST
@@ -390,7 +392,22 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                 for ii in range(jj, unb):
                     S[dst + ii] = P[np.uint64(ea_pos[e0 + ii]) + cj]
         ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, 0, nbf
-        if touched.size > 0 and not touched[f]:  # prior front: W and L11^-T L11^-1 are cached
+        prior_front = touched.size > 0 and not touched[f]
+        if (not prior_front and children_ptr[f + 1] == children_ptr[f] and ro_ptr[f + 1] == ro_ptr[f]
+                and nbf > 0):  # a leaf without read-outs: the diagonal only
+            _w_block(L, no, nbf, nf, work, ip)
+            sbj = S.ctypes.data + no * 8
+            _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
+                   ip.ctypes.data + 4, work.ctypes.data, ip.ctypes.data + 16, zero, sbj, ip.ctypes.data + 4)
+            for j in range(no):
+                acc = 0.0
+                for i in range(j, no):
+                    acc += L[i + j * nf] * L[i + j * nf]
+                for i in range(nbf):
+                    acc -= S[no + i + j * nf] * work[i + j * nbf]
+                diag[s + j] = acc
+            continue
+        if prior_front:  # prior front: W and L11^-T L11^-1 are cached
             lam0 = lam_ptr[f]
             for j in range(no):
                 for i in range(j, no):
@@ -457,12 +474,13 @@ def _factor_bins(bin_ptr, bin_order, st, no_, nb_, nf_, children_ptr, children, 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
 def _selinv_bins(bin_ptr, bin_order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig,
-                 touched, prior_w, w_ptr, prior_lam, lam_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
+                 touched, prior_w, w_ptr, prior_lam, lam_ptr, children_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt,
+                 out):
     """Selected inverse of the independent subtrees (their ancestors done), one bin per thread."""
     for b in nb.prange(bin_ptr.size - 1):
         _selinv_run(bin_order[bin_ptr[b] : bin_ptr[b + 1]], parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf,
-                    sig_off, sig, touched, prior_w, w_ptr, prior_lam, lam_ptr, work[b], diag, ro_ptr, ro_out,
-                    ro_pos, ro_wgt, out)
+                    sig_off, sig, touched, prior_w, w_ptr, prior_lam, lam_ptr, children_ptr, work[b], diag, ro_ptr,
+                    ro_out, ro_pos, ro_wgt, out)
 
 
 _CONTROLLER = None
@@ -809,7 +827,7 @@ class FrontalFactor:
             ro = readout
         out = np.empty(ro[4])
         common = (t.parent, t.st, t.no, t.nb, t.nf, t.bnd_ptr, t.ea_pos, t.l_ptr, self.lbuf, t.sig_off, sig,
-                  *self._reuse)
+                  *self._reuse, t.children_ptr)
         ro_args = (diag, ro[0], ro[1], ro[2], ro[3], out)
         with numeric_section():
             _selinv_run(t.seq_order, *common, work[0], *ro_args)
