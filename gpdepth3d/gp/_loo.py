@@ -52,8 +52,9 @@ def _loo_range(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu
     A = np.empty((k, k))
     y = np.empty(k)
     kx = np.empty(k)
+    ij = np.empty((2, k), dtype=np.int64)
     for q in range(lo, hi):
-        _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, z)
+        _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z)
 
 
 @nb.njit(parallel=True, **_FLAGS)
@@ -65,18 +66,30 @@ def _loo_parallel(z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er,
 
 
 @nb.njit(**_FLAGS)
-def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, z):
-    """z[q] of target q (see `loo_predict`), in the work arrays A (k, k), y (k,), kx (k,)."""
+def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z):
+    """z[q] of target q (see `loo_predict`), in the work arrays A (k, k), y (k,), kx (k,), ij (2, k) int."""
     k = nn.shape[1]
     i = targets[q]
-    for a in range(k):
-        ja = nn[q, a]
-        y[a] = s2 * _corr(rows[i] - rows[ja], cols[i] - cols[ja], inv_l, nu, er, ec)
-        for b in range(a):
-            jb = nn[q, b]
-            A[a, b] = s2 * _corr(rows[ja] - rows[jb], cols[ja] - cols[jb], inv_l, nu, er, ec)
-        A[a, a] = s2 + tau2 + noise[ja]
-        kx[a] = y[a]
+    if er.size:  # tabulated correlations: the neighbours' integer offsets gathered once
+        ri, ci = int(rows[i]), int(cols[i])
+        for a in range(k):
+            ij[0, a] = int(rows[nn[q, a]])
+            ij[1, a] = int(cols[nn[q, a]])
+        for a in range(k):
+            y[a] = s2 * (er[abs(ri - ij[0, a])] * ec[abs(ci - ij[1, a])])
+            for b in range(a):
+                A[a, b] = s2 * (er[abs(ij[0, a] - ij[0, b])] * ec[abs(ij[1, a] - ij[1, b])])
+            A[a, a] = s2 + tau2 + noise[nn[q, a]]
+            kx[a] = y[a]
+    else:
+        for a in range(k):
+            ja = nn[q, a]
+            y[a] = s2 * _corr(rows[i] - rows[ja], cols[i] - cols[ja], inv_l, nu, er, ec)
+            for b in range(a):
+                jb = nn[q, b]
+                A[a, b] = s2 * _corr(rows[ja] - rows[jb], cols[ja] - cols[jb], inv_l, nu, er, ec)
+            A[a, a] = s2 + tau2 + noise[ja]
+            kx[a] = y[a]
     ok = True
     for j in range(k):  # Cholesky A = L L^T in the lower triangle
         acc = A[j, j]
@@ -115,55 +128,82 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
 
 
 @nb.njit(**_FLAGS)
-def _ring_range(lo, hi, r, c, width, start, members, targets, k, nn, dist):
-    """`_ring_one` for the targets lo <= q < hi."""
-    for q in range(lo, hi):
-        _ring_one(q, r, c, width, start, members, targets, k, nn, dist)
-
-
-@nb.njit(parallel=True, **_FLAGS)
-def _ring_parallel(r, c, width, start, members, targets, k, nn, dist):
-    t = targets.size
-    for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
-        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, targets, k, nn, dist)
-
-
-@nb.njit(**_FLAGS)
-def _ring_one(q, r, c, width, start, members, targets, k, nn, dist):
-    """nn[q] / dist[q]: the k nearest members of target q, scanning rings of equal L1 distance outwards.
+def _ring_range(lo, hi, r, c, width, start, members, targets, k, nn, dist, offsets):
+    """nn[q] / dist[q] for lo <= q < hi: the k nearest members of each target, by rings of equal L1 distance.
 
     ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
     rows; the members of cell x are members[start[x]:start[x + 1]] in index order. A ring is
     visited row by row from the top, left before right, so its members come in (row, column,
-    index) order, which is the tie order. With fewer than k members (other than the target) the
-    rest of the row is -1.
+    index) order, which is the tie order. The rings up to ``RING_TABLE`` come from the table
+    ``offsets`` (3, m) (row offset, column offset, distance) in that order, the farther ones are
+    generated. With fewer than k members (other than the target) the rest of the row is -1.
     """
     height = (start.size - 1) // width
-    i = targets[q]
-    ri, ci = r[i], c[i]
-    dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
-    count = 0
-    d = 0
-    while count < k and d <= dmax:
-        for dr in range(max(-d, -ri), min(d, height - 1 - ri) + 1):
-            rem = d - abs(dr)
-            row = (ri + dr) * width
-            for side in range(2 if rem > 0 else 1):
-                cc = ci - rem if side == 0 else ci + rem
-                if cc < 0 or cc >= width:
-                    continue
-                for a in range(start[row + cc], start[row + cc + 1]):
-                    p = members[a]
-                    if p != i and count < k:
-                        nn[q, count] = p
-                        dist[q, count] = d
-                        count += 1
+    odr, odc, odd = offsets[0], offsets[1], offsets[2]
+    for q in range(lo, hi):
+        i = targets[q]
+        ri, ci = r[i], c[i]
+        count = 0
+        for o in range(odr.size):
+            rr = ri + odr[o]
+            cc = ci + odc[o]
+            if rr < 0 or rr >= height or cc < 0 or cc >= width:
+                continue
+            x = rr * width + cc
+            for a in range(start[x], start[x + 1]):
+                p = members[a]
+                if p != i and count < k:
+                    nn[q, count] = p
+                    dist[q, count] = odd[o]
+                    count += 1
             if count == k:
                 break
-        d += 1
-    for a in range(count, k):
-        nn[q, a] = -1
-        dist[q, a] = -1
+        dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
+        d = odd[odd.size - 1] + 1
+        while count < k and d <= dmax:
+            for dr in range(max(-d, -ri), min(d, height - 1 - ri) + 1):
+                rem = d - abs(dr)
+                row = (ri + dr) * width
+                for side in range(2 if rem > 0 else 1):
+                    cc = ci - rem if side == 0 else ci + rem
+                    if cc < 0 or cc >= width:
+                        continue
+                    for a in range(start[row + cc], start[row + cc + 1]):
+                        p = members[a]
+                        if p != i and count < k:
+                            nn[q, count] = p
+                            dist[q, count] = d
+                            count += 1
+                if count == k:
+                    break
+            d += 1
+        for a in range(count, k):
+            nn[q, a] = -1
+            dist[q, a] = -1
+
+
+@nb.njit(parallel=True, **_FLAGS)
+def _ring_parallel(r, c, width, start, members, targets, k, nn, dist, offsets):
+    t = targets.size
+    for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
+        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, targets, k, nn, dist, offsets)
+
+
+#: Rings of L1 distance up to this many pixels are scanned from a table of offsets (`_ring_one`).
+RING_TABLE = 32
+
+
+def _ring_offsets(radius: int) -> np.ndarray:
+    """(3, m) int64: (row offset, column offset, L1 distance) of every pixel within ``radius``, in tie order."""
+    out = []
+    for d in range(radius + 1):
+        for dr in range(-d, d + 1):
+            rem = d - abs(dr)
+            out += [(dr, -rem, d), (dr, rem, d)] if rem > 0 else [(dr, 0, d)]
+    return np.ascontiguousarray(np.array(out, dtype=np.int64).T)
+
+
+_OFFSETS = _ring_offsets(RING_TABLE)
 
 
 def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
@@ -193,9 +233,9 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)
     if targets.size <= CHUNK:
-        _ring_range(0, targets.size, r, c, width, start, members, targets, int(k), nn, dist)
+        _ring_range(0, targets.size, r, c, width, start, members, targets, int(k), nn, dist, _OFFSETS)
     else:
-        _ring_parallel(r, c, width, start, members, targets, int(k), nn, dist)
+        _ring_parallel(r, c, width, start, members, targets, int(k), nn, dist, _OFFSETS)
     return nn, dist.astype(np.float64)
 
 
