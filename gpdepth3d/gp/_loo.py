@@ -45,16 +45,107 @@ def _corr(dr: float, dc: float, inv_l: float, nu: float, er, ec) -> float:
 CHUNK = 512
 
 
+#: Targets computed side by side (SIMD lanes) by `_loo_lanes`.
+LANES = 8
+
+
 @nb.njit(**_FLAGS)
 def _loo_range(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec):
     """z[q] for the targets lo <= q < hi (see `loo_predict`)."""
     k = nn.shape[1]
+    if er.size:
+        _loo_lanes(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, er, ec)
+        return
     A = np.empty((k, k))
     y = np.empty(k)
     kx = np.empty(k)
     ij = np.empty((2, k), dtype=np.int64)
     for q in range(lo, hi):
         _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z)
+
+
+@nb.njit(**_FLAGS)
+def _loo_lanes(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, er, ec):
+    """`_loo_one` with tabulated correlations for LANES targets at a time, each lane the same arithmetic.
+
+    The lanes are the innermost (contiguous) axis of every work array, so the Cholesky
+    factorisation and the solves vectorise across targets. A lane whose matrix is not
+    numerically positive definite gets NaN (the caller solves it by least squares).
+    """
+    k = nn.shape[1]
+    W = LANES
+    A = np.empty((k, k, W))
+    y = np.empty((k, W))
+    kx = np.empty((k, W))
+    acc = np.empty(W)
+    ok = np.empty(W, dtype=np.bool_)
+    ir = np.empty((k, W), dtype=np.int64)
+    ic = np.empty((k, W), dtype=np.int64)
+    ri = np.empty(W, dtype=np.int64)
+    ci = np.empty(W, dtype=np.int64)
+    for q0 in range(lo, hi, W):
+        n = min(W, hi - q0)
+        for l in range(W):  # lanes past the end repeat the last target (results dropped)
+            q = q0 + min(l, n - 1)
+            i = targets[q]
+            ri[l], ci[l] = int(rows[i]), int(cols[i])
+            for a in range(k):
+                ir[a, l] = int(rows[nn[q, a]])
+                ic[a, l] = int(cols[nn[q, a]])
+        for l in range(W):
+            q = q0 + min(l, n - 1)
+            for a in range(k):
+                y[a, l] = s2 * (er[abs(ri[l] - ir[a, l])] * ec[abs(ci[l] - ic[a, l])])
+                for b in range(a):
+                    A[a, b, l] = s2 * (er[abs(ir[a, l] - ir[b, l])] * ec[abs(ic[a, l] - ic[b, l])])
+                A[a, a, l] = s2 + tau2 + noise[nn[q, a]]
+                kx[a, l] = y[a, l]
+        ok[:] = True
+        for j in range(k):  # Cholesky A = L L^T in the lower triangle
+            for l in range(W):
+                acc[l] = A[j, j, l]
+            for m in range(j):
+                for l in range(W):
+                    acc[l] -= A[j, m, l] * A[j, m, l]
+            for l in range(W):
+                if not acc[l] > 0.0:
+                    ok[l] = False
+                    acc[l] = 1.0  # keeps the lane finite; its result is dropped
+                A[j, j, l] = math.sqrt(acc[l])
+            for a in range(j + 1, k):
+                for l in range(W):
+                    acc[l] = A[a, j, l]
+                for m in range(j):
+                    for l in range(W):
+                        acc[l] -= A[a, m, l] * A[j, m, l]
+                for l in range(W):
+                    A[a, j, l] = acc[l] / A[j, j, l]
+        for a in range(k):  # y = L^-1 kx
+            for l in range(W):
+                acc[l] = y[a, l]
+            for m in range(a):
+                for l in range(W):
+                    acc[l] -= A[a, m, l] * y[m, l]
+            for l in range(W):
+                y[a, l] = acc[l] / A[a, a, l]
+        for a in range(k - 1, -1, -1):  # w = L^-T y
+            for l in range(W):
+                acc[l] = y[a, l]
+            for m in range(a + 1, k):
+                for l in range(W):
+                    acc[l] -= A[m, a, l] * y[m, l]
+            for l in range(W):
+                y[a, l] = acc[l] / A[a, a, l]
+        for l in range(n):
+            q = q0 + l
+            i = targets[q]
+            pred = 0.0
+            quad = 0.0
+            for a in range(k):
+                pred += y[a, l] * r[nn[q, a]]
+                quad += y[a, l] * kx[a, l]
+            var = s2 + tau2 + noise[i] - quad
+            z[q] = (r[i] - pred) / math.sqrt(max(var, 1e-30)) if ok[l] else np.nan
 
 
 @nb.njit(parallel=True, **_FLAGS)
