@@ -85,7 +85,9 @@ def _loo_reference(rows, cols, resid, noise, fit, nn):
 
 
 def test_leave_one_out_kernel_equals_numpy(kitti):
-    from scipy.spatial import cKDTree
+    """All of the LiDAR (12.6k points): the ring search's neighbours are the brute-force ones (L1 distance, then
+    row, column; checked on every 50th point) and the compiled kriging equals NumPy's batched solves on them."""
+    from gpdepth3d.gp.points import neighbours_of
 
     setup, inputs = kitti
     sp = inputs[1.0]
@@ -94,7 +96,12 @@ def test_leave_one_out_kernel_equals_numpy(kitti):
     noise = 1e-4 + _edge_range(np.log(setup.mde_grid), 3)[rows.astype(int), cols.astype(int)] ** 2
     fit = PointFit(32.0, 0.2, 0.02, float(np.median(resid)), 1e-5, len(sp))
     z = loo_zscores(rows, cols, resid, noise, fit)
-    _, nn = cKDTree(np.column_stack([rows, cols])).query(np.column_stack([rows, cols]), k=13, p=1)
-    order = np.argsort(nn == np.arange(len(sp))[:, None], axis=1, kind="stable")
-    nn = np.take_along_axis(nn, order, axis=1)[:, :12]
+    n = len(sp)
+    nn, dist = neighbours_of(rows, cols, np.ones(n, dtype=bool), np.arange(n), 12)
+    for i in range(0, n, 50):
+        others = np.flatnonzero(np.arange(n) != i)
+        d = np.abs(rows[others] - rows[i]) + np.abs(cols[others] - cols[i])
+        pick = np.lexsort((others, cols[others], rows[others], d))[:12]
+        np.testing.assert_array_equal(nn[i], others[pick])
+        np.testing.assert_array_equal(dist[i], d[pick])
     np.testing.assert_allclose(z, _loo_reference(rows, cols, resid, noise, fit, nn), rtol=1e-9, atol=1e-9)

@@ -1,0 +1,177 @@
+"""The leave-one-out screening's parts: neighbour search (tie order), compiled kriging, incremental rounds.
+
+References are brute force: every other usable point sorted by (L1 distance, row, column, index),
+NumPy's dense solves per neighbourhood, and a screening loop that recomputes every point each round.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpdepth3d.gp import _loo
+from gpdepth3d.gp._loo import grid_neighbours, loo_predict
+from gpdepth3d.gp.points import PointFit, _correlation, _distance_to, loo_zscores, neighbours_of, screen_points
+
+
+def _brute_neighbours(rows, cols, usable, targets, k):
+    nn = np.empty((len(targets), k), dtype=np.int64)
+    dist = np.empty((len(targets), k))
+    pool = np.flatnonzero(usable)
+    for q, i in enumerate(targets):
+        c = pool[pool != i]
+        d = np.abs(rows[c] - rows[i]) + np.abs(cols[c] - cols[i])
+        pick = np.lexsort((c, cols[c], rows[c], d))[:k]
+        nn[q], dist[q] = c[pick], d[pick]
+    return nn, dist
+
+
+def _points(rng, n, h, w, dup=False):
+    rows = rng.integers(0, h, n).astype(np.float64) + 7.0
+    cols = rng.integers(0, w, n).astype(np.float64) - 3.0
+    if not dup:  # one point per pixel, as on the GP grid
+        _, first = np.unique(rows * 10_000 + cols, return_index=True)
+        rows, cols = rows[np.sort(first)], cols[np.sort(first)]
+    return rows, cols
+
+
+class TestNeighbours:
+    @pytest.mark.parametrize("seed", range(6))
+    def test_ring_search_is_brute_force_with_the_tie_order(self, seed):
+        rng = np.random.default_rng(seed)
+        rows, cols = _points(rng, int(rng.integers(20, 600)), int(rng.integers(2, 90)), int(rng.integers(2, 120)),
+                             dup=seed % 2 == 1)
+        n = rows.size
+        usable = rng.random(n) > 0.2
+        usable[:2] = True
+        k = int(min(12, usable.sum() - 1))
+        targets = rng.choice(n, min(n, 700), replace=False)  # more than one parallel chunk when n is large
+        got = grid_neighbours(rows, cols, usable, targets, k)
+        ref = _brute_neighbours(rows, cols, usable, targets, k)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+
+    def test_far_neighbours_beyond_the_offset_table(self):
+        """Points farther apart than the table's rings (32 px) are found by the generated rings."""
+        rows = np.array([0.0, 0.0, 50.0, 90.0, 10.0, 80.0])
+        cols = np.array([0.0, 70.0, 3.0, 90.0, 200.0, 150.0])
+        usable = np.ones(6, dtype=bool)
+        got = grid_neighbours(rows, cols, usable, np.arange(6), 5)
+        ref = _brute_neighbours(rows, cols, usable, np.arange(6), 5)
+        np.testing.assert_array_equal(got[0], ref[0])
+        assert ref[1].max() > 2 * _loo.RING_TABLE
+
+    def test_off_pixel_points_use_the_tree_with_the_same_order(self):
+        rng = np.random.default_rng(7)
+        rows, cols = _points(rng, 300, 40, 60, dup=True)
+        rows = rows + 0.5  # half pixels: ties stay exact in binary floating point
+        usable = rng.random(rows.size) > 0.1
+        usable[:2] = True
+        targets = np.arange(rows.size)
+        got = neighbours_of(rows, cols, usable, targets, 12)
+        ref = _brute_neighbours(rows, cols, usable, targets, 12)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_allclose(got[1], ref[1])
+
+    def test_order_of_the_points_does_not_matter(self):
+        """Ties go by pixel position, so permuting the points permutes the answer and nothing else."""
+        rng = np.random.default_rng(3)
+        rows, cols = _points(rng, 400, 30, 50)
+        n = rows.size
+        perm = rng.permutation(n)
+        a, _ = neighbours_of(rows, cols, np.ones(n, bool), np.arange(n), 12)
+        b, _ = neighbours_of(rows[perm], cols[perm], np.ones(n, bool), np.arange(n), 12)
+        np.testing.assert_array_equal(perm[b], a[perm])
+
+
+def _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu):
+    s2, tau2 = fit.outputscale**2, fit.nugget**2
+    out = np.empty(len(targets))
+    for q, i in enumerate(targets):
+        N = nn[q]
+        K = s2 * _correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], fit.lengthscale, nu)
+        K[np.diag_indices(len(N))] += tau2 + noise[N]
+        kx = s2 * _correlation(rows[i] - rows[N], cols[i] - cols[N], fit.lengthscale, nu)
+        w = np.linalg.solve(K, kx)
+        out[q] = (r[i] - w @ r[N]) / np.sqrt(s2 + tau2 + noise[i] - w @ kx)
+    return out
+
+
+class TestKriging:
+    @pytest.mark.parametrize("n_targets", [1, 13, 700])  # a partial lane group; more than one parallel chunk
+    @pytest.mark.parametrize("nu", [0.5, 1.5])  # tabulated SIMD lanes; the generic loop
+    def test_equals_dense_solves(self, n_targets, nu):
+        rng = np.random.default_rng(n_targets)
+        rows, cols = _points(rng, 900, 40, 60)
+        n = rows.size
+        r = rng.normal(0.0, 0.1, n)
+        noise = rng.uniform(1e-5, 1e-3, n)
+        fit = PointFit(9.0, 0.2, 0.02, 0.0, 1e-4, n)
+        targets = rng.choice(n, n_targets, replace=False)
+        nn, _ = neighbours_of(rows, cols, np.ones(n, bool), targets, 12)
+        z = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu)
+        np.testing.assert_allclose(z, _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu), rtol=1e-9,
+                                   atol=1e-10)
+
+    def test_singular_neighbourhood_is_flagged_in_its_lane_only(self):
+        """Two noiseless points on one pixel with no nugget: that neighbourhood's matrix is singular (NaN, solved
+        by least squares in `loo_zscores`); the other targets of its lane group are unaffected."""
+        rng = np.random.default_rng(11)
+        rows, cols = _points(rng, 60, 12, 12)
+        rows = np.concatenate([rows, rows[:1]])
+        cols = np.concatenate([cols, cols[:1]])  # point n - 1 duplicates point 0
+        n = rows.size
+        r = rng.normal(0.0, 0.1, n)
+        noise = np.zeros(n)
+        targets = np.arange(8)
+        nn, _ = neighbours_of(rows, cols, np.ones(n, bool), targets, 12)
+        z = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.0, lengthscale=9.0, nu=0.5)
+        singular = np.array([np.isin(0, nn[q]) and np.isin(n - 1, nn[q]) for q in range(8)])
+        assert singular.any() and not singular.all()
+        assert np.all(np.isnan(z[singular])) and np.all(np.isfinite(z[~singular]))
+        fit = PointFit(9.0, 0.2, 0.0, 0.0, 1e-4, n)
+        full = loo_zscores(rows, cols, r, noise, fit)
+        assert np.all(np.isfinite(full))
+
+
+def _screen_reference(rows, cols, resid, noise, fit, threshold, iterations=3):
+    """Screening that recomputes every point's z-score in every round."""
+    rejected = np.zeros(resid.size, dtype=bool)
+    z = None
+    for _ in range(iterations):
+        z = loo_zscores(rows, cols, resid, noise, fit, exclude=rejected)
+        new = np.abs(z) > threshold
+        if np.array_equal(new, rejected):
+            break
+        rejected = new
+    return rejected, z
+
+
+class TestScreening:
+    @pytest.mark.parametrize("seed", range(3))
+    def test_rounds_recomputing_only_the_points_near_a_change_equal_full_rounds(self, seed):
+        rng = np.random.default_rng(seed)
+        rows, cols = _points(rng, 1500, 50, 80)
+        n = rows.size
+        resid = 0.1 * np.sin(rows / 9.0) * np.cos(cols / 13.0) + rng.normal(0.0, 0.02, n)
+        bad = rng.choice(n, n // 20, replace=False)
+        resid[bad] += rng.choice([-1.0, 0.7, 1.5], bad.size)
+        noise = np.full(n, 1e-4)
+        fit = PointFit(16.0, 0.2, 0.02, 0.0, 1e-4, n)
+        _, rejected, z = screen_points(rows, cols, resid, noise, threshold=3.5, start=fit)
+        ref_rejected, ref_z = _screen_reference(rows, cols, resid, noise, fit, 3.5)
+        np.testing.assert_array_equal(rejected, ref_rejected)
+        np.testing.assert_allclose(z, ref_z, rtol=1e-12, atol=1e-12)
+        assert rejected[bad].mean() > 0.8
+
+    def test_distance_to_sources_grid_and_tree_agree(self):
+        rng = np.random.default_rng(5)
+        rows, cols = _points(rng, 500, 40, 70)
+        sources = rng.choice(rows.size, 9, replace=False)
+        d = _distance_to(rows, cols, sources, np.full(rows.size, np.inf))
+        ref = np.min(np.abs(rows[:, None] - rows[sources]) + np.abs(cols[:, None] - cols[sources]), axis=1)
+        np.testing.assert_array_equal(d, ref)
+        reach = np.full(rows.size, 6.0)
+        d_tree = _distance_to(rows + 0.5, cols, sources, reach)  # off the pixel grid: a k-d tree, inf beyond 6
+        np.testing.assert_array_equal(d_tree[ref <= 6], ref[ref <= 6])
+        assert np.all(np.isinf(d_tree[ref > 6]))
