@@ -713,8 +713,24 @@ class FrontTree:
         return ptr, flat[srt], srt.astype(np.int64)
 
 
+def _lpt(tasks: list, sub: np.ndarray, threads: int) -> tuple[float, list[list[int]]]:
+    """Longest-processing-time-first assignment of subtrees to ``threads`` bins: (largest load, groups)."""
+    loads = [0.0] * max(threads, 1)
+    groups: list[list[int]] = [[] for _ in loads]
+    for f in sorted(tasks, key=lambda f: -sub[f]):
+        b = int(np.argmin(loads))
+        loads[b] += sub[f]
+        groups[b].append(f)
+    return max(loads), groups
+
+
 def _split(order, kids, roots, no, nbv, threads: int):
     """Groups subtrees into ``threads`` bins of similar work (longest-processing-time first).
+
+    The subtrees are found by splitting the heaviest one into its children, step by step; the
+    step kept is the one with the least modelled time, the fronts split off (which run on one
+    thread, after the bins) plus the largest bin: with 2 threads on a pixel grid that is
+    usually the root alone, with two balanced halves below it.
 
     Returns (bins: list of post-ordered front lists, seq: post-ordered common ancestors).
     """
@@ -729,19 +745,19 @@ def _split(order, kids, roots, no, nbv, threads: int):
             sub[f] += sub[c]
             size[f] += size[c]
     tasks = list(roots)
+    best, groups = _lpt(tasks, sub, threads)
     if threads > 1:
-        while len(tasks) < 4 * threads:
+        ancestors = 0.0
+        for _ in range(16 * threads):
             heavy = max(tasks, key=lambda f: sub[f])
-            if not kids[heavy] or sub[heavy] < 0.02 * sub[roots].sum():
+            if not kids[heavy]:
                 break
             tasks.remove(heavy)
             tasks.extend(kids[heavy])
-    loads = [0.0] * max(threads, 1)
-    groups: list[list[int]] = [[] for _ in loads]
-    for f in sorted(tasks, key=lambda f: -sub[f]):
-        b = int(np.argmin(loads))
-        loads[b] += sub[f]
-        groups[b].append(f)
+            ancestors += cost[heavy]
+            span, g = _lpt(tasks, sub, threads)
+            if ancestors + span < best:
+                best, groups = ancestors + span, g
     bins = []
     in_task = np.zeros(n, dtype=bool)
     for g in groups:
