@@ -1,7 +1,8 @@
 """The leave-one-out screening's parts: neighbour search (tie order), compiled kriging, incremental rounds.
 
-References are brute force: every other usable point sorted by (L1 distance, row, column, index),
-NumPy's dense solves per neighbourhood, and a screening loop that recomputes every point each round.
+References are brute force: every other usable point sorted by (L1 distance, position on that ring
+from the target's start, index), NumPy's dense solves per neighbourhood, and a screening loop that
+recomputes every point each round.
 """
 
 from __future__ import annotations
@@ -14,14 +15,40 @@ from gpdepth3d.gp._loo import grid_neighbours, loo_predict
 from gpdepth3d.gp.points import PointFit, _correlation, _distance_to, loo_zscores, neighbours_of, screen_points
 
 
+def _ring_position(dr, dc, d):
+    """Position of offset (dr, dc) on the ring of L1 radius d, clockwise from the top (`_loo.ring_offset`)."""
+    side = np.select([(dr < 0) & (dc >= 0), (dr >= 0) & (dc > 0), (dr > 0) & (dc <= 0)], [0, 1, 2], 3)
+    return side * d + np.choose(side, [dc, dr, -dc, -dr])
+
+
 def _brute_neighbours(rows, cols, usable, targets, k):
+    """Every other usable point by (L1 distance, position on that ring from the target's start, index)."""
+    key = _loo.pixel_hash(rows, cols)
+    nn = np.empty((len(targets), k), dtype=np.int64)
+    dist = np.empty((len(targets), k))
+    pool = np.flatnonzero(usable)
+    for q, i in enumerate(targets):
+        c = pool[pool != i]
+        dr = (rows[c] - rows[i]).astype(np.int64)
+        dc = (cols[c] - cols[i]).astype(np.int64)
+        d = np.abs(dr) + np.abs(dc)
+        ring = np.maximum(d, 1)
+        start = ((((key[i] >> 16) + ring * 2654435769) & 0xFFFFFFFF) * (4 * ring)) >> 32
+        order = np.where(d == 0, 0, (_ring_position(dr, dc, ring) - start) % (4 * ring))
+        pick = np.lexsort((c, order, d))[:k]
+        nn[q], dist[q] = c[pick], d[pick]
+    return nn, dist
+
+
+def _brute_by_index(rows, cols, usable, targets, k):
+    """Every other usable point by (L1 distance, index): the k-d tree path's rule off the pixel grid."""
     nn = np.empty((len(targets), k), dtype=np.int64)
     dist = np.empty((len(targets), k))
     pool = np.flatnonzero(usable)
     for q, i in enumerate(targets):
         c = pool[pool != i]
         d = np.abs(rows[c] - rows[i]) + np.abs(cols[c] - cols[i])
-        pick = np.lexsort((c, cols[c], rows[c], d))[:k]
+        pick = np.lexsort((c, d))[:k]
         nn[q], dist[q] = c[pick], d[pick]
     return nn, dist
 
@@ -38,6 +65,7 @@ def _points(rng, n, h, w, dup=False):
 class TestNeighbours:
     @pytest.mark.parametrize("seed", range(6))
     def test_ring_search_is_brute_force_with_the_tie_order(self, seed):
+        """Random point sets (with and without several points on a pixel), exclusions and target subsets."""
         rng = np.random.default_rng(seed)
         rows, cols = _points(rng, int(rng.integers(20, 600)), int(rng.integers(2, 90)), int(rng.integers(2, 120)),
                              dup=seed % 2 == 1)
@@ -61,7 +89,7 @@ class TestNeighbours:
         np.testing.assert_array_equal(got[0], ref[0])
         assert ref[1].max() > 2 * _loo.RING_TABLE
 
-    def test_off_pixel_points_use_the_tree_with_the_same_order(self):
+    def test_off_pixel_points_use_a_tree_with_ties_by_index(self):
         rng = np.random.default_rng(7)
         rows, cols = _points(rng, 300, 40, 60, dup=True)
         rows = rows + 0.5  # half pixels: ties stay exact in binary floating point
@@ -69,12 +97,12 @@ class TestNeighbours:
         usable[:2] = True
         targets = np.arange(rows.size)
         got = neighbours_of(rows, cols, usable, targets, 12)
-        ref = _brute_neighbours(rows, cols, usable, targets, 12)
+        ref = _brute_by_index(rows, cols, usable, targets, 12)
         np.testing.assert_array_equal(got[0], ref[0])
         np.testing.assert_allclose(got[1], ref[1])
 
     def test_order_of_the_points_does_not_matter(self):
-        """Ties go by pixel position, so permuting the points permutes the answer and nothing else."""
+        """Ties go by pixel positions, so permuting the points permutes the answer and nothing else."""
         rng = np.random.default_rng(3)
         rows, cols = _points(rng, 400, 30, 50)
         n = rows.size
@@ -82,6 +110,25 @@ class TestNeighbours:
         a, _ = neighbours_of(rows, cols, np.ones(n, bool), np.arange(n), 12)
         b, _ = neighbours_of(rows[perm], cols[perm], np.ones(n, bool), np.arange(n), 12)
         np.testing.assert_array_equal(perm[b], a[perm])
+
+    def test_ties_favour_no_direction(self):
+        """On a full grid every ring is tied: the last neighbours taken (from the ring that does not fit)
+        point in every direction about equally often over the targets."""
+        rr, cc = np.meshgrid(np.arange(60.0), np.arange(80.0), indexing="ij")
+        rows, cols = rr.ravel(), cc.ravel()
+        n = rows.size
+        inner = np.flatnonzero((rows >= 5) & (rows < 55) & (cols >= 5) & (cols < 75))
+        nn, dist = neighbours_of(rows, cols, np.ones(n, bool), inner, 7)  # rings of 4 and 8: the second splits
+        last = nn[:, 4:]
+        dr, dc = rows[last] - rows[inner][:, None], cols[last] - cols[inner][:, None]
+        assert np.all(dist[:, :4] == 1) and np.all(dist[:, 4:] == 2)
+        assert abs(np.mean(dr < 0) - np.mean(dr > 0)) < 0.03 and abs(np.mean(dc < 0) - np.mean(dc > 0)) < 0.03
+
+    def test_ring_offsets_cover_each_ring_once(self):
+        for d in (1, 2, 5, 40):
+            offs = np.array([_loo.ring_offset(d, p) for p in range(4 * d)])
+            assert np.all(np.abs(offs).sum(1) == d) and len({tuple(o) for o in offs}) == 4 * d
+            np.testing.assert_array_equal(_ring_position(offs[:, 0], offs[:, 1], d), np.arange(4 * d))
 
 
 def _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu):

@@ -1,10 +1,11 @@
 """Compiled leave-one-out kriging: the numeric kernels of `gpdepth3d.gp.points.loo_zscores`.
 
 Neighbours (`grid_neighbours`): the k nearest usable points of each target in L1 pixel distance,
-ties at equal distance broken by (row, column, index): the neighbourhood of a point is a function
-of the point set alone, whichever search finds it, and does not depend on the points' order. For points on integer pixels the
-search scans rings of equal L1 distance around each target in a bucket image of the points (a
-cell per pixel), in parallel over targets: O(points within the k-th neighbour's distance) per
+ties at equal distance broken by the position on the ring of that radius, scanned from a
+starting pixel that a hash of the target fixes: the neighbourhood of a point is a function of the
+point set alone, whichever search finds it, does not depend on the points' order and favours no
+direction. The search scans these rings around each target in a bucket image of the points (a
+cell per pixel), in parallel over targets: O(pixels within the k-th neighbour's distance) per
 target, against a k-d tree's O(log N) queries with large constants.
 
 For every target point i with neighbours N (found by the caller), the simple-kriging weights
@@ -219,52 +220,76 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
 
 
 @nb.njit(**_FLAGS)
-def _ring_range(lo, hi, r, c, width, start, members, targets, k, nn, dist, offsets):
+def _ring_start(key, d):
+    """Where target (hash ``key``) starts the ring of radius d >= 1: a position 0 .. 4d - 1, from 32
+    pseudo-random bits of the target and d scaled by multiplication (no division)."""
+    h = ((key >> 16) + d * 2654435769) & 0xFFFFFFFF
+    return (h * (4 * d)) >> 32
+
+
+@nb.njit(**_FLAGS)
+def _ring_range(lo, hi, r, c, width, start, members, key, targets, k, nn, dist, offsets):
     """nn[q] / dist[q] for lo <= q < hi: the k nearest members of each target, by rings of equal L1 distance.
 
     ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
-    rows; the members of cell x are members[start[x]:start[x + 1]] in index order. A ring is
-    visited row by row from the top, left before right, so its members come in (row, column,
-    index) order, which is the tie order. The rings up to ``RING_TABLE`` come from the table
-    ``offsets`` (3, m) (row offset, column offset, distance) in that order, the farther ones are
-    generated. With fewer than k members (other than the target) the rest of the row is -1.
+    rows; the members of cell x are members[start[x]:start[x + 1]] in index order. The ring of
+    radius d >= 1 is the cycle of its 4d pixels clockwise from the top (`ring_offset`); each
+    target scans it from its own starting position (`_ring_start`, a hash of the target's pixel
+    and d) and takes members until the row is full: that is the tie order, with no preferred
+    direction over the targets. Rings up to ``RING_TABLE`` come from the table ``offsets`` (2,
+    m) (ring d at 2 d (d - 1) + 1), the farther ones are computed. With fewer than k members
+    (other than the target) the rest of the row is -1.
     """
     height = (start.size - 1) // width
-    odr, odc, odd = offsets[0], offsets[1], offsets[2]
+    table = 0
+    while 2 * (table + 1) * table + 1 <= offsets.shape[1]:
+        table += 1
+    table -= 1  # the largest radius in the table
     for q in range(lo, hi):
         i = targets[q]
         ri, ci = r[i], c[i]
         count = 0
-        for o in range(odr.size):
-            rr = ri + odr[o]
-            cc = ci + odc[o]
-            if rr < 0 or rr >= height or cc < 0 or cc >= width:
-                continue
-            x = rr * width + cc
-            for a in range(start[x], start[x + 1]):
-                p = members[a]
-                if p != i and count < k:
-                    nn[q, count] = p
-                    dist[q, count] = odd[o]
-                    count += 1
-            if count == k:
-                break
+        x = ri * width + ci
+        for a in range(start[x], start[x + 1]):  # d = 0: other points on the target's pixel
+            p = members[a]
+            if p != i and count < k:
+                nn[q, count] = p
+                dist[q, count] = 0
+                count += 1
         dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
-        d = odd[odd.size - 1] + 1
+        d = 1
+        odr, odc = offsets[0], offsets[1]
         while count < k and d <= dmax:
-            for dr in range(max(-d, -ri), min(d, height - 1 - ri) + 1):
-                rem = d - abs(dr)
-                row = (ri + dr) * width
-                for side in range(2 if rem > 0 else 1):
-                    cc = ci - rem if side == 0 else ci + rem
-                    if cc < 0 or cc >= width:
-                        continue
-                    for a in range(start[row + cc], start[row + cc + 1]):
-                        p = members[a]
-                        if p != i and count < k:
-                            nn[q, count] = p
-                            dist[q, count] = d
-                            count += 1
+            n = 4 * d
+            s0 = _ring_start(key[i], d)
+            base = 2 * d * (d - 1) + 1
+            for seg in range(2):  # positions s0 .. n - 1, then 0 .. s0 - 1
+                lo, hi = (s0, n) if seg == 0 else (0, s0)
+                if d <= table:
+                    for o in range(base + lo, base + hi):
+                        rr, cc = ri + odr[o], ci + odc[o]
+                        if rr >= 0 and rr < height and cc >= 0 and cc < width:
+                            x = rr * width + cc
+                            for a in range(start[x], start[x + 1]):
+                                if count < k:
+                                    nn[q, count] = members[a]
+                                    dist[q, count] = d
+                                    count += 1
+                            if count == k:
+                                break
+                else:
+                    for pos in range(lo, hi):
+                        dr, dc = ring_offset(d, pos)
+                        rr, cc = ri + dr, ci + dc
+                        if rr >= 0 and rr < height and cc >= 0 and cc < width:
+                            x = rr * width + cc
+                            for a in range(start[x], start[x + 1]):
+                                if count < k:
+                                    nn[q, count] = members[a]
+                                    dist[q, count] = d
+                                    count += 1
+                            if count == k:
+                                break
                 if count == k:
                     break
             d += 1
@@ -273,32 +298,66 @@ def _ring_range(lo, hi, r, c, width, start, members, targets, k, nn, dist, offse
             dist[q, a] = -1
 
 
+@nb.njit(**_FLAGS)
+def ring_offset(d, pos):
+    """(row, column) offset of position ``pos`` (0 .. 4d - 1) on the ring of L1 radius d >= 1, clockwise from the top."""
+    side = pos // d
+    t = pos - side * d
+    if side == 0:
+        return -d + t, t
+    if side == 1:
+        return t, d - t
+    if side == 2:
+        return d - t, -t
+    return -t, -d + t
+
+
 @nb.njit(parallel=True, **_FLAGS)
-def _ring_parallel(r, c, width, start, members, targets, k, nn, dist, offsets):
+def _ring_parallel(r, c, width, start, members, key, targets, k, nn, dist, offsets):
     t = targets.size
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
-        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, targets, k, nn, dist, offsets)
+        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, key, targets, k, nn, dist,
+                    offsets)
 
 
-#: Rings of L1 distance up to this many pixels are scanned from a table of offsets (`_ring_one`).
+#: Rings of L1 distance up to this many pixels are scanned from a table of offsets (`_ring_range`).
 RING_TABLE = 32
 
 
 def _ring_offsets(radius: int) -> np.ndarray:
-    """(3, m) int64: (row offset, column offset, L1 distance) of every pixel within ``radius``, in tie order."""
-    out = []
-    for d in range(radius + 1):
-        for dr in range(-d, d + 1):
-            rem = d - abs(dr)
-            out += [(dr, -rem, d), (dr, rem, d)] if rem > 0 else [(dr, 0, d)]
+    """(2, m) int64: the offsets of the rings 0 .. ``radius``, each in `ring_offset` order (ring d at 2 d (d - 1) + 1)."""
+    out = [(0, 0)]
+    for d in range(1, radius + 1):
+        out += [ring_offset(d, pos) for pos in range(4 * d)]
     return np.ascontiguousarray(np.array(out, dtype=np.int64).T)
 
 
 _OFFSETS = _ring_offsets(RING_TABLE)
 
 
+def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """(N,) non-negative int64: a fixed pseudo-random hash (splitmix64) of each point's pixel."""
+    r = np.asarray(np.rint(rows), dtype=np.int64).astype(np.uint64)
+    c = np.asarray(np.rint(cols), dtype=np.int64).astype(np.uint64)
+    with np.errstate(over="ignore"):
+        z = (r << np.uint64(32)) ^ (c & np.uint64(0xFFFFFFFF))
+        z = z + np.uint64(0x9E3779B97F4A7C15)
+        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        z = z ^ (z >> np.uint64(31))
+    return (z >> np.uint64(1)).astype(np.int64)
+
+
 def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
-    """The k nearest usable points of each target in L1 distance, ties broken by (row, column, index).
+    """The k nearest usable points of each target in L1 distance, ties broken by the ring order.
+
+    Points at equal distance d >= 1 from a target come in the order of their pixel on the ring
+    of radius d, clockwise from a starting pixel that a hash of the target's pixel and d fixes
+    (`ring_offset`, `_ring_start`); other points on the target's own pixel (distance 0) by index.
+    The rule is a function of the pixels alone: a point's neighbourhood does not depend on the
+    search that finds it or on the order of the points, and over the targets no direction is
+    preferred (a fixed rule such as "upper rows first" tilts every neighbourhood of scan-line
+    data the same way).
 
     Args:
         rows, cols: (N,) integer-valued pixel coordinates of all points (any origin).
@@ -308,9 +367,10 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
         k: Neighbours per target, at least 1 and at most the usable points other than any target.
 
     Returns:
-        (nn (T, k) int64, dist (T, k) float64): each row's neighbours sorted by (L1 distance, row,
-        column, index), and their distances.
+        (nn (T, k) int64, dist (T, k) float64): each row's neighbours in that order, and their
+        L1 distances.
     """
+    key = pixel_hash(rows, cols)
     r = np.asarray(rows, dtype=np.float64).astype(np.int64)
     c = np.asarray(cols, dtype=np.float64).astype(np.int64)
     r, c = r - r.min(), c - c.min()
@@ -324,9 +384,9 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)
     if targets.size <= CHUNK:
-        _ring_range(0, targets.size, r, c, width, start, members, targets, int(k), nn, dist, _OFFSETS)
+        _ring_range(0, targets.size, r, c, width, start, members, key, targets, int(k), nn, dist, _OFFSETS)
     else:
-        _ring_parallel(r, c, width, start, members, targets, int(k), nn, dist, _OFFSETS)
+        _ring_parallel(r, c, width, start, members, key, targets, int(k), nn, dist, _OFFSETS)
     return nn, dist.astype(np.float64)
 
 

@@ -217,7 +217,7 @@ def loo_zscores(
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
     Point i is predicted by simple kriging (mean b) from its ``neighbours`` nearest points (L1
-    pixel distance; at equal distance the upper, then the left point first) that are not excluded; z_i =
+    pixel distance; ties by a deterministic rule with no preferred direction, `neighbours_of`) that are not excluded; z_i =
     (r_i - prediction) / predictive sd, where the predictive variance includes the nugget and
     point i's own noise. With the exponential kernel's screening effect the nearest neighbours
     carry almost all of the weight, so this is close to the exact leave-one-out of the full GP
@@ -280,14 +280,13 @@ def _on_pixel_grid(rows: np.ndarray, cols: np.ndarray) -> bool:
 
 
 def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
-    """The k nearest usable points of each target in L1 distance, ties broken by (row, column, index).
+    """The k nearest usable points of each target in L1 distance, with a deterministic tie rule.
 
-    The tie rule makes a neighbourhood a function of the point set alone (not of a search
-    structure, nor of the points' order but for points on one pixel), so screening rounds that
-    recompute only some points agree with a full recompute.
-    Points on integer pixels (the GP grid's) are searched by rings in a bucket image
-    (`gpdepth3d.gp._loo.grid_neighbours`); others (or points spread over a coordinate range of
-    more than ``GRID_CELLS_PER_POINT`` cells per point) with a k-d tree and the same rule.
+    Points on integer pixels (the GP grid's): `gpdepth3d.gp._loo.grid_neighbours`, ties at equal
+    distance by the position on the ring of that radius from a starting pixel that a hash of the
+    target fixes (no preferred direction; a function of the pixels alone, so screening rounds that
+    recompute only some points agree with a full recompute). Other points (or points spread
+    over a box of more than ``GRID_CELLS_PER_POINT`` cells per point): a k-d tree, ties by index.
 
     Args:
         rows, cols: (N,) pixel coordinates of all points.
@@ -296,7 +295,7 @@ def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, target
         k: Neighbours per target, 1 <= k <= the usable points other than any target.
 
     Returns:
-        (nn (T, k) int64, dist (T, k) float64), each row sorted by (distance, row, column, index).
+        (nn (T, k) int64, dist (T, k) float64): each row's neighbours in tie order, their distances.
     """
     from ._loo import grid_neighbours
 
@@ -318,7 +317,7 @@ def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, target
         cand = pool[np.asarray(cand, dtype=np.int64)]
         cand = cand[cand != i]
         d = np.abs(rows[cand] - rows[i]) + np.abs(cols[cand] - cols[i])
-        pick = np.lexsort((cand, cols[cand], rows[cand], d))[:k]
+        pick = np.lexsort((cand, d))[:k]
         nn[q], dist[q] = cand[pick], d[pick]
     return nn, dist
 
