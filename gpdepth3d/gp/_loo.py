@@ -228,23 +228,19 @@ def _ring_start(key, d):
 
 
 @nb.njit(**_FLAGS)
-def _ring_range(lo, hi, r, c, width, start, members, key, targets, k, nn, dist, offsets):
+def _ring_range(lo, hi, r, c, width, start, members, key, targets, k, nn, dist):
     """nn[q] / dist[q] for lo <= q < hi: the k nearest members of each target, by rings of equal L1 distance.
 
     ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
     rows; the members of cell x are members[start[x]:start[x + 1]] in index order. The ring of
-    radius d >= 1 is the cycle of its 4d pixels clockwise from the top (`ring_offset`); each
-    target scans it from its own starting position (`_ring_start`, a hash of the target's pixel
-    and d) and takes members until the row is full: that is the tie order, with no preferred
-    direction over the targets. Rings up to ``RING_TABLE`` come from the table ``offsets`` (2,
-    m) (ring d at 2 d (d - 1) + 1), the farther ones are computed. With fewer than k members
-    (other than the target) the rest of the row is -1.
+    radius d >= 1 is the cycle of its 4d pixels clockwise from the top (`ring_offset`: four
+    diagonal sides of d pixels); each target walks it from its own starting position
+    (`_ring_start`, a hash of the target's pixel and d) and takes members until the row is full:
+    that is the tie order, with no preferred direction over the targets. Other points on the
+    target's own pixel (distance 0) come first, by index. With fewer than k members (other than
+    the target) the rest of the row is -1.
     """
     height = (start.size - 1) // width
-    table = 0
-    while 2 * (table + 1) * table + 1 <= offsets.shape[1]:
-        table += 1
-    table -= 1  # the largest radius in the table
     for q in range(lo, hi):
         i = targets[q]
         ri, ci = r[i], c[i]
@@ -258,40 +254,31 @@ def _ring_range(lo, hi, r, c, width, start, members, key, targets, k, nn, dist, 
                 count += 1
         dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
         d = 1
-        odr, odc = offsets[0], offsets[1]
         while count < k and d <= dmax:
-            n = 4 * d
             s0 = _ring_start(key[i], d)
-            base = 2 * d * (d - 1) + 1
-            for seg in range(2):  # positions s0 .. n - 1, then 0 .. s0 - 1
-                lo, hi = (s0, n) if seg == 0 else (0, s0)
-                if d <= table:
-                    for o in range(base + lo, base + hi):
-                        rr, cc = ri + odr[o], ci + odc[o]
-                        if rr >= 0 and rr < height and cc >= 0 and cc < width:
-                            x = rr * width + cc
-                            for a in range(start[x], start[x + 1]):
-                                if count < k:
-                                    nn[q, count] = members[a]
-                                    dist[q, count] = d
-                                    count += 1
-                            if count == k:
-                                break
-                else:
-                    for pos in range(lo, hi):
-                        dr, dc = ring_offset(d, pos)
-                        rr, cc = ri + dr, ci + dc
-                        if rr >= 0 and rr < height and cc >= 0 and cc < width:
-                            x = rr * width + cc
-                            for a in range(start[x], start[x + 1]):
-                                if count < k:
-                                    nn[q, count] = members[a]
-                                    dist[q, count] = d
-                                    count += 1
-                            if count == k:
-                                break
-                if count == k:
-                    break
+            side = s0 // d
+            t = s0 - side * d
+            dr, dc = ring_offset(d, s0)
+            rr, cc = ri + dr, ci + dc
+            for _ in range(4 * d):
+                if rr >= 0 and rr < height and cc >= 0 and cc < width:
+                    x = rr * width + cc
+                    for a in range(start[x], start[x + 1]):
+                        if count < k:
+                            nn[q, count] = members[a]
+                            dist[q, count] = d
+                            count += 1
+                    if count == k:
+                        break
+                t += 1
+                if t == d:  # the next side starts at a corner
+                    t = 0
+                    side = (side + 1) & 3
+                    dr, dc = ring_offset(d, side * d)
+                    rr, cc = ri + dr, ci + dc
+                else:  # along the side: sides 0 .. 3 step (+1, +1), (+1, -1), (-1, -1), (-1, +1)
+                    rr += 1 if side < 2 else -1
+                    cc += 1 if side == 0 or side == 3 else -1
             d += 1
         for a in range(count, k):
             nn[q, a] = -1
@@ -313,26 +300,10 @@ def ring_offset(d, pos):
 
 
 @nb.njit(parallel=True, **_FLAGS)
-def _ring_parallel(r, c, width, start, members, key, targets, k, nn, dist, offsets):
+def _ring_parallel(r, c, width, start, members, key, targets, k, nn, dist):
     t = targets.size
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
-        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, key, targets, k, nn, dist,
-                    offsets)
-
-
-#: Rings of L1 distance up to this many pixels are scanned from a table of offsets (`_ring_range`).
-RING_TABLE = 32
-
-
-def _ring_offsets(radius: int) -> np.ndarray:
-    """(2, m) int64: the offsets of the rings 0 .. ``radius``, each in `ring_offset` order (ring d at 2 d (d - 1) + 1)."""
-    out = [(0, 0)]
-    for d in range(1, radius + 1):
-        out += [ring_offset(d, pos) for pos in range(4 * d)]
-    return np.ascontiguousarray(np.array(out, dtype=np.int64).T)
-
-
-_OFFSETS = _ring_offsets(RING_TABLE)
+        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, key, targets, k, nn, dist)
 
 
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -384,9 +355,9 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)
     if targets.size <= CHUNK:
-        _ring_range(0, targets.size, r, c, width, start, members, key, targets, int(k), nn, dist, _OFFSETS)
+        _ring_range(0, targets.size, r, c, width, start, members, key, targets, int(k), nn, dist)
     else:
-        _ring_parallel(r, c, width, start, members, key, targets, int(k), nn, dist, _OFFSETS)
+        _ring_parallel(r, c, width, start, members, key, targets, int(k), nn, dist)
     return nn, dist.astype(np.float64)
 
 
