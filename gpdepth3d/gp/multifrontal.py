@@ -16,14 +16,17 @@ top-down: with the parent's posterior covariance restricted to the front's bound
     W = L21 L11^-1,   Sigma_BJ = -Sigma_BB W,   Sigma_JJ = L11^-T L11^-1 - Sigma_BJ^T W,
 
 which gives the covariance on every front (so the diagonal, and any read-out that stays inside
-one front). Everything is exact (rounding only).
+one front). A leaf front without read-outs needs only diag(Sigma_JJ) (no child reads its
+covariance front), which skips its L11^-T L11^-1 and the no x no product. Solves take several
+right-hand sides in one pass over the factor. Everything is exact (rounding only).
 
 Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
 Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm runs
 at a tenth of dtrmm's speed on these shapes, so L11 is inverted by a blocked dtrmm scheme), so
 there is no per-front interpreter overhead. The subtrees below the top of the tree are grouped
 into one bin per thread and run in parallel (numba prange, single-threaded BLAS), their common
-ancestors after them (factorisation) or before them (selected inverse). Each front's boundary
+ancestors after them (factorisation) or before them (selected inverse); the split is the one with
+the least modelled time of the ancestors plus the largest bin. Each front's boundary
 is sorted by its position in the parent front, so the lower triangle of a child's update lands
 in the lower triangle of the parent (extend-add and the gather of Sigma_BB need no symmetry
 bookkeeping). Update matrices live on stacks (post-order), the covariance fronts on root-path
