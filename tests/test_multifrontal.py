@@ -242,3 +242,26 @@ class TestPriorReuse:
     def test_bad_budget(self):
         with pytest.raises(InvalidInputError, match="prior_cache_mb"):
             FastEngine(prior_cache_mb=-1)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_bins_and_ancestors_partition_a_grid_tree(threads):
+    """The parallel split of a pixel-grid tree: every front once; the common ancestors closed upwards; a bin
+    holds whole subtrees; with 2 threads the 93 x 414 KITTI lattice keeps at most 3 sequential fronts."""
+    from gpdepth3d.gp.fast import _build_tree, _front_tree
+
+    base = _front_tree(_build_tree(93, 414, 1, 24, 40))
+    fronts = FrontTree.build(base.st, base.no, base.parent,
+                             [base.bnd[base.bnd_ptr[f]:base.bnd_ptr[f + 1]] for f in range(base.st.size)], base.nvar,
+                             threads=threads)
+    bins = [set(fronts.bin_order[fronts.bin_ptr[b]:fronts.bin_ptr[b + 1]].tolist()) for b in range(threads)]
+    seq = set(fronts.seq_order.tolist())
+    assert sum(len(b) for b in bins) + len(seq) == fronts.st.size
+    assert set().union(*bins, seq) == set(range(fronts.st.size))
+    for f in seq:
+        assert fronts.parent[f] < 0 or fronts.parent[f] in seq
+    for b in bins:
+        for f in b:
+            assert fronts.parent[f] < 0 or fronts.parent[f] in b or fronts.parent[f] in seq
+    if threads == 2:
+        assert len(seq) <= 3 and all(len(b) > 0 for b in bins)
