@@ -339,14 +339,16 @@ def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> n
 def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray) -> np.ndarray:
     """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
 
-    Points on integer pixels: an exact city-block distance transform of the box around them;
-    others: a k-d tree of the sources.
+    Many points on integer pixels: an exact city-block distance transform of the box around them
+    (O(box)); few points in a large box, or points off the pixel grid: a k-d tree of the sources
+    (O(N log sources)). Both are exact.
     """
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     if sources.size == 0:
         return np.full(rows.size, np.inf)
-    if _on_pixel_grid(rows, cols):
+    box = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
+    if _on_pixel_grid(rows, cols) and 8 * rows.size >= box:
         from scipy.ndimage import distance_transform_cdt
 
         r = (rows - rows.min()).astype(np.int64)
