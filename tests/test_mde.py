@@ -94,6 +94,13 @@ class TestFastDepthTFLite:
         # a real network: far better than a constant at the median, correlated with the truth
         assert np.corrcoef(depth[valid], gt[valid])[0, 1] > 0.5
         assert abs(mde.output_scale - 0.0717) < 1e-3
+        # every core this process may use by default (the runtime's own default is one thread)
+        import os
+
+        assert mde.num_threads == len(os.sched_getaffinity(0))
+        one = FastDepthTFLite(_model_path(shared_data), num_threads=1)
+        assert one.num_threads == 1
+        np.testing.assert_allclose(one(rgb), depth)  # the same network output on one thread
 
     def test_wrong_file(self, tmp_path, shared_data):
         pytest.importorskip("ai_edge_litert")
