@@ -178,20 +178,15 @@ class DepthGPConfig:
         t = self.outlier_threshold
         if t is not None and (not _is_real(t) or not np.isfinite(t) or t <= 0):
             raise InvalidInputError("outlier_threshold", "a z-score > 0, or None", f"{type(t).__name__} {t!r}")
-        lz = self.depth_lengthscale
-        if lz is not None:
-            if not _is_real(lz) or not np.isfinite(lz) or lz <= 0:
-                raise InvalidInputError(
-                    "depth_lengthscale", "a log-depth length scale > 0, or None", f"{type(lz).__name__} {lz!r}"
-                )
-            object.__setattr__(self, "depth_lengthscale", float(lz))
-        sa = self.mde_slope_sigma
-        if sa is not None:
-            if not _is_real(sa) or not np.isfinite(sa) or sa <= 0:
-                raise InvalidInputError(
-                    "mde_slope_sigma", "a standard deviation > 0, or None", f"{type(sa).__name__} {sa!r}"
-                )
-            object.__setattr__(self, "mde_slope_sigma", float(sa))
+        for name, what in (
+            ("depth_lengthscale", "a log-depth length scale > 0, or None"),
+            ("mde_slope_sigma", "a standard deviation > 0, or None"),
+        ):
+            value = getattr(self, name)
+            if value is not None:
+                if not _is_real(value) or not np.isfinite(value) or value <= 0:
+                    raise InvalidInputError(name, what, f"{type(value).__name__} {value!r}")
+                object.__setattr__(self, name, float(value))
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
