@@ -13,10 +13,11 @@ kriging with the MDE as covariate)::
 with c the points' median log MDE depth (a centring: b and a are then nearly uncorrelated),
 g the stationary GP and w + e the white noise of the model. A Gaussian prior around 1 keeps a
 frame with few points near the plain log-residual model; Huber re-weighting keeps gross
-outliers from tilting the slope (they are rejected afterwards by the leave-one-out screen,
-which then judges every point against the re-sloped MDE). Above ``max_points`` points an
-evenly spread subset is used: the fit is one scalar (and the offset), a few hundred points pin
-it down.
+outliers from tilting the slope (the leave-one-out screen then judges every point against the
+re-sloped MDE, and `gpdepth3d.completion` fits the slope once more without the points it
+rejects). Above ``max_points`` points an evenly strided subset in the points' order is used (a
+raster order spreads it over the image): the fit is one scalar and an offset, and 150 points pin
+them down (7-Scenes RMSE within 1 mm of 400 points).
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def fit_mde_slope(
         kernel: The GP's kernel on the grid (its length scale in grid pixels, outputscale in log depth).
         nugget: tau, the white part of the MDE's log error.
         prior_sigma: Standard deviation of the Gaussian prior of the slope around 1 (> 0).
-        max_points: Largest number of points the dense fit uses (an evenly spread subset above).
+        max_points: Largest number of points the dense fit uses (an evenly strided subset above).
         huber: Huber threshold on the standardised residuals (re-weighting of outliers).
         iterations: Re-weighting rounds.
 
