@@ -27,18 +27,9 @@ import numpy as np
 import gpdepth3d as g
 from gpdepth3d.io import write_json
 from gpdepth3d.mde import load_frontend
-from gpdepth3d.measurements import SparseDepth
+from gpdepth3d.sampling import gross_outliers
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def corrupt(sp: SparseDepth, share: float, rng: np.random.Generator) -> SparseDepth:
-    """Replaces ``share`` of the points by gross outliers: depth x U(0.1, 3), sigma unchanged."""
-    k = int(round(share * len(sp)))
-    idx = rng.choice(len(sp), k, replace=False)
-    depth = sp.depth.copy()
-    depth[idx] *= rng.uniform(0.1, 3.0, k)
-    return SparseDepth(sp.u, sp.v, depth, sp.image_size, sp.sigma)
 
 
 def seven_scenes(data: Path, stride: int, fastdepth) -> dict:
@@ -56,7 +47,7 @@ def seven_scenes(data: Path, stride: int, fastdepth) -> dict:
                 rng = np.random.default_rng(1000 * i + n)
                 sp = g.sample_uniform(gt, n=n, rng=rng)
                 if share:
-                    sp = corrupt(sp, share, rng)
+                    sp = gross_outliers(sp, share, rng=rng)
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", g.PosteriorWarning)
                     t = time.perf_counter()

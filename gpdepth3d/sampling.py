@@ -308,3 +308,34 @@ def holdout_split(
     """
     test = holdout_mask(len(sparse), holdout=holdout, rng=rng)
     return sparse.subset(~test), sparse.subset(test)
+
+
+def gross_outliers(sparse: SparseDepth, share: float, *, rng: SeedLike = 0, low: float = 0.1, high: float = 3.0) -> SparseDepth:
+    """The measurements with a ``share`` of them turned into gross outliers (robustness experiments).
+
+    round(share * n) measurements, chosen without replacement, get their depth multiplied by a
+    factor drawn uniformly from [low, high]; each keeps its sigma (an outlier that claims a good
+    point's precision). Positions and the other depths are unchanged.
+
+    Args:
+        sparse: The clean measurements.
+        share: Share corrupted, in [0, 1].
+        rng: Seed or Generator (the indices are drawn first, then the factors).
+        low, high: Range of the depth factor, 0 < low < high.
+
+    Returns:
+        A new `SparseDepth`.
+
+    Raises:
+        InvalidInputError: share outside [0, 1], or not 0 < low < high.
+    """
+    if not np.isfinite(share) or not 0.0 <= share <= 1.0:
+        raise InvalidInputError("share", "a share in [0, 1]", share)
+    if not (np.isfinite(low) and np.isfinite(high) and 0.0 < low < high):
+        raise InvalidInputError("low, high", "0 < low < high", (low, high))
+    rng = make_rng(rng)
+    k = int(round(share * len(sparse)))
+    idx = rng.choice(len(sparse), k, replace=False)
+    depth = np.array(sparse.depth, dtype=np.float64, copy=True)
+    depth[idx] *= rng.uniform(low, high, k)
+    return SparseDepth(sparse.u, sparse.v, depth, sparse.image_size, sparse.sigma)

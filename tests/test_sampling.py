@@ -214,3 +214,31 @@ class TestHoldout:
             holdout_split(s, holdout=1.0)
         with pytest.raises(EmptyInputError):
             holdout_split(s.subset(np.arange(1)))
+
+
+class TestGrossOutliers:
+    def test_share_factors_and_sigma(self):
+        from gpdepth3d.sampling import gross_outliers
+
+        sp = SparseDepth(np.arange(40.0), np.zeros(40), np.linspace(1.0, 5.0, 40), (10, 50), np.full(40, 0.01))
+        bad = gross_outliers(sp, 0.1, rng=3)
+        ratio = bad.depth / sp.depth
+        changed = ratio != 1.0
+        assert changed.sum() == 4 and np.all((ratio[changed] >= 0.1) & (ratio[changed] <= 3.0))
+        np.testing.assert_array_equal(bad.sigma, sp.sigma)
+        np.testing.assert_array_equal(bad.u, sp.u)
+        np.testing.assert_array_equal(sp.depth, np.linspace(1.0, 5.0, 40))  # the input is not modified
+        # the same draws as choice-then-uniform on the same generator (the benchmark's protocol)
+        rng = np.random.default_rng(3)
+        idx = rng.choice(40, 4, replace=False)
+        np.testing.assert_allclose(bad.depth[idx], sp.depth[idx] * rng.uniform(0.1, 3.0, 4))
+        assert np.array_equal(gross_outliers(sp, 0.0).depth, sp.depth)
+
+    def test_bad_arguments(self):
+        from gpdepth3d.sampling import gross_outliers
+
+        sp = SparseDepth(np.arange(4.0), np.zeros(4), np.ones(4), (1, 4))
+        with pytest.raises(InvalidInputError, match="share"):
+            gross_outliers(sp, 1.5)
+        with pytest.raises(InvalidInputError, match="low, high"):
+            gross_outliers(sp, 0.5, low=2.0, high=1.0)

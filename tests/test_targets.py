@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
-from gpdepth3d.measurements import SparseDepth
+from gpdepth3d.sampling import gross_outliers
 
 pytestmark = [pytest.mark.shared_data, pytest.mark.slow]
 
@@ -50,14 +50,6 @@ def seven_scenes_inputs(shared_data, fastdepth):
     return out
 
 
-def _corrupt(sp: SparseDepth, share: float, rng) -> SparseDepth:
-    k = int(round(share * len(sp)))
-    idx = rng.choice(len(sp), k, replace=False)
-    depth = sp.depth.copy()
-    depth[idx] *= rng.uniform(0.1, 3.0, k)
-    return SparseDepth(sp.u, sp.v, depth, sp.image_size, sp.sigma)
-
-
 def _seven_scenes(inputs, n, share):
     completer = g.DepthCompleter()
     se, cover, mde_se, lowest, rejected = [], [], [], np.inf, 0
@@ -65,7 +57,7 @@ def _seven_scenes(inputs, n, share):
         rng = np.random.default_rng(1000 * i + n)
         sp = g.sample_uniform(gt, n=n, rng=rng)
         if share:
-            sp = _corrupt(sp, share, rng)
+            sp = gross_outliers(sp, share, rng=rng)
         post = _quiet(completer, mde, sp, frame=str(i))
         v = gt > 0
         err = post.mean[v] - gt[v]
