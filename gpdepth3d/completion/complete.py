@@ -254,6 +254,8 @@ def _log_residual_posterior(
     unit = 1.0 if config.units == "metres" else z
     noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
     log_raw = np.log(base)
+    # the MDE's log-depth range around each point (3 x 3): the edge term of the slope fit and the screen
+    edge_raw = _edge_range_at(log_raw, rows, cols) if config.edge_sigma > 0 else None
     # the MDE's log-depth coefficient of this frame (gp.slope): the MDE is re-sloped about the
     # points' median log depth before anything else looks at it, and once more without the
     # points the screen rejects (one point at a tenth of its depth can still tilt a robust fit)
@@ -262,7 +264,7 @@ def _log_residual_posterior(
     if fit_slope:
         slope_noise = noise
         if config.edge_sigma > 0:
-            slope_noise = noise + (config.edge_sigma * _edge_range_at(log_raw, rows, cols)) ** 2
+            slope_noise = noise + (config.edge_sigma * edge_raw) ** 2
         slope_kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
 
         def fitted_slope(use):
@@ -286,7 +288,7 @@ def _log_residual_posterior(
         # posterior's variance gets): there its neighbours may rightly disagree with it
         screen_noise = noise
         if config.edge_sigma > 0:
-            edge = _edge_range_at(log_base, rows, cols)
+            edge = abs(slope.slope) * edge_raw if slope is not None else edge_raw  # the re-sloped MDE's range
             screen_noise = noise + (config.edge_sigma * edge) ** 2
         with _single_threaded_blas():  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
             fit, rejected, _ = screen_points(
