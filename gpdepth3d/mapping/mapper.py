@@ -56,6 +56,7 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose, transform_points
 from .cloud import ColoredCloud
 from ..completion.complete import DepthCompleter, DepthPosterior
+from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import DataFormatError, EmptyInputError, GPDepthError, InvalidInputError, ShapeError, describe
 from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
 from ..gp.model import DepthGPConfig
@@ -1103,14 +1104,14 @@ def fuse_sequence(
 
     Variants: ``mde`` (MDE depth, uniform weights), ``gp_uniform`` and ``gp_variance`` (GP
     posterior mean refined with the library's own triangulated features, fused with uniform or
-    variance weights; one GP solve per frame feeds both), ``gt`` (the Kinect depth with the
-    depth camera's intrinsics, the reference).
+    variance weights; one GP solve per frame feeds both), ``gt`` (the Kinect depth as the reader
+    gives it, registered to the colour camera, the reference).
 
     Args:
         data: Sequence folder (see `gpdepth3d.datasets.sevenscenes.SevenScenes`).
         mde: Front-end ``rgb -> depth`` in metres.
-        rgb_K: 3x3 intrinsics of the *colour* camera (default: the dataset's K). 7-Scenes gives
-            only the depth camera's K (f = 585); its colour camera is closer to f = 525.
+        rgb_K: 3x3 intrinsics of the colour camera the Mapper uses (default: the frames' camera,
+            the colour camera the reader registers the Kinect depth to, `SEVEN_SCENES_RGB_K`).
         config: Mapper options (``fusion.weighting`` is overridden per variant).
         max_frames: Use only the first frames.
         threshold: Precision / recall distance, metres.
@@ -1129,7 +1130,7 @@ def fuse_sequence(
         (GP depths <= 0 or not finite masked before fusion), ``empty_meshes``, ``sparse_points``
         (mean measurements per frame) and ``depth_median_abs_error`` (per-frame median
         |depth - ground truth| in metres, averaged over frames, for "mde" and "gp"; the Kinect
-        depth is registered to the colour camera by lifting and re-projecting it) and
+        depth as the reader registers it, lifted and re-projected to the working resolution) and
         ``sparse_bias_per_frame`` (per frame with measurements: median signed relative error
         of the measurements against the Kinect depth).
     """
@@ -1188,12 +1189,12 @@ def fuse_sequence(
                 times[-1]["fuse_uniform"] = time.perf_counter() - t0
         if not result.depth.size:
             return
-        # Ground truth registered to the colour camera: lift with the depth camera, project (z-buffer).
+        # Ground truth at the working resolution: lift with the frame's camera, project (z-buffer).
         pts, _ = frame.camera.backproject(frame.depth)
         gt_rgb = project_points(pts, work).to_depth_map()
         ok = gt_rgb > 0
         if len(result.sparse):
-            # signed relative error of the measurements against the Kinect depth (depth camera)
+            # signed relative error of the measurements against the Kinect depth (the frame's camera)
             lifted = rgb_cam.backproject_pixels(result.sparse.uv, result.sparse.depth)
             uv, z = depth_cam.project(lifted)
             inside = depth_cam.in_image(uv)
@@ -1257,7 +1258,9 @@ def fuse_sequence(
     }
 
 
-SEVEN_SCENES_RGB_K = np.array([[525.0, 0.0, 320.0], [0.0, 525.0, 240.0], [0.0, 0.0, 1.0]])
-"""Colour-camera intrinsics used for 7-Scenes RGB (the dataset's K, f = 585, is the depth camera's;
-triangulating the RGB frames with f = 525 agrees with the Kinect depth, with f = 585 it is ~15-40 %
-too far and fails the epipolar check; see the mapping tests)."""
+SEVEN_SCENES_RGB_K = COLOUR_INTRINSICS
+"""Colour-camera intrinsics of 7-Scenes RGB (`gpdepth3d.datasets.sevenscenes.COLOUR_INTRINSICS`, f = 525:
+the dataset's K, f = 585, is the depth camera's; triangulating the RGB frames with f = 525 agrees
+with the Kinect depth, with f = 585 it is ~15-40 % too far and fails the epipolar check; see the
+mapping tests). The 7-Scenes reader registers the depth to this camera and returns it as the
+frames' ``camera``."""
