@@ -12,7 +12,7 @@ import gpdepth3d as g
 from gpdepth3d.completion.complete import PosteriorWarning
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import matern_1d
-from gpdepth3d.gp.points import PointFit, fit_log_residual, loo_zscores, screen_points
+from gpdepth3d.gp.points import PointFit, fit_log_residual, loo_zscores, raised_outputscale, screen_points
 from gpdepth3d.measurements import SparseDepth
 
 
@@ -91,6 +91,34 @@ class TestScreenPoints:
         _, rejected, z = screen_points(rows, cols, resid, np.full(50, 1e-6), threshold=None)
         assert not z.any()
         assert not rejected.any()
+
+    def test_raised_outputscale_follows_a_wider_field_and_never_lowers(self):
+        start = PointFit(32.0, 0.2, 0.02, 0.0, 0.04 / 300, 300)
+        wide = _field_sample(300, 120, 160, 32.0, 0.6, 0.06, 0.0, 11)
+        raised = raised_outputscale(*wide, np.full(300, 1e-6), start)
+        assert 0.4 <= raised.outputscale <= 0.9  # drawn with s = 0.6
+        assert (raised.lengthscale, raised.nugget, raised.log_scale) == (32.0, 0.02, 0.0)
+        assert raised.log_scale_var == pytest.approx(raised.outputscale**2 / 300)
+        narrow = _field_sample(300, 120, 160, 32.0, 0.05, 0.005, 0.0, 12)
+        assert raised_outputscale(*narrow, np.full(300, 1e-6), start) is start  # s = 0.05 < 0.2: kept
+        assert raised_outputscale(np.zeros(2), np.arange(2.0), np.array([0.0, 3.0]), np.ones(2), start) is start
+
+    def test_raise_outputscale_screens_a_wide_field_without_losing_its_points(self):
+        """A field far wider than the configured s, with 15 gross outliers: a fixed s = 0.2 flags good
+        points too; with the floor raised by the points the outliers go and the good points stay."""
+        rows, cols, resid = _field_sample(400, 120, 160, 32.0, 0.7, 0.07, 0.0, 13)
+        rng = np.random.default_rng(13)
+        bad = rng.choice(400, 15, replace=False)
+        resid[bad] += np.log(rng.choice([0.05, 0.1, 10.0, 20.0], 15))
+        start = PointFit(32.0, 0.2, 0.02, float(np.median(resid)), 0.04 / 400, 400)
+        good = np.ones(400, dtype=bool)
+        good[bad] = False
+        fixed_fit, fixed, _ = screen_points(rows, cols, resid, np.full(400, 1e-6), start=start)
+        fit, rejected, _ = screen_points(rows, cols, resid, np.full(400, 1e-6), start=start, raise_outputscale=True)
+        assert fixed_fit is start and fit.outputscale > 0.45
+        assert np.count_nonzero(rejected[bad]) >= 14
+        assert np.count_nonzero(rejected[good]) < np.count_nonzero(fixed[good])
+        assert np.count_nonzero(rejected[good]) <= 4
 
     @pytest.mark.parametrize("threshold", [0.0, -1.0, float("nan")])
     def test_bad_threshold_raises(self, threshold):
@@ -236,6 +264,26 @@ class TestLogResidualPosterior:
             post = g.complete(mde, sp, config=g.DepthGPConfig(edge_sigma=0.0))
         assert post.std[55, 75] > 3 * post.std[5, 5]
 
+    def test_points_wider_than_the_prior_raise_s_and_warn(self):
+        """An MDE whose log error (a smooth field, sd 0.7) is far wider than s = 0.2: the points raise s,
+        the posterior says so, and its variance is wider than with s fixed."""
+        import cv2
+
+        rng = np.random.default_rng(21)
+        rr, cc = np.mgrid[0:60, 0:80]
+        truth = np.exp(3.0 * rr / 60 + 0.2 * np.sin(cc / 7.0))
+        f = cv2.GaussianBlur(rng.standard_normal((60, 80)), (0, 0), 10)
+        mde = truth * np.exp(0.7 * f / f.std())
+        sp = g.sample_uniform(truth, n=150, rng=21)
+        with pytest.warns(PosteriorWarning, match="spreading s = 0.2[5-9]"):
+            post = g.complete(mde, sp, frame="7")
+        assert post.config.outputscale > 0.25 and "frame 7" in post.warnings[0]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PosteriorWarning)
+            fixed = g.complete(mde, sp, config=g.DepthGPConfig(raise_outputscale=False))
+        assert fixed.config.outputscale == 0.2 and not any("spreading" in w for w in fixed.warnings)
+        assert np.median(post.std) > 1.1 * np.median(fixed.std)
+
     def test_clean_frame_gives_no_warning(self):
         truth, mde = _scene(seed=8)
         sp = g.sample_uniform(truth, n=150, rng=8)
@@ -252,7 +300,8 @@ class TestLogResidualPosterior:
             build_problem(mde, g.sample_uniform(truth, n=5, rng=0), g.DepthGPConfig())
 
     @pytest.mark.parametrize("field, value", [("nugget", -1.0), ("edge_sigma", float("nan")), ("outlier_threshold", 0.0),
-                                              ("depth_lengthscale", 0.0), ("depth_lengthscale", "1")])
+                                              ("depth_lengthscale", 0.0), ("depth_lengthscale", "1"),
+                                              ("raise_outputscale", "yes")])
     def test_config_validation(self, field, value):
         with pytest.raises(InvalidInputError, match=field):
             g.DepthGPConfig(**{field: value})

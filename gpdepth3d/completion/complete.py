@@ -53,7 +53,8 @@ class DepthPosterior:
         warnings: What the posterior could not support, one sentence each (also issued as
             `PosteriorWarning`): an MDE whose scale disagrees with the points by more than a
             factor of 2, almost no points, points covering little of the image, many rejected, an
-            MDE whose depth differences the points barely follow (fitted slope < 0.2).
+            MDE whose depth differences the points barely follow (fitted slope < 0.2), an MDE
+            error the points show to be > 1.25x the configured s (``raise_outputscale``).
         solve: The engine's facts of this call (`gpdepth3d.gp.SolveInfo`: route, seconds per
             stage); None for a posterior read from a file.
         mde_slope: log_residual: the MDE's log-depth coefficient fitted to this frame
@@ -192,6 +193,7 @@ COVERAGE_REACH = 6.0  # a pixel is far from the points beyond max(H, W) / 6 (tax
 REJECTED_WARN = 0.2
 SCALE_VAR_SHARE = 0.05  # Var[b] below this share of tau^2: bounded, not solved for
 SLOPE_WARN = 0.2  # a fitted MDE slope below this: the MDE's shape is barely used
+OUTPUTSCALE_WARN = 1.25  # s raised by the points above this factor of the configured s
 WEIGHT_FLOOR = 1e-3  # depth-aware correlation: pixels whose kriging weights sum below this keep rho = 1
 
 
@@ -300,7 +302,7 @@ def _log_residual_posterior(
         with _single_threaded_blas():  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
             fit, rejected, _ = screen_points(
                 rows, cols, resid, screen_noise, threshold=config.outlier_threshold, nu=config.nu, start=start,
-                around=around,
+                around=around, raise_outputscale=start is not None and config.raise_outputscale,
             )
     else:  # fewer than 3 points: the configured scales, the points' median as the global scale
         b = float(np.median(resid)) if len(z) else 0.0
@@ -408,6 +410,11 @@ def _log_residual_posterior(
         messages.append(
             f"{name}the points follow the MDE's depth differences only weakly (slope {slope.slope:.2f} in log "
             f"depth; 1 = fully): its shape is barely used, check that it is depth (not disparity) of this image"
+        )
+    if not config.fit and fit.outputscale > OUTPUTSCALE_WARN * config.outputscale:
+        messages.append(
+            f"{name}the points show the MDE's log-depth error spreading s = {fit.outputscale:.2f} (configured "
+            f"{config.outputscale:.2f}): the variance is widened to match; the MDE may be out of its range here"
         )
     if len(z) and rejected.mean() > REJECTED_WARN:
         messages.append(f"{name}{int(rejected.sum())} of {len(z)} points ({rejected.mean():.0%}) rejected as outliers")

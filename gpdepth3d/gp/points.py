@@ -21,7 +21,7 @@ module needs nothing above `gpdepth3d.errors`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -364,6 +364,42 @@ def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach:
     return d
 
 
+def raised_outputscale(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    resid: np.ndarray,
+    noise: np.ndarray,
+    start: PointFit,
+    *,
+    nu: float = 0.5,
+    max_points: int = 150,
+) -> PointFit:
+    """``start`` with its s raised to what the points show, never lowered.
+
+    s is profiled by marginal likelihood (`fit_log_residual`) at ``start``'s length scale and
+    nugget ratio eta = (tau / s)^2; when that s is larger than ``start``'s, it replaces it (and
+    Var[b] = s^2 / N follows); l, tau and b stay ``start``'s. The configured s is then the least
+    MDE error a frame is assumed to have: a network badly out of its range (FastDepth in a 20 m
+    hall, iBims sample) gets a wider prior instead of a confident wrong mean.
+
+    Args:
+        rows, cols, resid, noise: (N,) as in `fit_log_residual`.
+        start: The configured (floor) hyperparameters.
+        nu: Matern smoothness.
+        max_points: Subset size of the fit.
+    """
+    n = np.asarray(resid).size
+    if n < 3:
+        return start
+    eta = (start.nugget / start.outputscale) ** 2
+    fitted = fit_log_residual(rows, cols, resid, noise, nu=nu, max_points=max_points,
+                              lengthscales=(start.lengthscale,), nuggets=(eta,))
+    if fitted.outputscale <= start.outputscale:
+        return start
+    s = fitted.outputscale
+    return replace(start, outputscale=s, log_scale_var=s * s / n)
+
+
 def screen_points(
     rows: np.ndarray,
     cols: np.ndarray,
@@ -376,6 +412,7 @@ def screen_points(
     iterations: int = 3,
     start: PointFit | None = None,
     around: tuple[float, float] | None = None,
+    raise_outputscale: bool = False,
 ) -> tuple[PointFit, np.ndarray, np.ndarray]:
     """Fits the log-residual GP robustly and flags the points that contradict it.
 
@@ -394,6 +431,11 @@ def screen_points(
         iterations: Maximum fit/reject rounds.
         start: Hyperparameters to use instead of fitting (e.g. fixed ones); rejection still runs.
         around: (l, eta) to start the fits' pattern search from (see `fit_log_residual`).
+        raise_outputscale: With ``start``: its s is a floor, not a fixed value. Each round, s is
+            the larger of ``start``'s and the marginal-likelihood s of the kept points at
+            ``start``'s length scale and nugget ratio (`raised_outputscale`); the first round
+            fits on all points, so a frame whose points show a larger spread is not screened
+            with an s too small for it, and the outliers it still flags leave the next fit.
 
     Returns:
         (the fit without the flagged points, (N,) bool mask of the flagged points, (N,) their
@@ -410,12 +452,15 @@ def screen_points(
         keep = ~rejected
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
         # enough to inflate the fitted nugget and scale
-        refit = start is None and (fitted_on is None or not np.array_equal(keep, fitted_on))
-        if refit:
+        refit = (start is None or raise_outputscale) and (fitted_on is None or not np.array_equal(keep, fitted_on))
+        if refit and start is None:
             fit = fit_log_residual(
                 rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points, around=around
             )
             fitted_on, around = keep, (fit.lengthscale, fit.eta)
+        elif refit:
+            fit = raised_outputscale(rows[keep], cols[keep], resid[keep], noise[keep], start, nu=nu, max_points=max_points)
+            fitted_on = keep
         if threshold is None or n < 5:
             break
         only = None
