@@ -132,7 +132,7 @@ class DepthGPConfig:
             (l, nugget and b as configured; `gpdepth3d.gp.points.raised_outputscale`). False keeps
             s fixed. Measured: 7-Scenes and KITTI (all protocols and densities) unchanged (their
             points' s is below 0.2); the iBims hall (3-20 m, FastDepth 2.5x off) +-2 sigma
-            83-85 -> 88-91 %, RMSE 3.20 / 2.43 / 2.20 -> 2.89 / 2.26 / 2.15 m at 50 / 200 / 500 points
+            83-85 -> 88-91 %, RMSE 3.20 / 2.43 / 2.20 -> 2.89 / 2.26 / 2.14 m at 50 / 200 / 500 points
             (s raised to 0.23-0.37; a `PosteriorWarning` above 1.25x the configured s).
     """
 
