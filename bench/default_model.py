@@ -6,6 +6,8 @@
   point): RMSE rise, points rejected, smallest posterior mean.
 * vio_sparse: real SLAM points, 20 % of them held out (seeded) as ground truth; the default model
   against FastDepth scaled to the other 80 % (robust median ratio).
+* ibims_sample: the 3-20 m hall at 320x240, 50 / 200 / 500 uniform samples of the laser scan (3
+  seeds): the default against the same model with its s fixed (``raise_outputscale=False``).
 * speed: the default model (mean + variance) on kitti_tiny frame 0 at 1/3 and full resolution at
   the paper's densities 1/64, 1/16, 1/4 and 1, beside IP-Basic on the same input in the same run.
 
@@ -122,6 +124,34 @@ def vio(data: Path, fastdepth) -> dict:
     }
 
 
+def ibims(data: Path, fastdepth, seeds: int = 3) -> dict:
+    """The iBims hall (3-20 m) at 320 x 240, uniform samples of the laser scan (seeds 0..seeds-1):
+    the default against the same model with s fixed (``raise_outputscale=False``)."""
+    frame = g.open_dataset(data / "ibims_sample")[0].resized(0.5)
+    mde = np.asarray(fastdepth(frame.rgb), dtype=np.float64)
+    gt = frame.depth
+    v = gt > 0
+    out = {"mde_rmse_mm": 1000 * float(np.sqrt(np.mean((mde[v] - gt[v]) ** 2)))}
+    for n in (50, 200, 500):
+        for name, config in (("default", g.DepthGPConfig()), ("s_fixed", g.DepthGPConfig(raise_outputscale=False))):
+            se, cover, s = [], [], []
+            for seed in range(seeds):
+                sp = g.sample_uniform(gt, n=n, rng=np.random.default_rng(seed))
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", g.PosteriorWarning)
+                    post = g.complete(mde, sp, config=config)
+                err = post.mean[v] - gt[v]
+                se.append(float(np.mean(err**2)))
+                cover.append(float(np.mean(np.abs(err) <= 2 * post.std[v])))
+                s.append(post.config.outputscale)
+            out[f"{n}_points_{name}"] = {
+                "rmse_mm": 1000 * float(np.sqrt(np.mean(se))),
+                "coverage_2sigma": float(np.mean(cover)),
+                "outputscale": s,
+            }
+    return out
+
+
 def speed(data: Path, rtmonodepth, repeats: int = 3) -> dict:
     """Seconds per frame (mean + variance, best of ``repeats`` after one warm-up) of the default model
     on kitti_tiny frame 0 at 1/3 and full resolution for each density, beside IP-Basic on the same input."""
@@ -167,6 +197,7 @@ def main() -> None:
     fastdepth = load_frontend("fastdepth", models_dir=args.data.parent / "models")
     result = {"config": repr(g.DepthGPConfig()), "7scenes": seven_scenes(args.data, args.stride, fastdepth)}
     result["vio_sparse"] = vio(args.data, fastdepth)
+    result["ibims"] = ibims(args.data, fastdepth)
     result["speed_kitti"] = speed(args.data, load_frontend("rtmonodepth", models_dir=args.data.parent / "models"))
     write_json(args.output, result)
     print("7-Scenes (FastDepth, 320x240): RMSE mm / +-2 sigma / rejected / min mean / median s")
@@ -180,6 +211,12 @@ def main() -> None:
         f"vio_sparse (20 % of {v['held_out_points']} points held out): GP {v['rmse_mm']:.0f} mm, FastDepth "
         f"scaled {v['scaled_mde_rmse_mm']:.0f} mm, FastDepth {v['mde_rmse_mm']:.0f} mm, +-2 sigma {v['coverage_2sigma']:.3f}"
     )
+    b = result["ibims"]
+    print(f"iBims hall (FastDepth alone {b['mde_rmse_mm']:.0f} mm): RMSE mm / +-2 sigma / s, default vs s fixed")
+    for n in (50, 200, 500):
+        d, f = b[f"{n}_points_default"], b[f"{n}_points_s_fixed"]
+        print(f"  {n:4d} points  {d['rmse_mm']:6.0f}  {d['coverage_2sigma']:.3f}  {np.round(d['outputscale'], 2)}"
+              f"  |  {f['rmse_mm']:6.0f}  {f['coverage_2sigma']:.3f}")
     print("speed, kitti_tiny frame 0 (mean + variance, best of 3 after a warm-up): points / default / IP-Basic")
     for key, r in result["speed_kitti"].items():
         print(f"  {key:32s} {r['points']:6d}  {1000 * r['seconds']:8.1f} ms  {1000 * r['ip_basic_seconds']:7.1f} ms")
