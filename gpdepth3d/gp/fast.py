@@ -1317,6 +1317,10 @@ class FastEngine:
             prior assembly, and the (H, W) variable index of state 0 of each grid pixel.
         """
         _check_problem(problem)
+        return self._factorize(problem)
+
+    def _factorize(self, problem: GridProblem):
+        """`factorize` of a checked problem (`solve` checks it once, at full resolution ~2 ms)."""
         h, w = problem.shape
         k = problem.kernel
         d = state_dim(k.nu)
@@ -1346,7 +1350,7 @@ class FastEngine:
     def _posterior_states(self, problem: GridProblem, extra: tuple = ()):
         """Factor and posterior state means of ``problem`` and of each further observation array in ``extra``
         (the compiled back-end solves them all in one pass over the factor)."""
-        factor, tree, prior, real_vars = self.factorize(problem)
+        factor, tree, prior, real_vars = self._factorize(problem)
         prec = np.asarray(problem.precision, dtype=np.float64)
         prior_mean = np.asarray(problem.prior_mean, np.float64)
         observed = prec > 0
