@@ -352,11 +352,14 @@ class TestLoopClosure:
             assert r.fused
         return mapper
 
-    def test_update_poses_equals_fusing_from_scratch(self, shared_data, tmp_path: Path):
+    @pytest.mark.parametrize("truncation_sigma", [0.0, 1.0])
+    def test_update_poses_equals_fusing_from_scratch(self, shared_data, tmp_path: Path, truncation_sigma):
         import cv2
 
         frames = _frames(shared_data, (0, 4, 8, 30, 34))
-        config = _small_config(gp=DepthGPConfig.residual(engine="exact"))
+        # with the truncation from the variance the moved frame's band is found from its stored variance
+        fusion = FusionConfig(voxel_size=0.04, truncation=0.12, truncation_sigma=truncation_sigma, truncation_max=0.4)
+        config = _small_config(gp=DepthGPConfig.residual(engine="exact"), fusion=fusion)
         sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
         poses = [f.pose for f in frames]
         mapper = self._run(frames, poses, config, sparse)

@@ -924,7 +924,7 @@ class Mapper:
         if not moved:
             return PoseUpdate((), (), 0, time.perf_counter() - t0)
         affected = [self.keyframes[k].block_keys for k in moved]
-        affected += [self.fusion.block_keys(self.keyframes[k].depth, new[k]) for k in moved]
+        affected += [self.fusion.block_keys(self.keyframes[k].depth, new[k], self.keyframes[k].variance) for k in moved]
         blocks = np.unique(np.concatenate(affected))
         for k in moved:
             self.keyframes[k].T_world_camera = new[k]
