@@ -681,7 +681,7 @@ class TestMapScale:
 
     def test_scale_disagreement_goes_into_the_fused_variance(self, shared_data):
         """``scale_variance``: a frame whose points disagree with the map by a factor s is fused
-        with its posterior variance plus w (1 - w) (log s)^2 depth^2 (w = 0.5); ``map_scale_max_sigma``
+        with its posterior variance plus w (1 - w) (log s)^2 depth^2 (w the default map_scale_weight); ``map_scale_max_sigma``
         reaches `map_scale` (no keyframe pixel is certain enough with a tiny one: no correction)."""
         frames = _frames(shared_data, (0, 1, 2, 3, 4))
         cam = frames[0].camera
@@ -694,13 +694,14 @@ class TestMapScale:
             for i, f in enumerate(frames):
                 results[key, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
         assert MapperConfig().scale_variance and MapperConfig().map_scale_max_sigma == 0.3
+        w = MapperConfig().map_scale_weight
         on, off = results["on", 4], results["off", 4]
-        assert on.map_scale == pytest.approx(np.sqrt(1.3), rel=0.03) and off.map_scale == on.map_scale
+        assert on.map_scale == pytest.approx(1.3**w, rel=0.03) and off.map_scale == on.map_scale
         np.testing.assert_allclose(off.variance, off.posterior.variance.astype(np.float32), rtol=1e-6)
         for i in (3, 4):
             r = results["on", i]
-            log_s = 2 * np.log(r.map_scale)  # the frame's disagreement with the map; half of it corrected
-            np.testing.assert_allclose(r.variance, r.posterior.variance + 0.25 * log_s**2 * r.depth**2, rtol=1e-5)
+            log_s = np.log(r.map_scale) / w  # the frame's disagreement with the map; a share w of it corrected
+            np.testing.assert_allclose(r.variance, r.posterior.variance + w * (1 - w) * log_s**2 * r.depth**2, rtol=1e-5)
         assert np.nanmedian(on.variance / on.posterior.variance) > 1.05  # a real share, not rounding
         for i in range(3):  # no map scale (fewer than 3 keyframes before them): no extra variance
             np.testing.assert_allclose(results["on", i].variance, results["on", i].posterior.variance.astype(np.float32), rtol=1e-6)

@@ -231,7 +231,17 @@ class MapperConfig:
             ``exp(weight * log s)``, s the map's median depth ratio: 0.5 weighs the frame and
             the map equally. Measured (bench/fusion.py, 7-Scenes): F at 5 cm 0.29 -> 0.35 with
             0.5 (0.32 with 0.3, 0.35 with 0.7; 1.0 made it worse, 0.27: the map then follows
-            each frame's error). Needs ``keep_keyframes``.
+            each frame's error). With ``map_scale_max_sigma`` 0.3 and ``scale_variance`` (the map
+            then compares more keyframe pixels and its frames with a large scale disagreement
+            weigh less) the map is the better estimate: 0.65 (default). Chosen on the even frames
+            (bench/fusion.py runs, each half fused alone against the Kinect mesh of the same
+            frames, weight threshold halved): F at 5 cm even 0.382 / 0.409 / 0.435 / 0.441 /
+            0.368 / 0.297 with 0.35 / 0.5 / 0.65 / 0.8 / 0.9 / 1.0; confirmed on the odd frames
+            0.358 / 0.377 / 0.401 / 0.402 / 0.353 / 0.296 and on frames 0-29 0.358 / 0.382 /
+            0.410 / 0.431 / 0.426 / 0.417, 30-59 0.340 / 0.359 / 0.369 / 0.367 / 0.284 / 0.212;
+            full sequence 0.356 / 0.378 / 0.402 / 0.408 / 0.338 / 0.285, per-frame depth RMSE
+            0.634 / 0.626 / 0.623 / 0.632 / 0.659 / 0.729 x FastDepth's. 0.65 rather than 0.8
+            (within 0.006 of it on the halves): 0.9 already drifts. Needs ``keep_keyframes``.
         map_scale_keyframes: The most recent keyframes `map_scale` compares with.
         map_scale_max_sigma: Keyframe pixels whose standard deviation is above this fraction of
             their depth are not compared by `map_scale`. With 0.1 (before) few pixels away from
@@ -255,8 +265,8 @@ class MapperConfig:
             ``w(1-w)`` times that: the squared disagreement estimates it without a new
             constant. The |log s| of a frame ranks its points' true |bias| with Spearman 0.62
             on 7-Scenes (the points' median relative sigma 0.57, blur measured by the
-            Laplacian's variance -0.12). Measured with ``map_scale_max_sigma`` 0.3
-            (bench/fusion.py, same protocol as above): F at 5 cm full 0.369 -> 0.376-0.378,
+            Laplacian's variance -0.12). Measured with ``map_scale_max_sigma`` 0.3 and
+            ``map_scale_weight`` 0.5 (bench/fusion.py, same protocol as above): F at 5 cm full 0.369 -> 0.376-0.378,
             even 0.397 -> 0.408, odd 0.377 -> 0.377, frames 0-29 0.379 -> 0.383, 30-59
             0.354 -> 0.358; with 0.1: full 0.360 -> 0.367. The depth fused is unchanged; the
             frame weighs less in the volume and, its pixels being less certain, in the
@@ -279,7 +289,7 @@ class MapperConfig:
     window: int = 8
     lag: int = 4
     fuse_depth: Literal["median", "mean"] = "median"
-    map_scale_weight: float = 0.5
+    map_scale_weight: float = 0.65
     map_scale_keyframes: int = 20
     map_scale_max_sigma: float = 0.3
     scale_variance: bool = True
