@@ -352,11 +352,14 @@ class TestLoopClosure:
             assert r.fused
         return mapper
 
-    def test_update_poses_equals_fusing_from_scratch(self, shared_data, tmp_path: Path):
+    @pytest.mark.parametrize("truncation_sigma", [0.0, 1.0])
+    def test_update_poses_equals_fusing_from_scratch(self, shared_data, tmp_path: Path, truncation_sigma):
         import cv2
 
         frames = _frames(shared_data, (0, 4, 8, 30, 34))
-        config = _small_config(gp=DepthGPConfig.residual(engine="exact"))
+        # with the truncation from the variance the moved frame's band is found from its stored variance
+        fusion = FusionConfig(voxel_size=0.04, truncation=0.12, truncation_sigma=truncation_sigma, truncation_max=0.4)
+        config = _small_config(gp=DepthGPConfig.residual(engine="exact"), fusion=fusion)
         sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
         poses = [f.pose for f in frames]
         mapper = self._run(frames, poses, config, sparse)
@@ -672,3 +675,35 @@ class TestMapScale:
             MapperConfig(map_scale_weight=1.5)
         with pytest.raises(InvalidInputError):
             MapperConfig(map_scale_keyframes=0)
+        for bad in (0.0, -0.1, float("nan")):
+            with pytest.raises(InvalidInputError):
+                MapperConfig(map_scale_max_sigma=bad)
+
+    def test_scale_disagreement_goes_into_the_fused_variance(self, shared_data):
+        """``scale_variance``: a frame whose points disagree with the map by a factor s is fused
+        with its posterior variance plus w (1 - w) (log s)^2 depth^2 (w the default map_scale_weight); ``map_scale_max_sigma``
+        reaches `map_scale` (no keyframe pixel is certain enough with a tiny one: no correction)."""
+        frames = _frames(shared_data, (0, 1, 2, 3, 4))
+        cam = frames[0].camera
+        sparse = [_kinect_sparse(f, cam, 150, i) for i, f in enumerate(frames)]
+        scaled = {i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma) for i, s in enumerate(sparse)}
+        results = {}
+        for key, kw in (("on", {}), ("off", dict(scale_variance=False)), ("strict", dict(map_scale_max_sigma=1e-6))):
+            mapper = Mapper(cam, _small_config(triangulate=True, lag=0, **kw))
+            mapper._triangulate = lambda rgb, T, kid: scaled[kid]
+            for i, f in enumerate(frames):
+                results[key, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
+        assert MapperConfig().scale_variance and MapperConfig().map_scale_max_sigma == 0.3
+        w = MapperConfig().map_scale_weight
+        on, off = results["on", 4], results["off", 4]
+        assert on.map_scale == pytest.approx(1.3**w, rel=0.03) and off.map_scale == on.map_scale
+        np.testing.assert_allclose(off.variance, off.posterior.variance.astype(np.float32), rtol=1e-6)
+        for i in (3, 4):
+            r = results["on", i]
+            log_s = np.log(r.map_scale) / w  # the frame's disagreement with the map; a share w of it corrected
+            np.testing.assert_allclose(r.variance, r.posterior.variance + w * (1 - w) * log_s**2 * r.depth**2, rtol=1e-5)
+        assert np.nanmedian(on.variance / on.posterior.variance) > 1.05  # a real share, not rounding
+        for i in range(3):  # no map scale (fewer than 3 keyframes before them): no extra variance
+            np.testing.assert_allclose(results["on", i].variance, results["on", i].posterior.variance.astype(np.float32), rtol=1e-6)
+        assert results["strict", 4].map_scale == 1.0
+        np.testing.assert_allclose(results["strict", 4].variance, results["strict", 4].posterior.variance.astype(np.float32), rtol=1e-6)

@@ -7,10 +7,13 @@ weight ``w_p``. For every voxel centre ``x`` (world frame) in the truncation ban
 
     (u, v), z = project(T_camera_world @ x)            nearest pixel, z-depth of the voxel
     d   = depth[v, u],  w = w_p[v, u]                   observed depth and its weight
-    sdf = min(d - z, truncation) / truncation           kept when d - z >= -truncation
+    sdf = min(d - z, tau) / tau_max                     kept when d - z >= -tau
     tsdf  <- (W * tsdf + w * sdf) / (W + w)
     color <- (W * color + w * rgb[v, u]) / (W + w)
     W     <- min(W + w, weight_cap)
+
+with ``tau = tau_max = truncation`` (the usual TSDF), or, with ``truncation_sigma = k > 0`` and
+a variance given, a truncation per pixel that follows its depth uncertainty (below).
 
 Implementation: the blocks to allocate are found by sampling every valid pixel's ray through
 the truncation band (Open3D's ``compute_unique_block_coordinates`` samples the band too
@@ -27,6 +30,17 @@ Weightings (`FusionConfig.weighting`):
   ``(sigma_ref / sigma)^2``: inverse-variance weighting (the optimal weights for averaging
   independent Gaussian readings of the signed distance) saturated at one observation, so that
   ``weight_cap`` and ``weight_threshold`` keep their usual meaning ("number of observations").
+
+Truncation from the variance (``FusionConfig.truncation_sigma`` k > 0): a pixel's truncation is
+``tau = clip(k * sigma, truncation, truncation_max)``, sigma its depth standard deviation, and every
+signed distance is divided by ``tau_max = truncation_max``. A fixed truncation far below the
+depth error clips an uncertain frame's signed distance to +-1 within a few centimetres of its
+surface: where frames disagree by more than the truncation (the refined depth of 7-Scenes is
+typically 10-30 cm off, the truncation 8 cm) the volume does not average them but keeps
+several thin surfaces and carves between them. With the truncation growing with sigma the
+signed distances of uncertain frames stay linear over their error band, so the zero crossing is
+their weighted mean (the least-squares surface of Curless and Levoy), while certain pixels keep
+the sharp band. The band of blocks each pixel reaches grows accordingly (`_band_keys`).
 
 Bad depth readings never stop a sequence: negative and non-finite depths (a GP posterior
 mean can dip below zero next to an outlier measurement) are masked like "no depth" and
@@ -90,6 +104,23 @@ class FusionConfig:
         sigma_ref: Variance weighting: depth standard deviation (metres) at which a pixel
             counts as half an observation.
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
+        truncation_sigma: k of the truncation from the variance (see the module docstring): a
+            pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
+            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``.
+            Measured on the 60 shared 7-Scenes frames (the Mapper's posteriors of a
+            bench/fusion.py run with the defaults of the time, fused again, 320x240, 2 cm voxels,
+            truncation 8 cm): F at 5 cm 0.378 (fixed) -> 0.400 with k = 1, truncation_max 0.2 m
+            and weight_threshold 1.0 (fusion 18 -> 24 ms a frame), 0.412 with truncation_max
+            0.4 m (61 ms: the band is five times deeper); with weight_threshold 0.5 0.404. Not
+            the default: it does not hold on both halves of the sequence (each half fused
+            alone, weight threshold halved: even frames 0.408 -> 0.390, odd 0.377 -> 0.404,
+            frames 0-29 0.383 -> 0.413, 30-59 0.358 -> 0.335; other k, truncation_max and
+            thresholds likewise gain on two splits and lose on the other two). Where frames
+            carry a scale error their surfaces are averaged in instead of clipped. With the
+            Mapper's ``map_scale_weight`` 0.65 (after it) k = 1, truncation_max 0.2 m, weight
+            threshold 1.0 loses on the whole sequence too: 0.400 -> 0.393.
+        truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
+            truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
         block_count: Initial number of blocks of the hash map (it grows when needed).
         integrate_color: Fuse colours as well.
@@ -110,6 +141,8 @@ class FusionConfig:
     weighting: Weighting = "variance"
     sigma_ref: float = 0.1
     weight_threshold: float = 0.5
+    truncation_sigma: float = 0.0
+    truncation_max: float = 0.4
     block_resolution: int = 8
     block_count: int = 20000
     integrate_color: bool = True
@@ -130,12 +163,35 @@ class FusionConfig:
             raise InvalidInputError("weighting", "'uniform' or 'variance'", self.weighting)
         if not np.isfinite(self.weight_threshold) or self.weight_threshold < 0:
             raise InvalidInputError("weight_threshold", "a finite value >= 0", self.weight_threshold)
+        if not np.isfinite(self.truncation_sigma) or self.truncation_sigma < 0:
+            raise InvalidInputError("truncation_sigma", "a finite value >= 0", self.truncation_sigma)
+        if not np.isfinite(self.truncation_max) or (self.truncation_sigma > 0 and self.truncation_max < self.truncation):
+            raise InvalidInputError("truncation_max", f"a finite value >= truncation ({self.truncation} m)", self.truncation_max)
         if int(self.block_resolution) != self.block_resolution or self.block_resolution < 2:
             raise InvalidInputError("block_resolution", "an integer >= 2", self.block_resolution)
         if int(self.block_count) != self.block_count or self.block_count < 1:
             raise InvalidInputError("block_count", "an integer >= 1", self.block_count)
         if isinstance(self.cpu_threads, bool) or int(self.cpu_threads) != self.cpu_threads or self.cpu_threads < 0:
             raise InvalidInputError("cpu_threads", "an integer >= 0", self.cpu_threads)
+
+    @property
+    def tsdf_scale(self) -> float:
+        """The distance (metres) the stored signed distances are divided by: ``truncation_max``
+        with a truncation from the variance (``truncation_sigma`` > 0), else ``truncation``."""
+        return float(self.truncation_max if self.truncation_sigma > 0 else self.truncation)
+
+    def pixel_truncation(self, variance: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) float32 truncation of each pixel, metres: ``clip(truncation_sigma * sigma,
+        truncation, truncation_max)`` from a variance (m^2; non-finite or negative entries get
+        ``truncation``), or ``truncation`` everywhere without one or with ``truncation_sigma`` 0."""
+        if self.truncation_sigma == 0 or variance is None:
+            return np.full(shape, self.truncation, np.float32)
+        var = np.asarray(variance, dtype=np.float64)
+        if var.shape != tuple(shape):
+            raise ShapeError("variance", f"the shape of depth {tuple(shape)}", describe(var))
+        with np.errstate(invalid="ignore"):
+            sigma = np.sqrt(np.where(np.isfinite(var) & (var >= 0), var, 0.0))
+        return np.clip(self.truncation_sigma * sigma, self.truncation, self.truncation_max).astype(np.float32)
 
 
 def weights_from_variance(variance: np.ndarray, *, sigma_ref: float) -> np.ndarray:
@@ -269,9 +325,10 @@ class TSDFFusion:
             T_world_camera: 4x4 rigid pose of the camera.
             rgb: Optional (H, W, 3) uint8 RGB image (needed for coloured meshes).
             weights: Optional (H, W) per-pixel weights >= 0 (default 1 for every pixel).
-            variance: (H, W) depth variance, m^2; needed (and only used) with
-                ``config.integrate_variance``; pixels with a non-finite or negative variance are
-                not fused.
+            variance: (H, W) depth variance, m^2; needed with ``config.integrate_variance``
+                (pixels with a non-finite or negative variance are then not fused); sets each
+                pixel's truncation with ``config.truncation_sigma`` > 0 (without it: the fixed
+                truncation).
             blocks: Optional (M,) int64 block keys (`block_keys`): update only voxels of these
                 blocks (re-integration after `reset_blocks`).
 
@@ -304,6 +361,7 @@ class TSDFFusion:
             var = np.ascontiguousarray(variance, dtype=np.float64)
             if var.shape != d.shape:
                 raise ShapeError("variance", f"the shape of depth {d.shape}", describe(var))
+        trunc = cfg.pixel_truncation(variance, d.shape)
         d, w, var32, n_bad, pixels, bad_weights = _masked_frame(
             np.ascontiguousarray(d, dtype=np.float64), w, var, float(cfg.depth_min), float(cfg.depth_max)
         )
@@ -328,12 +386,12 @@ class TSDFFusion:
                     color = color * 255.0
 
         with self._threads():
-            keys = self._band_keys(d, T)
+            keys = self._band_keys(d, T, trunc)
             if blocks is not None:
                 keys = np.intersect1d(keys, np.asarray(blocks, dtype=np.int64), assume_unique=False)
             n = 0
             if keys.size:
-                n = self._update(keys, d, w, color, var32 if cfg.integrate_variance else None, T)
+                n = self._update(keys, d, w, color, var32 if cfg.integrate_variance else None, T, trunc)
         self._dirty.append(keys)
         self.frames_integrated += 1
         return IntegrationStats(voxels=n, pixels=pixels, invalid_pixels=n_bad, block_keys=keys)
@@ -378,15 +436,18 @@ class TSDFFusion:
             _to_torch(self.vbg.attribute(name))[buf_idx] = 0.0
 
     def _update(
-        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray
+        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray,
+        trunc: np.ndarray | None = None,
     ) -> int:
         """The voxel update of one frame over the blocks ``keys`` (see the module docstring).
 
         On the CPU a compiled loop (`_update_voxels`, numba) visits every voxel of the blocks
         once; on CUDA the same update runs as torch tensor operations (`_update_torch`).
         """
+        if trunc is None:
+            trunc = np.full(d.shape, self.config.truncation, np.float32)
         if self._torch_device != "cpu":
-            return self._update_torch(keys, d, w, color, var, T)
+            return self._update_torch(keys, d, w, color, var, T, trunc)
         buf = self._activate(keys).cpu().numpy().astype(np.int64).reshape(-1)
         blocks = _keys_to_blocks(keys).astype(np.int64)
         T_cw = np.linalg.inv(T)
@@ -403,12 +464,13 @@ class TSDFFusion:
                 np.ascontiguousarray(d, np.float32), np.ascontiguousarray(w, np.float32),
                 np.zeros((0, 0, 3), np.float32) if color is None else np.ascontiguousarray(color, np.float32),
                 np.zeros((0, 0), np.float32) if var is None else np.ascontiguousarray(var, np.float32),
-                float(cfg.truncation), float(cfg.weight_cap), tsdf, weight, col, vvox,
+                np.ascontiguousarray(trunc, np.float32), float(cfg.tsdf_scale), float(cfg.weight_cap), tsdf, weight, col, vvox,
             )
         )
 
     def _update_torch(
-        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray
+        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray,
+        trunc: np.ndarray | None = None,
     ) -> int:
         """`_update` as torch tensor operations (CUDA, and the CPU reference in the tests)."""
         # The voxel update runs in torch on zero-copy (DLPack) views of the grid's buffers.
@@ -434,15 +496,17 @@ class TSDFFusion:
         w_pix = torch.as_tensor(w, device=tdev)
         reading = depth_pix[v, u]
         wnew = w_pix[v, u]
-        trunc = float(cfg.truncation)
+        if trunc is None:
+            trunc = np.full(d.shape, cfg.truncation, np.float32)
+        tau = torch.as_tensor(np.asarray(trunc, np.float32), device=tdev)[v, u]
         sdf = reading - z
-        inlier = (reading > 0) & (wnew > 0) & (sdf >= -trunc)
+        inlier = (reading > 0) & (wnew > 0) & (sdf >= -tau)
         keep = torch.nonzero(inlier).squeeze(1)
         n = int(keep.shape[0])
         if n == 0:
             return 0
         idx = flat[sel[keep]]
-        sdf = torch.clamp(sdf[keep], max=trunc) / trunc
+        sdf = torch.minimum(sdf[keep], tau[keep]) / float(cfg.tsdf_scale)
         wnew = wnew[keep]
         tsdf = _to_torch(self.vbg.attribute("tsdf")).view(-1)
         weight = _to_torch(self.vbg.attribute("weight")).view(-1)
@@ -460,17 +524,18 @@ class TSDFFusion:
         weight[idx] = torch.clamp(wsum, max=float(cfg.weight_cap))
         return n
 
-    def block_keys(self, depth: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
+    def block_keys(self, depth: np.ndarray, T_world_camera: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
         """(M,) sorted int64 keys of the blocks a depth frame's truncation band touches.
 
-        The depth is filtered as `integrate` filters it (range and validity, not weights).
+        The depth is filtered as `integrate` filters it (range and validity, not weights); the
+        variance sets the truncation as in `integrate` (``config.truncation_sigma``).
         """
         T = check_pose(T_world_camera)
         d = np.asarray(depth, dtype=np.float64)
         self.camera.check_image(d, "depth")
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(d) & (d > self.config.depth_min) & (d < self.config.depth_max)
-        return self._band_keys(np.where(ok, d, 0.0).astype(np.float32), T)
+        return self._band_keys(np.where(ok, d, 0.0).astype(np.float32), T, self.config.pixel_truncation(variance, d.shape))
 
     def reset_blocks(self, keys: np.ndarray) -> int:
         """Zeroes TSDF, weight, colour and variance of the given blocks; returns how many existed.
@@ -497,14 +562,15 @@ class TSDFFusion:
     BAND_CONSERVATIVE = False
     """`_band_keys`: also take every block the tile's other pixel rays may reach (see there)."""
 
-    def _band_keys(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
+    def _band_keys(self, depth: np.ndarray, T: np.ndarray, trunc: np.ndarray | None = None) -> np.ndarray:
         """(M,) sorted int64 keys of the blocks the truncation band of a depth frame touches.
 
         Open3D's ``compute_unique_block_coordinates`` samples the band too sparsely (with a
         truncation of several blocks it skips blocks in the middle of the band, so some voxels
         in the band would never be updated). Here the image is cut into `BAND_TILE` x
         `BAND_TILE` pixel tiles and the ray through each tile's centre is sampled from the
-        tile's smallest valid depth minus the truncation to its largest plus the truncation,
+        tile's smallest valid depth minus its truncation to its largest plus its truncation
+        (``trunc``: (H, W) per pixel, metres; default ``config.truncation``),
         at steps of at most two voxels. Measured on 10 of the shared 7-Scenes frames (320x240,
         2 cm voxels, 16 cm blocks) against every pixel's ray sampled densely through its band:
         298 of 10706 band blocks missed (slivers at block faces; sampling every pixel's ray at
@@ -518,17 +584,19 @@ class TSDFFusion:
         """
         cfg, cam = self.config, self.camera
         step = 2.0 * cfg.voxel_size
+        if trunc is None:
+            trunc = np.full(np.shape(depth), cfg.truncation, np.float32)
         if self._torch_device == "cpu":
             blocks = _band_blocks(
                 np.ascontiguousarray(depth, np.float32), float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
                 np.ascontiguousarray(T[:3, :3], np.float64), np.ascontiguousarray(T[:3, 3], np.float64),
-                float(cfg.truncation), step, float(cfg.voxel_size * cfg.block_resolution), int(self.BAND_TILE),
+                np.ascontiguousarray(trunc, np.float32), step, float(cfg.voxel_size * cfg.block_resolution), int(self.BAND_TILE),
                 bool(self.BAND_CONSERVATIVE),
             )
             return _blocks_to_keys(blocks)  # the grid is walked in key order: sorted, unique
-        return self._band_keys_torch(depth, T)
+        return self._band_keys_torch(depth, T, trunc)
 
-    def _band_keys_torch(self, depth: np.ndarray, T: np.ndarray) -> np.ndarray:
+    def _band_keys_torch(self, depth: np.ndarray, T: np.ndarray, trunc: np.ndarray | None = None) -> np.ndarray:
         """`_band_keys` with torch (CUDA, and the CPU reference in the tests): the same samples."""
         import torch
 
@@ -536,10 +604,14 @@ class TSDFFusion:
         tile = int(self.BAND_TILE)
         d = torch.as_tensor(np.asarray(depth, np.float32), device=tdev)
         h, w = d.shape
+        if trunc is None:
+            trunc = np.full(np.shape(depth), cfg.truncation, np.float32)
+        tau = torch.as_tensor(np.asarray(trunc, np.float32), device=tdev)
         valid = d > 0
-        big = torch.where(valid, d, torch.full_like(d, float("inf")))[None, None]
+        # per tile: the nearest (depth - truncation) and the farthest (depth + truncation)
+        big = torch.where(valid, d - tau, torch.full_like(d, float("inf")))[None, None]
         dmin = -torch.nn.functional.max_pool2d(-big, tile, ceil_mode=True)[0, 0]
-        dmax = torch.nn.functional.max_pool2d(torch.where(valid, d, torch.full_like(d, -1.0))[None, None], tile, ceil_mode=True)[0, 0]
+        dmax = torch.nn.functional.max_pool2d(torch.where(valid, d + tau, torch.full_like(d, -1.0))[None, None], tile, ceil_mode=True)[0, 0]
         ty, tx = torch.nonzero(dmax > 0, as_tuple=True)
         if ty.numel() == 0:
             return np.zeros(0, np.int64)
@@ -552,8 +624,8 @@ class TSDFFusion:
         block_size = float(cfg.voxel_size * cfg.block_resolution)
         rays = torch.stack([rx, ry, torch.ones_like(rx)], dim=1) @ Tw[:3, :3].T / block_size  # blocks per metre
         origin = Tw[:3, 3] / block_size
-        a0 = torch.clamp(dmin - cfg.truncation, min=1e-3)
-        a1 = dmax + cfg.truncation
+        a0 = torch.clamp(dmin, min=1e-3)
+        a1 = dmax
         step = 2.0 * cfg.voxel_size
         n = torch.ceil((a1 - a0) / step).long() + 1
         spread = np.sqrt(2.0) * 0.5 * (tile - 1) / min(cam.fx, cam.fy) / block_size if self.BAND_CONSERVATIVE else 0.0
@@ -602,7 +674,7 @@ class TSDFFusion:
 
         Returns:
             ``coords`` (M, 3) world positions of the voxels' sample points (metres), ``tsdf``
-            (M,) truncated signed distance / truncation in [-1, 1], ``weight`` (M,) accumulated
+            (M,) truncated signed distance / ``config.tsdf_scale`` in [-1, 1], ``weight`` (M,) accumulated
             weights, with colour ``color`` (M, 3) float in 0..1 and with
             ``config.integrate_variance`` ``variance`` (M,) m^2.
         """
@@ -908,14 +980,15 @@ def _masked_frame(depth, weights, variance, depth_min, depth_max):  # pragma: no
 
 @nb.njit(cache=True, nogil=True)
 def _update_voxels(
-    blocks, buf, res, voxel_size, R_cw, t_cw, fx, fy, cx, cy, depth, wpix, color, var, trunc, cap, tsdf, weight, col, vvox
+    blocks, buf, res, voxel_size, R_cw, t_cw, fx, fy, cx, cy, depth, wpix, color, var, trunc, scale, cap, tsdf, weight, col, vvox
 ):  # pragma: no cover - compiled; tested against the torch update
     """The projective TSDF update of every voxel of the given blocks (see the module docstring).
 
     ``blocks`` (M, 3) block coordinates, ``buf`` (M,) their buffer indices; a voxel (x, y, z)
     of block b sits at ``(b * res + (x, y, z)) * voxel_size`` and is stored at
     ``buf * res^3 + (z * res + y) * res + x`` (Open3D's layout). ``color`` / ``var`` of size 0
-    skip those attributes. Returns the number of voxel updates.
+    skip those attributes. ``trunc`` (H, W) is each pixel's truncation, ``scale`` the distance the
+    stored signed distances are divided by. Returns the number of voxel updates.
     """
     h, w = depth.shape
     has_color = color.shape[0] > 0
@@ -953,12 +1026,13 @@ def _update_voxels(
                     wn = wpix[iv, iu]
                     if reading <= 0 or wn <= 0:
                         continue
+                    tau = trunc[iv, iu]
                     sdf = reading - pz
-                    if sdf < -trunc:
+                    if sdf < -tau:
                         continue
-                    if sdf > trunc:
-                        sdf = trunc
-                    sdf /= trunc
+                    if sdf > tau:
+                        sdf = tau
+                    sdf /= scale
                     idx = base + (z * res + y) * res + x
                     wold = weight[idx]
                     wsum = wold + wn
@@ -979,7 +1053,8 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, con
     key order (x, then y, then z).
 
     The image is cut into ``tile`` x ``tile`` pixel tiles; the ray through a tile's centre is
-    sampled from (its smallest valid depth - trunc) to (its largest + trunc), at most ``step``
+    sampled from the smallest (valid depth - trunc) of its pixels to the largest (depth + trunc)
+    (``trunc`` (H, W) per pixel), at most ``step``
     metres apart; with ``conservative`` each sample also marks every block within the distance
     the tile's other pixel rays can be from it at that depth. The samples' blocks are marked in
     a dense grid over the bounding box of the rays' end samples (the samples in between lie
@@ -1006,8 +1081,8 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, con
                 for u in range(u0, u1):
                     d = depth[v, u]
                     if d > 0:
-                        dmin = min(dmin, d)
-                        dmax = max(dmax, d)
+                        dmin = min(dmin, d - trunc[v, u])
+                        dmax = max(dmax, d + trunc[v, u])
             if dmax < 0:
                 continue
             rx = (0.5 * (u0 + u1 - 1) - cx) / fx
@@ -1015,8 +1090,8 @@ def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, con
             d0 = (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) / block_size
             d1 = (R[1, 0] * rx + R[1, 1] * ry + R[1, 2]) / block_size
             d2 = (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]) / block_size
-            a0 = max(dmin - trunc, 1e-3)
-            a1 = dmax + trunc
+            a0 = max(dmin, 1e-3)
+            a1 = dmax
             n = int(np.ceil((a1 - a0) / step)) + 1
             ray[ty, tx, 0], ray[ty, tx, 1], ray[ty, tx, 2] = d0, d1, d2
             band[ty, tx, 0], band[ty, tx, 1] = a0, a1
