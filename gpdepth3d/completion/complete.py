@@ -413,8 +413,8 @@ def _log_residual_posterior(
         )
     if not config.fit and fit.outputscale > OUTPUTSCALE_WARN * config.outputscale:
         messages.append(
-            f"{name}the points show the MDE's log-depth error spreading s = {fit.outputscale:.2f} (configured "
-            f"{config.outputscale:.2f}): the variance is widened to match; the MDE may be out of its range here"
+            f"{name}the MDE's log-depth error at the points has s = {fit.outputscale:.2f}, above the configured "
+            f"{config.outputscale:.2f}: the variance is widened to match (is the MDE out of its range here?)"
         )
     if len(z) and rejected.mean() > REJECTED_WARN:
         messages.append(f"{name}{int(rejected.sum())} of {len(z)} points ({rejected.mean():.0%}) rejected as outliers")
