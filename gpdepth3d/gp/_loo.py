@@ -102,25 +102,22 @@ def _loo_lanes(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, er, ec):
                 A[a, a, l] = s2 + tau2 + noise[nn[q, a]]
                 kx[a, l] = y[a, l]
         ok[:] = True
-        for j in range(k):  # Cholesky A = L L^T in the lower triangle
-            for l in range(W):
-                acc[l] = A[j, j, l]
-            for m in range(j):
-                for l in range(W):
-                    acc[l] -= A[j, m, l] * A[j, m, l]
-            for l in range(W):
-                if not acc[l] > 0.0:
-                    ok[l] = False
-                    acc[l] = 1.0  # keeps the lane finite; its result is dropped
-                A[j, j, l] = math.sqrt(acc[l])
-            for a in range(j + 1, k):
+        for j in range(k):  # Cholesky A = L L^T in the lower triangle, column j from its diagonal down
+            for a in range(j, k):
                 for l in range(W):
                     acc[l] = A[a, j, l]
                 for m in range(j):
                     for l in range(W):
                         acc[l] -= A[a, m, l] * A[j, m, l]
-                for l in range(W):
-                    A[a, j, l] = acc[l] / A[j, j, l]
+                if a == j:
+                    for l in range(W):
+                        if not acc[l] > 0.0:
+                            ok[l] = False
+                            acc[l] = 1.0  # keeps the lane finite; its result is dropped
+                        A[j, j, l] = math.sqrt(acc[l])
+                else:
+                    for l in range(W):
+                        A[a, j, l] = acc[l] / A[j, j, l]
         for a in range(k):  # y = L^-1 kx
             for l in range(W):
                 acc[l] = y[a, l]
