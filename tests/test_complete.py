@@ -7,7 +7,14 @@ import warnings
 import numpy as np
 import pytest
 
-from gpdepth3d.completion.complete import DepthCompleter, DepthPosterior, build_problem, check_mde_depth, complete
+from gpdepth3d.completion.complete import (
+    DepthCompleter,
+    DepthPosterior,
+    PosteriorWarning,
+    build_problem,
+    check_mde_depth,
+    complete,
+)
 from gpdepth3d.errors import DataFormatError, EmptyInputError, InvalidDepthError, ShapeError
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import load_depth
@@ -169,6 +176,28 @@ class TestComplete:
             post = complete(f.mde, f.lidar.subset(np.arange(0, len(f.lidar), 3)), config=cfg, variance=False)
             assert depth_metrics(post.mean, f.depth_gt)["rmse"] < mde_m["rmse"]
 
+
+    def test_gaussian_presets_say_when_the_mde_scale_is_off_and_when_depths_go_below_zero(self):
+        # the paper's model is Gaussian in metres: an MDE in millimetres against points in metres
+        # is reported; an MDE in kilometres leaves pixels between the points at or below 0 m,
+        # which are counted (frame named) and not clipped
+        mde, sparse = small_inputs()
+        with pytest.warns(PosteriorWarning, match=r"frame 7: the MDE's scale disagrees with the points by a factor of 0\.00"):
+            post = complete(mde * 1000.0, sparse, config=EXACT, frame="7")
+        assert len(post.warnings) == 1 and "factor of" in post.warnings[0]
+        with pytest.warns(PosteriorWarning) as record:
+            post = complete(mde * 1e-3, sparse, config=EXACT, frame="8")
+        low = int(np.count_nonzero(post.mean <= 0))
+        assert low > 0 and post.mean.min() < 0  # the model's mean, not clipped
+        messages = [str(r.message) for r in record]
+        assert any(m.startswith(f"frame 8: {low} pixels (") and "<= 0 m" in m for m in messages)
+        assert any("factor of 1166" in m for m in messages)
+        # a well-scaled frame says nothing
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", PosteriorWarning)
+            post = complete(mde, sparse, config=EXACT)
+        assert post.warnings == ()
+        assert np.all(post.mean > 0)
 
 class TestDepthPosteriorSaveLoad:
     def test_round_trip(self, tmp_path):

@@ -54,7 +54,9 @@ class DepthPosterior:
             `PosteriorWarning`): an MDE whose scale disagrees with the points by more than a
             factor of 2, almost no points, points covering little of the image, many rejected, an
             MDE whose depth differences the points barely follow (fitted slope < 0.2), an MDE
-            error the points show to be > 1.25x the configured s (``raise_outputscale``).
+            error the points show to be > 1.25x the configured s (``raise_outputscale``); for the
+            Gaussian formulations (``balanced``, ``residual``) the MDE's scale and pixels whose
+            mean is <= 0 m.
         solve: The engine's facts of this call (`gpdepth3d.gp.SolveInfo`: route, seconds per
             stage); None for a posterior read from a file.
         mde_slope: log_residual: the MDE's log-depth coefficient fitted to this frame
@@ -423,6 +425,36 @@ def _log_residual_posterior(
     return mean, var, fit, fitted, rejected, tuple(messages), alignment, times, solution.info, a
 
 
+def _gaussian_warnings(
+    mean: np.ndarray, mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth, frame: str | None
+) -> tuple[str, ...]:
+    """What a posterior of the Gaussian formulations (``balanced``, ``residual``) cannot support.
+
+    These models are Gaussian in metres (the paper's model is kept as the paper states it), so
+    nothing keeps their mean positive: a badly scaled MDE or a far point can put pixels at or
+    below 0 m. They are not clipped (the mean stays the model's); the warning counts them. The
+    MDE's scale against the points is checked as for the default model (a factor of 2).
+    """
+    name = f"frame {frame}: " if frame is not None else ""
+    messages = []
+    rows, cols = grid_sparse.v.astype(np.int64), grid_sparse.u.astype(np.int64)
+    seen = valid[rows, cols]
+    if seen.any():
+        ratio = float(np.median(grid_sparse.depth[seen] / mde[rows[seen], cols[seen]]))
+        if not 1.0 / SCALE_WARN_FACTOR <= ratio <= SCALE_WARN_FACTOR:
+            messages.append(
+                f"{name}the MDE's scale disagrees with the points by a factor of {ratio:.2f} "
+                f"(median MDE depth {float(np.median(mde[valid])):.2f} m): check the MDE's units or model"
+            )
+    low = int(np.count_nonzero(~(mean > 0)))
+    if low:
+        messages.append(
+            f"{name}{low} pixels ({low / mean.size:.1%}) have a posterior mean <= 0 m or not finite (a Gaussian model "
+            f"in metres; the default log_residual model keeps depths positive): mask them before use"
+        )
+    return tuple(messages)
+
+
 class DepthCompleter:
     """Completes depth frame after frame with one configuration.
 
@@ -493,6 +525,9 @@ class DepthCompleter:
             var = np.full(mean.shape, np.nan)
         mde, valid = check_mde_depth(mde_depth)
         mde_out = self._mde_out(mde, valid, problem.out_shape)
+        messages = _gaussian_warnings(mean, mde, valid, grid_sparse, frame)
+        for message in messages:
+            warnings.warn(message, PosteriorWarning, stacklevel=2)
         return DepthPosterior(
             mean=mean,
             variance=var,
@@ -502,6 +537,7 @@ class DepthCompleter:
             depth_scale=scale,
             alignment=alignment,
             timings={"fit": tf - t0, "setup": t1 - tf, "solve": t2 - t1},
+            warnings=messages,
             solve=solution.info,
         )
 
