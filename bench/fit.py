@@ -2,8 +2,9 @@
 
 Runs the evaluation (`gpdepth3d.experiments.evaluation.run_evaluation`) at 320x240 with 200 points, uniform and
 in the lower half-band, for the paper's balanced GP with its fixed values (``gp_balanced``) and
-fitted per frame by maximum marginal likelihood (``gp_balanced_fit``: ``DepthGPConfig(fit=True)``),
-and the residual GP fixed / fitted. Writes bench/results/fit_7scenes.json.
+fitted per frame by maximum marginal likelihood (``gp_balanced_fit``: ``DepthGPConfig.paper(fit=True)``),
+the residual GP fixed / fitted, and the default model fixed / fitted (``gp_default_fit``:
+``DepthGPConfig(fit=True)``). Writes bench/results/fit_7scenes.json.
 
     python bench/fit.py [--data ../shared/data] [--stride 12]
 """
@@ -27,7 +28,7 @@ def main() -> None:
     args = parser.parse_args()
     rows = run_evaluation(
         args.data / "7scenes", protocols=["uniform", "hband"], levels=[200], output=args.output, stride=args.stride,
-        methods=["mde", "gp_balanced", "gp_balanced_fit", "gp_residual", "gp_residual_fit"], qualitative=False,
+        methods=["mde", "gp_default", "gp_default_fit", "gp_balanced", "gp_balanced_fit", "gp_residual", "gp_residual_fit"], qualitative=False,
         progress=False,
     )
     print(markdown_table(rows))

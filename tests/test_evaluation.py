@@ -65,6 +65,9 @@ class TestMethods:
             assert err < 0.6 * mde_err  # the 20 % scale error is removed
         if method.startswith("gp_"):
             assert out.variance.shape == gt.shape and np.all(out.variance > 0)
+        if method == "gp_default_fit":  # the default model, but fitted: another posterior
+            fixed = suite.run("gp_default", mde, sparse)
+            assert not np.allclose(out.mean, fixed.mean)
         with pytest.raises(InvalidInputError):
             suite.run("nothing", mde, sparse)
 

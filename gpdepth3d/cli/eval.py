@@ -50,9 +50,9 @@ def eval_command(
         frames: Use at most this many frames (after ``stride``).
         stride: Use every stride-th frame.
         resolution: Evaluation resolution relative to the images (0.5 = half).
-        methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_default, gp_balanced,
-            gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
-            gp_balanced_fit, which fits per frame and level: ~10-60 factorisations each).
+        methods: Comma-separated methods from: mde, mde_scale, ip_basic, gp_default, gp_default_fit,
+            gp_balanced, gp_balanced_fit, gp_residual, gp_residual_fit, gp_relative (default: all but
+            gp_default_fit and gp_balanced_fit, which fit per frame and level).
         seed: Seed of the sampling.
         device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
         qualitative: Also draw the qualitative figure of the first frame.
