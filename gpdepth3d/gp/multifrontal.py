@@ -69,6 +69,9 @@ _dtrmv = _bind("blas", "dtrmv", 8)  # uplo, trans, diag, n, a, lda, x, incx
 _dgemv = _bind("blas", "dgemv", 11)  # trans, m, n, alpha, a, lda, x, incx, beta, y, incy
 
 _FLAGS = dict(nogil=True, cache=True, boundscheck=False)
+# The compiled small-front loops may reassociate sums and fuse multiply-adds (vectorised dot
+# products): a change of rounding only, like a different BLAS blocking.
+_FAST = dict(_FLAGS, fastmath={"reassoc", "contract"})
 _BLOCK = 32  # diagonal block of the triangular inversion
 # Entries below this magnitude are set to zero as fronts are produced. Long-range couplings decay
 # geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles ~100x
@@ -95,7 +98,7 @@ _CHARS = np.array([ord("L"), ord("N"), ord("T"), ord("R")], dtype=np.int8)  # Fo
 _CONST = np.array([1.0, -1.0, 0.0])  # alpha / beta values
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _tri_inv(A, off, n, lda, ip):
     """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
 
@@ -170,7 +173,7 @@ def inverse_from_cholesky(L: np.ndarray) -> np.ndarray:
 _SMALL = 96  # fronts up to this size are factorised by `_partial_cholesky` instead of LAPACK/BLAS calls
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _partial_cholesky(F, no, nf):
     """Eliminates the first ``no`` variables of the flat column-major nf x nf front ``F`` in place
     (lower triangle): [L11; L21] in the first ``no`` columns, F22 - L21 L21^T in the rest.
@@ -322,7 +325,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     return logdet, -1
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp, seq_slot, acc):
     """Forward substitution L Z = Y over the fronts of ``order``, in place, for ``nrhs`` right-hand sides.
 
@@ -384,7 +387,7 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, t
                         y[j * ldy + v] -= tmp[j * nbf + i]
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp):
     """Backward substitution L^T X = Z over the fronts of ``order`` (processed in reverse), in place
     (``y`` as in `_forward_run`)."""
@@ -486,7 +489,7 @@ def _prior_parts(st, no_, nb_, nf_, l_ptr, lbuf, w_ptr, prior_w, lam_ptr, prior_
             _w_block(L, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no], ip)
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _leaf_diagonal(L, S, no, nbf, nf, W, diag):
     """diag(Sigma_JJ) of a leaf front: diag(L11^-T L11^-1) + diag(W^T Sigma_BB W), W = L21 L11^-1.
 
@@ -495,18 +498,7 @@ def _leaf_diagonal(L, S, no, nbf, nf, W, diag):
     the lower triangle of Sigma_BB once (half of dsymm's products), and there is no call overhead.
     """
     uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
-    for j in range(uno):  # W[:, j] = sum_k L21[:, k] L11^-1[k, j], k >= j
-        wj = j * unb
-        for i in range(unb):
-            W[wj + i] = 0.0
-        for k in range(j, uno):
-            a = L[k + j * unf]
-            lk = uno + k * unf
-            for i in range(unb):
-                W[wj + i] += L[lk + i] * a
-        for i in range(unb):
-            if abs(W[wj + i]) < _TINY:
-                W[wj + i] = 0.0
+    _w_columns(L, no, nbf, nf, W)
     for j in range(uno):
         acc = 0.0
         for i in range(j, uno):
@@ -521,6 +513,24 @@ def _leaf_diagonal(L, S, no, nbf, nf, W, diag):
             for i in range(c + np.uint64(1), unb):
                 acc += S[sc + i] * W[wj + i]
             diag[j] += W[wj + c] * (d * W[wj + c] + 2.0 * acc)
+
+
+@nb.njit(**_FAST)
+def _w_columns(L, no, nbf, nf, W):
+    """W = L21 L11^-1 (nb x no, column-major, leading dimension nb) from a front's [L11^-1; L21], by axpys."""
+    uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+    for j in range(uno):
+        wj = j * unb
+        for i in range(unb):
+            W[wj + i] = 0.0
+        for k in range(j, uno):
+            a = L[k + j * unf]
+            lk = uno + k * unf
+            for i in range(unb):
+                W[wj + i] += L[lk + i] * a
+        for i in range(unb):
+            if abs(W[wj + i]) < _TINY:
+                W[wj + i] = 0.0
 
 
 @nb.njit(**_FLAGS)
