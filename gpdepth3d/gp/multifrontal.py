@@ -26,8 +26,10 @@ at a tenth of dtrmm's speed on these shapes, so L11 is inverted by a blocked dtr
 there is no per-front interpreter overhead. Fronts of at most _SMALL variables (the bottom of the
 tree: on the KITTI 1/3 lattice 4,259 of 4,351 fronts, 36 % of the flops) skip LAPACK/BLAS,
 whose per-call cost dominates at these sizes: their elimination (`_partial_cholesky`), their
-solves and, for leaves, the diagonal of their covariance (`_leaf_diagonal`) are compiled loops. The subtrees below the top of the tree are grouped
-into one bin per thread and run in parallel (numba prange, single-threaded BLAS), their common
+solves and, for leaves without read-outs, the diagonal of their covariance (`_leaf_diagonal`)
+are compiled loops (the other small fronts of the selected inverse stay on BLAS: compiled loops
+measured ~15 % slower there). The subtrees below the top of the tree are grouped into one bin
+per thread and run in parallel (numba prange, single-threaded BLAS), their common
 ancestors after them (factorisation) or before them (selected inverse); the split is the one with
 the least modelled time of the ancestors plus the largest bin. Each front's boundary
 is sorted by its position in the parent front, so the lower triangle of a child's update lands
@@ -184,9 +186,9 @@ def _partial_cholesky(F, no, nf):
     Right-looking, two columns at a time (each pass over the trailing matrix applies a rank-2
     update), entries of L below _TINY flushed before they are used. For the small fronts at the
     bottom of the tree (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and
-    small-matrix paths dominate there (KITTI 1/3 lattice, 1/4 of the LiDAR: the 1,088 leaf fronts,
-    40 MFLOP, 22 -> 18 ms single-thread CPU on the shared 2-core VM). Returns 0, or j + 1 when
-    pivot j is not positive.
+    small-matrix paths dominate there (KITTI 1/3 lattice, 1/4 of the LiDAR, 40-pixel leaves: the
+    1,088 leaf fronts, 40 MFLOP, 22 -> 18 ms single-thread CPU on the shared 2-core VM). Returns
+    0, or j + 1 when pivot j is not positive.
     """
     unf = np.uint64(nf)
     j = 0
