@@ -544,3 +544,28 @@ class TestPropertySweep:
             np.testing.assert_allclose(np.sqrt(var), np.sqrt(v0), rtol=0, atol=1e-6 * s)
 
         check()
+
+
+def test_single_state_and_between_pixel_outputs_in_one_readout():
+    """Outputs on grid pixels (and beyond the grid's edge) read one state and take the selected inverse's
+    diagonal; outputs between pixels read 2 x 2 states from covariance fronts: mixed in one output grid,
+    both match the dense GP equations."""
+    from gpdepth3d.gp.fast import _frontal_readout
+    from gpdepth3d.gp.multifrontal import FrontalFactor
+
+    rng = np.random.default_rng(11)
+    h, w = 17, 23
+    base = random_problem(rng, h, w, lengthscale=6.0, frac=0.15)
+    out_rows = np.array([-2.0, 0.0, 0.5, 3.0, 7.25, 16.0, 18.5])
+    out_cols = np.array([0.0, 1.0, 4.5, 11.0, 22.0, 23.75])
+    problem = GridProblem(base.prior_mean, base.obs, base.precision, out_rows, out_cols,
+                          rng.normal(10.0, 1.0, (out_rows.size, out_cols.size)), base.kernel)
+    engine = FastEngine(route="grid", lattice="full")
+    mean, var = engine.solve(problem)
+    ref_mean, ref_var = naive_posterior(problem)
+    np.testing.assert_allclose(mean, ref_mean, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(var, ref_var, rtol=1e-8, atol=1e-10)
+    factor, tree, _, _ = engine.factorize(problem)
+    assert isinstance(factor, FrontalFactor)
+    (ptr, outs, _, _, n_out), (single, _, _) = _frontal_readout(factor.tree, engine._readout(tree, problem))
+    assert 0 < single.size < n_out and outs.size == n_out - single.size  # both kinds present

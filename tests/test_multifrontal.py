@@ -9,7 +9,7 @@ from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
 from gpdepth3d.gp.model import GridProblem, Kernel
-from gpdepth3d.gp.multifrontal import FrontalFactor, FrontTree
+from gpdepth3d.gp.multifrontal import _SMALL, FrontalFactor, FrontTree
 
 from test_fast import assert_thread_safe, random_problem
 
@@ -65,6 +65,26 @@ def test_factor_solve_selinv_match_dense(threads):
     factor = FrontalFactor(tree, asm, vals, d)
     b = rng.normal(size=n)
     np.testing.assert_allclose(factor.solve(b), np.linalg.solve(A, b), rtol=1e-11, atol=1e-12)
+    diag, _ = factor.selected_inverse()
+    np.testing.assert_allclose(diag, np.diag(np.linalg.inv(A)), rtol=1e-11)
+    assert factor.logdet == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-12)
+
+
+@pytest.mark.parametrize("sizes", [(3, 4, 2, 5), (3, 100, 2, 5), (40, 30, 60, 8)])
+def test_small_and_large_front_paths_match_dense(sizes):
+    """Fronts up to multifrontal._SMALL variables run compiled loops, larger ones LAPACK/BLAS: mixed
+    trees (one front of each kind, or all large) give the dense answers, with several right-hand sides."""
+    rng = np.random.default_rng(7)
+    A, st, no, parent, bnds = arrow_system(rng, sizes)
+    tree = FrontTree.build(st, no, parent, bnds, A.shape[0], threads=1)
+    assert (tree.nf <= _SMALL).any()
+    assert (tree.nf > _SMALL).any() == (max(sizes) > _SMALL // 2)  # the cases cover both paths
+    rows, cols = np.nonzero(np.tril(A))
+    n = A.shape[0]
+    d = rng.uniform(0.1, 1.0, n)
+    factor = FrontalFactor(tree, tree.assembly(rows, cols), A[rows, cols] - np.where(rows == cols, d[rows], 0.0), d)
+    B = rng.normal(size=(n, 3))
+    np.testing.assert_allclose(factor.solve(B), np.linalg.solve(A, B), rtol=1e-11, atol=1e-12)
     diag, _ = factor.selected_inverse()
     np.testing.assert_allclose(diag, np.diag(np.linalg.inv(A)), rtol=1e-11)
     assert factor.logdet == pytest.approx(np.linalg.slogdet(A)[1], rel=1e-12)

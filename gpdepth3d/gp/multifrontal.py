@@ -23,8 +23,13 @@ right-hand sides in one pass over the factor. Everything is exact (rounding only
 Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
 Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm runs
 at a tenth of dtrmm's speed on these shapes, so L11 is inverted by a blocked dtrmm scheme), so
-there is no per-front interpreter overhead. The subtrees below the top of the tree are grouped
-into one bin per thread and run in parallel (numba prange, single-threaded BLAS), their common
+there is no per-front interpreter overhead. Fronts of at most _SMALL variables (the bottom of the
+tree: on the KITTI 1/3 lattice 4,259 of 4,351 fronts, 36 % of the flops) skip LAPACK/BLAS,
+whose per-call cost dominates at these sizes: their elimination (`_partial_cholesky`), their
+solves and, for leaves without read-outs, the diagonal of their covariance (`_leaf_diagonal`)
+are compiled loops (the other small fronts of the selected inverse stay on BLAS: compiled loops
+measured ~15 % slower there). The subtrees below the top of the tree are grouped into one bin
+per thread and run in parallel (numba prange, single-threaded BLAS), their common
 ancestors after them (factorisation) or before them (selected inverse); the split is the one with
 the least modelled time of the ancestors plus the largest bin. Each front's boundary
 is sorted by its position in the parent front, so the lower triangle of a child's update lands
@@ -69,6 +74,9 @@ _dtrmv = _bind("blas", "dtrmv", 8)  # uplo, trans, diag, n, a, lda, x, incx
 _dgemv = _bind("blas", "dgemv", 11)  # trans, m, n, alpha, a, lda, x, incx, beta, y, incy
 
 _FLAGS = dict(nogil=True, cache=True, boundscheck=False)
+# The compiled small-front loops may reassociate sums and fuse multiply-adds (vectorised dot
+# products): a change of rounding only, like a different BLAS blocking.
+_FAST = dict(_FLAGS, fastmath={"reassoc", "contract"})
 _BLOCK = 32  # diagonal block of the triangular inversion
 # Entries below this magnitude are set to zero as fronts are produced. Long-range couplings decay
 # geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles ~100x
@@ -95,7 +103,7 @@ _CHARS = np.array([ord("L"), ord("N"), ord("T"), ord("R")], dtype=np.int8)  # Fo
 _CONST = np.array([1.0, -1.0, 0.0])  # alpha / beta values
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _tri_inv(A, off, n, lda, ip):
     """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
 
@@ -105,21 +113,29 @@ def _tri_inv(A, off, n, lda, ip):
     """
     ch = _CHARS
     dp = _CONST
+    t = np.empty(_BLOCK)
+    ulda = np.uint64(lda)
     j = ((n - 1) // _BLOCK) * _BLOCK
     while j >= 0:
         jb = min(_BLOCK, n - j)
-        d0 = off + j + j * lda
-        for c in range(jb - 1, -1, -1):  # unblocked inverse of the diagonal block (dtrti2)
-            cc = d0 + c + c * lda
-            A[cc] = 1.0 / A[cc]
-            ajj = -A[cc]
-            for i in range(jb - 1, c, -1):
-                acc = 0.0
-                for k in range(c + 1, i + 1):
-                    acc += A[d0 + i + k * lda] * A[d0 + k + c * lda]
-                A[d0 + i + c * lda] = acc
-            for i in range(c + 1, jb):
-                A[d0 + i + c * lda] *= ajj
+        d0 = np.uint64(off + j + j * lda)
+        ujb = np.uint64(jb)
+        for c in range(ujb - np.uint64(1), -1, -1):  # unblocked inverse of the diagonal block (as dtrti2)
+            uc = np.uint64(c)
+            col = d0 + uc * ulda
+            A[col + uc] = 1.0 / A[col + uc]
+            ajj = -A[col + uc]
+            # column c below the diagonal: -X[c+1:, c+1:] L[c+1:, c] / L[c, c], as axpys over the
+            # already inverted columns (contiguous; the row-wise dot products of dtrti2 are strided)
+            for i in range(uc + np.uint64(1), ujb):
+                t[i] = 0.0
+            for k in range(uc + np.uint64(1), ujb):
+                a = A[col + k]
+                ck = d0 + k * ulda
+                for i in range(k, ujb):
+                    t[i] += A[ck + i] * a
+            for i in range(uc + np.uint64(1), ujb):
+                A[col + i] = t[i] * ajj
         m = n - j - jb
         if m > 0:
             ip[0], ip[1], ip[2] = m, jb, lda
@@ -157,6 +173,67 @@ def inverse_from_cholesky(L: np.ndarray) -> np.ndarray:
     if info != 0:
         raise np.linalg.LinAlgError(f"dlauum failed (info={info})")
     return L
+
+
+_SMALL = 96  # fronts up to this size are factorised by `_partial_cholesky` instead of LAPACK/BLAS calls
+
+
+@nb.njit(**_FAST)
+def _partial_cholesky(F, no, nf):
+    """Eliminates the first ``no`` variables of the flat column-major nf x nf front ``F`` in place
+    (lower triangle): [L11; L21] in the first ``no`` columns, F22 - L21 L21^T in the rest.
+
+    Right-looking, two columns at a time (each pass over the trailing matrix applies a rank-2
+    update), entries of L below _TINY flushed before they are used. For the small fronts at the
+    bottom of the tree (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and
+    small-matrix paths dominate there (KITTI 1/3 lattice, 1/4 of the LiDAR, 40-pixel leaves: the
+    1,088 leaf fronts, 40 MFLOP, 22 -> 18 ms single-thread CPU on the shared 2-core VM). Returns
+    0, or j + 1 when pivot j is not positive.
+    """
+    unf = np.uint64(nf)
+    j = 0
+    while j < no:
+        uj = np.uint64(j)
+        cj = uj * unf
+        d = F[cj + uj]
+        if not d > 0.0:
+            return j + 1
+        d = np.sqrt(d)
+        F[cj + uj] = d
+        inv = 1.0 / d
+        for i in range(uj + np.uint64(1), unf):
+            v = F[cj + i] * inv
+            F[cj + i] = v if abs(v) >= _TINY else 0.0
+        if j + 1 < no:  # the next column too, then one rank-2 update of the trailing matrix
+            uk = uj + np.uint64(1)
+            ck = uk * unf
+            a = F[cj + uk]
+            for i in range(uk, unf):
+                F[ck + i] -= a * F[cj + i]
+            d = F[ck + uk]
+            if not d > 0.0:
+                return j + 2
+            d = np.sqrt(d)
+            F[ck + uk] = d
+            inv = 1.0 / d
+            for i in range(uk + np.uint64(1), unf):
+                v = F[ck + i] * inv
+                F[ck + i] = v if abs(v) >= _TINY else 0.0
+            for m in range(uk + np.uint64(1), unf):
+                a = F[cj + m]
+                b = F[ck + m]
+                cm = m * unf
+                for i in range(m, unf):
+                    F[cm + i] -= a * F[cj + i] + b * F[ck + i]
+            j += 2
+        else:
+            for m in range(uj + np.uint64(1), unf):
+                a = F[cj + m]
+                cm = m * unf
+                for i in range(m, unf):
+                    F[cm + i] -= a * F[cj + i]
+            j += 1
+    return 0
 
 
 @nb.njit(**_FLAGS)
@@ -209,9 +286,14 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
                 for ii in range(jj, nbc):
                     F[np.uint64(ea_pos[e0 + ii]) + cj] += upd[col + ii]
         ip[0], ip[1], ip[2], ip[3] = no, nf, nbf, 0
-        _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
-        if ip[3] != 0:
-            return logdet, f
+        small = nf <= _SMALL
+        if small:  # L11, L21 and the update in one compiled pass (no BLAS call overhead)
+            if _partial_cholesky(F, no, nf) != 0:
+                return logdet, f
+        else:
+            _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
+            if ip[3] != 0:
+                return logdet, f
         ld = 0.0
         for j in range(no):
             ld += 2.0 * np.log(F[j * (nf + 1)])
@@ -220,7 +302,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
             front_ld[f] = ld
         _tri_inv(F, 0, no, nf, ip2)
         _flush(F, 0, no, no, nf)
-        if nbf > 0:
+        if nbf > 0 and not small:
             a21 = F.ctypes.data + no * 8
             a22 = F.ctypes.data + (no + no * nf) * 8
             _dtrmm(cR, cL, cT, cN, ip.ctypes.data + 8, ip.ctypes.data, one, F.ctypes.data, ip.ctypes.data + 4,
@@ -228,6 +310,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
             _flush(F, no, nbf, no, nf)
             _dsyrk(cL, cN, ip.ctypes.data + 8, ip.ctypes.data, mone, a21, ip.ctypes.data + 4, one, a22,
                    ip.ctypes.data + 4)
+        if nbf > 0:
             u0 = np.uint64(upd_off[f])
             unb = np.uint64(nbf)
             uno = np.uint64(no)
@@ -247,7 +330,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     return logdet, -1
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp, seq_slot, acc):
     """Forward substitution L Z = Y over the fronts of ``order``, in place, for ``nrhs`` right-hand sides.
 
@@ -265,15 +348,40 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, t
     private = acc.size > 0
     ldy = y.size // nrhs
     nseq = acc.size // nrhs
+    z = np.empty(_SMALL)
     for f in order:
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
-        ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, nrhs, ldy
-        L = lbuf.ctypes.data + l_ptr[f] * 8
-        ys = y.ctypes.data + s * 8
-        _dtrmm(cL, cL, cN, cN, ip.ctypes.data, ip.ctypes.data + 12, one, L, ip.ctypes.data + 4, ys, ip.ctypes.data + 16)
+        if nf <= _SMALL:  # compiled loops: y_s <- L11^-1 y_s, tmp = L21 y_s
+            l0 = np.uint64(l_ptr[f])
+            uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+            for j in range(np.uint64(nrhs)):
+                y0 = j * np.uint64(ldy) + np.uint64(s)
+                for i in range(uno):
+                    z[i] = 0.0
+                for k in range(uno):
+                    a = y[y0 + k]
+                    ck = l0 + k * unf
+                    for i in range(k, uno):
+                        z[i] += lbuf[ck + i] * a
+                t0 = j * unb
+                for i in range(unb):
+                    tmp[t0 + i] = 0.0
+                for k in range(uno):
+                    a = z[k]
+                    y[y0 + k] = a
+                    ck = l0 + k * unf + uno
+                    for i in range(unb):
+                        tmp[t0 + i] += lbuf[ck + i] * a
+        else:
+            ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, nrhs, ldy
+            L = lbuf.ctypes.data + l_ptr[f] * 8
+            ys = y.ctypes.data + s * 8
+            _dtrmm(cL, cL, cN, cN, ip.ctypes.data, ip.ctypes.data + 12, one, L, ip.ctypes.data + 4, ys,
+                   ip.ctypes.data + 16)
+            if nbf > 0:
+                _dgemm(cN, cN, ip.ctypes.data + 8, ip.ctypes.data + 12, ip.ctypes.data, one, L + no * 8,
+                       ip.ctypes.data + 4, ys, ip.ctypes.data + 16, zero, tmp.ctypes.data, ip.ctypes.data + 8)
         if nbf > 0:
-            _dgemm(cN, cN, ip.ctypes.data + 8, ip.ctypes.data + 12, ip.ctypes.data, one, L + no * 8, ip.ctypes.data + 4,
-                   ys, ip.ctypes.data + 16, zero, tmp.ctypes.data, ip.ctypes.data + 8)
             b0 = bnd_ptr[f]
             for j in range(nrhs):
                 for i in range(nbf):
@@ -284,7 +392,7 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, t
                         y[j * ldy + v] -= tmp[j * nbf + i]
 
 
-@nb.njit(**_FLAGS)
+@nb.njit(**_FAST)
 def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, tmp):
     """Backward substitution L^T X = Z over the fronts of ``order`` (processed in reverse), in place
     (``y`` as in `_forward_run`)."""
@@ -297,6 +405,28 @@ def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, 
     for k in range(order.size - 1, -1, -1):
         f = order[k]
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
+        if nf <= _SMALL:  # compiled loops: y_s <- L11^-T (y_s - L21^T y_B)
+            l0 = np.uint64(l_ptr[f])
+            uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+            b0 = np.uint64(bnd_ptr[f])
+            for j in range(np.uint64(nrhs)):
+                y0 = j * np.uint64(ldy)
+                ys = y0 + np.uint64(s)
+                for i in range(unb):
+                    tmp[i] = y[y0 + np.uint64(bnd[b0 + i])]
+                for kk in range(uno):
+                    ck = l0 + kk * unf + uno
+                    acc = 0.0
+                    for i in range(unb):
+                        acc += lbuf[ck + i] * tmp[i]
+                    y[ys + kk] -= acc
+                for kk in range(uno):  # in place: row kk of L11^-T reads y_s[kk:], which is not yet overwritten
+                    ck = l0 + kk * unf
+                    acc = 0.0
+                    for i in range(kk, uno):
+                        acc += lbuf[ck + i] * y[ys + i]
+                    y[ys + kk] = acc
+            continue
         ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, nrhs, ldy
         L = lbuf.ctypes.data + l_ptr[f] * 8
         ys = y.ctypes.data + s * 8
@@ -364,6 +494,50 @@ def _prior_parts(st, no_, nb_, nf_, l_ptr, lbuf, w_ptr, prior_w, lam_ptr, prior_
             _w_block(L, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no], ip)
 
 
+@nb.njit(**_FAST)
+def _leaf_diagonal(L, S, no, nbf, nf, W, diag):
+    """diag(Sigma_JJ) of a leaf front: diag(L11^-T L11^-1) + diag(W^T Sigma_BB W), W = L21 L11^-1.
+
+    ``L`` is the front's [L11^-1; L21], ``S`` its covariance front with Sigma_BB in place. The
+    same quantities as the BLAS path (dtrmm, dsymm), in compiled loops: the quadratic forms use
+    the lower triangle of Sigma_BB once (half of dsymm's products), and there is no call overhead.
+    """
+    uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+    _w_columns(L, no, nbf, nf, W)
+    for j in range(uno):
+        acc = 0.0
+        for i in range(j, uno):
+            acc += L[i + j * unf] * L[i + j * unf]
+        diag[j] = acc
+    for c in range(unb):  # w^T Sigma_BB w from the lower triangle, column c of Sigma_BB at a time
+        sc = uno + (uno + c) * unf
+        d = S[sc + c]
+        for j in range(uno):
+            wj = j * unb
+            acc = 0.0
+            for i in range(c + np.uint64(1), unb):
+                acc += S[sc + i] * W[wj + i]
+            diag[j] += W[wj + c] * (d * W[wj + c] + 2.0 * acc)
+
+
+@nb.njit(**_FAST)
+def _w_columns(L, no, nbf, nf, W):
+    """W = L21 L11^-1 (nb x no, column-major, leading dimension nb) from a front's [L11^-1; L21], by axpys."""
+    uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+    for j in range(uno):
+        wj = j * unb
+        for i in range(unb):
+            W[wj + i] = 0.0
+        for k in range(j, uno):
+            a = L[k + j * unf]
+            lk = uno + k * unf
+            for i in range(unb):
+                W[wj + i] += L[lk + i] * a
+        for i in range(unb):
+            if abs(W[wj + i]) < _TINY:
+                W[wj + i] = 0.0
+
+
 @nb.njit(**_FLAGS)
 def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, touched, prior_w,
                 w_ptr, prior_lam, lam_ptr, children_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
@@ -396,6 +570,10 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                     S[dst + ii] = P[np.uint64(ea_pos[e0 + ii]) + cj]
         ip[0], ip[1], ip[2], ip[3], ip[4] = no, nf, nbf, 0, nbf
         prior_front = touched.size > 0 and not touched[f]
+        if (not prior_front and children_ptr[f + 1] == children_ptr[f] and ro_ptr[f + 1] == ro_ptr[f]
+                and nbf > 0 and nf <= _SMALL):  # a small leaf without read-outs: the diagonal only, compiled
+            _leaf_diagonal(L, S, no, nbf, nf, work, diag[s : s + no])
+            continue
         if (not prior_front and children_ptr[f + 1] == children_ptr[f] and ro_ptr[f + 1] == ro_ptr[f]
                 and nbf > 0):  # a leaf without read-outs: the diagonal only
             _w_block(L, no, nbf, nf, work, ip)
