@@ -30,6 +30,9 @@ Weightings (`FusionConfig.weighting`):
   ``(sigma_ref / sigma)^2``: inverse-variance weighting (the optimal weights for averaging
   independent Gaussian readings of the signed distance) saturated at one observation, so that
   ``weight_cap`` and ``weight_threshold`` keep their usual meaning ("number of observations").
+  Pixels whose sigma exceeds ``max_relative_sigma`` (default 0.2) times their depth get weight 0:
+  with the default GP those are the pixels no point informs, the MDE's shape alone
+  (`FusionConfig.max_relative_sigma`; `TSDFFusion.weights_for` then needs the depth map).
 
 Truncation from the variance (``FusionConfig.truncation_sigma`` k > 0): a pixel's truncation is
 ``tau = clip(k * sigma, truncation, truncation_max)``, sigma its depth standard deviation, and every
@@ -123,7 +126,9 @@ class FusionConfig:
             0.433 / 0.417; full sequence 0.444 / 0.451 / 0.461 / 0.459 / 0.459 / 0.399
             (precision 0.440 -> 0.468, recall 0.447 -> 0.454 with 0.2). Below 0.15 whole
             surfaces lose support (recall 0.31 at 0.12). Pixels without a variance get weight 0
-            as before; uniform weighting is not affected.
+            as before; uniform weighting is not affected. A frame without any measurement keeps
+            the prior's sigma everywhere and fuses nothing (the `Mapper` notes it and keeps the
+            keyframe); None fuses it.
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
