@@ -286,9 +286,9 @@ class MapperConfig:
             0.454 / 0.459 / 0.446; full sequence 0.401 / 0.442 / 0.443 / 0.437; with the cut at
             0.2 (the default) 450 / 600: even 0.474 / 0.481, odd 0.462 / 0.470, full 0.455 /
             0.461. 450 rather than 600 for time: `Mapper.add_frame` (without the MDE, old and new
-            settings interleaved in one process on the busy shared machine) took 1.10x (450)
-            and 1.33x (600) the time of 300 points with 400 features (the GP solve grows with
-            the points), 600 would pass the 100 ms target.
+            settings interleaved in one process on the busy shared machine) took 1.10x (450; 1.15x
+            in a second run) and 1.33x (600) the time of 300 points with 400 features (the GP
+            solve grows with the points): 600 would pass the 100 ms target.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the
             working resolution (about 0.6 MB a frame at 320x240), needed by
             `Mapper.update_poses` and `Mapper.save`.
