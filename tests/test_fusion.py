@@ -34,7 +34,35 @@ class TestWeights:
         with pytest.raises(InvalidInputError):
             weights_from_variance(var, sigma_ref=0.0)
 
+    def test_relative_sigma_cut(self):
+        # depth 2 m: sigma 0.2 m (10 %) and 0.4 m (20 %) kept, 0.41 m and 0.6 m (> 20 %) weight 0
+        var = np.array([[0.04, 0.16, 0.41**2, 0.36]])
+        depth = np.full(var.shape, 2.0)
+        w = weights_from_variance(var, sigma_ref=0.1, depth=depth, max_relative_sigma=0.2)
+        np.testing.assert_allclose(w, [[0.2, 1 / 17, 0.0, 0.0]])
+        # without the cut the same formula everywhere
+        np.testing.assert_allclose(weights_from_variance(var, sigma_ref=0.1)[0, 2:], [1 / (1 + 0.41**2 / 0.01), 1 / 37])
+        with pytest.raises(InvalidInputError, match="depth"):
+            weights_from_variance(var, sigma_ref=0.1, max_relative_sigma=0.2)
+        with pytest.raises(ShapeError, match="depth"):
+            weights_from_variance(var, sigma_ref=0.1, depth=np.ones((2, 2)), max_relative_sigma=0.2)
+        with pytest.raises(InvalidInputError, match="max_relative_sigma"):
+            weights_from_variance(var, sigma_ref=0.1, depth=depth, max_relative_sigma=0.0)
+
+    def test_weights_for_applies_the_config_cut(self):
+        var = np.array([[0.04, 0.36]])
+        depth = np.full(var.shape, 2.0)
+        assert FusionConfig().max_relative_sigma == 0.2
+        np.testing.assert_allclose(TSDFFusion(CAM).weights_for(var, depth), [[0.2, 0.0]])
+        np.testing.assert_allclose(TSDFFusion(CAM, FusionConfig(max_relative_sigma=None)).weights_for(var), [[0.2, 1 / 37]])
+        assert TSDFFusion(CAM, FusionConfig(weighting="uniform")).weights_for(var) is None
+        with pytest.raises(InvalidInputError, match="depth"):
+            TSDFFusion(CAM).weights_for(var)
+
     def test_config_validation(self):
+        for bad in (0.0, -0.1, np.nan, True):
+            with pytest.raises(InvalidInputError, match="max_relative_sigma"):
+                FusionConfig(max_relative_sigma=bad)
         with pytest.raises(InvalidInputError):
             FusionConfig(voxel_size=0.05, truncation=0.01)
         with pytest.raises(InvalidInputError):
@@ -177,6 +205,27 @@ class TestTruncationFromVariance:
                 FusionConfig(voxel_size=0.02, truncation=0.08, **bad)
         FusionConfig(voxel_size=0.02, truncation=0.5)  # truncation_max only matters with truncation_sigma > 0
 
+    def test_uncertain_pixels_are_not_fused(self):
+        # left half a plane at 1.5 m with sigma 0.1 m (7 %), right half one at 1.8 m with sigma 0.4 m
+        # (22 %): with the default cut (20 % of depth) only the left makes a surface; without it both
+        depth, var = _plane(1.5), np.full(CAM.shape, 0.01)
+        depth[:, CAM.width // 2 :] = 1.8
+        var[:, CAM.width // 2 :] = 0.16
+
+        def surfaces(cut):
+            fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, max_relative_sigma=cut, weight_threshold=0.01))
+            fusion.integrate(depth, np.eye(4), weights=fusion.weights_for(var, depth), variance=var)
+            z = fusion.extract_mesh().vertices[:, 2]
+            return bool(np.abs(z - 1.5).min() < 0.01), bool(np.abs(z - 1.8).min() < 0.01)
+
+        assert surfaces(0.2) == (True, False)
+        assert surfaces(None) == (True, True)
+        assert surfaces(0.25) == (True, True)
+        # a frame with every pixel above the cut has nothing to fuse
+        fusion = TSDFFusion(CAM)
+        with pytest.raises(EmptyInputError):
+            fusion.integrate(_plane(1.8), np.eye(4), weights=fusion.weights_for(np.full(CAM.shape, 0.16), _plane(1.8)))
+
     @pytest.mark.parametrize("sigma_far, expected", [(0.3, 1.461), (0.4, 1.437)])
     def test_disagreeing_frames_meet_at_their_weighted_mean(self, sigma_far, expected):
         # two readings of a plane 30 cm apart (1.311 m, sigma 0.3 m; 1.611 m, sigma_far): with the
@@ -184,7 +233,7 @@ class TestTruncationFromVariance:
         # with the fixed 8 cm truncation two surfaces, at each reading
         def fused(k):
             fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.08, truncation_sigma=k, truncation_max=0.4,
-                                                  sigma_ref=0.3, weight_threshold=0.3))
+                                                  sigma_ref=0.3, weight_threshold=0.3, max_relative_sigma=None))
             for z, s in ((1.311, 0.3), (1.611, sigma_far)):
                 v = np.full(CAM.shape, s**2)
                 fusion.integrate(_plane(z), np.eye(4), weights=fusion.weights_for(v), variance=v)

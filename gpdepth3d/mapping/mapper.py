@@ -276,7 +276,19 @@ class MapperConfig:
             used for triangulation (metres).
         working_scale: Resolution of refinement and fusion relative to the RGB images.
         max_points: At most this many measurements per frame go to the GP, the most certain
-            (smallest sigma / depth; points without sigma count as certain).
+            (smallest sigma / depth; points without sigma count as certain). 450 (before: 300):
+            with the tracker's 800 KLT features (`TriangulationConfig.max_features`) 300 left
+            out the points away from the most certain (F at 5 cm 0.401 on the 60 shared
+            7-Scenes frames, 0.407 with 400 features). Chosen on the even frames (bench/fusion.py
+            protocol, each half fused alone against the Kinect mesh of the same frames, weight
+            threshold halved, ``FusionConfig.max_relative_sigma`` None): F at 5 cm 0.424 / 0.454
+            / 0.458 / 0.452 with 300 / 450 / 600 / 800, confirmed on the odd frames 0.409 /
+            0.454 / 0.459 / 0.446; full sequence 0.401 / 0.442 / 0.443 / 0.437; with the cut at
+            0.2 (the default) 450 / 600: even 0.474 / 0.481, odd 0.462 / 0.470, full 0.455 /
+            0.461. 450 rather than 600 for time: `Mapper.add_frame` (without the MDE, old and new
+            settings interleaved in one process on the busy shared machine) took 1.10x (450; 1.15x
+            in a second run) and 1.33x (600) the time of 300 points with 400 features (the GP
+            solve grows with the points): 600 would pass the 100 ms target.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the
             working resolution (about 0.6 MB a frame at 320x240), needed by
             `Mapper.update_poses` and `Mapper.save`.
@@ -296,7 +308,7 @@ class MapperConfig:
     scale_variance: bool = True
     min_baseline: float = 0.05
     working_scale: float = 1.0
-    max_points: int = 300
+    max_points: int = 450
     keep_keyframes: bool = True
 
     def __post_init__(self) -> None:
@@ -838,6 +850,11 @@ class Mapper:
             timings["fusion"] = time.perf_counter() - t0
             result = failed("fusion", exc, mde, posterior)
             return replace(result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked)
+        if stats.pixels == 0:
+            notes.append(
+                f"frame {kid}: no pixel with sigma <= {self.fusion.config.max_relative_sigma} x depth "
+                "(FusionConfig.max_relative_sigma): nothing fused"
+            )
         if self.config.keep_keyframes:
             self.keyframes[kid] = Keyframe(kid, T, depth32, var32, entry.work_rgb, stats.block_keys)
         timings["fusion"] = time.perf_counter() - t0
@@ -861,11 +878,15 @@ class Mapper:
         return mde_depth
 
     def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None) -> IntegrationStats:
+        weights = self.fusion.weights_for(var32, depth32)
+        if weights is not None and self.fusion.config.max_relative_sigma is not None and not np.any(weights > 0):
+            # every pixel less certain than FusionConfig.max_relative_sigma: nothing to fuse, not a failure
+            return IntegrationStats(0, 0, 0, np.zeros(0, np.int64))
         return self.fusion.integrate(
             depth32,
             T,
             rgb=rgb,
-            weights=self.fusion.weights_for(var32),
+            weights=weights,
             variance=var32 if self.fusion.config.integrate_variance else None,
             blocks=blocks,
         )
