@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -334,6 +336,38 @@ class TestRobustness:
         res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=np.vstack([world, extra]))
         assert (res.map_points.outside, res.map_points.behind, res.map_points.nonfinite) == (1, 1, 1)
         assert not res.pose_check.inverted
+
+    def test_a_pose_the_feature_tracks_contradict_is_reported(self, shared_data):
+        # own triangulation, no map points: an inverted pose in the middle of a real sequence leaves
+        # (almost) none of its tracks triangulated; that frame is warned about by name, a clean run is not
+        from gpdepth3d.mapping.mapper import POSE_TRACK_SHARE
+        from gpdepth3d.mapping.trajectories import InvertedPoseWarning, invert_pose
+
+        frames = _frames(shared_data, range(0, 14))
+        config = MapperConfig(working_scale=0.25)  # the tracker's defaults: window 8, lag 4
+
+        def run(bad: int | None):
+            mapper = Mapper(frames[0].camera, config)
+            results = []
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                for i, f in enumerate(frames):
+                    pose = invert_pose(f.pose) if i == bad else f.pose
+                    r = mapper.add_frame(f.rgb, pose, mde_depth=_standin_mde(f.depth))
+                    results += [r] if r is not None else []
+                results += mapper.flush()
+            tracked = [str(w.message) for w in caught if issubclass(w.category, InvertedPoseWarning)]
+            return {r.keyframe_id: r for r in results}, tracked
+
+        clean, tracked = run(None)
+        assert tracked == [] and not any("feature tracks" in w for r in clean.values() for w in r.warnings)
+        assert all(len(clean[k].sparse) >= 60 for k in range(1, 14))  # every clean frame triangulates
+        bad, tracked = run(7)
+        assert any(m.startswith("frame 7: only ") and "feature tracks triangulate" in m for m in tracked)
+        message = [w for w in bad[7].warnings if "feature tracks triangulate" in w]
+        assert len(message) == 1
+        points, seen = (int(x) for x in re.match(r"frame 7: only (\d+) of (\d+) ", message[0]).groups())
+        assert seen >= 50 and points < POSE_TRACK_SHARE * seen and len(bad[7].sparse) == points
 
     def test_project_map_points_counts(self):
         pts = CAM.backproject_pixels(np.array([[10.0, 10.0], [10.0, 10.0], [50.0, 20.0]]), np.array([2.0, 3.0, 2.5]))

@@ -1260,6 +1260,12 @@ class TrackTriangulator:
         config: Options (``detector`` is ignored: always KLT).
         window: Earlier frames a track keeps its positions in (views before the reference).
         lag: Later frames a frame waits for before it is triangulated (views after the reference).
+
+    Attributes:
+        tracks_seen: frame key -> how many of its tracks were seen in another view when it was
+            triangulated (the candidates; ``len`` of its points says how many became points).
+            A pose that does not belong to its image leaves almost none of them (see
+            `gpdepth3d.mapping.mapper.POSE_TRACK_SHARE`).
     """
 
     def __init__(self, camera: PinholeCamera, config: TriangulationConfig | None = None, *, window: int = 4, lag: int = 0):
@@ -1275,6 +1281,7 @@ class TrackTriangulator:
         self.lag = int(lag)
         self.last: MultiViewPoints | None = None
         self.last_key: object = None
+        self.tracks_seen: dict = {}
         self.reset()
 
     def reset(self) -> None:
@@ -1286,6 +1293,7 @@ class TrackTriangulator:
         self._pending = 0  # frames at the end of the columns not triangulated yet
         self.last = None
         self.last_key = None
+        self.tracks_seen = {}  # key -> tracks of that frame seen in another view, when it was triangulated
 
     @property
     def n_tracks(self) -> int:
@@ -1368,10 +1376,14 @@ class TrackTriangulator:
         """Points of the frame in column ``col`` from every track seen there and in another column."""
         tracks = self._tracks
         self.last, self.last_key = None, self._keys[col]
+        self.tracks_seen[self.last_key] = 0
+        if len(self.tracks_seen) > 4 * (self.window + self.lag + 1):  # keys nobody asked for
+            self.tracks_seen.pop(next(iter(self.tracks_seen)))
         if tracks.shape[0] == 0 or tracks.shape[1] < 2:
             return SparseDepth.empty(self.camera.shape)
         finite = np.isfinite(tracks[..., 0])
         seen = finite[:, col] & (finite.sum(axis=1) >= 2)
+        self.tracks_seen[self.last_key] = int(seen.sum())
         if not seen.any():
             return SparseDepth.empty(self.camera.shape)
         mv = triangulate_tracks(tracks[seen], self._poses, self.camera, reference=col, config=self.config, _checked=True)
