@@ -387,10 +387,7 @@ def _log_residual_posterior(
     scale = float(np.exp(fit.log_scale))
     n_kept = int(np.count_nonzero(~rejected))
     if len(z) and not 1.0 / SCALE_WARN_FACTOR <= scale <= SCALE_WARN_FACTOR:
-        messages.append(
-            f"{name}the MDE's scale disagrees with the points by a factor of {scale:.2f} "
-            f"(median MDE depth {float(np.median(base)):.2f} m): check the MDE's units or model"
-        )
+        messages.append(_scale_message(name, scale, float(np.median(base))))
     if n_kept < FEW_POINTS:
         messages.append(
             f"{name}only {n_kept} usable points: the posterior is the MDE with the prior's variance "
@@ -425,6 +422,14 @@ def _log_residual_posterior(
     return mean, var, fit, fitted, rejected, tuple(messages), alignment, times, solution.info, a
 
 
+def _scale_message(name: str, factor: float, median_mde: float) -> str:
+    """The warning for an MDE whose scale disagrees with the points by more than SCALE_WARN_FACTOR."""
+    return (
+        f"{name}the MDE's scale disagrees with the points by a factor of {factor:.2f} "
+        f"(median MDE depth {median_mde:.2f} m): check the MDE's units or model"
+    )
+
+
 def _gaussian_warnings(
     mean: np.ndarray, mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth, frame: str | None
 ) -> tuple[str, ...]:
@@ -442,10 +447,7 @@ def _gaussian_warnings(
     if seen.any():
         ratio = float(np.median(grid_sparse.depth[seen] / mde[rows[seen], cols[seen]]))
         if not 1.0 / SCALE_WARN_FACTOR <= ratio <= SCALE_WARN_FACTOR:
-            messages.append(
-                f"{name}the MDE's scale disagrees with the points by a factor of {ratio:.2f} "
-                f"(median MDE depth {float(np.median(mde[valid])):.2f} m): check the MDE's units or model"
-            )
+            messages.append(_scale_message(name, ratio, float(np.median(mde[valid]))))
     low = int(np.count_nonzero(~(mean > 0)))
     if low:
         messages.append(
