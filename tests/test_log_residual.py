@@ -332,3 +332,67 @@ def test_edge_range_equals_scipy_max_minus_min_filter():
         depth = rng.uniform(0.5, 20.0, shape)
         expected = maximum_filter(depth, window) - minimum_filter(depth, window)
         np.testing.assert_array_equal(_edge_range(depth, window), expected)
+
+
+class TestLattice:
+    """The field's lattice: every pixel, or every 2nd with sparse points (`lattice_stride`)."""
+
+    def test_stride_rule(self):
+        from gpdepth3d.completion.complete import lattice_stride
+
+        cfg = g.DepthGPConfig()
+        assert lattice_stride(cfg, 125, 414, 1579, 32.0) == 2  # KITTI 1/3, 1/8 of the LiDAR: 3.05 % of the pixels
+        assert lattice_stride(cfg, 125, 414, 1700, 32.0) == 1  # above 1 point per 32 pixels
+        assert lattice_stride(cfg, 125, 414, 790, 4.0) == 1  # length scale too short for a coarse lattice
+        assert lattice_stride(cfg, 12, 414, 5, 32.0) == 1  # too few rows
+        assert lattice_stride(cfg.replace(lattice_stride=1), 125, 414, 10, 32.0) == 1
+        assert lattice_stride(cfg.replace(lattice_stride=4), 125, 414, 10**5, 32.0) == 4
+        assert lattice_stride(cfg.replace(lattice_stride=8), 3, 414, 10, 32.0) == 2  # 2 nodes per side at least
+
+    @pytest.mark.parametrize("bad", [0, 17, 1.5, True, "2", np.nan])
+    def test_invalid_stride_is_refused_by_name(self, bad):
+        with pytest.raises(InvalidInputError, match="lattice_stride"):
+            g.DepthGPConfig(lattice_stride=bad)
+
+    @pytest.mark.parametrize("shape", [(64, 96), (63, 97)])
+    def test_coarse_lattice_agrees_with_every_pixel_when_points_are_sparse(self, shape):
+        truth, mde = _scene(*shape, seed=11)
+        sp = g.sample_uniform(truth, n=120, rng=11)
+        fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1))
+        coarse = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=2))
+        auto = g.complete(mde, sp)  # 120 points on ~6000 pixels: sparse, so the default takes stride 2
+        np.testing.assert_array_equal(auto.mean, coarse.mean)
+        assert not np.array_equal(fine.mean, coarse.mean)  # the lattice is really coarser
+        gap = np.abs(np.log(coarse.mean / fine.mean))
+        assert np.median(gap) < 0.01 and np.max(gap) < 0.06  # largest next to the points
+        spread = np.log(coarse.std / fine.std)
+        # about the same sd, never much surer; wider at the points' own pixels (they inform a node beside them)
+        assert np.median(np.abs(spread)) < 0.05 and np.percentile(spread, 1) > -0.1 and np.min(spread) > -0.2 and np.max(spread) < 0.5
+        rmse = lambda p: np.sqrt(np.mean((p.mean - truth) ** 2))  # noqa: E731
+        assert rmse(coarse) < 1.05 * rmse(fine)
+        # any output resolution, as on the pixel lattice
+        big = (2 * shape[0], 2 * shape[1])
+        up = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=2), output_shape=big)
+        fine_up = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=big)
+        assert up.mean.shape == big and np.all(np.isfinite(up.variance))
+        assert np.median(np.abs(np.log(up.mean / fine_up.mean))) < 0.01
+
+    def test_dense_points_keep_every_pixel(self):
+        truth, mde = _scene(64, 96, seed=12)
+        sp = g.sample_uniform(truth, n=600, rng=12)  # ~10 % of the pixels
+        np.testing.assert_array_equal(g.complete(mde, sp).mean,
+                                      g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1)).mean)
+
+    def test_points_sharing_a_node_count_as_their_precision_weighted_mean(self):
+        """Two points in one 2 x 2 cell with the same residual inform the node as one point with both precisions."""
+        truth, mde = _scene(32, 32, seed=13)
+        cfg = g.DepthGPConfig(lattice_stride=2, outlier_threshold=None, mde_slope_sigma=None, edge_sigma=0.0,
+                              depth_lengthscale=None)
+        u, v = np.array([10.0, 11.0, 25.0]), np.array([8.0, 9.0, 20.0])  # pixel centres (10, 8), (11, 9): one cell
+        depth = mde[v.astype(int), u.astype(int)] * 1.3
+        two = g.complete(mde, SparseDepth(u, v, depth, (32, 32), np.full(3, 0.01 * depth)), config=cfg)
+        one = g.complete(mde, SparseDepth(u[1:], v[1:], depth[1:], (32, 32), np.full(2, 0.01 * depth[1:])), config=cfg)
+        # the shared node is better known with both points: the posterior there pulls harder towards 1.3 x MDE
+        ratio_two, ratio_one = two.mean[8, 10] / mde[8, 10], one.mean[8, 10] / mde[8, 10]
+        assert abs(ratio_two - 1.3) <= abs(ratio_one - 1.3) + 1e-12
+        assert two.variance[8, 10] < one.variance[8, 10]

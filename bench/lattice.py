@@ -1,0 +1,103 @@
+"""The log-residual GP's lattice: every pixel (stride 1) against every 2nd pixel (stride 2), on real KITTI.
+
+For each of the paper's eight uniform densities, on kitti_tiny prepared as the paper's protocol does
+(RT-MonoDepth-S, GP at 1/3 resolution, 20 % of the LiDAR pixels held out as ground truth):
+
+- time: best of ``--repeats`` `DepthCompleter` calls (mean + variance, 1/3 output) on frame 0, both
+  strides in the same run, and their ratio;
+- accuracy: RMSE over the 7 frames' held-out points and +-2 sigma coverage, for stride 1, stride 2
+  and the default (automatic: `gpdepth3d.completion.complete.lattice_stride`).
+
+Writes ``bench/results/lattice.json`` (atomically) and prints a table.
+
+    python bench/lattice.py [--data ../shared/data] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _kitti_speed import REPO, draw, machine  # noqa: E402
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
+    parser.add_argument("--models", type=Path, default=None, help="models folder (default: <data>/../models)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "lattice.json")
+    args = parser.parse_args(argv)
+
+    from gpdepth3d import DepthGPConfig
+    from gpdepth3d.completion.complete import DepthCompleter, lattice_stride
+    from gpdepth3d.datasets import open_dataset
+    from gpdepth3d.experiments.kitti_protocol import (
+        PAPER_DENSITIES, KittiProtocolConfig, lidar_frames, prepare_kitti_frame, draw_input,
+    )
+    from gpdepth3d.mde import load_frontend
+
+    models = args.models or args.data.parent / "models"
+    mde = load_frontend("rtmonodepth", models_dir=models)
+    protocol = KittiProtocolConfig()
+    setups = []
+    for i, (name, rgb, lidar) in enumerate(lidar_frames(open_dataset(args.data / "kitti_tiny"))):
+        setups.append(prepare_kitti_frame(name, rgb, lidar, mde, factor=protocol.factor, holdout=protocol.holdout, rng=i))
+    configs = {"stride 1": DepthGPConfig(lattice_stride=1), "stride 2": DepthGPConfig(lattice_stride=2),
+               "default": DepthGPConfig()}
+    rows = []
+    for density in PAPER_DENSITIES:
+        row: dict = {"density": density}
+        setup0 = setups[0]
+        sparse0 = draw(setup0, density)
+        h, w = setup0.grid_shape
+        row["points_frame0"] = len(sparse0.depth)
+        row["default_stride"] = lattice_stride(DepthGPConfig(), h, w, len(sparse0.depth), DepthGPConfig().lengthscale)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for label in ("stride 1", "stride 2"):
+                c = DepthCompleter(configs[label])
+                c(setup0.mde_grid, sparse0)  # warm-up
+                best = np.inf
+                for _ in range(args.repeats):
+                    t = time.perf_counter()
+                    c(setup0.mde_grid, sparse0)
+                    best = min(best, time.perf_counter() - t)
+                row[f"{label} ms"] = 1e3 * best
+            for label, config in configs.items():
+                sq, inside, count = 0.0, 0, 0
+                for i, setup in enumerate(setups):
+                    sparse = draw_input("uniform", density, setup.lidar.available, rng=np.random.default_rng([7, i]))
+                    post = DepthCompleter(config)(setup.mde_grid, sparse)
+                    gt = setup.lidar.gt_grid
+                    v = gt > 0
+                    e = post.mean[v] - gt[v]
+                    sq += float(np.sum(e**2))
+                    inside += int(np.sum(np.abs(e) <= 2 * post.std[v]))
+                    count += int(v.sum())
+                row[f"{label} rmse mm"] = 1e3 * np.sqrt(sq / count)
+                row[f"{label} cov2"] = inside / count
+        row["speed-up"] = row["stride 1 ms"] / row["stride 2 ms"]
+        row["stride 2 / stride 1 rmse"] = row["stride 2 rmse mm"] / row["stride 1 rmse mm"]
+        rows.append(row)
+        print(" | ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()), flush=True)
+    result = {**machine(), "frames": [s.name for s in setups], "repeats": args.repeats, "rows": rows}
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.output.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(result, indent=1))
+    tmp.replace(args.output)
+    print(f"wrote {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
