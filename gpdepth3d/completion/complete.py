@@ -359,10 +359,10 @@ def _log_residual_posterior(
     between = 2 * fit.outputscale**2 * (1 - _correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0
     pp = 1.0 / (fit.nugget**2 + noise[keep] + between)
     cell = (r // k) * wl + c // k
-    precision = np.bincount(cell, pp, hl * wl).astype(np.float64).reshape(hl, wl)  # (int when empty)
+    precision = np.bincount(cell, pp, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)  # (int when empty)
 
     def on_lattice(v):  # per-point values -> the precision-weighted mean at each lattice node
-        out = np.bincount(cell, pp * v, hl * wl).astype(np.float64).reshape(hl, wl)
+        out = np.bincount(cell, pp * v, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)
         np.divide(out, precision, out=out, where=precision > 0)
         return out
 
