@@ -341,8 +341,11 @@ class TestLattice:
         from gpdepth3d.completion.complete import lattice_stride
 
         cfg = g.DepthGPConfig()
-        assert lattice_stride(cfg, 125, 414, 1579, 32.0) == 2  # KITTI 1/3, 1/8 of the LiDAR: 3.05 % of the pixels
-        assert lattice_stride(cfg, 125, 414, 1700, 32.0) == 1  # above 1 point per 32 pixels
+        assert lattice_stride(cfg, 125, 414, 3158, 32.0) == 2  # KITTI 1/3, 1/4 of the LiDAR: 6.1 % of the pixels
+        assert lattice_stride(cfg, 125, 414, 5175, 32.0) == 2  # 1 point per 10 pixels
+        assert lattice_stride(cfg, 125, 414, 5200, 32.0) == 1  # denser
+        smooth = cfg.replace(nu=1.5)  # no sub-lattice kriging: sparse only up to 1 point per 32 pixels
+        assert lattice_stride(smooth, 125, 414, 1617, 32.0) == 2 and lattice_stride(smooth, 125, 414, 1700, 32.0) == 1
         assert lattice_stride(cfg, 125, 414, 790, 4.0) == 1  # length scale too short for a coarse lattice
         assert lattice_stride(cfg, 12, 414, 5, 32.0) == 1  # too few rows
         assert lattice_stride(cfg.replace(lattice_stride=1), 125, 414, 10, 32.0) == 1
@@ -377,9 +380,25 @@ class TestLattice:
         assert up.mean.shape == big and np.all(np.isfinite(up.variance))
         assert np.median(np.abs(np.log(up.mean / fine_up.mean))) < 0.01
 
+    def test_detail_below_the_lattice_is_kriged_back(self):
+        """At the points' own pixels the coarse lattice alone stays ~1 % off every pixel's mean and ~12 % wider
+        (a point informs the node beside it); with its detail kriged back (gp.sublattice) 0.2 % and 2 %."""
+        truth, mde = _scene(64, 96, seed=14)
+        sp = g.sample_uniform(truth, n=500, rng=14)  # 8 % of the pixels: stride 2 by default
+        fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1))
+        coarse = g.complete(mde, sp)
+        r, c = sp.v.astype(int), sp.u.astype(int)
+        assert np.median(np.abs(np.log(coarse.mean[r, c] / fine.mean[r, c]))) < 0.005
+        assert np.median(coarse.std[r, c] / fine.std[r, c]) < 1.06
+        assert np.sqrt(np.mean((coarse.mean - truth) ** 2)) < 1.05 * np.sqrt(np.mean((fine.mean - truth) ** 2))
+        # upsampled 3x: every 3rd output pixel is a grid pixel, and gets the same posterior there
+        big = g.complete(mde, sp, output_shape=(192, 288))
+        np.testing.assert_allclose(big.mean[1::3, 1::3], coarse.mean, rtol=1e-6)
+        np.testing.assert_allclose(big.variance[1::3, 1::3], coarse.variance, rtol=1e-5)
+
     def test_dense_points_keep_every_pixel(self):
         truth, mde = _scene(64, 96, seed=12)
-        sp = g.sample_uniform(truth, n=600, rng=12)  # ~10 % of the pixels
+        sp = g.sample_uniform(truth, n=700, rng=12)  # ~11 % of the pixels
         np.testing.assert_array_equal(g.complete(mde, sp).mean,
                                       g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1)).mean)
 

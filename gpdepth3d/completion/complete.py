@@ -235,6 +235,8 @@ def _edge_range(depth: np.ndarray, window: int) -> np.ndarray:
 
 SPARSE_LATTICE_SHARE = 1 / 32
 """`lattice_stride`: points on at most this share of the pixels are sparse (mean spacing >= 5.7 px)."""
+DETAIL_LATTICE_SHARE = 1 / 10
+"""`lattice_stride`, nu = 0.5: points on at most this share of the pixels take every 2nd pixel, the detail kriged back (`gp.sublattice`)."""
 MIN_LATTICE_LENGTHSCALE = 8.0
 """`lattice_stride`: a coarser lattice only for length scales of at least this many pixels."""
 
@@ -243,20 +245,40 @@ def lattice_stride(config: DepthGPConfig, h: int, w: int, n_points: int, lengths
     """Pixels of the GP grid per node of the log-residual GP's lattice, per side (1 or 2 unless configured).
 
     ``config.lattice_stride`` when set (reduced until the lattice has 2 nodes per side); else 2 when
-    the points are sparse (at most `SPARSE_LATTICE_SHARE` of the h x w pixels) and the length scale
-    is at least `MIN_LATTICE_LENGTHSCALE` pixels, else 1. Measured (bench/results/lattice.json, kitti_tiny
-    at 1/3 = 125 x 414, LiDAR held out): at 1/64-1/8 of the LiDAR stride 2 has RMSE 0.98-1.00x and
-    +-2 sigma 94.6-95.1 % (stride 1: 93.6-94.7 %), and is 1.9-2.2x faster at 1/16-1/8; 7-Scenes
-    50-500 points: RMSE within 1 %. With dense points a coarse lattice loses their pixel-level
-    detail (1/4: +4 %, all LiDAR: +21 % RMSE), so they keep every pixel.
+    the points are on at most `DETAIL_LATTICE_SHARE` of the h x w pixels (nu = 0.5: the field's
+    detail below the lattice is kriged back from the points, `gpdepth3d.gp.sublattice`; other nu:
+    `SPARSE_LATTICE_SHARE`) and the length scale is at least `MIN_LATTICE_LENGTHSCALE` pixels, else 1.
+    Measured (bench/results/lattice.json, kitti_tiny at 1/3 = 125 x 414, LiDAR held out): up to 1/4
+    of the LiDAR (6 % of the pixels) stride 2 with the detail kriged has 0.97-1.00x the RMSE of every
+    pixel and +-2 sigma 94.7-95.2 % (every pixel: 93.6-94.7 %) in about half the time (1/4: 81 -> 44
+    ms); from 1/2 of the LiDAR on it would cost 1.5-2 % RMSE for 57-70 instead of 86-88 ms, so
+    denser points keep every pixel.
     """
     k = config.lattice_stride
     if k is None:
-        sparse = n_points <= SPARSE_LATTICE_SHARE * h * w
+        share = DETAIL_LATTICE_SHARE if config.nu == 0.5 else SPARSE_LATTICE_SHARE
+        sparse = n_points <= share * h * w
         k = 2 if sparse and lengthscale >= MIN_LATTICE_LENGTHSCALE and min(h, w) >= 16 else 1
     while k > 1 and (-(-h // k) < 2 or -(-w // k) < 2):
         k -= 1
     return k
+
+
+def _at_points(fields: np.ndarray, rows: np.ndarray, cols: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """(m, n) values of (m, Ho, Wo) output fields at the GP-grid pixels (rows, cols); output >= grid.
+
+    The output's own pixels where they coincide with the grid's (same shape), else bilinear
+    between output pixels (the fields there are lattice read-outs, smooth at the output's spacing).
+    """
+    m, ho, wo = fields.shape
+    h, w = grid
+    if (ho, wo) == (h, w):
+        return fields[:, rows, cols]
+    from scipy.ndimage import map_coordinates
+
+    y = (rows + 0.5) * ho / h - 0.5  # the inverse of output_coordinates
+    x = (cols + 0.5) * wo / w - 0.5
+    return np.stack([map_coordinates(f, [y, x], order=1, mode="nearest") for f in fields])
 
 
 def _log_residual_posterior(
@@ -280,6 +302,7 @@ def _log_residual_posterior(
     """
     from ..gp.points import PointFit, _correlation, screen_points
     from ..gp.slope import fit_mde_slope
+    from ..gp.sublattice import sublattice_kriging
 
     t0 = time.perf_counter()
     h, w = mde.shape
@@ -398,8 +421,33 @@ def _log_residual_posterior(
         else:
             x_out = (log_raw if same_grid else np.log(resize_map(base, out_shape))) - centre
     solution = engine.solve(problem, variance=variance, extra_obs=extra)
+    g_mean, g_var = solution.mean, solution.variance
     w1 = solution.extra_means[0] if extra else None  # kriging weights' sum at each output pixel, k(x)' (K + N)^-1 1
     wx = solution.extra_means[1] if len(extra) > 1 else None  # k(x)' (K + N)^-1 (x - c) at each output pixel
+    if k > 1 and config.nu == 0.5 and len(r) and out_shape[0] >= h and out_shape[1] >= w:
+        # the field's detail below the lattice, kriged from the points' residuals against it
+        # (gp.sublattice), for the mean, the variance and the extra right-hand sides alike
+        targets = [resid[keep] - fit.log_scale]
+        fields = [g_mean]
+        if extra:
+            targets.append(np.ones(len(r)))
+            fields.append(w1)
+        if len(extra) > 1:
+            targets.append(x_pts - centre)
+            fields.append(wx)
+        at = _at_points(np.stack(fields), r, c, (h, w))
+        corr, vred = sublattice_kriging(
+            output_coordinates(h, out_shape[0]), output_coordinates(w, out_shape[1]), r, c,
+            np.stack(targets, 1) - at.T, fit.nugget**2 + noise[keep], (h, w), stride=k,
+            lengthscale=fit.lengthscale, outputscale=fit.outputscale,
+        )
+        g_mean = g_mean + corr[0]
+        if variance:
+            g_var = np.maximum(g_var - vred, 0.0)
+        if extra:
+            w1 = w1 + corr[1]
+        if len(extra) > 1:
+            wx = wx + corr[2]
     # per pixel, in one compiled pass (completion._assemble): the depth-aware correlation rho(x) =
     # exp(-a |x - c - wx / w1| / l_z) (gp.model: zbar(x) the kriging-weighted log MDE depth of the
     # points that inform x; rho = 1 where their weights sum below WEIGHT_FLOOR: there g's posterior is
@@ -408,7 +456,7 @@ def _log_residual_posterior(
     # 5 % of the nugget variance (thousands of points: variance high by <= 5 %); the slope a adds
     # Var[a] (x(x) - c - rho k(x)' (K + N)^-1 (x - c))^2; the depth is log-normal
     mean, var = assemble(
-        log_out, solution.mean, solution.variance, w1, wx, x_out if (depth_aware or slope_term) else None,
+        log_out, g_mean, g_var, w1, wx, x_out if (depth_aware or slope_term) else None,
         b=fit.log_scale, s2=fit.outputscale**2, tau2=fit.nugget**2, var_b=fit.log_scale_var,
         var_a=slope.slope_var if slope_term else 0.0, a=a, lz=lz if depth_aware else None, floor=WEIGHT_FLOOR,
         scale_term=scale_term, slope_term=slope_term, variance=variance,
