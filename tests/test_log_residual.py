@@ -395,6 +395,11 @@ class TestLattice:
         big = g.complete(mde, sp, output_shape=(192, 288))
         np.testing.assert_allclose(big.mean[1::3, 1::3], coarse.mean, rtol=1e-6)
         np.testing.assert_allclose(big.variance[1::3, 1::3], coarse.variance, rtol=1e-5)
+        # a coarser output keeps the lattice's own posterior (no detail is read there), close to every pixel's
+        small = g.complete(mde, sp, output_shape=(32, 48))
+        small_fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=(32, 48))
+        assert np.all(np.isfinite(small.variance)) and np.all(small.variance > 0)
+        assert np.median(np.abs(np.log(small.mean / small_fine.mean))) < 0.02
 
     def test_dense_points_keep_every_pixel(self):
         truth, mde = _scene(64, 96, seed=12)

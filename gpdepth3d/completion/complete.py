@@ -426,7 +426,8 @@ def _log_residual_posterior(
     wx = solution.extra_means[1] if len(extra) > 1 else None  # k(x)' (K + N)^-1 (x - c) at each output pixel
     if k > 1 and config.nu == 0.5 and len(r) and out_shape[0] >= h and out_shape[1] >= w:
         # the field's detail below the lattice, kriged from the points' residuals against it
-        # (gp.sublattice), for the mean, the variance and the extra right-hand sides alike
+        # (gp.sublattice), for the mean, the variance and the extra right-hand sides alike; only for
+        # outputs at least as fine as the GP grid, from which the lattice's values at the points are read
         targets = [resid[keep] - fit.log_scale]
         fields = [g_mean]
         if extra:
