@@ -113,6 +113,7 @@ def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_
         A = np.empty((size, size))
         y = np.empty((size, m))
         c = np.empty(size)
+        dinv = np.empty(size)
         for cj in range(col_start.shape[0] - 1):
             if col_start[cj] == col_start[cj + 1]:
                 continue
@@ -137,12 +138,14 @@ def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_
                 A[a, a] += noise[pa]
             if not _chol(A, n):  # numerically singular: leave this cell uncorrected
                 continue
+            for a in range(n):
+                dinv[a] = 1.0 / A[a, a]
             for q in range(m):  # y = L^-1 r
                 for a in range(n):
                     s = resid[ids[a], q]
                     for t in range(a):
                         s -= A[a, t] * y[t, q]
-                    y[a, q] = s / A[a, a]
+                    y[a, q] = s * dinv[a]
             for i in range(row_start[ci], row_start[ci + 1]):
                 for j in range(col_start[cj], col_start[cj + 1]):
                     red = 0.0
@@ -155,7 +158,7 @@ def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_
                         s = s2 * (rr_ * ec + rc * er - er * ec)
                         for t in range(a):
                             s -= A[a, t] * c[t]
-                        c[a] = s / A[a, a]
+                        c[a] = s * dinv[a]
                         red += c[a] * c[a]
                     vred[i, j] = red
                     for q in range(m):
