@@ -12,7 +12,8 @@ import pytest
 
 from gpdepth3d.gp import _loo
 from gpdepth3d.gp._loo import grid_neighbours, loo_predict
-from gpdepth3d.gp.points import PointFit, _correlation, _distance_to, loo_zscores, neighbours_of, screen_points
+from gpdepth3d.gp.model import separable_correlation
+from gpdepth3d.gp.points import PointFit, _distance_to, loo_zscores, neighbours_of, screen_points
 
 
 def _ring_position(dr, dc, d):
@@ -136,9 +137,9 @@ def _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu):
     out = np.empty(len(targets))
     for q, i in enumerate(targets):
         N = nn[q]
-        K = s2 * _correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], fit.lengthscale, nu)
+        K = s2 * separable_correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], fit.lengthscale, nu)
         K[np.diag_indices(len(N))] += tau2 + noise[N]
-        kx = s2 * _correlation(rows[i] - rows[N], cols[i] - cols[N], fit.lengthscale, nu)
+        kx = s2 * separable_correlation(rows[i] - rows[N], cols[i] - cols[N], fit.lengthscale, nu)
         w = np.linalg.solve(K, kx)
         out[q] = (r[i] - w @ r[N]) / np.sqrt(s2 + tau2 + noise[i] - w @ kx)
     return out

@@ -99,3 +99,16 @@ def test_a_noise_free_point_on_a_node_leaves_its_cell_uncorrected():
                                     lengthscale=4.0, outputscale=0.3)
     assert np.all(np.isfinite(corr)) and np.all(np.isfinite(vred))
     assert np.all(corr[:3, :3] == 0) and np.all(vred[:3, :3] == 0)
+
+
+@pytest.mark.parametrize("nu", [0.5, 1.5, 2.5])
+def test_separable_correlation_is_the_product_of_the_axes(nu):
+    from gpdepth3d.gp.model import Kernel, matern_1d, separable_correlation
+
+    dr, dc = np.array([0.0, 1.0, -2.5, 7.0]), np.array([0.0, -3.0, 0.5, 2.0])
+    got = separable_correlation(dr, dc, 4.0, nu)
+    np.testing.assert_allclose(got, matern_1d(dr, nu, 4.0) * matern_1d(dc, nu, 4.0), rtol=1e-14)
+    assert got[0] == 1.0 and np.all((got[1:] > 0) & (got[1:] < 1))
+    if nu == 0.5:  # one exponential of the L1 distance
+        np.testing.assert_allclose(got, np.exp(-(np.abs(dr) + np.abs(dc)) / 4.0), rtol=1e-14)
+    assert Kernel(nu, 4.0, 1.0).nu == nu

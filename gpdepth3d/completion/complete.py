@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import DataFormatError, GPDepthError, InvalidInputError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
-from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
+from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
 from ..depthmap import fill_nearest, resize_map
@@ -300,7 +300,7 @@ def _log_residual_posterior(
         global scale as an alignment, the timings, the engine's `SolveInfo` and the MDE's slope. ``previous`` (a `PointFit`) starts the fit's
         search from a previous frame's values.
     """
-    from ..gp.points import PointFit, _correlation, screen_points
+    from ..gp.points import PointFit, screen_points
     from ..gp.slope import fit_mde_slope
     from ..gp.sublattice import sublattice_kriging
 
@@ -379,7 +379,7 @@ def _log_residual_posterior(
     k = lattice_stride(config, h, w, len(r), fit.lengthscale)
     hl, wl = -(-h // k), -(-w // k)
     off_r, off_c = r - (k * (r // k) + (k - 1) / 2), c - (k * (c // k) + (k - 1) / 2)
-    between = 2 * fit.outputscale**2 * (1 - _correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0
+    between = 2 * fit.outputscale**2 * (1 - separable_correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0
     pp = 1.0 / (fit.nugget**2 + noise[keep] + between)
     cell = (r // k) * wl + c // k
     precision = np.bincount(cell, pp, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)  # (int when empty)

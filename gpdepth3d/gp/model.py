@@ -277,6 +277,13 @@ def matern_1d(distance: np.ndarray, nu: float, lengthscale: float) -> np.ndarray
     raise InvalidInputError("nu", "0.5, 1.5 or 2.5", nu)
 
 
+def separable_correlation(dr: np.ndarray, dc: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
+    """Separable Matern correlation M_nu(|dr| / l) M_nu(|dc| / l) of row and column offsets (any matching shapes)."""
+    if nu == 0.5:  # the separable exponential is one exponential of the L1 distance
+        return np.exp(-(np.abs(dr) + np.abs(dc)) / lengthscale)
+    return matern_1d(dr, nu, lengthscale) * matern_1d(dc, nu, lengthscale)
+
+
 @dataclass(frozen=True)
 class Kernel:
     """Separable Matern kernel s^2 * M(du / l) * M(dv / l) in physical units (metres, pixels)."""

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import InvalidInputError
-from .model import matern_1d
+from .model import separable_correlation
 
 #: Neighbours of each point in `screen_points`' leave-one-out z-scores.
 _NEIGHBOURS = 12
@@ -60,13 +60,6 @@ class PointFit:
     def eta(self) -> float:
         """Nugget share (tau / s)^2."""
         return (self.nugget / self.outputscale) ** 2 if self.outputscale > 0 else 0.0
-
-
-def _correlation(dr: np.ndarray, dc: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
-    """Separable Matern correlation of row and column offsets (any matching shapes)."""
-    if nu == 0.5:  # the separable exponential is one exponential of the L1 distance
-        return np.exp(-(np.abs(dr) + np.abs(dc)) / lengthscale)
-    return matern_1d(dr, nu, lengthscale) * matern_1d(dc, nu, lengthscale)
 
 
 def _profile(resid: np.ndarray, corr: np.ndarray, noise: np.ndarray, eta: float, s2_prev: float):
@@ -166,7 +159,7 @@ def fit_log_residual(
     def score(i: int, j: int):
         if (i, j) not in scores:
             if i not in corr_cache:
-                corr_cache[i] = _correlation(
+                corr_cache[i] = separable_correlation(
                     np.subtract.outer(rows, rows), np.subtract.outer(cols, cols), lengthscales[i], nu
                 )
             scores[(i, j)] = _profile(resid, corr_cache[i], noise, nuggets[j], s2_guess)
@@ -326,10 +319,10 @@ def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> n
     """Leave-one-out z-scores of ``targets`` from their neighbours ``nn`` by least squares (NumPy)."""
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
-    K = s2 * _correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, nu)
+    K = s2 * separable_correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, nu)
     diag = np.arange(nn.shape[1])
     K[:, diag, diag] += tau2 + noise[nn]
-    kx = s2 * _correlation(rows[targets][:, None] - R, cols[targets][:, None] - C, fit.lengthscale, nu)
+    kx = s2 * separable_correlation(rows[targets][:, None] - R, cols[targets][:, None] - C, fit.lengthscale, nu)
     w = np.stack([np.linalg.lstsq(Ki, ki, rcond=None)[0] for Ki, ki in zip(K, kx)])
     pred = np.sum(w * r[nn], axis=1)
     var = s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1)
