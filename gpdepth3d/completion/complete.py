@@ -270,7 +270,7 @@ def _at_points(fields: np.ndarray, rows: np.ndarray, cols: np.ndarray, grid: tup
     The output's own pixels where they coincide with the grid's (same shape), else bilinear
     between output pixels (the fields there are lattice read-outs, smooth at the output's spacing).
     """
-    m, ho, wo = fields.shape
+    _, ho, wo = fields.shape
     h, w = grid
     if (ho, wo) == (h, w):
         return fields[:, rows, cols]
