@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError, ShapeError
-from gpdepth3d.gp.sublattice import WINDOW_REACH, sublattice_kriging
+from gpdepth3d.gp.sublattice import MAX_WINDOW_POINTS, WINDOW_REACH, sublattice_kriging
 
 
 def _kernel(a_r, a_c, b_r, b_c, l, s):
@@ -31,6 +31,13 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
             r0, c0 = k * (cy // k) - WINDOW_REACH, k * (cx // k) - WINDOW_REACH  # the window of the pixel's cell
             side = k + 2 * WINDOW_REACH
             near = (rows_f >= r0) & (rows_f < r0 + side) & (cols_f >= c0) & (cols_f < c0 + side)
+            if near.sum() > MAX_WINDOW_POINTS:  # the nearest to the cell's centre, ties by window (row-major) order
+                idx = np.flatnonzero(near)
+                centre_r, centre_c = r0 + WINDOW_REACH + (k - 1) / 2, c0 + WINDOW_REACH + (k - 1) / 2
+                dist = np.abs(rows_f[idx] - centre_r) + np.abs(cols_f[idx] - centre_c)
+                window_order = (rows_f[idx] - r0) * side + (cols_f[idx] - c0)
+                near = np.zeros_like(near)
+                near[idx[np.lexsort((window_order, dist))[:MAX_WINDOW_POINTS]]] = True
             if not near.any():
                 continue
             A = ce(rows_f[near], cols_f[near], rows_f[near], cols_f[near]) + np.diag(noise[near])
@@ -41,11 +48,12 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
     return corr, vred
 
 
-@pytest.mark.parametrize("k, shape", [(2, (9, 11)), (2, (10, 12)), (3, (10, 13))])
-def test_matches_the_dense_conditional_covariance(k, shape):
+@pytest.mark.parametrize("k, shape, share", [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 1)])
+def test_matches_the_dense_conditional_covariance(k, shape, share):
+    """share 1: a point on every pixel, so stride 4's 8 x 8 windows keep only their MAX_WINDOW_POINTS nearest."""
     rng = np.random.default_rng(k + shape[0])
     h, w = shape
-    flat = rng.choice(h * w, size=h * w // 3, replace=False)
+    flat = rng.choice(h * w, size=h * w // share, replace=False)
     rows, cols = flat // w, flat % w
     resid = rng.normal(0, 0.1, rows.size)
     noise = rng.uniform(1e-4, 4e-3, rows.size)

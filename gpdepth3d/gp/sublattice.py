@@ -41,6 +41,9 @@ from ..errors import InvalidInputError, ShapeError, describe
 
 WINDOW_REACH = 2
 """Pixels of the GP grid around a lattice cell whose points krige its detail (the taper)."""
+MAX_WINDOW_POINTS = 36
+"""Most points per cell's window (the nearest to its centre): every point for stride 2 (a 6 x 6 window);
+it bounds the cost of a coarser lattice set by hand (stride k: (k + 4)^2 pixels per window)."""
 
 
 @njit(cache=True, nogil=True)
@@ -99,8 +102,8 @@ def _chol(A, n):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True, parallel=True)
 def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
-           resid, noise, s2, k, reach, corr, vred):  # pragma: no cover - compiled
-    """Per lattice cell: one factorisation of its window's points, then every output pixel in it."""
+           resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+    """Per lattice cell: one factorisation of its window's points (at most max_points), then every output pixel in it."""
     h, w = index.shape
     m = resid.shape[1]
     side = k + 2 * reach
@@ -110,6 +113,8 @@ def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_
         if row_start[ci] == row_start[ci + 1]:
             continue
         ids = np.empty(size, np.int64)
+        dist = np.empty(size, np.int64)
+        order = np.empty(size, np.int64)
         A = np.empty((size, size))
         y = np.empty((size, m))
         c = np.empty(size)
@@ -126,6 +131,19 @@ def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_
                         n += 1
             if n == 0:
                 continue
+            if n > max_points:  # the max_points nearest the cell's centre (L1; ties: the earlier in the window)
+                for a in range(n):
+                    dist[a] = abs(2 * pt_r[ids[a]] - (2 * k * ci + k - 1)) + abs(2 * pt_c[ids[a]] - (2 * k * cj + k - 1))
+                    order[a] = a
+                for a in range(max_points):  # partial selection by (distance, window order)
+                    best = a
+                    for b in range(a + 1, n):
+                        if dist[b] < dist[best] or (dist[b] == dist[best] and order[b] < order[best]):
+                            best = b
+                    dist[a], dist[best] = dist[best], dist[a]
+                    order[a], order[best] = order[best], order[a]
+                    ids[a], ids[best] = ids[best], ids[a]
+                n = max_points
             for a in range(n):
                 pa = ids[a]
                 for b in range(a + 1):
@@ -247,5 +265,5 @@ def sublattice_kriging(
     vred = np.zeros((out_rows.size, out_cols.size))
     if n:
         _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index, rows, cols,
-               res, noise, float(outputscale) ** 2, k, reach, corr, vred)
+               res, noise, float(outputscale) ** 2, k, reach, MAX_WINDOW_POINTS, corr, vred)
     return (corr[0] if one else corr), vred
