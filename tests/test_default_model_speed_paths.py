@@ -16,8 +16,8 @@ import pytest
 
 from gpdepth3d.completion.complete import DepthCompleter, _edge_range
 from gpdepth3d.gp import EngineConfig
-from gpdepth3d.gp.model import DepthGPConfig
-from gpdepth3d.gp.points import PointFit, _correlation, loo_zscores
+from gpdepth3d.gp.model import DepthGPConfig, separable_correlation
+from gpdepth3d.gp.points import PointFit, loo_zscores
 
 
 @pytest.fixture(scope="module")
@@ -75,10 +75,10 @@ def _loo_reference(rows, cols, resid, noise, fit, nn):
     r = resid - fit.log_scale
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
-    K = s2 * _correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, 0.5)
+    K = s2 * separable_correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, 0.5)
     d = np.arange(nn.shape[1])
     K[:, d, d] += tau2 + noise[nn]
-    kx = s2 * _correlation(rows[:, None] - R, cols[:, None] - C, fit.lengthscale, 0.5)
+    kx = s2 * separable_correlation(rows[:, None] - R, cols[:, None] - C, fit.lengthscale, 0.5)
     w = np.linalg.solve(K, kx[:, :, None])[:, :, 0]
     var = s2 + tau2 + noise - np.sum(w * kx, axis=1)
     return (r - np.sum(w * r[nn], axis=1)) / np.sqrt(var)
