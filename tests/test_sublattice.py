@@ -78,6 +78,30 @@ def test_several_right_hand_sides_share_the_weights():
         np.testing.assert_array_equal(vred, v1)
 
 
+def test_every_row_of_cells_is_done_whatever_the_thread_count():
+    """The rows of cells are dealt to the threads round-robin; 1, 2 or 3 threads give the same answer."""
+    numba = pytest.importorskip("numba")
+    rng = np.random.default_rng(3)
+    shape = (23, 17)
+    flat = rng.choice(shape[0] * shape[1], 60, replace=False)
+    flat = flat[flat // shape[1] > 9]  # points in the lower rows only, as with a LiDAR
+    rows, cols = flat // shape[1], flat % shape[1]
+    resid, noise = rng.normal(0, 0.1, rows.size), np.full(rows.size, 1e-3)
+    args = (np.arange(23.0), np.arange(17.0), rows, cols, resid, noise, shape)
+    before = numba.get_num_threads()
+    try:
+        outs = []
+        for t in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS), min(3, numba.config.NUMBA_NUM_THREADS)}):
+            numba.set_num_threads(t)
+            outs.append(sublattice_kriging(*args, stride=2, lengthscale=6.0, outputscale=0.3))
+    finally:
+        numba.set_num_threads(before)
+    c_ref, v_ref = _dense(*args, 2, 6.0, 0.3)
+    for corr, vred in outs:
+        np.testing.assert_allclose(corr, c_ref, atol=1e-10)
+        np.testing.assert_allclose(vred, v_ref, atol=1e-12)
+
+
 def test_a_point_corrects_its_own_pixel_and_nothing_far_away():
     corr, vred = sublattice_kriging(np.arange(20.0), np.arange(20.0), np.array([9]), np.array([9]), np.array([0.3]),
                                     np.array([1e-6]), (20, 20), stride=2, lengthscale=8.0, outputscale=0.3)

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, njit, prange
 
 from ..errors import InvalidInputError, ShapeError, describe
 
@@ -101,7 +101,7 @@ def _chol(A, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
+def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
            resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """Per lattice cell: one factorisation of its window's points (at most max_points), then every output pixel in it."""
     h, w = index.shape
@@ -109,7 +109,8 @@ def _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_
     side = k + 2 * reach
     size = side * side
     span = Rr_p.shape[0] // 2
-    for ci in prange(row_start.shape[0] - 1):  # rows of cells in parallel, each with its own buffers
+    for ii in prange(cell_rows.shape[0]):  # rows of cells in parallel, each with its own buffers
+        ci = cell_rows[ii]
         if row_start[ci] == row_start[ci + 1]:
             continue
         ids = np.empty(size, np.int64)
@@ -264,6 +265,10 @@ def sublattice_kriging(
     corr = np.zeros((res.shape[1], out_rows.size, out_cols.size))
     vred = np.zeros((out_rows.size, out_cols.size))
     if n:
-        _krige(row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index, rows, cols,
+        # prange hands each thread one contiguous share of the rows of cells; the points often fill only part of
+        # the image (the LiDAR its lower two thirds), so each share takes every t-th row, not one block of rows
+        threads = get_num_threads()
+        cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
+        _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index, rows, cols,
                res, noise, float(outputscale) ** 2, k, reach, MAX_WINDOW_POINTS, corr, vred)
     return (corr[0] if one else corr), vred
