@@ -101,8 +101,8 @@ def _chol(A, n):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
-           resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r,
+           pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """Per lattice cell: one factorisation of its window's points (at most max_points), then every output pixel in it."""
     h, w = index.shape
     m = resid.shape[1]
@@ -269,6 +269,6 @@ def sublattice_kriging(
         # the image (the LiDAR its lower two thirds), so each share takes every t-th row, not one block of rows
         threads = get_num_threads()
         cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
-        _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index, rows, cols,
-               res, noise, float(outputscale) ** 2, k, reach, MAX_WINDOW_POINTS, corr, vred)
+        _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index,
+               rows, cols, res, noise, float(outputscale) ** 2, k, reach, MAX_WINDOW_POINTS, corr, vred)
     return (corr[0] if one else corr), vred
