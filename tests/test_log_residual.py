@@ -335,7 +335,7 @@ def test_edge_range_equals_scipy_max_minus_min_filter():
 
 
 class TestLattice:
-    """The field's lattice: every pixel, or every 2nd with sparse points (`lattice_stride`)."""
+    """The field's lattice: every pixel, 2nd or 4th (`lattice_stride`)."""
 
     def test_stride_rule(self):
         from gpdepth3d.completion.complete import lattice_stride
@@ -343,10 +343,20 @@ class TestLattice:
         cfg = g.DepthGPConfig()
         assert lattice_stride(cfg, 125, 414, 3158, 32.0) == 2  # KITTI 1/3, 1/4 of the LiDAR: 6.1 % of the pixels
         assert lattice_stride(cfg, 125, 414, 5175, 32.0) == 2  # 1 point per 10 pixels
-        assert lattice_stride(cfg, 125, 414, 5200, 32.0) == 1  # denser
-        smooth = cfg.replace(nu=1.5)  # no sub-lattice kriging: sparse only up to 1 point per 32 pixels
+        assert lattice_stride(cfg, 125, 414, 5200, 32.0) == 4  # denser: every 4th pixel, 8 x 8 windows
+        assert lattice_stride(cfg, 125, 414, 125 * 414, 32.0) == 4  # a point on every pixel
+        assert lattice_stride(cfg, 125, 414, 5200, 32.0, (125, 414)) == 4
+        assert lattice_stride(cfg, 125, 414, 5200, 32.0, (375, 1242)) == 4  # a finer output: the detail is kriged
+        # a coarser output reads no detail: sparse only up to 1 point per 32 pixels, denser every pixel
+        assert lattice_stride(cfg, 125, 414, 1617, 32.0, (62, 207)) == 2
+        assert lattice_stride(cfg, 125, 414, 1700, 32.0, (62, 207)) == 1
+        assert lattice_stride(cfg, 125, 414, 5200, 32.0, (124, 414)) == 1
+        smooth = cfg.replace(nu=1.5)  # no sub-lattice kriging: the same
         assert lattice_stride(smooth, 125, 414, 1617, 32.0) == 2 and lattice_stride(smooth, 125, 414, 1700, 32.0) == 1
+        assert lattice_stride(smooth, 125, 414, 10**4, 32.0) == 1
         assert lattice_stride(cfg, 125, 414, 790, 4.0) == 1  # length scale too short for a coarse lattice
+        assert lattice_stride(cfg, 125, 414, 5200, 12.0) == 2  # long enough for stride 2 (8 px), not 4 (16 px)
+        assert lattice_stride(cfg, 125, 414, 5200, 16.0) == 4
         assert lattice_stride(cfg, 12, 414, 5, 32.0) == 1  # too few rows
         assert lattice_stride(cfg.replace(lattice_stride=1), 125, 414, 10, 32.0) == 1
         assert lattice_stride(cfg.replace(lattice_stride=4), 125, 414, 10**5, 32.0) == 4
@@ -401,11 +411,23 @@ class TestLattice:
         assert np.all(np.isfinite(small.variance)) and np.all(small.variance > 0)
         assert np.median(np.abs(np.log(small.mean / small_fine.mean))) < 0.02
 
-    def test_dense_points_keep_every_pixel(self):
+    def test_dense_points_take_every_4th_pixel_with_their_detail(self):
+        """Points on ~11 % of the pixels: stride 4 with the detail kriged from 8 x 8 windows, close to every pixel;
+        an output coarser than the grid reads no detail and keeps every pixel."""
         truth, mde = _scene(64, 96, seed=12)
-        sp = g.sample_uniform(truth, n=700, rng=12)  # ~11 % of the pixels
-        np.testing.assert_array_equal(g.complete(mde, sp).mean,
-                                      g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1)).mean)
+        sp = g.sample_uniform(truth, n=700, rng=12)
+        fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1))
+        auto = g.complete(mde, sp)
+        np.testing.assert_array_equal(auto.mean, g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=4)).mean)
+        assert not np.array_equal(auto.mean, fine.mean)
+        r, c = sp.v.astype(int), sp.u.astype(int)
+        assert np.median(np.abs(np.log(auto.mean[r, c] / fine.mean[r, c]))) < 0.005
+        assert np.median(auto.std[r, c] / fine.std[r, c]) < 1.05
+        rmse = lambda p: np.sqrt(np.mean((p.mean - truth) ** 2))  # noqa: E731
+        assert rmse(auto) < 1.05 * rmse(fine)
+        np.testing.assert_array_equal(
+            g.complete(mde, sp, output_shape=(32, 48)).mean,
+            g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=(32, 48)).mean)
 
     def test_points_sharing_a_node_count_as_their_precision_weighted_mean(self):
         """Two points in one 2 x 2 cell with the same residual inform the node as one point with both precisions."""

@@ -237,28 +237,42 @@ SPARSE_LATTICE_SHARE = 1 / 32
 """`lattice_stride`: points on at most this share of the pixels are sparse (mean spacing >= 5.7 px)."""
 DETAIL_LATTICE_SHARE = 1 / 10
 """`lattice_stride`, nu = 0.5: points on at most this share of the pixels take every 2nd pixel, the detail kriged back (`gp.sublattice`)."""
+DENSE_LATTICE_STRIDE = 4
+"""`lattice_stride`, nu = 0.5: denser points take every 4th pixel, the detail kriged back from 8 x 8-pixel windows."""
 MIN_LATTICE_LENGTHSCALE = 8.0
-"""`lattice_stride`: a coarser lattice only for length scales of at least this many pixels."""
+"""`lattice_stride`: a lattice of stride k only for length scales of at least k / 2 times this many pixels."""
 
 
-def lattice_stride(config: DepthGPConfig, h: int, w: int, n_points: int, lengthscale: float) -> int:
-    """Pixels of the GP grid per node of the log-residual GP's lattice, per side (1 or 2 unless configured).
+def lattice_stride(config: DepthGPConfig, h: int, w: int, n_points: int, lengthscale: float,
+                   output_shape: tuple[int, int] | None = None) -> int:
+    """Pixels of the GP grid per node of the log-residual GP's lattice, per side.
 
-    ``config.lattice_stride`` when set (reduced until the lattice has 2 nodes per side); else 2 when
-    the points are on at most `DETAIL_LATTICE_SHARE` of the h x w pixels (nu = 0.5: the field's
-    detail below the lattice is kriged back from the points, `gpdepth3d.gp.sublattice`; other nu:
-    `SPARSE_LATTICE_SHARE`) and the length scale is at least `MIN_LATTICE_LENGTHSCALE` pixels, else 1.
-    Measured (bench/results/lattice.json, kitti_tiny at 1/3 = 125 x 414, LiDAR held out): up to 1/4
-    of the LiDAR (6 % of the pixels) stride 2 with the detail kriged has 0.97-1.00x the RMSE of every
-    pixel and +-2 sigma 94.7-95.2 % (every pixel: 93.6-94.7 %) in about half the time (1/4: 81 -> 44
-    ms); from 1/2 of the LiDAR on it would cost 1.5-2 % RMSE for 57-70 instead of 86-88 ms, so
-    denser points keep every pixel.
+    ``config.lattice_stride`` when set (reduced until the lattice has 2 nodes per side). Else, on a
+    grid of at least 16 x 16 pixels: with nu = 0.5 and an output at least as fine as the grid
+    (``output_shape``, None: the grid itself), where the field's detail below the lattice is kriged
+    back from the points (`gpdepth3d.gp.sublattice`), 2 when the points are on at most
+    `DETAIL_LATTICE_SHARE` of the h x w pixels and `DENSE_LATTICE_STRIDE` (4) above; otherwise 2 up to
+    `SPARSE_LATTICE_SHARE` and 1 above. A stride k needs a length scale of at least
+    k / 2 x `MIN_LATTICE_LENGTHSCALE` pixels (else the next finer stride that has one).
+
+    Measured (bench/results/lattice.json, kitti_tiny at 1/3 = 125 x 414, 20 % of the LiDAR held out,
+    RMSE and time against every pixel): up to 1/4 of the LiDAR (6 % of the pixels) stride 2 has
+    0.97-1.00x the RMSE, +-2 sigma 94.7-95.2 % (every pixel 93.6-94.7 %), in about half the time;
+    from 1/2 of the LiDAR on stride 4 has 1.01-1.02x the RMSE in ~0.6x the time (stride 2: 1.02x,
+    ~0.65x). Without the detail (nu != 0.5, coarser outputs) a coarse lattice costs 4 % RMSE at 1/4
+    of the LiDAR and 21 % with all of it, so only sparse points take one there.
     """
     k = config.lattice_stride
     if k is None:
-        share = DETAIL_LATTICE_SHARE if config.nu == 0.5 else SPARSE_LATTICE_SHARE
-        sparse = n_points <= share * h * w
-        k = 2 if sparse and lengthscale >= MIN_LATTICE_LENGTHSCALE and min(h, w) >= 16 else 1
+        detail = config.nu == 0.5 and (output_shape is None or (output_shape[0] >= h and output_shape[1] >= w))
+        if min(h, w) < 16:
+            k = 1
+        elif n_points <= (DETAIL_LATTICE_SHARE if detail else SPARSE_LATTICE_SHARE) * h * w:
+            k = 2
+        else:
+            k = DENSE_LATTICE_STRIDE if detail else 1
+        while k > 1 and lengthscale < k / 2 * MIN_LATTICE_LENGTHSCALE:
+            k //= 2
     while k > 1 and (-(-h // k) < 2 or -(-w // k) < 2):
         k -= 1
     return k
@@ -373,10 +387,10 @@ def _log_residual_posterior(
 
     keep = ~rejected
     r, c = rows[keep], cols[keep]
-    # the GP's lattice: every pixel, or every 2nd where the points are sparse (see `lattice_stride`);
+    # the GP's lattice: every pixel, 2nd or 4th (see `lattice_stride`);
     # a point enters at its lattice node with the field's variance between its pixel and the node
     # added to its noise, points sharing a node by their precision-weighted mean (exact for them)
-    k = lattice_stride(config, h, w, len(r), fit.lengthscale)
+    k = lattice_stride(config, h, w, len(r), fit.lengthscale, out_shape)
     hl, wl = -(-h // k), -(-w // k)
     off_r, off_c = r - (k * (r // k) + (k - 1) / 2), c - (k * (c // k) + (k - 1) / 2)
     between = 2 * fit.outputscale**2 * (1 - separable_correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0

@@ -136,12 +136,13 @@ class DepthGPConfig:
             2.88 / 2.20 / 2.21 m at 50 / 200 / 500 points (bench/default_model.py, 3 seeds; s raised
             to 0.23-0.37; a `PosteriorWarning` above 1.25x the configured s).
         lattice_stride: log_residual: pixels of the GP grid per lattice node of the field, per
-            side; None (automatic) takes 2 where the points are on at most 1 in 10 pixels (nu =
-            0.5; other nu: 1 in 32), else 1 (`gpdepth3d.completion.complete.lattice_stride`). 1 is
-            the exact model on every pixel; 2 is ~2x faster, and with nu = 0.5 the field's detail
-            below the lattice is kriged back from the points (`gpdepth3d.gp.sublattice`): on KITTI
-            RMSE 0.97-1.00x every pixel's up to 1 point in 10 pixels, 1.5-2 % above with denser LiDAR.
-            The output is at any resolution either way.
+            side; None (automatic, `gpdepth3d.completion.complete.lattice_stride`): with nu = 0.5
+            and an output at least as fine as the grid, where the field's detail below the lattice
+            is kriged back from the points (`gpdepth3d.gp.sublattice`), 2 where the points are on at
+            most 1 in 10 pixels and 4 above; otherwise 2 up to 1 in 32 and 1 above. 1 is the exact
+            model on every pixel; on KITTI at 1/3 (bench/results/lattice.json) stride 2 has
+            0.97-1.00x every pixel's RMSE up to 1/4 of the LiDAR in about half the time, stride 4
+            1.01-1.02x from 1/2 of it on in ~0.6x. The output is at any resolution either way.
     """
 
     formulation: Formulation = "log_residual"
