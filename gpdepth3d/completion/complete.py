@@ -451,11 +451,18 @@ def _log_residual_posterior(
             targets.append(x_pts - centre)
             fields.append(wx)
         at = _at_points(np.stack(fields), r, c, (h, w))
+        # kriged at the GP grid's pixels, where the points are, and bilinear to a finer output: the
+        # output pixels between grid pixels hold no point of their own (kitti_tiny, GP at 1/3, full
+        # resolution: RMSE equal to or up to 0.4 % below kriging at every output pixel, +-2 sigma up to
+        # 0.3 points lower; all of the LiDAR at stride 4: 195 -> 129 ms)
         corr, vred = sublattice_kriging(
-            output_coordinates(h, out_shape[0]), output_coordinates(w, out_shape[1]), r, c,
+            np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), r, c,
             np.stack(targets, 1) - at.T, fit.nugget**2 + noise[keep], (h, w), stride=k,
             lengthscale=fit.lengthscale, outputscale=fit.outputscale,
         )
+        if not same_grid:
+            corr = np.stack([resize_map(f, out_shape) for f in corr])
+            vred = resize_map(vred, out_shape)
         g_mean = g_mean + corr[0]
         if variance:
             g_var = np.maximum(g_var - vred, 0.0)

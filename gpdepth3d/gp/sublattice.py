@@ -25,9 +25,9 @@ The window is the taper (C_e's correlation along a row or column of cells beyond
 Measured on kitti_tiny at 1/3 (bench/results/lattice.json, held-out LiDAR): with all of the LiDAR the
 stride-2 lattice alone had 1.21x the every-pixel RMSE, with this correction 1.02x; up to 1/4 of the
 LiDAR 0.97-1.00x; the stride-4 lattice (8 x 8-pixel windows, the default for denser points) 1.01x.
-The window's cost grows with its points (n^3 per cell): ~15 ms at 1/3 with all of the LiDAR at
-stride 2 (2 cores), ~19 ms at stride 4; on the full 375 x 1242 image ~9 ms with 300 points (its fixed
-cost per pixel).
+The window's cost grows with its points (n^3 per cell) and the output pixels per cell: ~15 ms at 1/3
+with all of the LiDAR at stride 2 (2 cores), ~19 ms at stride 4; `gpdepth3d.completion` krigs at the
+GP grid's own pixels and resizes the result to a finer output.
 
 Coordinates are GP-grid pixels (pixel centres at integers), the lattice nodes at k j + (k - 1) / 2.
 """
