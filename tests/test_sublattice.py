@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError, ShapeError
-from gpdepth3d.gp.sublattice import MAX_WINDOW_POINTS, WINDOW_REACH, sublattice_kriging
+from gpdepth3d.gp.sublattice import MAX_WINDOW_POINTS, sublattice_kriging, window_reach
 
 
 def _kernel(a_r, a_c, b_r, b_c, l, s):
@@ -28,12 +28,13 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
     for i, y in enumerate(out_rows):
         for j, x in enumerate(out_cols):
             cy, cx = np.clip(np.rint(y), 0, h - 1), np.clip(np.rint(x), 0, w - 1)
-            r0, c0 = k * (cy // k) - WINDOW_REACH, k * (cx // k) - WINDOW_REACH  # the window of the pixel's cell
-            side = k + 2 * WINDOW_REACH
+            reach = k // 2 + 1  # window_reach(k), written out: the reference must not follow a change of it
+            r0, c0 = k * (cy // k) - reach, k * (cx // k) - reach  # the window of the pixel's cell
+            side = k + 2 * reach
             near = (rows_f >= r0) & (rows_f < r0 + side) & (cols_f >= c0) & (cols_f < c0 + side)
             if near.sum() > MAX_WINDOW_POINTS:  # the nearest to the cell's centre, ties by window (row-major) order
                 idx = np.flatnonzero(near)
-                centre_r, centre_c = r0 + WINDOW_REACH + (k - 1) / 2, c0 + WINDOW_REACH + (k - 1) / 2
+                centre_r, centre_c = r0 + reach + (k - 1) / 2, c0 + reach + (k - 1) / 2
                 dist = np.abs(rows_f[idx] - centre_r) + np.abs(cols_f[idx] - centre_c)
                 window_order = (rows_f[idx] - r0) * side + (cols_f[idx] - c0)
                 near = np.zeros_like(near)
@@ -48,9 +49,9 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
     return corr, vred
 
 
-@pytest.mark.parametrize("k, shape, share", [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 1)])
+@pytest.mark.parametrize("k, shape, share", [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 3), (4, (13, 17), 1)])
 def test_matches_the_dense_conditional_covariance(k, shape, share):
-    """share 1: a point on every pixel, so stride 4's 8 x 8 windows keep only their MAX_WINDOW_POINTS nearest."""
+    """share 1: a point on every pixel, so stride 4's 10 x 10 windows keep only their MAX_WINDOW_POINTS nearest."""
     rng = np.random.default_rng(k + shape[0])
     h, w = shape
     flat = rng.choice(h * w, size=h * w // share, replace=False)
@@ -144,3 +145,8 @@ def test_separable_correlation_is_the_product_of_the_axes(nu):
     if nu == 0.5:  # one exponential of the L1 distance
         np.testing.assert_allclose(got, np.exp(-(np.abs(dr) + np.abs(dc)) / 4.0), rtol=1e-14)
     assert Kernel(nu, 4.0, 1.0).nu == nu
+
+
+def test_the_window_grows_with_the_stride():
+    """6 x 6 pixels for stride 2, 10 x 10 for stride 4 (the taper scales with the cells it covers)."""
+    assert [k + 2 * window_reach(k) for k in (2, 3, 4, 8)] == [6, 7, 10, 18]
