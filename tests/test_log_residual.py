@@ -343,7 +343,7 @@ class TestLattice:
         cfg = g.DepthGPConfig()
         assert lattice_stride(cfg, 125, 414, 3158, 32.0) == 2  # KITTI 1/3, 1/4 of the LiDAR: 6.1 % of the pixels
         assert lattice_stride(cfg, 125, 414, 5175, 32.0) == 2  # 1 point per 10 pixels
-        assert lattice_stride(cfg, 125, 414, 5200, 32.0) == 4  # denser: every 4th pixel, 8 x 8 windows
+        assert lattice_stride(cfg, 125, 414, 5200, 32.0) == 4  # denser: every 4th pixel, 10 x 10 windows
         assert lattice_stride(cfg, 125, 414, 125 * 414, 32.0) == 4  # a point on every pixel
         assert lattice_stride(cfg, 125, 414, 5200, 32.0, (125, 414)) == 4
         assert lattice_stride(cfg, 125, 414, 5200, 32.0, (375, 1242)) == 4  # a finer output: the detail is kriged
@@ -412,7 +412,7 @@ class TestLattice:
         assert np.median(np.abs(np.log(small.mean / small_fine.mean))) < 0.02
 
     def test_dense_points_take_every_4th_pixel_with_their_detail(self):
-        """Points on ~11 % of the pixels: stride 4 with the detail kriged from 8 x 8 windows, close to every pixel;
+        """Points on ~11 % of the pixels: stride 4 with the detail kriged from 10 x 10 windows, close to every pixel;
         an output coarser than the grid reads no detail and keeps every pixel."""
         truth, mde = _scene(64, 96, seed=12)
         sp = g.sample_uniform(truth, n=700, rng=12)

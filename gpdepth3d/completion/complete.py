@@ -238,7 +238,7 @@ SPARSE_LATTICE_SHARE = 1 / 32
 DETAIL_LATTICE_SHARE = 1 / 10
 """`lattice_stride`, nu = 0.5: points on at most this share of the pixels take every 2nd pixel, the detail kriged back (`gp.sublattice`)."""
 DENSE_LATTICE_STRIDE = 4
-"""`lattice_stride`, nu = 0.5: denser points take every 4th pixel, the detail kriged back from 8 x 8-pixel windows."""
+"""`lattice_stride`, nu = 0.5: denser points take every 4th pixel, the detail kriged back from 10 x 10-pixel windows."""
 MIN_LATTICE_LENGTHSCALE = 8.0
 """`lattice_stride`: a lattice of stride k only for length scales of at least k / 2 times this many pixels."""
 
