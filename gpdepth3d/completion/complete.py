@@ -258,8 +258,8 @@ def lattice_stride(config: DepthGPConfig, h: int, w: int, n_points: int, lengths
     Measured (bench/results/lattice.json, kitti_tiny at 1/3 = 125 x 414, 20 % of the LiDAR held out,
     RMSE and time against every pixel): up to 1/4 of the LiDAR (6 % of the pixels) stride 2 has
     0.97-1.00x the RMSE, +-2 sigma 94.7-95.2 % (every pixel 93.6-94.7 %), in about half the time;
-    from 1/2 of the LiDAR on stride 4 has 1.01-1.02x the RMSE in ~0.6x the time (stride 2: 1.02x,
-    ~0.65x). Without the detail (nu != 0.5, coarser outputs) a coarse lattice costs 4 % RMSE at 1/4
+    from 1/2 of the LiDAR on stride 4 has 0.99-1.01x the RMSE in 0.57-0.78x the time (stride 2:
+    1.02x). Without the detail (nu != 0.5, coarser outputs) a coarse lattice costs 4 % RMSE at 1/4
     of the LiDAR and 21 % with all of it, so only sparse points take one there.
     """
     k = config.lattice_stride

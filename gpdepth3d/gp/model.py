@@ -142,7 +142,7 @@ class DepthGPConfig:
             most 1 in 10 pixels and 4 above; otherwise 2 up to 1 in 32 and 1 above. 1 is the exact
             model on every pixel; on KITTI at 1/3 (bench/results/lattice.json) stride 2 has
             0.97-1.00x every pixel's RMSE up to 1/4 of the LiDAR in about half the time, stride 4
-            1.01-1.02x from 1/2 of it on in ~0.6x. The output is at any resolution either way.
+            0.99-1.01x from 1/2 of it on in 0.57-0.78x. The output is at any resolution either way.
     """
 
     formulation: Formulation = "log_residual"

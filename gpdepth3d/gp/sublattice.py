@@ -24,9 +24,9 @@ tapered local process for the rest; Sang & Huang 2012):
 The window is the taper (C_e's correlation along a row or column of cells beyond it is dropped).
 Measured on kitti_tiny at 1/3 (bench/results/lattice.json, held-out LiDAR): with all of the LiDAR the
 stride-2 lattice alone had 1.21x the every-pixel RMSE, with this correction 1.02x; up to 1/4 of the
-LiDAR 0.97-1.00x; the stride-4 lattice (8 x 8-pixel windows, the default for denser points) 1.01x.
+LiDAR 0.97-1.00x; the stride-4 lattice (10 x 10-pixel windows, the default for denser points) 0.99-1.01x.
 The window's cost grows with its points (n^3 per cell) and the output pixels per cell: ~15 ms at 1/3
-with all of the LiDAR at stride 2 (2 cores), ~19 ms at stride 4; `gpdepth3d.completion` krigs at the
+with all of the LiDAR at stride 2 (2 cores), ~30 ms at stride 4; `gpdepth3d.completion` krigs at the
 GP grid's own pixels and resizes the result to a finer output.
 
 Coordinates are GP-grid pixels (pixel centres at integers), the lattice nodes at k j + (k - 1) / 2.
