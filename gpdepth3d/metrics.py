@@ -75,11 +75,20 @@ def calibration_metrics(
 ) -> dict[str, float]:
     """How well the posterior variance describes the actual error.
 
+    Coverage at one level can be right while the error's distribution is far from the
+    posterior's: the shape (``median_abs_z``, the three coverages) and the ranking (``ause``) say
+    whether the standard deviation is sharp where the errors are small and wide where they are large.
+
     Returns:
         ``nll``: mean Gaussian negative log-likelihood of gt (nats per pixel, depth in metres);
-        ``coverage_1sigma`` / ``coverage_2sigma``: share of pixels with |error| <= 1 / 2 std
-        (a calibrated model gives about 0.683 / 0.954); ``z_rms``: RMS of error / std (1 when
-        calibrated); ``n``.
+        ``coverage_1sigma`` / ``coverage_2sigma`` / ``coverage_3sigma``: share of pixels with
+        |error| <= 1 / 2 / 3 std (a calibrated model gives about 0.683 / 0.954 / 0.997);
+        ``z_rms``: RMS of error / std (1 when calibrated); ``median_abs_z``: median of |error| /
+        std (0.674 when calibrated; below: the std is wider than the typical error);
+        ``ause``: area under the sparsification error of the RMSE (`sparsification`: the RMSE of
+        the pixels left after removing the largest-std share f, minus the same after removing the
+        largest errors, both divided by the RMSE of all pixels, integrated over f in [0, 0.99]; 0
+        when the std ranks the errors perfectly, dimensionless); ``n``.
     """
     mean = np.asarray(mean, dtype=np.float64)
     variance = np.asarray(variance, dtype=np.float64)
@@ -91,10 +100,50 @@ def calibration_metrics(
         raise ShapeError("variance", "finite variances at the evaluated pixels", "NaN or inf")
     err = p - g
     z = np.abs(err) / np.sqrt(var)
+    gap = np.subtract(*sparsification(np.abs(err), var))
     return {
         "nll": float(np.mean(0.5 * np.log(2 * np.pi * var) + 0.5 * err**2 / var)),
         "coverage_1sigma": float(np.mean(z <= 1.0)),
         "coverage_2sigma": float(np.mean(z <= 2.0)),
+        "coverage_3sigma": float(np.mean(z <= 3.0)),
         "z_rms": float(np.sqrt(np.mean(z**2))),
+        "median_abs_z": float(np.median(z)),
+        "ause": float(np.sum((gap[1:] + gap[:-1]) * np.diff(SPARSIFICATION_FRACTIONS)) / 2),  # trapezoid rule
         "n": int(g.size),
     }
+
+
+SPARSIFICATION_FRACTIONS = np.arange(100) / 100.0
+"""Shares of the pixels removed along a sparsification curve (0, 0.01, ..., 0.99)."""
+
+
+def sparsification(abs_error: np.ndarray, uncertainty: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sparsification curves of the RMSE: by the uncertainty, and by the error itself (the oracle).
+
+    For each share f of `SPARSIFICATION_FRACTIONS`, the RMSE of the pixels left after removing the
+    share f with the largest ``uncertainty`` (ties: the later pixel first), and after removing the
+    share f with the largest error; both divided by the RMSE of all pixels (Ilg et al., ECCV 2018).
+
+    Args:
+        abs_error: (N,) absolute errors, N >= 1.
+        uncertainty: (N,) any quantity that orders the pixels (a std or variance).
+
+    Returns:
+        (by_uncertainty, oracle), each (len(SPARSIFICATION_FRACTIONS),); 1 at f = 0, oracle <= by_uncertainty.
+    """
+    e2 = np.asarray(abs_error, dtype=np.float64).ravel() ** 2
+    u = np.asarray(uncertainty, dtype=np.float64).ravel()
+    if e2.size == 0 or u.shape != e2.shape:
+        raise ShapeError("abs_error, uncertainty", "two arrays of the same length >= 1", f"{e2.shape}, {u.shape}")
+    n = e2.size
+    keep = np.maximum(n - np.floor(SPARSIFICATION_FRACTIONS * n).astype(np.int64), 1)  # pixels left
+    total = np.sum(e2)
+    if total == 0:
+        ones = np.ones(SPARSIFICATION_FRACTIONS.size)
+        return ones, ones
+
+    def curve(order):  # order: most trusted first
+        kept = np.concatenate([[0.0], np.cumsum(e2[order])])[keep]
+        return np.sqrt(kept / keep) / np.sqrt(total / n)
+
+    return curve(np.argsort(u, kind="stable")), curve(np.argsort(e2, kind="stable"))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import EmptyInputError, ShapeError
-from gpdepth3d.metrics import METRIC_NAMES, calibration_metrics, depth_metrics
+from gpdepth3d.metrics import METRIC_NAMES, SPARSIFICATION_FRACTIONS, calibration_metrics, depth_metrics, sparsification
 
 PRED = np.array([[1.0, 2.0], [4.0, 9.0]])
 GT = np.array([[1.0, 1.0], [5.0, 0.0]])  # the last pixel has no ground truth
@@ -78,6 +78,7 @@ class TestCalibrationMetrics:
         assert m["nll"] == pytest.approx(nll)
         assert m["coverage_1sigma"] == 1.0 and m["coverage_2sigma"] == 1.0
         assert m["z_rms"] == pytest.approx(math.sqrt(0.5))
+        assert m["coverage_3sigma"] == 1.0 and m["median_abs_z"] == pytest.approx(0.5)
         assert m["n"] == 2
 
     def test_calibrated_gaussian(self):
@@ -88,9 +89,45 @@ class TestCalibrationMetrics:
         assert m["coverage_1sigma"] == pytest.approx(0.6827, abs=0.005)
         assert m["coverage_2sigma"] == pytest.approx(0.9545, abs=0.003)
         assert m["z_rms"] == pytest.approx(1.0, abs=0.01)
+        assert m["coverage_3sigma"] == pytest.approx(0.9973, abs=0.001)
+        assert m["median_abs_z"] == pytest.approx(0.6745, abs=0.01)
+        # the std ranks the errors only in expectation: some sparsification error, less than with a constant std
+        flat = calibration_metrics(np.full(std.size, 10.0), np.full(std.size, 0.3), gt)
+        assert 0 < m["ause"] < flat["ause"]
         # Overconfident variances give a worse NLL and lower coverage.
         over = calibration_metrics(np.full(std.size, 10.0), (std / 3) ** 2, gt)
         assert over["nll"] > m["nll"] and over["coverage_1sigma"] < 0.4
+
+    def test_heavy_tails_show_in_the_shape_not_at_2_sigma(self):
+        """Most errors far below the std and a few far above: +-2 sigma looks calibrated, the median |z| does not."""
+        gt = np.full(1000, 10.0)
+        err = np.where(np.arange(1000) < 950, 0.01, 4.0)  # 95 % small, 5 % gross
+        m = calibration_metrics(gt + err, np.ones(1000), gt)
+        assert m["coverage_2sigma"] == pytest.approx(0.95) and m["coverage_3sigma"] == pytest.approx(0.95)
+        assert m["median_abs_z"] == pytest.approx(0.01)
+
+    def test_sparsification_by_hand(self):
+        err = np.array([1.0, 2.0, 3.0, 4.0])
+        full = math.sqrt(30 / 4)
+        by_std, oracle = sparsification(err, np.array([4.0, 3.0, 2.0, 1.0]))  # the std ranks them backwards
+        f = SPARSIFICATION_FRACTIONS
+        one = (f >= 0.25) & (f < 0.5)  # one pixel removed
+        np.testing.assert_allclose(by_std[one], math.sqrt(29 / 3) / full)  # the smallest error went
+        np.testing.assert_allclose(oracle[one], math.sqrt(14 / 3) / full)  # the largest
+        assert by_std[0] == oracle[0] == 1.0
+        np.testing.assert_allclose(by_std[f >= 0.75], 4 / full)
+        np.testing.assert_allclose(oracle[f >= 0.75], 1 / full)
+        # a std proportional to the error ranks them perfectly: no sparsification error
+        same, oracle2 = sparsification(err, 0.5 * err)
+        np.testing.assert_allclose(same, oracle2)
+        gt = np.full(4, 5.0)
+        assert calibration_metrics(gt + err, (0.5 * err) ** 2, gt)["ause"] == pytest.approx(0.0, abs=1e-12)
+        assert calibration_metrics(gt + err, np.array([4.0, 3.0, 2.0, 1.0]) ** 2, gt)["ause"] > 0.3
+        with pytest.raises(ShapeError):
+            sparsification(np.ones(3), np.ones(2))
+        with pytest.raises(ShapeError):
+            sparsification(np.ones(0), np.ones(0))
+        np.testing.assert_array_equal(sparsification(np.zeros(3), np.ones(3))[0], 1.0)  # no error at all
 
     def test_errors(self):
         with pytest.raises(ShapeError):
