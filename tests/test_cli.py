@@ -41,6 +41,7 @@ class TestCompleteCommand:
         assert code == 0
         out = capsys.readouterr().out
         assert "wrote" in out and "RMSE [mm]" in out and "iRMSE [1/km]" in out  # units in the table header
+        assert "+-2 sigma" in out and "median |error| / sigma" in out and "AUSE" in out  # the calibration line
         for kind in ("depth", "sigma", "error"):  # previews a person can look at, beside the 16-bit PNGs
             preview = tmp_path / "out" / f"frame0_{kind}_preview.png"
             assert preview.is_file() and f"wrote {preview}" in out

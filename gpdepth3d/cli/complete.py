@@ -179,7 +179,9 @@ def complete_command(
         _print_metrics(rows)
         cal = calibration_metrics(posterior.mean, posterior.variance, gt_depth)
         print(f"calibration: +-1 sigma coverage {cal['coverage_1sigma']:.3f} (calibrated 0.683), +-2 sigma "
-              f"{cal['coverage_2sigma']:.3f} (0.954), NLL {cal['nll']:.3f} [nats per pixel]")
+              f"{cal['coverage_2sigma']:.3f} (0.954), +-3 sigma {cal['coverage_3sigma']:.3f} (0.997), median "
+              f"|error| / sigma {cal['median_abs_z']:.3f} (0.674), AUSE {cal['ause']:.3f} (0: sigma ranks the errors "
+              f"perfectly), NLL {cal['nll']:.3f} [nats per pixel]")
     if preview:
         written = list(written) + write_previews(
             base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth
