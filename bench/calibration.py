@@ -20,7 +20,6 @@ every 3rd shared frame, uniform Kinect samples) at 50 / 200 / 500 points. Writes
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import warnings
@@ -118,12 +117,10 @@ def main(argv=None) -> int:
               f"{100 * r['coverage_3sigma']:5.2f}   {r['median_abs_z']:.3f}    {r['ause']:.3f}  "
               f"{r['rmse_mm_without_10%_by_sigma']:5.0f} / {r['rmse_mm_without_30%_by_sigma']:5.0f} "
               f"({r['rmse_mm_without_10%_oracle']:.0f} / {r['rmse_mm_without_30%_oracle']:.0f})")
-    result = {**machine(), "config": "DepthGPConfig()", "cases": cases}
+    from gpdepth3d.io import write_json
+
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.output.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(result, indent=1))
-    tmp.replace(args.output)
-    print(f"wrote {args.output}")
+    print(f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'cases': cases}, indent=1)}")
     return 0
 
 
