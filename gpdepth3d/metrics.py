@@ -136,7 +136,7 @@ def sparsification(abs_error: np.ndarray, uncertainty: np.ndarray) -> tuple[np.n
     if e2.size == 0 or u.shape != e2.shape:
         raise ShapeError("abs_error, uncertainty", "two arrays of the same length >= 1", f"{e2.shape}, {u.shape}")
     n = e2.size
-    keep = np.maximum(n - np.floor(SPARSIFICATION_FRACTIONS * n).astype(np.int64), 1)  # pixels left
+    keep = np.maximum(n - (np.arange(SPARSIFICATION_FRACTIONS.size) * n) // SPARSIFICATION_FRACTIONS.size, 1)  # left (exact)
     total = np.sum(e2)
     if total == 0:
         ones = np.ones(SPARSIFICATION_FRACTIONS.size)
