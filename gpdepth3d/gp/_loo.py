@@ -23,6 +23,8 @@ import math
 import numba as nb
 import numpy as np
 
+from ._cholesky import cholesky_in_place
+
 _FLAGS = dict(nogil=True, cache=True)
 
 
@@ -179,22 +181,7 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
                 A[a, b] = s2 * _corr(rows[ja] - rows[jb], cols[ja] - cols[jb], inv_l, nu, er, ec)
             A[a, a] = s2 + tau2 + noise[ja]
             kx[a] = y[a]
-    ok = True
-    for j in range(k):  # Cholesky A = L L^T in the lower triangle
-        acc = A[j, j]
-        for m in range(j):
-            acc -= A[j, m] * A[j, m]
-        if not acc > 0.0:
-            ok = False
-            break
-        ljj = math.sqrt(acc)
-        A[j, j] = ljj
-        for a in range(j + 1, k):
-            acc = A[a, j]
-            for m in range(j):
-                acc -= A[a, m] * A[j, m]
-            A[a, j] = acc / ljj
-    if not ok:
+    if not cholesky_in_place(A, k):  # A = L L^T in the lower triangle
         z[q] = np.nan  # the caller solves this one by least squares
         return
     for a in range(k):  # y = L^-1 kx

@@ -40,6 +40,7 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 
 from ..errors import InvalidInputError, ShapeError, describe
+from ._cholesky import cholesky_in_place
 
 MAX_WINDOW_POINTS = 36
 """Most points per cell's window (the nearest to its centre): every point for stride 2 (a 6 x 6 window);
@@ -90,25 +91,6 @@ def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - c
             E[i, d + reach] = _bridge(targets[i], y, k, n_nodes, inv_l)
             R[i, d + reach] = math.exp(-abs(targets[i] - y) * inv_l)
     return E, R
-
-
-@njit(cache=True, nogil=True)
-def _chol(A, n):  # pragma: no cover - compiled
-    """Lower Cholesky of A[:n, :n] in place; False when not positive definite."""
-    for a in range(n):
-        s = A[a, a]
-        for t in range(a):
-            s -= A[a, t] * A[a, t]
-        if not s > 0.0:  # (NaN too)
-            return False
-        s = math.sqrt(s)
-        A[a, a] = s
-        for b in range(a + 1, n):
-            t2 = A[b, a]
-            for t in range(a):
-                t2 -= A[b, t] * A[a, t]
-            A[b, a] = t2 / s
-    return True
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -166,7 +148,7 @@ def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p
                     ec, rc = Ec_p[pt_c[pa], dv], Rc_p[dv]
                     A[a, b] = s2 * (rr_ * ec + rc * er - er * ec)
                 A[a, a] += noise[pa]
-            if not _chol(A, n):  # numerically singular: leave this cell uncorrected
+            if not cholesky_in_place(A, n):  # numerically singular: leave this cell uncorrected
                 continue
             for a in range(n):
                 dinv[a] = 1.0 / A[a, a]
