@@ -103,7 +103,7 @@ def test_posterior_matches_a_dense_reference_with_the_slope():
     truth, mde = _scene()
     sp = g.sample_uniform(truth, n=50, rng=1)
     l, s, tau, sig = 6.0, 0.3, 0.04, 0.01
-    cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, edge_sigma=0.0, lengthscale=l, outputscale=s,
+    cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, local_calibration=None, edge_sigma=0.0, lengthscale=l, outputscale=s,
                           nugget=tau, sigma_meas=sig, depth_lengthscale=None, mde_slope_sigma=0.5)
     post = g.complete(mde, sp, config=cfg)
     rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth

@@ -9,7 +9,7 @@ from typing import Any, Literal
 from ..gp.model import DepthGPConfig
 from ..io import write_json
 from ..mapping.fusion import FusionConfig, save_mesh
-from ..mapping.mapper import SEVEN_SCENES_RGB_K, MapperConfig, fuse_sequence
+from ..mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, MapperConfig, fuse_sequence
 from ._options import GPPreset
 
 
@@ -19,7 +19,7 @@ def fuse_command(
     *,
     mde: str = "fastdepth",
     models_dir: Path | None = None,
-    gp: GPPreset = DepthGPConfig(),
+    gp: GPPreset = MAPPER_GP,
     frames: int | None = None,
     working_scale: float = 0.5,
     voxel_size: float = 0.02,
@@ -35,8 +35,9 @@ def fuse_command(
 
     The MDE is a front-end run on every image (default FastDepth, TFLite); the sparse points are
     features the library triangulates from the posed RGB frames themselves (not the ground truth);
-    the GP is --preset default|paper|residual (default `DepthGPConfig()`, the library's and
-    `MapperConfig`'s), its fields --gp.FIELD (e.g. --gp.engine exact). Writes
+    the GP is `MapperConfig`'s (the library's default model with the stationary GP's variance,
+    `MAPPER_GP`), or --preset default|paper|residual, and its fields --gp.FIELD (e.g. --gp.engine
+    exact). Writes
     ``mesh_mde``, ``mesh_gp_uniform``, ``mesh_gp_variance``, ``mesh_gt`` (``.<mesh_format>``) and
     ``metrics.json`` (accuracy/completeness/Chamfer/precision/recall against the ground-truth
     mesh, timings, frames that failed) into ``output``, all atomically. A frame that fails is

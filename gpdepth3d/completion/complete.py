@@ -314,6 +314,7 @@ def _log_residual_posterior(
         global scale as an alignment, the timings, the engine's `SolveInfo` and the MDE's slope. ``previous`` (a `PointFit`) starts the fit's
         search from a previous frame's values.
     """
+    from ..gp.local_calibration import local_variance_factor
     from ..gp.points import PointFit, screen_points
     from ..gp.slope import fit_mde_slope
     from ..gp.sublattice import sublattice_kriging
@@ -365,7 +366,7 @@ def _log_residual_posterior(
             edge = abs(slope.slope) * edge_raw if slope is not None else edge_raw  # the re-sloped MDE's range
             screen_noise = noise + (config.edge_sigma * edge) ** 2
         with _single_threaded_blas():  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
-            fit, rejected, _ = screen_points(
+            fit, rejected, zscores = screen_points(
                 rows, cols, resid, screen_noise, threshold=config.outlier_threshold, nu=config.nu, start=start,
                 around=around, raise_outputscale=start is not None and config.raise_outputscale,
             )
@@ -373,6 +374,7 @@ def _log_residual_posterior(
         b = float(np.median(resid)) if len(z) else 0.0
         fit = PointFit(config.lengthscale, config.outputscale, config.nugget, b, config.outputscale**2, len(z))
         rejected = np.zeros(len(z), dtype=bool)
+        zscores = np.zeros(len(z))
     if fit_slope and rejected.any() and np.count_nonzero(~rejected) >= 3:
         before = resid
         slope = fitted_slope(~rejected)
@@ -487,6 +489,17 @@ def _log_residual_posterior(
         factor = max(out_shape[0] / h, out_shape[1] / w)
         window = 2 * int(np.ceil(factor)) + 1
         var += (config.edge_sigma * np.exp(fit.log_scale) * _edge_range(base_out, window)) ** 2
+    if variance and config.local_calibration is not None and len(r) >= FEW_POINTS:
+        # the variance moved to where the points disagree with their neighbours (gp.local_calibration);
+        # the screen's z-scores are those of the residuals before a refit of the slope without the
+        # rejected points (the refit moves them little: it removes what the screen rejected)
+        if config.outlier_threshold is None:  # no screen: the z-scores computed here
+            from ..gp.points import loo_zscores
+
+            with _single_threaded_blas():
+                zscores = loo_zscores(rows, cols, resid, screen_noise, fit, nu=config.nu)
+        local = local_variance_factor((h, w), r, c, zscores[keep], reach=config.local_calibration)
+        var *= local if same_grid else resize_map(local, out_shape)
     t2 = time.perf_counter()
 
     fitted = config.replace(lengthscale=fit.lengthscale, outputscale=fit.outputscale, nugget=fit.nugget)

@@ -191,13 +191,24 @@ def _resize_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(depth.astype(np.float32), (shape[1], shape[0]), interpolation=interp).astype(np.float64)
 
 
+MAPPER_GP = DepthGPConfig(local_calibration=None)
+"""The `Mapper`'s GP: the default model with the variance of the stationary GP (see `MapperConfig.gp`)."""
+
+
 @dataclass(frozen=True)
 class MapperConfig:
     """Options of the `Mapper`.
 
     Attributes:
-        gp: GP model of the refinement: the library's default model (`DepthGPConfig()`, fixed
-            hyperparameters, on the fast engine). Measured on 10 frames of 7-Scenes at 320x240
+        gp: GP model of the refinement: the library's default model without the local calibration
+            of its variance (`MAPPER_GP`: `DepthGPConfig(local_calibration=None)`, fixed hyperparameters,
+            on the fast engine). The fusion's cut (``FusionConfig.max_relative_sigma``) and weights were
+            chosen on that variance, which grows with the distance to the nearest point; the triangulated
+            points sit in clusters on image features, whose leave-one-out z-scores speak for the short
+            distances inside a cluster, so the calibrated variance shrinks across the gaps between them
+            too. bench/fusion.py (60 frames, 2026-11-23): F at 5 cm 0.450 without it; with it 0.393 at the
+            0.2 cut, 0.424 / 0.411 / 0.395 / 0.339 at 0.1 / 0.15 / 0.07 / 0.05, 0.422 with 10 pseudo-points
+            instead of 2. Measured on 10 frames of 7-Scenes at 320x240
             (FastDepth, 150 Kinect samples, one torch thread, busy shared machine) before the
             fit was made cheaper: a per-frame fit (``fit=True``) cost 528-654 ms of CPU a frame,
             fixed values 31 ms, with the same median error (65 / 66 mm) and +-2 sigma coverage
@@ -294,7 +305,7 @@ class MapperConfig:
             `Mapper.update_poses` and `Mapper.save`.
     """
 
-    gp: DepthGPConfig = field(default_factory=DepthGPConfig)
+    gp: DepthGPConfig = field(default_factory=lambda: MAPPER_GP)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     refine: bool = True
