@@ -8,7 +8,7 @@ Usage::
                            [--gp default|residual] [--tri FIELD=VALUE ...] [--gp-set FIELD=VALUE ...]
                            [--out PATH]
 
-``--gp residual`` uses ``DepthGPConfig.residual()`` instead of the library default; ``--tri``
+``--gp residual`` uses ``DepthGPConfig.residual()`` instead of the Mapper's default; ``--tri``
 overrides `TriangulationConfig` fields (e.g. ``--tri variance_factor=False``), ``--gp-set`` fields of
 the GP model (e.g. ``--gp-set "align='none'"``).
 
@@ -21,8 +21,9 @@ truncation 8 cm, depth_max 5 m):
   track from every view it was seen in among the ``--window`` frames before and the ``--lag``
   frames after the frame (the Mapper's fixed lag), with the sequence's poses (no ground truth);
   per-point sigma from pixel noise and pose uncertainty.
-* Refinement: the library's default GP, ``DepthGPConfig()`` (whatever the default is at the
-  time of the run; it is written into the JSON).
+* Refinement: the Mapper's GP, ``MAPPER_GP`` (the library's default model with the stationary GP's
+  variance, ``DepthGPConfig(local_calibration=None)``; whatever it is at the time of the run, it is
+  written into the JSON; ``--gp-set local_calibration=1.5`` gives the library default's variance).
 * Fusion: variance-weighted TSDF of the posterior median (the Mapper's volume and
   ``fuse_depth``); MDE-only with uniform weights as the
   baseline; the reference mesh is fused from the Kinect depth with the depth camera's
@@ -85,7 +86,7 @@ def main() -> None:
     parser.add_argument("--detector", choices=["klt", "orb", "sift"], default="klt")
     parser.add_argument(
         "--gp", choices=["default", "residual"], default="default",
-        help="GP model: the library's default DepthGPConfig() or DepthGPConfig.residual()",
+        help="GP model: the Mapper's default (MAPPER_GP) or DepthGPConfig.residual()",
     )
     parser.add_argument(
         "--tri", action="append", default=[], metavar="FIELD=VALUE",
@@ -107,7 +108,7 @@ def main() -> None:
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
     from gpdepth3d.io import to_jsonable
-    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth, mesh_metrics
+    from gpdepth3d.mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth, mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
     from gpdepth3d.mapping.triangulation import TriangulationConfig, triangulate_frames
@@ -120,7 +121,7 @@ def main() -> None:
     config = MapperConfig(
         fusion=fusion,
         working_scale=0.5,
-        gp=replace(DepthGPConfig() if args.gp == "default" else DepthGPConfig.residual(), **gp_overrides),
+        gp=replace(MAPPER_GP if args.gp == "default" else DepthGPConfig.residual(), **gp_overrides),
         triangulation=TriangulationConfig(detector=args.detector, **overrides),
         **{k: v for k, v in (("window", args.window), ("lag", args.lag), ("fuse_depth", args.fuse_depth)) if v is not None},
     )

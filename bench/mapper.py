@@ -5,8 +5,8 @@ Usage::
     python bench/mapper.py [--data ../shared/data/7scenes] [--model ../shared/models/fast_depth_224.tflite]
                            [--frames 60] [--threads 1] [--out bench/results/mapper.json]
 
-Per `Mapper.add_frame` call, with the library's defaults (`MapperConfig()`: the default
-`DepthGPConfig()` on the fast engine, KLT tracks with 8 earlier and 4 later views (the fixed lag:
+Per `Mapper.add_frame` call, with the library's defaults (`MapperConfig()`: its GP `MAPPER_GP`, the
+default model with the stationary GP's variance, on the fast engine, KLT tracks with 8 earlier and 4 later views (the fixed lag:
 a call adds one frame and refines and fuses the frame added 4 calls earlier), variance-weighted
 TSDF of the posterior median with 2 cm voxels) at ``working_scale=0.5`` (320 x 240 from the
 640 x 480 RGB): the stages "mde" (FastDepth int8 TFLite on the RGB image added), "points" (one

@@ -430,6 +430,12 @@ class TestLoopClosure:
         for k in a:
             np.testing.assert_array_equal(a[k], c[k], err_msg=k)
         assert sorted(loaded.keyframes) == sorted(mapper.keyframes)
+        assert loaded.config.gp == mapper.config.gp
+        # a map saved before DepthGPConfig.local_calibration existed: loaded without it, as it was made
+        meta = json.loads((tmp_path / "map" / "mapper.json").read_text())
+        meta["config"]["gp"].pop("local_calibration")
+        (tmp_path / "map" / "mapper.json").write_text(json.dumps(meta))
+        assert Mapper.load(tmp_path / "map").config.gp.local_calibration is None
         np.testing.assert_allclose(loaded.keyframes[3].T_world_camera, moved, atol=1e-12)  # snapped by check_pose
         loaded.update_poses({3: poses[3]})
         mapper.update_poses({3: poses[3]})
@@ -604,6 +610,30 @@ class TestFixedLag:
         with pytest.raises(InvalidInputError):
             MapperConfig(fuse_depth="mode")  # type: ignore[arg-type]
         assert MapperConfig().lag == 4 and MapperConfig().window == 8 and MapperConfig().fuse_depth == "median"
+
+    def test_gp_is_the_default_model_with_the_stationary_variance(self, monkeypatch, tmp_path):
+        """The fusion's cut and weights were chosen on the stationary GP's variance (MapperConfig.gp);
+        `gpdepth3d fuse` refines with the same GP unless told otherwise."""
+        from gpdepth3d.cli import main
+        from gpdepth3d.gp.model import DepthGPConfig
+        from gpdepth3d.mapping.mapper import MAPPER_GP
+
+        assert MapperConfig().gp == MAPPER_GP == DepthGPConfig(local_calibration=None)
+        seen = []
+
+        class Stop(Exception):
+            pass
+
+        def capture(*args, gp=None, **kwargs):
+            seen.append(gp)
+            raise Stop
+
+        monkeypatch.setattr("gpdepth3d.cli.fuse.MapperConfig", capture)
+        monkeypatch.setattr("gpdepth3d.mde.load_frontend", lambda *a, **k: None)
+        for argv, expected in (([], None), (["--gp.local-calibration", "1.5"], 1.5)):
+            main(["fuse", "--data", str(tmp_path), "--output", str(tmp_path / "out"), *argv])  # stops at the config
+            assert seen[-1].local_calibration == expected
+            assert seen[-1].replace(local_calibration=None) == MAPPER_GP
 
 
 class TestFusedDepth:

@@ -1113,7 +1113,8 @@ class Mapper:
             if config is None:
                 saved = meta["config"]
                 config = MapperConfig(
-                    gp=DepthGPConfig(**saved["gp"]),
+                    # maps saved before the local calibration of the variance existed had none
+                    gp=DepthGPConfig(**{"local_calibration": None, **saved["gp"]}),
                     fusion=FusionConfig(**saved["fusion"]),
                     triangulation=TriangulationConfig(**_tuples(saved["triangulation"])),
                     **{k: v for k, v in saved.items() if k not in ("gp", "fusion", "triangulation")},
