@@ -19,6 +19,7 @@ from gpdepth3d.cli import main
 from gpdepth3d.cli._options import PRESETS, RENAMED, normalize_argv
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import DepthGPConfig
+from gpdepth3d.mapping.mapper import MAPPER_GP
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -114,11 +115,13 @@ class TestEverySubcommand:
             (batch, "batch_command", "batch", ["--data", "d", "--output", "o"]),
         ):
             calls = _spy(monkeypatch, module, name)
+            # the library's default model; fuse's is the Mapper's (the same model with the stationary variance)
+            default = MAPPER_GP if command == "fuse" else DepthGPConfig()
             assert main([command, *required]) == 0
-            assert calls[-1]["gp"] == DepthGPConfig()  # the library's default model
+            assert calls[-1]["gp"] == default
             for preset, config in PRESETS.items():
                 assert main([command, *required, "--preset", preset, "--gp.engine", "exact"]) == 0
-                assert calls[-1]["gp"] == config.replace(engine="exact")
+                assert calls[-1]["gp"] == (default if preset == "default" else config).replace(engine="exact")
         calls = _spy(monkeypatch, batch, "batch_command")
         assert main(["batch", "--data", "d", "--output", "o", "--frames", "3"]) == 0
         assert calls[-1]["frames"] == 3 and calls[-1]["workers"] is None  # None: run_batch's default, the CPU count
