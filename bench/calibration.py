@@ -1,8 +1,10 @@
 """How far to trust the default model's standard deviation: the shape of its errors in sigmas, and its ranking.
 
 +-2 sigma coverage (the issue's target, `bench/default_model.py`, `bench/kitti_paper.py`) can be right while
-the errors' distribution is far from the posterior's. For the default `DepthGPConfig()` this reports, pooled
-over the frames' ground-truth pixels (`gpdepth3d.metrics.calibration_metrics`):
+the errors' distribution is far from the posterior's. For the default `DepthGPConfig()`, and beside it the same
+model without the local calibration of its variance (``local_calibration=None``, `gpdepth3d.gp.local_calibration`;
+stored under ``without_local_calibration`` in each case), this reports, pooled over the frames' ground-truth pixels
+(`gpdepth3d.metrics.calibration_metrics`):
 
 - coverage at 1 / 2 / 3 sigma (a Gaussian: 68.3 / 95.4 / 99.7 %) and the median |error| / sigma (0.674);
 - the ranking: AUSE (area under the RMSE's sparsification error, 0 = sigma orders the errors perfectly) and
@@ -31,6 +33,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _kitti_speed import REPO, machine  # noqa: E402
 
 KEYS = ("coverage_1sigma", "coverage_2sigma", "coverage_3sigma", "median_abs_z", "ause")
+CONFIGS = (({}, None), ({"local_calibration": None}, "without_local_calibration"))
+"""The default, and the default without the local calibration of its variance (`gpdepth3d.gp.local_calibration`)."""
+
+
+def _store(out: dict, case: str, key: str | None, row: dict) -> None:
+    """The default's row as the case, the other configs' rows under their key inside it."""
+    if key is None:
+        out[case] = {**row, **out.get(case, {})}
+    else:
+        out.setdefault(case, {})[key] = row
 
 
 def _summary(means, variances, gts) -> dict:
@@ -65,14 +77,15 @@ def kitti(data: Path, models: Path) -> dict:
               for i, (name, rgb, lidar) in enumerate(lidar_frames(open_dataset(data / "kitti_tiny")))]
     out = {}
     for label, density in (("1/64", 1 / 64), ("1/16", 1 / 16), ("1/4", 1 / 4), ("all", 1.0)):
-        means, variances, gts = [], [], []
-        for i, setup in enumerate(setups):
-            sparse = draw_input("uniform", density, setup.lidar.available, rng=np.random.default_rng([7, i]))
-            post = DepthCompleter(DepthGPConfig())(setup.mde_grid, sparse)
-            means.append(post.mean)
-            variances.append(post.variance)
-            gts.append(setup.lidar.gt_grid)
-        out[f"kitti_tiny {label}"] = _summary(means, variances, gts)
+        for config, key in CONFIGS:
+            means, variances, gts = [], [], []
+            for i, setup in enumerate(setups):
+                sparse = draw_input("uniform", density, setup.lidar.available, rng=np.random.default_rng([7, i]))
+                post = DepthCompleter(DepthGPConfig(**config))(setup.mde_grid, sparse)
+                means.append(post.mean)
+                variances.append(post.variance)
+                gts.append(setup.lidar.gt_grid)
+            _store(out, f"kitti_tiny {label}", key, _summary(means, variances, gts))
     return out
 
 
@@ -87,15 +100,16 @@ def seven_scenes(data: Path, models: Path) -> dict:
         inputs.append((fr.name, np.asarray(fastdepth(small.rgb), dtype=np.float64), small.depth))
     out = {}
     for n in (50, 200, 500):
-        means, variances, gts = [], [], []
-        completer = g.DepthCompleter()
-        for i, (name, mde, gt) in enumerate(inputs):
-            sp = g.sample_uniform(gt, n=n, rng=np.random.default_rng(1000 * i + n))  # as bench/default_model.py
-            post = completer(mde, sp, frame=name)
-            means.append(post.mean)
-            variances.append(post.variance)
-            gts.append(gt)
-        out[f"7scenes {n} points"] = _summary(means, variances, gts)
+        for config, key in CONFIGS:
+            means, variances, gts = [], [], []
+            completer = g.DepthCompleter(g.DepthGPConfig(**config))
+            for i, (name, mde, gt) in enumerate(inputs):
+                sp = g.sample_uniform(gt, n=n, rng=np.random.default_rng(1000 * i + n))  # as bench/default_model.py
+                post = completer(mde, sp, frame=name)
+                means.append(post.mean)
+                variances.append(post.variance)
+                gts.append(gt)
+            _store(out, f"7scenes {n} points", key, _summary(means, variances, gts))
     return out
 
 
@@ -112,15 +126,16 @@ def main(argv=None) -> int:
         warnings.simplefilter("ignore", PosteriorWarning)
         cases = {**seven_scenes(args.data, models), **kitti(args.data, models)}
     print(f"{'case':22s} {'RMSE':>6s}  cov 1/2/3 sigma      median|z|  AUSE   RMSE without 10 % / 30 % by sigma (oracle)")
-    for name, r in cases.items():
-        print(f"{name:22s} {r['rmse_mm']:6.0f}  {100 * r['coverage_1sigma']:4.1f} / {100 * r['coverage_2sigma']:4.1f} / "
-              f"{100 * r['coverage_3sigma']:5.2f}   {r['median_abs_z']:.3f}    {r['ause']:.3f}  "
-              f"{r['rmse_mm_without_10%_by_sigma']:5.0f} / {r['rmse_mm_without_30%_by_sigma']:5.0f} "
-              f"({r['rmse_mm_without_10%_oracle']:.0f} / {r['rmse_mm_without_30%_oracle']:.0f})")
+    for name, case in cases.items():
+        for label, r in ((name, case), ("  without local calib.", case["without_local_calibration"])):
+            print(f"{label:22s} {r['rmse_mm']:6.0f}  {100 * r['coverage_1sigma']:4.1f} / {100 * r['coverage_2sigma']:4.1f} / "
+                  f"{100 * r['coverage_3sigma']:5.2f}   {r['median_abs_z']:.3f}    {r['ause']:.3f}  "
+                  f"{r['rmse_mm_without_10%_by_sigma']:5.0f} / {r['rmse_mm_without_30%_by_sigma']:5.0f} "
+                  f"({r['rmse_mm_without_10%_oracle']:.0f} / {r['rmse_mm_without_30%_oracle']:.0f})")
     from gpdepth3d.io import write_json
 
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'cases': cases}, indent=1)}")
+    print(f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'compared': 'DepthGPConfig(local_calibration=None)', 'cases': cases}, indent=1)}")
     return 0
 
 
