@@ -95,17 +95,20 @@ def local_variance_factor(
     c = max(1, int(radius // 3))
     hb, wb = -(-h // c), -(-w // c)
     q = np.minimum(z * z, ZSCORE_CAP)
-    sums = np.zeros(hb * wb)
-    weights = np.zeros(hb * wb)
-    y, x = (rows - (c - 1) / 2) / c, (cols - (c - 1) / 2) / c
-    i0, j0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
-    fy, fx = y - i0, x - j0
-    for di, wy in ((0, 1 - fy), (1, fy)):
-        for dj, wx in ((0, 1 - fx), (1, fx)):
-            cell = np.clip(i0 + di, 0, hb - 1) * wb + np.clip(j0 + dj, 0, wb - 1)
-            share = wy * wx
-            sums += np.bincount(cell, share * q, hb * wb)
-            weights += np.bincount(cell, share, hb * wb)
+    if c == 1:  # the points' own pixels
+        cell = rows * w + cols
+        sums, weights = np.bincount(cell, q, h * w), np.bincount(cell, None, h * w).astype(np.float64)
+    else:
+        sums, weights = np.zeros(hb * wb), np.zeros(hb * wb)
+        y, x = (rows - (c - 1) / 2) / c, (cols - (c - 1) / 2) / c
+        i0, j0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+        fy, fx = y - i0, x - j0
+        for di, wy in ((0, 1 - fy), (1, fy)):
+            for dj, wx in ((0, 1 - fx), (1, fx)):
+                cell = np.clip(i0 + di, 0, hb - 1) * wb + np.clip(j0 + dj, 0, wb - 1)
+                share = wy * wx
+                sums += np.bincount(cell, share * q, hb * wb)
+                weights += np.bincount(cell, share, hb * wb)
     sums, weights = sums.reshape(hb, wb), weights.reshape(hb, wb)
     sigma = radius / c
     size = 2 * int(math.ceil(3 * sigma)) + 1
