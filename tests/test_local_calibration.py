@@ -14,9 +14,10 @@ from gpdepth3d.gp.local_calibration import ZSCORE_CAP, local_variance_factor
 
 
 def _direct(shape, rows, cols, z, reach, prior_points):
-    """f(x) evaluated pixel by pixel: Gaussian weights of radius reach x sqrt(HW/N), cut at ceil(3 radius) per axis."""
+    """f(x) evaluated pixel by pixel: Gaussian weights of radius reach x sqrt(A / N) (A: the points' bounding
+    box), cut at ceil(3 radius) per axis."""
     h, w = shape
-    radius = reach * math.sqrt(h * w / len(z))
+    radius = reach * math.sqrt((np.ptp(rows) + 1) * (np.ptp(cols) + 1) / len(z))
     cut = math.ceil(3 * radius)
     rr, cc = np.mgrid[0:h, 0:w]
     dr = rr.ravel()[:, None] - rows[None]
@@ -40,6 +41,11 @@ class TestFactor:
         for reach, prior in ((1.0, 1.0), (0.6, 3.0)):
             got = local_variance_factor(shape, rows, cols, z, reach=reach, prior_points=prior)
             np.testing.assert_allclose(got, _direct(shape, rows, cols, z, reach, prior), rtol=2e-3)
+        # points in the left third only: the spacing is theirs (bounding box 30 x 13), not the grid's
+        left = cols < 13
+        got = local_variance_factor(shape, rows[left], cols[left], z[left])
+        np.testing.assert_allclose(got, _direct(shape, rows[left], cols[left], z[left], 1.5, 2.0), rtol=2e-3)
+        assert np.all(np.abs(got[:, 22:] - 1.0) < 1e-6)  # beyond the blur (3 radii of 2.8 px) from the band: f = 1
 
     def test_binned_blur_follows_the_formula_at_wide_radii(self):
         """Few points, radius 17-40 px: bins of 5-13 px (points splatted bilinearly, the factor resized back);
@@ -56,7 +62,7 @@ class TestFactor:
         shape = (50, 60)
         rr, cc = np.mgrid[0:50:2, 0:30:2]  # points in the left half only, every 2nd pixel
         rows, cols = rr.ravel(), cc.ravel()
-        radius = math.sqrt(50 * 60 / rows.size)
+        radius = math.sqrt(49 * 29 / rows.size)  # spacing over the points' bounding box, 49 x 29 pixels
         inside = 2 * math.pi * radius**2 / 4  # points under the Gaussian inside them: one per 4 pixels
         for q in (0.25, 4.0):
             f = local_variance_factor(shape, rows, cols, np.full(rows.size, math.sqrt(q)), reach=1.0, prior_points=1.0)

@@ -6,7 +6,6 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal
 
-from ..gp.model import DepthGPConfig
 from ..io import write_json
 from ..mapping.fusion import FusionConfig, save_mesh
 from ..mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, MapperConfig, fuse_sequence
