@@ -150,7 +150,7 @@ class DepthGPConfig:
             do not, its level set by the data. The z-scores are the screen's (with
             ``outlier_threshold`` None they are computed for this); frames with fewer than 10 kept
             points keep the model's variance. None turns it off. Measured (bench/calibration.py):
-            AUSE 7-Scenes 0.58-0.66 -> 0.31-0.45, KITTI 0.26-0.40 -> 0.14-0.20, +-2 sigma kept in 93-97 %.
+            AUSE 7-Scenes 0.58-0.66 -> 0.32-0.43, KITTI 0.26-0.40 -> 0.14-0.22, +-2 sigma kept in 94-97 %.
     """
 
     formulation: Formulation = "log_residual"
