@@ -306,7 +306,7 @@ class MapperConfig:
             `Mapper.update_poses` and `Mapper.save`.
     """
 
-    gp: DepthGPConfig = field(default_factory=lambda: MAPPER_GP)
+    gp: DepthGPConfig = MAPPER_GP
     fusion: FusionConfig = field(default_factory=FusionConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     refine: bool = True
