@@ -75,7 +75,23 @@ class TestFactor:
         f = local_variance_factor(shape, np.array([25]), np.array([30]), np.array([1e6]))
         assert 1.0 < f.max() <= ZSCORE_CAP
 
+    def test_noise_share_floors_each_squared_zscore(self):
+        """A point's z^2 enters as max(z^2, q): points that agree better than their own noise allows (errors
+        shared with their neighbours) cannot argue the variance below that noise; z^2 above q is unchanged."""
+        shape = (30, 40)
+        rows, cols, z = _points(shape, 300, 4)
+        share = np.random.default_rng(4).uniform(0.0, 1.0, z.size)
+        got = local_variance_factor(shape, rows, cols, z, reach=1.0, prior_points=1.0, noise_share=share)
+        floored = np.sqrt(np.maximum(z**2, share))
+        np.testing.assert_allclose(got, _direct(shape, rows, cols, floored, 1.0, 1.0), rtol=2e-3)
+        same = local_variance_factor(shape, rows, cols, z, reach=1.0, prior_points=1.0, noise_share=np.zeros(z.size))
+        np.testing.assert_array_equal(same, local_variance_factor(shape, rows, cols, z, reach=1.0, prior_points=1.0))
+        agree = local_variance_factor(shape, rows, cols, np.zeros(z.size), noise_share=np.full(z.size, 0.5))
+        assert np.all((agree >= 0.5 - 1e-9) & (agree <= 1.0 + 1e-9))  # z = 0 everywhere: no lower than the share
+
     @pytest.mark.parametrize("args, kwargs, name", [
+        (((10, 10), [1], [1], [0.5]), {"noise_share": [1.5]}, "noise_share"),
+        (((10, 10), [1, 2], [1, 2], [0.5, 0.5]), {"noise_share": [0.5]}, "noise_share"),
         (((10, 10), [1, 2], [1], [0.5, 0.5]), {}, "rows, cols, zscores"),
         (((10, 10), [1], [10], [0.5]), {}, "rows, cols"),
         (((10, 10), [-1], [1], [0.5]), {}, "rows, cols"),

@@ -79,7 +79,7 @@ class TestScreenPoints:
         rng = np.random.default_rng(5)
         bad = rng.choice(400, 20, replace=False)
         resid[bad] += np.log(rng.choice([0.15, 0.3, 2.5, 3.0], 20))
-        fit, rejected, z = screen_points(rows, cols, resid, np.full(400, 1e-6))
+        fit, rejected, z, _ = screen_points(rows, cols, resid, np.full(400, 1e-6))
         assert np.count_nonzero(rejected[bad]) >= 19  # 20 planted, factors 0.15-3
         assert np.count_nonzero(np.abs(z[bad]) > 3.5) >= 19 and z.shape == (400,)
         assert rejected.sum() <= 20 + 4
@@ -88,7 +88,7 @@ class TestScreenPoints:
     def test_threshold_none_keeps_all(self):
         rows, cols, resid = _field_sample(50, 30, 40, 8.0, 0.2, 0.02, 0.0, 6)
         resid[3] += 3.0
-        _, rejected, z = screen_points(rows, cols, resid, np.full(50, 1e-6), threshold=None)
+        _, rejected, z, _ = screen_points(rows, cols, resid, np.full(50, 1e-6), threshold=None)
         assert not z.any()
         assert not rejected.any()
 
@@ -113,8 +113,8 @@ class TestScreenPoints:
         start = PointFit(32.0, 0.2, 0.02, float(np.median(resid)), 0.04 / 400, 400)
         good = np.ones(400, dtype=bool)
         good[bad] = False
-        fixed_fit, fixed, _ = screen_points(rows, cols, resid, np.full(400, 1e-6), start=start)
-        fit, rejected, _ = screen_points(rows, cols, resid, np.full(400, 1e-6), start=start, raise_outputscale=True)
+        fixed_fit, fixed, _, _ = screen_points(rows, cols, resid, np.full(400, 1e-6), start=start)
+        fit, rejected, _, _ = screen_points(rows, cols, resid, np.full(400, 1e-6), start=start, raise_outputscale=True)
         assert fixed_fit is start and fit.outputscale > 0.45
         assert np.count_nonzero(rejected[bad]) >= 14
         assert np.count_nonzero(rejected[good]) < np.count_nonzero(fixed[good])

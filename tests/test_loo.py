@@ -132,17 +132,20 @@ class TestNeighbours:
             np.testing.assert_array_equal(_ring_position(offs[:, 0], offs[:, 1], d), np.arange(4 * d))
 
 
-def _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu):
+def _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu, share=False):
+    """z-scores (and noise shares: the variance of the noise terms of r_i - w . r_N over its predictive variance)."""
     s2, tau2 = fit.outputscale**2, fit.nugget**2
-    out = np.empty(len(targets))
+    out, shares = np.empty(len(targets)), np.empty(len(targets))
     for q, i in enumerate(targets):
         N = nn[q]
         K = s2 * separable_correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], fit.lengthscale, nu)
         K[np.diag_indices(len(N))] += tau2 + noise[N]
         kx = s2 * separable_correlation(rows[i] - rows[N], cols[i] - cols[N], fit.lengthscale, nu)
         w = np.linalg.solve(K, kx)
-        out[q] = (r[i] - w @ r[N]) / np.sqrt(s2 + tau2 + noise[i] - w @ kx)
-    return out
+        var = s2 + tau2 + noise[i] - w @ kx
+        out[q] = (r[i] - w @ r[N]) / np.sqrt(var)
+        shares[q] = (noise[i] + np.sum(w**2 * noise[N])) / var
+    return (out, shares) if share else out
 
 
 class TestKriging:
@@ -157,9 +160,41 @@ class TestKriging:
         fit = PointFit(9.0, 0.2, 0.02, 0.0, 1e-4, n)
         targets = rng.choice(n, n_targets, replace=False)
         nn, _ = neighbours_of(rows, cols, np.ones(n, bool), targets, 12)
-        z = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu)
-        np.testing.assert_allclose(z, _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu), rtol=1e-9,
-                                   atol=1e-10)
+        z, share = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu,
+                               stated=noise)
+        z_ref, share_ref = _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu, share=True)
+        np.testing.assert_allclose(z, z_ref, rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(share, share_ref, rtol=1e-9, atol=1e-12)
+        assert np.all((share > 0) & (share < 1))
+        _, half = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu,
+                              stated=noise / 2)
+        np.testing.assert_allclose(half, share / 2, rtol=1e-12)  # the share of the stated part only
+        np.testing.assert_array_equal(loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02,
+                                                  lengthscale=9.0, nu=nu), z)  # z alone without the flag
+
+    def test_noise_share_is_a_floor_of_the_mean_squared_zscore(self):
+        """With independent noises as stated, E[z^2] = share + (1 - share) x (field calibration): a field drawn
+        from the model gives mean z^2 ~ 1; a field with no variation (all residuals from the noise) gives mean
+        z^2 ~ the mean share, never less. This is what `local_variance_factor` floors z^2 at."""
+        rng = np.random.default_rng(5)
+        h, w = 30, 30
+        rows, cols = (a.ravel().astype(np.float64) for a in np.mgrid[0:h, 0:w])
+        n = rows.size
+        noise = np.full(n, 0.01**2)
+        fit = PointFit(6.0, 0.05, 0.0, 0.0, 1e-4, n)
+        C = 0.05**2 * separable_correlation(rows[:, None] - rows[None], cols[:, None] - cols[None], 6.0, 0.5)
+        L = np.linalg.cholesky(C + 1e-12 * np.eye(n))
+        field_z2, flat_z2, shares = [], [], []
+        for _ in range(20):
+            eps = rng.normal(0.0, 0.01, n)
+            z, share = loo_zscores(rows, cols, L @ rng.standard_normal(n) + eps, noise, fit, stated=noise)
+            flat, _ = loo_zscores(rows, cols, eps, noise, fit, stated=noise)
+            field_z2.append(np.mean(z**2))
+            flat_z2.append(np.mean(flat**2))
+            shares.append(np.mean(share))
+        assert 0.85 < np.mean(field_z2) < 1.15
+        assert 0.1 < np.mean(shares) < 0.9
+        assert abs(np.mean(flat_z2) - np.mean(shares)) < 0.1 * np.mean(shares)
 
     def test_singular_neighbourhood_is_flagged_in_its_lane_only(self):
         """Two noiseless points on one pixel with no nugget: that neighbourhood's matrix is singular (NaN, solved
@@ -180,6 +215,19 @@ class TestKriging:
         fit = PointFit(9.0, 0.2, 0.0, 0.0, 1e-4, n)
         full = loo_zscores(rows, cols, r, noise, fit)
         assert np.all(np.isfinite(full))
+        # noisy points around the noiseless duplicate pair: the least-squares lanes' z and noise share
+        noise = rng.uniform(1e-4, 1e-3, n)
+        noise[[0, n - 1]] = 0.0
+        z, share = loo_zscores(rows, cols, r, noise, fit, only=targets, stated=noise)
+        for q in np.flatnonzero(singular):
+            N = nn[q]
+            K = 0.04 * separable_correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], 9.0, 0.5)
+            K[np.diag_indices(len(N))] += noise[N]
+            kx = 0.04 * separable_correlation(rows[q] - rows[N], cols[q] - cols[N], 9.0, 0.5)
+            wq = np.linalg.lstsq(K, kx, rcond=None)[0]
+            var = 0.04 + noise[q] - wq @ kx
+            assert z[q] == pytest.approx((r[q] - wq @ r[N]) / np.sqrt(var), rel=1e-6)
+            assert share[q] == pytest.approx((noise[q] + np.sum(wq**2 * noise[N])) / var, rel=1e-6)
 
 
 def _screen_reference(rows, cols, resid, noise, fit, threshold, iterations=3):
@@ -206,7 +254,7 @@ class TestScreening:
         resid[bad] += rng.choice([-1.0, 0.7, 1.5], bad.size)
         noise = np.full(n, 1e-4)
         fit = PointFit(16.0, 0.2, 0.02, 0.0, 1e-4, n)
-        _, rejected, z = screen_points(rows, cols, resid, noise, threshold=3.5, start=fit)
+        _, rejected, z, _ = screen_points(rows, cols, resid, noise, threshold=3.5, start=fit)
         ref_rejected, ref_z = _screen_reference(rows, cols, resid, noise, fit, 3.5)
         np.testing.assert_array_equal(rejected, ref_rejected)
         np.testing.assert_allclose(z, ref_z, rtol=1e-12, atol=1e-12)

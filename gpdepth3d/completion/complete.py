@@ -328,6 +328,7 @@ def _log_residual_posterior(
     sig = grid_sparse.sigma
     unit = 1.0 if config.units == "metres" else z
     noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
+    stated = np.where(np.isfinite(sig), sig / z, 0.0) ** 2  # the part the points' own sigmas state
     log_raw = np.log(base)
     # the MDE's log-depth range around each point (3 x 3): the edge term of the slope fit and the screen
     edge_raw = _edge_range_at(log_raw, rows, cols) if config.edge_sigma > 0 else None
@@ -366,15 +367,15 @@ def _log_residual_posterior(
             edge = abs(slope.slope) * edge_raw if slope is not None else edge_raw  # the re-sloped MDE's range
             screen_noise = noise + (config.edge_sigma * edge) ** 2
         with _single_threaded_blas():  # small dense matrices: threads only contend (25-50x slower on 2 busy cores)
-            fit, rejected, zscores = screen_points(
+            fit, rejected, zscores, shares = screen_points(
                 rows, cols, resid, screen_noise, threshold=config.outlier_threshold, nu=config.nu, start=start,
-                around=around, raise_outputscale=start is not None and config.raise_outputscale,
+                around=around, raise_outputscale=start is not None and config.raise_outputscale, stated=stated,
             )
     else:  # fewer than 3 points: the configured scales, the points' median as the global scale
         b = float(np.median(resid)) if len(z) else 0.0
         fit = PointFit(config.lengthscale, config.outputscale, config.nugget, b, config.outputscale**2, len(z))
         rejected = np.zeros(len(z), dtype=bool)
-        zscores = np.zeros(len(z))
+        zscores = shares = np.zeros(len(z))
     if fit_slope and rejected.any() and np.count_nonzero(~rejected) >= 3:
         before = resid
         slope = fitted_slope(~rejected)
@@ -497,8 +498,9 @@ def _log_residual_posterior(
             from ..gp.points import loo_zscores
 
             with _single_threaded_blas():
-                zscores = loo_zscores(rows, cols, resid, screen_noise, fit, nu=config.nu)
-        local = local_variance_factor((h, w), r, c, zscores[keep], reach=config.local_calibration)
+                zscores, shares = loo_zscores(rows, cols, resid, screen_noise, fit, nu=config.nu, stated=stated)
+        local = local_variance_factor((h, w), r, c, zscores[keep], reach=config.local_calibration,
+                                      noise_share=shares[keep])
         var *= local if same_grid else resize_map(local, out_shape)
     t2 = time.perf_counter()
 

@@ -14,6 +14,8 @@ w . r_N and the predictive variance s^2 + tau^2 + noise_i - w . k_Ni, in one com
 the targets (a k x k Cholesky each, in parallel over targets) instead of NumPy's batched LU over
 an (N, k, k) stack and its (N, k, k) correlation tables. For nu = 0.5 and integer pixel
 coordinates (points on the GP grid) the correlations are products of two tabulated exponentials.
+The same loop gives the share of the predictive variance that a part of the noise makes (the points'
+stated sigmas, `gpdepth3d.gp.local_calibration`): (stated_i + sum_j w_j^2 stated_j) / variance.
 """
 
 from __future__ import annotations
@@ -53,22 +55,22 @@ LANES = 8
 
 
 @nb.njit(**_FLAGS)
-def _loo_range(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec):
+def _loo_range(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec):
     """z[q] for the targets lo <= q < hi (see `loo_predict`)."""
     k = nn.shape[1]
     if er.size:
-        _loo_lanes(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, er, ec)
+        _loo_lanes(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, er, ec)
         return
     A = np.empty((k, k))
     y = np.empty(k)
     kx = np.empty(k)
     ij = np.empty((2, k), dtype=np.int64)
     for q in range(lo, hi):
-        _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z)
+        _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z, share)
 
 
 @nb.njit(**_FLAGS)
-def _loo_lanes(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, er, ec):
+def _loo_lanes(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, er, ec):
     """`_loo_one` with tabulated correlations for LANES targets at a time, each lane the same arithmetic.
 
     The lanes are the innermost (contiguous) axis of every work array, so the Cholesky
@@ -141,23 +143,26 @@ def _loo_lanes(lo, hi, z, rows, cols, r, noise, targets, nn, s2, tau2, er, ec):
             i = targets[q]
             pred = 0.0
             quad = 0.0
+            spread = stated[i]
             for a in range(k):
                 pred += y[a, l] * r[nn[q, a]]
                 quad += y[a, l] * kx[a, l]
-            var = s2 + tau2 + noise[i] - quad
-            z[q] = (r[i] - pred) / math.sqrt(max(var, 1e-30)) if ok[l] else np.nan
+                spread += y[a, l] * y[a, l] * stated[nn[q, a]]
+            var = max(s2 + tau2 + noise[i] - quad, 1e-30)
+            z[q] = (r[i] - pred) / math.sqrt(var) if ok[l] else np.nan
+            share[q] = min(spread / var, 1.0) if ok[l] else np.nan
 
 
 @nb.njit(parallel=True, **_FLAGS)
-def _loo_parallel(z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec):
+def _loo_parallel(z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec):
     t = nn.shape[0]
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
-        _loo_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), z, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu,
-                   er, ec)
+        _loo_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2,
+                   inv_l, nu, er, ec)
 
 
 @nb.njit(**_FLAGS)
-def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z):
+def _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z, share):
     """z[q] of target q (see `loo_predict`), in the work arrays A (k, k), y (k,), kx (k,), ij (2, k) int."""
     k = nn.shape[1]
     i = targets[q]
@@ -183,6 +188,7 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
             kx[a] = y[a]
     if not cholesky_in_place(A, k):  # A = L L^T in the lower triangle
         z[q] = np.nan  # the caller solves this one by least squares
+        share[q] = np.nan
         return
     for a in range(k):  # y = L^-1 kx
         acc = y[a]
@@ -196,11 +202,14 @@ def _loo_one(q, rows, cols, r, noise, targets, nn, s2, tau2, inv_l, nu, er, ec, 
         y[a] = acc / A[a, a]
     pred = 0.0
     quad = 0.0
+    spread = stated[i]
     for a in range(k):
         pred += y[a] * r[nn[q, a]]
         quad += y[a] * kx[a]
-    var = s2 + tau2 + noise[i] - quad
-    z[q] = (r[i] - pred) / math.sqrt(max(var, 1e-30))
+        spread += y[a] * y[a] * stated[nn[q, a]]
+    var = max(s2 + tau2 + noise[i] - quad, 1e-30)
+    z[q] = (r[i] - pred) / math.sqrt(var)
+    share[q] = min(spread / var, 1.0)
 
 
 @nb.njit(**_FLAGS)
@@ -357,7 +366,8 @@ def loo_predict(
     nugget: float,
     lengthscale: float,
     nu: float,
-) -> np.ndarray:
+    stated: np.ndarray | None = None,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Leave-one-out z-scores of the targets given their neighbours (see the module docstring).
 
     Args:
@@ -367,10 +377,15 @@ def loo_predict(
         targets: (T,) indices of the points to score.
         nn: (T, k) indices of each target's neighbours (never the target itself).
         outputscale, nugget, lengthscale, nu: The kernel (s, tau, l in pixels, Matern nu).
+        stated: (N,) a part of ``noise`` (each entry between 0 and the point's noise): with it, also
+            return each target's share of it.
 
     Returns:
         (T,) z = (r_i - w . r_N) / sqrt(max(var, 1e-30)); NaN where the neighbourhood's matrix is
-        not numerically positive definite.
+        not numerically positive definite. With ``stated``, also the (T,) share of the predictive
+        variance that this part of the noise makes, (stated_i + sum_j w_j^2 stated_j) / var in
+        [0, 1] (NaN with z): E[z^2] is at least this whatever the field, if the noises are
+        independent.
     """
     rows = np.ascontiguousarray(rows, dtype=np.float64)
     cols = np.ascontiguousarray(cols, dtype=np.float64)
@@ -381,12 +396,14 @@ def loo_predict(
         if span_r + span_c <= 1e6:  # tables e^{-d / l} over every offset that occurs
             er = np.exp(-np.arange(int(span_r) + 1) / float(lengthscale))
             ec = np.exp(-np.arange(int(span_c) + 1) / float(lengthscale))
-    args = (rows, cols, np.ascontiguousarray(r, dtype=np.float64), np.ascontiguousarray(noise, dtype=np.float64),
+    noise = np.ascontiguousarray(noise, dtype=np.float64)
+    part = noise if stated is None else np.ascontiguousarray(stated, dtype=np.float64)
+    args = (rows, cols, np.ascontiguousarray(r, dtype=np.float64), noise, part,
             np.ascontiguousarray(targets, dtype=np.int64), np.ascontiguousarray(nn, dtype=np.int64),
             float(outputscale) ** 2, float(nugget) ** 2, 1.0 / float(lengthscale), float(nu), er, ec)
-    z = np.empty(nn.shape[0])
+    z, share = np.empty(nn.shape[0]), np.empty(nn.shape[0])
     if nn.shape[0] <= CHUNK:
-        _loo_range(0, nn.shape[0], z, *args)
+        _loo_range(0, nn.shape[0], z, share, *args)
     else:
-        _loo_parallel(z, *args)
-    return z
+        _loo_parallel(z, share, *args)
+    return z if stated is None else (z, share)

@@ -147,7 +147,9 @@ class DepthGPConfig:
             local mean squared leave-one-out z-score of the points, Gaussian-weighted with a radius of
             this many mean point spacings, two pseudo-points at 1 (`gpdepth3d.gp.local_calibration`):
             the variance shrinks where the points agree with their neighbours and grows where they
-            do not, its level set by the data. The z-scores are the screen's (with
+            do not, its level set by the data (a point with a sigma of its own enters with z^2 at
+            least its noise share: errors shared between triangulated points must not shrink sigma
+            between them). The z-scores are the screen's (with
             ``outlier_threshold`` None they are computed for this); frames with fewer than 10 kept
             points keep the model's variance. None turns it off. Measured (bench/calibration.py):
             AUSE 7-Scenes 0.58-0.66 -> 0.32-0.43, KITTI 0.26-0.40 -> 0.14-0.22, +-2 sigma kept in 94-97 %.

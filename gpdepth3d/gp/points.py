@@ -22,6 +22,7 @@ module needs nothing above `gpdepth3d.errors`.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -206,7 +207,8 @@ def loo_zscores(
     exclude: np.ndarray | None = None,
     only: np.ndarray | None = None,
     radius: bool = False,
-) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    stated: np.ndarray | None = None,
+) -> np.ndarray | tuple[np.ndarray, ...]:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
     Point i is predicted by simple kriging (mean b) from its ``neighbours`` nearest points (L1
@@ -227,10 +229,16 @@ def loo_zscores(
         exclude: (N,) bool, points not to use as neighbours (their own z is still computed).
         only: Indices of the points whose z-score to compute (default all; the others get 0).
         radius: Also return each computed point's L1 distance to its farthest neighbour used.
+        stated: (N,) the part of ``noise`` that the points' own sigmas state (0 where the model's
+            default noise stands in): with it, also return each point's noise share, the part of its
+            predictive variance that this noise makes (its own and its neighbours' through the
+            kriging weights), in [0, 1]. With independent errors E[z^2] is at least the share
+            whatever the field.
 
     Returns:
         (N,) z-scores (0 where no neighbour is available or not computed); with ``radius``,
-        also the (N,) neighbourhood radii (inf where not computed).
+        also the (N,) neighbourhood radii (inf where not computed); with ``stated``, last, the (N,)
+        noise shares (0 where not computed).
     """
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
@@ -241,22 +249,25 @@ def loo_zscores(
     pool = int(np.count_nonzero(usable))
     k = min(int(neighbours), pool - 1 if pool else 0)
     targets = np.arange(n) if only is None else np.asarray(only, dtype=np.int64)
-    out, reach = np.zeros(n), np.full(n, np.inf)
+    out, reach, shares = np.zeros(n), np.full(n, np.inf), np.zeros(n)
+    extras = ((reach,) if radius else ()) + ((shares,) if stated is not None else ())  # filled in place below
     if n == 0 or k < 1 or targets.size == 0:
-        return (out, reach) if radius else out
+        return (out, *extras) if extras else out
     nn, dist = neighbours_of(rows, cols, usable, targets, k)
     from ._loo import loo_predict
     from .multifrontal import numeric_section
 
+    stated_part = np.zeros(n) if stated is None else np.asarray(stated, dtype=np.float64)
     with numeric_section():
-        z = loo_predict(rows, cols, r, noise, targets, nn, outputscale=fit.outputscale, nugget=fit.nugget,
-                        lengthscale=fit.lengthscale, nu=nu)
+        z, share = loo_predict(rows, cols, r, noise, targets, nn, outputscale=fit.outputscale, nugget=fit.nugget,
+                               lengthscale=fit.lengthscale, nu=nu, stated=stated_part)
     bad = ~np.isfinite(z)
     if np.any(bad):  # a neighbourhood whose matrix is not numerically positive definite
-        z[bad] = _loo_lstsq(rows, cols, r, noise, targets[bad], nn[bad], fit, nu)
+        z[bad], share[bad] = _loo_lstsq(rows, cols, r, noise, stated_part, targets[bad], nn[bad], fit, nu)
     out[targets] = z
     reach[targets] = dist[:, -1]
-    return (out, reach) if radius else out
+    shares[targets] = share
+    return (out, *extras) if extras else out
 
 
 #: Image searches (`neighbours_of`, `_distance_to`) cover the box around the points; they are used
@@ -315,8 +326,9 @@ def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, target
     return nn, dist
 
 
-def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> np.ndarray:
-    """Leave-one-out z-scores of ``targets`` from their neighbours ``nn`` by least squares (NumPy)."""
+def _loo_lstsq(rows, cols, r, noise, stated, targets, nn, fit: PointFit, nu: float) -> tuple[np.ndarray, np.ndarray]:
+    """Leave-one-out z-scores and shares of the ``stated`` noise of ``targets`` from their neighbours ``nn`` by least
+    squares (NumPy)."""
     s2, tau2 = fit.outputscale**2, fit.nugget**2
     R, C = rows[nn], cols[nn]
     K = s2 * separable_correlation(R[:, :, None] - R[:, None, :], C[:, :, None] - C[:, None, :], fit.lengthscale, nu)
@@ -325,8 +337,9 @@ def _loo_lstsq(rows, cols, r, noise, targets, nn, fit: PointFit, nu: float) -> n
     kx = s2 * separable_correlation(rows[targets][:, None] - R, cols[targets][:, None] - C, fit.lengthscale, nu)
     w = np.stack([np.linalg.lstsq(Ki, ki, rcond=None)[0] for Ki, ki in zip(K, kx)])
     pred = np.sum(w * r[nn], axis=1)
-    var = s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1)
-    return (r[targets] - pred) / np.sqrt(np.maximum(var, 1e-30))
+    var = np.maximum(s2 + tau2 + noise[targets] - np.sum(w * kx, axis=1), 1e-30)
+    spread = stated[targets] + np.sum(w * w * stated[nn], axis=1)
+    return (r[targets] - pred) / np.sqrt(var), np.minimum(spread / var, 1.0)
 
 
 def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray) -> np.ndarray:
@@ -398,6 +411,15 @@ def raised_outputscale(
     return replace(start, outputscale=s, log_scale_var=s * s / n)
 
 
+class Screen(NamedTuple):
+    """The result of `screen_points`."""
+
+    fit: PointFit
+    rejected: np.ndarray
+    zscores: np.ndarray
+    noise_share: np.ndarray
+
+
 def screen_points(
     rows: np.ndarray,
     cols: np.ndarray,
@@ -411,7 +433,8 @@ def screen_points(
     start: PointFit | None = None,
     around: tuple[float, float] | None = None,
     raise_outputscale: bool = False,
-) -> tuple[PointFit, np.ndarray, np.ndarray]:
+    stated: np.ndarray | None = None,
+) -> Screen:
     """Fits the log-residual GP robustly and flags the points that contradict it.
 
     Up to ``iterations`` times, the hyperparameters are fitted on the kept points and every
@@ -435,17 +458,19 @@ def screen_points(
             fits on all points, so a frame whose points show a larger spread is not screened
             with an s too small for it, and the outliers it still flags leave the next fit (a
             round refits only while s stays raised: flagged points only widen the spread).
+        stated: (N,) the part of ``noise`` that the points' own sigmas state, for the noise shares
+            (`loo_zscores`); None: shares of 0.
 
     Returns:
-        (the fit without the flagged points, (N,) bool mask of the flagged points, (N,) their
-        final leave-one-out z-scores, 0 where not computed).
+        A `Screen`: the fit without the flagged points, the (N,) bool mask of the flagged points,
+        the (N,) final leave-one-out z-scores and noise shares (`loo_zscores`; 0 where not computed).
     """
     resid = np.asarray(resid, dtype=np.float64)
     n = resid.size
     rejected = np.zeros(n, dtype=bool)
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
-    fit, fitted_on, z, reach, changed = start, None, None, None, None
+    fit, fitted_on, z, reach, share, changed = start, None, None, None, None, None
     k_used = None
     for _ in range(max(1, iterations) if threshold is not None else 1):
         keep = ~rejected
@@ -474,19 +499,20 @@ def screen_points(
             moved = np.flatnonzero(changed)
             only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach) <= reach), moved)
         k_used = k_now
-        z_new, reach_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=_NEIGHBOURS, exclude=rejected,
-                                       only=only, radius=True)
+        z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=_NEIGHBOURS,
+                                                  exclude=rejected, only=only, radius=True,
+                                                  stated=np.zeros(n) if stated is None else stated)
         if only is None:
-            z, reach = z_new, reach_new
+            z, reach, share = z_new, reach_new, share_new
         else:
-            z[only], reach[only] = z_new[only], reach_new[only]
+            z[only], reach[only], share[only] = z_new[only], reach_new[only], share_new[only]
         new = np.abs(z) > threshold
         changed = new != rejected
         if np.array_equal(new, rejected):
             break
         rejected = new
     if z is None or threshold is None:
-        z = np.zeros(n)
+        z, share = np.zeros(n), np.zeros(n)
     if fit is None:  # pragma: no cover - the loop always runs once
         raise AssertionError("no fit")
-    return fit, rejected, z
+    return Screen(fit, rejected, z, share)
