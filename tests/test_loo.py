@@ -170,7 +170,7 @@ class TestKriging:
                               stated=noise / 2)
         np.testing.assert_allclose(half, share / 2, rtol=1e-12)  # the share of the stated part only
         np.testing.assert_array_equal(loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02,
-                                                  lengthscale=9.0, nu=nu), z)  # z alone without the flag
+                                                  lengthscale=9.0, nu=nu), z)  # z alone without `stated`
 
     def test_noise_share_is_a_floor_of_the_mean_squared_zscore(self):
         """With independent noises as stated, E[z^2] = share + (1 - share) x (field calibration): a field drawn
