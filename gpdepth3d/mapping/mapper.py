@@ -204,14 +204,14 @@ class MapperConfig:
             of its variance (`MAPPER_GP`: `DepthGPConfig(local_calibration=None)`, fixed hyperparameters,
             on the fast engine). The triangulated points' errors are correlated within the clusters they
             form on image features (shared poses and views): they agree with their neighbours far better
-            than independent errors would (median leave-one-out z^2 0.04, mean 0.29 on 7-Scenes), so the
-            local calibration shrinks the variance (median factor 0.39) between them too, where the
-            fusion's cut (``FusionConfig.max_relative_sigma``) and weights, chosen on the stationary
-            variance, need it. bench/fusion.py (60 frames, 2026-11-23): F at 5 cm 0.450 without it; with it
-            0.393 at the 0.2 cut, 0.424 / 0.411 / 0.395 / 0.339 at 0.1 / 0.15 / 0.07 / 0.05, 0.422 with 10
-            pseudo-points instead of 2. Since the calibration floors the z^2 of points with a sigma of their
-            own at their noise share (`gpdepth3d.gp.local_calibration`, session 13) it gives F 0.447, within
-            the ~0.005 that runs differ by: kept as is, no measured gain to switch for. Measured on 10 frames of 7-Scenes at 320x240
+            than independent errors would (median leave-one-out z^2 0.04, mean 0.29 on 7-Scenes). Before
+            the calibration floored such points' z^2 at their noise share (`gpdepth3d.gp.local_calibration`,
+            session 13) it shrank the variance between them (median factor 0.39) where the fusion's cut
+            (``FusionConfig.max_relative_sigma``) and weights, chosen on the stationary variance, need it:
+            bench/fusion.py (60 frames, 2026-11-23) F at 5 cm 0.450 without it; with it 0.393 at the 0.2
+            cut, 0.424 / 0.411 / 0.395 / 0.339 at 0.1 / 0.15 / 0.07 / 0.05, 0.422 with 10 pseudo-points
+            instead of 2. With the floor it gives F 0.447, within the ~0.005 that runs differ by: kept
+            off, as no gain was measured for switching. Measured on 10 frames of 7-Scenes at 320x240
             (FastDepth, 150 Kinect samples, one torch thread, busy shared machine) before the
             fit was made cheaper: a per-frame fit (``fit=True``) cost 528-654 ms of CPU a frame,
             fixed values 31 ms, with the same median error (65 / 66 mm) and +-2 sigma coverage
