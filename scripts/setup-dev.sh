@@ -19,4 +19,5 @@ if [ ${#need[@]} -gt 0 ]; then
     echo "warning: please install ${need[*]} with your package manager"
   fi
 fi
-PIP_DISABLE_PIP_VERSION_CHECK=1 python3 -m pip install -q -e ".[dev]"
+# CI's versions come from the constraints file (the package metadata pins nothing exactly)
+PIP_DISABLE_PIP_VERSION_CHECK=1 python3 -m pip install -q -c .ci/constraints.txt -e ".[dev]"

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from gpdepth3d.cli import main
 from gpdepth3d.completion.complete import DepthPosterior
@@ -133,44 +134,25 @@ class TestErrors:
 
 
 class TestOneLineErrors:
-    BOX = (
-        "\u256d\u2500 Required options \u2500\u2500\u2500\u256e\n"
-        "\u2502 Missing from gpdepth3d complete:            \u2502\n"
-        "\u2502     --mde PATH                              \u2502\n"
-        "\u2502         MDE depth map (.npy/.npz in metres,  \u2502\n"
-        "\u2502         --mde-png-scale); with --rgb (required) \u2502\n"
-        "\u2502     --output PATH                           \u2502\n"
-        "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
-        "\u2502 Unrecognized options:                       \u2502\n"
-        "\u2502     --mdee                                  \u2502\n"
-        "\u2502 \u2500\u2500\u2500\u2500\u2500\u2500\u2500\u2500 \u2502\n"
-        "\u2502 For full helptext, run:                     \u2502\n"
-        "\u2502     gpdepth3d complete --help               \u2502\n"
-        "\u2570\u2500\u2500\u2500\u2500\u256f\n"
-    )
-
-    def test_tyro_box_folds_to_one_line(self):
-        from gpdepth3d.cli import one_line_parse_error
-
-        line = one_line_parse_error(self.BOX)
-        assert line == (
-            "Required options: Missing from gpdepth3d complete: --mde, --output; Unrecognized options: --mdee "
-            "(see gpdepth3d complete --help)"
-        )
-        assert one_line_parse_error("") == "invalid command line (see gpdepth3d --help)"
-        plain = (  # tyro's format when stderr is not a terminal
-            " Value error            \n ----------------------- \n  Error parsing --model.nu: could not convert\n"
-            "  string to float: 'abc'\n  -----------------------\n  For full helptext, see gpdepth3d --help \n\n"
-        )
-        assert one_line_parse_error(plain) == (
-            "Value error: Error parsing --model.nu: could not convert string to float: 'abc' (see gpdepth3d --help)"
-        )
+    @pytest.mark.parametrize("argv, line", [
+        (["complete", "--mdee", "x"],
+         "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (see gpdepth3d complete --help)"),
+        (["batch"], "gpdepth3d batch: missing --data, --output (see gpdepth3d batch --help)"),
+        (["complete", "--mde", "m.npy", "--output", "o", "--gp.engine", "nope"],
+         "--gp.engine: expected one of exact, kissgp, fast, got nope (see gpdepth3d complete --help)"),
+        (["complete", "--mde"], "--mde: too few values (see gpdepth3d complete --help)"),
+        (["--frob"], "gpdepth3d: unrecognised --frob (see gpdepth3d --help)"),
+    ])
+    def test_parse_errors_are_one_line_naming_the_option(self, argv, line, capsys):
+        assert main(argv) == 1
+        out = capsys.readouterr()
+        assert out.err.strip().splitlines() == [f"gpdepth3d: error: {line}"] and out.out == ""
 
     def test_bad_option_value_is_one_line_exit_1(self, tmp_path, capsys):
         code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "--preset", "paper", "--gp.nu", "3.7"])
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 1 and len(err) == 1
-        assert err[0] == "gpdepth3d: error: Value error: Error parsing --gp: nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d --help)"
+        assert err[0] == "gpdepth3d: error: --gp.nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d complete --help)"
 
     def test_help_is_untouched(self, capsys):
         import pytest

@@ -1,4 +1,4 @@
-"""One CLI vocabulary: --output, --mde NAME|FILE, --preset (+ --gp.FIELD), --frames; old spellings still work.
+"""One CLI vocabulary: --output, --mde NAME|FILE, --preset (+ --gp.FIELD), --frames; no other spelling.
 
 Also: `complete --rgb IMAGE --mde fastdepth` runs the network itself, the compile notice, and that every
 command ends by saying what it wrote.
@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.cli import main
-from gpdepth3d.cli._options import PRESETS, RENAMED, normalize_argv
+from gpdepth3d.cli._options import PRESETS, normalize_argv
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.mapping.mapper import MAPPER_GP
@@ -26,29 +26,16 @@ ROOT = Path(__file__).resolve().parents[1]
 
 class TestNormalizeArgv:
     def test_preset_moves_behind_the_command(self):
-        argv, notes = normalize_argv(["complete", "--mde", "m.npy", "--preset", "paper", "--gp.fit", "--output", "o"])
-        assert argv == ["complete", "paper", "--mde", "m.npy", "--gp.fit", "--output", "o"] and notes == []
-        argv, _ = normalize_argv(["batch", "--data", "d", "--preset=residual"])
-        assert argv == ["batch", "residual", "--data", "d"]
+        argv = normalize_argv(["complete", "--mde", "m.npy", "--preset", "paper", "--gp.fit", "--output", "o"])
+        assert argv == ["complete", "paper", "--mde", "m.npy", "--gp.fit", "--output", "o"]
+        assert normalize_argv(["batch", "--data", "d", "--preset=residual"]) == ["batch", "residual", "--data", "d"]
 
-    def test_old_spellings_are_renamed_with_one_note_each(self):
-        argv, notes = normalize_argv(["batch", "--output-dir", "o", "--limit=3", "--engine", "exact", "--limit", "4"])
-        assert argv == ["batch", "--output", "o", "--frames=3", "--gp.engine", "exact", "--frames", "4"]
-        assert notes == ["--output-dir is deprecated; use --output", "--limit is deprecated; use --frames",
-                         "--engine is deprecated; use --gp.engine"]
-        argv, notes = normalize_argv(["complete", "--model", "paper", "--model.nu", "1.5", "--out", "o"])
-        assert argv == ["complete", "paper", "--gp.nu", "1.5", "--output", "o"]
-        assert notes == ["--model is deprecated; use --preset", "--model.FIELD is deprecated; use --gp.FIELD",
-                         "--out is deprecated; use --output"]
-        assert normalize_argv(["fuse", "--model", "m.tflite"])[0] == ["fuse", "--mde", "m.tflite"]
-        assert normalize_argv(["eval", "--model", "m.onnx"])[0] == ["eval", "--mde", "m.onnx"]
-
-    def test_values_and_other_commands_are_left_alone(self):
-        assert normalize_argv(["view", "--posterior", "--out"]) == (["view", "--posterior", "--out"], [])
-        assert normalize_argv(["complete", "--output", "--out"])[0] == ["complete", "--output", "--output"]
-        assert normalize_argv([]) == ([], [])
-        assert normalize_argv(["--help"]) == (["--help"], [])
-        assert normalize_argv(["demo", "--output", "x"]) == (["demo", "--output", "x"], [])
+    def test_other_commands_and_tokens_are_left_alone(self):
+        assert normalize_argv(["view", "--posterior", "--out"]) == ["view", "--posterior", "--out"]
+        assert normalize_argv(["complete", "--output", "--out"]) == ["complete", "--output", "--out"]
+        assert normalize_argv([]) == []
+        assert normalize_argv(["--help"]) == ["--help"]
+        assert normalize_argv(["demo", "--output", "x"]) == ["demo", "--output", "x"]
 
     @pytest.mark.parametrize("argv, got", [
         (["complete", "--preset", "nope"], "nope"),
@@ -80,7 +67,7 @@ def _spy(monkeypatch, module, name):
 class TestEverySubcommand:
     """The same spelling means the same thing in every command, with the library's defaults."""
 
-    def test_output_everywhere_and_old_spellings_still_work(self, monkeypatch, capsys):
+    def test_output_everywhere_and_no_other_spelling(self, monkeypatch, capsys):
         import gpdepth3d.cli.batch as batch
         import gpdepth3d.cli.complete as complete
         import gpdepth3d.cli.demo as demo
@@ -99,10 +86,11 @@ class TestEverySubcommand:
         for command, calls in spies.items():
             assert main([command, *required[command], "--output", "new"]) == 0
             assert calls[-1]["output"] == Path("new")
-            for old in [k for k, v in RENAMED[command].items() if v == "--output"]:
-                assert main([command, *required[command], old, "old"]) == 0
-                assert calls[-1]["output"] == Path("old")
-                assert f"gpdepth3d: note: {old} is deprecated; use --output" in capsys.readouterr().err
+            for old in ("--out", "--output-dir"):  # spellings of earlier versions are refused, in one line
+                n = len(calls)
+                assert main([command, *required[command], old, "old"]) == 1 and len(calls) == n
+                err = capsys.readouterr().err.strip().splitlines()
+                assert len(err) == 1 and f"unrecognised {old} old" in err[0]
 
     def test_gp_preset_defaults_and_frames(self, monkeypatch, capsys):
         import gpdepth3d.cli.batch as batch
@@ -125,8 +113,9 @@ class TestEverySubcommand:
         calls = _spy(monkeypatch, batch, "batch_command")
         assert main(["batch", "--data", "d", "--output", "o", "--frames", "3"]) == 0
         assert calls[-1]["frames"] == 3 and calls[-1]["workers"] is None  # None: run_batch's default, the CPU count
-        assert main(["batch", "--data", "d", "--output", "o", "--limit", "4"]) == 0 and calls[-1]["frames"] == 4
-        assert "--limit is deprecated" in capsys.readouterr().err
+        for old in (["--limit", "4"], ["--engine", "exact"]):
+            assert main(["batch", "--data", "d", "--output", "o", *old]) == 1
+            assert f"unrecognised {' '.join(old)}" in capsys.readouterr().err
 
     def test_help_lists_the_new_spellings_only(self, capsys):
         for command, new, old in (("batch", "--output", "--output-dir"), ("demo", "--output", "--output-dir"),

@@ -26,6 +26,7 @@ RANKS: dict[str, int] = {
     "metrics": 1,
     "io": 1,
     "depthmap": 1,
+    "extras": 1,
     "mde": 2,
     "datasets": 2,
     "gp": 3,

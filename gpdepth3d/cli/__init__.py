@@ -5,4 +5,3 @@ them and turns every failure into one line on stderr and exit code 1.
 """
 
 from ._main import main as main
-from ._main import one_line_parse_error as one_line_parse_error

@@ -6,16 +6,19 @@ becomes one line on stderr and exit code 1.
 
 from __future__ import annotations
 
-import io
 import os
 import re
 import sys
 import warnings
-from typing import Optional
 
 import tyro
 
 from ..errors import GPDepthError
+from ..extras import missing_dependency
+
+
+COMMANDS = ("demo", "complete", "eval", "fuse", "view", "batch")
+"""The subcommands, in the order `gpdepth3d --help` lists them."""
 
 
 def _commands() -> dict:
@@ -34,100 +37,85 @@ def _commands() -> dict:
         "view": view_command,
         "batch": batch_command,
     }
-    return {name: _announce_start(f) for name, f in commands.items()}
+    return commands
 
 
-class _ParseErrors:
-    """Holds what the parser writes to stderr until the command starts (tyro's error box becomes one line)."""
-
-    def __init__(self) -> None:
-        self.buffer = io.StringIO()
-        self.real = sys.stderr
-        self.parsing = False
-
-    def write(self, text: str) -> int:
-        return (self.buffer if self.parsing else self.real).write(text)
-
-    def flush(self) -> None:
-        if not self.parsing:
-            self.real.flush()
-
-    def __getattr__(self, name: str):
-        return getattr(self.real, name)
-
-    def release(self) -> None:
-        """The command starts: what the parser wrote (warnings) goes out, later writes go straight through."""
-        self.parsing = False
-        if self.buffer.getvalue():
-            self.real.write(self.buffer.getvalue())
-            self.buffer = io.StringIO()
+class CommandLineError(GPDepthError):
+    """The command line does not parse: an unknown option, a missing one or a bad value."""
 
 
-_PARSE: Optional[_ParseErrors] = None
+def _flags(argument) -> str:
+    """The spelling of a tyro argument on the command line (``--mde``, or its metavar when positional)."""
+    lowered = getattr(argument, "lowered", None)
+    names = getattr(lowered, "name_or_flags", None) or ()
+    return "/".join(names) if names else str(getattr(lowered, "metavar", None) or "an argument")
 
 
-def _announce_start(f):
-    import functools
+def describe_parse_error(event, command: str | None = None) -> str:
+    """One line for a tyro parse-failure event (its structured fields, no rendered text), naming the option.
 
-    @functools.wraps(f)
-    def run(*args, **kwargs):
-        if _PARSE is not None:
-            _PARSE.release()
-        return f(*args, **kwargs)
+    Args:
+        event: The event tyro passes to its parse-error hook.
+        command: The subcommand being parsed (for the help hint), if known.
+    """
+    from ._options import PRESETS
 
-    return run
-
-
-def one_line_parse_error(box: str) -> str:
-    """tyro's error message (framed on a terminal, ruled with dashes otherwise) as one line."""
-    title, sections = "", [[]]
-    for raw in box.splitlines():
-        t = raw.rstrip()
-        stripped = t.strip()
-        if stripped.startswith("\u256d"):  # top border with the title
-            title = stripped.strip("\u256d\u256e\u2500 ")
-            continue
-        if stripped.startswith("\u2570") or not stripped:
-            continue
-        if stripped.startswith("\u2502"):
-            t = stripped[1:-1] if stripped.endswith("\u2502") else stripped[1:]
-        if set(t.strip()) <= {"\u2500", "-"}:
-            sections.append([])
-            continue
-        sections[-1].append(t.rstrip())
-    sections = [sec for sec in sections if sec]
-    if not title and len(sections) > 1 and len(sections[0]) == 1:
-        title = sections.pop(0)[0].strip()
-    for i, sec in enumerate(sections):
-        indent = min(len(line) - len(line.lstrip()) for line in sec)
-        sections[i] = [line[indent:] for line in sec]
-    parts, hint = [], ""
-    for sec in sections:
-        if not sec:
-            continue
-        head = sec[0].strip()
-        if head.startswith("For full helptext"):
-            hint = " ".join([head] + [line.strip() for line in sec[1:]])
-            hint = re.sub(r"^For full helptext,?\s*(run|see)?:?\s*", "", hint)
-            continue
-        if head.startswith("Argument helptext"):
-            continue
-        if head.endswith(":") and len(sec) > 1:
-            indent = min(len(line) - len(line.lstrip()) for line in sec[1:])
-            items = [line.split()[0] for line in sec[1:] if len(line) - len(line.lstrip()) == indent]
-            parts.append(f"{head} {', '.join(items)}")
+    kind = type(event).__name__
+    prog = f"gpdepth3d {command}" if command else "gpdepth3d"
+    if kind == "MissingArgs":
+        text = f"{prog}: missing {', '.join(_flags(a.arg) for a in event.missing_arguments)}"
+        if event.unrecognized_tokens:
+            text += f"; unrecognised {' '.join(event.unrecognized_tokens)}"
+    elif kind == "UnrecognizedArgs":
+        text = f"{prog}: unrecognised {' '.join(event.tokens)}"
+    elif kind == "InvalidChoice":
+        text = f"{_flags(event.argument)}: expected one of {', '.join(event.choices)}, got {event.value}"
+    elif kind == "BadValue":
+        got = event.offending_value if event.offending_value is not None else "too few values"
+        text = f"{_flags(event.argument)}: {got}"
+    elif kind == "InstantiationFailure":
+        message = str(event.message)
+        if event.argument is not None:
+            text = f"{_flags(event.argument)}: {message}"
+        elif message.split(":")[0] in vars(PRESETS["default"]):  # a GP config field refused its value
+            text = f"--gp.{message}"
         else:
-            parts.append(" ".join(line.strip() for line in sec))
-    text = "; ".join(parts).replace("__tyro-dummy-inner__.", "--")
-    text = " ".join(text.split())
-    message = f"{title}: {text}" if title else text
-    if hint:
-        message += f" (see {hint})"
-    return message or "invalid command line (see gpdepth3d --help)"
+            text = message
+    elif kind == "MissingSubcommand":
+        found = event.found_token
+        text = f"{prog}: expected a command{'' if found is None else f', got {found}'}"
+    else:
+        text = f"{prog}: invalid command line"
+    return " ".join(f"{text} (see {prog} --help)".split())
+
+
+def _parse_error_hook(command: str | None):
+    """Routes tyro's parse failures to `CommandLineError` (one line) where tyro offers its parse-error hook."""
+    import contextlib
+
+    try:
+        from tyro._errors import on_parse_error
+    except ImportError:  # a tyro without the hook: its own message, then exit code 2 (mapped to 1 below)
+        return contextlib.nullcontext()
+
+    def raise_one_line(event) -> None:
+        raise CommandLineError(describe_parse_error(event, command))
+
+    return on_parse_error(raise_one_line)
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"gpdepth3d: warning: {message}", file=file or sys.stderr)
+    text = " ".join(_ANSI.sub("", str(message)).split())  # third-party colour codes and line breaks out
+    print(f"gpdepth3d: warning: {text}", file=file or sys.stderr)
+
+
+QUIET_WARNINGS: tuple[tuple[str, str], ...] = (
+    ("numba", r"(?s).*TBB threading layer"),  # numba falls back to another threading layer by itself
+)
+"""(module, message regex) of third-party warnings the command line does not show: nothing for a user to do."""
 
 
 COMPILE_NOTICE = "compiling kernels (once, ~1 min) ..."
@@ -151,53 +139,47 @@ def main(argv: list[str] | None = None) -> int:
     Every failure is one line on stderr and exit code 1 (a bad option value included); set
     GPDEPTH3D_DEBUG=1 to see the traceback of an unexpected error instead.
     """
-    global _PARSE
     show_warning = warnings.showwarning
     warnings.showwarning = _one_line_warning
-    parse = _ParseErrors()
-    parse.parsing = True
-    _PARSE = parse
-    sys.stderr = parse  # type: ignore[assignment]
+    filters = list(warnings.filters)
+    for module, message in QUIET_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, module=module)
     try:
         from ._options import normalize_argv
 
-        argv, notes = normalize_argv(list(sys.argv[1:] if argv is None else argv))
-        for note in notes:
-            print(f"gpdepth3d: note: {note}", file=parse.real)
-        with _compile_notice(argv):
+        argv = normalize_argv(list(sys.argv[1:] if argv is None else argv))
+        command = argv[0] if argv and argv[0] in COMMANDS else None
+        with _compile_notice(argv), _parse_error_hook(command):
             tyro.extras.subcommand_cli_from_dict(
                 _commands(), args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,)
             )
     except SystemExit as exc:
-        if parse.parsing and exc.code not in (0, None):
-            parse.parsing = False
-            print(f"gpdepth3d: error: {one_line_parse_error(parse.buffer.getvalue())}", file=parse.real)
+        if exc.code not in (0, None):  # tyro printed its own message (no parse-error hook)
             return 1
-        parse.release()
         raise
     except GPDepthError as exc:
-        parse.release()
         print(f"gpdepth3d: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        parse.release()
         print("gpdepth3d: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into `head` & co.: not an error
-        parse.release()
         sys.stdout = open(os.devnull, "w")
         return 0
-    except OSError as exc:
-        parse.release()
-        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"gpdepth3d: error: {where}{exc.strerror or exc}", file=sys.stderr)
+    except (ImportError, OSError) as exc:
+        missing = missing_dependency(exc)
+        if missing is not None:
+            print(f"gpdepth3d: error: {missing}", file=sys.stderr)
+        elif isinstance(exc, ImportError):
+            print(f"gpdepth3d: error: {exc}", file=sys.stderr)
+        else:
+            where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+            print(f"gpdepth3d: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 1
     except MemoryError:
-        parse.release()
         print("gpdepth3d: error: out of memory (try a smaller --output-size or input)", file=sys.stderr)
         return 1
     except Exception as exc:  # noqa: BLE001 - the CLI's contract: one line and exit 1
-        parse.release()
         if os.environ.get("GPDEPTH3D_DEBUG"):
             raise
         print(
@@ -206,10 +188,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 1
     finally:
-        sys.stderr = parse.real
         warnings.showwarning = show_warning
-        _PARSE = None
-    parse.release()
+        warnings.filters[:] = filters
     return 0
 
 

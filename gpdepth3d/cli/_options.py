@@ -1,10 +1,8 @@
-"""The CLI's shared vocabulary: the GP preset choice and the old flag spellings that still work.
+"""The CLI's shared vocabulary: the GP preset choice.
 
 Every subcommand spells its options the same way: ``--output`` for what it writes, ``--mde NAME|FILE``
 for the monocular front-end, ``--preset default|paper|residual`` (then ``--gp.FIELD VALUE``) for the GP,
-``--frames`` for a frame cap. Older spellings (``--out``, ``--output-dir``, ``--limit``, ``--model`` as
-the GP preset or the front-end's model file, ``--model.FIELD``, ``--engine``) are rewritten to these
-before parsing, with a one-line deprecation note on stderr; they are not listed in ``--help``.
+``--frames`` for a frame cap.
 """
 
 from __future__ import annotations
@@ -30,64 +28,34 @@ GPPreset = Union[
     Annotated[DepthGPConfig, tyro.conf.subcommand("residual", default=PRESETS["residual"], prefix_name=False)],
 ]
 
-# old spelling -> new spelling, per subcommand (a prefix ending in "." renames every flag under it)
-RENAMED: dict[str, dict[str, str]] = {
-    "complete": {"--out": "--output", "--output-dir": "--output", "--model": "--preset", "--model.": "--gp."},
-    "demo": {"--out": "--output", "--output-dir": "--output"},
-    "eval": {"--out": "--output", "--output-dir": "--output", "--limit": "--frames", "--model": "--mde"},
-    "fuse": {"--out": "--output", "--output-dir": "--output", "--limit": "--frames", "--model": "--mde",
-             "--engine": "--gp.engine"},
-    "batch": {"--out": "--output", "--output-dir": "--output", "--limit": "--frames", "--engine": "--gp.engine"},
-}
-"""Deprecated flags that still work, per subcommand, and what they are now."""
-
 WITH_PRESET = ("complete", "fuse", "batch")
 """Subcommands whose GP is chosen with ``--preset`` (and tuned with ``--gp.FIELD``)."""
 
 
-def normalize_argv(argv: list[str]) -> tuple[list[str], list[str]]:
-    """Rewrites old flag spellings and ``--preset NAME`` into what the parser takes.
+def normalize_argv(argv: list[str]) -> list[str]:
+    """Moves ``--preset NAME`` (or ``--preset=NAME``) right behind the command's name, where the parser takes it.
 
-    ``--preset NAME`` (or ``--preset=NAME``) becomes the preset's subcommand right after the
-    command's name, so that ``--gp.FIELD`` options may follow anywhere.
+    The preset is a subcommand of the parser; placed first, the ``--gp.FIELD`` options may follow anywhere.
 
     Args:
         argv: The arguments after ``gpdepth3d``.
 
     Returns:
-        The rewritten arguments and one deprecation note per old spelling used.
+        The rewritten arguments.
 
     Raises:
         InvalidInputError: an unknown preset, or two presets.
     """
-    if not argv or argv[0] not in RENAMED:
-        return list(argv), []
+    if not argv or argv[0] not in WITH_PRESET:
+        return list(argv)
     command, rest = argv[0], list(argv[1:])
-    renamed, notes, out = RENAMED[command], [], []
-    for token in rest:
-        if token.startswith("--") and not token.startswith("--preset"):
-            flag, eq, value = token.partition("=")
-            new = renamed.get(flag)
-            if new is None:
-                prefix = next((p for p in renamed if p.endswith(".") and flag.startswith(p)), None)
-                if prefix is not None:
-                    new = renamed[prefix] + flag[len(prefix):]
-            if new is not None:
-                old = flag if not flag.startswith("--model.") else "--model.FIELD"
-                note = f"{old} is deprecated; use {new if old != '--model.FIELD' else '--gp.FIELD'}"
-                if note not in notes:
-                    notes.append(note)
-                token = new + eq + value
-        out.append(token)
-    if command not in WITH_PRESET:
-        return [command] + out, notes
     presets, kept, i = [], [], 0
-    while i < len(out):
-        token = out[i]
+    while i < len(rest):
+        token = rest[i]
         if token == "--preset":
-            if i + 1 >= len(out):
+            if i + 1 >= len(rest):
                 raise InvalidInputError("--preset", f"one of {', '.join(PRESETS)}", "nothing")
-            presets.append(out[i + 1])
+            presets.append(rest[i + 1])
             i += 2
             continue
         if token.startswith("--preset="):
@@ -100,4 +68,4 @@ def normalize_argv(argv: list[str]) -> tuple[list[str], list[str]]:
     for name in presets:
         if name not in PRESETS:
             raise InvalidInputError("--preset", f"one of {', '.join(PRESETS)}", name)
-    return [command] + presets + kept, notes
+    return [command] + presets + kept

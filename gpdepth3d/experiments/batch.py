@@ -837,7 +837,7 @@ def _progress_bar(total: int, task: str, enabled: bool):
 
     # rate_noinv: always frames/s (tqdm would switch to s/frame below one frame per second).
     fmt = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}{postfix}]"
-    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True, bar_format=fmt)
+    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True, bar_format=fmt, disable=None)  # a terminal only
 
 
 def _advance(bar, results: list[FrameResult]) -> None:

@@ -66,8 +66,6 @@ from ..measurements import SparseDepth
 from ..metrics import METRIC_NAMES
 from ..sampling import (
     PAPER_DENSITIES,
-    SeedLike,
-    make_rng,
     sample_band,
     sample_scanlines,
     sample_uniform,
@@ -392,7 +390,7 @@ def evaluate(
         suite: The method runner (default `MethodSuite()`).
         resolution: Evaluation resolution relative to the dataset's images (0.5 = half).
         seed: Seed of all random draws (each frame gets its own stream).
-        progress: Show a tqdm bar over frames.
+        progress: Show a tqdm bar over frames (when stderr is a terminal; piped output gets no bar).
         on_frame: Called after each frame with its setup and {(protocol, level, method): output}.
 
     Returns:
@@ -413,7 +411,7 @@ def evaluate(
     levels = dict(levels or {})
     frames = list(frames) if not hasattr(frames, "__len__") else frames
     rows: list[dict] = []
-    bar = tqdm(frames, desc="eval", unit="frame", disable=not progress, total=len(frames))
+    bar = tqdm(frames, desc="eval", unit="frame", disable=None if progress else True, total=len(frames))  # None: on a terminal only
     for index, frame in enumerate(bar):
         rng = np.random.default_rng([seed, index])
         setup = prepare_frame(

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose, transform_points
 from ..errors import DataFormatError, EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
+from ..extras import require
 from ..io import atomic_path
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -194,8 +195,8 @@ class ColoredCloud:
     # ------------------------------------------------------------------ conversion / export
     def to_open3d(self, device: str = "CPU:0") -> Any:
         """An ``open3d.t.geometry.PointCloud`` with positions, colors (float32 0..1), confidence, sigma, variance."""
-        import open3d as o3d
-        import open3d.core as o3c
+        o3d = require("open3d")
+        o3c = require("open3d.core")
 
         dev = o3c.Device(device)
         pcd = o3d.t.geometry.PointCloud(dev)
@@ -269,7 +270,7 @@ class ColoredCloud:
         Missing ``confidence``/``variance`` properties become 1 / NaN. Depth along the original
         ray is not stored in the file; it is taken as the point's z.
         """
-        import open3d as o3d
+        o3d = require("open3d")
 
         path = Path(path)
         if not path.is_file():

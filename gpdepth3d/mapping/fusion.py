@@ -81,6 +81,7 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose
 from .cloud import ColoredCloud
 from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
+from ..extras import require
 from ..io import atomic_path, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -307,8 +308,8 @@ class TSDFFusion:
     """
 
     def __init__(self, camera: PinholeCamera, config: FusionConfig | None = None, *, _vbg: Any = None):
-        import open3d as o3d
-        import open3d.core as o3c
+        o3d = require("open3d")
+        o3c = require("open3d.core")
 
         if not isinstance(camera, PinholeCamera):
             raise InvalidInputError("camera", "a PinholeCamera", type(camera).__name__)
@@ -974,7 +975,7 @@ class TSDFFusion:
         Raises:
             DataFormatError: if a file is missing or not a saved volume.
         """
-        import open3d as o3d
+        o3d = require("open3d")
 
         path = Path(path)
         meta_path = path.with_suffix(".json")

@@ -6,8 +6,12 @@ only when a `FastDepthTFLite` is built.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
+import tempfile
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -15,6 +19,28 @@ from ..errors import DataFormatError, InvalidInputError
 from .base import check_rgb, finish_depth
 
 TFLITE_EXTRA_HINT = "the TFLite front-end needs ai-edge-litert: pip install gpdepth3d[tflite]"
+
+
+@contextlib.contextmanager
+def _runtime_info_dropped() -> Iterator[None]:
+    """Drops the runtime's "INFO: ..." lines (written by its C++ logger to file descriptor 2); keeps the rest."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no real stderr (embedded interpreters): nothing to filter
+        yield
+        return
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            caught.seek(0)
+            kept = [line for line in caught.read().decode(errors="replace").splitlines() if not line.startswith("INFO:")]
+            if kept:
+                print("\n".join(kept), file=sys.stderr)
 
 
 def _interpreter_class():
@@ -56,8 +82,9 @@ class FastDepthTFLite:
             if num_threads is None:
                 num_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
             self.num_threads = int(num_threads)
-            self._interp = Interpreter(model_path=str(self.model_path), num_threads=self.num_threads)
-            self._interp.allocate_tensors()
+            with _runtime_info_dropped():
+                self._interp = Interpreter(model_path=str(self.model_path), num_threads=self.num_threads)
+                self._interp.allocate_tensors()
         except (ValueError, RuntimeError) as exc:
             raise DataFormatError(self.model_path, f"not a loadable TFLite model: {exc}") from None
         inputs = self._interp.get_input_details()

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import sys
 import threading
 import time
 from dataclasses import dataclass
