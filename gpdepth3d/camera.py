@@ -12,7 +12,9 @@ Conventions used everywhere in gpdepth3d (stated once, here):
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -229,3 +231,44 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != 3:
         raise ShapeError("points", "an (N, 3) array", describe(points))
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+_FOUR_NUMBERS = re.compile(r"^\s*([-+0-9.eE]+)\s*,\s*([-+0-9.eE]+)\s*,\s*([-+0-9.eE]+)\s*,\s*([-+0-9.eE]+)\s*$")
+KITTI_PROJECTIONS = ("P2:", "P_rect_02:")
+"""Lines of a KITTI calibration file holding camera 02's (3, 4) projection (object benchmark, raw data)."""
+
+
+def read_intrinsics(spec: str | Path) -> np.ndarray:
+    """A 3x3 K from ``"fx,fy,cx,cy"`` (pixels), a text file holding K, or a KITTI calibration file.
+
+    KITTI: an object-benchmark ``calib_*.txt`` (line ``P2:``), a raw-data ``calib_cam_to_cam.txt``
+    (line ``P_rect_02:``) or the raw-data folder holding it; K is the left 3x3 of camera 02's projection.
+
+    Raises:
+        DataFormatError: a missing or unreadable file.
+        CalibrationError: focal lengths that are not positive and finite.
+    """
+    from .errors import DataFormatError
+
+    match = _FOUR_NUMBERS.match(str(spec))
+    if match and not Path(str(spec)).exists():
+        fx, fy, cx, cy = (float(x) for x in match.groups())
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    else:
+        path = Path(spec)
+        if path.is_dir() and (path / "calib_cam_to_cam.txt").is_file():
+            path = path / "calib_cam_to_cam.txt"
+        if not path.is_file():
+            raise DataFormatError(path, "intrinsics not found (give a K file, a KITTI calibration or fx,fy,cx,cy)")
+        text = path.read_text(encoding="utf-8", errors="replace")
+        lines = [ln.split(":", 1)[1] for ln in text.splitlines() if ln.strip().startswith(KITTI_PROJECTIONS)]
+        try:
+            if lines:
+                K = np.array(lines[0].split(), dtype=np.float64).reshape(3, 4)[:, :3]
+            else:
+                K = np.array(text.split(), dtype=np.float64).reshape(3, 3)
+        except ValueError:
+            raise DataFormatError(path, "expected a 3x3 K (9 numbers) or a KITTI calibration with a P2 line") from None
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError("intrinsics", "positive, finite focal lengths fx, fy", f"K = {K.tolist()}")
+    return K

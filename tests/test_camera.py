@@ -290,3 +290,38 @@ class TestCheckPoseSnapsRecordedPoses:
         T[:3, :3] *= 1.1
         with pytest.raises(CalibrationError):
             check_pose(T)
+
+
+class TestReadIntrinsics:
+    def test_four_numbers(self):
+        from gpdepth3d.camera import read_intrinsics
+
+        np.testing.assert_array_equal(read_intrinsics("721.5, 720,609.6,172.9"),
+                                      [[721.5, 0, 609.6], [0, 720, 172.9], [0, 0, 1]])
+
+    def test_k_file_and_kitti_calibrations(self, tmp_path):
+        from gpdepth3d.camera import read_intrinsics
+
+        K = np.array([[585.0, 0, 320], [0, 586, 240], [0, 0, 1]])
+        np.savetxt(tmp_path / "K.txt", K)
+        np.testing.assert_array_equal(read_intrinsics(tmp_path / "K.txt"), K)
+        P2 = "P2: 7.07e+02 0 6.04e+02 4.5e+01 0 7.08e+02 1.8e+02 -3.4e-01 0 0 1 2.7e-03"
+        (tmp_path / "calib_000000.txt").write_text(f"P0: 1 0 0 0 0 1 0 0 0 0 1 0\n{P2}\nR0_rect: 1 0 0 0 1 0 0 0 1\n")
+        np.testing.assert_allclose(read_intrinsics(tmp_path / "calib_000000.txt"), [[707, 0, 604], [0, 708, 180], [0, 0, 1]])
+        raw = tmp_path / "drive"
+        raw.mkdir()
+        (raw / "calib_cam_to_cam.txt").write_text("P_rect_00: 1 0 0 0 0 1 0 0 0 0 1 0\nP_rect_02: 721.5 0 609.6 44.9 0 "
+                                                  "721.5 172.9 0.2 0 0 1 0.003\n")
+        np.testing.assert_allclose(read_intrinsics(raw), [[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]])
+
+    def test_errors_name_the_problem(self, tmp_path):
+        from gpdepth3d.camera import read_intrinsics
+        from gpdepth3d.errors import CalibrationError, DataFormatError
+
+        with pytest.raises(DataFormatError, match="not found"):
+            read_intrinsics(tmp_path / "nope.txt")
+        (tmp_path / "bad.txt").write_text("1 2 3\n")
+        with pytest.raises(DataFormatError, match="3x3 K"):
+            read_intrinsics(tmp_path / "bad.txt")
+        with pytest.raises(CalibrationError, match="focal"):
+            read_intrinsics("-5,5,1,1")

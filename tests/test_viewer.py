@@ -517,6 +517,31 @@ class TestViewCommand:
         port = int(out.split("http://127.0.0.1:")[1].split()[0])
         assert port_is_free(port)
 
+    def test_intrinsics_from_numbers_calibration_or_the_posterior_file(self, tmp_path, room, capsys, monkeypatch):
+        import gpdepth3d.cli.view as view
+
+        seen = []
+        original = view.ViewerFrame.from_files
+
+        def record(path, **kwargs):
+            seen.append(kwargs["K"])
+            return original(path, **kwargs)
+
+        monkeypatch.setattr(view.ViewerFrame, "from_files", record)
+        make_posterior(room).save(tmp_path / "post.npz")
+        view_command(posterior=(tmp_path / "post.npz",), intrinsics="300,301,31.5,23.5", port=0, duration=0)
+        np.testing.assert_array_equal(seen[-1], [[300, 0, 31.5], [0, 301, 23.5], [0, 0, 1]])
+        assert "60 degree" not in capsys.readouterr().out
+        view_command(posterior=(tmp_path / "post.npz",), port=0, duration=0)  # nothing stored, nothing given
+        assert seen[-1] is None and "60 degree" in capsys.readouterr().out
+        with np.load(tmp_path / "post.npz") as z:
+            arrays = dict(z)
+        np.savez(tmp_path / "with_k.npz", **arrays, K=room.camera.K)
+        assert np.array_equal(view.stored_intrinsics(tmp_path / "with_k.npz"), room.camera.K)
+        view_command(posterior=(tmp_path / "with_k.npz",), port=0, duration=0)
+        np.testing.assert_array_equal(seen[-1], room.camera.K)
+        assert "60 degree" not in capsys.readouterr().out
+
     def test_sequence_with_one_pose_file(self, tmp_path, room, capsys):
         T2 = room.T_world_camera.copy()
         T2[:3, 3] += 1.0

@@ -10,15 +10,25 @@ from typing import Optional
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..io import load_pose, load_poses, read_matrix
+from ..camera import read_intrinsics
+from ..io import load_pose, load_poses
 from ..viewer.app import ColorBy, Layout, ViewerConfig, ViewerFrame, check_host, port_taken, show
+
+
+def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
+    """The 3x3 K saved with a posterior (key ``K`` of the ``.npz``), or None when the file holds none."""
+    try:
+        with np.load(posterior, allow_pickle=False) as z:
+            return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
+    except (OSError, ValueError):
+        return None  # unreadable: loading the posterior itself reports it
 
 
 def view_command(
     *,
     posterior: tuple[Path, ...] = (),
     rgb: tuple[Path, ...] = (),
-    intrinsics: Optional[Path] = None,
+    intrinsics: Optional[str] = None,
     gt: tuple[Path, ...] = (),
     gt_png_scale: float = 1.0 / 256.0,
     gt_invalid_value: Optional[int] = None,
@@ -40,8 +50,9 @@ def view_command(
     Args:
         posterior: Posterior .npz files written by `gpdepth3d complete`.
         rgb: The frames' images (same order as --posterior).
-        intrinsics: 3x3 K as text for the RGB image size (or the posterior size without --rgb); without it a
-            60 degree horizontal field of view is assumed.
+        intrinsics: The camera of the RGB image (of the posterior grid without --rgb): a text file holding the
+            3x3 K, a KITTI calibration (calib_*.txt with P2, calib_cam_to_cam.txt or its folder) or "fx,fy,cx,cy"
+            in pixels. Default: the K stored in the posterior file, else a 60 degree horizontal field of view.
         gt: Ground-truth depth maps (.npy/.npz metres or 16-bit .png), same order.
         gt_png_scale: Metres per unit of a 16-bit ground-truth PNG (1/1000 for Kinect millimetres).
         gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
@@ -85,15 +96,15 @@ def view_command(
         pose_list = [load_pose(p) for p in poses]
     else:
         pose_list = [None] * n
-    K = None
-    if intrinsics is not None:
-        K = read_matrix(Path(intrinsics), (3, 3), "intrinsics")
-    elif n:
-        print("view: no --intrinsics; assuming a 60 degree horizontal field of view")
+    K = read_intrinsics(intrinsics) if intrinsics is not None else None
+    stored = [None if K is not None else stored_intrinsics(path) for path in posterior]
+    if K is None and n and any(k is None for k in stored):
+        print("view: no --intrinsics and none in the posterior file; assuming a 60 degree horizontal field of view "
+              "(give --intrinsics K.txt, a KITTI calib file or fx,fy,cx,cy)")
     frames = [
         ViewerFrame.from_files(
             path,
-            K=K,
+            K=K if K is not None else stored[i],
             rgb=rgb[i] if rgb else None,
             depth_gt=gt[i] if gt else None,
             gt_png_scale=gt_png_scale,
