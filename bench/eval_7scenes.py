@@ -1,4 +1,4 @@
-"""Reproduces the README's evaluation table on the 7-Scenes frames in ../shared/data.
+"""Measures the README's results table on the 7-Scenes frames in ../shared/data.
 
 FastDepth front-end, half resolution (320x240), uniform samples of 50/200/500 points plus the
 biased field-of-view bands; writes the tables, plots and bench/results/eval_7scenes.json.
@@ -9,6 +9,9 @@ biased field-of-view bands; writes the tables, plots and bench/results/eval_7sce
 from __future__ import annotations
 
 import argparse
+import os
+import platform
+import time
 from pathlib import Path
 
 from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation
@@ -24,7 +27,11 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "eval_7scenes")
     args = parser.parse_args()
     data = args.data / "7scenes"
-    results = {}
+    results = {
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
+        "load_average_1min": os.getloadavg()[0],
+    }
     results["uniform"] = run_evaluation(
         data, protocols=["uniform"], levels=[50, 200, 500], output=args.output / "uniform", stride=args.stride
     )

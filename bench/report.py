@@ -1,0 +1,371 @@
+"""Writes docs/results.md from bench/results/*.json: ``python bench/report.py`` (``--check`` compares instead).
+
+Every table names the run it comes from (script, date, machine and its load, as the JSON records them);
+nothing is typed by hand, so the page says what the last run of each benchmark measured. The README's
+results table is `readme_table` (tests/test_report.py checks that the README holds it verbatim).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results"
+OUTPUT = REPO / "docs" / "results.md"
+
+METHOD_NAMES = {
+    "mde": "MDE alone",
+    "mde_scale": "MDE + global scale",
+    "ip_basic": "IP-Basic (points only)",
+    "gp_default": "**GP default** (`DepthGPConfig()`)",
+    "gp_paper": "GP balanced (the paper, `DepthGPConfig.paper()`)",
+    "gp_balanced": "GP balanced (the paper, `DepthGPConfig.paper()`)",
+    "gp_residual": "GP residual (`DepthGPConfig.residual()`)",
+    "gp_residual_fit": "GP residual, fitted per frame",
+}
+"""Row names of the methods the tables show (others, such as experimental variants, are left out)."""
+
+
+# ----------------------------------------------------------------------------- formatting
+
+
+def fmt(value: Any, digits: int = 3) -> str:
+    """A table cell: numbers with ``digits`` significant digits (integers as they are), None/NaN as a dash."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if value != 0 and (abs(value) >= 10 ** digits):
+            return f"{value:.0f}"
+        return f"{value:.{digits}g}"
+    if isinstance(value, (list, tuple)):
+        return " × ".join(fmt(v, digits) for v in value) if all(isinstance(v, int) for v in value) else str(value)
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def pct(value: Any) -> str:
+    """A share as a percentage with one decimal (None as a dash)."""
+    return "–" if value is None else f"{100 * float(value):.1f}%"
+
+
+def table(header: list[str], rows: Iterable[list[str]]) -> str:
+    """A Markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _load_of(d: dict) -> str:
+    for key in ("load_average_1min", "load_average_before", "load_average"):
+        if key in d:
+            v = d[key]
+            if v is None:
+                return "not recorded"
+            if isinstance(v, dict):  # {"before": ..., "after": ...}
+                return ", ".join(f"{k} {fmt(x, 2)}" for k, x in v.items())
+            return fmt(v[0] if isinstance(v, list) else v, 2)
+    rows = d.get("rows") or d.get("runs")
+    if isinstance(rows, list):
+        loads = [r.get(k) for r in rows if isinstance(r, dict) for k in ("load_average_1min", "load_average", "load_before")]
+        loads = [x for x in loads if isinstance(x, (int, float))]
+        if loads:
+            return f"{min(loads):.2f}–{max(loads):.2f}"
+    return "not recorded"
+
+
+def run_info(d: dict, script: str) -> str:
+    """The line under a table's heading: how to rerun it, when it ran, on what machine, under what load."""
+    date = d.get("date") or d.get("started") or "not recorded"
+    machine = d.get("machine", "not recorded")
+    if isinstance(machine, dict):
+        machine = ", ".join(f"{v}" for k, v in machine.items() if k in ("platform", "cpus", "note"))
+    return f"*`{script}`; run {date}; machine: {machine}; load average (1 min): {_load_of(d)}.*"
+
+
+# ----------------------------------------------------------------------------- sections
+
+
+def _eval_rows(rows: list[dict], methods: Iterable[str]) -> list[list[str]]:
+    levels = sorted({r["level"] for r in rows})
+    by = {(r["method"], r["level"]): r for r in rows}
+    out = []
+    for m in methods:
+        if not any((m, lv) in by for lv in levels):
+            continue
+        rmse = " / ".join(fmt(round(by[(m, lv)]["rmse"])) if (m, lv) in by else "–" for lv in levels)
+        cov = " / ".join(pct(by[(m, lv)].get("coverage_2sigma")) if (m, lv) in by else "–" for lv in levels)
+        out.append([METHOD_NAMES.get(m, m), rmse, cov if "%" in cov else "–"])
+    return out
+
+
+EVAL_METHODS = ("mde", "mde_scale", "ip_basic", "gp_balanced", "gp_default", "gp_residual", "gp_residual_fit")
+
+
+def readme_table(results: Path = RESULTS) -> str:
+    """The README's results table: 7-Scenes with FastDepth, RMSE and ±2σ coverage at 50 / 200 / 500 points."""
+    return _uniform_table(json.loads((results / "eval_7scenes.json").read_text(encoding="utf-8")))
+
+
+def _uniform_table(d: dict) -> str:
+    levels = " / ".join(str(int(lv)) for lv in sorted({r["level"] for r in d["uniform"]}))
+    header = ["method", f"RMSE [mm] at {levels} points", "±2σ covers"]
+    return table(header, _eval_rows(d["uniform"], EVAL_METHODS))
+
+
+def section_eval_7scenes(d: dict) -> str:
+    parts = [
+        "## Depth completion, 7-Scenes, FastDepth",
+        run_info(d, "python bench/eval_7scenes.py"),
+        "FastDepth (TFLite, NYU-trained) as the MDE at 320×240; uniform samples of the Kinect depth as the points; "
+        "every method on the same samples; scored on the dense Kinect depth; mean over frames.",
+        _uniform_table(d),
+    ]
+    bands = d.get("bands")
+    if bands:
+        parts.append("Biased points (200, only in the lower half rows / left half columns): RMSE [mm] and ±2σ.")
+        rows = []
+        for m in EVAL_METHODS:
+            cells = []
+            for protocol in ("hband", "vband"):
+                r = next((x for x in bands if x["method"] == m and x["protocol"] == protocol), None)
+                cov = "" if r is None or r.get("coverage_2sigma") is None else f" ({pct(r['coverage_2sigma'])})"
+                cells.append("–" if r is None else f"{fmt(round(r['rmse']))}{cov}")
+            if any(c != "–" for c in cells):
+                rows.append([METHOD_NAMES.get(m, m), *cells])
+        parts.append(table(["method", "lower half rows", "left half columns"], rows))
+    return "\n\n".join(parts)
+
+
+def section_default_model(d: dict) -> str:
+    parts = ["## The default model against its targets", run_info(d, "python bench/default_model.py")]
+    s7 = d.get("7scenes", {})
+    rows = []
+    for key, r in s7.items():
+        if not isinstance(r, dict) or "rmse_mm" not in r:
+            continue
+        points, _, share = key.partition("_points_outliers_")
+        rows.append([points, pct(float(share)), fmt(round(r["rmse_mm"])), fmt(round(r["mde_rmse_mm"])),
+                     pct(r["coverage_2sigma"]), fmt(r["rejected_mean"]), fmt(1000 * r["median_seconds"], 3)])
+    if rows:
+        parts.append("7-Scenes (FastDepth, 320×240), with and without gross outliers among the points:")
+        parts.append(table(["points", "outliers", "RMSE [mm]", "MDE RMSE [mm]", "±2σ covers", "rejected (mean)",
+                            "median time [ms]"], rows))
+    vio = d.get("vio_sparse")
+    if vio:
+        parts.append(
+            f"vio_sparse (real SLAM points, {vio['held_out_points']} held out): RMSE {fmt(round(vio['rmse_mm']))} mm "
+            f"(scaled MDE {fmt(round(vio['scaled_mde_rmse_mm']))} mm, MDE alone {fmt(round(vio['mde_rmse_mm']))} mm), "
+            f"±2σ covers {pct(vio['coverage_2sigma'])}."
+        )
+    speed = d.get("speed_kitti")
+    if speed:
+        parts.append("Speed, KITTI frame 0 (RT-MonoDepth-S), mean + variance:")
+        parts.append(table(
+            ["case", "points", "GP [ms]", "IP-Basic [ms]"],
+            [[k, fmt(v["points"]), fmt(1000 * v["seconds"]), fmt(1000 * v["ip_basic_seconds"])] for k, v in speed.items()],
+        ))
+    return "\n\n".join(parts)
+
+
+def section_kitti_paper(d: dict) -> str:
+    parts = ["## The paper's KITTI protocol", run_info(d, "python bench/kitti_paper.py"), fmt(d.get("ground_truth", ""))]
+    paper = d.get("paper_rmse_mm", {})
+    for name, ds in d.get("datasets", {}).items():
+        rows = [r for r in ds["summary"] if r["resolution"] == "full" and r["protocol"] == "uniform"]
+        labels = list(dict.fromkeys(r["label"] for r in rows))
+        methods = [m for m in ("mde", "ip_basic", "gp_paper", "gp_default") if any(r["method"] == m for r in rows)]
+        by = {(r["label"], r["method"]): r for r in rows}
+        body = []
+        for label in labels:
+            cells = [label, fmt(round(next(r["n_points"] for r in rows if r["label"] == label))), fmt(paper.get(label))]
+            cells += [fmt(round(by[(label, m)]["rmse"])) if (label, m) in by else "–" for m in methods]
+            cells += [pct(by[(label, m)].get("coverage_2sigma")) if (label, m) in by else "–" for m in methods[2:]]
+            body.append(cells)
+        header = ["density", "points", "paper [mm]"] + [f"{m} [mm]" for m in methods] + [f"{m} ±2σ" for m in methods[2:]]
+        parts.append(f"{name} ({len(ds['frames'])} frames), RMSE at full resolution, uniform densities:")
+        parts.append(table(header, body))
+    if d.get("paper_note"):
+        parts.append(f"The paper's column: {d['paper_note']} (a reference, not the same test).")
+    return "\n\n".join(parts)
+
+
+def section_calibration(d: dict) -> str:
+    rows = []
+    for case, r in d.get("cases", {}).items():
+        rows.append([case, pct(r["coverage_1sigma"]), pct(r["coverage_2sigma"]), fmt(r["median_abs_z"]), fmt(r["ause"]),
+                     fmt(round(r["rmse_mm"]))])
+    return "\n\n".join([
+        "## How far to trust σ",
+        run_info(d, "python bench/calibration.py"),
+        f"Model: `{d.get('config', 'DepthGPConfig()')}`. Coverage of the posterior intervals, median |error| / σ, "
+        "and AUSE (how well σ orders the errors; 0 is perfect).",
+        table(["case", "±1σ covers", "±2σ covers", "median abs z", "AUSE", "RMSE [mm]"], rows),
+    ])
+
+
+def section_mapping(fusion: dict, mapper: dict) -> str:
+    parts = ["## Mapping, 7-Scenes"]
+    if fusion:
+        parts.append(run_info(fusion, "python bench/fusion.py"))
+        m = fusion["mesh_vs_ground_truth_mesh"]
+        rows = [[name, fmt(v["accuracy"]), fmt(v["completeness"]), fmt(v["chamfer"]), fmt(v["precision"]),
+                 fmt(v["recall"]), fmt(v["fscore"])] for name, v in (("MDE only", m["mde"]), ("GP, variance weights", m["gp_variance"]))]
+        parts.append(f"{fusion['frames']} frames at {fmt(fusion['resolution'])}, meshes against the mesh fused from the "
+                     f"Kinect depth (threshold {fmt(m['mde']['threshold'])} m):")
+        parts.append(table(["variant", "accuracy [m]", "completeness [m]", "Chamfer [m]", "precision", "recall", "F-score"], rows))
+        parts.append(f"Per-frame depth RMSE, GP / MDE: {fmt(fusion['depth_rmse_ratio_gp_over_mde'])}; triangulated "
+                     f"points within ±2σ of the Kinect depth: {pct(fusion['points_coverage_2sigma']['all']['within_2sigma'])}.")
+    if mapper:
+        parts.append(run_info(mapper, "python bench/mapper.py"))
+        rows = [[stage, fmt(v["median_ms"]), fmt(v["mean_ms"]), fmt(v["p90_ms"])] for stage, v in mapper["add_frame_ms"].items()]
+        parts.append(f"`Mapper.add_frame` per stage over {mapper['frames']} keyframes (lag {mapper['lag']}, window "
+                     f"{mapper['window']}), wall time:")
+        parts.append(table(["stage", "median [ms]", "mean [ms]", "p90 [ms]"], rows))
+    return "\n\n".join(parts)
+
+
+def _scalars(row: dict) -> dict:
+    return {k: v for k, v in row.items() if v is None or isinstance(v, (int, float, str, bool))}
+
+
+def section_rows(title: str, script: str, d: dict, note: str = "", max_columns: int = 10) -> str:
+    """A benchmark whose JSON holds a list of flat ``rows``: its scalar columns, first ``max_columns``."""
+    rows = [_scalars(r) for r in d.get("rows", []) if isinstance(r, dict)]
+    columns: list[str] = []
+    for r in rows:
+        columns += [k for k in r if k not in columns and not k.startswith("load") and k != "date"]
+    columns = columns[:max_columns]
+    parts = [f"## {title}", run_info(d, script)]
+    if note:
+        parts.append(note)
+    parts.append(table(columns, [[fmt(r.get(c)) for c in columns] for r in rows]))
+    return "\n\n".join(parts)
+
+
+def section_engines_kitti(d: dict, title: str, script: str) -> str:
+    rows, kissgp_runs = [], set()
+    for r in d.get("rows", []):
+        cells = [r["resolution"], fmt(r["density"]), fmt(r["points"]), fmt(1000 * r["ip_basic_seconds"])]
+        for model in ("default", "paper"):
+            m = r.get(model)
+            cells.append("–" if not m else f"{fmt(1000 * m['seconds'])} ({m.get('route', '')})")
+        k = r.get("kissgp") or {}
+        if "from_run" in k:
+            kissgp_runs.add(k["from_run"])
+        if "seconds" in k:
+            cells.append(fmt(1000 * k["seconds"]))
+        elif "timeout_seconds" in k:
+            cells.append(f"> {fmt(1000 * k['timeout_seconds'])}")
+        else:
+            cells.append("not run")
+        rows.append(cells)
+    parts = [f"## {title}", run_info(d, script)]
+    if kissgp_runs:
+        parts.append(f"The KISS-GP column comes from the run of {', '.join(sorted(kissgp_runs))} on the same machine.")
+    summary = d.get("targets", {}).get("summary")
+    if summary:
+        parts.append("; ".join(summary) + ".")
+    parts.append(table(["output", "density", "points", "IP-Basic [ms]", "default [ms] (route)", "paper [ms] (route)",
+                        "KISS-GP [ms]"], rows))
+    return "\n\n".join(parts)
+
+
+def section_cuda(d: dict) -> str:
+    rows = []
+    for r in d.get("rows", []):
+        cpu, cuda = r.get("cpu") or {}, r.get("cuda") or {}
+        rows.append([r.get("model", ""), r["resolution"], fmt(r["density"]), fmt(r["points"]),
+                     fmt(1000 * cpu["seconds"]) if cpu else "–", fmt(1000 * cuda["seconds"]) if cuda else "–"])
+    return "\n\n".join([
+        "## CPU and CUDA",
+        run_info(d, "python bench/cuda.py") + f" *GPU: {d.get('gpu', 'none')}; torch {d.get('torch', '')}.*",
+        table(["model", "output", "density", "points", "CPU [ms]", "CUDA [ms]"], rows),
+    ])
+
+
+def section_viewer(d: dict) -> str:
+    med = d.get("median", {})
+    return "\n\n".join([
+        "## Viewer start-up",
+        run_info(d, "python bench/viewer_startup.py"),
+        f"{fmt(d.get('what', ''))}: page {fmt(med.get('page'))} s, panel {fmt(med.get('panel'))} s, first frame "
+        f"{fmt(med.get('first_frame'))} s (median of {len(d.get('runs', []))} runs).",
+    ])
+
+
+def section_batch(d: dict) -> str:
+    s = d.get("summary", {})
+    note = (f"{d['settings']['frames']} frames, {d['settings']['resolution']}, {d['settings']['n_input']} points, "
+            f"`{d['settings']['config']}`. Scaling 2 vs 1 worker: {fmt(s.get('scaling_2_vs_1'))}×; overhead "
+            f"{fmt(s.get('overhead_per_frame_s'))} s per frame.")
+    return section_rows("Datasets on Dask", "python bench/batch.py", d, note)
+
+
+SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
+    ("eval_7scenes.json", section_eval_7scenes),
+    ("default_model.json", section_default_model),
+    ("kitti_paper.json", section_kitti_paper),
+    ("calibration.json", section_calibration),
+    ("engines_kitti.json", lambda d: section_engines_kitti(d, "Speed on KITTI (the shared CPU)", "python bench/engines.py")),
+    ("engines_kitti_2cores.json", lambda d: section_engines_kitti(
+        d, "Speed on KITTI (2 pinned, otherwise idle cores)", "python bench/engines.py --output bench/results/engines_kitti_2cores.json")),
+    ("cuda.json", section_cuda),
+    ("engines.json", lambda d: section_rows("Engines against each other", "python bench/engines.py", d,
+                                            f"MDE: {fmt(d.get('mde', ''))}.")),
+    ("lattice.json", lambda d: section_rows("The lattice stride", "python bench/lattice.py", d)),
+    ("kissgp.json", lambda d: section_rows("The GPyTorch KISS-GP engine", "python bench/kissgp.py", d,
+                                           fmt(d.get("benchmark", "")))),
+    ("fit_7scenes.json", lambda d: section_rows("Fitted hyperparameters, 7-Scenes", "python bench/fit.py", d)),
+    ("batch.json", section_batch),
+    ("viewer_startup.json", section_viewer),
+]
+"""One section per results file, in page order; mapping (fusion.json + mapper.json) comes after them."""
+
+
+def render(results: Path = RESULTS) -> str:
+    """The whole of docs/results.md from the JSON files in ``results``."""
+
+    def load(name: str) -> dict:
+        path = results / name
+        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+
+    parts = [
+        "# Results",
+        "Generated by `python bench/report.py` from `bench/results/*.json`: do not edit by hand; rerun the benchmark, "
+        "then the report. Each table names its run: date, machine and load average (timings taken under load are "
+        "noisy: compare ratios within one table).",
+    ]
+    for name, section in SECTIONS:
+        d = load(name)
+        if d:
+            parts.append(section(d))
+        if name == "calibration.json":
+            parts.append(section_mapping(load("fusion.json"), load("mapper.json")))
+    return "\n\n".join(parts) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="exit 1 when docs/results.md differs from the JSON")
+    args = parser.parse_args(argv)
+    text = render()
+    if args.check:
+        same = OUTPUT.is_file() and OUTPUT.read_text(encoding="utf-8") == text
+        print("docs/results.md is up to date" if same else "docs/results.md differs: run python bench/report.py")
+        return 0 if same else 1
+    OUTPUT.parent.mkdir(parents=True, exist_ok=True)
+    OUTPUT.write_text(text, encoding="utf-8")
+    print(f"wrote {OUTPUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
