@@ -54,7 +54,8 @@ class TestPackageMetadata:
     def test_ci_pins_torch_through_a_constraints_file(self):
         constraints = (ROOT / ".ci" / "constraints.txt").read_text(encoding="utf-8")
         assert "torch==" in constraints
-        assert "-c .ci/constraints.txt" in (ROOT / "scripts" / "setup-dev.sh").read_text(encoding="utf-8")
+        assert "-c .ci/constraints.txt" in (ROOT / "scripts" / "install.sh").read_text(encoding="utf-8")
+        assert "install.sh dev" in (ROOT / "scripts" / "setup-dev.sh").read_text(encoding="utf-8")
 
 
 class TestMissingDependency:

@@ -2,7 +2,7 @@
 
 Every module under gpdepth3d/ is parsed with `ast` (nothing is imported): every import
 statement counts, at module level, inside functions and under ``if TYPE_CHECKING``, relative or
-absolute. Layer ranks (DESIGN.md, "Layers"): errors 0; camera, measurements, sampling, metrics,
+absolute. Layer ranks (docs/architecture.md, "Layers"): errors 0; camera, measurements, sampling, metrics,
 io, depthmap 1; mde, datasets 2; gp 3 (and gp may import only errors); completion 4; mapping 5;
 experiments 6; cli, viewer 7; the package's own ``__init__`` (the public re-exports) 8.
 """
@@ -102,7 +102,7 @@ def layer(module: str) -> tuple[str, int]:
     if len(parts) == 1:
         return PACKAGE, ROOT_RANK
     if parts[1] not in RANKS:
-        raise KeyError(f"{module} belongs to no layer: add it to a layer folder or to RANKS (DESIGN.md)")
+        raise KeyError(f"{module} belongs to no layer: add it to a layer folder or to RANKS (docs/architecture.md)")
     return parts[1], RANKS[parts[1]]
 
 

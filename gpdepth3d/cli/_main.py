@@ -17,11 +17,8 @@ from ..errors import GPDepthError
 from ..extras import missing_dependency
 
 
-COMMANDS = ("demo", "complete", "eval", "fuse", "view", "batch")
-"""The subcommands, in the order `gpdepth3d --help` lists them."""
-
-
 def _commands() -> dict:
+    """Each subcommand's name -> its function, in the order `gpdepth3d --help` lists them."""
     from .batch import batch_command
     from .complete import complete_command
     from .demo import demo_command
@@ -148,10 +145,11 @@ def main(argv: list[str] | None = None) -> int:
         from ._options import normalize_argv
 
         argv = normalize_argv(list(sys.argv[1:] if argv is None else argv))
-        command = argv[0] if argv and argv[0] in COMMANDS else None
+        commands = _commands()
+        command = argv[0] if argv and argv[0] in commands else None
         with _compile_notice(argv), _parse_error_hook(command):
             tyro.extras.subcommand_cli_from_dict(
-                _commands(), args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,)
+                commands, args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,)
             )
     except SystemExit as exc:
         if exc.code not in (0, None):  # tyro printed its own message (no parse-error hook)

@@ -1,6 +1,6 @@
 """Exact posterior over few observed pixels (Woodbury) for the separable exponential kernel.
 
-The `fast` engine's route for the residual formulation with sparse points (DESIGN.md: "Woodbury
+The `fast` engine's route for the residual formulation with sparse points (docs/architecture.md: "Woodbury
 over the sparse points"). With m observed pixels x_j = (r_j, c_j) and the separable Matern-1/2
 kernel k(x, x') = s^2 e^{-|r - r'| / l} e^{-|c - c'| / l}, in correlation units (A = K_XX / s^2
 + diag(noise) / s^2, alpha = A^-1 (y - m), M = A^-1):
