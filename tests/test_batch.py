@@ -570,3 +570,25 @@ class TestChecks:
         with pytest.raises(ConnectionFailedError, match="1 s"):
             run_batch([FrameSpec("a", str(tmp_path), "a")], tmp_path / "o", address="tcp://127.0.0.1:1",
                       connect_timeout=1, progress=False)
+
+
+class TestPreviews:
+    def test_written_per_frame_and_part_of_done(self, tiny_kitti, tmp_path):
+        frames = dataset_frames(tiny_kitti, limit=2)
+        run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, previews=True, progress=False)
+        for f in frames:
+            for kind in ("depth", "sigma"):
+                assert (tmp_path / f"{f.frame_id}_{kind}_preview.png").is_file()
+        (tmp_path / f"{frames[0].frame_id}_sigma_preview.png").unlink()  # a frame missing a preview is redone
+        again = run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, previews=True, progress=False)
+        assert (again.n_computed, again.n_skipped) == (1, 1)
+        assert (tmp_path / f"{frames[0].frame_id}_sigma_preview.png").is_file()
+
+    def test_the_command_writes_them_unless_told_not_to(self, tiny_kitti, tmp_path, capsys):
+        data = tiny_kitti
+        batch_command(data=data, output=tmp_path / "on", workers=0, frames=1, n_input=40,
+                      gp=DepthGPConfig(engine="exact"), progress=False)
+        assert len(list((tmp_path / "on").glob("*_depth_preview.png"))) == 1
+        batch_command(data=data, output=tmp_path / "off", workers=0, frames=1, n_input=40,
+                      gp=DepthGPConfig(engine="exact"), progress=False, preview=False)
+        assert not list((tmp_path / "off").glob("*.png")) and len(list((tmp_path / "off").glob("*.npz"))) == 1

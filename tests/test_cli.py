@@ -207,3 +207,6 @@ class TestDemoCommand:
         # A global scale helps on average but not the far, large errors that RMSE weighs: compare MAE.
         assert mae["gp-residual"] < mae["mde+scale"] < mae["mde"]
         assert (tmp_path / "demo" / "gp-paper.npz").is_file()
+        # the figure and the cloud show the default model; the table says why a global scale can lose in RMSE
+        assert (tmp_path / "demo" / "gp-default.png").is_file() and (tmp_path / "demo" / "gp-default_cloud.ply").is_file()
+        assert "mde+scale is the MDE times one global scale" in proc.stdout

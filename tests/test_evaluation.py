@@ -216,3 +216,19 @@ class TestRunEvaluation:
             with pytest.raises(InvalidInputError, match=name):
                 run_evaluation(missing, output=tmp_path / "out", **kwargs)
         assert not (tmp_path / "out").exists()
+
+
+class TestQualitativeChoice:
+    def test_the_default_model_at_its_highest_level_first(self):
+        from types import SimpleNamespace
+
+        from gpdepth3d.experiments.evaluation import qualitative_choice
+
+        var, none = SimpleNamespace(variance=np.ones(1)), SimpleNamespace(variance=None)
+        outputs = {("uniform", 50, "gp_relative"): (var, None), ("uniform", 500, "gp_residual"): (var, None),
+                   ("uniform", 50, "gp_default"): (var, None), ("uniform", 200, "gp_default"): (var, None),
+                   ("uniform", 500, "mde"): (none, None)}
+        assert qualitative_choice(outputs) == ("uniform", 200, "gp_default")
+        del outputs[("uniform", 50, "gp_default")], outputs[("uniform", 200, "gp_default")]
+        assert qualitative_choice(outputs) == ("uniform", 500, "gp_residual")
+        assert qualitative_choice({("uniform", 500, "mde"): (none, None)}) is None

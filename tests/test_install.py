@@ -55,7 +55,7 @@ class TestPackageMetadata:
         constraints = (ROOT / ".ci" / "constraints.txt").read_text(encoding="utf-8")
         assert "torch==" in constraints
         assert "-c .ci/constraints.txt" in (ROOT / "scripts" / "install.sh").read_text(encoding="utf-8")
-        assert "install.sh dev" in (ROOT / "scripts" / "setup-dev.sh").read_text(encoding="utf-8")
+        assert "install.sh\" dev" in (ROOT / "scripts" / "setup-dev.sh").read_text(encoding="utf-8")
 
 
 class TestMissingDependency:

@@ -28,12 +28,14 @@ def batch_command(
     models_dir: Optional[Path] = None,
     seed: int = 0,
     png: bool = False,
+    preview: bool = True,
     progress: bool = True,
     connect_timeout: float = 10.0,
 ) -> None:
     """Complete or evaluate every frame of a dataset folder on Dask (resumable; re-run to finish).
 
-    Writes OUTPUT/<frame>.npz (posterior mean, variance, std in metres / m^2), with --task eval also
+    Writes OUTPUT/<frame>.npz (posterior mean, variance, std in metres / m^2) and previews to look at
+    (OUTPUT/<frame>_depth_preview.png, OUTPUT/<frame>_sigma_preview.png), with --task eval also
     OUTPUT/<frame>.metrics.json, and OUTPUT/batch_report.json (counts, failures, mean metrics).
     Frames already done are skipped, so a killed run resumes where it stopped. Inputs: --n-input
     measurements sampled from the frame's LiDAR (20 % held out as ground truth for eval) or from its dense
@@ -62,6 +64,8 @@ def batch_command(
         models_dir: Folder of the networks (default: $GPDEPTH3D_MODELS or ../shared/models).
         seed: Seed of the per-frame sampling.
         png: Also write 16-bit PNGs of mean and std.
+        preview: Also write colourised previews per frame (OUTPUT/<frame>_depth_preview.png, _sigma_preview.png;
+            colour bars in metres); --no-preview skips them.
         progress: Show the progress bar.
         connect_timeout: Seconds to wait for the scheduler at --address before giving up.
     """
@@ -80,6 +84,7 @@ def batch_command(
         workers=workers,
         address=address,
         png=png,
+        previews=preview,
         progress=progress,
         connect_timeout=connect_timeout,
     )

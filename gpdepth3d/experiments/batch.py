@@ -63,6 +63,7 @@ from ..io import to_jsonable, write_json, write_problem
 from ..measurements import SparseDepth, downsample_depth
 from .frames import holdout_lidar, mde_to_grid
 from .scoring import CALIBRATION_NAMES, metric_row
+from .previews import preview_paths, write_previews
 
 Task = Literal["complete", "eval"]
 TASKS = ("complete", "eval")
@@ -345,9 +346,12 @@ class FrameResult:
     metrics: Optional[dict] = None
 
 
-def output_paths(output_dir: str | Path, frame_id: str, task: Task, *, png: bool = False) -> dict[str, Path]:
+def output_paths(
+    output_dir: str | Path, frame_id: str, task: Task, *, png: bool = False, previews: bool = False
+) -> dict[str, Path]:
     """The files a frame writes: ``posterior`` (``<id>.npz``), with ``png`` ``mean_png`` and ``std_png``,
-    for eval ``metrics``; ``final`` is the last one written.
+    with ``previews`` ``depth_preview`` and ``sigma_preview``, for eval ``metrics``; ``final`` is the last one
+    written.
 
     A frame is done only when every one of these files exists (`frame_done`).
     """
@@ -356,15 +360,18 @@ def output_paths(output_dir: str | Path, frame_id: str, task: Task, *, png: bool
     if png:
         paths["mean_png"] = output_dir / f"{frame_id}_mean.png"
         paths["std_png"] = output_dir / f"{frame_id}_std.png"
+    if previews:
+        for kind, path in zip(("depth_preview", "sigma_preview"), preview_paths(output_dir / frame_id)):
+            paths[kind] = path
     if task == "eval":
         paths["metrics"] = output_dir / f"{frame_id}.metrics.json"
     paths["final"] = paths["metrics" if task == "eval" else "posterior"]
     return paths
 
 
-def frame_done(output_dir: str | Path, frame_id: str, task: Task, *, png: bool = False) -> bool:
-    """Whether every output of the frame exists (npz, the PNGs with ``png``, the metrics for eval)."""
-    return all(p.is_file() for p in output_paths(output_dir, frame_id, task, png=png).values())
+def frame_done(output_dir: str | Path, frame_id: str, task: Task, *, png: bool = False, previews: bool = False) -> bool:
+    """Whether every output of the frame exists (npz, the PNGs with ``png``, previews, the metrics for eval)."""
+    return all(p.is_file() for p in output_paths(output_dir, frame_id, task, png=png, previews=previews).values())
 
 
 _COMPLETERS: dict = {}
@@ -390,6 +397,7 @@ def process_frame(
     task: Task = "complete",
     variance: bool = True,
     png: bool = False,
+    previews: bool = False,
 ) -> FrameResult:
     """Does one frame: load, complete, write atomically (and score for ``eval``); never raises.
 
@@ -399,13 +407,16 @@ def process_frame(
     """
     t0 = time.perf_counter()
     try:
-        paths = output_paths(output_dir, spec.frame_id, task, png=png)
+        paths = output_paths(output_dir, spec.frame_id, task, png=png, previews=previews)
         inputs = loader(spec)
         if not isinstance(inputs, FrameInputs):
             raise InvalidInputError("loader", "a callable returning FrameInputs", type(inputs).__name__)
         posterior = _completer(config).complete(
             inputs.mde, inputs.sparse, variance=variance or task == "eval", frame=spec.frame_id
         )
+        if previews:  # before the posterior: the frame's last file marks it done
+            write_previews(Path(output_dir) / spec.frame_id, posterior.mean, np.sqrt(np.maximum(posterior.variance, 0)),
+                           mde=inputs.mde if np.shape(inputs.mde) == posterior.mean.shape else None)
         posterior.save(paths["posterior"], png=png)
         metrics = None
         if task == "eval":
@@ -717,6 +728,7 @@ def run_batch(
     address: str | None = None,
     variance: bool = True,
     png: bool = False,
+    previews: bool = False,
     max_in_flight: int | None = None,
     progress: bool = True,
     connect_timeout: float = 10.0,
@@ -738,6 +750,8 @@ def run_batch(
             None = start a LocalCluster.
         variance: Compute the posterior variance (always on for ``eval``).
         png: Also write 16-bit PNGs of mean and std per frame.
+        previews: Also write colourised previews per frame (``<id>_depth_preview.png``, ``<id>_sigma_preview.png``,
+            colour bars in metres; needs the variance).
         max_in_flight: Frames submitted but not finished at any time (default twice the
             worker threads): bounds the scheduler's memory on huge datasets and the work in
             flight when a run is killed. A frame that kills its worker process (segfault,
@@ -782,9 +796,10 @@ def run_batch(
     with _exclusive(output_dir):
         check_settings(output_dir, config, loader)
         removed = remove_stale_temp_files(output_dir)
-        todo = [f for f in frames if not frame_done(output_dir, f.frame_id, task, png=png)]
+        previews = bool(previews) and (variance or task == "eval")
+        todo = [f for f in frames if not frame_done(output_dir, f.frame_id, task, png=png, previews=previews)]
         n_skipped = len(frames) - len(todo)
-        kwargs = dict(config=config, loader=loader, task=task, variance=variance, png=png)
+        kwargs = dict(config=config, loader=loader, task=task, variance=variance, png=png, previews=previews)
         results: list[FrameResult] = []
         startup = 0.0
         t_compute = time.perf_counter()
@@ -837,7 +852,7 @@ def _progress_bar(total: int, task: str, enabled: bool):
 
     # rate_noinv: always frames/s (tqdm would switch to s/frame below one frame per second).
     fmt = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}{postfix}]"
-    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True, bar_format=fmt, disable=None)  # a terminal only
+    return tqdm(total=total, unit="frame", desc=task, dynamic_ncols=True, bar_format=fmt)
 
 
 def _advance(bar, results: list[FrameResult]) -> None:

@@ -390,7 +390,7 @@ def evaluate(
         suite: The method runner (default `MethodSuite()`).
         resolution: Evaluation resolution relative to the dataset's images (0.5 = half).
         seed: Seed of all random draws (each frame gets its own stream).
-        progress: Show a tqdm bar over frames (when stderr is a terminal; piped output gets no bar).
+        progress: Show a tqdm bar over frames.
         on_frame: Called after each frame with its setup and {(protocol, level, method): output}.
 
     Returns:
@@ -411,7 +411,7 @@ def evaluate(
     levels = dict(levels or {})
     frames = list(frames) if not hasattr(frames, "__len__") else frames
     rows: list[dict] = []
-    bar = tqdm(frames, desc="eval", unit="frame", disable=None if progress else True, total=len(frames))  # None: on a terminal only
+    bar = tqdm(frames, desc="eval", unit="frame", disable=not progress, total=len(frames))
     for index, frame in enumerate(bar):
         rng = np.random.default_rng([seed, index])
         setup = prepare_frame(
@@ -539,6 +539,20 @@ def plot_rmse_vs_level(summary: Sequence[dict], protocol: str, path: str | Path)
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return Path(path).with_suffix(".png")
+
+
+def qualitative_choice(outputs: dict) -> tuple | None:
+    """The (protocol, level, method) the qualitative figure shows: the default model at its highest level.
+
+    Falls back to the first method with a variance when ``gp_default`` was not run; None without any.
+
+    Args:
+        outputs: {(protocol, level, method): (output with ``.variance``, sparse)} of one frame.
+    """
+    for key in sorted(outputs, key=lambda k: (k[2] != "gp_default", -k[1])):
+        if outputs[key][0].variance is not None:
+            return key
+    return None
 
 
 def plot_qualitative(
@@ -676,7 +690,8 @@ def run_evaluation(
             `gpdepth3d.mde.default_models_dir` near ``data``, i.e. shared/models).
         seed: Seed of the sampling.
         device: Torch device for the fast GP engine ("cuda"); default NumPy on the CPU.
-        qualitative: Also draw the qualitative figure of the first frame.
+        qualitative: Also draw the qualitative figure of the first frame (the default model's posterior at the
+            highest level, else the first method with a variance).
         progress: Show the progress bar.
 
     Returns:
@@ -731,11 +746,10 @@ def run_evaluation(
     def keep_first(setup: EvalSetup, outputs: dict) -> None:
         if first or not qualitative:
             return
-        for key in sorted(outputs, key=lambda k: (k[2] != "gp_relative", k[2] != "gp_residual", -k[1])):
+        key = qualitative_choice(outputs)
+        if key is not None:
             out, sparse = outputs[key]
-            if out.variance is not None:
-                first.update(setup=setup, out=out, sparse=sparse, key=key)
-                return
+            first.update(setup=setup, out=out, sparse=sparse, key=key)
 
     levels = {p: level_values for p in protocols} if level_values else None
     rows = evaluate(
