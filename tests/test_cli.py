@@ -210,3 +210,24 @@ class TestDemoCommand:
         # the figure and the cloud show the default model; the table says why a global scale can lose in RMSE
         assert (tmp_path / "demo" / "gp-default.png").is_file() and (tmp_path / "demo" / "gp-default_cloud.ply").is_file()
         assert "mde+scale is the MDE times one global scale" in proc.stdout
+
+
+class TestThirdPartyNoise:
+    def test_numba_tbb_warning_is_silenced_and_colour_codes_stripped(self, monkeypatch, capsys, tmp_path):
+        import functools
+        import warnings
+
+        import gpdepth3d.cli.demo as demo
+
+        original = demo.demo_command
+
+        @functools.wraps(original)
+        def noisy(**kwargs):
+            warnings.warn_explicit("\x1b[1mThe TBB threading layer requires TBB version 2021 update 6\x1b[0m",
+                                   UserWarning, "parallel.py", 1, module="numba.np.ufunc.parallel")
+            warnings.warn_explicit("\x1b[1mSomething a user\nshould see\x1b[0m", UserWarning, "x.py", 1, module="other")
+
+        monkeypatch.setattr(demo, "demo_command", noisy)
+        assert main(["demo", "--output", str(tmp_path / "d")]) == 0
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == ["gpdepth3d: warning: Something a user should see"]

@@ -205,3 +205,27 @@ class TestDefaultModelsDir:
         assert default_models_dir(near=data) == tmp_path / "shared" / "data" / "models"
         monkeypatch.setenv("GPDEPTH3D_MODELS", str(tmp_path / "elsewhere"))
         assert default_models_dir(near=data) == tmp_path / "elsewhere"  # the environment always wins
+
+
+class TestRuntimeLogFilter:
+    def test_info_lines_are_dropped_and_the_rest_kept(self, capfd):
+        import os
+
+        from gpdepth3d.mde.tflite import _runtime_info_dropped
+
+        with _runtime_info_dropped():
+            os.write(2, b"INFO: Created TensorFlow Lite XNNPACK delegate for CPU.\nERROR: a real problem\n")
+        err = capfd.readouterr().err
+        assert "INFO:" not in err and "ERROR: a real problem" in err
+
+    def test_fastdepth_loads_without_the_info_line(self, capfd):
+        from pathlib import Path
+
+        pytest.importorskip("ai_edge_litert")
+        model = Path(__file__).resolve().parents[2] / "shared" / "models" / "fast_depth_224.tflite"
+        if not model.is_file():
+            pytest.skip("FastDepth model not in ../shared/models")
+        from gpdepth3d.mde.tflite import FastDepthTFLite
+
+        FastDepthTFLite(model)
+        assert "INFO:" not in capfd.readouterr().err
