@@ -64,12 +64,12 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
         posteriors[name] = post
         results[name] = (post.mean, post.variance)
 
-    header = f"{'method':<16}{'RMSE [mm]':>10}{'MAE [mm]':>10}{'REL [-]':>8}{'δ1 [-]':>7}{'±2σ cov [-]':>12}"
+    header = f"{'method':<18}{'RMSE [mm]':>10}{'MAE [mm]':>10}{'REL [-]':>8}{'δ1 [-]':>7}{'±2σ cov [-]':>12}"
     yield header
     for name, (pred, var) in results.items():
         m = metric_row(pred, var, frame.depth_gt, depth_keys=("rmse", "mae", "rel", "delta1"), calibration_keys=("coverage_2sigma",))
         cov = f"{m['coverage_2sigma']:>12.3f}" if var is not None else f"{'-':>12}"
-        yield f"{name:<16}{m['rmse']:>10.0f}{m['mae']:>10.0f}{m['rel']:>8.3f}{m['delta1']:>7.3f}{cov}"
+        yield f"{name:<18}{m['rmse']:>10.0f}{m['mae']:>10.0f}{m['rel']:>8.3f}{m['delta1']:>7.3f}{cov}"
     yield SCALE_NOTE
     for name, post in posteriors.items():
         yield f"{name}: solved in {post.timings['solve'] * 1000:.0f} ms (engine {post.config.engine})"
