@@ -148,6 +148,16 @@ class TestOneLineErrors:
         out = capsys.readouterr()
         assert out.err.strip().splitlines() == [f"gpdepth3d: error: {line}"] and out.out == ""
 
+    def test_events_of_other_tyro_versions_still_give_one_line(self):
+        from gpdepth3d.cli._main import describe_parse_error
+
+        class NewKindOfFailure:
+            prog = "gpdepth3d"
+
+        assert describe_parse_error(NewKindOfFailure(), "view") == (
+            "gpdepth3d view: invalid command line (see gpdepth3d view --help)"
+        )
+
     def test_bad_option_value_is_one_line_exit_1(self, tmp_path, capsys):
         code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "--preset", "paper", "--gp.nu", "3.7"])
         err = capsys.readouterr().err.strip().splitlines()

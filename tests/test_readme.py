@@ -14,6 +14,19 @@ def _python_blocks(text: str) -> list[str]:
     return re.findall(r"```python\n(.*?)```", text, flags=re.S)
 
 
+def test_readme_is_short():
+    assert len((ROOT / "README.md").read_text(encoding="utf-8").splitlines()) <= 250
+
+
+def test_command_one_installs_what_every_line_needs():
+    """Command 1 runs scripts/install.sh, which installs the [all] extra (and libusb for Open3D) by default."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    first_block = re.search(r"```bash\n(.*?)```", text, flags=re.S).group(1)
+    assert "bash scripts/install.sh && gpdepth3d demo" in first_block
+    script = (ROOT / "scripts" / "install.sh").read_text(encoding="utf-8")
+    assert 'extra="${1:-all}"' in script and "libusb-1.0-0" in script and '-e ".[$extra]"' in script
+
+
 def test_readme_has_one_quick_start_block():
     blocks = _python_blocks((ROOT / "README.md").read_text(encoding="utf-8"))
     assert len(blocks) == 1 and "g.complete(" in blocks[0]

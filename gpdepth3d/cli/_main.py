@@ -96,7 +96,12 @@ def _parse_error_hook(command: str | None):
         return contextlib.nullcontext()
 
     def raise_one_line(event) -> None:
-        raise CommandLineError(describe_parse_error(event, command))
+        try:
+            line = describe_parse_error(event, command)
+        except Exception:  # noqa: BLE001 - an event of another tyro version: still one line
+            where = f"gpdepth3d {command}" if command else "gpdepth3d"
+            line = f"{where}: invalid command line (see {where} --help)"
+        raise CommandLineError(line)
 
     return on_parse_error(raise_one_line)
 
