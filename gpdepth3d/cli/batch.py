@@ -91,7 +91,8 @@ def batch_command(
     print(report.summary())
     if report.aggregate:
         print("  (units: rmse, mae mm; irmse, imae 1/km; rel, delta1, coverage_2sigma fractions; nll nats per pixel)")
-    print(f"wrote {report.n_computed} frame(s) and {Path(output) / REPORT_NAME} (in {Path(output).resolve()})")
+    each = "<frame>.npz and its previews" if preview else "<frame>.npz"
+    print(f"wrote {report.n_computed} frame(s) ({each}) and {Path(output) / REPORT_NAME} (in {Path(output).resolve()})")
     if report.failures:
         raise FramesFailedError(
             f"{len(report.failures)} of {report.n_frames} frames failed (first: {report.failures[0].frame_id}: "
