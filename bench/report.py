@@ -315,8 +315,6 @@ SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
     ("kitti_paper.json", section_kitti_paper),
     ("calibration.json", section_calibration),
     ("engines_kitti.json", lambda d: section_engines_kitti(d, "Speed on KITTI (the shared CPU)", "python bench/engines.py")),
-    ("engines_kitti_2cores.json", lambda d: section_engines_kitti(
-        d, "Speed on KITTI (2 pinned, otherwise idle cores)", "python bench/engines.py --output bench/results/engines_kitti_2cores.json")),
     ("cuda.json", section_cuda),
     ("engines.json", lambda d: section_rows("Engines against each other", "python bench/engines.py", d,
                                             f"MDE: {fmt(d.get('mde', ''))}.")),
