@@ -158,6 +158,19 @@ class TestOneLineErrors:
             "gpdepth3d view: invalid command line (see gpdepth3d view --help)"
         )
 
+    def test_a_tyro_without_the_hook_still_gives_one_line(self, monkeypatch, capsys):
+        import gpdepth3d.cli._main as cli_main
+
+        monkeypatch.setattr(cli_main, "_parse_error_hook", lambda command: None)
+        assert main(["complete", "--mdee", "x"]) == 1
+        out = capsys.readouterr()
+        assert out.err.strip().splitlines() == [
+            "gpdepth3d: error: gpdepth3d complete: invalid command line (see gpdepth3d complete --help)"
+        ]
+        with pytest.raises(SystemExit) as info:
+            main(["complete", "--help"])
+        assert info.value.code == 0 and "--mde" in capsys.readouterr().out
+
     def test_bad_option_value_is_one_line_exit_1(self, tmp_path, capsys):
         code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "--preset", "paper", "--gp.nu", "3.7"])
         err = capsys.readouterr().err.strip().splitlines()

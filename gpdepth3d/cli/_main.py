@@ -6,6 +6,7 @@ becomes one line on stderr and exit code 1.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import sys
@@ -87,23 +88,25 @@ def describe_parse_error(event, command: str | None = None) -> str:
 
 
 def _parse_error_hook(command: str | None):
-    """Routes tyro's parse failures to `CommandLineError` (one line) where tyro offers its parse-error hook."""
-    import contextlib
-
+    """Routes tyro's parse failures to `CommandLineError` (one line); None where tyro has no parse-error hook."""
     try:
         from tyro._errors import on_parse_error
-    except ImportError:  # a tyro without the hook: its own message, then exit code 2 (mapped to 1 below)
-        return contextlib.nullcontext()
+    except ImportError:
+        return None
 
     def raise_one_line(event) -> None:
         try:
             line = describe_parse_error(event, command)
         except Exception:  # noqa: BLE001 - an event of another tyro version: still one line
-            where = f"gpdepth3d {command}" if command else "gpdepth3d"
-            line = f"{where}: invalid command line (see {where} --help)"
+            line = _generic_parse_error(command)
         raise CommandLineError(line)
 
     return on_parse_error(raise_one_line)
+
+
+def _generic_parse_error(command: str | None) -> str:
+    where = f"gpdepth3d {command}" if command else "gpdepth3d"
+    return f"{where}: invalid command line (see {where} --help)"
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
@@ -141,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     Every failure is one line on stderr and exit code 1 (a bad option value included); set
     GPDEPTH3D_DEBUG=1 to see the traceback of an unexpected error instead.
     """
+    command = None
     show_warning = warnings.showwarning
     warnings.showwarning = _one_line_warning
     filters = list(warnings.filters)
@@ -152,12 +156,17 @@ def main(argv: list[str] | None = None) -> int:
         argv = normalize_argv(list(sys.argv[1:] if argv is None else argv))
         commands = _commands()
         command = argv[0] if argv and argv[0] in commands else None
-        with _compile_notice(argv), _parse_error_hook(command):
+        hook = _parse_error_hook(command)
+        # without the hook tyro's own (multi-line) message is held back and replaced by one line; help still prints
+        quiet = hook is None and not ({"-h", "--help"} & set(argv))
+        with _compile_notice(argv), hook or contextlib.nullcontext():
             tyro.extras.subcommand_cli_from_dict(
-                commands, args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,)
+                commands, args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,),
+                console_outputs=not quiet,
             )
     except SystemExit as exc:
-        if exc.code not in (0, None):  # tyro printed its own message (no parse-error hook)
+        if exc.code not in (0, None):  # a parse failure tyro reported itself (a tyro without the hook)
+            print(f"gpdepth3d: error: {_generic_parse_error(command)}", file=sys.stderr)
             return 1
         raise
     except GPDepthError as exc:
