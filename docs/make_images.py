@@ -48,6 +48,11 @@ def draw(data: Path, models: Path, output: Path) -> Path:
     output.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(output, dpi=90)
     plt.close(fig)
+    from PIL import Image
+
+    with Image.open(output) as im:  # 256 colours: a third of the size, the same picture
+        small = im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)
+    small.save(output, optimize=True)
     return output
 
 
