@@ -112,3 +112,22 @@ def test_readme_lines_use_one_vocabulary():
         assert not any(w.startswith("--model.") for w in words), line
         if words[1] in ("complete", "batch", "fuse"):
             assert "--output" in words, line
+
+
+@pytest.mark.slow
+def test_readme_picture_is_drawn_from_real_data(shared_data, tmp_path):
+    """docs/make_images.py draws the README's picture from KITTI with the default model."""
+    import importlib.util
+
+    from PIL import Image
+
+    models = ROOT.parent / "shared" / "models"
+    if not (models / "rtmonodepth_s_ms_640_192.onnx").is_file():
+        pytest.skip("RT-MonoDepth-S model not found in ../shared/models")
+    spec = importlib.util.spec_from_file_location("make_images", ROOT / "docs" / "make_images.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    path = module.draw(shared_data, models, tmp_path / "picture.png")
+    with Image.open(path) as drawn, Image.open(ROOT / "docs" / "images" / "kitti_completion.png") as shipped:
+        assert drawn.size == shipped.size
+    assert "docs/images/kitti_completion.png" in (ROOT / "README.md").read_text(encoding="utf-8")
