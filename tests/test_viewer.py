@@ -538,6 +538,9 @@ class TestViewCommand:
             arrays = dict(z)
         np.savez(tmp_path / "with_k.npz", **arrays, K=room.camera.K)
         assert np.array_equal(view.stored_intrinsics(tmp_path / "with_k.npz"), room.camera.K)
+        np.save(tmp_path / "not_a_posterior.npy", np.ones(3))
+        assert view.stored_intrinsics(tmp_path / "not_a_posterior.npy") is None
+        assert view.stored_intrinsics(tmp_path / "missing.npz") is None
         view_command(posterior=(tmp_path / "with_k.npz",), port=0, duration=0)
         np.testing.assert_array_equal(seen[-1], room.camera.K)
         assert "60 degree" not in capsys.readouterr().out

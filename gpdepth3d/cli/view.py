@@ -18,10 +18,16 @@ from ..viewer.app import ColorBy, Layout, ViewerConfig, ViewerFrame, check_host,
 def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
     """The 3x3 K saved with a posterior (key ``K`` of the ``.npz``), or None when the file holds none."""
     try:
-        with np.load(posterior, allow_pickle=False) as z:
-            return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
-    except (OSError, ValueError):
+        z = np.load(posterior, allow_pickle=False)
+    except (OSError, ValueError, EOFError):
         return None  # unreadable: loading the posterior itself reports it
+    if not hasattr(z, "files"):  # a .npy, not a posterior: loading it reports that
+        return None
+    with z:
+        try:
+            return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
+        except (OSError, ValueError):
+            return None
 
 
 def view_command(
