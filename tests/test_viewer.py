@@ -519,30 +519,32 @@ class TestViewCommand:
 
     def test_intrinsics_from_numbers_calibration_or_the_posterior_file(self, tmp_path, room, capsys, monkeypatch):
         import gpdepth3d.cli.view as view
+        from gpdepth3d.viewer.app import stored_intrinsics
 
-        seen = []
+        cameras = []
         original = view.ViewerFrame.from_files
 
         def record(path, **kwargs):
-            seen.append(kwargs["K"])
-            return original(path, **kwargs)
+            frame = original(path, **kwargs)
+            cameras.append(frame.camera)
+            return frame
 
         monkeypatch.setattr(view.ViewerFrame, "from_files", record)
         make_posterior(room).save(tmp_path / "post.npz")
         view_command(posterior=(tmp_path / "post.npz",), intrinsics="300,301,31.5,23.5", port=0, duration=0)
-        np.testing.assert_array_equal(seen[-1], [[300, 0, 31.5], [0, 301, 23.5], [0, 0, 1]])
+        assert (cameras[-1].fx, cameras[-1].fy, cameras[-1].cx, cameras[-1].cy) == (300, 301, 31.5, 23.5)
         assert "60 degree" not in capsys.readouterr().out
         view_command(posterior=(tmp_path / "post.npz",), port=0, duration=0)  # nothing stored, nothing given
-        assert seen[-1] is None and "60 degree" in capsys.readouterr().out
+        assert "60 degree" in capsys.readouterr().out and cameras[-1].fx != room.camera.fx
         with np.load(tmp_path / "post.npz") as z:
             arrays = dict(z)
         np.savez(tmp_path / "with_k.npz", **arrays, K=room.camera.K)
-        assert np.array_equal(view.stored_intrinsics(tmp_path / "with_k.npz"), room.camera.K)
+        assert np.array_equal(stored_intrinsics(tmp_path / "with_k.npz"), room.camera.K)
         np.save(tmp_path / "not_a_posterior.npy", np.ones(3))
-        assert view.stored_intrinsics(tmp_path / "not_a_posterior.npy") is None
-        assert view.stored_intrinsics(tmp_path / "missing.npz") is None
+        assert stored_intrinsics(tmp_path / "not_a_posterior.npy") is None
+        assert stored_intrinsics(tmp_path / "missing.npz") is None
         view_command(posterior=(tmp_path / "with_k.npz",), port=0, duration=0)
-        np.testing.assert_array_equal(seen[-1], room.camera.K)
+        np.testing.assert_allclose(cameras[-1].K, room.camera.K)
         assert "60 degree" not in capsys.readouterr().out
 
     def test_sequence_with_one_pose_file(self, tmp_path, room, capsys):

@@ -12,22 +12,7 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..camera import read_intrinsics
 from ..io import load_pose, load_poses
-from ..viewer.app import ColorBy, Layout, ViewerConfig, ViewerFrame, check_host, port_taken, show
-
-
-def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
-    """The 3x3 K saved with a posterior (key ``K`` of the ``.npz``), or None when the file holds none."""
-    try:
-        z = np.load(posterior, allow_pickle=False)
-    except (OSError, ValueError, EOFError):
-        return None  # unreadable: loading the posterior itself reports it
-    if not hasattr(z, "files"):  # a .npy, not a posterior: loading it reports that
-        return None
-    with z:
-        try:
-            return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
-        except (OSError, ValueError):
-            return None
+from ..viewer.app import ColorBy, Layout, ViewerConfig, ViewerFrame, check_host, port_taken, show, stored_intrinsics
 
 
 def view_command(
@@ -110,7 +95,7 @@ def view_command(
     frames = [
         ViewerFrame.from_files(
             path,
-            K=K if K is not None else stored[i],
+            K=K,
             rgb=rgb[i] if rgb else None,
             depth_gt=gt[i] if gt else None,
             gt_png_scale=gt_png_scale,

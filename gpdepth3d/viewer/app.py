@@ -164,8 +164,8 @@ class ViewerFrame:
             posterior: ``.npz`` written by `DepthPosterior.save`.
             camera: Intrinsics (of the RGB image or of the posterior grid).
             K: Instead of ``camera``: a 3x3 intrinsic matrix of the RGB image (of the posterior
-                grid without ``rgb``). With neither, a 60 degree horizontal field of view is
-                assumed (a guess: pass the real intrinsics).
+                grid without ``rgb``). With neither, the K saved in the posterior file (key ``K``),
+                else a 60 degree horizontal field of view (a guess: pass the real intrinsics).
             rgb: Image file (any format OpenCV reads).
             depth_gt: Ground-truth depth (``.npy``/``.npz`` metres or 16-bit ``.png``).
             gt_png_scale: Metres per unit of a 16-bit ground-truth PNG (1/1000 for Kinect).
@@ -179,11 +179,27 @@ class ViewerFrame:
         image = load_rgb(rgb) if rgb is not None else None
         if camera is None:
             h, w = image.shape[:2] if image is not None else post.shape
+            K = stored_intrinsics(posterior) if K is None else K
             camera = default_camera(w, h) if K is None else PinholeCamera.from_K(K, w, h)
         gt = load_depth(depth_gt, png_scale=gt_png_scale, invalid_value=gt_invalid_value) if depth_gt else None
         if isinstance(T_world_camera, (str, Path)):
             T_world_camera = load_pose(T_world_camera)
         return cls(post, camera, image, gt, T_world_camera, name=Path(posterior).stem)
+
+
+def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
+    """The 3x3 K saved with a posterior (key ``K`` of the ``.npz``), or None when the file holds none."""
+    try:
+        z = np.load(posterior, allow_pickle=False)
+    except (OSError, ValueError, EOFError):
+        return None  # unreadable: loading the posterior itself reports it
+    if not hasattr(z, "files"):  # a .npy, not a posterior: loading it reports that
+        return None
+    with z:
+        try:
+            return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
+        except (OSError, ValueError):
+            return None
 
 
 def default_camera(width: int, height: int, *, hfov_deg: float = 60.0) -> PinholeCamera:
