@@ -8,7 +8,8 @@ from typing import Any, Literal
 
 from ..io import write_json
 from ..mapping.fusion import FusionConfig, save_mesh
-from ..mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, MapperConfig, fuse_sequence
+from ..experiments.mapping_run import fuse_sequence
+from ..mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, MapperConfig
 from ._options import GPPreset
 
 
