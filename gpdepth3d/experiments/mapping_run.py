@@ -488,9 +488,9 @@ def _integrate(volume: TSDFFusion, depth: np.ndarray, frame: Frame, work: Pinhol
         errors.append(f"frame {frame.name}: {what}: {type(exc).__name__}: {exc}")
 
 
-MAP_FILES = ("mesh", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "metrics.json")
-"""What `write_map` writes into its folder (``mesh`` with the mesh format's ending). The three map files
-are what `Mapper.load` reads back from that folder."""
+MAP_FILES = ("mesh", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json")
+"""What `write_map` writes into its folder (``mesh`` with the mesh format's ending): the mesh, the cloud,
+the files of `Mapper.save` (what `Mapper.load` reads back from that folder) and the metrics."""
 
 
 def write_map(result: MapResult, output: str | Path, *, mesh_format: str = "ply", summary: dict | None = None) -> list[Path]:
@@ -524,10 +524,11 @@ def write_map(result: MapResult, output: str | Path, *, mesh_format: str = "ply"
         writers["cloud.ply"] = result.cloud.save_ply
     with tempfile.TemporaryDirectory(prefix="gpdepth3d-map-") as tmp:
         result.mapper.save(tmp)
-        for name in ("mapper.json", "keyframes.npz", "volume.npz"):
+        saved = sorted(p.name for p in Path(tmp).iterdir() if p.is_file())
+        for name in saved:
             writers[name] = lambda p, src=Path(tmp) / name: shutil.copyfile(src, p)
         writers["metrics.json"] = lambda p: write_json(p, summary)
-        members = [f"mesh.{f}" for f in ("ply", "glb", "obj")] + list(MAP_FILES[1:])
+        members = list(dict.fromkeys([f"mesh.{f}" for f in ("ply", "glb", "obj")] + list(MAP_FILES[1:]) + saved))
         return atomic_write_set(out / "map", writers, members=members)
 
 
