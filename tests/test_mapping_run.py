@@ -41,7 +41,7 @@ def _open(seven: Path, **kw):
 
 @pytest.fixture(scope="module")
 def fastdepth():
-    from tests.conftest import shared_data_dir
+    from conftest import shared_data_dir
     from gpdepth3d.mde import load_frontend
 
     models = shared_data_dir().parent / "models"

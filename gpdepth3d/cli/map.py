@@ -104,7 +104,6 @@ def map_command(
         max_time_difference=max_time_difference, depth=None if depth is None else str(depth),
         depth_scale=depth_scale, depth_invalid=depth_invalid, depth_intrinsics=depth_intrinsics,
     )
-    network = load_frontend(mde, models_dir=models_dir)
     base = MapperConfig()
     config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
     seq = inputs.sequence
@@ -114,11 +113,12 @@ def map_command(
     if view:
         from ..viewer.live_map import LiveMapViewer
 
-        live = LiveMapViewer(host=host, port=port)
-        print(f"viewer running at {live.url}", flush=True)
+        live = LiveMapViewer(seq.camera, seq.poses, first_rgb=seq.frame(0).rgb, host=host, port=port)
+        print(f"viewer running at {live.url} (the map appears as it grows)", flush=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
+            network = load_frontend(mde, models_dir=models_dir)
             result = map_sequence(
                 inputs, mde=network, config=config, working_width=working_width, stride=stride,
                 max_frames=frames, threshold=threshold, metric_samples=metric_samples,
