@@ -117,3 +117,14 @@ class TestRealSequences:
         assert ours.name == ref.name and ours.camera == ref.camera
         np.testing.assert_array_equal(ours.depth, ref.depth)
         np.testing.assert_allclose(ours.pose, ref.pose)
+
+
+class TestMatchDepthRules:
+    def test_same_stem_and_times(self):
+        images = [Path("0001.png"), Path("0002.png")]
+        assert match_depth(images, [Path("0002.npy"), Path("0001.npy")]) == [Path("0001.npy"), Path("0002.npy")]
+        rgb = [Path("1305031102.175304.png"), Path("1305031102.211214.png")]
+        depth = [Path("1305031102.160407.png"), Path("1305031102.194330.png"), Path("1305031102.226738.png")]
+        assert match_depth(rgb, depth) == [depth[0], depth[2]]  # the nearest in time, 15 ms each
+        with pytest.raises(ShapeError, match=r"matched by name, time or order"):
+            match_depth(rgb, depth, max_time_difference=0.001)

@@ -107,20 +107,47 @@ def read_intrinsics(spec: str | Path | Sequence[float] | np.ndarray, width: int,
     return PinholeCamera.from_K(values, int(width), int(height))
 
 
-def match_depth(images: list[Path], depth: list[Path]) -> list[Path]:
-    """Each image's depth file: by name up to the first dot when every image has one, else by order.
+def _time_of(path: Path) -> float | None:
+    """The time a file is named by (``1305031102.175304.png``: a number with a fraction), or None."""
+    stem = path.name.rsplit(".", 1)[0]
+    if "." not in stem:
+        return None
+    try:
+        t = float(stem)
+    except ValueError:
+        return None
+    return t if np.isfinite(t) else None
+
+
+def match_depth(images: list[Path], depth: list[Path], *, max_time_difference: float = 0.02) -> list[Path]:
+    """Each image's depth file, matched by the first rule that gives every image one.
+
+    1. the same name without its ending (``0001.png`` and ``0001.npy``);
+    2. the same name up to the first dot (``frame-000000.color.jpg`` and ``frame-000000.depth.png``);
+    3. both named by times (TUM RGB-D: ``1305031102.175304.png``): the nearest within ``max_time_difference`` s;
+    4. as many depth files as images: by order.
 
     Raises:
-        ShapeError: if neither names nor counts match (naming the counts and the first image without depth).
+        ShapeError: if no rule applies (naming the counts and the first image without depth).
     """
-    keys = {p.name.split(".", 1)[0]: p for p in depth}
-    if len(keys) == len(depth) and all(p.name.split(".", 1)[0] in keys for p in images):
-        return [keys[p.name.split(".", 1)[0]] for p in images]
+    for key in (lambda p: p.name.rsplit(".", 1)[0], lambda p: p.name.split(".", 1)[0]):
+        table = {key(p): p for p in depth}
+        if len(table) == len(depth) and all(key(p) in table for p in images):
+            return [table[key(p)] for p in images]
+    image_times = [_time_of(p) for p in images]
+    depth_times = [_time_of(p) for p in depth]
+    if None not in image_times and None not in depth_times:
+        dt = np.array(depth_times)
+        nearest = [int(np.argmin(np.abs(dt - t))) for t in image_times]
+        if all(abs(dt[j] - t) <= max_time_difference for j, t in zip(nearest, image_times)):
+            return [depth[j] for j in nearest]
     if len(depth) == len(images):
         return list(depth)
+    keys = {p.name.split(".", 1)[0] for p in depth}
     lacking = next((p.name for p in images if p.name.split(".", 1)[0] not in keys), images[0].name)
     raise ShapeError(
-        "depth", f"one depth file per image, matched by name or order ({len(images)} images; {lacking} has none)",
+        "depth",
+        f"one depth file per image, matched by name, time or order ({len(images)} images; {lacking} has none)",
         f"{len(depth)} depth files",
     )
 
@@ -136,7 +163,7 @@ class PosedSequence(DatasetReader):
         intrinsics: K file, ``"fx,fy,cx,cy"``, four numbers or a 3x3 K of the colour camera
             (`read_intrinsics`); or a `PinholeCamera`.
         depth: Sensor depth for evaluation, like ``images`` (a folder's ``*.depth.*`` files if
-            any); matched to images by name up to the first dot, else by order.
+            any); matched to images by name, by time or by order (`match_depth`).
         depth_scale: Metres per unit of 16-bit PNG depth (0.001: millimetres; TUM RGB-D: 0.0002).
         depth_invalid: A PNG value that marks invalid pixels besides 0 (7-Scenes: 65535).
         depth_intrinsics: Intrinsics of the depth camera when it is not the colour camera (it
