@@ -166,10 +166,12 @@ def _fscore_line(metrics: dict, threshold: float) -> str:
 
 def _report_warnings(caught: list) -> None:
     """Prints each distinct warning once, with how often it came (per-frame warnings would flood the terminal)."""
+    import re
+
     counts: dict[str, int] = {}
     first: dict[str, str] = {}
     for w in caught:
-        key = f"{w.category.__name__}:{str(w.message).split(':', 1)[-1].strip()[:60]}"
+        key = f"{w.category.__name__}:{re.sub(r'[-+]?[0-9][0-9.,]*', '#', str(w.message))}"
         counts[key] = counts.get(key, 0) + 1
         first.setdefault(key, str(w.message))
     for key, n in counts.items():

@@ -403,7 +403,7 @@ def map_sequence(
         nonlocal fused
         frame = waiting.pop(result.keyframe_id)
         if result.error is not None:
-            frame_errors.append(result.error)
+            frame_errors.append(f"image {frame.name}: {result.error}")
         if not result.fused:
             return
         fused += 1
@@ -424,7 +424,7 @@ def map_sequence(
             result = mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i, **extra)
         except GPDepthError as exc:  # an unreadable frame or a bad pose: named, the run goes on
             waiting.pop(i, None)
-            frame_errors.append(f"frame {sequence.names[i]}: {type(exc).__name__}: {exc}")
+            frame_errors.append(f"image {sequence.names[i]}: {type(exc).__name__}: {exc}")
             continue
         if reference is not None and frame.depth is not None:
             pts, _ = frame.camera.backproject(frame.depth)
@@ -485,7 +485,7 @@ def _integrate(volume: TSDFFusion, depth: np.ndarray, frame: Frame, work: Pinhol
         rgb = cv2.resize(frame.rgb, (work.width, work.height), interpolation=cv2.INTER_AREA)
         volume.integrate(depth, frame.pose, rgb=rgb)
     except GPDepthError as exc:
-        errors.append(f"frame {frame.name}: {what}: {type(exc).__name__}: {exc}")
+        errors.append(f"image {frame.name}: {what}: {type(exc).__name__}: {exc}")
 
 
 MAP_FILES = ("mesh", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json")
