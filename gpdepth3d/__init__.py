@@ -43,6 +43,7 @@ from .mde import ONNXDepthModel as ONNXDepthModel
 from .mde import RTMonoDepthONNX as RTMonoDepthONNX
 from .datasets import Frame as Frame
 from .datasets import open_dataset as open_dataset
+from .datasets.posed import PosedSequence as PosedSequence
 from .gp.model import DepthGPConfig as DepthGPConfig
 from .completion.complete import complete as complete
 from .completion.complete import DepthCompleter as DepthCompleter
@@ -76,5 +77,7 @@ from .mapping.trajectories import write_tum_trajectory as write_tum_trajectory
 from .mapping.triangulation import triangulate_frames as triangulate_frames
 from .mapping.triangulation import TriangulationConfig as TriangulationConfig
 from .experiments.baselines import ip_basic as ip_basic
+from .experiments.mapping_run import map_sequence as map_sequence
+from .experiments.mapping_run import open_posed_sequence as open_posed_sequence
 
 __version__ = "0.1.0"

@@ -74,6 +74,23 @@ class TestLiveMapViewer:
                          on_frame=viewer.update)
             assert viewer.refreshes == 1 and len(viewer.frustums) == 3
 
+    def test_a_failing_draw_does_not_stop_the_mapping(self, sequence):
+        seq = sequence.sequence
+
+        class Broken:
+            config = FAST
+            keyframes: dict = {}
+
+            def point_cloud(self):
+                raise RuntimeError("connection closed")
+
+        class Fused:
+            fused = True
+
+        with LiveMapViewer(seq.camera, seq.poses, port=0, refresh_s=0) as viewer:
+            viewer.update(Broken(), Fused(), seq.frame(1))
+            assert viewer.errors == ["RuntimeError: connection closed"] and 1 in viewer.frustums
+
     def test_bad_arguments(self, sequence):
         seq = sequence.sequence
         for kwargs in ({"port": -1}, {"refresh_s": float("nan")}, {"max_points": 0}, {"host": "999.1.1.1"}):

@@ -104,3 +104,44 @@ class TestMapSequence:
         for bad in ({"stride": 0}, {"max_frames": 0}, {"working_width": 1.5}, {"threshold": -1.0}):
             with pytest.raises(InvalidInputError, match=next(iter(bad))):
                 map_sequence(inputs, mde=fastdepth, **bad)
+
+
+class TestColmapInputs:
+    def test_model_gives_poses_camera_and_map_points(self, seven: Path, tmp_path: Path):
+        import pycolmap
+
+        from gpdepth3d.mapping.trajectories import invert_pose, read_trajectory
+
+        poses = read_trajectory(seven / "traj.txt").poses
+        names = sorted(p.name for p in (seven / "rgb").iterdir())
+        rng = np.random.default_rng(0)
+        pc = np.column_stack([rng.uniform(-0.5, 0.5, 25), rng.uniform(-0.4, 0.4, 25), rng.uniform(1.5, 3.0, 25)])
+        points = pc @ poses[0][:3, :3].T + poses[0][:3, 3]
+        rec = pycolmap.Reconstruction()
+        cam = pycolmap.Camera.create_from_model_name(1, "PINHOLE", 525.0, 640, 480)
+        cam.params = [525.0, 525.0, 320.5, 240.5]
+        rec.add_camera_with_trivial_rig(cam)
+        order = [3, 0, 5]  # three of the eight images, in another order (ids are not the sequence order)
+        for image_id, k in enumerate(order, start=1):
+            T_cw = invert_pose(poses[k])
+            p = points @ T_cw[:3, :3].T + T_cw[:3, 3]
+            uv = p[:, :2] / p[:, 2:] * 525.0 + [320.5, 240.5]
+            img = pycolmap.Image(name=names[k], keypoints=uv, camera_id=1, image_id=image_id)
+            rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(T_cw[:3]))
+        for j, x in enumerate(points[:20]):  # five points stay unobserved
+            track = pycolmap.Track()
+            for image_id in (1, 2, 3):
+                track.add_element(image_id, j)
+            rec.add_point3D(x, track, np.array([1, 2, 3], np.uint8))
+        (tmp_path / "sparse").mkdir()
+        rec.write_binary(str(tmp_path / "sparse"))
+        images = [seven / "rgb" / names[k] for k in sorted(order)]
+        inputs = open_posed_sequence(images, tmp_path / "sparse")
+        assert inputs.pose_format == "colmap"
+        seq = inputs.sequence
+        assert seq.camera.fx == 525.0 and seq.camera.cx == 320.0  # COLMAP's pixel-corner origin moved to centres
+        np.testing.assert_allclose(seq.poses, poses[sorted(order)], atol=1e-6)
+        assert [len(m) for m in inputs.map_points] == [20, 20, 20]
+        np.testing.assert_allclose(np.sort(inputs.map_points[0][:, 0]), np.sort(points[:20, 0]), atol=1e-9)
+        with pytest.raises(DataFormatError, match="no pose of that name"):
+            open_posed_sequence(seven / "rgb", tmp_path / "sparse")

@@ -721,8 +721,10 @@ def associate_poses(
     for lookup, key in zip(lookups, keys):
         if len(lookup) == len(trajectory) and all(k in lookup for k in key):
             return trajectory.poses[np.array([lookup[k] for k in key])]
-    lookup, key = lookups[-1], keys[-1]
+    # which images lack a pose: by the unique naming that matches the most images
+    usable = [(sum(k in lookup for k in key), lookup, key) for lookup, key in zip(lookups, keys) if len(lookup) == len(trajectory)]
+    if not usable:
+        raise DataFormatError(names[0], "no pose of that name (and the poses' names are not unique)")
+    _, lookup, key = max(usable, key=lambda u: u[0])
     missing = [n for n, k in zip(names, key) if k not in lookup]
-    if not missing:
-        raise DataFormatError(names[0], "pose names that are not unique up to the first dot")
     raise DataFormatError(missing[0], f"no pose of that name ({len(missing)} of {len(names)} images lack one)")

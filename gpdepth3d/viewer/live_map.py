@@ -61,6 +61,7 @@ class LiveMapViewer:
         mesh: The mesh handle (after `finish`), or None.
         events: (what, seconds since start): "path", "first_camera", "cloud" (each redraw), "mesh".
         refreshes: How many times the map's points were redrawn.
+        errors: Updates that failed to draw (the mapping went on).
     """
 
     def __init__(
@@ -98,6 +99,7 @@ class LiveMapViewer:
         self.cloud: Any = None
         self.mesh: Any = None
         self.refreshes = 0
+        self.errors: list[str] = []
         self._t0 = time.monotonic()
         self._last_refresh = -math.inf
         self._stopped = False
@@ -203,21 +205,27 @@ class LiveMapViewer:
     def update(self, mapper: Any, result: Any, frame: Any) -> None:
         """The ``on_frame`` callback of `map_sequence`: the frame's camera, and the map when it is time.
 
+        The viewer never stops the mapping: a failure to draw (a closed connection, say) is kept in
+        ``errors`` and the page misses that update.
+
         Args:
             mapper: The `Mapper` (its `point_cloud` is drawn).
             result: The `FrameResult` fused in this call, or None.
             frame: The frame added (its ``pose`` and ``rgb``; its index among ``poses`` is found by its pose).
         """
-        index = self._index(frame.pose)
-        if index is not None:
-            self.add_camera(index, frame.rgb)
-        self._voxel = float(mapper.config.fusion.voxel_size)
-        fused = len(getattr(mapper, "keyframes", {}))
-        self._status.content = f"**Mapping:** {len(self.frustums)} of {len(self.poses)} frames added, {fused} fused"
-        now = time.monotonic()
-        if result is not None and getattr(result, "fused", False) and now - self._last_refresh >= self.refresh_s:
-            self._last_refresh = now
-            self._refresh(mapper)
+        try:
+            index = self._index(frame.pose)
+            if index is not None:
+                self.add_camera(index, frame.rgb)
+            self._voxel = float(mapper.config.fusion.voxel_size)
+            fused = len(mapper.keyframes)
+            self._status.content = f"**Mapping:** {len(self.frustums)} of {len(self.poses)} frames added, {fused} fused"
+            now = time.monotonic()
+            if result is not None and result.fused and now - self._last_refresh >= self.refresh_s:
+                self._last_refresh = now
+                self._refresh(mapper)
+        except Exception as exc:  # noqa: BLE001 - drawing must not end a mapping run
+            self.errors.append(f"{type(exc).__name__}: {exc}")
 
     def _index(self, pose: np.ndarray) -> Optional[int]:
         d = np.abs(self.poses - np.asarray(pose)[None]).reshape(len(self.poses), -1).max(axis=1)
