@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.experiments.mapping_run import map_sequence, open_posed_sequence
+from gpdepth3d.experiments.mapping_run import FrameEvent, map_sequence, open_posed_sequence
 from gpdepth3d.mapping.fusion import FusionConfig
 from gpdepth3d.mapping.mapper import MapperConfig
 from gpdepth3d.viewer import MISSING_COLOR
@@ -88,7 +88,7 @@ class TestLiveMapViewer:
             fused = True
 
         with LiveMapViewer(seq.camera, seq.poses, port=0, refresh_s=0) as viewer:
-            viewer.update(Broken(), Fused(), seq.frame(1))
+            viewer.update(FrameEvent(Broken(), seq.frame(1), Fused(), None, {}))  # type: ignore[arg-type]
             assert viewer.errors == ["RuntimeError: connection closed"] and 1 in viewer.frustums
 
     def test_bad_arguments(self, sequence):

@@ -63,9 +63,10 @@ def fuse_sequence(
         max_frames: Use only the first frames.
         threshold: Precision / recall distance, metres.
         metric_samples: Surface samples per mesh for the metrics.
-        progress: Print one line per frame.
+        progress: Show a progress bar.
 
-    Bad data never ends the run: a frame that cannot be read or fused is named in
+    The frames go through `map_sequence` (the runner of ``gpdepth3d map``); the comparison volumes
+    are fused from its `FrameEvent`\ s. Bad data never ends the run: a frame that cannot be read or fused is named in
     ``frame_errors`` and the next one goes on; a mesh without triangles (too few frames for
     ``weight_threshold``) is listed in ``empty_meshes`` and gets no metrics (None).
 
@@ -81,6 +82,8 @@ def fuse_sequence(
         ``sparse_bias_per_frame`` (per frame with measurements: median signed relative error
         of the measurements against the Kinect depth).
     """
+    import cv2
+
     from ..datasets.sevenscenes import SevenScenes
 
     config = config or MapperConfig(working_scale=0.5)
@@ -91,35 +94,33 @@ def fuse_sequence(
     first = reader[0]
     rgb_cam = first.camera if rgb_K is None else PinholeCamera.from_K(np.asarray(rgb_K), first.camera.width, first.camera.height)
     depth_cam = first.camera
-    mapper = Mapper(rgb_cam, replace(config, fusion=replace(config.fusion, weighting="variance")), mde=mde)
-    work = mapper.work_camera
-    depth_work = depth_cam.resized(work.width, work.height)
-    extra = {
-        "mde": TSDFFusion(work, replace(config.fusion, weighting="uniform")),
-        "gp_uniform": TSDFFusion(work, replace(config.fusion, weighting="uniform")),
-        "gt": TSDFFusion(depth_work, replace(config.fusion, weighting="uniform")),
-    }
     times: list[dict] = []
-    npoints = []
+    npoints: list[int] = []
     depth_err: dict[str, list[float]] = {"mde": [], "gp": []}
     sparse_err: list[float] = []
-    frame_errors: list[str] = []
+    volume_errors: list[str] = []
     frame_warnings: list[str] = []
+    extra: dict[str, TSDFFusion] = {}
     masked = 0
-    fused = 0
-    frames: dict[int, Any] = {}  # frames added and not yet fused (the Mapper's lag)
 
-    def evaluate(result: FrameResult) -> None:
+    def evaluate(event: FrameEvent) -> None:
         """Records one fused (or failed) frame and fuses the comparison variants of it."""
-        nonlocal masked, fused
+        nonlocal masked
+        times.append(dict(event.timings))
+        result, frame, work = event.result, event.result_frame, event.mapper.work_camera
+        if result is None or frame is None:
+            return
+        depth_work = depth_cam.resized(work.width, work.height)
+        if not extra:
+            extra.update(
+                mde=TSDFFusion(work, replace(config.fusion, weighting="uniform")),
+                gp_uniform=TSDFFusion(work, replace(config.fusion, weighting="uniform")),
+                gt=TSDFFusion(depth_work, replace(config.fusion, weighting="uniform")),
+            )
         i = result.keyframe_id
-        frame = frames.pop(i)
         frame_warnings.extend(result.warnings)
         masked += result.masked_pixels
-        if result.error is not None:
-            frame_errors.append(result.error)
-        fused += int(result.fused)
-        work_rgb = mapper._work_rgb(frame.rgb)
+        work_rgb = cv2.resize(frame.rgb, (work.width, work.height), interpolation=cv2.INTER_AREA)
         others = [("gt", _resize_depth(frame.depth, depth_work.shape), work_rgb)]
         if result.mde.size:
             others.insert(0, ("mde", result.mde, work_rgb))
@@ -131,7 +132,7 @@ def fuse_sequence(
                 if depth.size:
                     extra[name].integrate(depth, frame.pose, rgb=colour)
             except GPDepthError as exc:
-                frame_errors.append(f"frame {i}: {name} volume: {type(exc).__name__}: {exc}")
+                volume_errors.append(f"frame {i}: {name} volume: {type(exc).__name__}: {exc}")
             if name == "gp_uniform":
                 times[-1]["fuse_uniform"] = time.perf_counter() - t0
         if not result.depth.size:
@@ -154,28 +155,23 @@ def fuse_sequence(
             depth_err["mde"].append(float(np.median(np.abs(result.mde[ok] - gt_rgb[ok]))))
             depth_err["gp"].append(float(np.median(np.abs(result.depth[ok] - gt_rgb[ok]))))
         npoints.append(len(result.sparse))
-        if progress:
-            print(f"frame {i + 1}/{n}: {len(result.sparse)} points, " + ", ".join(f"{k} {v:.3f}s" for k, v in result.timings.items()))
 
-    for i in range(n):
-        try:
-            frame = reader[i]
-            frames[i] = frame
-            result = mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i)
-        except GPDepthError as exc:  # unreadable frame, bad pose...: named, recorded, the run goes on
-            frames.pop(i, None)
-            frame_errors.append(f"frame {i}: {type(exc).__name__}: {exc}")
-            continue
-        times.append(dict(mapper.timings[-1]))
-        if result is not None:
-            evaluate(result)
-    for result in mapper.flush():
-        times.append(dict(result.timings))
-        evaluate(result)
-    volumes = {"mde": extra["mde"], "gp_uniform": extra["gp_uniform"], "gp_variance": mapper.fusion, "gt": extra["gt"]}
+    mapped = map_sequence(
+        reader,
+        mde=mde,
+        config=replace(config, fusion=replace(config.fusion, weighting="variance")),
+        working_width=None,
+        camera=rgb_cam,
+        max_frames=n,
+        evaluate=False,
+        progress=progress,
+        on_frame=evaluate,
+    )
+    mapper = mapped.mapper
+    volumes = {"mde": extra.get("mde"), "gp_uniform": extra.get("gp_uniform"), "gp_variance": mapper.fusion, "gt": extra.get("gt")}
     meshes = {}
     for name, volume in volumes.items():
-        meshes[name] = volume.extract_mesh(allow_empty=True) if volume.frames_integrated else None
+        meshes[name] = volume.extract_mesh(allow_empty=True) if volume is not None and volume.frames_integrated else None
     empty = sorted(k for k, m in meshes.items() if m is None or len(m.faces) == 0)
     metrics: dict[str, Any] = {}
     for k, m in meshes.items():
@@ -194,8 +190,8 @@ def fuse_sequence(
         "timing": timing,
         "timing_median": {k: float(np.median([t[k] for t in times if k in t])) for k in keys},
         "frames": n,
-        "frames_fused": fused,
-        "frame_errors": frame_errors,
+        "frames_fused": mapped.frames_fused,
+        "frame_errors": mapped.frame_errors + volume_errors,
         "frame_warnings": frame_warnings,
         "masked_pixels": masked,
         "empty_meshes": empty,
@@ -332,17 +328,39 @@ class MapResult:
     timing: dict
 
 
-FrameCallback = Callable[[Mapper, "FrameResult | None", Frame], None]
+@dataclass(frozen=True)
+class FrameEvent:
+    """What `map_sequence` tells its ``on_frame`` callback after each `Mapper` call.
+
+    Attributes:
+        mapper: The `Mapper`.
+        added: The frame added in this call (None for the last frames, finished by `Mapper.flush`).
+        result: The `FrameResult` of the frame refined and fused in this call, or None (frames wait
+            ``MapperConfig.lag`` calls for later views).
+        result_frame: The frame ``result`` belongs to, or None.
+        timings: Seconds per stage of this call (`FrameResult.timings`).
+    """
+
+    mapper: Mapper
+    added: Frame | None
+    result: FrameResult | None
+    result_frame: Frame | None
+    timings: dict
+
+
+FrameCallback = Callable[[FrameEvent], None]
 
 
 def map_sequence(
-    inputs: PosedInputs | PosedSequence,
+    inputs: PosedInputs | Any,
     *,
     mde: MDEFrontEnd,
     config: MapperConfig | None = None,
-    working_width: int = DEFAULT_WORKING_WIDTH,
+    working_width: int | None = DEFAULT_WORKING_WIDTH,
+    camera: PinholeCamera | None = None,
     stride: int = 1,
     max_frames: int | None = None,
+    evaluate: bool = True,
     threshold: float = 0.05,
     metric_samples: int = 50_000,
     progress: bool = False,
@@ -351,72 +369,79 @@ def map_sequence(
     """Maps a posed sequence with the `Mapper` and, when it has depth, scores the mesh against it.
 
     Args:
-        inputs: The sequence (`open_posed_sequence`), or a `PosedSequence`.
+        inputs: The sequence (`open_posed_sequence`), a `PosedSequence`, or any dataset reader whose
+            frames carry a pose (``len``, ``reader[i]`` -> `Frame`, ``names``).
         mde: Front-end ``rgb -> depth`` in metres.
-        config: Mapper options (default `MapperConfig()` at ``working_width``); its
-            ``working_scale`` is replaced by ``working_width / image width`` (at most 1).
-        working_width: Width of refinement and fusion, pixels.
+        config: Mapper options (default `MapperConfig()`).
+        working_width: Width of refinement and fusion, pixels: ``config.working_scale`` becomes
+            ``working_width / image width`` (at most 1); None keeps ``config.working_scale``.
+        camera: Intrinsics the Mapper uses (default: the sequence's camera).
         stride: Use every ``stride``-th frame.
         max_frames: Use at most this many frames (after the stride).
+        evaluate: With sensor depth in the frames, score the map (and the MDE alone, uniform
+            weights) against the mesh fused from that depth (`mesh_metrics`).
         threshold: F-score distance, metres.
         metric_samples: Surface samples per mesh for the metrics.
         progress: Show a progress bar (tqdm) on stderr.
-        on_frame: Called after each frame with the mapper, the `FrameResult` fused in that call
-            (None while frames wait for later views) and the frame added (the live viewer).
+        on_frame: Called after each `Mapper` call with a `FrameEvent` (the live viewer, the
+            7-Scenes experiment's comparison volumes).
 
     Bad data never ends the run: a frame that cannot be read or fused is named in
     ``frame_errors`` and the next one goes on.
 
     Raises:
         InvalidInputError: bad ``stride``, ``max_frames``, ``working_width``, ``threshold`` or
-            ``metric_samples``. EmptyInputError: no frame could be fused.
+            ``metric_samples``. EmptyInputError: an empty sequence, or no frame could be fused.
     """
     from tqdm.auto import tqdm
 
     inputs = inputs if isinstance(inputs, PosedInputs) else PosedInputs(inputs, "given")
     sequence = inputs.sequence
-    for name, value, low in (("stride", stride, 1), ("working_width", working_width, 2), ("metric_samples", metric_samples, 1)):
+    for name, value, low in (("stride", stride, 1), ("metric_samples", metric_samples, 1)) + (
+        (("working_width", working_width, 2),) if working_width is not None else ()
+    ):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise InvalidInputError(name, f"an integer >= {low}", value)
     if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1):
         raise InvalidInputError("max_frames", "an integer >= 1 (or None for all)", max_frames)
     if not (isinstance(threshold, (int, float)) and np.isfinite(threshold) and threshold > 0):
         raise InvalidInputError("threshold", "a distance > 0 (metres)", threshold)
+    if len(sequence) == 0:
+        raise EmptyInputError("inputs", "a sequence with frames", "none")
     indices = list(range(0, len(sequence), int(stride)))[: max_frames]
-    camera = sequence.camera
-    scale = min(1.0, int(working_width) / camera.width)
-    config = replace(config or MapperConfig(), working_scale=scale)
+    camera = camera or getattr(sequence, "camera", None) or sequence[indices[0]].camera
+    config = config or MapperConfig()
+    if working_width is not None:
+        config = replace(config, working_scale=min(1.0, int(working_width) / camera.width))
     t_start = time.perf_counter()
     mapper = Mapper(camera, config, mde=mde)
     work = mapper.work_camera
-    has_depth = sequence.depth_files is not None
     uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
-    reference = TSDFFusion(work, uniform) if has_depth else None
-    mde_only = TSDFFusion(work, uniform) if has_depth else None
+    volumes: dict[str, TSDFFusion] = {}  # the sensor depth's and the MDE's, made with the first frame with depth
     frame_errors: list[str] = []
     without_points: list[str] = []
     points: list[int] = []
     fused = 0
     waiting: dict[int, Frame] = {}
 
-    def record(result: FrameResult) -> None:
+    def record(result: FrameResult) -> Frame:
         nonlocal fused
         frame = waiting.pop(result.keyframe_id)
         if result.error is not None:
             frame_errors.append(f"image {frame.name}: {result.error}")
-        if not result.fused:
-            return
-        fused += 1
-        points.append(len(result.sparse))
-        if len(result.sparse) == 0:
-            without_points.append(frame.name)
-        if mde_only is not None and result.mde.size:
-            _integrate(mde_only, result.mde, frame, work, frame_errors, "MDE-only volume")
+        if result.fused:
+            fused += 1
+            points.append(len(result.sparse))
+            if len(result.sparse) == 0:
+                without_points.append(frame.name)
+        if "mde" in volumes and result.mde.size:
+            _integrate(volumes["mde"], result.mde, frame, work, frame_errors, "MDE-only volume")
+        return frame
 
     bar = tqdm(indices, desc="map", unit="frame", disable=not progress, leave=False)
     for i in bar:
         try:
-            frame = sequence.frame(i)
+            frame = sequence[i]
             extra = {}
             if inputs.map_points is not None and len(inputs.map_points[i]):
                 extra["map_points_world"] = inputs.map_points[i]
@@ -426,27 +451,29 @@ def map_sequence(
             waiting.pop(i, None)
             frame_errors.append(f"image {sequence.names[i]}: {type(exc).__name__}: {exc}")
             continue
-        if reference is not None and frame.depth is not None:
+        if evaluate and frame.depth is not None:
+            if not volumes:
+                volumes.update(reference=TSDFFusion(work, uniform), mde=TSDFFusion(work, uniform))
             pts, _ = frame.camera.backproject(frame.depth)
-            _integrate(reference, project_points(pts, work).to_depth_map(), frame, work, frame_errors, "sensor-depth volume")
-        if result is not None:
-            record(result)
+            _integrate(volumes["reference"], project_points(pts, work).to_depth_map(), frame, work, frame_errors,
+                       "sensor-depth volume")
+        result_frame = record(result) if result is not None else None
         if on_frame is not None:
-            on_frame(mapper, result, frame)
+            on_frame(FrameEvent(mapper, frame, result, result_frame, dict(mapper.timings[-1])))
     for result in mapper.flush():
-        frame = waiting.get(result.keyframe_id)
-        record(result)
-        if on_frame is not None and frame is not None:
-            on_frame(mapper, result, frame)
+        result_frame = record(result)
+        if on_frame is not None:
+            on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
     bar.close()
     if fused == 0:
         raise EmptyInputError("images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3]))
     mesh, cloud = _map_surface(mapper)
     metrics = None
-    if reference is not None and reference.frames_integrated:
-        ref_mesh = reference.extract_mesh(allow_empty=True)
+    if volumes and volumes["reference"].frames_integrated:
+        ref_mesh = volumes["reference"].extract_mesh(allow_empty=True)
+        mde_mesh = volumes["mde"].extract_mesh(allow_empty=True) if volumes["mde"].frames_integrated else None
         metrics = {}
-        for name, m in (("map", mesh), ("mde", mde_only.extract_mesh(allow_empty=True) if mde_only.frames_integrated else None)):
+        for name, m in (("map", mesh), ("mde", mde_mesh)):
             ok = m is not None and len(m.faces) and len(ref_mesh.faces)
             metrics[name] = mesh_metrics(m, ref_mesh, threshold=threshold, samples=metric_samples) if ok else None
     stages = sorted({k for t in mapper.timings for k in t})

@@ -202,21 +202,23 @@ class LiveMapViewer:
     """Point size of the map's points is 0.6 voxel (updated from the mapper's fusion config)."""
 
     # ------------------------------------------------------------------ the mapping callback
-    def update(self, mapper: Any, result: Any, frame: Any) -> None:
+    def update(self, event: Any) -> None:
         """The ``on_frame`` callback of `map_sequence`: the frame's camera, and the map when it is time.
 
         The viewer never stops the mapping: a failure to draw (a closed connection, say) is kept in
         ``errors`` and the page misses that update.
 
         Args:
-            mapper: The `Mapper` (its `point_cloud` is drawn).
-            result: The `FrameResult` fused in this call, or None.
-            frame: The frame added (its ``pose`` and ``rgb``; its index among ``poses`` is found by its pose).
+            event: A `gpdepth3d.experiments.mapping_run.FrameEvent`: the mapper (its `point_cloud` is
+                drawn), the frame added (its camera is drawn; its index among ``poses`` is found by its
+                pose) and the `FrameResult` fused in that call, if any.
         """
         try:
-            index = self._index(frame.pose)
-            if index is not None:
-                self.add_camera(index, frame.rgb)
+            mapper, result, frame = event.mapper, event.result, event.added
+            if frame is not None:
+                index = self._index(frame.pose)
+                if index is not None:
+                    self.add_camera(index, frame.rgb)
             self._voxel = float(mapper.config.fusion.voxel_size)
             fused = len(mapper.keyframes)
             self._status.content = f"**Mapping:** {len(self.frustums)} of {len(self.poses)} frames added, {fused} fused"
