@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import check_pose
-from gpdepth3d.errors import DataFormatError, InvalidInputError, ShapeError
+from gpdepth3d.errors import DataFormatError, InvalidInputError, OutputError, ShapeError
 from gpdepth3d.experiments.mapping_run import map_sequence, open_posed_sequence, write_map
 from gpdepth3d.mapping.cloud import ColoredCloud
 from gpdepth3d.mapping.mapper import Mapper
@@ -72,7 +72,7 @@ class TestOpen:
 
 
 class TestMapSequence:
-    def test_map_write_reload(self, seven: Path, fastdepth, tmp_path: Path):
+    def test_map_write_reload(self, seven: Path, fastdepth, tmp_path: Path, monkeypatch):
         (seven / "rgb" / "1000.100000.jpg").write_bytes(b"broken")  # frame 3: not a readable JPEG
         result = map_sequence(_open(seven), mde=fastdepth)
         assert result.frames == 8 and result.frames_fused == 7
@@ -95,6 +95,18 @@ class TestMapSequence:
         assert summary["metrics"]["map"]["fscore"] == pytest.approx(result.metrics["map"]["fscore"])
         assert summary["frames_fused"] == 7 and "1000.100000" in summary["frame_errors"][0]
         assert len(back.mesh().faces) > 0
+
+        # a second write that fails half-way (the cloud's writer) leaves the first set as it was
+        before = {p.name: p.read_bytes() for p in out.iterdir() if not p.name.startswith(".")}
+
+        def broken(self, path):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(ColoredCloud, "save_ply", broken)
+        result.frame_errors.append("a change the metrics would show")
+        with pytest.raises(OutputError):
+            write_map(result, out)
+        assert {p.name: p.read_bytes() for p in out.iterdir() if not p.name.startswith(".")} == before
 
     def test_stride_limit_and_no_depth(self, seven: Path, fastdepth, tmp_path: Path):
         inputs = open_posed_sequence(seven / "rgb", seven / "traj.txt", "525,525,320,240")
