@@ -72,6 +72,9 @@ class TestPosedSequence:
         assert seq[2].name == "00002"
         with pytest.raises(InvalidInputError):
             seq["00002"]  # type: ignore[index]
+        assert seq.load("00002").name == "00002"
+        with pytest.raises(InvalidInputError, match="name"):
+            seq.load("00009")
 
     def test_intrinsics(self, tmp_path: Path):
         K = np.array([[500.0, 0, 320], [0, 501, 240], [0, 0, 1]])

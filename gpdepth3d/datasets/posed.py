@@ -224,7 +224,9 @@ class PosedSequence(DatasetReader):
             self.depth_camera = read_intrinsics(depth_intrinsics, dw, dh)
 
     def load(self, name: str) -> Frame:
-        """The frame ``name`` (an image name up to its first dot)."""
+        """The frame ``name`` (an image name up to its first dot; `names`)."""
+        if name not in self.names:
+            raise InvalidInputError("name", f"the name of a frame of the sequence ({len(self.names)} frames)", describe(name))
         return self.frame(self.names.index(name))
 
     def __getitem__(self, index: int) -> Frame:
