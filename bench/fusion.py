@@ -108,7 +108,8 @@ def main() -> None:
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
     from gpdepth3d.io import to_jsonable
-    from gpdepth3d.mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth, mesh_metrics
+    from gpdepth3d.mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth
+    from gpdepth3d.metrics import mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
     from gpdepth3d.mapping.triangulation import TriangulationConfig, triangulate_frames

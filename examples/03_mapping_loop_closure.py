@@ -24,7 +24,8 @@ import numpy as np
 
 import gpdepth3d as g
 from gpdepth3d.datasets.sevenscenes import SevenScenes
-from gpdepth3d.mapping import SEVEN_SCENES_RGB_K, mesh_metrics
+from gpdepth3d.mapping import SEVEN_SCENES_RGB_K
+from gpdepth3d.metrics import mesh_metrics
 
 
 def _drifted(T: np.ndarray, degrees: float, metres: float) -> np.ndarray:

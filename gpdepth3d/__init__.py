@@ -43,6 +43,7 @@ from .mde import ONNXDepthModel as ONNXDepthModel
 from .mde import RTMonoDepthONNX as RTMonoDepthONNX
 from .datasets import Frame as Frame
 from .datasets import open_dataset as open_dataset
+from .datasets.posed import PosedSequence as PosedSequence
 from .gp.model import DepthGPConfig as DepthGPConfig
 from .completion.complete import complete as complete
 from .completion.complete import DepthCompleter as DepthCompleter
@@ -59,12 +60,16 @@ from .mapping.mapper import Mapper as Mapper
 from .mapping.mapper import MapperConfig as MapperConfig
 from .mapping.mapper import project_map_points as project_map_points
 from .mapping.mapper import sparse_from_map_points as sparse_from_map_points
+from .mapping.trajectories import associate_poses as associate_poses
 from .mapping.trajectories import check_pose_orientation as check_pose_orientation
 from .mapping.trajectories import invert_pose as invert_pose
 from .mapping.trajectories import InvertedPoseWarning as InvertedPoseWarning
 from .mapping.trajectories import pose_from_tq as pose_from_tq
 from .mapping.trajectories import read_colmap_model as read_colmap_model
+from .mapping.trajectories import read_flat_poses as read_flat_poses
 from .mapping.trajectories import read_kitti_poses as read_kitti_poses
+from .mapping.trajectories import read_pose_files as read_pose_files
+from .mapping.trajectories import read_trajectory as read_trajectory
 from .mapping.trajectories import read_tum_trajectory as read_tum_trajectory
 from .mapping.trajectories import tq_from_pose as tq_from_pose
 from .mapping.trajectories import Trajectory as Trajectory
@@ -72,5 +77,7 @@ from .mapping.trajectories import write_tum_trajectory as write_tum_trajectory
 from .mapping.triangulation import triangulate_frames as triangulate_frames
 from .mapping.triangulation import TriangulationConfig as TriangulationConfig
 from .experiments.baselines import ip_basic as ip_basic
+from .experiments.mapping_run import map_sequence as map_sequence
+from .experiments.mapping_run import open_posed_sequence as open_posed_sequence
 
 __version__ = "0.1.0"

@@ -18,13 +18,13 @@ from gpdepth3d.mapping import (
     Mapper,
     MapperConfig,
     merge_sparse,
-    mesh_metrics,
     project_map_points,
     sparse_from_map_points,
 )
 from gpdepth3d.cli.fuse import fuse_command
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.mapping.triangulation import TriangulationConfig
+from gpdepth3d.metrics import mesh_metrics
 
 CAM = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)
 

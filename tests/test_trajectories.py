@@ -12,6 +12,11 @@ from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError
 from gpdepth3d.mapping.trajectories import (
     InvertedPoseWarning,
+    associate_poses,
+    detect_pose_format,
+    read_flat_poses,
+    read_pose_files,
+    read_trajectory,
     Trajectory,
     check_pose_orientation,
     invert_pose,
@@ -221,3 +226,192 @@ class TestInvertedPoseCheck:
         assert check_pose_orientation(with_nan, f.T_world_camera, f.camera, warn=False).points == 500
         with pytest.raises(ShapeError):
             check_pose_orientation(world[:, :2], f.T_world_camera, f.camera)
+
+
+# ---------------------------------------------------------------------- checks of TUM files, any format, association
+def _tum_text(ts, poses) -> str:
+    lines = []
+    for t, T in zip(ts, poses):
+        tr, q = tq_from_pose(T)
+        lines.append(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in (*tr, *q)))
+    return "\n".join(lines) + "\n"
+
+
+class TestTUMChecks:
+    @pytest.mark.parametrize("q", ["0 0 0 2", "0 0 0 0.5", "0 0 0 0", "0.5 0.5 0.5 0.6"])
+    def test_quaternion_not_unit_refused(self, tmp_path: Path, q: str):
+        path = tmp_path / "t.txt"
+        path.write_text(f"# header\n0.0 0 0 0 0 0 0 1\n1.0 1 2 3 {q}\n")
+        with pytest.raises(DataFormatError, match=r"line 3: quaternion of norm"):
+            read_tum_trajectory(path)
+
+    def test_rounded_quaternion_is_normalised(self, tmp_path: Path):
+        path = tmp_path / "t.txt"
+        path.write_text("0.0 0 0 0 0.0000 0.7071 0.0000 0.7071\n")  # norm 0.99999, 4 digits as TUM writes
+        T = read_tum_trajectory(path).poses[0]
+        np.testing.assert_allclose(T[:3, :3] @ [0, 0, 1], [1, 0, 0], atol=1e-9)
+
+    def test_duplicate_timestamps_refused(self, tmp_path: Path):
+        path = tmp_path / "t.txt"
+        path.write_text("0.5 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n0.5 1 0 0 0 0 0 1\n")
+        with pytest.raises(DataFormatError, match=r"lines 1 and 3: the same timestamp 0.5"):
+            read_tum_trajectory(path)
+        with pytest.raises(InvalidInputError, match="unique"):
+            Trajectory(np.tile(np.eye(4), (2, 1, 1)), np.array([1.0, 1.0]))
+
+    @pytest.mark.parametrize("t", [float("nan"), float("inf"), "a", None, True])
+    def test_nearest_bad_time(self, t):
+        traj = Trajectory(np.tile(np.eye(4), (2, 1, 1)), np.array([0.0, 1.0]))
+        with pytest.raises(InvalidInputError, match="timestamp"):
+            traj.nearest(t)  # type: ignore[arg-type]
+
+    def test_bad_lines(self, tmp_path: Path):
+        path = tmp_path / "t.txt"
+        for text, match in [("0 0 0 0 0 0 0\n", "expected 8 numbers"), ("0 0 0 nan 0 0 0 1\n", "NaN"),
+                            ("0 0 0 x 0 0 0 1\n", "not numbers"), ("# only a comment\n", "no poses")]:
+            path.write_text(text)
+            with pytest.raises(DataFormatError, match=match):
+                read_tum_trajectory(path)
+
+
+class TestFlatPoses:
+    def test_real_hololens_file(self, shared_data: Path):
+        path = shared_data / "hololens" / "poses_images.txt"
+        traj = read_flat_poses(path)
+        assert len(traj) == 94 and np.all(np.isnan(traj.timestamps)) and traj.names == ()
+        np.testing.assert_allclose(traj.poses, np.loadtxt(path).reshape(-1, 4, 4), atol=1e-4)
+        assert detect_pose_format(path) == "rows"
+        np.testing.assert_array_equal(read_trajectory(path).poses, traj.poses)
+
+    def test_write_then_read(self, tmp_path: Path):
+        rng = np.random.default_rng(1)
+        poses = np.stack([_random_pose(rng) for _ in range(5)])
+        path = tmp_path / "poses.txt"
+        path.write_text("# flattened 4x4\n" + "\n".join(" ".join(f"{x:.12g}" for x in T.ravel()) for T in poses) + "\n")
+        np.testing.assert_allclose(read_flat_poses(path).poses, poses, atol=1e-10)
+
+    def test_errors(self, tmp_path: Path):
+        path = tmp_path / "poses.txt"
+        path.write_text(" ".join(["1"] * 16) + "\n")
+        with pytest.raises(DataFormatError, match="line 1: not a rigid transform"):
+            read_flat_poses(path)
+        path.write_text(" ".join(["0"] * 12) + "\n")
+        with pytest.raises(DataFormatError, match="expected 16 numbers"):
+            read_flat_poses(path)
+        with pytest.raises(DataFormatError):
+            read_flat_poses(tmp_path / "missing.txt")
+
+
+class TestKittiRealFile:
+    def test_real_kitti_tiny(self, shared_data: Path):
+        path = shared_data / "kitti_tiny" / "poses.txt"
+        traj = read_kitti_poses(path)
+        rows = np.loadtxt(path)
+        assert len(traj) == rows.shape[0] == 474
+        np.testing.assert_allclose(traj.poses[:, :3, :].reshape(-1, 12), rows, atol=1e-5)
+        assert detect_pose_format(path) == "kitti"
+        np.testing.assert_allclose(read_trajectory(path).poses, traj.poses)
+
+
+class TestPoseFiles:
+    def test_real_seven_scenes(self, shared_data: Path):
+        folder = shared_data / "7scenes"
+        traj = read_pose_files(folder)
+        files = sorted(folder.glob("*.pose.txt"))
+        assert len(traj) == len(files) == 60
+        assert traj.names[:2] == ("frame-000000", "frame-000005")
+        np.testing.assert_allclose(traj.poses, np.stack([np.loadtxt(f) for f in files]), atol=1e-3)
+        assert detect_pose_format(folder) == "files"
+
+    def test_write_then_read(self, tmp_path: Path):
+        rng = np.random.default_rng(2)
+        poses = np.stack([_random_pose(rng) for _ in range(3)])
+        for i, T in enumerate(poses):
+            np.savetxt(tmp_path / f"img{i}.txt", T)
+        traj = read_trajectory(tmp_path, "files")
+        assert traj.names == ("img0", "img1", "img2")
+        np.testing.assert_allclose(traj.poses, poses, atol=1e-12)
+        np.testing.assert_allclose(associate_poses(traj, ["img2.png", "img0.png"]), poses[[2, 0]], atol=1e-12)
+
+    def test_errors(self, tmp_path: Path):
+        with pytest.raises(DataFormatError, match="no pose files"):
+            read_pose_files(tmp_path)
+        (tmp_path / "a.txt").write_text("1 0 0\n0 1 0\n")
+        with pytest.raises(DataFormatError, match="a.txt"):
+            read_pose_files(tmp_path)
+        with pytest.raises(DataFormatError, match="not found"):
+            read_pose_files(tmp_path / "missing")
+
+
+class TestAnyFormat:
+    def test_each_format_written_then_read(self, shared_data: Path, tmp_path: Path):
+        poses = _seven_scenes_poses(shared_data, 4)
+        ref = Trajectory(poses).poses
+        ts = 1305031102.0 + np.arange(4) / 30.0
+        written = {
+            "tum": write_tum_trajectory(tmp_path / "tum.txt", Trajectory(poses, ts)),
+            "kitti": tmp_path / "kitti.txt",
+            "rows": tmp_path / "rows.txt",
+            "files": tmp_path / "files",
+            "colmap": tmp_path / "sparse",
+        }
+        written["kitti"].write_text("\n".join(" ".join(f"{x:.12e}" for x in T[:3].ravel()) for T in ref) + "\n")
+        written["rows"].write_text("\n".join(" ".join(f"{x:.12e}" for x in T.ravel()) for T in ref) + "\n")
+        written["files"].mkdir()
+        for i, T in enumerate(ref):
+            np.savetxt(written["files"] / f"frame-{i:06d}.pose.txt", T)
+        rng = np.random.default_rng(0)
+        pc = np.column_stack([rng.uniform(-0.5, 0.5, 20), rng.uniform(-0.4, 0.4, 20), rng.uniform(1.5, 3.0, 20)])
+        _write_colmap(written["colmap"], ref, pc @ ref[0][:3, :3].T + ref[0][:3, 3])
+        images = {
+            "tum": [f"{t:.6f}.png" for t in ts],
+            "kitti": [f"{i:06d}.png" for i in range(4)],
+            "rows": [f"{i:06d}.png" for i in range(4)],
+            "files": [f"frame-{i:06d}.color.jpg" for i in range(4)],
+            "colmap": [f"frame{i}.png" for i in range(4)],
+        }
+        for fmt, path in written.items():
+            assert detect_pose_format(path) == fmt
+            traj = read_trajectory(path)
+            np.testing.assert_allclose(traj.poses, ref, atol=1e-6, err_msg=fmt)
+            np.testing.assert_allclose(associate_poses(traj, images[fmt][::-1] if fmt in ("files", "colmap", "tum") else images[fmt]),
+                                       ref[::-1] if fmt in ("files", "colmap", "tum") else ref, atol=1e-6, err_msg=fmt)
+        with pytest.raises(InvalidInputError, match="format"):
+            read_trajectory(written["tum"], "euroc")
+
+    def test_detect_errors(self, tmp_path: Path):
+        path = tmp_path / "x.txt"
+        path.write_text("1 2 3 4 5\n")
+        with pytest.raises(DataFormatError, match="8 numbers a line"):
+            detect_pose_format(path)
+        with pytest.raises(DataFormatError):
+            detect_pose_format(tmp_path / "missing.txt")
+
+
+class TestAssociate:
+    def test_timestamps(self):
+        poses = np.tile(np.eye(4), (3, 1, 1))
+        poses[:, 0, 3] = [0.0, 1.0, 2.0]
+        traj = Trajectory(poses, np.array([10.0, 10.1, 10.2]))
+        got = associate_poses(traj, ["10.101000.png", "10.000000.png"])
+        np.testing.assert_allclose(got[:, 0, 3], [1.0, 0.0])
+        with pytest.raises(DataFormatError, match=r"11.500000.png: no pose within 0.02 s \(1 of 2"):
+            associate_poses(traj, ["10.101000.png", "11.500000.png"])
+        # images named by a plain number are matched by order, not as times
+        np.testing.assert_allclose(associate_poses(traj, ["0003.png", "0007.png", "0011.png"]), traj.poses)
+
+    def test_order_and_errors(self):
+        traj = Trajectory(np.tile(np.eye(4), (3, 1, 1)))
+        with pytest.raises(ShapeError, match=r"3 poses"):
+            associate_poses(traj, ["a.png", "b.png"])
+        with pytest.raises(InvalidInputError, match="timestamps"):
+            associate_poses(traj, ["1.5.png"] * 3, by="timestamp")
+        with pytest.raises(InvalidInputError, match="names"):
+            associate_poses(traj, ["a.png"] * 3, by="name")
+        with pytest.raises(InvalidInputError, match="by"):
+            associate_poses(traj, ["a.png"] * 3, by="time")
+        named = Trajectory(np.tile(np.eye(4), (2, 1, 1)), names=("a", "b"))
+        with pytest.raises(DataFormatError, match=r"c.png: no pose of that name \(1 of 2"):
+            associate_poses(named, ["a.png", "c.png"])
+        with pytest.raises(ShapeError):
+            Trajectory(np.tile(np.eye(4), (2, 1, 1)), names=("a",))

@@ -25,6 +25,7 @@ def _commands() -> dict:
     from .demo import demo_command
     from .eval import eval_command
     from .fuse import fuse_command
+    from .map import map_command
     from .view import view_command
 
     commands = {
@@ -32,6 +33,7 @@ def _commands() -> dict:
         "complete": complete_command,
         "eval": eval_command,
         "fuse": fuse_command,
+        "map": map_command,
         "view": view_command,
         "batch": batch_command,
     }
@@ -131,7 +133,7 @@ def _compile_notice(argv: list[str]):
     """Prints `COMPILE_NOTICE` once when a command compiles kernels (not for `view` or --help: no numba import)."""
     import contextlib
 
-    if not argv or argv[0] not in ("complete", "demo", "eval", "fuse", "batch") or "--help" in argv or "-h" in argv:
+    if not argv or argv[0] not in ("complete", "demo", "eval", "fuse", "map", "batch") or "--help" in argv or "-h" in argv:
         return contextlib.nullcontext()
     from ..gp.compile_notice import on_first_compile
 

@@ -1,4 +1,7 @@
-"""``gpdepth3d fuse``: meshes of a posed RGB sequence from MDE-only, GP-refined and ground-truth depth."""
+"""``gpdepth3d fuse``: the 7-Scenes experiment, meshes from MDE-only, GP-refined and ground-truth depth.
+
+A user's own sequence (any layout and pose format) is mapped by ``gpdepth3d map`` (`gpdepth3d.cli.map`).
+"""
 
 from __future__ import annotations
 
@@ -6,9 +9,12 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal
 
-from ..io import write_json
+from ..io import write_json, write_together
 from ..mapping.fusion import FusionConfig, save_mesh
-from ..mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, MapperConfig, fuse_sequence
+from ..experiments.mapping_run import fuse_sequence
+from ..datasets.sevenscenes import COLOUR_INTRINSICS
+from ..errors import InvalidInputError
+from ..mapping.mapper import MAPPER_GP, MapperConfig
 from ._options import GPPreset
 
 
@@ -66,11 +72,15 @@ def fuse_command(
     from ..io import check_output_folder
     from ..mde import load_frontend
 
+    if isinstance(metric_samples, bool) or not isinstance(metric_samples, int) or metric_samples < 1:
+        raise InvalidInputError("--metric-samples", "an integer >= 1", metric_samples)
+    if not (isinstance(threshold, (int, float)) and threshold > 0 and threshold < float("inf")):
+        raise InvalidInputError("--threshold", "a distance > 0 (metres)", threshold)
     check_output_folder(Path(output), "--output")
     network = load_frontend(mde, models_dir=models_dir)
     fusion = FusionConfig(voxel_size=voxel_size, truncation=truncation, depth_max=depth_max, sigma_ref=sigma_ref)
     config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=gp)
-    K = SEVEN_SCENES_RGB_K.copy()
+    K = COLOUR_INTRINSICS.copy()
     K[0, 0] = K[1, 1] = rgb_focal
     result = fuse_sequence(
         data,
@@ -83,25 +93,26 @@ def fuse_command(
     )
     out = Path(output)
     written = []
-    for name, mesh in result["meshes"].items():
-        if name not in result["empty_meshes"]:
-            written.append(str(save_mesh(mesh, out / f"mesh_{name}.{mesh_format}")))
-    summary = {
-        "data": str(data),
-        "frames": result["frames"],
-        "frames_fused": result["frames_fused"],
-        "frame_errors": result["frame_errors"],
-        "masked_pixels": result["masked_pixels"],
-        "empty_meshes": result["empty_meshes"],
-        "meshes_written": written,
-        "sparse_points_per_frame": result["sparse_points"],
-        "depth_median_abs_error_m": result["depth_median_abs_error"],
-        "metrics": result["metrics"],
-        "timing_s_per_frame": result["timing"],
-        "timing_median_s_per_frame": result["timing_median"],
-        "config": {"mapper": asdict(config), "rgb_focal": rgb_focal, "mde": str(mde)},
-    }
-    write_json(out / "metrics.json", summary)
+    with write_together():  # the meshes and metrics.json appear together, or none of them
+        for name, mesh in result["meshes"].items():
+            if name not in result["empty_meshes"]:
+                written.append(str(save_mesh(mesh, out / f"mesh_{name}.{mesh_format}")))
+        summary = {
+            "data": str(data),
+            "frames": result["frames"],
+            "frames_fused": result["frames_fused"],
+            "frame_errors": result["frame_errors"],
+            "masked_pixels": result["masked_pixels"],
+            "empty_meshes": result["empty_meshes"],
+            "meshes_written": written,
+            "sparse_points_per_frame": result["sparse_points"],
+            "depth_median_abs_error_m": result["depth_median_abs_error"],
+            "metrics": result["metrics"],
+            "timing_s_per_frame": result["timing"],
+            "timing_median_s_per_frame": result["timing_median"],
+            "config": {"mapper": asdict(config), "rgb_focal": rgb_focal, "mde": str(mde)},
+        }
+        write_json(out / "metrics.json", summary)
     for message in result["frame_errors"]:
         print(f"skipped {message}")
     if result["empty_meshes"]:
@@ -110,4 +121,7 @@ def fuse_command(
           f"{out / 'metrics.json'} (in {out.resolve()})")
     for path in written:
         print(f"wrote {path}")
+    scores = [f"{name} {m['fscore']:.3f}" for name, m in result["metrics"].items() if m is not None]
+    if scores:
+        print(f"F-score at {threshold * 100:g} cm against the ground-truth mesh: " + ", ".join(scores))
     return summary

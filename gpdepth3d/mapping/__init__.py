@@ -1,7 +1,7 @@
 """From posteriors to 3D: coloured clouds, TSDF fusion, triangulation, trajectories, the `Mapper`.
 
 Modules: `cloud`, `fusion`, `triangulation`, `trajectories` and `mapper` (the incremental
-`Mapper`, SLAM map points, `fuse_sequence`). The mapper's public names are re-exported here.
+`Mapper`, SLAM map points). The mapper's public names are re-exported here.
 """
 
 from .mapper import SEVEN_SCENES_RGB_K as SEVEN_SCENES_RGB_K
@@ -12,10 +12,8 @@ from .mapper import MapPointStats as MapPointStats
 from .mapper import Mapper as Mapper
 from .mapper import MapperConfig as MapperConfig
 from .mapper import PoseUpdate as PoseUpdate
-from .mapper import fuse_sequence as fuse_sequence
 from .mapper import fused_depth as fused_depth
 from .mapper import map_scale as map_scale
 from .mapper import merge_sparse as merge_sparse
-from .mapper import mesh_metrics as mesh_metrics
 from .mapper import project_map_points as project_map_points
 from .mapper import sparse_from_map_points as sparse_from_map_points

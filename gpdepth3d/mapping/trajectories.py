@@ -1,15 +1,24 @@
 """Trajectories and sparse maps of SLAM / SfM back-ends, in gpdepth3d's conventions.
 
 Every pose here is ``T_world_camera`` (4x4, maps camera coordinates to world coordinates; the
-OpenCV camera frame: x right, y down, z forward), whatever the file stores:
+OpenCV camera frame: x right, y down, z forward), whatever the file stores. Formats
+(`POSE_FORMATS`, read by `read_trajectory`, which also recognises them, `detect_pose_format`):
 
-* TUM RGB-D trajectories (``timestamp tx ty tz qx qy qz qw``, the camera's pose in the world)
-  and ORB-SLAM3's ``KeyFrameTrajectory.txt`` / ``CameraTrajectory.txt`` (the same format), read
-  with evo (`read_tum_trajectory`, written back with `write_tum_trajectory`);
-* KITTI odometry poses (one row-major 3x4 camera-to-world matrix per line) read with evo
-  (`read_kitti_poses`);
-* COLMAP models (``cameras``, ``images``, ``points3D``, binary or text) read with pycolmap
-  (`read_colmap_model`): COLMAP stores ``cam_from_world`` (world to camera); it is inverted here.
+* ``tum``: TUM RGB-D trajectories (``timestamp tx ty tz qx qy qz qw``, the camera's pose in the
+  world) and ORB-SLAM3's ``KeyFrameTrajectory.txt`` / ``CameraTrajectory.txt`` (the same format)
+  (`read_tum_trajectory`; every quaternion must be of unit length and every timestamp unique;
+  written back with evo, `write_tum_trajectory`);
+* ``kitti``: KITTI odometry poses, one row-major 3x4 camera-to-world matrix per line, read with
+  evo (`read_kitti_poses`);
+* ``rows``: one flattened row-major 4x4 camera-to-world matrix per line (`read_flat_poses`);
+* ``files``: a folder of per-image text files holding a 4x4 camera-to-world matrix each, as
+  7-Scenes' ``frame-XXXXXX.pose.txt`` (`read_pose_files`; the poses carry the files' names);
+* ``colmap``: COLMAP models (``cameras``, ``images``, ``points3D``, binary or text) read with
+  pycolmap (`read_colmap_model`): COLMAP stores ``cam_from_world`` (world to camera); it is
+  inverted here.
+
+`associate_poses` gives each image of a sequence its pose: by name (per-image files, COLMAP),
+by timestamp (TUM, image files named by their time) or by order.
 
 Helpers: `pose_from_tq` / `tq_from_pose` (translation + unit quaternion, ``xyzw`` as TUM and
 scipy, or ``wxyz``), `invert_pose`, and `check_pose_orientation`, the loud check for the most
@@ -29,7 +38,7 @@ from typing import Literal
 import numpy as np
 
 from ..camera import PinholeCamera, check_pose, transform_points
-from ..errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
+from ..errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
 from ..io import atomic_path
 
 QuaternionOrder = Literal["xyzw", "wxyz"]
@@ -194,11 +203,14 @@ class Trajectory:
     Attributes:
         poses: (N, 4, 4) float64 ``T_world_camera`` (rotations snapped to exactly orthonormal,
             as `gpdepth3d.camera.check_pose` does).
-        timestamps: (N,) float64 seconds (NaN when the format has none, e.g. KITTI).
+        timestamps: (N,) float64 seconds (NaN when the format has none, e.g. KITTI); the finite
+            ones are unique (a time with two poses has no nearest pose).
+        names: N names of the images the poses belong to (per-image files, COLMAP), or empty.
     """
 
     poses: np.ndarray
     timestamps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         poses = np.asarray(self.poses, dtype=np.float64)
@@ -210,8 +222,17 @@ class Trajectory:
             ts = np.full(len(poses), np.nan)
         if ts.shape != (len(poses),):
             raise ShapeError("timestamps", f"shape ({len(poses)},)", describe(ts))
+        if np.any(np.isinf(ts)):
+            raise InvalidInputError("timestamps", "finite seconds (or NaN for none)", "inf")
+        finite = ts[np.isfinite(ts)]
+        if np.unique(finite).size != finite.size:
+            raise InvalidInputError("timestamps", "unique timestamps", f"{finite.size - np.unique(finite).size} repeated")
+        names = tuple(str(n) for n in self.names)
+        if names and len(names) != len(poses):
+            raise ShapeError("names", f"{len(poses)} names (one per pose) or none", f"{len(names)}")
         object.__setattr__(self, "poses", poses)
         object.__setattr__(self, "timestamps", ts)
+        object.__setattr__(self, "names", names)
 
     def __len__(self) -> int:
         return int(self.poses.shape[0])
@@ -220,8 +241,15 @@ class Trajectory:
         """Index of the pose closest in time to ``timestamp`` (seconds).
 
         Raises:
-            InvalidInputError: if the trajectory has no timestamps or none is within ``max_difference``.
+            InvalidInputError: if ``timestamp`` is not a finite number, the trajectory has no
+                timestamps, or none is within ``max_difference``.
         """
+        if isinstance(timestamp, (bool, np.bool_)) or not isinstance(timestamp, (int, float, np.integer, np.floating)):
+            raise InvalidInputError("timestamp", "a finite time in seconds", describe(timestamp))
+        if not np.isfinite(timestamp):
+            raise InvalidInputError("timestamp", "a finite time in seconds", timestamp)
+        if not np.isfinite(max_difference) or max_difference < 0:
+            raise InvalidInputError("max_difference", "a time difference >= 0 (seconds)", max_difference)
         if len(self) == 0 or np.all(np.isnan(self.timestamps)):
             raise InvalidInputError("timestamp", "a trajectory with timestamps", "none")
         i = int(np.nanargmin(np.abs(self.timestamps - timestamp)))
@@ -239,23 +267,70 @@ def _check_file(path: str | Path) -> Path:
     return path
 
 
-def read_tum_trajectory(path: str | Path) -> Trajectory:
-    """Reads a TUM RGB-D trajectory (also ORB-SLAM3's ``KeyFrameTrajectory.txt``) with evo.
+def _numeric_rows(path: Path, columns: tuple[int, ...], what: str) -> tuple[np.ndarray, np.ndarray]:
+    """The numeric rows of a text file (``#`` comments, blank lines, commas skipped), each of ``columns`` values."""
+    rows, lines = [], []
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataFormatError(path, f"not a readable {what}: {exc}") from None
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.split("#", 1)[0].replace(",", " ").strip()
+        if not line:
+            continue
+        try:
+            values = [float(x) for x in line.split()]
+        except ValueError:
+            raise DataFormatError(path, f"line {number}: not numbers ({what})") from None
+        if len(values) not in columns:
+            expected = " or ".join(str(c) for c in columns)
+            raise DataFormatError(path, f"line {number}: expected {expected} numbers ({what}), got {len(values)}")
+        if not np.all(np.isfinite(values)):
+            raise DataFormatError(path, f"line {number}: NaN or inf ({what})")
+        rows.append(values)
+        lines.append(number)
+    if not rows:
+        raise DataFormatError(path, f"no poses ({what})")
+    if len({len(r) for r in rows}) > 1:
+        raise DataFormatError(path, f"lines of different lengths ({what})")
+    table = np.array(rows, dtype=np.float64)
+    return table, np.array(lines)
 
-    Lines ``timestamp tx ty tz qx qy qz qw`` give each camera's pose in the world (metres);
-    ``#`` comments are skipped.
+
+QUATERNION_TOLERANCE = 1e-3
+"""A file's quaternion may differ from unit length by this much (rounding of written digits); it is
+then normalised. Farther from 1 (norm 2, 0.5, all zeros) it is refused: such a quaternion is a
+wrong column order or a broken writer, not a rounding."""
+
+
+def read_tum_trajectory(path: str | Path) -> Trajectory:
+    """Reads a TUM RGB-D trajectory (also ORB-SLAM3's ``KeyFrameTrajectory.txt``).
+
+    Lines ``timestamp tx ty tz qx qy qz qw`` give each camera's pose in the world (metres,
+    seconds); ``#`` comments are skipped. See https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats.
 
     Raises:
-        DataFormatError: if the file is missing or evo cannot read it.
+        DataFormatError: if the file is missing, a line is not 8 finite numbers, a quaternion is
+            not of unit length within `QUATERNION_TOLERANCE` (naming the line), or a timestamp repeats.
     """
-    from evo.tools import file_interface
-
     path = _check_file(path)
-    try:
-        traj = file_interface.read_tum_trajectory_file(str(path))
-    except Exception as exc:  # noqa: BLE001 - evo raises its own and numpy errors on bad files
-        raise DataFormatError(path, f"not a TUM trajectory: {exc}") from None
-    return Trajectory(np.array(traj.poses_se3), np.asarray(traj.timestamps, dtype=np.float64))
+    table, lines = _numeric_rows(path, (8,), "TUM trajectory: timestamp tx ty tz qx qy qz qw")
+    norms = np.linalg.norm(table[:, 4:8], axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
+    if bad.size:
+        raise DataFormatError(
+            path,
+            f"line {lines[bad[0]]}: quaternion of norm {norms[bad[0]]:.6g}, expected unit length "
+            f"(within {QUATERNION_TOLERANCE}); {bad.size} such line(s)",
+        )
+    ts = table[:, 0]
+    _, first, counts = np.unique(ts, return_index=True, return_counts=True)
+    if np.any(counts > 1):
+        i = int(first[np.argmax(counts > 1)])
+        again = int(np.flatnonzero(ts == ts[i])[1])
+        raise DataFormatError(path, f"lines {lines[i]} and {lines[again]}: the same timestamp {float(ts[i])!r} twice")
+    q = table[:, 4:8] / norms[:, None]
+    return Trajectory(pose_from_tq(table[:, 1:4], q), ts)
 
 
 def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
@@ -283,6 +358,74 @@ def read_kitti_poses(path: str | Path) -> Trajectory:
     except Exception as exc:  # noqa: BLE001 - evo raises its own and numpy errors on bad files
         raise DataFormatError(path, f"not a KITTI pose file: {exc}") from None
     return Trajectory(np.array(traj.poses_se3))
+
+
+def _poses_from_rows(path: Path, table: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """Row-major 3x4 or 4x4 matrices, one per row, as checked 4x4 poses (a bad one names its line)."""
+    n = table.shape[0]
+    if table.shape[1] == 12:
+        table = np.hstack([table, np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))])
+    poses = table.reshape(n, 4, 4)
+    out = np.empty_like(poses)
+    for i, T in enumerate(poses):
+        try:
+            out[i] = check_pose(T, "pose")
+        except CalibrationError as exc:
+            raise DataFormatError(path, f"line {lines[i]}: not a rigid transform: {exc}") from None
+    return out
+
+
+def read_flat_poses(path: str | Path) -> Trajectory:
+    """Reads one flattened row-major 4x4 camera-to-world matrix (16 numbers) per line.
+
+    Line k (comments and blank lines skipped) is the pose of the k-th image.
+
+    Raises:
+        DataFormatError: if the file is missing, a line is not 16 finite numbers or not a rigid
+            transform (naming the line).
+    """
+    path = _check_file(path)
+    table, lines = _numeric_rows(path, (16,), "flattened 4x4 pose per line")
+    return Trajectory(_poses_from_rows(path, table, lines))
+
+
+POSE_FILE_PATTERNS = ("*.pose.txt", "*.txt")
+"""The per-image pose files of a folder: ``*.pose.txt`` (7-Scenes) when there are any, else every ``*.txt``."""
+
+
+def pose_file_key(name: str) -> str:
+    """The part of a file name that names its image: up to the first dot (``frame-000000.pose.txt`` -> ``frame-000000``)."""
+    return Path(name).name.split(".", 1)[0]
+
+
+def read_pose_files(folder: str | Path) -> Trajectory:
+    """Reads a folder of per-image pose files, each a 4x4 camera-to-world matrix (16 numbers).
+
+    The files are `POSE_FILE_PATTERNS` in sorted name order; the trajectory's ``names`` are the
+    file names up to the first dot (`pose_file_key`), matched to images by `associate_poses`.
+
+    Raises:
+        DataFormatError: if the folder is missing or has no pose file, a file is not 16 finite
+            numbers or not a rigid transform (naming the file).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataFormatError(folder, "pose folder not found")
+    files: list[Path] = []
+    for pattern in POSE_FILE_PATTERNS:
+        files = sorted(p for p in folder.glob(pattern) if p.is_file())
+        if files:
+            break
+    if not files:
+        raise DataFormatError(folder, f"no pose files ({' or '.join(POSE_FILE_PATTERNS)})")
+    poses = []
+    for f in files:
+        table, lines = _numeric_rows(f, (4, 16), "4x4 pose")
+        table, lines = table.reshape(1, -1), lines[:1]
+        if table.shape[1] != 16:
+            raise DataFormatError(f, f"expected 16 numbers (a 4x4 pose), got {table.shape[1]}")
+        poses.append(_poses_from_rows(f, table, lines)[0])
+    return Trajectory(np.stack(poses), names=tuple(pose_file_key(f.name) for f in files))
 
 
 # ---------------------------------------------------------------------- COLMAP
@@ -344,9 +487,12 @@ class ColmapModel:
         return self.points[np.asarray(rows, dtype=np.int64)] if rows else np.zeros((0, 3))
 
     def trajectory(self) -> Trajectory:
-        """The registered images' poses in image-id order (timestamps NaN)."""
+        """The registered images' poses in image-id order (timestamps NaN), named by their image names."""
         ids = sorted(self.images)
-        return Trajectory(np.stack([self.images[i].T_world_camera for i in ids]) if ids else np.zeros((0, 4, 4)))
+        return Trajectory(
+            np.stack([self.images[i].T_world_camera for i in ids]) if ids else np.zeros((0, 4, 4)),
+            names=tuple(self.images[i].name for i in ids),
+        )
 
 
 _PINHOLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE"}
@@ -427,3 +573,158 @@ def read_colmap_model(path: str | Path, *, ignore_distortion: bool = False) -> C
         errors=np.array([p.error for p in pts], dtype=np.float64),
         track_lengths=np.array([p.track.length() for p in pts], dtype=np.int64),
     )
+
+
+# ---------------------------------------------------------------------- any format, and images
+POSE_FORMATS = ("tum", "kitti", "rows", "files", "colmap")
+"""The pose formats `read_trajectory` reads (see the module docstring)."""
+
+_COLMAP_FILES = ("images.bin", "images.txt")
+
+
+def detect_pose_format(path: str | Path) -> str:
+    """The format of a pose file or folder (one of `POSE_FORMATS`), from its layout and columns.
+
+    A folder holding ``images.bin`` / ``images.txt`` is a COLMAP model, any other folder holds
+    per-image pose files; a text file is TUM with 8 numbers a line, KITTI with 12, rows of a
+    flattened 4x4 with 16.
+
+    Raises:
+        DataFormatError: if the path is missing or its lines fit none of the formats.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return "colmap" if any((path / n).is_file() for n in _COLMAP_FILES) else "files"
+    path = _check_file(path)
+    table, _ = _numeric_rows(path, (8, 12, 16), "TUM (8 numbers a line), KITTI (12) or a flattened 4x4 (16)")
+    return {8: "tum", 12: "kitti", 16: "rows"}[table.shape[1]]
+
+
+def read_trajectory(path: str | Path, format: str = "auto") -> Trajectory:  # noqa: A002 - the user's word
+    """Reads poses in any of `POSE_FORMATS` as ``T_world_camera``.
+
+    Args:
+        path: A pose file or folder.
+        format: One of `POSE_FORMATS`, or "auto" (`detect_pose_format`).
+
+    Raises:
+        InvalidInputError: for an unknown format name.
+        DataFormatError: if the file or folder is missing or not of the format.
+    """
+    if format == "auto":
+        format = detect_pose_format(path)
+    if format not in POSE_FORMATS:
+        raise InvalidInputError("format", f"'auto' or one of {', '.join(POSE_FORMATS)}", format)
+    if format == "colmap":
+        return read_colmap_model(path, ignore_distortion=True).trajectory()
+    readers = {"tum": read_tum_trajectory, "kitti": read_kitti_poses, "rows": read_flat_poses, "files": read_pose_files}
+    return readers[format](path)
+
+
+ASSOCIATIONS = ("auto", "name", "timestamp", "order")
+"""How `associate_poses` matches images and poses."""
+
+
+def image_timestamp(name: str) -> float | None:
+    """The time an image file is named by (TUM RGB-D: ``1305031102.175304.png``), seconds, or None."""
+    stem = Path(name).name
+    for suffix in Path(name).suffixes[::-1]:
+        stem = stem[: -len(suffix)] if stem.endswith(suffix) and not suffix[1:].isdigit() else stem
+    try:
+        value = float(stem)
+    except ValueError:
+        return None
+    return value if np.isfinite(value) else None
+
+
+def _timed_name(name: str) -> bool:
+    """Whether a file name looks like a time stamp with a fraction (``1305031102.175304.png``, not ``00003.png``)."""
+    stem = Path(name).name.rsplit(".", 1)[0]
+    return image_timestamp(name) is not None and "." in stem
+
+
+def _name_keys(names: list[str]) -> list[str]:
+    return [pose_file_key(n) for n in names]
+
+
+def associate_poses(
+    trajectory: Trajectory,
+    image_names: list[str],
+    *,
+    by: str = "auto",
+    max_difference: float = 0.02,
+) -> np.ndarray:
+    """The pose of each image: (N, 4, 4) ``T_world_camera`` in the order of ``image_names``.
+
+    Args:
+        trajectory: The poses read.
+        image_names: File names (or relative paths) of the images, in sequence order.
+        by: "name": the trajectory's names (COLMAP image names, pose files' names up to the
+            first dot) equal the images' (whole relative path, else file name, else file name
+            up to the first dot); "timestamp": each image's file name is its time in seconds
+            and gets the pose nearest in time (within ``max_difference``); "order": the k-th
+            pose is the k-th image's (as many poses as images); "auto": by name when the
+            trajectory has names, by timestamp when it has times and every image is named by
+            a time with a fraction (``1305031102.175304.png``), else by order.
+        max_difference: Largest time difference of a timestamp match, seconds.
+
+    Raises:
+        InvalidInputError: an unknown ``by``, or the chosen association is impossible (no
+            names / times).
+        ShapeError: "order" with a different number of poses and images.
+        DataFormatError: an image without a pose (naming it and how many lack one).
+    """
+    if by not in ASSOCIATIONS:
+        raise InvalidInputError("by", f"one of {', '.join(ASSOCIATIONS)}", by)
+    names = [str(n) for n in image_names]
+    if not names:
+        raise EmptyInputError("image_names", "at least one image", "none")
+    if by == "auto":
+        if trajectory.names:
+            by = "name"
+        elif np.any(np.isfinite(trajectory.timestamps)) and all(_timed_name(n) for n in names):
+            by = "timestamp"
+        else:
+            by = "order"
+    if by == "order":
+        if len(trajectory) != len(names):
+            raise ShapeError(
+                "poses", f"one pose per image in order ({len(names)} images)", f"{len(trajectory)} poses"
+            )
+        return trajectory.poses.copy()
+    if by == "timestamp":
+        if not np.any(np.isfinite(trajectory.timestamps)):
+            raise InvalidInputError("by", "a trajectory with timestamps for 'timestamp'", "none (use 'order')")
+        index = []
+        missing = []
+        for n in names:
+            t = image_timestamp(n)
+            if t is None:
+                raise InvalidInputError("image_names", "file names that are times in seconds for 'timestamp'", n)
+            try:
+                index.append(trajectory.nearest(t, max_difference=max_difference))
+            except InvalidInputError:
+                missing.append(n)
+        if missing:
+            raise DataFormatError(
+                missing[0], f"no pose within {max_difference} s ({len(missing)} of {len(names)} images lack one)"
+            )
+        return trajectory.poses[np.array(index)]
+    if not trajectory.names:
+        raise InvalidInputError("by", "a trajectory with names for 'name' (per-image files, COLMAP)", "none")
+    lookups = [
+        {n: i for i, n in enumerate(trajectory.names)},
+        {Path(n).name: i for i, n in enumerate(trajectory.names)},
+        {k: i for i, k in enumerate(_name_keys(list(trajectory.names)))},
+    ]
+    keys = [names, [Path(n).name for n in names], _name_keys(names)]
+    for lookup, key in zip(lookups, keys):
+        if len(lookup) == len(trajectory) and all(k in lookup for k in key):
+            return trajectory.poses[np.array([lookup[k] for k in key])]
+    # which images lack a pose: by the unique naming that matches the most images
+    usable = [(sum(k in lookup for k in key), lookup, key) for lookup, key in zip(lookups, keys) if len(lookup) == len(trajectory)]
+    if not usable:
+        raise DataFormatError(names[0], "no pose of that name (and the poses' names are not unique)")
+    _, lookup, key = max(usable, key=lambda u: u[0])
+    missing = [n for n, k in zip(names, key) if k not in lookup]
+    raise DataFormatError(missing[0], f"no pose of that name ({len(missing)} of {len(names)} images lack one)")

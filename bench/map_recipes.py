@@ -1,0 +1,93 @@
+"""Wall time and F-score of ``gpdepth3d map`` on the shared sequences, run as docs/mapping.md writes it.
+
+Usage::
+
+    python bench/map_recipes.py [--out bench/results/map_recipes.json]
+
+Each ``gpdepth3d map ... ../shared/data/...`` line of docs/mapping.md (the HoloLens walk, 94 frames; the
+7-Scenes frames, 60) is started as a user starts it: a fresh ``python -m gpdepth3d.cli`` process from the
+repository root, with the library's defaults (FastDepth TFLite, the Mapper's own triangulated points,
+320-px working width). Recorded per sequence: the process's wall time, the run's own mapping time
+(``wall_s`` of its metrics.json), frames fused, frames without points, and the F-score at 5 cm of the map
+and of the MDE alone against the mesh fused from the sensor depth; the load average before and after.
+
+Wall-clock seconds on a shared machine (the development machine: 2 cores, several jobs): compare rows of
+one run. Results: a table on stdout and ``bench/results/map_recipes.json`` (written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def recipes() -> dict[str, str]:
+    """The docs' ``gpdepth3d map`` lines on the shared data, by sequence folder name."""
+    text = (REPO / "docs" / "mapping.md").read_text(encoding="utf-8")
+    lines = [line.strip() for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M) if "../shared/data" in line]
+    return {re.search(r"\.\./shared/data/(\w+)", line).group(1): line for line in lines}
+
+
+def run(line: str) -> dict:
+    argv = shlex.split(line)[1:]
+    out = REPO / argv[argv.index("--output") + 1]
+    load_before = os.getloadavg()
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-m", "gpdepth3d.cli", *argv], cwd=REPO, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    wall = time.monotonic() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"{line}\n{proc.stderr[-3000:]}")
+    summary = json.loads((out / "metrics.json").read_text())
+    metrics = summary["metrics"] or {}
+    return {
+        "command": line,
+        "process_wall_s": wall,
+        "mapping_wall_s": summary["wall_s"],
+        "frames": summary["frames"],
+        "frames_fused": summary["frames_fused"],
+        "frames_without_points": len(summary["frames_without_points"]),
+        "sparse_points_per_frame_median": summary["sparse_points_per_frame_median"],
+        "fscore_map": (metrics.get("map") or {}).get("fscore"),
+        "fscore_mde_only": (metrics.get("mde") or {}).get("fscore"),
+        "precision_map": (metrics.get("map") or {}).get("precision"),
+        "recall_map": (metrics.get("map") or {}).get("recall"),
+        "add_frame_median_s": summary["timing_median_s_per_frame"].get("total"),
+        "loadavg_before": load_before,
+        "loadavg_after": os.getloadavg(),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "map_recipes.json")
+    args = parser.parse_args()
+    sys.path.insert(0, str(REPO))
+    from gpdepth3d.io import write_json
+
+    rows = {}
+    for name, line in recipes().items():
+        rows[name] = run(line)
+        r = rows[name]
+        print(f"{name:9s} {r['frames_fused']:3d}/{r['frames']:3d} fused, F map {r['fscore_map']:.3f}, "
+              f"MDE alone {r['fscore_mde_only']:.3f}, {r['process_wall_s']:.0f} s "
+              f"(load {r['loadavg_before'][0]:.1f})", flush=True)
+    write_json(args.out, {
+        "sequences": rows,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+    })
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,179 @@
+"""``gpdepth3d map``: a map (mesh, cloud with sigma, reloadable map) of a user's own posed image sequence."""
+
+from __future__ import annotations
+
+import math
+import sys
+import warnings
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from ..errors import InvalidInputError
+
+PoseFormat = Literal["auto", "tum", "kitti", "rows", "files", "colmap"]
+Association = Literal["auto", "name", "timestamp", "order"]
+
+
+def map_command(
+    images: Path,
+    *,
+    poses: Path,
+    intrinsics: Optional[str] = None,
+    pose_format: PoseFormat = "auto",
+    association: Association = "auto",
+    max_time_difference: float = 0.02,
+    depth: Optional[Path] = None,
+    depth_scale: float = 0.001,
+    depth_invalid: Optional[int] = None,
+    depth_intrinsics: Optional[str] = None,
+    output: Path = Path("map_out"),
+    mde: str = "fastdepth",
+    models_dir: Optional[Path] = None,
+    working_width: int = 320,
+    stride: int = 1,
+    frames: Optional[int] = None,
+    voxel_size: float = 0.02,
+    depth_max: float = 5.0,
+    threshold: float = 0.05,
+    metric_samples: int = 50_000,
+    mesh_format: Literal["ply", "glb", "obj"] = "ply",
+    view: bool = False,
+    host: str = "127.0.0.1",
+    port: int = 8080,
+    view_duration: Optional[float] = None,
+) -> dict[str, Any]:
+    """Map a posed image sequence: mesh, coloured cloud with per-point sigma, reloadable map, metrics.
+
+    Each image's depth comes from a monocular network (--mde), refined by a GP with points the
+    library triangulates from the posed images themselves (and a COLMAP model's points when the poses
+    are one), then fused into a TSDF with weights from the posterior variance. Writes into --output,
+    all together or nothing: ``mesh.<format>``, ``cloud.ply`` (x y z, colour, confidence, sigma,
+    variance), ``mapper.json`` + ``keyframes.npz`` + ``volume.npz`` (``Mapper.load(output)`` goes on
+    from them) and ``metrics.json`` (with --depth: F-score at --threshold against the mesh fused from
+    that depth, and the MDE alone's). See docs/mapping.md.
+
+    Args:
+        images: Image folder (its *.color.* files if any, else every .png/.jpg), or a quoted glob pattern.
+        poses: Camera-to-world poses: a TUM trajectory (timestamp tx ty tz qx qy qz qw), KITTI rows (3x4),
+            rows of a flattened 4x4 (one per image), a folder of per-image 4x4 files (*.pose.txt), or a
+            COLMAP model folder.
+        intrinsics: Colour camera: a K file (3x3) or fx,fy,cx,cy in pixels (optional with a COLMAP model).
+        pose_format: The pose format (default: recognised from the file).
+        association: How poses find their images: by name (pose files, COLMAP), by timestamp (TUM, images
+            named by their time), by order; auto picks the first that applies.
+        max_time_difference: Largest image-to-pose time difference when associating by timestamp, seconds.
+        depth: Sensor depth for evaluation: a folder (its *.depth.* files if any), or a quoted glob pattern.
+        depth_scale: Metres per unit of 16-bit depth PNGs (0.001: millimetres; TUM RGB-D: 0.0002).
+        depth_invalid: PNG value of invalid depth besides 0 (7-Scenes: 65535).
+        depth_intrinsics: Depth camera's K file or fx,fy,cx,cy when it is not the colour camera (same pose).
+        output: Output folder.
+        mde: Monocular front-end: "fastdepth" (FastDepth TFLite, indoor; the [tflite] extra), "rtmonodepth"
+            (RT-MonoDepth-S ONNX, outdoor) or a .tflite/.onnx model file.
+        models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
+        working_width: Width of refinement and fusion, pixels (wider images are scaled down to it).
+        stride: Use every STRIDE-th image.
+        frames: Use at most this many images (after --stride; default: all).
+        voxel_size: TSDF voxel size, metres.
+        depth_max: Depths beyond this are not fused, metres.
+        threshold: F-score distance, metres.
+        metric_samples: Surface samples per mesh for the metrics.
+        mesh_format: File format of the mesh.
+        view: Show the map in the browser as it grows (viser): sigma-coloured cloud and camera frusta.
+        host: Interface of the viewer (127.0.0.1: this machine only).
+        port: Port of the viewer (the next free one when taken).
+        view_duration: With --view, keep the page open this many seconds after mapping (default: until Ctrl-C).
+
+    Returns:
+        The summary written to ``metrics.json``.
+    """
+    from dataclasses import replace
+
+    from ..experiments.mapping_run import map_sequence, map_summary, open_posed_sequence, write_map
+    from ..io import check_output_folder
+    from ..mapping.mapper import MapperConfig
+    from ..mde import load_frontend
+
+    for name, value in (("--voxel-size", voxel_size), ("--depth-max", depth_max)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise InvalidInputError(name, "a distance > 0 (metres)", value)
+    if view_duration is not None and not (math.isfinite(view_duration) and view_duration >= 0):
+        raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
+    check_output_folder(Path(output), "--output")
+    inputs = open_posed_sequence(
+        str(images), poses, intrinsics, pose_format=pose_format, association=association,
+        max_time_difference=max_time_difference, depth=None if depth is None else str(depth),
+        depth_scale=depth_scale, depth_invalid=depth_invalid, depth_intrinsics=depth_intrinsics,
+    )
+    base = MapperConfig()
+    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
+    seq = inputs.sequence
+    print(f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
+          + (", with depth" if seq.depth_files is not None else ""), flush=True)
+    live = None
+    if view:
+        from ..viewer.live_map import LiveMapViewer
+
+        live = LiveMapViewer(seq.camera, seq.poses, first_rgb=seq.frame(0).rgb, host=host, port=port)
+        print(f"viewer running at {live.url} (the map appears as it grows)", flush=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            network = load_frontend(mde, models_dir=models_dir)
+            result = map_sequence(
+                inputs, mde=network, config=config, working_width=working_width, stride=stride,
+                max_frames=frames, threshold=threshold, metric_samples=metric_samples,
+                progress=sys.stderr.isatty(), on_frame=None if live is None else live.update,
+            )
+        except BaseException:
+            if live is not None:
+                live.stop()
+            raise
+    _report_warnings(caught)
+    summary = map_summary(result)
+    summary["inputs"] = {
+        "images": str(images), "poses": str(poses), "pose_format": inputs.pose_format, "intrinsics": intrinsics,
+        "depth": None if depth is None else str(depth), "depth_scale": depth_scale, "mde": str(mde),
+        "stride": stride, "frames": frames, "working_width": working_width,
+    }
+    written = write_map(result, output, mesh_format=mesh_format, summary=summary)
+    for message in result.frame_errors:
+        print(f"skipped {message}")
+    if result.frames_without_points:
+        print(f"{len(result.frames_without_points)} frame(s) had no sparse point and were fused from the MDE with "
+              "its prior variance")
+    print(f"mapped {result.frames_fused} of {result.frames} frames in {result.timing['wall']:.1f} s "
+          f"(median {result.sparse_points:.0f} points a frame); wrote {len(written)} files to {Path(output).resolve()}")
+    for path in written:
+        print(f"wrote {path}")
+    if result.metrics is not None:
+        print(_fscore_line(result.metrics, threshold))
+    if live is not None:
+        live.finish(result)
+        print(f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})",
+              flush=True)
+        live.wait(view_duration)
+        live.stop()
+    return summary
+
+
+def _fscore_line(metrics: dict, threshold: float) -> str:
+    """One line with the map's and the MDE-only map's F-score against the sensor depth."""
+    def f(m):
+        return "no surface" if m is None else f"{m['fscore']:.3f} (precision {m['precision']:.3f}, recall {m['recall']:.3f})"
+
+    return f"F-score at {threshold * 100:g} cm against the sensor depth: map {f(metrics['map'])}; MDE alone {f(metrics['mde'])}"
+
+
+def _report_warnings(caught: list) -> None:
+    """Prints each distinct warning once, with how often it came (per-frame warnings would flood the terminal)."""
+    import re
+
+    counts: dict[str, int] = {}
+    first: dict[str, str] = {}
+    for w in caught:
+        key = f"{w.category.__name__}:{re.sub(r'[-+]?[0-9][0-9.,]*', '#', str(w.message))}"
+        counts[key] = counts.get(key, 0) + 1
+        first.setdefault(key, str(w.message))
+    for key, n in counts.items():
+        more = f" (and {n - 1} more like it)" if n > 1 else ""
+        print(f"gpdepth3d: warning: {first[key]}{more}", file=sys.stderr)
