@@ -66,7 +66,7 @@ def fuse_sequence(
         progress: Show a progress bar.
 
     The frames go through `map_sequence` (the runner of ``gpdepth3d map``); the comparison volumes
-    are fused from its `FrameEvent`\ s. Bad data never ends the run: a frame that cannot be read or fused is named in
+    are fused from its `FrameEvent` records. Bad data never ends the run: a frame that cannot be read or fused is named in
     ``frame_errors`` and the next one goes on; a mesh without triangles (too few frames for
     ``weight_threshold``) is listed in ``empty_meshes`` and gets no metrics (None).
 
