@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError, ShapeError
-from gpdepth3d.gp import EngineConfig, Solution, SolveInfo, make_engine
+from gpdepth3d.gp import Engine, EngineConfig, RoutedEngine, Solution, SolveInfo, make_engine
 from gpdepth3d.gp.exact import ExactEngine, dense_posterior, dense_solve
 from gpdepth3d.gp.fast import LATTICE_QUANTUM, FastEngine, observed_lattice
 from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
@@ -45,6 +45,46 @@ class TestEngineConfig:
     def test_hashable_and_comparable(self):
         assert EngineConfig(route="grid") == EngineConfig(route="grid")
         assert len({EngineConfig(), EngineConfig(options={"tile": 16})}) >= 1  # options do not enter the hash
+
+
+def keyword_only(method, names):
+    """True when ``method`` takes ``names`` as keyword-only parameters (as the protocol states them)."""
+    import inspect
+
+    params = inspect.signature(method).parameters
+    return all(n in params and params[n].kind is inspect.Parameter.KEYWORD_ONLY for n in names)
+
+
+class TestEngineProtocol:
+    @pytest.mark.parametrize("name", ["exact", "kissgp", "fast"])
+    def test_every_engine_satisfies_the_protocol(self, name):
+        if name == "kissgp":
+            pytest.importorskip("gpytorch")
+        engine = make_engine(EngineConfig(name=name, device="cpu" if name == "kissgp" else None))
+        assert isinstance(engine, Engine) and engine.name == name
+        assert keyword_only(engine.solve, ("variance", "extra_obs"))
+        solution = engine.solve(problem_with_points(np.random.default_rng(20), 8, 9, 6), variance=False)
+        assert isinstance(solution, Solution) and isinstance(solution.info, SolveInfo)
+        assert solution.info.engine == name and solution.variance is None and solution.mean.shape == (8, 9)
+
+    def test_routed_engines(self):
+        fast = make_engine(EngineConfig(name="fast"))
+        assert isinstance(fast, RoutedEngine)
+        assert keyword_only(fast.plan, ("variance", "extra", "lml"))
+        problem = problem_with_points(np.random.default_rng(21), 8, 9, 6)
+        assert fast.plan(problem) in ("grid", "woodbury", "neumann", "dense")
+        assert np.isfinite(fast.log_marginal_likelihood(problem))
+        assert not isinstance(ExactEngine(), RoutedEngine)  # one route: no plan
+
+    def test_objects_without_solve_are_not_engines(self):
+        class NoSolve:
+            name = "none"
+
+        class NoName:
+            def solve(self, problem, *, variance=True, extra_obs=()):
+                return None
+
+        assert not isinstance(NoSolve(), Engine) and not isinstance(NoName(), Engine)
 
 
 class TestMakeEngine:

@@ -17,7 +17,9 @@ and an `EngineConfig` (device, back-end, route, limits). They differ only in how
 
 from __future__ import annotations
 
+from .engine import Engine as Engine
 from .engine import EngineConfig as EngineConfig
+from .engine import RoutedEngine as RoutedEngine
 from .engine import Solution as Solution
 from .engine import SolveInfo as SolveInfo
 from .model import DepthGPConfig as DepthGPConfig
@@ -27,7 +29,7 @@ from .model import matern_1d as matern_1d
 from ..errors import InvalidInputError
 
 
-def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None):
+def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None) -> Engine:
     """Builds the engine of a model config with the engine options (imports heavy back-ends lazily).
 
     Args:

@@ -1,29 +1,22 @@
-"""What every engine shares: its options (`EngineConfig`) and what one call returns (`Solution`).
+"""What every engine shares: the `Engine` protocol, its options (`EngineConfig`) and what a call returns.
 
-An engine (``exact``, ``kissgp``, ``fast``) has one method that matters::
-
-    solution = engine.solve(problem, variance=True, extra_obs=())
-
-It computes the posterior of a `GridProblem` and returns a `Solution`: the mean and the
-marginal variance on the output grid, the posterior means of any further observation vectors
-(``extra_obs``: the same precision and kernel, so the factorisation is shared), and the facts of
-this call (`SolveInfo`: the route taken, the seconds per stage). Nothing about a call is stored
-on the engine, so one engine can serve several callers. A `Solution` unpacks as
-``mean, variance = engine.solve(problem)``.
-
-The engine's options (device, back-end, route, limits) live in an `EngineConfig`, apart from
-the model (`gpdepth3d.gp.model.DepthGPConfig`); `gpdepth3d.gp.make_engine` builds an engine from
-both.
+An engine (``exact``, ``kissgp``, ``fast``) computes the posterior of a `GridProblem` with
+``engine.solve(problem, variance=True, extra_obs=())`` and returns a `Solution`; engines with
+several routes also satisfy `RoutedEngine` (``plan``, ``factorize``, ``log_marginal_likelihood``).
+See docs/architecture.md.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..errors import InvalidInputError, ShapeError, describe
+
+if TYPE_CHECKING:  # the model imports nothing from here; the annotation only
+    from .model import GridProblem
 
 ENGINE_NAMES = ("exact", "kissgp", "fast")
 FAST_BACKENDS = ("auto", "compiled", "torch")
@@ -157,3 +150,40 @@ def check_extra_obs(problem, extra_obs) -> tuple[np.ndarray, ...]:
             raise InvalidInputError(f"extra_obs[{i}]", "finite values at the observed pixels", "non-finite values")
         out.append(a)
     return tuple(out)
+
+
+@runtime_checkable
+class Engine(Protocol):
+    """What every engine provides: a name and `solve`, the posterior of one `GridProblem`.
+
+    ``solve`` returns a `Solution`: mean (Ho, Wo) in metres, marginal variance (Ho, Wo) in m^2
+    (None when ``variance`` is False), the means of ``extra_obs`` and the call's `SolveInfo`.
+    It stores nothing about the call on the engine, so one engine can serve several callers.
+    """
+
+    name: str
+
+    def solve(self, problem: "GridProblem", *, variance: bool = True, extra_obs=()) -> Solution:
+        """Posterior of ``problem``; raises the typed errors of `gpdepth3d.errors`, never a wrong answer."""
+        ...
+
+
+@runtime_checkable
+class RoutedEngine(Engine, Protocol):
+    """An `Engine` that chooses among routes (``fast``): says which one beforehand, and gives the likelihood.
+
+    ``plan`` returns the route name `solve` would take; ``factorize`` the grid route's factor;
+    ``log_marginal_likelihood`` log p(y) of the observed pixels in nats (what fitting maximises).
+    """
+
+    def plan(self, problem: "GridProblem", *, variance: bool = True, extra: int = 0, lml: bool = False) -> str:
+        """The route `solve` (or, with ``lml``, `log_marginal_likelihood`) takes for ``problem``."""
+        ...
+
+    def factorize(self, problem: "GridProblem"):
+        """The factorisation of the posterior precision that `solve` would use."""
+        ...
+
+    def log_marginal_likelihood(self, problem: "GridProblem") -> float:
+        """log p(y) of the observed pixels of ``problem`` (nats)."""
+        ...
