@@ -77,24 +77,27 @@ factorisation (on the grid route, one pass of forward and backward substitution 
 
 from __future__ import annotations
 
-import os
 import time
 from collections import OrderedDict
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import ConvergenceError, InvalidInputError, ProblemTooLargeError, ShapeError
+from ..errors import ConvergenceError, InvalidInputError, ShapeError
 from .engine import Solution, SolveInfo, check_extra_obs
-from .exact import check_problem, dense_bytes, dense_log_marginal_likelihood, dense_solve
-from .markov import _step, _unit_sde, chain_precision, readout_weights, state_dim
+from .exact import check_problem, dense_log_marginal_likelihood, dense_solve
+from .markov import chain_precision, readout_weights, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
-from .neumann import NEUMANN_MEAN_TOL, NEUMANN_VAR_TOL, NeumannPosterior
-from .woodbury import WoodburyPosterior, woodbury_seconds
+from .cost_model import grid_bytes as grid_bytes
+from .cost_model import grid_error_estimate as grid_error_estimate
+from .cost_model import memory_budget as memory_budget
+from .neumann import NEUMANN_MEAN_TOL, NEUMANN_VAR_TOL
+from .routes import IllConditionedError as IllConditionedError
+from .routes import RouteQuery, choose_route
+from .woodbury import WoodburyPosterior
 
 
 # ----------------------------------------------------------------------------- symbolic phase
@@ -877,93 +880,6 @@ class _Factor:
 
 
 
-# ----------------------------------------------------------------------------- route limits
-
-
-class IllConditionedError(ConvergenceError):
-    """The grid route's precision form is too ill-conditioned for float64 with this kernel (and no
-    other route of the engine can take the problem)."""
-
-
-# The grid route factorises the precision Q / s^2 + W. Its entries grow like (l / pixel)^(2 nu + 1)
-# per axis while the covariance stays O(s^2), so rounding errors of a backward-stable Cholesky are
-# amplified by up to cond(Qv (x) Qu) (Matern 2.5 at l = 30 px: ~1e20). `grid_error_estimate` bounds
-# that amplification; the route is refused above _GRID_MAX_ERROR. Calibrated against the dense
-# engine on 20 x 24 to 120 x 160 grids (nu = 1.5, 2.5; l = 1.5-100 px; both formulations): the
-# measured error of the mean and the standard deviation, relative to s, was 1e-5 to 0.04 times the
-# estimate with sparse points and up to ~1x with every pixel observed (nu = 2.5, l = 8-10 px), so
-# 1e-7 keeps them at ~1e-7 s or below.
-_GRID_MAX_ERROR = 1e-7
-# Memory of the grid route's numeric phase (factor, update stack, covariance fronts): measured
-# 43-64 bytes x ds^2 n log2 n for 60 x 80 to 352 x 1216 grids (ds = 1, 4, 9); 80 with margin for
-# the symbolic structure.
-_GRID_BYTES = 80.0
-
-
-def grid_error_estimate(problem: GridProblem) -> float:
-    """Estimated bound on the rounding error of the grid route, relative to the prior std s.
-
-    eps * ||Qv|| ||Qu|| * min(||Cv|| ||Cu||, 1 / (s^2 min w)): the conditioning of the prior
-    precision, less when every pixel is observed (the observations bound the posterior covariance).
-
-    Args:
-        problem: The grid problem.
-
-    Returns:
-        The estimate (dimensionless; the grid route is used up to 1e-7).
-    """
-    from .markov import chain_conditioning
-
-    h, w = problem.shape
-    k = problem.kernel
-    qv, cv = chain_conditioning(h, float(k.nu), float(k.lengthscale))
-    qu, cu = chain_conditioning(w, float(k.nu), float(k.lengthscale))
-    cov = cv * cu
-    wmin = float(np.min(problem.precision))
-    if wmin > 0:
-        cov = min(cov, 1.0 / (wmin * float(k.outputscale) ** 2))
-    return float(np.finfo(np.float64).eps * qv * qu * cov)
-
-
-def grid_bytes(shape: tuple[int, int], nu: float) -> int:
-    """Estimated peak memory (bytes) of the grid route on an (H, W) grid: ~80 ds^2 n log2 n."""
-    n = float(shape[0]) * float(shape[1])
-    ds = state_dim(nu) ** 2
-    return int(_GRID_BYTES * ds * ds * n * max(np.log2(n), 1.0))
-
-
-def memory_budget() -> int:
-    """Default memory budget of one solve (bytes): three quarters of the memory available now."""
-    try:
-        import psutil
-
-        avail = int(psutil.virtual_memory().available)
-    except Exception:  # pragma: no cover - psutil missing or no /proc
-        avail = int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    return avail * 3 // 4
-
-
-def _dense_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
-    """Cost model of the dense route: Cholesky m^3 / 3, cross tables n_out m (per right-hand side), triangular solves n_out m^2."""
-    t = (m**3 / 3.0) / 10e9 + n_out * m * 3e-9 * (1 + extra)
-    if variance:
-        t += n_out * float(m) ** 2 / 4e9
-    return t
-
-
-def _grid_seconds(h: int, w: int, nu: float, variance: bool, n_out: int = 0, extra: int = 0,
-                  readout: bool = False) -> float:
-    """Cost model of the grid route on an h x w lattice (see _GRID_FLOPS_PER_S; fronts are ds = d^2 times
-    larger for nu > 0.5) with n_out output pixels (read out through the Markov weights when ``readout``)."""
-    ds = state_dim(nu) ** 2
-    n = float(h * w)
-    t = (22.0 + (60.0 if variance else 0.0)) * n**1.5 * ds**3 / _GRID_FLOPS_PER_S
-    t += extra * _GRID_SOLVE_S * n * np.log2(max(n, 2.0))  # a triangular solve pair per extra right-hand side
-    if readout:
-        t += n_out * (1 + extra) * _READOUT_MEAN_S + (n_out * _READOUT_VAR_S * ds if variance else 0.0)
-    return t
-
-
 LATTICE_QUANTUM = 8
 """The observed lattice's bounds are rounded outwards to multiples of this many pixels (clipped to
 the grid), so that the frames of a sequence share its elimination structure."""
@@ -1188,108 +1104,24 @@ class FastEngine:
         return _torch_threads(self.threads) if self.backend == "torch" else nullcontext()
 
     def _route(self, problem: GridProblem, variance: bool, *, lml: bool = False, extra: int = 0):
-        """(route, its posterior object or None, the grid route's problem) for ``problem`` (see ``route``).
+        """(route, its Neumann series or None, the grid route's problem) for ``problem`` (see ``route``).
 
-        The grid route's problem is ``problem`` itself or, with ``lattice="observed"``, its
-        restriction to the sub-grid spanning the observed pixels (`observed_lattice`); ``extra``
-        further right-hand sides add their cost to each route's.
+        The routes judge themselves (`gpdepth3d.gp.routes`); the grid route's problem is the
+        sub-grid spanning the observed pixels with ``lattice="observed"``.
 
         Raises:
-            IllConditionedError: The grid route is refused for this kernel (`grid_error_estimate`
-                above 1e-7) and no other route applies.
-            ProblemTooLargeError: The chosen (or every applicable) route would exceed the memory budget.
+            The errors of `gpdepth3d.gp.routes.choose_route`.
         """
-        k = problem.kernel
         route = self.route
-        if route in ("woodbury", "neumann") and k.nu != 0.5:
-            raise InvalidInputError("route", f"'auto', 'grid' or 'dense' for nu = {k.nu} ('{route}' needs nu = 0.5)", route)
-        prec = np.asarray(problem.precision, dtype=np.float64)
-        ho, wo = problem.out_shape
-        m = int(np.count_nonzero(prec > 0))
-        budget = self._budget()
+        if route == "neumann" and lml and problem.kernel.nu == 0.5:
+            route = "grid"  # the series gives no log-determinant
         sub = self._lattice_problem(problem) if route in ("auto", "grid") or lml else problem
-        h, w = sub.shape
-        # What the grid and the dense routes can take (every route computes the same posterior).
-        err = grid_error_estimate(sub)
-        gbytes = 0 if self._grid_buffers_held(h, w, k.nu) else grid_bytes((h, w), k.nu)
-        grid_why = None
-        if err > _GRID_MAX_ERROR:
-            grid_why = (f"its precision form is too ill-conditioned for the Matern kernel nu={k.nu}, "
-                        f"lengthscale={k.lengthscale:g} px (estimated error {err:.2g} x outputscale > {_GRID_MAX_ERROR:g})")
-        elif gbytes > budget:
-            grid_why = f"it needs ~{gbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"
-        dbytes = dense_bytes(m, ho * wo, variance=variance)
-        dense_why = None
-        if m > self.max_dense_points:
-            dense_why = f"{m} observed pixels exceed its limit of {self.max_dense_points}"
-        elif dbytes > budget:
-            dense_why = f"it needs ~{dbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"
-        choice, payload = None, None
-        if route == "grid" or (route == "neumann" and lml):  # the series gives no log-determinant
-            if grid_why is not None:
-                self._refuse({"grid": grid_why}, problem)
-            choice = "grid"
-        elif route == "dense":
-            if dense_why is not None:
-                self._refuse({"dense": dense_why}, problem)
-            choice = "dense"
-        elif route == "woodbury":
-            wbytes = 8 * (3 * m * m + 12 * ho * wo)
-            if wbytes > budget:
-                self._refuse({"woodbury": f"it needs ~{wbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"}, problem)
-            choice = "woodbury"
-        elif route == "neumann":
-            if not problem.output_is_input:
-                raise InvalidInputError("route", "'auto', 'grid' or 'woodbury' for an output grid other than the input", route)
-            if 200 * h * w > budget:
-                self._refuse({"neumann": f"it needs ~{200 * h * w / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"}, problem)
-            payload = NeumannPosterior(problem, self._neumann_buffers)
-            if payload.terms(NEUMANN_MEAN_TOL) is None or (variance and payload.seconds(True) is None):
-                payload.release()
-                raise InvalidInputError(
-                    "route", "'auto' or 'grid': the precision is not diagonally dominant enough for 'neumann'",
-                    f"rho = {payload.rho:.3g}")
-            choice = "neumann"
-        else:
-            costs, why = {}, {}
-            if grid_why is None:
-                costs["grid"] = _grid_seconds(h, w, k.nu, variance, ho * wo, extra, sub is not problem)
-            else:
-                why["grid"] = grid_why
-            if dense_why is not None:
-                why["dense"] = dense_why
-            elif self.backend == "compiled" or grid_why is not None:  # torch back-end: its device unless refused
-                costs["dense"] = _dense_seconds(m, ho * wo, variance, extra)
-            if k.nu == 0.5 and self.backend == "compiled":
-                # Woodbury computes s^2 (1 - quadratic form): near a point whose noise is tiny against s
-                # that cancels (error ~1e-16 s^2 cond(A), cond(A) <= 1 + m s^2 / noise); the grid does not.
-                wbytes = 8 * (3 * m * m + 12 * ho * wo)
-                if m and float(prec.max()) * float(k.outputscale) ** 2 > _WOODBURY_MAX_SNR:
-                    why["woodbury"] = "an observation's noise is too small against the outputscale"
-                elif wbytes > budget:
-                    why["woodbury"] = f"it needs ~{wbytes / 2**30:.3g} GiB (limit {budget / 2**30:.3g} GiB)"
-                else:
-                    costs["woodbury"] = woodbury_seconds(m, ho * wo, variance, extra)
-                if not lml and m >= 0.9 * h * w and problem.output_is_input and 200 * h * w <= budget:
-                    candidate = NeumannPosterior(problem, self._neumann_buffers)  # (nearly) every pixel observed
-                    t = candidate.seconds(variance)
-                    if t is not None:
-                        costs["neumann"], payload = t, candidate
-                    else:
-                        candidate.release()
-                        why["neumann"] = f"the series converges too slowly (rho = {candidate.rho:.3g})"
-                if "dense" in costs and "woodbury" in costs:
-                    del costs["dense"]  # the same algebra, Woodbury's variance is O(m^2 + n) instead of O(n m^2)
-            if "dense" in costs and "grid" in costs and m and \
-                    float(prec.max()) * float(k.outputscale) ** 2 > _WOODBURY_MAX_SNR:
-                del costs["dense"]  # s^2 (1 - quadratic form) cancels near near-noiseless points, as Woodbury's
-            if not costs:
-                self._refuse(why, problem)
-            choice = min(costs, key=costs.get)
-            if choice != "neumann" and payload is not None:
-                payload.release()
-                payload = None
-        return choice, payload, sub
+        query = RouteQuery(
+            problem, sub, bool(variance), int(extra), bool(lml), route != "auto", self.backend, self._budget(),
+            self.max_dense_points, self._grid_buffers_held(*sub.shape, problem.kernel.nu), self._neumann_buffers,
+        )
+        choice = choose_route(query, route)
+        return choice.name, choice.payload, sub
 
     def _grid_buffers_held(self, h: int, w: int, nu: float) -> bool:
         """True when this engine already holds the grid route's buffers for this resolution (an earlier
@@ -1313,18 +1145,6 @@ class FastEngine:
 
     def _budget(self) -> int:
         return int(self.max_memory_mb * 2**20) if self.max_memory_mb is not None else memory_budget()
-
-    @staticmethod
-    def _refuse(why: dict, problem: GridProblem):
-        """Raises the typed error that says why no route (or the forced one) can take ``problem``."""
-        k = problem.kernel
-        text = "; ".join(f"the {r} route is refused: {t}" for r, t in why.items())
-        msg = (f"fast engine: no route for a {problem.shape[0]} x {problem.shape[1]} grid with "
-               f"{int(np.count_nonzero(np.asarray(problem.precision) > 0))} observed pixels, Matern nu={k.nu}, "
-               f"lengthscale={k.lengthscale:g} px: {text}")
-        if any("ill-conditioned" in t for t in why.values()) and not any("GiB" in t for t in why.values()):
-            raise IllConditionedError(msg + "; use a smaller lengthscale or nu, or fewer observed pixels")
-        raise ProblemTooLargeError(msg + "; use a smaller grid or output, or fewer observed pixels")
 
     # -- public
     def factorize(self, problem: GridProblem):
@@ -1563,23 +1383,6 @@ class FastEngine:
         quad = float(np.sum(X * (Qv @ (Qu @ X.T).T))) / s2
         logdet_q = prior.logdet - tree.nvar * np.log(s2)
         return data - 0.5 * quad + 0.5 * logdet_q - 0.5 * factor.logdet
-
-
-# Cost model of the grid route (nu = 0.5) that picks a route: nested dissection of an n-pixel
-# grid takes ~22 n^1.5 flops to factorise and ~60 n^1.5 more for the selected inverse (dense-front
-# counts over this module's trees, 64 x 64 to 352 x 1216), sustained at ~12-15 GFLOPS on the 2-core
-# CI machine (1.8 GFLOP in ~130 ms at 320 x 240; the default model on kitti_tiny's 93 x 414 lattice
-# of its LiDAR points, 2.3 GFLOP, in 45-60 ms).
-_GRID_FLOPS_PER_S = 14e9
-# A forward and backward solve over the factor (per n log2 n of the lattice's n nodes), the mean's
-# read-out (per output pixel and right-hand side) and the variance's (per output pixel and ds):
-# kitti_tiny, 375 x 1242 output from a 93 x 414 lattice, 10-15 ms more than the 1/3 output.
-_GRID_SOLVE_S = 2.5e-8
-_READOUT_MEAN_S = 1e-8
-_READOUT_VAR_S = 1e-8
-# "auto" leaves problems with a point of signal-to-noise variance ratio s^2 / noise above this to
-# the grid route (Woodbury's cancellation would cost more than ~1e-6 of the variance there).
-_WOODBURY_MAX_SNR = 1e8
 
 
 @contextmanager

@@ -36,6 +36,7 @@ import numba as nb
 import numpy as np
 import scipy.linalg
 
+from .cost_model import woodbury_seconds as woodbury_seconds  # the cost model of this route
 from .model import GridProblem
 from .multifrontal import numeric_section, inverse_from_cholesky
 
@@ -235,21 +236,6 @@ def _stored_rows(ri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     qmap = np.full(n + 1, -1, dtype=np.int64)
     qmap[used] = np.arange(used.size)
     return qmap, qmap[ri]
-
-
-def woodbury_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
-    """Cost model of `WoodburyPosterior` with m observed pixels and n_out output pixels (seconds).
-
-    Measured on the 2-core CI machine at 320 x 240 with 500-4000 points: the Cholesky factor
-    (m^3 / 3 flops) at ~15 GFLOPS; for the variance the inverse (2 m^3 / 3 flops) at ~25 GFLOPS
-    and ~40 ns a splatted pair. The filters (kitti_tiny, 125 x 414 and 375 x 1242 outputs,
-    200-1600 points): ~10 ns an output pixel for a mean, ~25 ns for the variance. Each of
-    ``extra`` further means: two triangular solves (2 m^2 flops) and a mean's filter.
-    """
-    t = m**3 / 3 / 15e9 + (1 + extra) * n_out * 10e-9 + extra * 2 * m * m / 5e9
-    if variance:
-        t += 2 * m**3 / 3 / 25e9 + m * (m + 1) / 2 * 40e-9 + n_out * 25e-9
-    return t
 
 
 class WoodburyPosterior:
