@@ -268,7 +268,7 @@ class TestPriorReuse:
 def test_bins_and_ancestors_partition_a_grid_tree(threads):
     """The parallel split of a pixel-grid tree: every front once; the common ancestors closed upwards; a bin
     holds whole subtrees; with 2 threads the 93 x 414 KITTI lattice keeps at most 3 sequential fronts."""
-    from gpdepth3d.gp.fast import _build_tree, _front_tree
+    from gpdepth3d.gp.elimination_tree import build_tree as _build_tree, front_tree as _front_tree
 
     base = _front_tree(_build_tree(93, 414, 1, 24, 40))
     fronts = FrontTree.build(base.st, base.no, base.parent,

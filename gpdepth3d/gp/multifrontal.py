@@ -687,6 +687,57 @@ def numeric_section():
         yield
 
 
+def _post_order(kids: list, roots: list, n: int) -> np.ndarray:
+    """(n,) fronts in depth-first post-order (children before parents)."""
+    order = np.empty(n, dtype=np.int64)
+    k = 0
+    stack = [(r, False) for r in reversed(roots)]
+    while stack:  # iterative: trees of thousands of levels
+        f, done = stack.pop()
+        if done:
+            order[k] = f
+            k += 1
+            continue
+        stack.append((f, True))
+        stack.extend((c, False) for c in reversed(kids[f]))
+    return order
+
+
+def _update_stacks(bins: list, seq: list, kids: list, in_seq: np.ndarray, nbv: np.ndarray) -> tuple[np.ndarray, int]:
+    """Offsets of each front's update matrix: one LIFO region per bin, then one for the common ancestors."""
+    upd_off = np.zeros(in_seq.size, dtype=np.int64)
+    base = 0
+    for part in [*bins, seq]:
+        top = peak = base
+        for f in part:
+            own_kids = [c for c in kids[f] if in_seq[c] == in_seq[f]]
+            if own_kids:
+                top = min(upd_off[c] for c in own_kids)
+            upd_off[f] = top
+            top += int(nbv[f]) ** 2
+            peak = max(peak, top)
+        base = peak
+    return upd_off, base
+
+
+def _covariance_stacks(bins: list, seq: list, parent: np.ndarray, in_seq: np.ndarray,
+                       nf: np.ndarray) -> tuple[np.ndarray, int]:
+    """Offsets of each front's covariance block: a region per common ancestor, then per bin a root-path stack."""
+    sig_off = np.zeros(in_seq.size, dtype=np.int64)
+    base = 0
+    for f in seq:
+        sig_off[f] = base
+        base += int(nf[f]) ** 2
+    for part in bins:
+        end = base
+        for f in part[::-1]:
+            p = parent[f]
+            sig_off[f] = base if p < 0 or in_seq[p] else sig_off[p] + int(nf[p]) ** 2
+            end = max(end, sig_off[f] + int(nf[f]) ** 2)
+        base = end
+    return sig_off, base
+
+
 @dataclass
 class FrontTree:
     """Symbolic structure of the elimination: fronts, their variables and buffer offsets.
@@ -738,17 +789,7 @@ class FrontTree:
         roots = []
         for f in range(n):
             (kids[parent[f]] if parent[f] >= 0 else roots).append(f)
-        order = np.empty(n, dtype=np.int64)
-        k = 0
-        stack = [(r, False) for r in reversed(roots)]
-        while stack:  # iterative DFS post-order
-            f, done = stack.pop()
-            if done:
-                order[k] = f
-                k += 1
-                continue
-            stack.append((f, True))
-            stack.extend((c, False) for c in reversed(kids[f]))
+        order = _post_order(kids, roots, n)
         front_of = np.full(nvar, -1, dtype=np.int64)
         for f in range(n):
             front_of[st[f] : st[f] + no[f]] = f
@@ -782,33 +823,8 @@ class FrontTree:
         bins, seq = _split(order, kids, roots, no, nbv, threads)
         in_seq = np.zeros(n, dtype=bool)
         in_seq[seq] = True
-        # update stacks: one region per bin, then one for the common ancestors (each LIFO in post-order)
-        upd_off = np.zeros(n, dtype=np.int64)
-        base = 0
-        for part in [*bins, seq]:
-            top = peak = base
-            for f in part:
-                own_kids = [c for c in kids[f] if in_seq[c] == in_seq[f]]
-                if own_kids:
-                    top = min(upd_off[c] for c in own_kids)
-                upd_off[f] = top
-                top += int(nbv[f]) ** 2
-                peak = max(peak, top)
-            base = peak
-        stack_size = base
-        # covariance fronts: a region per common ancestor, then per bin a root-path stack
-        sig_off = np.zeros(n, dtype=np.int64)
-        base = 0
-        for f in seq:
-            sig_off[f] = base
-            base += int(nf[f]) ** 2
-        for part in bins:
-            end = base
-            for f in part[::-1]:
-                p = parent[f]
-                sig_off[f] = base if p < 0 or in_seq[p] else sig_off[p] + int(nf[p]) ** 2
-                end = max(end, sig_off[f] + int(nf[f]) ** 2)
-            base = end
+        upd_off, stack_size = _update_stacks(bins, seq, kids, in_seq, nbv)
+        sig_off, base = _covariance_stacks(bins, seq, parent, in_seq, nf)
         children_ptr = np.concatenate([[0], np.cumsum([len(c) for c in kids])]).astype(np.int64)
         children = np.array([c for cs in kids for c in cs], dtype=np.int64)
         bin_ptr = np.concatenate([[0], np.cumsum([len(b) for b in bins])]).astype(np.int64)
