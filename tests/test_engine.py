@@ -111,7 +111,7 @@ class TestMakeEngine:
             make_engine(DepthGPConfig(), {"route": "grid"})
         with pytest.raises(InvalidInputError, match="options"):
             make_engine(EngineConfig(), EngineConfig())
-        with pytest.raises(TypeError):
+        with pytest.raises(InvalidInputError, match="options"):
             make_engine(EngineConfig(options={"no_such_option": 1}))
 
     def test_completer_takes_the_engine_options(self):
@@ -271,3 +271,51 @@ def test_cuda_torch_back_end_on_the_lattice_with_extra_obs():
     np.testing.assert_allclose(gpu.mean, cpu.mean, rtol=1e-10)
     np.testing.assert_allclose(gpu.variance, cpu.variance, rtol=1e-9)
     np.testing.assert_allclose(gpu.extra_means[0], cpu.extra_means[0], rtol=1e-10, atol=1e-12)
+
+
+# (engine options, the argument the typed error must name, a phrase of what was expected)
+BAD_OPTIONS = [
+    ({"device": "tpu"}, "device", "'cpu', 'cuda'"),
+    ({"device": "cuda:x"}, "device", "'cpu', 'cuda'"),
+    ({"device": 3}, "device", "torch.device"),
+    ({"device": "cuda"}, "device", "no CUDA GPU"),  # torch is made CPU-only below
+    ({"device": "cuda:1"}, "device", "no CUDA GPU"),
+    ({"name": "kissgp", "device": "cuda"}, "device", "no CUDA GPU"),
+    ({"name": "kissgp", "device": "tpu"}, "device", "'cpu', 'cuda'"),
+    ({"threads": 0}, "threads", "integer >= 1"),
+    ({"threads": "two"}, "threads", "integer >= 1"),
+    ({"max_dense_points": -1}, "max_dense_points", "integer >= 0"),
+    ({"max_dense_points": 1.5}, "max_dense_points", "integer >= 0"),
+    ({"max_memory_mb": "lots"}, "max_memory_mb", "finite number > 0"),
+    ({"max_memory_mb": float("inf")}, "max_memory_mb", "finite number > 0"),
+    ({"options": {"bogus": 1}}, "options", "keyword arguments of FastEngine"),
+    ({"options": {"device": "cpu"}}, "options", "keyword arguments of FastEngine"),  # a field's job
+    ({"name": "exact", "options": {"bogus": 1}}, "options", "keyword arguments of ExactEngine"),
+    ({"name": "kissgp", "options": {"bogus": 1}}, "options", "keyword arguments of KissGPEngine"),
+    ({"options": {"tile": 0}}, "tile", "integer >= 1"),
+    ({"options": {"cache_size": True}}, "cache_size", "integer >= 1"),
+    ({"name": "exact", "options": {"max_cross_entries": 0}}, "max_cross_entries", "integer >= 1"),
+    ({"name": "kissgp", "options": {"cg_tolerance": "tight"}}, "cg_tolerance", "(0, 1)"),
+    ({"name": "kissgp", "options": {"pad": 1}}, "pad", "integer >= 2"),
+]
+
+
+class TestEngineOptionsAtTheBoundary:
+    @pytest.mark.parametrize("options,argument,expected", BAD_OPTIONS, ids=[str(c[0]) for c in BAD_OPTIONS])
+    def test_typed_error_names_argument_expected_and_got(self, monkeypatch, options, argument, expected):
+        torch = pytest.importorskip("torch")
+        if options.get("name") == "kissgp":
+            pytest.importorskip("gpytorch")
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a CPU-only torch, on any machine
+        with pytest.raises(InvalidInputError) as info:
+            make_engine(EngineConfig(**options))
+        err = info.value
+        assert err.argument == argument and expected in err.expected and str(err.got)
+        assert not isinstance(err, (AssertionError, TypeError, RuntimeError))
+
+    @pytest.mark.parametrize("device", [None, "cpu"])
+    def test_good_devices(self, device):
+        import torch
+
+        assert make_engine(EngineConfig(device=device)).device == device
+        assert EngineConfig(device=torch.device("cpu")).device == "cpu"

@@ -27,6 +27,7 @@ from .model import GridProblem as GridProblem
 from .model import Kernel as Kernel
 from .model import matern_1d as matern_1d
 from ..errors import InvalidInputError
+from .engine import check_engine_options
 
 
 def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None) -> Engine:
@@ -42,8 +43,8 @@ def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: Eng
         An ``ExactEngine``, ``KissGPEngine`` or ``FastEngine``.
 
     Raises:
-        InvalidInputError: ``config`` or ``options`` of another type, or an option the engine
-            rejects (e.g. a device torch does not see).
+        InvalidInputError: ``config`` or ``options`` of another type, an ``options.options`` key
+            the engine does not take, or an option it rejects (e.g. a device torch does not see).
     """
     if isinstance(config, EngineConfig):
         if options is not None:
@@ -56,19 +57,22 @@ def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: Eng
     elif not isinstance(options, EngineConfig):
         raise InvalidInputError("options", "an EngineConfig or None", type(options).__name__)
     name = options.name or (config.engine if config is not None else "fast")
-    extra = dict(options.options)
     if name == "exact":
         from .exact import ExactEngine
 
+        extra = check_engine_options(ExactEngine, options.options, ("max_points",))
         limit = options.max_exact_points or (config.max_exact_points if config is not None else 6000)
         return ExactEngine(max_points=limit, **extra)
     if name == "kissgp":
         from .kissgp import KissGPEngine
 
+        extra = check_engine_options(KissGPEngine, options.options, ("device",))
         return KissGPEngine(device=options.device, **extra)
     if name == "fast":
         from .fast import FastEngine
 
+        fields = ("device", "backend", "route", "threads", "max_dense_points", "max_memory_mb", "lattice")
+        extra = check_engine_options(FastEngine, options.options, fields)
         return FastEngine(
             device=options.device, backend=options.backend, route=options.route, threads=options.threads,
             max_dense_points=options.max_dense_points, max_memory_mb=options.max_memory_mb,

@@ -8,6 +8,8 @@ See docs/architecture.md.
 
 from __future__ import annotations
 
+import inspect
+import re
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Iterator, Protocol, runtime_checkable
 
@@ -21,6 +23,65 @@ if TYPE_CHECKING:  # the model imports nothing from here; the annotation only
 ENGINE_NAMES = ("exact", "kissgp", "fast")
 FAST_BACKENDS = ("auto", "compiled", "torch")
 FAST_ROUTES = ("auto", "grid", "woodbury", "neumann", "dense")
+DEVICE_PATTERN = re.compile(r"(cpu|cuda|mps)(:[0-9]+)?")
+"""Torch devices an engine accepts: "cpu", "cuda" or "mps", with an optional index ("cuda:1")."""
+
+
+def device_name(device, argument: str = "device") -> str | None:
+    """``device`` (None, a str or a torch.device) as a name matching `DEVICE_PATTERN`.
+
+    Raises:
+        InvalidInputError: another type, or a name torch does not run the engines on ("tpu").
+    """
+    if device is None:
+        return None
+    if not isinstance(device, str):
+        if type(device).__name__ != "device":  # torch.device, without importing torch
+            raise InvalidInputError(argument, "None, a str or a torch.device", describe(device))
+        device = str(device)
+    if DEVICE_PATTERN.fullmatch(device) is None:
+        raise InvalidInputError(argument, "a torch device 'cpu', 'cuda', 'cuda:N' or 'mps'", repr(device))
+    return device
+
+
+def check_device_available(device, argument: str = "device") -> str | None:
+    """`device_name` of ``device``, checked against the devices torch sees (imports torch unless CPU).
+
+    Raises:
+        InvalidInputError: a malformed device, or one torch does not see (``"cuda"`` on a CPU-only torch).
+    """
+    name = device_name(device, argument)
+    if name is None or name == "cpu":
+        return name
+    import torch
+
+    kind, _, index = name.partition(":")
+    if kind == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise InvalidInputError(argument, "an available device (torch sees no CUDA GPU)", name)
+        if index and int(index) >= count:
+            raise InvalidInputError(argument, f"a CUDA device index below {count}", name)
+    elif kind == "mps" and not torch.backends.mps.is_available():
+        raise InvalidInputError(argument, "an available device (torch sees no MPS device)", name)
+    return name
+
+
+def check_engine_options(engine_class: type, options: dict, fixed: tuple = ()) -> dict:
+    """``options`` checked against the keyword arguments of ``engine_class`` (those in ``fixed`` are set by fields).
+
+    Raises:
+        InvalidInputError: (argument ``options``) a key the constructor does not take, or one that an
+            `EngineConfig` field sets.
+    """
+    params = inspect.signature(engine_class.__init__).parameters
+    accepted = sorted(n for n, p in params.items() if n != "self" and n not in fixed
+                      and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+    for key in options:
+        if key not in accepted:
+            raise InvalidInputError("options", f"keyword arguments of {engine_class.__name__} among {accepted}",
+                                    repr(key))
+    return dict(options)
 
 
 @dataclass(frozen=True)
@@ -60,8 +121,7 @@ class EngineConfig:
     def __post_init__(self) -> None:
         if self.name is not None and self.name not in ENGINE_NAMES:
             raise InvalidInputError("name", f"None or one of {ENGINE_NAMES}", self.name)
-        if self.device is not None and not isinstance(self.device, str):
-            object.__setattr__(self, "device", str(self.device))  # a torch.device
+        object.__setattr__(self, "device", device_name(self.device))  # a torch.device as its name
         if self.backend not in FAST_BACKENDS:
             raise InvalidInputError("backend", f"one of {FAST_BACKENDS}", self.backend)
         if self.route not in FAST_ROUTES:
@@ -70,14 +130,23 @@ class EngineConfig:
             raise InvalidInputError("lattice", "'observed' or 'full'", self.lattice)
         if not isinstance(self.options, dict) or not all(isinstance(k, str) for k in self.options):
             raise InvalidInputError("options", "a dict of keyword arguments", describe(self.options))
-        for name in ("max_exact_points",):
+        for name, low, optional in (("max_exact_points", 1, True), ("threads", 1, True),
+                                    ("max_dense_points", 0, False)):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1):
-                raise InvalidInputError(name, "None or an integer >= 1", v)
+            if (v is not None or not optional) and not _is_int(v, low):
+                raise InvalidInputError(name, ("None or " if optional else "") + f"an integer >= {low}", describe(v))
+        v = self.max_memory_mb
+        if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating))
+                              or not np.isfinite(v) or not v > 0):
+            raise InvalidInputError("max_memory_mb", "None or a finite number > 0", describe(v))
 
     def replace(self, **changes) -> "EngineConfig":
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+
+def _is_int(v, low: int) -> bool:
+    return not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, np.integer)) and v >= low
 
 
 @dataclass(frozen=True)

@@ -83,8 +83,8 @@ from contextlib import nullcontext
 
 import numpy as np
 
-from ..errors import ConvergenceError, InvalidInputError, ShapeError
-from .engine import Solution, SolveInfo, check_extra_obs
+from ..errors import ConvergenceError, InvalidInputError, ShapeError, describe
+from .engine import Solution, SolveInfo, _is_int, check_device_available, check_extra_obs
 from .exact import check_problem, dense_log_marginal_likelihood, dense_solve
 from .markov import chain_precision, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
@@ -175,17 +175,16 @@ class FastEngine:
         max_memory_mb: float | None = None,
         lattice: str = "observed",
     ):
-        if threads is not None and (not isinstance(threads, (int, np.integer)) or threads < 1):
-            raise InvalidInputError("threads", "None or an integer >= 1", threads)
+        for name, value in (("threads", threads), ("tile", tile), ("leaf_pixels", leaf_pixels),
+                            ("cache_size", cache_size)):
+            if (value is not None or name == "cache_size") and not _is_int(value, 1):
+                raise InvalidInputError(name, ("an" if name == "cache_size" else "None or an") + " integer >= 1",
+                                        describe(value))
         self.threads = threads
-        for name, value in (("tile", tile), ("leaf_pixels", leaf_pixels)):
-            if value is not None and (not isinstance(value, (int, np.integer)) or value < 1):
-                raise InvalidInputError(name, "an integer >= 1", value)
-        if not isinstance(cache_size, (int, np.integer)) or cache_size < 1:
-            raise InvalidInputError("cache_size", "an integer >= 1", cache_size)
         if backend not in ("auto", "compiled", "torch"):
             raise InvalidInputError("backend", "'auto', 'compiled' or 'torch'", backend)
-        on_cpu = device is None or str(device) == "cpu"
+        device = check_device_available(device)
+        on_cpu = device is None or device == "cpu"
         if backend == "compiled" and not on_cpu:
             raise InvalidInputError("backend", "'torch' or 'auto' on a non-CPU device", backend)
         self.backend = "compiled" if backend == "auto" and on_cpu else ("torch" if backend == "auto" else backend)

@@ -95,7 +95,7 @@ import linear_operator
 from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
 
 from ..errors import ConvergenceError, InvalidInputError
-from .engine import Solution, SolveInfo, check_extra_obs
+from .engine import Solution, SolveInfo, check_device_available, check_extra_obs
 from .model import GridProblem
 from .exact import check_problem
 
@@ -233,7 +233,8 @@ class KissGPEngine:
                 "variance_method", "'auto', 'cholesky', 'probe', 'solve' or 'love'", variance_method
             )
         for name, value in (("cg_tolerance", cg_tolerance), ("variance_cg_tolerance", variance_cg_tolerance)):
-            if not (math.isfinite(value) and 0 < value < 1):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not (math.isfinite(value) and 0 < value < 1):
                 raise InvalidInputError(name, "a value in (0, 1)", value)
         for name, value, low in (
             ("max_cg_iterations", max_cg_iterations, 1),
@@ -244,14 +245,9 @@ class KissGPEngine:
             ("max_cholesky_size", max_cholesky_size, 0),
             ("probe_spacing", probe_spacing, 1),
         ):
-            if not isinstance(value, (int, np.integer)) or value < low:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
                 raise InvalidInputError(name, f"an integer >= {low}", value)
-        try:
-            self.device = torch.device(default_device() if device is None else device)
-        except (RuntimeError, TypeError) as exc:
-            raise InvalidInputError("device", "a torch device such as 'cpu' or 'cuda'", device) from exc
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise InvalidInputError("device", "an available device (torch sees no CUDA GPU)", str(device))
+        self.device = torch.device(default_device() if device is None else check_device_available(device))
         self.variance_method = variance_method
         self.cg_tolerance = float(cg_tolerance)
         self.variance_cg_tolerance = float(variance_cg_tolerance)
