@@ -1,8 +1,7 @@
 """The ``fast`` engine's cost model: seconds, bytes and rounding error of each route, from which it picks one.
 
-The constants were fitted to timings on the project's 2-core CI machine (a shared x86-64 VM, one
-thread, float64); ``python bench/engines.py`` measures the routes they rank
-(`bench/results/engines.json`, `bench/results/engines_kitti.json`).
+Its constants were fitted to single-thread float64 timings on the project's 2-core x86-64 CI machine;
+``python bench/engines.py`` measures the routes they rank (bench/results/engines*.json, docs/engines.md).
 """
 
 from __future__ import annotations
@@ -93,8 +92,8 @@ def dense_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
 def woodbury_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
     """Seconds of `gpdepth3d.gp.woodbury.WoodburyPosterior` with m observed and n_out output pixels.
 
-    Cholesky m^3 / 3 at 15 GFLOP/s; for the variance the inverse 2 m^3 / 3 at 25 GFLOP/s and
-    40 ns a splatted pair; the filters 10 ns (mean) and 25 ns (variance) an output pixel.
+    Cholesky m^3 / 3 flops, for the variance the inverse 2 m^3 / 3 and a splat per pair of
+    points, and a recursive filter per output pixel (rates fitted as in the module docstring).
     """
     t = m**3 / 3 / 15e9 + (1 + extra) * n_out * 10e-9 + extra * 2 * m * m / 5e9
     if variance:

@@ -97,7 +97,7 @@ class EngineConfig:
             "woodbury", "neumann" or "dense" (see `gpdepth3d.gp.fast.FastEngine`).
         lattice: ``fast`` grid route: "observed" (the default: the sub-grid spanning the
             observed pixels, the rest read out exactly by the Markov property) or "full" (the
-            whole GP grid, as before; for checks).
+            whole GP grid; for checks).
         threads: ``fast`` torch back-end: torch CPU threads during a call (None: unchanged).
         max_dense_points: ``fast``: most observed pixels of the dense route.
         max_memory_mb: ``fast``: memory budget of one call (MiB); None: 3/4 of the free memory.
@@ -178,8 +178,8 @@ class Solution:
         info: The facts of the call (`SolveInfo`).
         extra_means: One (Ho, Wo) posterior mean per observation vector of ``extra_obs``.
 
-    As the ``(mean, variance)`` pair the engines returned before: ``mean, var =
-    engine.solve(problem)`` and ``solution[0]`` / ``solution[1]`` work.
+    It unpacks as the pair ``mean, var = engine.solve(problem)``; ``solution[0]`` and
+    ``solution[1]`` work too.
     """
 
     mean: np.ndarray

@@ -1,78 +1,8 @@
-"""The ``fast`` engine: exact GP posterior through the sparse precision of the separable Matern field.
+"""The ``fast`` engine: the exact GP posterior by the cheapest of four routes (grid, dense, Woodbury, Neumann).
 
-Maths. A Matern-nu process on a line (nu = 0.5, 1.5, 2.5) is the first state of a linear SDE
-with d = nu + 1/2 states, whose states at any sorted coordinates form a Gauss-Markov chain with
-a block-tridiagonal precision (`gpdepth3d.gp.markov`). The separable kernel
-s^2 M(du / l) M(dv / l) of the model (`gpdepth3d.gp.model`) is therefore the first component of
-a 2-D field with d^2 states per pixel whose prior precision is exactly
-
-    Q = (Qv (x) Qu) / s^2          (a 9-point stencil of d^2 x d^2 blocks),
-
-and with observations y = f + e at pixels (precision w >= 0 per pixel, 0 = unobserved; the
-balanced and the residual formulation only differ in w) the posterior precision and mean are
-
-    P = Q + S^T W S,     mu = P^-1 S^T W (y - m),
-
-with S selecting the f state. P is sparse SPD: it is factorised with a multifrontal Cholesky
-over a nested-dissection ordering of the pixel grid. The grid is padded with unobserved pixels (which leaves the
-posterior of the real pixels unchanged) to a lattice of equal tiles separated by one-pixel rows
-and columns; every tile has the same elimination subtree, so the tile work runs batched over all
-tiles (one batched dense Cholesky / triangular solve / product per subtree node), and the
-separators between tiles are eliminated by a nested dissection of the tile lattice. The
-structure, index maps and prior precision are cached per resolution and kernel. Marginal
-variances diag(P^-1) come from the selected inverse computed top-down over the same fronts
-(Takahashi / Erisman-Tinney recursions): exact, no sampling.
-On this (grid) route no approximation is made anywhere; results equal the dense `exact` engine to rounding.
-
-Output grids other than the input grid (finer, coarser or shifted) are exact too: conditioned
-on all grid states, f at an off-grid point depends only on the states of the 2 x 2 surrounding
-grid pixels, with Kronecker weights from the 1-D chains (`markov.readout_weights`). The mean is
-the weighted sum of the posterior state means, the variance the weighted quadratic form of the
-posterior covariance of those states (a clique of the 9-point stencil, so present in one front
-of the selected inverse) plus the conditional prior variance.
-
-Cost with n pixels: O(n^1.5) flops and O(n log n) memory (nested dissection on a 2-D grid),
-the same for the selected inverse; about d^6 times more for nu > 0.5 (nu = 2.5 is heavy beyond
-~100 x 100 pixels). Limits of the grid route: the precision's entries grow like
-(l / pixel)^(2 nu + 1) per axis while the covariance stays O(s^2), so in float64 the route is
-exact only while the conditioning allows (`grid_error_estimate` <= 1e-7: e.g. nu = 1.5 up to
-l ~ 7 px, nu = 2.5 up to l ~ 3 px with sparse points, l ~ 60 / 9 px with every pixel observed). Beyond
-that, and beyond the memory budget (`grid_bytes`, ``max_memory_mb``), the route is refused
-with a typed error (`IllConditionedError`, `ProblemTooLargeError`) instead of a wrong answer. Numerics, float64 everywhere, in one of two back-ends (``backend=``):
-
-* ``compiled`` (the default on the CPU): every (template node, tile) pair and every top node is
-  one front of `gpdepth3d.gp.multifrontal`, which runs the factorisation, the solves and the
-  selected inverse in numba-compiled loops calling LAPACK/BLAS, independent subtrees on
-  separate threads, with buffers reused from frame to frame. From the second frame of a
-  resolution and kernel on, the fronts that no observation reaches (most of them with sparse
-  points in the residual formulation) are copied from a cached factor of the prior alone
-  (``prior_cache_mb``) instead of being recomputed.
-* ``torch`` (any torch device, ``FastEngine(device="cuda")``): the tiles' fronts batched into
-  one cholesky_ex / solve_triangular / matmul / index_add_ call per template node, the top
-  nodes one by one.
-
-The set-up (tree, index maps, prior precision, read-out) runs once per resolution and kernel
-with NumPy and is cached.
-
-With few observed pixels (up to ``max_dense_points``) and any nu, the ``dense`` route computes the
-same posterior by dense algebra over those pixels (`gpdepth3d.gp.exact.dense_posterior`,
-O(m^3 + n m^2)): the residual formulation with nu = 1.5 / 2.5 and hundreds of points takes ~1 s
-at 320 x 240 instead of minutes on the grid route, and long length scales stay exact there.
-With nu = 0.5 two other routes compute the same posterior when the cost model says they are
-cheaper (``route=`` forces any): few observed pixels (the residual formulation with sparse
-points) take Woodbury over those pixels with the exponential kernel's recursive filtering
-(`gpdepth3d.gp.woodbury`, exact, O(m^3 + m^2 + n) for m points and n output pixels), and a
-precision that the observations make diagonally dominant (the paper's balanced set-up: the
-stencil's couplings are ~2 % of the diagonal) takes a Neumann series with a certified bound
-(`gpdepth3d.gp.neumann`, O(n) with a few terms; the omitted terms are bounded by 1e-13 of the
-scaled mean and 2e-9 of each variance).
-
-The grid route factorises only the lattice spanning the observed pixels (``lattice="observed"``,
-`observed_lattice`: LiDAR leaves the top third of a KITTI frame empty, so 93 of its 125 rows at
-1/3 resolution): the field is Markov along each axis, so the posterior there is the whole grid's,
-and the pixels outside are read out exactly from the lattice's edge states like any off-grid
-output. Several observation vectors with one precision (``extra_obs``) share every route's
-factorisation (on the grid route, one pass of forward and backward substitution for all of them).
+The grid route factorises the sparse precision P = (Qv (x) Qu) / s^2 + S^T W S of the separable
+Matern field's state-space form; the others apply to few points or nu = 0.5 (`gpdepth3d.gp.routes`).
+Maths, routes and limits: docs/engines.md.
 """
 
 from __future__ import annotations
@@ -104,58 +34,40 @@ from .routes import RouteQuery, choose_route
 from .woodbury import WoodburyPosterior
 
 
-
-
-
 class FastEngine:
-    """Exact GP posterior on the pixel grid via the sparse precision (see the module docstring).
+    """Exact GP posterior on the pixel grid by the cheapest route that fits (docs/engines.md).
 
-    The engine caches, per resolution and kernel, the elimination structure, the prior
-    precision assembly and the output read-out, so a `DepthCompleter` (which keeps one engine)
-    only pays the numeric factorisation from the second frame of a resolution on. A direct
-    factorisation has nothing to warm-start.
+    Caches per resolution and kernel the elimination tree, prior assembly and read-out, so a
+    `DepthCompleter` (one engine) pays only the numeric factorisation from its second frame on.
 
     Args:
-        device: torch device of the numeric work (None = "cpu"); float64 everywhere.
+        device: torch device of the torch back-end (None = "cpu"; `check_device_available`).
         tile: Target tile size (pixels per side) of the batched part of the elimination.
         leaf_pixels: Largest sub-grid (pixels) eliminated as one dense front inside a tile (default:
             20 for nu = 0.5 on the compiled back-end, 40 / (nu + 1/2)^2 otherwise).
         cache_size: Number of (resolution, kernel) set-ups kept.
-        threads: torch back-end: CPU threads of torch during the numeric work (restored
-            afterwards); None keeps torch's setting. The default 1 is as fast on 2 cores for these
-            many small batched kernels. The compiled back-end runs one subtree group per numba
-            thread (``numba.set_num_threads`` / NUMBA_NUM_THREADS, read when a resolution is
-            first seen) with single-threaded BLAS.
+        threads: torch back-end: torch's CPU threads during the numeric work (restored after);
+            None keeps torch's setting. The compiled back-end runs one subtree group per numba
+            thread (``numba.set_num_threads``) with single-threaded BLAS.
         backend: "compiled" (numba + LAPACK, `gpdepth3d.gp.multifrontal`; CPU only), "torch"
-            (batched torch kernels; any device) or "auto" (compiled on the CPU, torch elsewhere).
-        route: "auto" (compiled back-end: the cheapest that applies, by a cost model; torch
-            back-end: the grid), "grid" (the sparse precision over the pixel grid, any nu),
-            "woodbury" (nu = 0.5: dense algebra over the observed pixels on the CPU,
-            `gpdepth3d.gp.woodbury`; for a few thousand points at most) or "neumann" (nu = 0.5,
-            every pixel observed strongly enough that the precision is diagonally dominant, as
-            in the paper's balanced set-up, output on the input grid: a series with a certified
-            error bound, `gpdepth3d.gp.neumann`) or "dense" (any nu, few observed pixels: dense
-            algebra over them, `gpdepth3d.gp.exact.dense_posterior`). Each call's
-            ``Solution.info.route`` tells which one it took (`plan` tells beforehand); the engine
-            keeps no per-call state. The log marginal likelihood uses the grid, Woodbury or dense
-            ("neumann" forced: the grid). A forced route that cannot compute the exact posterior
-            raises (see Raises of `solve`); "auto" picks among those that can.
+            (batched torch kernels, `gpdepth3d.gp.torch_factor`; any device) or "auto"
+            (compiled on the CPU, torch elsewhere).
+        route: "auto" (the cheapest route that fits, `gpdepth3d.gp.routes.choose_route`), or one
+            of "grid", "dense", "woodbury", "neumann" forced. ``Solution.info.route`` says which
+            one a call took, `plan` says it beforehand. The log marginal likelihood uses the grid,
+            Woodbury or dense route ("neumann" forced: the grid).
         max_dense_points: The dense route takes at most this many observed pixels.
         max_memory_mb: Memory budget of one solve (MiB); None: three quarters of the memory
             available at the call (`memory_budget`; buffers the engine already holds for the
             resolution are not counted). Routes whose estimated memory exceeds it are not taken.
         prior_cache_mb: Compiled back-end: memory allowed for the factor of the prior alone
-            (`PriorFactor`, one per engine), which the frames of a sequence reuse for every
-            front their observations do not reach. It is built from the second frame with the
-            same resolution and kernel on, when at least a quarter of the fronts are unreached
-            (the residual formulation with sparse points); 0 disables it.
-        lattice: Grid route: "observed" (the default) factorises only the sub-grid spanning the
-            observed pixels (`observed_lattice`; the pixels around it are read out exactly, as
-            an output grid other than the input grid is), "full" the whole GP grid.
+            (`PriorFactor`), reused by a sequence's frames for every front their observations do
+            not reach (built from the second frame of a resolution and kernel); 0 disables it.
+        lattice: Grid route: "observed" factorises only the sub-grid spanning the observed
+            pixels (`observed_lattice`; the rest is read out exactly), "full" the whole grid.
 
-    ``solve(problem, variance=True, extra_obs=())`` returns a `gpdepth3d.gp.engine.Solution`;
-    the means of ``extra_obs`` (further observation vectors with the same precision) reuse the
-    call's factorisation (the default model's scale term needs one).
+    Raises:
+        InvalidInputError: an option of the wrong type or range, or a device torch does not see.
     """
 
     name = "fast"
@@ -231,8 +143,7 @@ class FastEngine:
 
     def _tree_key(self, h: int, w: int, ds: int) -> tuple:
         tile = self.tile or (24 if ds == 1 else 12 if ds == 4 else 8)
-        # nu = 0.5 on the compiled back-end: 20-pixel leaves (KITTI 1/3 lattice, 1/4 of the LiDAR: 119 instead
-        # of 143 MFLOP, grid route 102 -> 90 ms single-thread CPU; all of it 99 -> 94 ms)
+        # smaller leaves for nu = 0.5 on the compiled back-end: fewer flops on sparse-point lattices
         leaf = self.leaf_pixels or (20 if ds == 1 and self.backend == "compiled" else max(1, 40 // ds))
         return (h, w, ds, tile, leaf)
 
@@ -338,7 +249,7 @@ class FastEngine:
         return self._factorize(problem)
 
     def _factorize(self, problem: GridProblem):
-        """`factorize` of a checked problem (`solve` checks it once, at full resolution ~2 ms)."""
+        """`factorize` of a checked problem (`solve` checks it once)."""
         h, w = problem.shape
         k = problem.kernel
         d = state_dim(k.nu)

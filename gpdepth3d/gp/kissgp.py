@@ -31,13 +31,12 @@ of the same separable-Matern model as `ExactEngine`:
   ``s`` with the prior mean subtracted, so the kernel has unit diagonal and the noise is the
   ratio (sigma / s)^2 (e.g. 0.0025 for MDE pixels, 1e-6 for LiDAR points in the paper's
   set-up). GPyTorch's default pivoted-Cholesky preconditioner ``L L^T + D`` is harmful with such
-  heteroscedastic noise: where ``L`` misses part of ``K`` the preconditioner is ~1e-6 while the
-  matrix is ~1, so preconditioning multiplies the condition number (this is the "never
-  converges" set-up). It can be enabled (rank `preconditioner_size`) only when all noises are
-  equal, the case it was designed for, and is off by default because it did not pay for itself
-  in measurements; CG runs unpreconditioned, which converges because a Matern kernel on a
-  pixel grid with l ~ 1.5 is well conditioned by itself (80 iterations for a 125x414 balanced
-  frame) and within a few thousand iterations for the residual formulation (l = 20). CG (GPyTorch's
+  heteroscedastic noise: where ``L`` misses part of ``K`` the preconditioner is of the order of
+  the smallest noise while the matrix is ~1, so preconditioning multiplies the condition number.
+  It can be enabled (rank `preconditioner_size`) only when all noises are equal, the case it was
+  designed for, and is off by default (forming it costs more than the iterations it saves);
+  CG runs unpreconditioned, which converges because a Matern kernel on a
+  pixel grid is well conditioned by itself at short length scales. CG (GPyTorch's
   ``linear_cg``) runs to a relative residual of `cg_tolerance` and the engine checks the true
   residual afterwards, raising `ConvergenceError` instead of returning an unconverged mean.
 * **Variance** (``variance_method``). The exact predictive variance is
@@ -54,26 +53,23 @@ of the same separable-Matern model as `ExactEngine`:
     grid (one indicator vector per colour of a lattice of spacing `probe_spacing`), so
     ``(S Z)_i = S_ii +`` the covariances with same-coloured pixels >= d pixels away. With
     dense observations those vanish (posterior correlation lengths ~ a pixel), so d = 4 (16
-    solves) matches the exact engine to ~3e-4 relative (measured); output pixels over holes
+    solves) matches the exact engine to the bound tests/test_kissgp.py checks; output pixels over holes
     (unobserved pixels, long-range covariance) get their own column each and are exact.
     The difference ``K** Z - K*o A^-1 Ko* Z`` cancels ~3 orders of magnitude, hence the tight
     default `variance_cg_tolerance` (1e-10).
   - ``"love"``: GPyTorch's LOVE (``fast_pred_var``, Pleiss et al. 2018), what a stock
     KISS-GP set-up uses, with a Lanczos root of rank `root_decomposition_size`, clamped at 0
-    (LOVE with fixed heteroscedastic noise can go negative, GPyTorch issue #864). Measured on a
-    48x64 real-depth crop (balanced, 3072 observed pixels, rank 100-400): median relative
-    variance error ~300x (the rank-r root misses most of ``(K_oo + D)^-1`` when the noise is
-    small), so it is kept for comparison only.
+    (LOVE with fixed heteroscedastic noise can go negative, GPyTorch issue #864). The rank-r
+    root misses most of ``(K_oo + D)^-1`` when the noise is small, so its variances are far
+    off (tests/test_kissgp.py) and it is kept for comparison only.
 * **Upsampled output** (``out_rows``/``out_cols`` between pixel centres, the paper's M > N
   output): output pixels off the grid nodes get KISS-GP's cubic interpolation of the kernel,
   ``k(x*, x) ~ w*^T K_UU w_x``, i.e. the posterior at an off-grid pixel is the cubic
   interpolation of the posterior at the surrounding nodes. This is the one approximation of
-  this engine. Measured against the exact GP on a 7-Scenes crop upsampled 2x: the mean differs
-  by ~1 % of its spread with the residual defaults (l = 20) but by ~19 % with the paper's
-  nu = 0.5, l = 1.5 (the exponential kernel's cusp is not a cubic), and the variance at
+  this engine: the exponential kernel's cusp (nu = 0.5) is not a cubic, and the variance at
   off-grid pixels is the interpolated node variance, *below* the exact one (which includes the
-  sub-pixel variance between nodes): ~0.4 % of it in the balanced set-up, median 23 % low in
-  the residual one. Use the ``exact`` or ``fast`` engine when off-grid variances matter.
+  sub-pixel variance between nodes; tests/test_kissgp.py bounds both). Use the ``exact`` or
+  ``fast`` engine when off-grid values matter.
 
 The engine runs on CPU or CUDA (`device`). One CG iteration costs one product with the
 Kronecker grid kernel per right-hand side: dense 1-D factors (``(H + 4)^2 (W + 4) + (H + 4)
@@ -195,10 +191,8 @@ class KissGPEngine:
             the block; every column is checked against 10x this afterwards).
         max_cg_iterations: CG iteration limit; exceeding it raises `ConvergenceError`.
         preconditioner_size: Rank of GPyTorch's pivoted-Cholesky preconditioner, used only
-            when all observation noises are equal (0, the default = never). Measured on the
-            residual formulation with all 15793 LiDAR points of a 1/3-resolution KITTI frame
-            (1 thread): none 3114 CG iterations in 47 s, rank 100 1000 iterations in 54 s,
-            rank 400 409 iterations in 126 s (forming the preconditioner dominates).
+            when all observation noises are equal (0, the default = never: forming it costs
+            more than the iterations it saves).
         root_decomposition_size: Lanczos rank of LOVE ("love" only).
         block_entries: Memory bound of the variance solves: right-hand sides per block are
             chosen so that (observed pixels x block) stays below this many entries.
@@ -440,8 +434,8 @@ class KissGPEngine:
         (`probe_spacing` GP-grid pixels); column c of Z is the indicator of colour c, and
         (S Z)_ic = S_ii + the sum of S_ij over the other pixels j of i's colour, all at least d
         pixels away. With dense observations (the balanced formulation) the posterior covariance
-        of observed pixels decays within a pixel or two, so this is exact to ~1e-4 (measured
-        against the exact engine in the tests). Output pixels over unobserved pixels (holes),
+        of observed pixels decays within a pixel or two, so this matches the exact engine to the
+        bound tests/test_kissgp.py checks. Output pixels over unobserved pixels (holes),
         where the posterior covariance is long-ranged, each get a column of their own (exact).
         """
         ho, wo = problem.out_shape

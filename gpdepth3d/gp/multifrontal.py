@@ -1,7 +1,7 @@
 """Compiled multifrontal Cholesky, solve and selected inversion over a tree of dense fronts.
 
-This is the CPU numeric phase of the ``fast`` engine (`gpdepth3d.gp.fast` builds the
-nested-dissection tree of the pixel grid; this module eliminates it). A *front* owns a
+This is the CPU numeric phase of the ``fast`` engine (`gpdepth3d.gp.elimination_tree` builds the
+nested-dissection tree of the pixel grid; this module eliminates it; docs/engines.md). A *front* owns a
 contiguous range of variables (``st .. st + no``) and sees a boundary of ``nb`` later
 variables; its dense ``nf x nf`` matrix (``nf = no + nb``, column-major, lower triangle, own
 variables first) is assembled from the prior precision, the observation precision and the
@@ -21,14 +21,13 @@ covariance front), which skips its L11^-T L11^-1 and the no x no product. Solves
 right-hand sides in one pass over the factor. Everything is exact (rounding only).
 
 Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
-Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm runs
-at a tenth of dtrmm's speed on these shapes, so L11 is inverted by a blocked dtrmm scheme), so
-there is no per-front interpreter overhead. Fronts of at most _SMALL variables (the bottom of the
-tree: on the KITTI 1/3 lattice 4,259 of 4,351 fronts, 36 % of the flops) skip LAPACK/BLAS,
-whose per-call cost dominates at these sizes: their elimination (`_partial_cholesky`), their
-solves and, for leaves without read-outs, the diagonal of their covariance (`_leaf_diagonal`)
-are compiled loops (the other small fronts of the selected inverse stay on BLAS: compiled loops
-measured ~15 % slower there). The subtrees below the top of the tree are grouped into one bin
+Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm is
+slow on these shapes, so L11 is inverted by a blocked dtrmm scheme), so there is no per-front
+interpreter overhead. Fronts of at most _SMALL variables (the bottom of the tree: most fronts,
+a minority of the flops) skip LAPACK/BLAS, whose per-call cost dominates at these sizes: their
+elimination (`_partial_cholesky`), their solves and, for leaves without read-outs, the diagonal
+of their covariance (`_leaf_diagonal`) are compiled loops (the other small fronts of the
+selected inverse stay on BLAS, where compiled loops are slower). The subtrees below the top of the tree are grouped into one bin
 per thread and run in parallel (numba prange, single-threaded BLAS), their common
 ancestors after them (factorisation) or before them (selected inverse); the split is the one with
 the least modelled time of the ancestors plus the largest bin. Each front's boundary
@@ -79,8 +78,8 @@ _FLAGS = dict(nogil=True, cache=True, boundscheck=False)
 _FAST = dict(_FLAGS, fastmath={"reassoc", "contract"})
 _BLOCK = 32  # diagonal block of the triangular inversion
 # Entries below this magnitude are set to zero as fronts are produced. Long-range couplings decay
-# geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles ~100x
-# slower; with every stored operand >= 1e-100 or 0, no product of up to three of them is subnormal.
+# geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles far
+# more slowly; with every stored operand >= 1e-100 or 0, no product of up to three of them is subnormal.
 # The change is far below rounding of any entry that matters (precisions and covariances here
 # span ~1e-12 .. 1e12).
 _TINY = 1e-100
@@ -108,7 +107,7 @@ def _tri_inv(A, off, n, lda, ip):
     """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
 
     Blocked as LAPACK's dtrtri, but every off-diagonal step is a dtrmm with an already inverted
-    block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is ~10x slower than
+    block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is much slower than
     dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops.
     """
     ch = _CHARS
@@ -153,7 +152,7 @@ def _tri_inv(A, off, n, lda, ip):
 def _inverse_from_cholesky(A, n, ip):
     """In place: the lower Cholesky factor L (flat column-major n x n) -> lower triangle of (L L^T)^-1.
 
-    L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: as dpotri, ~3x faster.
+    L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: what dpotri computes, without dtrsm.
     """
     _tri_inv(A, 0, n, n, ip)
     ip[0], ip[1] = n, 0
@@ -186,9 +185,7 @@ def _partial_cholesky(F, no, nf):
     Right-looking, two columns at a time (each pass over the trailing matrix applies a rank-2
     update), entries of L below _TINY flushed before they are used. For the small fronts at the
     bottom of the tree (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and
-    small-matrix paths dominate there (KITTI 1/3 lattice, 1/4 of the LiDAR, 40-pixel leaves: the
-    1,088 leaf fronts, 40 MFLOP, 22 -> 18 ms single-thread CPU on the shared 2-core VM). Returns
-    0, or j + 1 when pivot j is not positive.
+    small-matrix paths dominate there. Returns 0, or j + 1 when pivot j is not positive.
     """
     unf = np.uint64(nf)
     j = 0

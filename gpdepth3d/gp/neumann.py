@@ -2,9 +2,9 @@
 
 The `fast` engine's route for the paper's balanced set-up (every MDE pixel observed). With
 nu = 0.5 the posterior precision on the pixel grid is P = (Qv (x) Qu) / s^2 + D (a 9-point
-stencil, `gpdepth3d.gp.fast`), and with the paper's values (l = 1.5 px, s = 1, sigma_DL = 0.05,
-relative) the observations dominate it: the stencil's off-diagonal row sum is ~1.6 % of the
-diagonal. With M = diag(P) and E = I - M^-1/2 P M^-1/2 (zero diagonal),
+stencil, `gpdepth3d.gp.grid_prior`), and with the paper's values (l = 1.5 px, s = 1,
+sigma_DL = 0.05, relative) the observations dominate it: the stencil's off-diagonal row sum is a
+small fraction of the diagonal. With M = diag(P) and E = I - M^-1/2 P M^-1/2 (zero diagonal),
 
     P^-1 = M^-1/2 (I - E)^-1 M^-1/2 = M^-1/2 (sum_k E^k) M^-1/2,
 
@@ -40,8 +40,7 @@ from .multifrontal import numeric_section
 # Tolerances of the series (bounds on the omitted terms): relative to max |M^-1/2 b| for the mean
 # (the error of a pixel's mean is at most sqrt(max M / M_i) times that, times the largest
 # residual), relative to each variance.
-# The variance's 2e-9 keeps standard deviations within 1e-9 of the exact ones, as close as the
-# iterative kissgp engine gets (8.9e-10 at KITTI 1/3, bench/engines.py); the issue asks for 5 %.
+# The variance's 2e-9 keeps standard deviations within 1e-9 of the exact ones.
 NEUMANN_MEAN_TOL = 1e-13
 NEUMANN_VAR_TOL = 2e-9
 _PAD = 8  # zero border of the coefficient images: windows of up to 2 * _PAD - 1 pixels need no bounds checks
@@ -234,10 +233,10 @@ class NeumannPosterior:
         return max(0, int(np.ceil(np.log(tol * (1.0 - self.rho)) / np.log(self.rho))) - 1)
 
     def seconds(self, variance: bool) -> float | None:
-        """Cost model (seconds on the 2-core CI machine) at the default tolerances; None if not applicable.
+        """Seconds of this route at the default tolerances, None when too slow to take.
 
-        Measured at 117 x 405 to 352 x 1216 (rounded up): ~3-8 ns a pixel and term for the mean,
-        ~0.7 ns a multiply-add (8 per window cell) for the variance's local walks.
+        Per pixel and term for the mean, per multiply-add (8 per window cell) for the variance's
+        local walks; rates fitted as `gpdepth3d.gp.cost_model`'s.
         """
         n = self.M.size
         km, kv = self.terms(NEUMANN_MEAN_TOL), self.terms(NEUMANN_VAR_TOL)

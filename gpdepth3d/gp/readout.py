@@ -91,8 +91,8 @@ def frontal_readout(fronts: FrontTree, readout: Readout) -> tuple:
     An output that reads a single grid state (a non-zero weight on one variable: every output on
     a grid pixel, and the rows outside the factorised lattice, which read its edge state) has the
     variance weight^2 diag(P^-1)[variable]; only the others (between grid pixels) need covariance
-    fronts. Leaf fronts without them take the selected inverse's diagonal-only path (KITTI 1/3:
-    every output is a single state).
+    fronts. Leaf fronts without them take the selected inverse's diagonal-only path (an output
+    on the input grid reads single states only).
     """
     cached = readout.__dict__.get("_frontal")
     if cached is None or cached[0] is not fronts:

@@ -49,7 +49,7 @@ _LOG_2PI = float(np.log(2 * np.pi))
 # C start and the B impulse of a point share a cell, as do the C end and the F impulse: a pair
 # writes 16 values into 4 cells. Only the rows that hold an impulse (at most two per point row)
 # are stored: buf (nq, Wo + 1, 9) with qmap (Ho + 1,) the stored row of each row index (-1 =
-# none), so the column pass costs nq Wo, not Ho Wo (with full-resolution output, ~5x less).
+# none), so the column pass costs nq Wo, not Ho Wo.
 
 
 @nb.njit(cache=True, nogil=True)
