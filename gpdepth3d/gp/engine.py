@@ -91,7 +91,8 @@ class EngineConfig:
     Attributes:
         name: "exact", "kissgp" or "fast"; None takes the model config's ``engine``.
         device: Torch device of the ``fast`` engine's torch back-end and of ``kissgp`` ("cpu",
-            "cuda", "cuda:1"); None: the CPU for ``fast``, CUDA when available for ``kissgp``.
+            "cuda", "cuda:1", "mps"; a torch.device is kept as its name); None: the CPU for
+            ``fast``, CUDA when available for ``kissgp``. The engine refuses one torch does not see.
         backend: ``fast``: "auto" (compiled on the CPU, torch elsewhere), "compiled" or "torch".
         route: ``fast``: "auto" (the cheapest exact route by its cost model), "grid",
             "woodbury", "neumann" or "dense" (see `gpdepth3d.gp.fast.FastEngine`).
@@ -104,7 +105,8 @@ class EngineConfig:
         max_exact_points: ``exact``: most observed pixels; None takes the model config's
             ``max_exact_points``.
         options: Further keyword arguments of the engine's constructor (e.g. ``kissgp``'s
-            ``cg_tolerance``, ``fast``'s ``tile``), passed as given.
+            ``cg_tolerance``, ``fast``'s ``tile``); a key it does not take, or one a field above
+            sets, is an `InvalidInputError` on ``options``.
     """
 
     name: str | None = None
