@@ -169,12 +169,15 @@ class TestBackends:
         np.testing.assert_allclose(m1, m0, atol=1e-9)
         np.testing.assert_allclose(v1, v0, rtol=1e-9)
 
-    def test_bad_backend(self):
+    def test_bad_backend(self, monkeypatch):
+        torch = pytest.importorskip("torch")
         with pytest.raises(InvalidInputError, match="backend"):
             FastEngine(backend="fortran")
         with pytest.raises(InvalidInputError, match="backend"):
             FastEngine(device="cuda", backend="compiled")
         assert FastEngine().backend == "compiled"
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # only the back-end choice is tested
+        monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
         assert FastEngine(device="cuda").backend == "torch"
 
 

@@ -15,6 +15,7 @@ from .multifrontal import FrontTree
 
 
 STENCIL_OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
+"""The 9-point stencil of the prior precision: (row, column) offsets of a pixel's neighbours and itself."""
 
 
 def _ring(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
@@ -84,7 +85,7 @@ def _tiling(n: int, target: int) -> tuple[int, int]:
 
 @dataclass
 class EliminationTree:
-    """Elimination structure of the padded pixel grid (see the comment above)."""
+    """Elimination structure of the padded pixel grid: template nodes batched over tiles, then top separators."""
 
     shape: tuple[int, int]  # the problem's grid
     padded: tuple[int, int]

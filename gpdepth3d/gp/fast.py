@@ -14,7 +14,7 @@ from contextlib import nullcontext
 import numpy as np
 
 from ..errors import ConvergenceError, InvalidInputError, ShapeError, describe
-from .engine import Solution, SolveInfo, _is_int, check_device_available, check_extra_obs
+from .engine import Solution, SolveInfo, _is_int, check_device_available, check_extra_obs, device_name
 from .exact import check_problem, dense_log_marginal_likelihood, dense_solve
 from .markov import chain_precision, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
@@ -95,10 +95,10 @@ class FastEngine:
         self.threads = threads
         if backend not in ("auto", "compiled", "torch"):
             raise InvalidInputError("backend", "'auto', 'compiled' or 'torch'", backend)
-        device = check_device_available(device)
-        on_cpu = device is None or device == "cpu"
+        on_cpu = device_name(device) in (None, "cpu")
         if backend == "compiled" and not on_cpu:
             raise InvalidInputError("backend", "'torch' or 'auto' on a non-CPU device", backend)
+        device = check_device_available(device)
         self.backend = "compiled" if backend == "auto" and on_cpu else ("torch" if backend == "auto" else backend)
         if not isinstance(prior_cache_mb, (int, float, np.integer, np.floating)) or not prior_cache_mb >= 0:
             raise InvalidInputError("prior_cache_mb", "a number >= 0", prior_cache_mb)

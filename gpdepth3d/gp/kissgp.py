@@ -1,79 +1,8 @@
 """The ``kissgp`` engine: the paper's GPyTorch KISS-GP, set up so that it computes the exact model.
 
-Yoon & Kim (IROS 2020) solved the GP with GPyTorch's KISS-GP (structured kernel interpolation,
-Wilson & Nickisch, ICML 2015): the covariance between observed pixels is ``W K_UU W^T`` with
-``K_UU`` the kernel on a regular grid of inducing points (a Kronecker product of one Toeplitz
-matrix per image axis) and ``W`` sparse cubic-interpolation weights; solves use conjugate
-gradients (CG) with fast Kronecker/Toeplitz matrix-vector products. This engine builds exactly
-that GPyTorch model::
-
-    ExactGP(train_x = observed pixels (row, col), train_y = (obs - prior_mean) / s,
-            covar = ScaleKernel(GridInterpolationKernel(MaternKernel(nu, l), grid)),
-            likelihood = FixedNoiseGaussianLikelihood(noise = 1 / (precision * s^2)))
-
-with the hyperparameters fixed from the `GridProblem` (no training), and computes the posterior
-of the same separable-Matern model as `ExactEngine`:
-
-* **Grid on the pixel centres.** The inducing grid is the GP grid itself (integer pixel
-  centres) padded by two nodes on every side, so the cubic interpolation of a pixel centre is an
-  exact selection (weight 1 on its node) and ``W K_UU W^T`` *is* the kernel matrix: on the input
-  grid the engine has no approximation besides the CG tolerance. The grid bounds are given, so
-  GPyTorch never rebuilds the grid (GPyTorch issue #1704), and the two padding nodes keep every
-  output coordinate (>= -0.5 and <= H - 0.5) away from the boundary special case of its
-  interpolation (issues #836, #243).
-* **Kronecker order.** GPyTorch 1.15's ``GridKernel`` builds ``K_UU = K_cols (x) K_rows`` while
-  its interpolation indices are row-major (``index = i_row * G_cols + i_col``): on a non-square
-  grid (every image) the kernel it computes is not the Matern kernel (entries wrong by up to
-  0.5 of the prior variance; a square grid with an isotropic kernel hides it).
-  `PixelGridInterpolationKernel` builds the Kronecker product in index order; the tests check
-  ``W K_UU W^T`` against the dense kernel on a non-square grid.
-* **Conditioning (GPyTorch issue #768).** Everything is float64 and in units of the output scale
-  ``s`` with the prior mean subtracted, so the kernel has unit diagonal and the noise is the
-  ratio (sigma / s)^2 (e.g. 0.0025 for MDE pixels, 1e-6 for LiDAR points in the paper's
-  set-up). GPyTorch's default pivoted-Cholesky preconditioner ``L L^T + D`` is harmful with such
-  heteroscedastic noise: where ``L`` misses part of ``K`` the preconditioner is of the order of
-  the smallest noise while the matrix is ~1, so preconditioning multiplies the condition number.
-  It can be enabled (rank `preconditioner_size`) only when all noises are equal, the case it was
-  designed for, and is off by default (forming it costs more than the iterations it saves);
-  CG runs unpreconditioned, which converges because a Matern kernel on a
-  pixel grid is well conditioned by itself at short length scales. CG (GPyTorch's
-  ``linear_cg``) runs to a relative residual of `cg_tolerance` and the engine checks the true
-  residual afterwards, raising `ConvergenceError` instead of returning an unconverged mean.
-* **Variance** (``variance_method``). The exact predictive variance is
-  ``k** - k*o (K_oo + D)^-1 ko*``; forming it for every output pixel costs one solve per output
-  pixel (``"solve"``: batched CG in memory-bounded blocks; exact to the CG tolerance, but
-  m solves for m output pixels). Cheaper exact routes, chosen by ``"auto"`` (the default):
-
-  - ``"cholesky"`` (n <= `max_cholesky_size` observed pixels, e.g. the residual formulation
-    with hundreds of points; GPyTorch itself switches to Cholesky below 800 points): the
-    (n, n) KISS-GP matrix is formed with n products, factorised, and
-    ``var = k** - |L^-1 K_o*|^2``.
-  - ``"probe"`` (at least half the pixels observed, e.g. the balanced formulation): the
-    posterior covariance ``S`` of the output pixels is applied to a colouring of the output
-    grid (one indicator vector per colour of a lattice of spacing `probe_spacing`), so
-    ``(S Z)_i = S_ii +`` the covariances with same-coloured pixels >= d pixels away. With
-    dense observations those vanish (posterior correlation lengths ~ a pixel), so d = 4 (16
-    solves) matches the exact engine to the bound tests/test_kissgp.py checks; output pixels over holes
-    (unobserved pixels, long-range covariance) get their own column each and are exact.
-    The difference ``K** Z - K*o A^-1 Ko* Z`` cancels ~3 orders of magnitude, hence the tight
-    default `variance_cg_tolerance` (1e-10).
-  - ``"love"``: GPyTorch's LOVE (``fast_pred_var``, Pleiss et al. 2018), what a stock
-    KISS-GP set-up uses, with a Lanczos root of rank `root_decomposition_size`, clamped at 0
-    (LOVE with fixed heteroscedastic noise can go negative, GPyTorch issue #864). The rank-r
-    root misses most of ``(K_oo + D)^-1`` when the noise is small, so its variances are far
-    off (tests/test_kissgp.py) and it is kept for comparison only.
-* **Upsampled output** (``out_rows``/``out_cols`` between pixel centres, the paper's M > N
-  output): output pixels off the grid nodes get KISS-GP's cubic interpolation of the kernel,
-  ``k(x*, x) ~ w*^T K_UU w_x``, i.e. the posterior at an off-grid pixel is the cubic
-  interpolation of the posterior at the surrounding nodes. This is the one approximation of
-  this engine: the exponential kernel's cusp (nu = 0.5) is not a cubic, and the variance at
-  off-grid pixels is the interpolated node variance, *below* the exact one (which includes the
-  sub-pixel variance between nodes; tests/test_kissgp.py bounds both). Use the ``exact`` or
-  ``fast`` engine when off-grid values matter.
-
-The engine runs on CPU or CUDA (`device`). One CG iteration costs one product with the
-Kronecker grid kernel per right-hand side: dense 1-D factors (``(H + 4)^2 (W + 4) + (H + 4)
-(W + 4)^2`` flops) up to `TOEPLITZ_ABOVE` nodes per axis, FFT-based Toeplitz factors beyond.
+Yoon & Kim (IROS 2020) via structured kernel interpolation (Wilson & Nickisch, ICML 2015) and CG;
+inducing grid on the pixel centres, so on the input grid only the CG tolerance separates it from
+`ExactEngine`. Set-up, GPyTorch pitfalls and variance methods: docs/engines.md#the-kissgp-engine-in-detail.
 """
 
 from __future__ import annotations
@@ -176,9 +105,9 @@ def default_device() -> str:
 class KissGPEngine:
     """GP posterior with GPyTorch KISS-GP (the paper's method), exact on the pixel grid.
 
-    See the module docstring for the model, the set-up and its one approximation (upsampled
-    output). Each `solve` returns, with the posterior, the CG iteration counts, the achieved
-    relative residuals and the timings (``Solution.info``).
+    The model, the set-up and its one approximation (upsampled output):
+    docs/engines.md#the-kissgp-engine-in-detail. Each `solve` returns, with the posterior, the CG
+    iteration counts, the achieved relative residuals and the timings (``Solution.info``).
 
     Args:
         device: Torch device ("cpu", "cuda", "cuda:1"); default "cuda" if available else "cpu".

@@ -1,42 +1,8 @@
 """Compiled multifrontal Cholesky, solve and selected inversion over a tree of dense fronts.
 
-This is the CPU numeric phase of the ``fast`` engine (`gpdepth3d.gp.elimination_tree` builds the
-nested-dissection tree of the pixel grid; this module eliminates it; docs/engines.md). A *front* owns a
-contiguous range of variables (``st .. st + no``) and sees a boundary of ``nb`` later
-variables; its dense ``nf x nf`` matrix (``nf = no + nb``, column-major, lower triangle, own
-variables first) is assembled from the prior precision, the observation precision and the
-update matrices of its children, and partially factorised:
-
-    F = [[F11, .], [F21, F22]]:  L11 = chol(F11),  L21 = F21 L11^-T,  U = F22 - L21 L21^T  -> parent
-
-Each front keeps [L11^-1; L21] (the inverse of its diagonal factor, so every triangular solve
-below is a multiplication). The selected inverse (Takahashi / Erisman-Tinney) then runs
-top-down: with the parent's posterior covariance restricted to the front's boundary, Sigma_BB,
-
-    W = L21 L11^-1,   Sigma_BJ = -Sigma_BB W,   Sigma_JJ = L11^-T L11^-1 - Sigma_BJ^T W,
-
-which gives the covariance on every front (so the diagonal, and any read-out that stays inside
-one front). A leaf front without read-outs needs only diag(Sigma_JJ) (no child reads its
-covariance front), which skips its L11^-T L11^-1 and the no x no product. Solves take several
-right-hand sides in one pass over the factor. Everything is exact (rounding only).
-
-Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
-Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm is
-slow on these shapes, so L11 is inverted by a blocked dtrmm scheme), so there is no per-front
-interpreter overhead. Fronts of at most _SMALL variables (the bottom of the tree: most fronts,
-a minority of the flops) skip LAPACK/BLAS, whose per-call cost dominates at these sizes: their
-elimination (`_partial_cholesky`), their solves and, for leaves without read-outs, the diagonal
-of their covariance (`_leaf_diagonal`) are compiled loops (the other small fronts of the
-selected inverse stay on BLAS, where compiled loops are slower). The subtrees below the top of the tree are grouped into one bin
-per thread and run in parallel (numba prange, single-threaded BLAS), their common
-ancestors after them (factorisation) or before them (selected inverse); the split is the one with
-the least modelled time of the ancestors plus the largest bin. Each front's boundary
-is sorted by its position in the parent front, so the lower triangle of a child's update lands
-in the lower triangle of the parent (extend-add and the gather of Sigma_BB need no symmetry
-bookkeeping). Update matrices live on stacks (post-order), the covariance fronts on root-path
-stacks (pre-order); all offsets are computed once per tree, and the buffers of a factorisation
-are reused by the next one. Inner loops index with unsigned integers, which lets LLVM vectorise
-them (numba checks signed indices for wrap-around).
+The CPU numeric phase of the ``fast`` engine's grid route (`gpdepth3d.gp.elimination_tree` builds
+the tree): numba loops calling LAPACK/BLAS, exact to rounding, independent subtrees in parallel.
+Recursions and layout: docs/engines.md#the-multifrontal-factorisation-in-detail.
 """
 
 from __future__ import annotations

@@ -1,33 +1,7 @@
-"""Exact posterior over few observed pixels (Woodbury) for the separable exponential kernel.
+"""Exact posterior over few observed pixels (Woodbury) for the separable exponential kernel (nu = 0.5).
 
-The `fast` engine's route for the residual formulation with sparse points (DESIGN.md: "Woodbury
-over the sparse points"). With m observed pixels x_j = (r_j, c_j) and the separable Matern-1/2
-kernel k(x, x') = s^2 e^{-|r - r'| / l} e^{-|c - c'| / l}, in correlation units (A = K_XX / s^2
-+ diag(noise) / s^2, alpha = A^-1 (y - m), M = A^-1):
-
-    mean(r, c) = m*(r, c) + sum_j alpha_j e^{-|r - r_j| / l} e^{-|c - c_j| / l}
-    var(r, c)  = s^2 (1 - sum_jk M_jk e^{-(|r - r_j| + |r - r_k|) / l} e^{-(|c - c_j| + |c - c_k|) / l}).
-
-Evaluated directly, the variance costs m^2 per output pixel. But |x - a| + |x - b| =
-|a - b| + 2 dist(x, [min(a, b), max(a, b)]), so every pair (j, k) contributes
-
-    w_jk * h(r; [r_lo, r_hi]) * h(c; [c_lo, c_hi]),   w_jk = M_jk e^{-(|r_j - r_k| + |c_j - c_k|) / l},
-
-with h(x; [lo, hi]) = e^{-2 dist(x, [lo, hi]) / l}: 1 on the interval, an exponential decay
-outside it. Along an axis of sorted output coordinates x_0 < x_1 < ..., h is the sum of three
-linear operators applied to impulses: a cumulative sum of (+1 at the first x_i >= lo, -1 at the
-first x_i > hi) (the interval), a forward recursion y_i = lambda_i y_{i-1} + u_i with
-lambda_i = e^{-2 (x_i - x_{i-1}) / l} of one impulse after hi, and the mirrored backward recursion
-of one impulse before lo. In 2-D each pair splats 16 impulses into 9 images (one per pair of axis
-operators, interleaved so that the 16 land in 4 cells), which are then filtered along columns
-and rows. The mean is the same with single points and the rate 1 / l. Cost: O(m^3) for the
-Cholesky factor of A and its inverse (`multifrontal.inverse_from_cholesky`), O(m^2) splats and
-O(Ho Wo) filtering, against O(Ho Wo m^2) directly. Every impulse value and decay is <= 1, so
-nothing overflows at any length scale, and no approximation is made. The points must be given in
-row-major order (as `numpy.flatnonzero` returns them).
-
-nu = 0.5 only (for nu > 0.5 the pair products are polynomials times exponentials); the engine
-uses the grid route otherwise.
+The ``fast`` engine's route for sparse points: O(m^3) for the m points' factor, O(m^2) splats and
+O(Ho Wo) recursive filtering instead of O(Ho Wo m^2). Derivation: docs/engines.md#the-woodbury-route-in-detail.
 """
 
 from __future__ import annotations
@@ -239,7 +213,7 @@ def _stored_rows(ri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class WoodburyPosterior:
-    """Exact posterior of a `GridProblem` with few observed pixels and nu = 0.5 (see the module docstring).
+    """Exact posterior of a `GridProblem` with few observed pixels and nu = 0.5 (docs/engines.md#the-woodbury-route-in-detail).
 
     Args:
         problem: The grid problem; its kernel must have nu = 0.5.
