@@ -319,3 +319,22 @@ class TestEngineOptionsAtTheBoundary:
 
         assert make_engine(EngineConfig(device=device)).device == device
         assert EngineConfig(device=torch.device("cpu")).device == "cpu"
+
+
+ENGINE_MODULES = ("engine", "fast", "elimination_tree", "grid_prior", "readout", "torch_factor", "observed_lattice",
+                  "routes", "cost_model", "exact", "kissgp", "woodbury", "multifrontal", "markov", "neumann")
+
+
+@pytest.mark.parametrize("module", ENGINE_MODULES)
+def test_engine_functions_fit_in_100_lines(module):
+    """Every function of the engine modules, docstring and decorators included, is at most 100 lines."""
+    import ast
+    from pathlib import Path
+
+    import gpdepth3d.gp
+
+    path = Path(gpdepth3d.gp.__file__).parent / f"{module}.py"
+    tree = ast.parse(path.read_text())
+    long = [(node.name, node.end_lineno - node.lineno + 1 + len(node.decorator_list))
+            for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    assert [f for f in long if f[1] > 100] == []
