@@ -1,13 +1,14 @@
 """The GP depth model and the engines that compute its posterior.
 
-All engines take a `GridProblem` and return the same posterior as a `Solution` (mean, marginal
-variance, the means of further observation vectors, and `SolveInfo`: the route and stage times
-of that call; it unpacks as ``mean, variance``). `make_engine` builds one from the model config
-and an `EngineConfig` (device, back-end, route, limits). They differ only in how they compute it:
+Every engine satisfies the `Engine` protocol: it takes a `GridProblem` and returns the same
+posterior as a `Solution` (mean, marginal variance, the means of further observation vectors, and
+`SolveInfo`: the route and stage times of that call; it unpacks as ``mean, variance``).
+`make_engine` builds one from the model config and an `EngineConfig` (device, back-end, route,
+limits; docs/engines.md). They differ only in how they compute it:
 
 * ``exact``: dense Cholesky, the reference for small inputs.
 * ``kissgp``: GPyTorch KISS-GP (``GridInterpolationKernel``), faithful to the paper.
-* ``fast``: exploits the pixel grid (sparse precision, or Woodbury over few points); the default.
+* ``fast``: the cheapest exact route that fits (`gpdepth3d.gp.routes`); the default.
   Every engine validates the problem first (`gpdepth3d.gp.exact.check_problem`); where ``fast``
   cannot compute the exact posterior (a kernel whose precision form is too ill-conditioned, a
   problem beyond the memory budget) it takes another route (``dense`` over few observed pixels)
