@@ -2,7 +2,7 @@
 
 Two suites, one run each:
 
-``--suite kitti`` (the default): issue 13's speed target. kitti_tiny frame 0 with RT-MonoDepth-S,
+``--suite kitti`` (the default): the default model's speed target. kitti_tiny frame 0 with RT-MonoDepth-S,
 prepared as the paper's KITTI protocol does (`gpdepth3d.experiments.kitti_protocol`: the GP grid at 1/3
 resolution, 125 x 414; 20 % of the LiDAR held out; uniform inputs from the rest), at the
 paper's eight densities (1/64 ... all of the LiDAR) and two outputs: the 1/3 grid and the full
@@ -342,7 +342,7 @@ def kitti_main(args) -> None:
 
 
 def _targets(rows: list[dict]) -> dict:
-    """Issue 13's speed targets against this run: <= 50 ms at 1/3, <= 200 ms at full resolution, <= 10 x IP-Basic."""
+    """The speed targets against this run: <= 50 ms at 1/3, <= 200 ms at full resolution, <= 10 x IP-Basic."""
     limit = {"1/3": 0.050, "full": 0.200}
     out: dict = {"summary": []}
     for res in ("1/3", "full"):

@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError, ShapeError
-from gpdepth3d.gp import EngineConfig, Solution, SolveInfo, make_engine
+from gpdepth3d.gp import Engine, EngineConfig, RoutedEngine, Solution, SolveInfo, make_engine
 from gpdepth3d.gp.exact import ExactEngine, dense_posterior, dense_solve
 from gpdepth3d.gp.fast import LATTICE_QUANTUM, FastEngine, observed_lattice
 from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
@@ -47,6 +47,46 @@ class TestEngineConfig:
         assert len({EngineConfig(), EngineConfig(options={"tile": 16})}) >= 1  # options do not enter the hash
 
 
+def keyword_only(method, names):
+    """True when ``method`` takes ``names`` as keyword-only parameters (as the protocol states them)."""
+    import inspect
+
+    params = inspect.signature(method).parameters
+    return all(n in params and params[n].kind is inspect.Parameter.KEYWORD_ONLY for n in names)
+
+
+class TestEngineProtocol:
+    @pytest.mark.parametrize("name", ["exact", "kissgp", "fast"])
+    def test_every_engine_satisfies_the_protocol(self, name):
+        if name == "kissgp":
+            pytest.importorskip("gpytorch")
+        engine = make_engine(EngineConfig(name=name, device="cpu" if name == "kissgp" else None))
+        assert isinstance(engine, Engine) and engine.name == name
+        assert keyword_only(engine.solve, ("variance", "extra_obs"))
+        solution = engine.solve(problem_with_points(np.random.default_rng(20), 8, 9, 6), variance=False)
+        assert isinstance(solution, Solution) and isinstance(solution.info, SolveInfo)
+        assert solution.info.engine == name and solution.variance is None and solution.mean.shape == (8, 9)
+
+    def test_routed_engines(self):
+        fast = make_engine(EngineConfig(name="fast"))
+        assert isinstance(fast, RoutedEngine)
+        assert keyword_only(fast.plan, ("variance", "extra", "lml"))
+        problem = problem_with_points(np.random.default_rng(21), 8, 9, 6)
+        assert fast.plan(problem) in ("grid", "woodbury", "neumann", "dense")
+        assert np.isfinite(fast.log_marginal_likelihood(problem))
+        assert not isinstance(ExactEngine(), RoutedEngine)  # one route: no plan
+
+    def test_objects_without_solve_are_not_engines(self):
+        class NoSolve:
+            name = "none"
+
+        class NoName:
+            def solve(self, problem, *, variance=True, extra_obs=()):
+                return None
+
+        assert not isinstance(NoSolve(), Engine) and not isinstance(NoName(), Engine)
+
+
 class TestMakeEngine:
     def test_model_config_names_the_engine_options_set_it_up(self):
         engine = make_engine(DepthGPConfig(), EngineConfig(route="grid", lattice="full", max_dense_points=7,
@@ -71,7 +111,7 @@ class TestMakeEngine:
             make_engine(DepthGPConfig(), {"route": "grid"})
         with pytest.raises(InvalidInputError, match="options"):
             make_engine(EngineConfig(), EngineConfig())
-        with pytest.raises(TypeError):
+        with pytest.raises(InvalidInputError, match="options"):
             make_engine(EngineConfig(options={"no_such_option": 1}))
 
     def test_completer_takes_the_engine_options(self):
@@ -231,3 +271,70 @@ def test_cuda_torch_back_end_on_the_lattice_with_extra_obs():
     np.testing.assert_allclose(gpu.mean, cpu.mean, rtol=1e-10)
     np.testing.assert_allclose(gpu.variance, cpu.variance, rtol=1e-9)
     np.testing.assert_allclose(gpu.extra_means[0], cpu.extra_means[0], rtol=1e-10, atol=1e-12)
+
+
+# (engine options, the argument the typed error must name, a phrase of what was expected)
+BAD_OPTIONS = [
+    ({"device": "tpu"}, "device", "'cpu', 'cuda'"),
+    ({"device": "cuda:x"}, "device", "'cpu', 'cuda'"),
+    ({"device": 3}, "device", "torch.device"),
+    ({"device": "cuda"}, "device", "no CUDA GPU"),  # torch is made CPU-only below
+    ({"device": "cuda:1"}, "device", "no CUDA GPU"),
+    ({"name": "kissgp", "device": "cuda"}, "device", "no CUDA GPU"),
+    ({"name": "kissgp", "device": "tpu"}, "device", "'cpu', 'cuda'"),
+    ({"threads": 0}, "threads", "integer >= 1"),
+    ({"threads": "two"}, "threads", "integer >= 1"),
+    ({"max_dense_points": -1}, "max_dense_points", "integer >= 0"),
+    ({"max_dense_points": 1.5}, "max_dense_points", "integer >= 0"),
+    ({"max_memory_mb": "lots"}, "max_memory_mb", "finite number > 0"),
+    ({"max_memory_mb": float("inf")}, "max_memory_mb", "finite number > 0"),
+    ({"options": {"bogus": 1}}, "options", "keyword arguments of FastEngine"),
+    ({"options": {"device": "cpu"}}, "options", "keyword arguments of FastEngine"),  # a field's job
+    ({"name": "exact", "options": {"bogus": 1}}, "options", "keyword arguments of ExactEngine"),
+    ({"name": "kissgp", "options": {"bogus": 1}}, "options", "keyword arguments of KissGPEngine"),
+    ({"options": {"tile": 0}}, "tile", "integer >= 1"),
+    ({"options": {"cache_size": True}}, "cache_size", "integer >= 1"),
+    ({"name": "exact", "options": {"max_cross_entries": 0}}, "max_cross_entries", "integer >= 1"),
+    ({"name": "kissgp", "options": {"cg_tolerance": "tight"}}, "cg_tolerance", "(0, 1)"),
+    ({"name": "kissgp", "options": {"pad": 1}}, "pad", "integer >= 2"),
+]
+
+
+class TestEngineOptionsAtTheBoundary:
+    @pytest.mark.parametrize("options,argument,expected", BAD_OPTIONS, ids=[str(c[0]) for c in BAD_OPTIONS])
+    def test_typed_error_names_argument_expected_and_got(self, monkeypatch, options, argument, expected):
+        torch = pytest.importorskip("torch")
+        if options.get("name") == "kissgp":
+            pytest.importorskip("gpytorch")
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a CPU-only torch, on any machine
+        with pytest.raises(InvalidInputError) as info:
+            make_engine(EngineConfig(**options))
+        err = info.value
+        assert err.argument == argument and expected in err.expected and str(err.got)
+        assert not isinstance(err, (AssertionError, TypeError, RuntimeError))
+
+    @pytest.mark.parametrize("device", [None, "cpu"])
+    def test_good_devices(self, device):
+        import torch
+
+        assert make_engine(EngineConfig(device=device)).device == device
+        assert EngineConfig(device=torch.device("cpu")).device == "cpu"
+
+
+ENGINE_MODULES = ("engine", "fast", "elimination_tree", "grid_prior", "readout", "torch_factor", "observed_lattice",
+                  "routes", "cost_model", "exact", "kissgp", "woodbury", "multifrontal", "markov", "neumann")
+
+
+@pytest.mark.parametrize("module", ENGINE_MODULES)
+def test_engine_functions_fit_in_100_lines(module):
+    """Every function of the engine modules, docstring and decorators included, is at most 100 lines."""
+    import ast
+    from pathlib import Path
+
+    import gpdepth3d.gp
+
+    path = Path(gpdepth3d.gp.__file__).parent / f"{module}.py"
+    tree = ast.parse(path.read_text())
+    long = [(node.name, node.end_lineno - node.lineno + 1 + len(node.decorator_list))
+            for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    assert [f for f in long if f[1] > 100] == []

@@ -430,7 +430,8 @@ class TestRefusals:
 
     def test_grid_bytes_estimate_bounds_the_buffers(self):
         """The estimate is an upper bound of the numeric buffers, within 2x, for nu = 0.5 and 1.5."""
-        from gpdepth3d.gp.fast import _front_tree, grid_bytes
+        from gpdepth3d.gp.elimination_tree import front_tree as _front_tree
+        from gpdepth3d.gp.fast import grid_bytes
 
         engine = FastEngine()
         for (h, w), nu in (((60, 80), 0.5), ((120, 160), 0.5), ((60, 80), 1.5)):
@@ -550,7 +551,7 @@ def test_single_state_and_between_pixel_outputs_in_one_readout():
     """Outputs on grid pixels (and beyond the grid's edge) read one state and take the selected inverse's
     diagonal; outputs between pixels read 2 x 2 states from covariance fronts: mixed in one output grid,
     both match the dense GP equations."""
-    from gpdepth3d.gp.fast import _frontal_readout
+    from gpdepth3d.gp.readout import frontal_readout as _frontal_readout
     from gpdepth3d.gp.multifrontal import FrontalFactor
 
     rng = np.random.default_rng(11)

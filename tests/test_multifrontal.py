@@ -169,12 +169,15 @@ class TestBackends:
         np.testing.assert_allclose(m1, m0, atol=1e-9)
         np.testing.assert_allclose(v1, v0, rtol=1e-9)
 
-    def test_bad_backend(self):
+    def test_bad_backend(self, monkeypatch):
+        torch = pytest.importorskip("torch")
         with pytest.raises(InvalidInputError, match="backend"):
             FastEngine(backend="fortran")
         with pytest.raises(InvalidInputError, match="backend"):
             FastEngine(device="cuda", backend="compiled")
         assert FastEngine().backend == "compiled"
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # only the back-end choice is tested
+        monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
         assert FastEngine(device="cuda").backend == "torch"
 
 
@@ -268,7 +271,7 @@ class TestPriorReuse:
 def test_bins_and_ancestors_partition_a_grid_tree(threads):
     """The parallel split of a pixel-grid tree: every front once; the common ancestors closed upwards; a bin
     holds whole subtrees; with 2 threads the 93 x 414 KITTI lattice keeps at most 3 sequential fronts."""
-    from gpdepth3d.gp.fast import _build_tree, _front_tree
+    from gpdepth3d.gp.elimination_tree import build_tree as _build_tree, front_tree as _front_tree
 
     base = _front_tree(_build_tree(93, 414, 1, 24, 40))
     fronts = FrontTree.build(base.st, base.no, base.parent,

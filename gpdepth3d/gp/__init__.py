@@ -1,13 +1,14 @@
 """The GP depth model and the engines that compute its posterior.
 
-All engines take a `GridProblem` and return the same posterior as a `Solution` (mean, marginal
-variance, the means of further observation vectors, and `SolveInfo`: the route and stage times
-of that call; it unpacks as ``mean, variance``). `make_engine` builds one from the model config
-and an `EngineConfig` (device, back-end, route, limits). They differ only in how they compute it:
+Every engine satisfies the `Engine` protocol: it takes a `GridProblem` and returns the same
+posterior as a `Solution` (mean, marginal variance, the means of further observation vectors, and
+`SolveInfo`: the route and stage times of that call; it unpacks as ``mean, variance``).
+`make_engine` builds one from the model config and an `EngineConfig` (device, back-end, route,
+limits; docs/engines.md). They differ only in how they compute it:
 
 * ``exact``: dense Cholesky, the reference for small inputs.
 * ``kissgp``: GPyTorch KISS-GP (``GridInterpolationKernel``), faithful to the paper.
-* ``fast``: exploits the pixel grid (sparse precision, or Woodbury over few points); the default.
+* ``fast``: the cheapest exact route that fits (`gpdepth3d.gp.routes`); the default.
   Every engine validates the problem first (`gpdepth3d.gp.exact.check_problem`); where ``fast``
   cannot compute the exact posterior (a kernel whose precision form is too ill-conditioned, a
   problem beyond the memory budget) it takes another route (``dense`` over few observed pixels)
@@ -17,7 +18,9 @@ and an `EngineConfig` (device, back-end, route, limits). They differ only in how
 
 from __future__ import annotations
 
+from .engine import Engine as Engine
 from .engine import EngineConfig as EngineConfig
+from .engine import RoutedEngine as RoutedEngine
 from .engine import Solution as Solution
 from .engine import SolveInfo as SolveInfo
 from .model import DepthGPConfig as DepthGPConfig
@@ -25,9 +28,10 @@ from .model import GridProblem as GridProblem
 from .model import Kernel as Kernel
 from .model import matern_1d as matern_1d
 from ..errors import InvalidInputError
+from .engine import check_engine_options
 
 
-def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None):
+def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None) -> Engine:
     """Builds the engine of a model config with the engine options (imports heavy back-ends lazily).
 
     Args:
@@ -40,8 +44,8 @@ def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: Eng
         An ``ExactEngine``, ``KissGPEngine`` or ``FastEngine``.
 
     Raises:
-        InvalidInputError: ``config`` or ``options`` of another type, or an option the engine
-            rejects (e.g. a device torch does not see).
+        InvalidInputError: ``config`` or ``options`` of another type, an ``options.options`` key
+            the engine does not take, or an option it rejects (e.g. a device torch does not see).
     """
     if isinstance(config, EngineConfig):
         if options is not None:
@@ -54,19 +58,22 @@ def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: Eng
     elif not isinstance(options, EngineConfig):
         raise InvalidInputError("options", "an EngineConfig or None", type(options).__name__)
     name = options.name or (config.engine if config is not None else "fast")
-    extra = dict(options.options)
     if name == "exact":
         from .exact import ExactEngine
 
+        extra = check_engine_options(ExactEngine, options.options, ("max_points",))
         limit = options.max_exact_points or (config.max_exact_points if config is not None else 6000)
         return ExactEngine(max_points=limit, **extra)
     if name == "kissgp":
         from .kissgp import KissGPEngine
 
+        extra = check_engine_options(KissGPEngine, options.options, ("device",))
         return KissGPEngine(device=options.device, **extra)
     if name == "fast":
         from .fast import FastEngine
 
+        fields = ("device", "backend", "route", "threads", "max_dense_points", "max_memory_mb", "lattice")
+        extra = check_engine_options(FastEngine, options.options, fields)
         return FastEngine(
             device=options.device, backend=options.backend, route=options.route, threads=options.threads,
             max_dense_points=options.max_dense_points, max_memory_mb=options.max_memory_mb,

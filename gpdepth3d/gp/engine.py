@@ -1,33 +1,87 @@
-"""What every engine shares: its options (`EngineConfig`) and what one call returns (`Solution`).
+"""What every engine shares: the `Engine` protocol, its options (`EngineConfig`) and what a call returns.
 
-An engine (``exact``, ``kissgp``, ``fast``) has one method that matters::
-
-    solution = engine.solve(problem, variance=True, extra_obs=())
-
-It computes the posterior of a `GridProblem` and returns a `Solution`: the mean and the
-marginal variance on the output grid, the posterior means of any further observation vectors
-(``extra_obs``: the same precision and kernel, so the factorisation is shared), and the facts of
-this call (`SolveInfo`: the route taken, the seconds per stage). Nothing about a call is stored
-on the engine, so one engine can serve several callers. A `Solution` unpacks as
-``mean, variance = engine.solve(problem)``.
-
-The engine's options (device, back-end, route, limits) live in an `EngineConfig`, apart from
-the model (`gpdepth3d.gp.model.DepthGPConfig`); `gpdepth3d.gp.make_engine` builds an engine from
-both.
+An engine (``exact``, ``kissgp``, ``fast``) computes the posterior of a `GridProblem` with
+``engine.solve(problem, variance=True, extra_obs=())`` and returns a `Solution`; engines with
+several routes also satisfy `RoutedEngine` (``plan``, ``factorize``, ``log_marginal_likelihood``).
+See docs/architecture.md.
 """
 
 from __future__ import annotations
 
+import inspect
+import re
 from dataclasses import dataclass, field, replace
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..errors import InvalidInputError, ShapeError, describe
 
+if TYPE_CHECKING:  # the model imports nothing from here; the annotation only
+    from .model import GridProblem
+
 ENGINE_NAMES = ("exact", "kissgp", "fast")
 FAST_BACKENDS = ("auto", "compiled", "torch")
 FAST_ROUTES = ("auto", "grid", "woodbury", "neumann", "dense")
+DEVICE_PATTERN = re.compile(r"(cpu|cuda|mps)(:[0-9]+)?")
+"""Torch devices an engine accepts: "cpu", "cuda" or "mps", with an optional index ("cuda:1")."""
+
+
+def device_name(device, argument: str = "device") -> str | None:
+    """``device`` (None, a str or a torch.device) as a name matching `DEVICE_PATTERN`.
+
+    Raises:
+        InvalidInputError: another type, or a name torch does not run the engines on ("tpu").
+    """
+    if device is None:
+        return None
+    if not isinstance(device, str):
+        if type(device).__name__ != "device":  # torch.device, without importing torch
+            raise InvalidInputError(argument, "None, a str or a torch.device", describe(device))
+        device = str(device)
+    if DEVICE_PATTERN.fullmatch(device) is None:
+        raise InvalidInputError(argument, "a torch device 'cpu', 'cuda', 'cuda:N' or 'mps'", repr(device))
+    return device
+
+
+def check_device_available(device, argument: str = "device") -> str | None:
+    """`device_name` of ``device``, checked against the devices torch sees (imports torch unless CPU).
+
+    Raises:
+        InvalidInputError: a malformed device, or one torch does not see (``"cuda"`` on a CPU-only torch).
+    """
+    name = device_name(device, argument)
+    if name is None or name == "cpu":
+        return name
+    import torch
+
+    kind, _, index = name.partition(":")
+    if kind == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise InvalidInputError(argument, "an available device (torch sees no CUDA GPU)", name)
+        if index and int(index) >= count:
+            raise InvalidInputError(argument, f"a CUDA device index below {count}", name)
+    elif kind == "mps" and not torch.backends.mps.is_available():
+        raise InvalidInputError(argument, "an available device (torch sees no MPS device)", name)
+    return name
+
+
+def check_engine_options(engine_class: type, options: dict, fixed: tuple = ()) -> dict:
+    """``options`` checked against the keyword arguments of ``engine_class`` (those in ``fixed`` are set by fields).
+
+    Raises:
+        InvalidInputError: (argument ``options``) a key the constructor does not take, or one that an
+            `EngineConfig` field sets.
+    """
+    params = inspect.signature(engine_class.__init__).parameters
+    accepted = sorted(n for n, p in params.items() if n != "self" and n not in fixed
+                      and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+    for key in options:
+        if key not in accepted:
+            raise InvalidInputError("options", f"keyword arguments of {engine_class.__name__} among {accepted}",
+                                    repr(key))
+    return dict(options)
 
 
 @dataclass(frozen=True)
@@ -37,20 +91,22 @@ class EngineConfig:
     Attributes:
         name: "exact", "kissgp" or "fast"; None takes the model config's ``engine``.
         device: Torch device of the ``fast`` engine's torch back-end and of ``kissgp`` ("cpu",
-            "cuda", "cuda:1"); None: the CPU for ``fast``, CUDA when available for ``kissgp``.
+            "cuda", "cuda:1", "mps"; a torch.device is kept as its name); None: the CPU for
+            ``fast``, CUDA when available for ``kissgp``. The engine refuses one torch does not see.
         backend: ``fast``: "auto" (compiled on the CPU, torch elsewhere), "compiled" or "torch".
         route: ``fast``: "auto" (the cheapest exact route by its cost model), "grid",
             "woodbury", "neumann" or "dense" (see `gpdepth3d.gp.fast.FastEngine`).
         lattice: ``fast`` grid route: "observed" (the default: the sub-grid spanning the
             observed pixels, the rest read out exactly by the Markov property) or "full" (the
-            whole GP grid, as before; for checks).
+            whole GP grid; for checks).
         threads: ``fast`` torch back-end: torch CPU threads during a call (None: unchanged).
         max_dense_points: ``fast``: most observed pixels of the dense route.
         max_memory_mb: ``fast``: memory budget of one call (MiB); None: 3/4 of the free memory.
         max_exact_points: ``exact``: most observed pixels; None takes the model config's
             ``max_exact_points``.
         options: Further keyword arguments of the engine's constructor (e.g. ``kissgp``'s
-            ``cg_tolerance``, ``fast``'s ``tile``), passed as given.
+            ``cg_tolerance``, ``fast``'s ``tile``); a key it does not take, or one a field above
+            sets, is an `InvalidInputError` on ``options``.
     """
 
     name: str | None = None
@@ -67,8 +123,7 @@ class EngineConfig:
     def __post_init__(self) -> None:
         if self.name is not None and self.name not in ENGINE_NAMES:
             raise InvalidInputError("name", f"None or one of {ENGINE_NAMES}", self.name)
-        if self.device is not None and not isinstance(self.device, str):
-            object.__setattr__(self, "device", str(self.device))  # a torch.device
+        object.__setattr__(self, "device", device_name(self.device))  # a torch.device as its name
         if self.backend not in FAST_BACKENDS:
             raise InvalidInputError("backend", f"one of {FAST_BACKENDS}", self.backend)
         if self.route not in FAST_ROUTES:
@@ -77,14 +132,23 @@ class EngineConfig:
             raise InvalidInputError("lattice", "'observed' or 'full'", self.lattice)
         if not isinstance(self.options, dict) or not all(isinstance(k, str) for k in self.options):
             raise InvalidInputError("options", "a dict of keyword arguments", describe(self.options))
-        for name in ("max_exact_points",):
+        for name, low, optional in (("max_exact_points", 1, True), ("threads", 1, True),
+                                    ("max_dense_points", 0, False)):
             v = getattr(self, name)
-            if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1):
-                raise InvalidInputError(name, "None or an integer >= 1", v)
+            if (v is not None or not optional) and not _is_int(v, low):
+                raise InvalidInputError(name, ("None or " if optional else "") + f"an integer >= {low}", describe(v))
+        v = self.max_memory_mb
+        if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating))
+                              or not np.isfinite(v) or not v > 0):
+            raise InvalidInputError("max_memory_mb", "None or a finite number > 0", describe(v))
 
     def replace(self, **changes) -> "EngineConfig":
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+
+def _is_int(v, low: int) -> bool:
+    return not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, np.integer)) and v >= low
 
 
 @dataclass(frozen=True)
@@ -116,8 +180,8 @@ class Solution:
         info: The facts of the call (`SolveInfo`).
         extra_means: One (Ho, Wo) posterior mean per observation vector of ``extra_obs``.
 
-    As the ``(mean, variance)`` pair the engines returned before: ``mean, var =
-    engine.solve(problem)`` and ``solution[0]`` / ``solution[1]`` work.
+    It unpacks as the pair ``mean, var = engine.solve(problem)``; ``solution[0]`` and
+    ``solution[1]`` work too.
     """
 
     mean: np.ndarray
@@ -157,3 +221,40 @@ def check_extra_obs(problem, extra_obs) -> tuple[np.ndarray, ...]:
             raise InvalidInputError(f"extra_obs[{i}]", "finite values at the observed pixels", "non-finite values")
         out.append(a)
     return tuple(out)
+
+
+@runtime_checkable
+class Engine(Protocol):
+    """What every engine provides: a name and `solve`, the posterior of one `GridProblem`.
+
+    ``solve`` returns a `Solution`: mean (Ho, Wo) in metres, marginal variance (Ho, Wo) in m^2
+    (None when ``variance`` is False), the means of ``extra_obs`` and the call's `SolveInfo`.
+    It stores nothing about the call on the engine, so one engine can serve several callers.
+    """
+
+    name: str
+
+    def solve(self, problem: "GridProblem", *, variance: bool = True, extra_obs=()) -> Solution:
+        """Posterior of ``problem``; raises the typed errors of `gpdepth3d.errors`, never a wrong answer."""
+        ...
+
+
+@runtime_checkable
+class RoutedEngine(Engine, Protocol):
+    """An `Engine` that chooses among routes (``fast``): says which one beforehand, and gives the likelihood.
+
+    ``plan`` returns the route name `solve` would take; ``factorize`` the grid route's factor;
+    ``log_marginal_likelihood`` log p(y) of the observed pixels in nats (what fitting maximises).
+    """
+
+    def plan(self, problem: "GridProblem", *, variance: bool = True, extra: int = 0, lml: bool = False) -> str:
+        """The route `solve` (or, with ``lml``, `log_marginal_likelihood`) takes for ``problem``."""
+        ...
+
+    def factorize(self, problem: "GridProblem"):
+        """The factorisation of the posterior precision that `solve` would use."""
+        ...
+
+    def log_marginal_likelihood(self, problem: "GridProblem") -> float:
+        """log p(y) of the observed pixels of ``problem`` (nats)."""
+        ...

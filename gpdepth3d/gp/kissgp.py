@@ -1,83 +1,8 @@
 """The ``kissgp`` engine: the paper's GPyTorch KISS-GP, set up so that it computes the exact model.
 
-Yoon & Kim (IROS 2020) solved the GP with GPyTorch's KISS-GP (structured kernel interpolation,
-Wilson & Nickisch, ICML 2015): the covariance between observed pixels is ``W K_UU W^T`` with
-``K_UU`` the kernel on a regular grid of inducing points (a Kronecker product of one Toeplitz
-matrix per image axis) and ``W`` sparse cubic-interpolation weights; solves use conjugate
-gradients (CG) with fast Kronecker/Toeplitz matrix-vector products. This engine builds exactly
-that GPyTorch model::
-
-    ExactGP(train_x = observed pixels (row, col), train_y = (obs - prior_mean) / s,
-            covar = ScaleKernel(GridInterpolationKernel(MaternKernel(nu, l), grid)),
-            likelihood = FixedNoiseGaussianLikelihood(noise = 1 / (precision * s^2)))
-
-with the hyperparameters fixed from the `GridProblem` (no training), and computes the posterior
-of the same separable-Matern model as `ExactEngine`:
-
-* **Grid on the pixel centres.** The inducing grid is the GP grid itself (integer pixel
-  centres) padded by two nodes on every side, so the cubic interpolation of a pixel centre is an
-  exact selection (weight 1 on its node) and ``W K_UU W^T`` *is* the kernel matrix: on the input
-  grid the engine has no approximation besides the CG tolerance. The grid bounds are given, so
-  GPyTorch never rebuilds the grid (GPyTorch issue #1704), and the two padding nodes keep every
-  output coordinate (>= -0.5 and <= H - 0.5) away from the boundary special case of its
-  interpolation (issues #836, #243).
-* **Kronecker order.** GPyTorch 1.15's ``GridKernel`` builds ``K_UU = K_cols (x) K_rows`` while
-  its interpolation indices are row-major (``index = i_row * G_cols + i_col``): on a non-square
-  grid (every image) the kernel it computes is not the Matern kernel (entries wrong by up to
-  0.5 of the prior variance; a square grid with an isotropic kernel hides it).
-  `PixelGridInterpolationKernel` builds the Kronecker product in index order; the tests check
-  ``W K_UU W^T`` against the dense kernel on a non-square grid.
-* **Conditioning (GPyTorch issue #768).** Everything is float64 and in units of the output scale
-  ``s`` with the prior mean subtracted, so the kernel has unit diagonal and the noise is the
-  ratio (sigma / s)^2 (e.g. 0.0025 for MDE pixels, 1e-6 for LiDAR points in the paper's
-  set-up). GPyTorch's default pivoted-Cholesky preconditioner ``L L^T + D`` is harmful with such
-  heteroscedastic noise: where ``L`` misses part of ``K`` the preconditioner is ~1e-6 while the
-  matrix is ~1, so preconditioning multiplies the condition number (this is the "never
-  converges" set-up). It can be enabled (rank `preconditioner_size`) only when all noises are
-  equal, the case it was designed for, and is off by default because it did not pay for itself
-  in measurements; CG runs unpreconditioned, which converges because a Matern kernel on a
-  pixel grid with l ~ 1.5 is well conditioned by itself (80 iterations for a 125x414 balanced
-  frame) and within a few thousand iterations for the residual formulation (l = 20). CG (GPyTorch's
-  ``linear_cg``) runs to a relative residual of `cg_tolerance` and the engine checks the true
-  residual afterwards, raising `ConvergenceError` instead of returning an unconverged mean.
-* **Variance** (``variance_method``). The exact predictive variance is
-  ``k** - k*o (K_oo + D)^-1 ko*``; forming it for every output pixel costs one solve per output
-  pixel (``"solve"``: batched CG in memory-bounded blocks; exact to the CG tolerance, but
-  m solves for m output pixels). Cheaper exact routes, chosen by ``"auto"`` (the default):
-
-  - ``"cholesky"`` (n <= `max_cholesky_size` observed pixels, e.g. the residual formulation
-    with hundreds of points; GPyTorch itself switches to Cholesky below 800 points): the
-    (n, n) KISS-GP matrix is formed with n products, factorised, and
-    ``var = k** - |L^-1 K_o*|^2``.
-  - ``"probe"`` (at least half the pixels observed, e.g. the balanced formulation): the
-    posterior covariance ``S`` of the output pixels is applied to a colouring of the output
-    grid (one indicator vector per colour of a lattice of spacing `probe_spacing`), so
-    ``(S Z)_i = S_ii +`` the covariances with same-coloured pixels >= d pixels away. With
-    dense observations those vanish (posterior correlation lengths ~ a pixel), so d = 4 (16
-    solves) matches the exact engine to ~3e-4 relative (measured); output pixels over holes
-    (unobserved pixels, long-range covariance) get their own column each and are exact.
-    The difference ``K** Z - K*o A^-1 Ko* Z`` cancels ~3 orders of magnitude, hence the tight
-    default `variance_cg_tolerance` (1e-10).
-  - ``"love"``: GPyTorch's LOVE (``fast_pred_var``, Pleiss et al. 2018), what a stock
-    KISS-GP set-up uses, with a Lanczos root of rank `root_decomposition_size`, clamped at 0
-    (LOVE with fixed heteroscedastic noise can go negative, GPyTorch issue #864). Measured on a
-    48x64 real-depth crop (balanced, 3072 observed pixels, rank 100-400): median relative
-    variance error ~300x (the rank-r root misses most of ``(K_oo + D)^-1`` when the noise is
-    small), so it is kept for comparison only.
-* **Upsampled output** (``out_rows``/``out_cols`` between pixel centres, the paper's M > N
-  output): output pixels off the grid nodes get KISS-GP's cubic interpolation of the kernel,
-  ``k(x*, x) ~ w*^T K_UU w_x``, i.e. the posterior at an off-grid pixel is the cubic
-  interpolation of the posterior at the surrounding nodes. This is the one approximation of
-  this engine. Measured against the exact GP on a 7-Scenes crop upsampled 2x: the mean differs
-  by ~1 % of its spread with the residual defaults (l = 20) but by ~19 % with the paper's
-  nu = 0.5, l = 1.5 (the exponential kernel's cusp is not a cubic), and the variance at
-  off-grid pixels is the interpolated node variance, *below* the exact one (which includes the
-  sub-pixel variance between nodes): ~0.4 % of it in the balanced set-up, median 23 % low in
-  the residual one. Use the ``exact`` or ``fast`` engine when off-grid variances matter.
-
-The engine runs on CPU or CUDA (`device`). One CG iteration costs one product with the
-Kronecker grid kernel per right-hand side: dense 1-D factors (``(H + 4)^2 (W + 4) + (H + 4)
-(W + 4)^2`` flops) up to `TOEPLITZ_ABOVE` nodes per axis, FFT-based Toeplitz factors beyond.
+Yoon & Kim (IROS 2020) via structured kernel interpolation (Wilson & Nickisch, ICML 2015) and CG;
+inducing grid on the pixel centres, so on the input grid only the CG tolerance separates it from
+`ExactEngine`. Set-up, GPyTorch pitfalls and variance methods: docs/engines.md#the-kissgp-engine-in-detail.
 """
 
 from __future__ import annotations
@@ -95,7 +20,7 @@ import linear_operator
 from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
 
 from ..errors import ConvergenceError, InvalidInputError
-from .engine import Solution, SolveInfo, check_extra_obs
+from .engine import Solution, SolveInfo, check_device_available, check_extra_obs
 from .model import GridProblem
 from .exact import check_problem
 
@@ -180,9 +105,9 @@ def default_device() -> str:
 class KissGPEngine:
     """GP posterior with GPyTorch KISS-GP (the paper's method), exact on the pixel grid.
 
-    See the module docstring for the model, the set-up and its one approximation (upsampled
-    output). Each `solve` returns, with the posterior, the CG iteration counts, the achieved
-    relative residuals and the timings (``Solution.info``).
+    The model, the set-up and its one approximation (upsampled output):
+    docs/engines.md#the-kissgp-engine-in-detail. Each `solve` returns, with the posterior, the CG
+    iteration counts, the achieved relative residuals and the timings (``Solution.info``).
 
     Args:
         device: Torch device ("cpu", "cuda", "cuda:1"); default "cuda" if available else "cpu".
@@ -195,10 +120,8 @@ class KissGPEngine:
             the block; every column is checked against 10x this afterwards).
         max_cg_iterations: CG iteration limit; exceeding it raises `ConvergenceError`.
         preconditioner_size: Rank of GPyTorch's pivoted-Cholesky preconditioner, used only
-            when all observation noises are equal (0, the default = never). Measured on the
-            residual formulation with all 15793 LiDAR points of a 1/3-resolution KITTI frame
-            (1 thread): none 3114 CG iterations in 47 s, rank 100 1000 iterations in 54 s,
-            rank 400 409 iterations in 126 s (forming the preconditioner dominates).
+            when all observation noises are equal (0, the default = never: forming it costs
+            more than the iterations it saves).
         root_decomposition_size: Lanczos rank of LOVE ("love" only).
         block_entries: Memory bound of the variance solves: right-hand sides per block are
             chosen so that (observed pixels x block) stays below this many entries.
@@ -233,7 +156,8 @@ class KissGPEngine:
                 "variance_method", "'auto', 'cholesky', 'probe', 'solve' or 'love'", variance_method
             )
         for name, value in (("cg_tolerance", cg_tolerance), ("variance_cg_tolerance", variance_cg_tolerance)):
-            if not (math.isfinite(value) and 0 < value < 1):
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not (math.isfinite(value) and 0 < value < 1):
                 raise InvalidInputError(name, "a value in (0, 1)", value)
         for name, value, low in (
             ("max_cg_iterations", max_cg_iterations, 1),
@@ -244,14 +168,9 @@ class KissGPEngine:
             ("max_cholesky_size", max_cholesky_size, 0),
             ("probe_spacing", probe_spacing, 1),
         ):
-            if not isinstance(value, (int, np.integer)) or value < low:
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < low:
                 raise InvalidInputError(name, f"an integer >= {low}", value)
-        try:
-            self.device = torch.device(default_device() if device is None else device)
-        except (RuntimeError, TypeError) as exc:
-            raise InvalidInputError("device", "a torch device such as 'cpu' or 'cuda'", device) from exc
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise InvalidInputError("device", "an available device (torch sees no CUDA GPU)", str(device))
+        self.device = torch.device(default_device() if device is None else check_device_available(device))
         self.variance_method = variance_method
         self.cg_tolerance = float(cg_tolerance)
         self.variance_cg_tolerance = float(variance_cg_tolerance)
@@ -444,8 +363,8 @@ class KissGPEngine:
         (`probe_spacing` GP-grid pixels); column c of Z is the indicator of colour c, and
         (S Z)_ic = S_ii + the sum of S_ij over the other pixels j of i's colour, all at least d
         pixels away. With dense observations (the balanced formulation) the posterior covariance
-        of observed pixels decays within a pixel or two, so this is exact to ~1e-4 (measured
-        against the exact engine in the tests). Output pixels over unobserved pixels (holes),
+        of observed pixels decays within a pixel or two, so this matches the exact engine to the
+        bound tests/test_kissgp.py checks. Output pixels over unobserved pixels (holes),
         where the posterior covariance is long-ranged, each get a column of their own (exact).
         """
         ho, wo = problem.out_shape

@@ -10,8 +10,8 @@ the states form a Gauss-Markov chain,
 so the joint precision of all states is block tridiagonal with d x d blocks (d = p + 1).
 The states are f and its derivatives in units of 1 / lam = l / sqrt(2 nu) (x_k = f^(k) / lam^k),
 whose covariance is O(1) at any length scale, and the process noise of a step is integrated by
-quadrature for short steps (P_inf - A P_inf A^T cancels catastrophically there): both kept the
-chains accurate at long length scales, where the raw form was off by 1e-4 (nu = 2.5, l = 100). For
+quadrature for short steps (P_inf - A P_inf A^T cancels catastrophically there): both keep the
+chains accurate at long length scales, where the raw form loses digits (tests/test_fast.py). For
 nu = 0.5 (d = 1) this is the Ornstein-Uhlenbeck precision with rho_i = exp(-d_i / l). The
 separable 2-D field then has the Kronecker precision Qv (x) Qu over (row state, column state)
 pairs, which is what `gpdepth3d.gp.fast` factorises.
@@ -184,7 +184,7 @@ def chain_conditioning(n: int, nu: float, lengthscale: float) -> tuple[float, fl
 
     Their product bounds the condition number of the 1-D chain precision; for the separable 2-D
     field the products of the two axes bound that of the prior precision Qv (x) Qu, which is what
-    limits the accuracy of a factorisation in float64 (Matern 2.5 at l = 30 px: ~1e20).
+    limits the accuracy of a factorisation in float64 (it grows like (l / pixel)^(2 nu + 1) per axis).
     ||C||_inf is the largest row sum of |C| over lags up to n - 1 from the middle row (|C(k)| =
     |A^k P|, summed until the terms fall below 1e-17 of the total).
 

@@ -1,43 +1,8 @@
 """Compiled multifrontal Cholesky, solve and selected inversion over a tree of dense fronts.
 
-This is the CPU numeric phase of the ``fast`` engine (`gpdepth3d.gp.fast` builds the
-nested-dissection tree of the pixel grid; this module eliminates it). A *front* owns a
-contiguous range of variables (``st .. st + no``) and sees a boundary of ``nb`` later
-variables; its dense ``nf x nf`` matrix (``nf = no + nb``, column-major, lower triangle, own
-variables first) is assembled from the prior precision, the observation precision and the
-update matrices of its children, and partially factorised:
-
-    F = [[F11, .], [F21, F22]]:  L11 = chol(F11),  L21 = F21 L11^-T,  U = F22 - L21 L21^T  -> parent
-
-Each front keeps [L11^-1; L21] (the inverse of its diagonal factor, so every triangular solve
-below is a multiplication). The selected inverse (Takahashi / Erisman-Tinney) then runs
-top-down: with the parent's posterior covariance restricted to the front's boundary, Sigma_BB,
-
-    W = L21 L11^-1,   Sigma_BJ = -Sigma_BB W,   Sigma_JJ = L11^-T L11^-1 - Sigma_BJ^T W,
-
-which gives the covariance on every front (so the diagonal, and any read-out that stays inside
-one front). A leaf front without read-outs needs only diag(Sigma_JJ) (no child reads its
-covariance front), which skips its L11^-T L11^-1 and the no x no product. Solves take several
-right-hand sides in one pass over the factor. Everything is exact (rounding only).
-
-Implementation: the loops are compiled with numba and call LAPACK/BLAS directly through SciPy's
-Cython bindings (dpotrf, dtrmm, dsyrk, dlauum, dsymm, dgemm, dtrmv, dgemv; OpenBLAS's dtrsm runs
-at a tenth of dtrmm's speed on these shapes, so L11 is inverted by a blocked dtrmm scheme), so
-there is no per-front interpreter overhead. Fronts of at most _SMALL variables (the bottom of the
-tree: on the KITTI 1/3 lattice 4,259 of 4,351 fronts, 36 % of the flops) skip LAPACK/BLAS,
-whose per-call cost dominates at these sizes: their elimination (`_partial_cholesky`), their
-solves and, for leaves without read-outs, the diagonal of their covariance (`_leaf_diagonal`)
-are compiled loops (the other small fronts of the selected inverse stay on BLAS: compiled loops
-measured ~15 % slower there). The subtrees below the top of the tree are grouped into one bin
-per thread and run in parallel (numba prange, single-threaded BLAS), their common
-ancestors after them (factorisation) or before them (selected inverse); the split is the one with
-the least modelled time of the ancestors plus the largest bin. Each front's boundary
-is sorted by its position in the parent front, so the lower triangle of a child's update lands
-in the lower triangle of the parent (extend-add and the gather of Sigma_BB need no symmetry
-bookkeeping). Update matrices live on stacks (post-order), the covariance fronts on root-path
-stacks (pre-order); all offsets are computed once per tree, and the buffers of a factorisation
-are reused by the next one. Inner loops index with unsigned integers, which lets LLVM vectorise
-them (numba checks signed indices for wrap-around).
+The CPU numeric phase of the ``fast`` engine's grid route (`gpdepth3d.gp.elimination_tree` builds
+the tree): numba loops calling LAPACK/BLAS, exact to rounding, independent subtrees in parallel.
+Recursions and layout: docs/engines.md#the-multifrontal-factorisation-in-detail.
 """
 
 from __future__ import annotations
@@ -79,8 +44,8 @@ _FLAGS = dict(nogil=True, cache=True, boundscheck=False)
 _FAST = dict(_FLAGS, fastmath={"reassoc", "contract"})
 _BLOCK = 32  # diagonal block of the triangular inversion
 # Entries below this magnitude are set to zero as fronts are produced. Long-range couplings decay
-# geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles ~100x
-# slower; with every stored operand >= 1e-100 or 0, no product of up to three of them is subnormal.
+# geometrically (rho^distance) and their products reach subnormal numbers, which x86 handles far
+# more slowly; with every stored operand >= 1e-100 or 0, no product of up to three of them is subnormal.
 # The change is far below rounding of any entry that matters (precisions and covariances here
 # span ~1e-12 .. 1e12).
 _TINY = 1e-100
@@ -108,7 +73,7 @@ def _tri_inv(A, off, n, lda, ip):
     """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
 
     Blocked as LAPACK's dtrtri, but every off-diagonal step is a dtrmm with an already inverted
-    block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is ~10x slower than
+    block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is much slower than
     dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops.
     """
     ch = _CHARS
@@ -153,7 +118,7 @@ def _tri_inv(A, off, n, lda, ip):
 def _inverse_from_cholesky(A, n, ip):
     """In place: the lower Cholesky factor L (flat column-major n x n) -> lower triangle of (L L^T)^-1.
 
-    L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: as dpotri, ~3x faster.
+    L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: what dpotri computes, without dtrsm.
     """
     _tri_inv(A, 0, n, n, ip)
     ip[0], ip[1] = n, 0
@@ -186,9 +151,7 @@ def _partial_cholesky(F, no, nf):
     Right-looking, two columns at a time (each pass over the trailing matrix applies a rank-2
     update), entries of L below _TINY flushed before they are used. For the small fronts at the
     bottom of the tree (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and
-    small-matrix paths dominate there (KITTI 1/3 lattice, 1/4 of the LiDAR, 40-pixel leaves: the
-    1,088 leaf fronts, 40 MFLOP, 22 -> 18 ms single-thread CPU on the shared 2-core VM). Returns
-    0, or j + 1 when pivot j is not positive.
+    small-matrix paths dominate there. Returns 0, or j + 1 when pivot j is not positive.
     """
     unf = np.uint64(nf)
     j = 0
@@ -687,6 +650,57 @@ def numeric_section():
         yield
 
 
+def _post_order(kids: list, roots: list, n: int) -> np.ndarray:
+    """(n,) fronts in depth-first post-order (children before parents)."""
+    order = np.empty(n, dtype=np.int64)
+    k = 0
+    stack = [(r, False) for r in reversed(roots)]
+    while stack:  # iterative: trees of thousands of levels
+        f, done = stack.pop()
+        if done:
+            order[k] = f
+            k += 1
+            continue
+        stack.append((f, True))
+        stack.extend((c, False) for c in reversed(kids[f]))
+    return order
+
+
+def _update_stacks(bins: list, seq: list, kids: list, in_seq: np.ndarray, nbv: np.ndarray) -> tuple[np.ndarray, int]:
+    """Offsets of each front's update matrix: one LIFO region per bin, then one for the common ancestors."""
+    upd_off = np.zeros(in_seq.size, dtype=np.int64)
+    base = 0
+    for part in [*bins, seq]:
+        top = peak = base
+        for f in part:
+            own_kids = [c for c in kids[f] if in_seq[c] == in_seq[f]]
+            if own_kids:
+                top = min(upd_off[c] for c in own_kids)
+            upd_off[f] = top
+            top += int(nbv[f]) ** 2
+            peak = max(peak, top)
+        base = peak
+    return upd_off, base
+
+
+def _covariance_stacks(bins: list, seq: list, parent: np.ndarray, in_seq: np.ndarray,
+                       nf: np.ndarray) -> tuple[np.ndarray, int]:
+    """Offsets of each front's covariance block: a region per common ancestor, then per bin a root-path stack."""
+    sig_off = np.zeros(in_seq.size, dtype=np.int64)
+    base = 0
+    for f in seq:
+        sig_off[f] = base
+        base += int(nf[f]) ** 2
+    for part in bins:
+        end = base
+        for f in part[::-1]:
+            p = parent[f]
+            sig_off[f] = base if p < 0 or in_seq[p] else sig_off[p] + int(nf[p]) ** 2
+            end = max(end, sig_off[f] + int(nf[f]) ** 2)
+        base = end
+    return sig_off, base
+
+
 @dataclass
 class FrontTree:
     """Symbolic structure of the elimination: fronts, their variables and buffer offsets.
@@ -738,17 +752,7 @@ class FrontTree:
         roots = []
         for f in range(n):
             (kids[parent[f]] if parent[f] >= 0 else roots).append(f)
-        order = np.empty(n, dtype=np.int64)
-        k = 0
-        stack = [(r, False) for r in reversed(roots)]
-        while stack:  # iterative DFS post-order
-            f, done = stack.pop()
-            if done:
-                order[k] = f
-                k += 1
-                continue
-            stack.append((f, True))
-            stack.extend((c, False) for c in reversed(kids[f]))
+        order = _post_order(kids, roots, n)
         front_of = np.full(nvar, -1, dtype=np.int64)
         for f in range(n):
             front_of[st[f] : st[f] + no[f]] = f
@@ -782,33 +786,8 @@ class FrontTree:
         bins, seq = _split(order, kids, roots, no, nbv, threads)
         in_seq = np.zeros(n, dtype=bool)
         in_seq[seq] = True
-        # update stacks: one region per bin, then one for the common ancestors (each LIFO in post-order)
-        upd_off = np.zeros(n, dtype=np.int64)
-        base = 0
-        for part in [*bins, seq]:
-            top = peak = base
-            for f in part:
-                own_kids = [c for c in kids[f] if in_seq[c] == in_seq[f]]
-                if own_kids:
-                    top = min(upd_off[c] for c in own_kids)
-                upd_off[f] = top
-                top += int(nbv[f]) ** 2
-                peak = max(peak, top)
-            base = peak
-        stack_size = base
-        # covariance fronts: a region per common ancestor, then per bin a root-path stack
-        sig_off = np.zeros(n, dtype=np.int64)
-        base = 0
-        for f in seq:
-            sig_off[f] = base
-            base += int(nf[f]) ** 2
-        for part in bins:
-            end = base
-            for f in part[::-1]:
-                p = parent[f]
-                sig_off[f] = base if p < 0 or in_seq[p] else sig_off[p] + int(nf[p]) ** 2
-                end = max(end, sig_off[f] + int(nf[f]) ** 2)
-            base = end
+        upd_off, stack_size = _update_stacks(bins, seq, kids, in_seq, nbv)
+        sig_off, base = _covariance_stacks(bins, seq, parent, in_seq, nf)
         children_ptr = np.concatenate([[0], np.cumsum([len(c) for c in kids])]).astype(np.int64)
         children = np.array([c for cs in kids for c in cs], dtype=np.int64)
         bin_ptr = np.concatenate([[0], np.cumsum([len(b) for b in bins])]).astype(np.int64)

@@ -1,29 +1,8 @@
-"""Posterior of a diagonally dominant precision by a Neumann series with a certified bound.
+"""Posterior of a diagonally dominant precision (nu = 0.5) by a Neumann series with a certified bound.
 
-The `fast` engine's route for the paper's balanced set-up (every MDE pixel observed). With
-nu = 0.5 the posterior precision on the pixel grid is P = (Qv (x) Qu) / s^2 + D (a 9-point
-stencil, `gpdepth3d.gp.fast`), and with the paper's values (l = 1.5 px, s = 1, sigma_DL = 0.05,
-relative) the observations dominate it: the stencil's off-diagonal row sum is ~1.6 % of the
-diagonal. With M = diag(P) and E = I - M^-1/2 P M^-1/2 (zero diagonal),
-
-    P^-1 = M^-1/2 (I - E)^-1 M^-1/2 = M^-1/2 (sum_k E^k) M^-1/2,
-
-which converges when rho = max_i sum_j |E_ij| < 1 (rho >= ||E||_2 since E is symmetric). The
-terms after E^K add at most rho^(K+1) / (1 - rho) times max |c| to any entry of sum_k E^k c, and
-at most rho^(K+1) / (1 - rho) to any diagonal entry of sum_k E^k (which is >= 1 / (1 + rho)).
-K is the smallest number of terms that brings this bound below `NEUMANN_MEAN_TOL` /
-`NEUMANN_VAR_TOL`; the engine takes this route only when that K is small, and the result then
-equals the exact posterior to that bound (tested: the error never exceeds it).
-
-* Mean: z = sum_k E^k c with c = M^-1/2 b, by K stencil products (z <- c + E z).
-* Variance: diag(P^-1)_i = M_i^-1 sum_k (E^k)_ii, where (E^2j)_ii = |v_j|^2 and
-  (E^(2j-1))_ii = v_(j-1) . v_j for the local vectors v_j = E^j e_i (support: the (2j + 1)^2
-  pixels around i), so every pixel costs O(K^3) work on a small window.
-
-An unobserved pixel among observed ones is still dominated (its couplings are divided by its
-neighbours' large diagonals); a block of unobserved pixels is not (rho > 1), and the engine then
-uses the grid route, as it does for output grids other than the input grid (the default of
-`DepthCompleter` is the input grid).
+The ``fast`` engine's route when every pixel is observed strongly (the paper's balanced set-up):
+the omitted terms are bounded by `NEUMANN_MEAN_TOL` / `NEUMANN_VAR_TOL`. Derivation:
+docs/engines.md#the-neumann-route-in-detail.
 """
 
 from __future__ import annotations
@@ -40,8 +19,7 @@ from .multifrontal import numeric_section
 # Tolerances of the series (bounds on the omitted terms): relative to max |M^-1/2 b| for the mean
 # (the error of a pixel's mean is at most sqrt(max M / M_i) times that, times the largest
 # residual), relative to each variance.
-# The variance's 2e-9 keeps standard deviations within 1e-9 of the exact ones, as close as the
-# iterative kissgp engine gets (8.9e-10 at KITTI 1/3, bench/engines.py); the issue asks for 5 %.
+# The variance's 2e-9 keeps standard deviations within 1e-9 of the exact ones.
 NEUMANN_MEAN_TOL = 1e-13
 NEUMANN_VAR_TOL = 2e-9
 _PAD = 8  # zero border of the coefficient images: windows of up to 2 * _PAD - 1 pixels need no bounds checks
@@ -134,7 +112,7 @@ def _horner_step(coef, cvec, z, nxt):
 
 @nb.njit(cache=True, nogil=True, parallel=True)
 def _diag_series(coef, h, w, terms):
-    """(H, W) image of sum_{k <= terms} (E^k)_ii by local walks (see the module docstring).
+    """(H, W) image of sum_{k <= terms} (E^k)_ii by local walks (docs/engines.md#the-neumann-route-in-detail).
 
     Per pixel i, v_j = E^j e_i lives on a flat window of side S around i (cell a * S + b is pixel
     (r + a - C, c + b - C), C the centre). v_(j+1) = E v_j is scattered from the support of v_j:
@@ -234,10 +212,10 @@ class NeumannPosterior:
         return max(0, int(np.ceil(np.log(tol * (1.0 - self.rho)) / np.log(self.rho))) - 1)
 
     def seconds(self, variance: bool) -> float | None:
-        """Cost model (seconds on the 2-core CI machine) at the default tolerances; None if not applicable.
+        """Seconds of this route at the default tolerances, None when too slow to take.
 
-        Measured at 117 x 405 to 352 x 1216 (rounded up): ~3-8 ns a pixel and term for the mean,
-        ~0.7 ns a multiply-add (8 per window cell) for the variance's local walks.
+        Per pixel and term for the mean, per multiply-add (8 per window cell) for the variance's
+        local walks; rates fitted as `gpdepth3d.gp.cost_model`'s.
         """
         n = self.M.size
         km, kv = self.terms(NEUMANN_MEAN_TOL), self.terms(NEUMANN_VAR_TOL)

@@ -1,33 +1,7 @@
-"""Exact posterior over few observed pixels (Woodbury) for the separable exponential kernel.
+"""Exact posterior over few observed pixels (Woodbury) for the separable exponential kernel (nu = 0.5).
 
-The `fast` engine's route for the residual formulation with sparse points (docs/architecture.md: "Woodbury
-over the sparse points"). With m observed pixels x_j = (r_j, c_j) and the separable Matern-1/2
-kernel k(x, x') = s^2 e^{-|r - r'| / l} e^{-|c - c'| / l}, in correlation units (A = K_XX / s^2
-+ diag(noise) / s^2, alpha = A^-1 (y - m), M = A^-1):
-
-    mean(r, c) = m*(r, c) + sum_j alpha_j e^{-|r - r_j| / l} e^{-|c - c_j| / l}
-    var(r, c)  = s^2 (1 - sum_jk M_jk e^{-(|r - r_j| + |r - r_k|) / l} e^{-(|c - c_j| + |c - c_k|) / l}).
-
-Evaluated directly, the variance costs m^2 per output pixel. But |x - a| + |x - b| =
-|a - b| + 2 dist(x, [min(a, b), max(a, b)]), so every pair (j, k) contributes
-
-    w_jk * h(r; [r_lo, r_hi]) * h(c; [c_lo, c_hi]),   w_jk = M_jk e^{-(|r_j - r_k| + |c_j - c_k|) / l},
-
-with h(x; [lo, hi]) = e^{-2 dist(x, [lo, hi]) / l}: 1 on the interval, an exponential decay
-outside it. Along an axis of sorted output coordinates x_0 < x_1 < ..., h is the sum of three
-linear operators applied to impulses: a cumulative sum of (+1 at the first x_i >= lo, -1 at the
-first x_i > hi) (the interval), a forward recursion y_i = lambda_i y_{i-1} + u_i with
-lambda_i = e^{-2 (x_i - x_{i-1}) / l} of one impulse after hi, and the mirrored backward recursion
-of one impulse before lo. In 2-D each pair splats 16 impulses into 9 images (one per pair of axis
-operators, interleaved so that the 16 land in 4 cells), which are then filtered along columns
-and rows. The mean is the same with single points and the rate 1 / l. Cost: O(m^3) for the
-Cholesky factor of A and its inverse (`multifrontal.inverse_from_cholesky`), O(m^2) splats and
-O(Ho Wo) filtering, against O(Ho Wo m^2) directly. Every impulse value and decay is <= 1, so
-nothing overflows at any length scale, and no approximation is made. The points must be given in
-row-major order (as `numpy.flatnonzero` returns them).
-
-nu = 0.5 only (for nu > 0.5 the pair products are polynomials times exponentials); the engine
-uses the grid route otherwise.
+The ``fast`` engine's route for sparse points: O(m^3) for the m points' factor, O(m^2) splats and
+O(Ho Wo) recursive filtering instead of O(Ho Wo m^2). Derivation: docs/engines.md#the-woodbury-route-in-detail.
 """
 
 from __future__ import annotations
@@ -36,6 +10,7 @@ import numba as nb
 import numpy as np
 import scipy.linalg
 
+from .cost_model import woodbury_seconds as woodbury_seconds  # the cost model of this route
 from .model import GridProblem
 from .multifrontal import numeric_section, inverse_from_cholesky
 
@@ -48,7 +23,7 @@ _LOG_2PI = float(np.log(2 * np.pi))
 # C start and the B impulse of a point share a cell, as do the C end and the F impulse: a pair
 # writes 16 values into 4 cells. Only the rows that hold an impulse (at most two per point row)
 # are stored: buf (nq, Wo + 1, 9) with qmap (Ho + 1,) the stored row of each row index (-1 =
-# none), so the column pass costs nq Wo, not Ho Wo (with full-resolution output, ~5x less).
+# none), so the column pass costs nq Wo, not Ho Wo.
 
 
 @nb.njit(cache=True, nogil=True)
@@ -237,23 +212,8 @@ def _stored_rows(ri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return qmap, qmap[ri]
 
 
-def woodbury_seconds(m: int, n_out: int, variance: bool, extra: int = 0) -> float:
-    """Cost model of `WoodburyPosterior` with m observed pixels and n_out output pixels (seconds).
-
-    Measured on the 2-core CI machine at 320 x 240 with 500-4000 points: the Cholesky factor
-    (m^3 / 3 flops) at ~15 GFLOPS; for the variance the inverse (2 m^3 / 3 flops) at ~25 GFLOPS
-    and ~40 ns a splatted pair. The filters (kitti_tiny, 125 x 414 and 375 x 1242 outputs,
-    200-1600 points): ~10 ns an output pixel for a mean, ~25 ns for the variance. Each of
-    ``extra`` further means: two triangular solves (2 m^2 flops) and a mean's filter.
-    """
-    t = m**3 / 3 / 15e9 + (1 + extra) * n_out * 10e-9 + extra * 2 * m * m / 5e9
-    if variance:
-        t += 2 * m**3 / 3 / 25e9 + m * (m + 1) / 2 * 40e-9 + n_out * 25e-9
-    return t
-
-
 class WoodburyPosterior:
-    """Exact posterior of a `GridProblem` with few observed pixels and nu = 0.5 (see the module docstring).
+    """Exact posterior of a `GridProblem` with few observed pixels and nu = 0.5 (docs/engines.md#the-woodbury-route-in-detail).
 
     Args:
         problem: The grid problem; its kernel must have nu = 0.5.
