@@ -165,7 +165,7 @@ API_CASES = [
     ("save to a directory", lambda t: _complete_with(config=EXACT).save(_mkdir(t / "d.npz")), OutputError, "directory"),
     ("save under a file", lambda t: _complete_with(config=EXACT).save(_write(t, "f", b"") / "x"), OutputError, "file"),
     ("save empty name", lambda t: _complete_with(config=EXACT).save(""), OutputError, "name"),
-    ("PNG over 256 m", lambda t: _far().save(t / "far", png=True), InvalidDepthError, "256"),
+    ("save a name too long", lambda t: _complete_with(config=EXACT).save(t / ("x" * 250)), OutputError, "too long"),
     ("load posterior of mixed shapes", lambda t: DepthPosterior.load(_mixed_posterior(t)), DataFormatError, "2-D grid"),
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
@@ -260,7 +260,7 @@ class TestFailedWrites:
         with pytest.raises(OutputError, match="disk full"):
             replace(post, mean=post.mean + 1).save(tmp_path / "f", png=True)
         assert {n: (tmp_path / n).read_bytes() for n in visible_files(tmp_path)} == before
-        assert len([p for p in tmp_path.iterdir() if ".set-" in p.name]) == 1  # the failed set is gone
+        assert sorted(p.name for p in tmp_path.iterdir()) == visible_files(tmp_path)  # no temporary left
 
     def test_full_disk_single_file(self, tmp_path, monkeypatch):
         def full(*a, **k):
@@ -309,13 +309,11 @@ class TestFailedWrites:
         stale = [tmp_path / ".f.abcd1234.tmp.npz", tmp_path / ".f_mean.abcd1234.tmp.png"]
         for p in stale:
             p.write_bytes(b"x" * 100)
-        (tmp_path / ".f.set-deadbeef").mkdir()
-        (tmp_path / ".f.set-deadbeef" / "f.npz").write_bytes(b"x")
         (tmp_path / ".other.abcd1234.tmp.npz").write_bytes(b"not ours")
         post.save(tmp_path / "f", png=True)
-        assert not any(p.exists() for p in stale) and not (tmp_path / ".f.set-deadbeef").exists()
+        assert not any(p.exists() for p in stale)
         assert (tmp_path / ".other.abcd1234.tmp.npz").exists()
-        assert len([p for p in tmp_path.iterdir() if ".f.set-" in p.name]) == 1
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".other.abcd1234.tmp.npz", "f.npz", "f_mean.png", "f_std.png"]
 
     def test_png_false_after_png_true_drops_old_pngs(self, tmp_path):
         post = _complete_with(config=EXACT)
@@ -342,6 +340,7 @@ def cli_inputs(tmp_path_factory) -> Path:
     np.savetxt(t / "points.txt", np.stack([sparse.u, sparse.v, sparse.depth], 1))
     np.savetxt(t / "points_far.txt", np.stack([sparse.u, sparse.v, 200.0 * sparse.depth], 1))
     np.save(t / "strs.npy", np.array([["a", "b"], ["c", "d"]]))
+    np.save(t / "zeros.npy", np.zeros_like(mde))
     (t / "binary.txt").write_bytes(bytes(range(256)) * 8)
     (t / "a_file").write_text("x")
     (t / "scan.bin").write_bytes(np.zeros((10, 4), np.float32).tobytes())
@@ -370,8 +369,8 @@ CLI_CASES = [
     ("gt png scale negative", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "mde.npy"), "--gt-png-scale", "-1"), "--gt-png-scale"),
     ("gt missing", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "missing.png")), "not found"),
     ("gt corrupt", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "binary.txt")), "binary.txt"),
-    ("depth over 256 m with png", lambda t, o: _complete_args(t, o / "x", mde="far.npy", points="points_far.txt") + ["--preset", "residual", "--gp.engine", "exact"], "256"),
-    ("output empty", lambda t, o: _complete_args(t, Path("")), "name"),
+    ("output empty", lambda t, o: _complete_args(t, ""), "name"),
+    ("gt without a valid pixel", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "zeros.npy")), "--gt"),
     ("output is a directory", lambda t, o: _complete_args(t, (o / "d.npz").mkdir() or o / "d"), "directory"),
     ("output under a file", lambda t, o: _complete_args(t, t / "a_file" / "x"), "file"),
     ("gt invalid value", lambda t, o: _complete_args(t, o / "x", "--gt-invalid-value", "-1"), "--gt-invalid-value"),
@@ -403,6 +402,61 @@ def test_cli_case_one_line_exit_1(case, cli_inputs, tmp_path, capsys):
     assert "unexpected" not in lines[0] and "Traceback" not in err
     assert text in lines[0], lines[0]
     assert visible_files(tmp_path) in ([], ["d.npz"])  # nothing written
+
+
+def test_png_saturates_at_its_range_and_npz_keeps_true_values(tmp_path):
+    post = _far()
+    with pytest.warns(gio.PNGRangeWarning, match=r"192 of 192 pixels beyond 256.0 m"):
+        written = post.save(tmp_path / "far", png=True)
+    assert [p.name for p in written] == ["far.npz", "far_mean.png", "far_std.png"]
+    assert np.all(cv2.imread(str(written[1]), cv2.IMREAD_UNCHANGED) == 65535)
+    np.testing.assert_allclose(DepthPosterior.load(written[0]).mean, post.mean, rtol=1e-6)
+    with pytest.raises(InvalidDepthError, match="256"):  # without saturate the range is refused
+        gio.depth_png_values(post.mean)
+
+
+def test_cli_far_depths_saturate_the_png_with_one_warning(cli_inputs, tmp_path, capsys):
+    argv = _complete_args(cli_inputs, tmp_path / "x", mde="far.npy", points="points_far.txt") + [
+        "--preset", "residual", "--gp.engine", "exact"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert [line for line in out.splitlines() if "beyond 256.0 m" in line][0].startswith("warning: posterior mean")
+    assert visible_files(tmp_path) == ["x.npz", "x_depth_preview.png", "x_mean.png", "x_sigma_preview.png", "x_std.png"]
+    assert np.load(tmp_path / "x.npz")["mean"].max() > 256
+
+
+@pytest.mark.slow
+def test_kitti_sky_pixel_beyond_png_range_does_not_fail_the_run(shared_data, tmp_path, capsys):
+    """The README's `complete` line on KITTI object frame 000001 (sky pixels beyond 256 m): exit 0, a warning."""
+    k = shared_data / "kitti_object"
+    argv = ["complete", "--rgb", str(k / "000001.png"), "--mde", "rtmonodepth", "--lidar", str(k / "000001.bin"),
+            "--calib", str(k / "calib_000001.txt"), "--output", str(tmp_path / "k1"),
+            "--models-dir", str(shared_data.parent / "models")]
+    assert cli.main(argv) == 0
+    warning = [line for line in capsys.readouterr().out.splitlines() if "beyond 256.0 m" in line]
+    assert len(warning) == 1 and warning[0].startswith("warning: posterior mean")
+    n = int(warning[0].split(": ")[2].split(" of ")[0])
+    mean = np.load(tmp_path / "k1.npz")["mean"]
+    assert n == int(np.count_nonzero(np.rint(mean / gio.KITTI_PNG_SCALE) > 65535)) > 0
+    png = cv2.imread(str(tmp_path / "k1_mean.png"), cv2.IMREAD_UNCHANGED)
+    assert int(np.count_nonzero(png == 65535)) == n
+
+
+def test_cli_output_folder_writes_inside_it(cli_inputs, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    base = ["--preset", "residual", "--gp.engine", "exact", "--no-preview", "--no-png"]
+    assert cli.main(_complete_args(cli_inputs, "out/") + base) == 0  # a new folder, named with a slash
+    assert visible_files(tmp_path) == ["out"] and visible_files(tmp_path / "out") == ["mde.npz"]
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "out") + base) == 0  # an existing folder
+    assert visible_files(tmp_path / "out") == ["mde.npz"]
+
+
+def test_cli_without_gt_removes_the_old_error_preview(cli_inputs, tmp_path):
+    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--gp.engine", "exact", "--no-png"]
+    assert cli.main(argv + ["--gt", str(cli_inputs / "mde.npy")]) == 0
+    assert "x_error_preview.png" in visible_files(tmp_path)
+    assert cli.main(argv) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.npz", "x_depth_preview.png", "x_sigma_preview.png"]
 
 
 def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
@@ -571,6 +625,7 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
         step, finished = 1, False
         while not finished:
             finished = _fork_save_killed_at(posts[1 + step % 2], folder / "f", step)
+            gio.clean_output_set(folder / "f", ["f.npz", "f_mean.png", "f_std.png"])  # what a reader or the next run does
             got = assert_one_set(folder, "f", known)
             if prepare is not None:
                 assert got is not None, f"{label}: the old set vanished at step {step}"
@@ -579,8 +634,7 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
         assert assert_one_set(folder, "f", known) is not None
         print(f"save killed at each of its {step - 2} file-system steps ({label}): always one set")
         posts[0].save(folder / "f", png=True)  # the next save cleans what the kills left
-        hidden = sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
-        assert len(hidden) == 3, hidden
+        assert sorted(p.name for p in folder.iterdir()) == ["f.npz", "f_mean.png", "f_std.png"]
 
 
 def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
@@ -588,37 +642,66 @@ def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
             str(inputs / "points.txt"), "--output", str(out), "--preset", "residual", "--gp.engine", "exact"]
 
 
+SET_NAMES = ["f.npz", "f_mean.png", "f_std.png", "f_depth_preview.png", "f_sigma_preview.png", "f_error_preview.png"]
+
+
+def _fingerprint(folder: Path) -> dict[str, bytes]:
+    """Every file in ``folder`` (hidden ones included) -> its content (an npz: its arrays, a zip's time stamps aside)."""
+    out = {}
+    for p in sorted(folder.iterdir()):
+        if p.suffix == ".npz" and not p.name.startswith("."):
+            with np.load(p) as d:
+                out[p.name] = b"".join(np.ascontiguousarray(d[k]).tobytes() for k in ("mean", "variance", "mde"))
+        else:
+            out[p.name] = p.read_bytes() if p.is_file() else b"<folder>"
+    return out
+
+
 @pytest.mark.slow
 def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
-    """SIGKILL of `gpdepth3d complete` after a random delay, several rounds: always one complete set on disk."""
+    """SIGKILL of `gpdepth3d complete` (previews included) at random moments, alternating a call with --gt
+    and one without: after the next writer's recovery exactly the old or the new set is on disk (all six
+    names: a call without --gt has no error preview), and the next run leaves no temporary."""
     mde = np.load(cli_inputs / "mde.npy")
-    names = []
-    for k in range(4):
-        np.save(tmp_path / f"mde{k}.npy", mde * (1 + 0.5 * k))
-        names.append(f"mde{k}.npy")
+    np.save(tmp_path / "a.npy", mde)
+    np.save(tmp_path / "b.npy", mde * 1.5)
     shutil.copy(cli_inputs / "points.txt", tmp_path / "points.txt")
+    calls = {"a": _complete_cmd(tmp_path, Path("OUT") / "f", "a.npy") + ["--gt", str(tmp_path / "a.npy")],
+             "b": _complete_cmd(tmp_path, Path("OUT") / "f", "b.npy")}
+    refs, duration = {}, 0.0
+    for k, argv in calls.items():  # the reference sets, each from an uninterrupted call
+        (tmp_path / f"ref_{k}").mkdir()
+        t0 = time.monotonic()
+        subprocess.run([x.replace("OUT", str(tmp_path / f"ref_{k}")) for x in argv], check=True, capture_output=True)
+        duration = max(duration, time.monotonic() - t0)
+        refs[k] = _fingerprint(tmp_path / f"ref_{k}")
+    assert "f_error_preview.png" in refs["a"] and "f_error_preview.png" not in refs["b"]
+    assert set(refs["a"]) - {"f_error_preview.png"} == set(refs["b"])
     out = tmp_path / "out"
-    t0 = time.monotonic()
-    subprocess.run(_complete_cmd(tmp_path, out / "f", names[0]), check=True, capture_output=True)
-    duration = time.monotonic() - t0
-    known = [np.load(tmp_path / n) for n in names]
+    out.mkdir()
+    subprocess.run([x.replace("OUT", str(out)) for x in calls["a"]], check=True, capture_output=True)
+    assert _fingerprint(out) == refs["a"]
     rng = random.Random(0)
-    kills = 0
-    rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "4"))
     outcome = {"killed": 0, "finished": 0, "old set": 0, "new set": 0}
+    state = "a"
+    rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "6"))
     for round_ in range(rounds):
-        proc = subprocess.Popen(_complete_cmd(tmp_path, out / "f", names[round_ % 4]), stdout=subprocess.DEVNULL,
+        new = "b" if state == "a" else "a"
+        proc = subprocess.Popen([x.replace("OUT", str(out)) for x in calls[new]], stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
-        time.sleep((rng.uniform(0.5, 1.05) if round_ < rounds - 1 else 0.4) * duration)  # the last: surely killed
+        time.sleep(rng.uniform(0.3, 1.1) * duration if round_ < rounds - 1 else 0.5 * duration)  # the last: killed
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
-            kills += 1
         outcome["killed" if proc.wait() == -signal.SIGKILL else "finished"] += 1
-        got = assert_one_set(out, "f", known)
-        assert got is not None
-        outcome["new set" if np.allclose(got, known[round_ % 4], rtol=1e-6) else "old set"] += 1
-    print(f"random kills: {outcome}")
-    assert kills >= 1
+        gio.clean_output_set(out / "f", SET_NAMES)  # what a reader (DepthPosterior.load) or the next writer does
+        got = _fingerprint(out)
+        assert got in (refs["a"], refs["b"]), f"round {round_}: a mixed set {sorted(got)}"
+        outcome["new set" if got == refs[new] else "old set"] += 1
+        state = "a" if got == refs["a"] else "b"
+    print(f"random kills of complete: {outcome}")
+    assert outcome["killed"] >= 1
+    subprocess.run([x.replace("OUT", str(out)) for x in calls["b"]], check=True, capture_output=True)  # the next run
+    assert _fingerprint(out) == refs["b"]  # its set, no temporary, nothing hidden, no stale error preview
 
 
 @pytest.mark.slow

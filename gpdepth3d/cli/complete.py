@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import OutputError
 from ..gp.model import DepthGPConfig
-from ..io import check_output_path
+from ..io import PNGRangeWarning, check_output_path, output_set
 from ._options import GPPreset
 
 METRIC_COLUMNS: dict[str, str] = {
@@ -33,7 +33,7 @@ def _print_metrics(rows: dict[str, dict[str, float]]) -> None:
 def complete_command(
     *,
     mde: str,
-    output: Path,
+    output: str,
     sparse: Optional[Path] = None,
     lidar: Optional[Path] = None,
     calib: Optional[Path] = None,
@@ -65,7 +65,8 @@ def complete_command(
         mde: The monocular depth: a front-end run on --rgb, "fastdepth" (FastDepth TFLite, NYU, indoor; needs the
             [tflite] extra), "rtmonodepth" (RT-MonoDepth-S ONNX, KITTI, outdoor), "rtmonodepth-mono" or a
             .onnx/.tflite model file; or a depth map file (.npy/.npz in metres, 16-bit .png with --mde-png-scale).
-        output: Output path (the .npz suffix is added).
+        output: Output path (the .npz suffix is added); an existing folder or a name ending in "/" writes inside
+            that folder, named after the --rgb (or --mde) file.
         sparse: Sparse depth: a sparse depth map (.npy/.npz/.png) or a point list (.npz with u, v, depth; .txt lines
             "u v depth [sigma]" in MDE pixels and metres, or "X Y Z" camera-frame metres with --sparse-points xyz).
         lidar: Instead of --sparse: a raw KITTI Velodyne scan (.bin), projected with --calib (closest point per pixel).
@@ -111,10 +112,12 @@ def complete_command(
         _as_shape(lidar_image_size, "--lidar-image-size")
     from ..experiments.previews import preview_paths, write_previews
 
-    out_npz = check_output_path(output, "--output").with_suffix(".npz")
+    out_npz = output_npz(output, Path(rgb) if rgb is not None else Path(mde))
     base = out_npz.with_suffix("")
+    png_names = [out_npz.stem + s for s in ("_mean.png", "_std.png")]
+    preview_names = [p.name for p in preview_paths(base, with_error=True)]
     check_output_targets(
-        [out_npz] + ([out_npz.with_name(out_npz.stem + s) for s in ("_mean.png", "_std.png")] if png else [])
+        [out_npz] + ([out_npz.with_name(n) for n in png_names] if png else [])
         + (preview_paths(base, with_error=gt is not None) if preview else [])
     )
     if (sparse is None) == (lidar is None):
@@ -136,6 +139,10 @@ def complete_command(
     gt_depth = None
     if gt is not None:
         gt_depth = load_depth(gt, png_scale=gt_png_scale, invalid_value=gt_invalid_value)
+        if not np.any(gt_depth > 0):
+            from ..errors import EmptyInputError
+
+            raise EmptyInputError("--gt", "a ground-truth map with at least one valid depth (> 0)", "none valid")
         if abs((gt_depth.shape[1] / gt_depth.shape[0]) / (out_shape[1] / out_shape[0]) - 1.0) > 0.01:
             raise InvalidInputError(
                 "--gt", f"a depth map of the image with the MDE's aspect ratio ({out_shape[1]}x{out_shape[0]})",
@@ -162,7 +169,6 @@ def complete_command(
     with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
         warnings.simplefilter("ignore", PosteriorWarning)
         posterior = completer.complete(mde_depth, measurements, output_shape=output_size, frame=out_npz.stem)
-    written = posterior.save(out_npz, png=png)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
         f"({gp.formulation}, engine {gp.engine}) in {sum(posterior.timings.values()):.2f} s"
@@ -182,13 +188,38 @@ def complete_command(
               f"{cal['coverage_2sigma']:.3f} (0.954), +-3 sigma {cal['coverage_3sigma']:.3f} (0.997), median "
               f"|error| / sigma {cal['median_abs_z']:.3f} (0.674), AUSE {cal['ause']:.3f} (0: sigma ranks the errors "
               f"perfectly), NLL {cal['nll']:.3f} [nats per pixel]")
-    if preview:
-        written = list(written) + write_previews(
-            base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth
-        )
+    # One set: the npz, its PNGs and the previews appear together or not at all; names of an
+    # earlier call not written now (its error preview, its PNGs) go in the same commit.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PNGRangeWarning)
+        with output_set(base, members=[out_npz.name, *png_names, *preview_names]):
+            written = posterior.save(out_npz, png=png)
+            if preview:
+                written = list(written) + write_previews(
+                    base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth
+                )
+    for w in caught:
+        if issubclass(w.category, PNGRangeWarning):
+            print(f"warning: {w.message}")
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     print(f"wrote {len(written)} files in {out_npz.parent.resolve()}:")
     for path in written:
         print(f"wrote {path}")
+
+
+def output_npz(output: str | Path, source: Path) -> Path:
+    """The posterior file of ``--output``: ``OUTPUT.npz``, or ``OUTPUT/<source stem>.npz`` for a folder.
+
+    A folder is an existing one or a name ending in a path separator (``out/``).
+
+    Raises:
+        OutputError: an empty name or one that cannot be written.
+    """
+    text = os.fspath(output)
+    if text.endswith(("/", os.sep)) or (text and Path(text).is_dir()):
+        return check_output_path(Path(text) / f"{source.stem or 'completion'}.npz", "--output")
+    return check_output_path(text, "--output").with_suffix(".npz")
 
 
 def check_output_targets(paths: list[Path]) -> None:
