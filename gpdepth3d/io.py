@@ -676,6 +676,125 @@ def check_png_scale(png_scale: float, argument: str = "png_scale") -> float:
     return float(png_scale)
 
 
+def _read_npy_header(fp) -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, header bytes) of the .npy stream ``fp``, read without touching its data."""
+    start = fp.tell()
+    version = np.lib.format.read_magic(fp)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
+    else:
+        shape, _, dtype = np.lib.format._read_array_header(fp, version)
+    return tuple(int(s) for s in shape), np.dtype(dtype), fp.tell() - start
+
+
+def check_stored_array(path: str | Path, member: str | None = None, *, copies: float = 2.0) -> tuple[tuple[int, ...], np.dtype]:
+    """Reads the header of an ``.npy`` file (or of ``member`` of an ``.npz``) and checks its size first.
+
+    A header claiming more values than the file holds (a corrupt or forged file) is refused
+    before NumPy allocates the array it claims, and so is an array whose ``copies`` (the array
+    and its float64 copy) exceed `gpdepth3d.limits.memory_limit`.
+
+    Returns:
+        The stored (shape, dtype).
+
+    Raises:
+        DataFormatError: no such member, an unreadable header, or more data claimed than stored.
+        ProblemTooLargeError: an array too large for the memory limit.
+    """
+    from .limits import check_array_size
+
+    path = Path(path)
+    try:
+        if member is None:
+            with open(path, "rb") as fp:
+                shape, dtype, header = _read_npy_header(fp)
+                stored = os.fstat(fp.fileno()).st_size - header
+            label = str(path)
+        else:
+            with zipfile.ZipFile(path) as zf:
+                name = member if member.endswith(".npy") else member + ".npy"
+                info = zf.getinfo(name)
+                with zf.open(info) as fp:
+                    shape, dtype, header = _read_npy_header(fp)
+                stored = info.file_size - header
+            label = f"{path}[{member}]"
+    except KeyError:
+        raise DataFormatError(path, f"no array '{member}'") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise DataFormatError(path, f"corrupt or unreadable array header: {exc}") from None
+    claimed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if claimed > stored:
+        raise DataFormatError(
+            label, f"corrupt: the header claims shape {shape} of {dtype} ({claimed} bytes), the file stores {max(stored, 0)}"
+        )
+    check_array_size(f"array {label}", shape, dtype, copies=copies * max(1.0, 8.0 / max(dtype.itemsize, 1)))
+    return shape, dtype
+
+
+def load_npz_arrays(path: str | Path, names: Sequence[str], what: str = "arrays") -> dict[str, np.ndarray]:
+    """Reads the arrays ``names`` of an ``.npz``, each header checked first (`check_stored_array`).
+
+    Raises:
+        DataFormatError: a missing, corrupt or forged file (naming it), or a missing array.
+        ProblemTooLargeError: an array too large for the memory limit.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, f"{what} not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise DataFormatError(path, f"{what}: an .npz archive expected (this is a single array)")
+            missing = [n for n in names if n not in data.files]
+            if missing:
+                raise DataFormatError(path, f"{what}: no array {missing[0]!r} (has {data.files})")
+            out = {}
+            for n in names:
+                check_stored_array(path, n)
+                out[n] = data[n]
+            return out
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        if isinstance(exc, GPDepthError):
+            raise
+        raise DataFormatError(path, f"{what}: corrupt or unreadable ({type(exc).__name__}: {exc})") from None
+
+
+def check_image_header(path: str | Path, channels: int = 3) -> None:
+    """Refuses a PNG whose header (IHDR) claims more pixels than the memory limit allows, before decoding.
+
+    Other formats are left to the decoder (whose errors `load_rgb` / `load_depth` turn into
+    `DataFormatError`).
+
+    Raises:
+        DataFormatError: a PNG signature with a header cut short.
+        ProblemTooLargeError: the decoded image would exceed `gpdepth3d.limits.memory_limit`.
+    """
+    from .limits import check_array_size
+
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(33)
+    if not head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return
+    if len(head) < 33 or head[12:16] != b"IHDR":
+        raise DataFormatError(path, "corrupt PNG: no IHDR header")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    check_array_size(f"image {path}", (height, width, channels), np.float64)
+
+
+def _imread(path: Path, flags: int) -> np.ndarray | None:
+    """cv2.imread with its size refusals and decoder errors as typed errors."""
+    import cv2
+
+    check_image_header(path)
+    try:
+        return cv2.imread(str(path), flags)
+    except cv2.error as exc:
+        raise DataFormatError(path, f"not a readable image: {str(exc).strip().splitlines()[-1]}") from None
+
+
 def load_depth(
     path: str | Path,
     *,
@@ -699,14 +818,17 @@ def load_depth(
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
+            check_stored_array(path)
             depth = np.load(path, allow_pickle=False)
         elif suffix == ".npz":
             with np.load(path, allow_pickle=False) as data:
-                depth = data[_pick_key(path, list(data.keys()), key)]
+                member = _pick_key(path, list(data.keys()), key)
+                check_stored_array(path, member)
+                depth = data[member]
         elif suffix == ".png":
             import cv2
 
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            raw = _imread(path, cv2.IMREAD_UNCHANGED)
             if raw is None:
                 raise DataFormatError(path, "not a readable PNG")
             if raw.ndim != 2 or raw.dtype != np.uint16:
@@ -779,6 +901,9 @@ def load_sparse(
                 if {"u", "v", "depth"} <= set(data.keys()):
                     if image_size is None:
                         raise ShapeError("image_size", "(height, width) for a point list", None)
+                    for member in ("u", "v", "depth", "sigma"):
+                        if member in data:
+                            check_stored_array(path, member)
                     sigma = data["sigma"] if "sigma" in data else None
                     return _points(path, data["u"], data["v"], data["depth"], image_size, sigma, drop_invalid)
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
@@ -844,7 +969,7 @@ def load_rgb(path: str | Path) -> np.ndarray:
         raise DataFormatError(path, "image not found")
     if path.suffix.lower() in (".jpg", ".jpeg"):
         _check_jpeg_complete(path)
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    bgr = _imread(path, cv2.IMREAD_COLOR)
     if bgr is None:
         raise DataFormatError(path, "not a readable image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

@@ -25,6 +25,7 @@ RANKS: dict[str, int] = {
     "sampling": 1,
     "metrics": 1,
     "io": 1,
+    "limits": 1,
     "depthmap": 1,
     "mde": 2,
     "datasets": 2,

@@ -816,3 +816,99 @@ def test_typed_errors_pickle_with_their_attributes():
                   OutputError("o", "disk full"), ConnectionFailedError("tcp://h:1", "no answer"), ProblemTooLargeError("big")):
         back = pickle.loads(pickle.dumps(error))
         assert type(back) is type(error) and str(back) == str(error) and vars(back) == vars(error)
+
+
+# ------------------------------------------------------------------------------------------ sizes
+MEMORY_GUARD_SCRIPT = r'''
+import json, resource, struct, sys, time, zipfile, zlib
+from pathlib import Path
+import numpy as np
+import cv2
+import gpdepth3d as g
+from gpdepth3d import io as gio
+from gpdepth3d.datasets.base import Frame
+
+t = Path(sys.argv[1])
+rng = np.random.default_rng(0)
+def points(h, w):
+    return g.SparseDepth.from_arrays(rng.uniform(0, w - 1, 50), rng.uniform(0, h - 1, 50), 2 + rng.random(50), (h, w))
+big_mde, small_mde = 2 + rng.random((1500, 2000)), 2 + rng.random((240, 320))
+big_pts, small_pts = points(1500, 2000), points(240, 320)
+g.complete(small_mde[:24, :32], points(24, 32))  # warm: the engine's kernels, BLAS threads, allocator arenas
+header = {"descr": "<f8", "fortran_order": False, "shape": (200000, 200000)}
+with open(t / "forged.npy", "wb") as f:
+    np.lib.format.write_array_header_1_0(f, header)
+    f.write(b"\0" * (300 - f.tell()))
+with zipfile.ZipFile(t / "forged.npz", "w") as z:
+    z.writestr("depth.npy", (t / "forged.npy").read_bytes())
+cv2.imwrite(str(t / "small.png"), np.ones((4, 4), np.uint16))
+png = bytearray((t / "small.png").read_bytes())
+png[16:24] = struct.pack(">II", 100000, 100000)
+png[29:33] = struct.pack(">I", zlib.crc32(bytes(png[12:29])) & 0xFFFFFFFF)
+(t / "forged.png").write_bytes(bytes(png))
+frame = Frame(name="f", rgb=np.zeros((375, 1242, 3), np.uint8), depth=np.ones((375, 1242)))
+cases = {
+    "output 11000x12000 from a 1500x2000 MDE": lambda: g.complete(big_mde, big_pts, output_shape=(11000, 12000)),
+    "16x output 3840x5120 from a 240x320 MDE": lambda: g.complete(small_mde, small_pts, output_shape=(3840, 5120)),
+    "Frame.resized(100)": lambda: frame.resized(100),
+    "npy header claiming 200000^2": lambda: gio.load_depth(t / "forged.npy"),
+    "npz header claiming 200000^2": lambda: gio.load_depth(t / "forged.npz"),
+    "PNG header claiming 100000^2 (depth)": lambda: gio.load_depth(t / "forged.png"),
+    "PNG header claiming 100000^2 (image)": lambda: gio.load_rgb(t / "forged.png"),
+}
+with open("/proc/self/statm") as f:
+    vm = int(f.read().split()[0]) * resource.getpagesize()
+cap = vm + 2**30  # one more GiB of address space than the process holds now
+resource.setrlimit(resource.RLIMIT_AS, (cap, resource.getrlimit(resource.RLIMIT_AS)[1]))
+out = {}
+for name, call in cases.items():
+    cpu, wall = time.process_time(), time.perf_counter()
+    try:
+        call()
+        kind, message = "no error", ""
+    except BaseException as exc:
+        kind, message = type(exc).__name__, str(exc)
+    out[name] = {"error": kind, "message": message, "cpu_s": time.process_time() - cpu, "wall_s": time.perf_counter() - wall}
+print(json.dumps(out))
+'''
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="RLIMIT_AS and /proc/self/statm")
+def test_sizes_refused_before_memory_is_spent_under_a_memory_cap(tmp_path):
+    """Each size case of the fuzz gets its typed error within a second, in a process capped at +1 GiB of memory."""
+    import json
+
+    script = tmp_path / "guard.py"
+    script.write_text(MEMORY_GUARD_SCRIPT)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    run = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    results = json.loads(run.stdout.strip().splitlines()[-1])
+    expected = {"npy header claiming 200000^2": "DataFormatError", "npz header claiming 200000^2": "DataFormatError"}
+    for name, r in results.items():
+        assert r["error"] == expected.get(name, "ProblemTooLargeError"), (name, r)
+        assert r["cpu_s"] < 1.0, (name, r)
+    sizes = {"output 11000x12000": "(11000, 12000)", "16x output": "(3840, 5120)", "Frame.resized": "(37500, 124200)",
+             "PNG header": "(100000, 100000, 3)"}
+    for name, r in results.items():
+        if r["error"] == "ProblemTooLargeError":
+            size = next(v for k, v in sizes.items() if name.startswith(k))
+            assert size in r["message"] and "memory limit of" in r["message"], r["message"]
+    print({k: (r["error"], round(r["cpu_s"], 3)) for k, r in results.items()})
+
+
+def test_memory_limit_reads_its_setting(monkeypatch):
+    from gpdepth3d import limits
+    from gpdepth3d.errors import ProblemTooLargeError
+
+    monkeypatch.setenv(limits.ENV_VAR, "1")
+    assert limits.memory_limit() <= 2**20
+    with pytest.raises(ProblemTooLargeError, match=r"output_shape \(48, 64\) from an MDE map of shape \(24, 32\)"):
+        check_output_shape((48, 64), (24, 32))
+    for bad in ("abc", "-5", "nan", "0"):
+        monkeypatch.setenv(limits.ENV_VAR, bad)
+        with pytest.raises(InvalidInputError, match=limits.ENV_VAR):
+            limits.memory_limit()
+    monkeypatch.setenv(limits.ENV_VAR, "100000000")
+    assert limits.memory_limit() < 100000000 * 2**20  # capped by the free memory
+    assert limits.completion_bytes((10, 10), (20, 20)) == 400 * limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL + 100 * limits.COMPLETION_BYTES_PER_INPUT_PIXEL

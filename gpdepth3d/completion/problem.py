@@ -7,6 +7,7 @@ import numpy as np
 from ..depthmap import fill_nearest, resize_map
 from ..errors import EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
+from ..limits import check_completion_size
 from ..mde.align import AlignmentResult, align_depth
 from ..measurements import SparseDepth
 
@@ -43,6 +44,7 @@ def check_output_shape(output_shape, input_shape: tuple[int, int]) -> tuple[int,
             f"at most {MAX_UPSAMPLING}x the MDE size {h}x{w} per side and {MAX_OUTPUT_PIXELS} pixels",
             (ho, wo),
         )
+    check_completion_size((h, w), (ho, wo))  # ProblemTooLargeError before any output array is allocated
     return (ho, wo)
 
 
