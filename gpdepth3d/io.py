@@ -811,7 +811,7 @@ def load_depth(
             real-valued (H, W) map (complex, strings, objects).
         InvalidInputError: if ``png_scale`` is not a finite number > 0.
     """
-    path = Path(path)
+    path = _as_path(path)
     png_scale = check_png_scale(png_scale)
     if not path.is_file():
         raise DataFormatError(path, "file not found")
@@ -855,6 +855,13 @@ def load_depth(
     return depth
 
 
+def _as_path(path, argument: str = "path") -> Path:
+    """``path`` as a `Path`; a value that is no path at all (None, a number) is refused by name."""
+    if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+        raise InvalidInputError(argument, "a file path", describe(path))
+    return Path(path)
+
+
 def _pick_key(path: Path, keys: list[str], key: str | None) -> str:
     if key is not None:
         if key not in keys:
@@ -891,7 +898,7 @@ def load_sparse(
         InvalidDepthError: invalid rows in a point list (unless ``drop_invalid``).
         ShapeError: a point list without ``image_size``.
     """
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "file not found")
     suffix = path.suffix.lower()
@@ -964,7 +971,7 @@ def load_rgb(path: str | Path) -> np.ndarray:
     """
     import cv2
 
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "image not found")
     if path.suffix.lower() in (".jpg", ".jpeg"):
@@ -1012,7 +1019,7 @@ def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 def load_pose(path: str | Path) -> np.ndarray:
     """Reads a 4x4 ``T_world_camera`` from text: 4 rows of 4 numbers (7-Scenes/TUM) or 12 numbers (3x4)."""
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "pose file not found")
     try:
@@ -1028,7 +1035,7 @@ def load_pose(path: str | Path) -> np.ndarray:
 
 def load_poses(path: str | Path) -> list[np.ndarray]:
     """Reads one pose per line (12 numbers, row-major 3x4, KITTI odometry style) as 4x4 matrices."""
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "pose file not found")
     try:

@@ -171,8 +171,69 @@ API_CASES = [
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
     ("batch address", lambda t: g.experiments.batch.check_address("not-an-address"), InvalidInputError, "address"),
     ("batch address no port", lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
+    ("sparse depth 1e-300", lambda t: SparseDepth([1.0], [1.0], [1e-300], (8, 8)), InvalidDepthError, "[1e-06, 1e+06] m"),
+    ("sparse depth 1e300", lambda t: SparseDepth.from_arrays([1.0], [1.0], [1e300], (8, 8)), InvalidDepthError, "1e+300"),
+    ("sparse sigma 1e300", lambda t: SparseDepth([1.0], [1.0], [2.0], (8, 8), [1e300]), InvalidDepthError, "sigma"),
+    ("sparse sigma 1e-300", lambda t: SP.with_sigma(1e-300), InvalidDepthError, "sigma"),
+    ("calib Tr_velo_to_cam x2", lambda t: LidarCalibration.from_kitti(_calib(t, tr=2.0)), CalibrationError, "Tr_velo_to_cam"),
+    ("calib P2 all zero", lambda t: LidarCalibration.from_kitti(_calib(t, p=0.0)), CalibrationError, "P2"),
+    ("calib R0_rect no rotation", lambda t: LidarCalibration.from_kitti(_calib(t, r0=[1, 0.3, 0, 0, 1, 0, 0, 0, 1])), CalibrationError, "R0_rect"),
+    ("calib T scaled (API)", lambda t: LidarCalibration(np.eye(3, 4), 2 * np.eye(4)), CalibrationError, "T_camera_lidar"),
+    ("kitti_tiny corrupt npz", lambda t: g.datasets.open_dataset(_corrupt(_kitti_tiny_with_pose(t, 1.0) / "velodyne_02" / "0000000000.npz"))[0], DataFormatError, "0000000000.npz"),
+    ("ibims corrupt sparse npz", lambda t: g.datasets.open_dataset(_ibims(t, corrupt="sparse_100.npz"))[0], DataFormatError, "sparse_100.npz"),
+    ("ibims corrupt gt npz", lambda t: g.datasets.open_dataset(_ibims(t, corrupt="gt.npz"))[0], DataFormatError, "gt.npz"),
+    ("posterior config_json a list", lambda t: DepthPosterior.load(_posterior(t, config_json=np.array("[1, 2]"))), DataFormatError, "JSON object"),
+    ("posterior mean all NaN", lambda t: DepthPosterior.load(_posterior(t, mean=np.full((3, 3), np.nan))), DataFormatError, "no finite"),
+    ("posterior negative variance", lambda t: DepthPosterior.load(_posterior(t, variance=-np.ones((3, 3)))), DataFormatError, "negative"),
+    ("dataset indexed by name", lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 1.0))["0000000000"], InvalidInputError, ".load("),
+    ("load_depth(None)", lambda t: gio.load_depth(None), InvalidInputError, "path"),
+    ("load_sparse(3)", lambda t: gio.load_sparse(3, (8, 8)), InvalidInputError, "path"),
+    ("Frame.resized('2')", lambda t: g.datasets.Frame(name="f", rgb=RGB).resized("2"), InvalidInputError, "factor"),
+    ("npy header claims 200000^2", lambda t: gio.load_depth(_forged_npy(t)), DataFormatError, "header claims"),
     ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
 ]
+
+
+def _calib(tmp: Path, *, tr: float = 1.0, p: float = 1.0, r0=(1, 0, 0, 0, 1, 0, 0, 0, 1)) -> Path:
+    """A KITTI object calibration file with its Tr_velo_to_cam, P2 and R0_rect changed."""
+    P = p * np.array([721.5, 0, 609.6, 44.9, 0, 721.5, 172.9, 0.2, 0, 0, 1, 0.003])
+    Tr = tr * np.array([0, -1, 0, 0, 0, 0, -1, 0, 1, 0, 0, 0.0])
+    path = tmp / "calib.txt"
+    path.write_text(f"P2: {' '.join(map(str, P))}\nR0_rect: {' '.join(map(str, r0))}\nTr_velo_to_cam: {' '.join(map(str, Tr))}\n")
+    return path
+
+
+def _corrupt(path: Path) -> Path:
+    path.write_bytes(b"PK\x03\x04 not really a zip archive")
+    return path.parents[1]
+
+
+def _ibims(tmp: Path, corrupt: str) -> Path:
+    root = tmp / "ibims"
+    root.mkdir()
+    cv2.imwrite(str(root / "image.png"), np.zeros((10, 20, 3), np.uint8))
+    np.savez(root / "gt.npz", depth=np.ones((10, 20), np.float32))
+    np.savez(root / "sparse_100.npz", u=np.array([1, 2]), v=np.array([1, 2]), depth=np.array([1.0, 1.0]))
+    (root / corrupt).write_bytes(b"\x00" * 64)
+    return root
+
+
+def _posterior(tmp: Path, **replace) -> Path:
+    post = _complete_with(config=EXACT)
+    post.save(tmp / "src" / "ok")
+    with np.load(tmp / "src" / "ok.npz") as d:
+        arrays = {k: d[k] for k in d.files}
+    for k, v in replace.items():
+        arrays[k] = np.resize(v, arrays[k].shape) if k in ("mean", "variance") else v
+    np.savez(tmp / "p.npz", **arrays)
+    return tmp / "p.npz"
+
+
+def _forged_npy(tmp: Path) -> Path:
+    with open(tmp / "forged.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (200000, 200000)})
+        f.write(b"\0" * 100)
+    return tmp / "forged.npy"
 
 
 def _mixed_posterior(tmp: Path) -> Path:
@@ -221,6 +282,24 @@ def test_real_data_cases(shared_data, tmp_path):
     calib.check_image_size((375, 1242))
     with pytest.raises(CalibrationError, match="320x240"):
         calib.check_image_size((240, 320))
+
+
+def test_masked_mde_pixels_are_no_mde():
+    mde, sparse = small_problem()
+    garbage = mde.copy()
+    garbage[2:5, 3:9] = -7.0  # would be refused as negative depths if the mask were ignored
+    masked = np.ma.masked_array(garbage, mask=garbage < 0)
+    holes = np.where(garbage < 0, 0.0, garbage)
+    a, b = complete(masked, sparse, config=EXACT), complete(holes, sparse, config=EXACT)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.variance, b.variance)
+
+
+def test_calibration_checks_keep_real_kitti(shared_data):
+    for k in range(3):
+        calib = LidarCalibration.from_kitti(shared_data / "kitti_object" / f"calib_{k:06d}.txt")
+        assert calib.P[0, 0] > 0
+    LidarCalibration.from_kitti(shared_data / "kitti_tiny", camera=2)
 
 
 def test_dropped_points_are_counted(tmp_path):
@@ -336,14 +415,25 @@ def cli_inputs(tmp_path_factory) -> Path:
     t = tmp_path_factory.mktemp("cli_inputs")
     mde, sparse = small_problem(h=24, w=32)
     np.save(t / "mde.npy", mde)
-    np.save(t / "far.npy", mde * 200.0)
+    far = mde * 10.0
+    far[:4] = 500.0  # a band of sky beyond the 16-bit PNG's 256 m
+    np.save(t / "far.npy", far)
+    np.save(t / "mde_mm.npy", mde * 1000.0)
+    np.savetxt(t / "points_mm.txt", np.stack([sparse.u, sparse.v, 1000.0 * sparse.depth], 1))
+    np.savetxt(t / "points_cm.txt", np.stack([sparse.u, sparse.v, 100.0 * sparse.depth], 1))
     np.savetxt(t / "points.txt", np.stack([sparse.u, sparse.v, sparse.depth], 1))
-    np.savetxt(t / "points_far.txt", np.stack([sparse.u, sparse.v, 200.0 * sparse.depth], 1))
+    below = sparse.v >= 4.5  # the points see the street, not the sky
+    np.savetxt(t / "points_far.txt", np.stack([sparse.u, sparse.v, 10.0 * sparse.depth], 1)[below])
     np.save(t / "strs.npy", np.array([["a", "b"], ["c", "d"]]))
     np.save(t / "zeros.npy", np.zeros_like(mde))
     (t / "binary.txt").write_bytes(bytes(range(256)) * 8)
     (t / "a_file").write_text("x")
     (t / "scan.bin").write_bytes(np.zeros((10, 4), np.float32).tobytes())
+    np.save(t / "big_mde.npy", (2 + np.random.default_rng(0).random((1500, 2000))).astype(np.float32))
+    (t / "calib_x2.txt").write_text(
+        "P2: 721.5 0 609.6 44.9 0 721.5 172.9 0.2 0 0 1 0.003\n"
+        "R0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -2 0 0 0 0 -2 0 2 0 0 0\n"
+    )
     (t / "calib.txt").write_text(
         "P2: 721.5 0 609.6 44.9 0 721.5 172.9 0.2 0 0 1 0.003\n"
         "R0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -1 0 0 0 0 -1 0 1 0 0 0\n"
@@ -383,6 +473,15 @@ CLI_CASES = [
     ("demo onto a file", lambda t, o: ["demo", "--output", str(t / "a_file" / "d")], "is a file"),
     ("batch onto a file", lambda t, o: ["batch", "--data", str(t), "--output", str(t / "a_file" / "b"), "--workers", "0"], "file"),
     ("batch bad address", lambda t, o: ["batch", "--data", str(t), "--output", str(o / "b"), "--address", "not-an-address"], "address"),
+    ("eval seed -1", lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--seed", "-1"], "--seed"),
+    ("eval device tpu", lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--device", "tpu"], "--device"),
+    ("lidar calib scaled", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "calib_x2.txt"), "--lidar-image-size", "375", "1242", "--output", str(o / "x")], "Tr_velo_to_cam"),
+    ("output size beyond the memory limit", lambda t, o: _complete_args(t, o / "x", "--output-size", "11000", "12000", mde="big_mde.npy"), "memory limit"),
+    ("points in millimetres", lambda t, o: _complete_args(t, o / "x", points="points_mm.txt"), "millimetres, convert them with --sparse-scale 0.001"),
+    ("points in millimetres, no png", lambda t, o: _complete_args(t, o / "x", "--no-png", points="points_mm.txt"), "--sparse-scale 0.001"),
+    ("points in centimetres", lambda t, o: _complete_args(t, o / "x", points="points_cm.txt"), "centimetres, convert them with --sparse-scale 0.01"),
+    ("mde in millimetres", lambda t, o: _complete_args(t, o / "x", mde="mde_mm.npy", points="points_mm.txt"), "--mde-scale 0.001"),
+    ("sparse scale 0", lambda t, o: _complete_args(t, o / "x", "--sparse-scale", "0"), "--sparse-scale"),
     ("unknown preset", lambda t, o: _complete_args(t, o / "x", "--preset", "nope"), "--preset"),
     ("two presets", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--preset=residual"), "--preset"),
     ("preset without a name", lambda t, o: _complete_args(t, o / "x", "--preset"), "--preset"),
@@ -420,7 +519,8 @@ def test_cli_far_depths_saturate_the_png_with_one_warning(cli_inputs, tmp_path, 
         "--preset", "residual", "--gp.engine", "exact"]
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
-    assert [line for line in out.splitlines() if "beyond 256.0 m" in line][0].startswith("warning: posterior mean")
+    warning = [line for line in out.splitlines() if "beyond 256.0 m" in line]
+    assert len(warning) == 1 and warning[0].startswith("warning: posterior mean")
     assert visible_files(tmp_path) == ["x.npz", "x_depth_preview.png", "x_mean.png", "x_sigma_preview.png", "x_std.png"]
     assert np.load(tmp_path / "x.npz")["mean"].max() > 256
 
@@ -440,6 +540,26 @@ def test_kitti_sky_pixel_beyond_png_range_does_not_fail_the_run(shared_data, tmp
     assert n == int(np.count_nonzero(np.rint(mean / gio.KITTI_PNG_SCALE) > 65535)) > 0
     png = cv2.imread(str(tmp_path / "k1_mean.png"), cv2.IMREAD_UNCHANGED)
     assert int(np.count_nonzero(png == 65535)) == n
+
+
+def test_cli_scales_convert_millimetres(cli_inputs, tmp_path):
+    base = ["--preset", "residual", "--gp.engine", "exact", "--no-preview"]
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "m") + base) == 0
+    argv = _complete_args(cli_inputs, tmp_path / "mm", mde="mde_mm.npy", points="points_mm.txt")
+    assert cli.main(argv + base + ["--mde-scale", "0.001", "--sparse-scale", "0.001"]) == 0
+    metres, converted = np.load(tmp_path / "m.npz"), np.load(tmp_path / "mm.npz")
+    np.testing.assert_allclose(converted["mean"], metres["mean"], rtol=1e-5)
+
+
+def test_likely_unit():
+    from gpdepth3d.measurements import check_metres, likely_unit
+
+    assert likely_unit(np.array([1.5, 3.0, 80.0, 0.0, np.nan])) is None  # metres, indoor to street
+    assert likely_unit(np.array([2729.0, 1500.0, 4000.0])) == ("millimetres", 1e-3)
+    assert likely_unit(np.array([273.0, 150.0, 400.0])) == ("centimetres", 1e-2)
+    assert likely_unit(np.zeros(3)) is None
+    with pytest.raises(InvalidDepthError, match="look like millimetres, convert them with --x 0.001"):
+        check_metres(np.full((4, 4), 2500.0), "depths", "--x")
 
 
 def test_cli_output_folder_writes_inside_it(cli_inputs, tmp_path, monkeypatch):
@@ -912,3 +1032,36 @@ def test_memory_limit_reads_its_setting(monkeypatch):
     monkeypatch.setenv(limits.ENV_VAR, "100000000")
     assert limits.memory_limit() < 100000000 * 2**20  # capped by the free memory
     assert limits.completion_bytes((10, 10), (20, 20)) == 400 * limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL + 100 * limits.COMPLETION_BYTES_PER_INPUT_PIXEL
+
+
+def test_cli_ply_cloud_with_sigma(cli_inputs, tmp_path):
+    """complete --ply: one point per pixel, coloured by --rgb, with the posterior's sigma; part of the output set."""
+    np.savetxt(tmp_path / "K.txt", [[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    rgb = np.zeros((24, 32, 3), np.uint8)
+    rgb[..., 1] = 200
+    cv2.imwrite(str(tmp_path / "rgb.png"), rgb[..., ::-1])
+    argv = _complete_args(cli_inputs, tmp_path / "out" / "x") + [
+        "--preset", "residual", "--gp.engine", "exact", "--intrinsics", str(tmp_path / "K.txt"),
+        "--rgb", str(tmp_path / "rgb.png"), "--ply", str(tmp_path / "out" / "x.ply"), "--output-size", "48", "64"]
+    assert cli.main(argv) == 0
+    from gpdepth3d.mapping.cloud import ColoredCloud
+
+    post = DepthPosterior.load(tmp_path / "out" / "x.npz")
+    cloud = ColoredCloud.load_ply(tmp_path / "out" / "x.ply")
+    assert len(cloud) == 48 * 64 and np.all(cloud.colors == [0, 200, 0])
+    np.testing.assert_allclose(np.sort(cloud.points[:, 2]), np.sort(post.mean.ravel()), rtol=1e-5)
+    np.testing.assert_allclose(np.sort(cloud.variance), np.sort(post.variance.ravel()), rtol=1e-4)
+    # the camera was resized to the output grid (fx 60, cx 31.5): the first point is pixel (0, 0)
+    z = post.mean[0, 0]
+    np.testing.assert_allclose(cloud.points[0], [-31.5 / 60 * z, -23.5 / 60 * z, z], rtol=1e-5)
+
+
+@pytest.mark.parametrize("extra, text", [
+    (["--ply", "x.txt"], ".ply"),
+    (["--ply", "x.ply"], "--intrinsics"),
+])
+def test_cli_ply_refused_before_work(cli_inputs, tmp_path, capsys, extra, text):
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "x") + extra) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and text in err[0]
+    assert visible_files(tmp_path) == []

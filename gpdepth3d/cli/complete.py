@@ -52,6 +52,9 @@ def complete_command(
     models_dir: Optional[Path] = None,
     drop_invalid_points: bool = False,
     preview: bool = True,
+    mde_scale: Optional[float] = None,
+    sparse_scale: Optional[float] = None,
+    ply: Optional[Path] = None,
 ) -> None:
     """Complete one frame: an RGB image through a front-end (or an MDE depth map) + sparse depth -> depth and sigma.
 
@@ -86,24 +89,35 @@ def complete_command(
         gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
         output_size: Output HEIGHT WIDTH (default: the MDE size; larger upsamples).
         png: Also write 16-bit PNGs of mean and std.
-        rgb: RGB image to run the front-end named by --mde on (the MDE map is then the network's output).
+        rgb: RGB image to run the front-end named by --mde on (the MDE map is then the network's output); with an
+            MDE depth file, the image drawn in the previews and colouring --ply.
         models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
         drop_invalid_points: Drop point-list rows with a NaN/negative depth or outside the image (their count is
             printed as a warning) instead of refusing the file.
         preview: Also write the colourised previews (PNG with colour bars).
+        mde_scale: Metres per unit of an MDE depth file (0.001 for millimetres). Unset, the file must hold metres:
+            values that look like millimetres or centimetres are refused before any work.
+        sparse_scale: Metres per unit of the sparse depths (and sigmas), any format (0.001 for millimetres). Unset,
+            they must be metres: values that look like millimetres or centimetres are refused before any work.
+        ply: Also write the posterior as a coloured point cloud (binary PLY with per-point sigma, variance and
+            confidence; `gpdepth3d.mapping.cloud`), back-projected with --intrinsics or the --calib of --lidar and
+            coloured by --rgb (grey without it).
     """
     from ..camera import PinholeCamera
     from ..completion.complete import DepthCompleter, PosteriorWarning
     from ..completion.problem import check_output_shape
     from ..errors import InvalidInputError
     from ..io import check_png_scale, load_depth, load_sparse, read_matrix
-    from ..measurements import LidarCalibration, load_velodyne, project_points
+    from ..measurements import LidarCalibration, SparseDepth, check_metres, load_velodyne, project_points
     from ..metrics import calibration_metrics, depth_metrics
 
     # Everything is checked and read before anything is computed or written.
     for name, value in (("--mde-png-scale", mde_png_scale), ("--sparse-png-scale", sparse_png_scale),
                         ("--gt-png-scale", gt_png_scale)):
         check_png_scale(value, name)
+    for name, value in (("--mde-scale", mde_scale), ("--sparse-scale", sparse_scale)):
+        if value is not None:
+            check_png_scale(value, name)  # metres per unit: a finite number > 0
     if gt_invalid_value is not None and not 0 <= gt_invalid_value <= 65535:
         raise InvalidInputError("--gt-invalid-value", "a 16-bit PNG value 0..65535", gt_invalid_value)
     if lidar_image_size is not None:
@@ -120,9 +134,18 @@ def complete_command(
         [out_npz] + ([out_npz.with_name(n) for n in png_names] if png else [])
         + (preview_paths(base, with_error=gt is not None) if preview else [])
     )
+    if ply is not None:
+        ply = check_output_path(ply, "--ply")
+        if ply.suffix.lower() != ".ply":
+            raise InvalidInputError("--ply", "a file name ending in .ply", str(ply))
+        if intrinsics is None and (lidar is None or calib is None):
+            raise InvalidInputError("--ply", "intrinsics to back-project with: --intrinsics K.txt, or --lidar with --calib",
+                                    "neither")
+        check_output_targets([ply])
     if (sparse is None) == (lidar is None):
         raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
     is_file = Path(mde).suffix.lower() in DEPTH_FILE_SUFFIXES
+    image = None
     if not is_file:
         if rgb is None:
             raise InvalidInputError(
@@ -132,9 +155,18 @@ def complete_command(
         from ..mde import load_frontend
 
         network = load_frontend(mde, models_dir=models_dir)
-        mde_depth = network(load_rgb(rgb))
+        image = load_rgb(rgb)
+        mde_depth = network(image)
     else:
         mde_depth = load_depth(Path(mde), png_scale=mde_png_scale)
+        if rgb is not None:
+            from ..io import load_rgb
+
+            image = load_rgb(rgb)
+        if mde_scale is None:
+            check_metres(mde_depth, f"--mde {mde}", "--mde-scale")
+        else:
+            mde_depth = mde_depth * mde_scale
     out_shape = check_output_shape(output_size, mde_depth.shape)
     gt_depth = None
     if gt is not None:
@@ -148,7 +180,7 @@ def complete_command(
                 "--gt", f"a depth map of the image with the MDE's aspect ratio ({out_shape[1]}x{out_shape[0]})",
                 f"{gt_depth.shape[1]}x{gt_depth.shape[0]}",
             )
-    camera = None
+    camera = calibration_camera = None
     if intrinsics is not None:
         camera = PinholeCamera.from_K(read_matrix(intrinsics, (3, 3), "intrinsics"), mde_depth.shape[1], mde_depth.shape[0])
     if lidar is not None:
@@ -157,7 +189,10 @@ def complete_command(
         calibration = LidarCalibration.from_kitti(calib)
         if lidar_image_size is None:
             calibration.check_image_size(mde_depth.shape, "--lidar-image-size (default: the MDE size)")
-        measurements = calibration.project(load_velodyne(lidar), lidar_image_size or mde_depth.shape)
+        lidar_shape = lidar_image_size or mde_depth.shape
+        measurements = calibration.project(load_velodyne(lidar), lidar_shape)
+        K = calibration.P[:, :3] / calibration.P[2, 2]
+        calibration_camera = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], lidar_shape[1], lidar_shape[0])
     elif sparse_points == "xyz":
         if camera is None:
             raise InvalidInputError("--intrinsics", "intrinsics for --sparse-points xyz", None)
@@ -165,6 +200,12 @@ def complete_command(
         measurements = project_points(xyz, camera)
     else:
         measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points)
+    if sparse is not None:
+        if sparse_scale is None:
+            check_metres(measurements.depth, f"--sparse {sparse}", "--sparse-scale")
+        else:
+            m = measurements
+            measurements = SparseDepth(m.u, m.v, m.depth * sparse_scale, m.image_size, m.sigma * sparse_scale)
     completer = DepthCompleter(gp)
     with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
         warnings.simplefilter("ignore", PosteriorWarning)
@@ -192,12 +233,15 @@ def complete_command(
     # earlier call not written now (its error preview, its PNGs) go in the same commit.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PNGRangeWarning)
-        with output_set(base, members=[out_npz.name, *png_names, *preview_names]):
-            written = posterior.save(out_npz, png=png)
+        with output_set(base, members=[out_npz.name, *png_names, *preview_names] + ([ply.name] if ply else [])):
+            written = list(posterior.save(out_npz, png=png))
             if preview:
-                written = list(written) + write_previews(
-                    base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth
+                written += write_previews(
+                    base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth, rgb=image,
+                    sparse=posterior.sparse,
                 )
+            if ply is not None:
+                written.append(_write_cloud(ply, posterior, image, camera or calibration_camera))
     for w in caught:
         if issubclass(w.category, PNGRangeWarning):
             print(f"warning: {w.message}")
@@ -206,6 +250,22 @@ def complete_command(
     print(f"wrote {len(written)} files in {out_npz.parent.resolve()}:")
     for path in written:
         print(f"wrote {path}")
+
+
+def _write_cloud(path: Path, posterior, image: Optional[np.ndarray], camera) -> Path:
+    """Back-projects the posterior on its output grid (camera resized to it), coloured by the image (grey without)."""
+    import cv2
+
+    from ..mapping.cloud import backproject_posterior
+
+    h, w = posterior.shape
+    if image is None:
+        colours = np.full((h, w, 3), 128, np.uint8)
+    else:
+        shrink = image.shape[0] > h
+        colours = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    cloud = backproject_posterior(posterior, colours, camera.resized(w, h))
+    return cloud.save_ply(path)
 
 
 def output_npz(output: str | Path, source: Path) -> Path:

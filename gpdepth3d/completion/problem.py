@@ -50,7 +50,7 @@ def check_output_shape(output_shape, input_shape: tuple[int, int]) -> tuple[int,
 
 def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validates an MDE depth map; returns it as float64 with invalid pixels at 0, and the valid mask."""
-    d = np.asarray(mde_depth)
+    d = np.ma.filled(mde_depth, 0.0) if np.ma.isMaskedArray(mde_depth) else np.asarray(mde_depth)  # masked: no MDE
     if d.ndim != 2 or d.shape[0] < 2 or d.shape[1] < 2:
         raise ShapeError("mde_depth", "a 2-D (H, W) depth map with H, W >= 2", describe(d))
     if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):
