@@ -192,8 +192,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
                 active.add(path, tmp_path, fd)
                 tmp_path = None  # renamed (or removed) by the set's commit, which closes fd
             elif pending is not None:
-                pending.append((tmp_path, path))
-                tmp_path = None  # type: ignore[assignment]  # renamed (or removed) by write_together
+                pending.append((tmp_path, path, fd))
+                tmp_path = None  # renamed (or removed) by write_together, which closes fd
             else:
                 os.replace(tmp_path, path)
                 tmp_path = None
@@ -203,7 +203,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         if tmp_path is not None:
             with contextlib.suppress(OSError):
                 tmp_path.unlink()
-        if not joins or tmp_path is not None:
+        if tmp_path is not None or not (joins or pending is not None):
             with contextlib.suppress(OSError):
                 os.close(fd)
 
@@ -251,10 +251,12 @@ def write_together() -> Iterator[None]:
     """Defers the renames of every `atomic_path` write inside the block until the block succeeds.
 
     All files are first written under temporary names; only when the whole block succeeded are
-    they renamed into place (a failure such as a full disk leaves none of the new files, and the
-    old files untouched). Used by the CLI so a command's outputs do not come half-written.
+    they renamed into place, folder by folder, each folder's renames one journalled commit as in
+    `output_set` (a failure such as a full disk leaves none of the new files and the old files
+    untouched; a kill during a commit is finished by the next `write_together` writing there).
+    Used by the CLI so a command's outputs (``eval``'s tables and plots) do not come half-written.
     """
-    pending: list[tuple[Path, Path]] = []
+    pending: list[tuple[Path, Path, int]] = []
     token = _PENDING.set(pending)
     ok = False
     try:
@@ -262,19 +264,27 @@ def write_together() -> Iterator[None]:
         ok = True
     finally:
         _PENDING.reset(token)
+        folders: dict[str, _OutputSet] = {}
+        for tmp, final, fd in pending:
+            key = os.path.abspath(final.parent)
+            if key not in folders:
+                folders[key] = _OutputSet(final.parent / TOGETHER_BASE, ())
+            folders[key].add(final, tmp, fd)
         if ok:
-            for i, (tmp, final) in enumerate(pending):
+            for i, s in enumerate(folders.values()):
                 try:
-                    os.replace(tmp, final)
-                except OSError as exc:
-                    for t, _ in pending[i:]:
-                        with contextlib.suppress(OSError):
-                            t.unlink()
-                    raise OutputError(final, write_problem(exc)) from None
+                    s.commit()
+                except BaseException:
+                    for rest in list(folders.values())[i + 1:]:
+                        rest.discard()
+                    raise
         else:
-            for tmp, _ in pending:
-                with contextlib.suppress(OSError):
-                    tmp.unlink()
+            for s in folders.values():
+                s.discard()
+
+
+TOGETHER_BASE = "gpdepth3d"
+"""Name of the commit journals of `write_together` (``.gpdepth3d.<8 hex>.journal``, while a commit runs)."""
 
 
 # ------------------------------------------------------------------------------ output sets

@@ -377,6 +377,30 @@ class TestOutputSets:
         assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]  # rolled forward: the complete new set
         assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
 
+    def test_write_together_commit_is_journalled(self, tmp_path, monkeypatch):
+        for n in ("a.csv", "b.json"):
+            gio.atomic_write(tmp_path / n, lambda p, n=n: p.write_text(f"old:{n}"))
+        real = os.replace
+        calls = {"n": 0}
+
+        def interrupted(src, dst):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise KeyboardInterrupt
+            return real(src, dst)
+
+        monkeypatch.setattr(gio.os, "replace", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            with gio.write_together():
+                for n in ("a.csv", "b.json"):
+                    gio.atomic_write(tmp_path / n, lambda p, n=n: p.write_text(f"new:{n}"))
+        monkeypatch.setattr(gio.os, "replace", real)
+        assert [(tmp_path / n).read_text() for n in ("a.csv", "b.json")] == ["new:a.csv", "old:b.json"]
+        with gio.write_together():  # the next run writing there finishes the interrupted commit first
+            gio.atomic_write(tmp_path / "c.txt", lambda p: p.write_text("c"))
+        assert [(tmp_path / n).read_text() for n in ("a.csv", "b.json")] == ["new:a.csv", "new:b.json"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.json", "c.txt"]
+
     def test_clean_output_set_removes_only_dead_writers_leftovers(self, tmp_path):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
         (tmp_path / ".s.abcdefgh.tmp.txt").write_text("x")

@@ -843,7 +843,7 @@ def test_concurrent_completes_leave_one_set(cli_inputs, tmp_path):
 
 # ------------------------------------------------------------------------------------------ CLI sweep
 def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
-    """Garbage for every option of every command (215 command lines): for the README's fuzz summary."""
+    """Garbage for every option of every command: the CLI sweep summarised in docs/reliability.md."""
     import itertools
 
     rng = np.random.default_rng(0)
@@ -881,6 +881,17 @@ def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
         for opt, v in [("--gp.units", "feet"), ("--gp.align", "x"), ("--gp.engine", "gpu"), ("--gp.formulation", "x")]:
             cases.append(base() + ["--preset", model, opt, v])
     cases += [base()[:-1] + [o_] for o_ in ["", f"{t}/afile/x", str(t), "/proc/x"]]
+    np.savetxt(t / "p_mm.txt", [[3, 4, 2000.0], [10, 5, 2500.0]])
+    np.save(t / "mde_mm.npy", 1000 * (2 + rng.random((24, 32))))
+    np.savetxt(t / "K.txt", [[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    cases += [base()[:4] + [f"{t}/p_mm.txt"] + base()[4:] + a for a in [[], ["--no-png"], ["--sparse-scale", "0.001"]]]
+    cases += [["complete", "--mde", f"{t}/mde_mm.npy", "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"] + a
+              for a in [[], ["--mde-scale", "0.001"], ["--mde-scale", "-1"]]]
+    cases += [base() + [opt, v] for opt in ("--sparse-scale", "--mde-scale") for v in ["0", "nan", "-1", "abc", "1e400"]]
+    cases += [base() + a for a in [["--ply", f"{out}/c.ply"], ["--ply", f"{out}/c.txt"], ["--ply", f"{t}/afile/c.ply"],
+                                   ["--ply", f"{out}/c.ply", "--intrinsics", f"{t}/K.txt"], ["--ply", str(t)]]]
+    cases += [base()[:-1] + [f"{out}/folder{next(o)}/"], base() + ["--gt", f"{t}/zeros.npy"]]
+    np.save(t / "zeros.npy", np.zeros((24, 32)))
     cases += [["view", "--posterior", "x.npz", "--duration", v] for v in ["-1", "nan", "abc"]]
     cases += [["view", "--posterior", "x.npz", "--host", h, "--duration", "0"]
               for h in ["999.1.1.1", "0.0.0.0", "", "::", "example.invalid", "1.2.3.4"]]
@@ -922,8 +933,10 @@ def test_cli_sweep(tmp_path):
         else:
             key = "exit 0" if rc == 0 else "other exit"
         counts[key] += 1
-    print(f"CLI sweep: {sum(counts.values())} command lines: {counts}")
+    leftovers = [p for p in (tmp_path / "out").rglob("*") if p.name.startswith(".")] if (tmp_path / "out").exists() else []
+    print(f"CLI sweep: {sum(counts.values())} command lines: {counts}; leftover temporaries {len(leftovers)}")
     assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
+    assert leftovers == []
 
 
 def test_typed_errors_pickle_with_their_attributes():
