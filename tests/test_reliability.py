@@ -465,6 +465,8 @@ CLI_CASES = [
     ("output under a file", lambda t, o: _complete_args(t, t / "a_file" / "x"), "file"),
     ("gt invalid value", lambda t, o: _complete_args(t, o / "x", "--gt-invalid-value", "-1"), "--gt-invalid-value"),
     ("lidar image size 0", lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "0", "10"), "--lidar-image-size"),
+    ("lidar image size without lidar", lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "24", "32"), "without --lidar"),
+    ("calib without lidar", lambda t, o: _complete_args(t, o / "x", "--calib", str(t / "calib.txt")), "without --lidar"),
     ("view a .npy", lambda t, o: ["view", "--posterior", str(t / "mde.npy"), "--duration", "0"], "npz"),
     ("view duration -1", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--duration", "-1"], "--duration"),
     ("view bad host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "999.1.1.1", "--duration", "1"], "host"),

@@ -144,6 +144,9 @@ def complete_command(
         check_output_targets([ply])
     if (sparse is None) == (lidar is None):
         raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
+    for name, value in (("--calib", calib), ("--lidar-image-size", lidar_image_size)):
+        if value is not None and lidar is None:
+            raise InvalidInputError(name, "--lidar (it belongs to a LiDAR scan)", f"{name} without --lidar")
     is_file = Path(mde).suffix.lower() in DEPTH_FILE_SUFFIXES
     image = None
     if not is_file:
