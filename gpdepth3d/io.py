@@ -440,9 +440,13 @@ def _recover(base: Path, names: Sequence[str]) -> int:
     journal = _journal_pattern(base.name)
     temps = [_temp_pattern(n) for n in names]
     legacy_set = re.compile(rf"^\.{re.escape(base.name)}\.set-[A-Za-z0-9_]{{8}}$")
-    entries = sorted(folder.iterdir(), key=lambda p: p.name)
-    for entry in entries:
-        if journal.match(entry.name):
+    legacy_files = {f".{base.name}.current", f".{base.name}.lock"}
+    legacy_link = re.compile(rf"^\.({'|'.join(re.escape(x) for x in [f'{base.name}.current', *names])})\.[0-9a-f]{{8}}\.link$")
+    with os.scandir(folder) as it:  # every leftover is hidden: only those names are matched
+        hidden = sorted(e.name for e in it if e.name.startswith("."))
+    for n in hidden:
+        if journal.match(n):
+            entry = folder / n
             try:
                 plan = json.loads(entry.read_text())
                 _apply_journal(folder, plan["renames"], plan["remove"])
@@ -451,17 +455,18 @@ def _recover(base: Path, names: Sequence[str]) -> int:
             entry.unlink()
             count += 1
     _fsync_folder(folder)
-    for n in names:  # older versions: each name a link into the live set folder
-        link = folder / n
-        if link.is_symlink():
-            target = link.resolve()
-            if target.is_file() and legacy_set.match(target.parent.name):
-                os.replace(target, link)
-            else:
-                link.unlink()
-            count += 1
-    for entry in folder.iterdir():
-        n = entry.name
+    if f".{base.name}.current" in hidden:  # an older version's set: each name a link into its set folder
+        for n in names:
+            link = folder / n
+            if link.is_symlink():
+                target = link.resolve()
+                if target.is_file() and legacy_set.match(target.parent.name):
+                    os.replace(target, link)
+                else:
+                    link.unlink()
+                count += 1
+    for n in hidden:
+        entry = folder / n
         if any(p.match(n) for p in temps):
             with contextlib.suppress(OSError):
                 fd = os.open(entry, os.O_RDONLY)
@@ -474,9 +479,7 @@ def _recover(base: Path, names: Sequence[str]) -> int:
         elif legacy_set.match(n) and entry.is_dir() and not entry.is_symlink():
             shutil.rmtree(entry, ignore_errors=True)
             count += 1
-        elif n in (f".{base.name}.current", f".{base.name}.lock") or re.match(
-            rf"^\.({re.escape(base.name)}\.current|{'|'.join(re.escape(x) for x in names)})\.[0-9a-f]{{8}}\.link$", n
-        ):
+        elif n in legacy_files or legacy_link.match(n):
             with contextlib.suppress(OSError):
                 entry.unlink()
                 count += 1

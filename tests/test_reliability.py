@@ -600,6 +600,30 @@ def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
     assert visible_files(tmp_path) == []
 
 
+def test_cli_full_disk_during_the_previews_keeps_the_old_set(cli_inputs, tmp_path, capsys, monkeypatch):
+    """The previews are part of the set: a full disk while the sigma preview is written leaves the old files."""
+    from matplotlib.figure import Figure
+
+    base = ["--preset", "residual", "--gp.engine", "exact"]
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "x") + base + ["--gt", str(cli_inputs / "mde.npy")]) == 0
+    before = _fingerprint(tmp_path)
+    assert "x_error_preview.png" in before
+    real, calls = Figure.savefig, {"n": 0}
+
+    def full(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", full)
+    capsys.readouterr()
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "x", mde="far.npy", points="points_far.txt") + base) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "disk full" in err[0]
+    assert _fingerprint(tmp_path) == before  # the old set, its error preview included; no temporary
+
+
 def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, monkeypatch):
     """eval's files are written together: a full disk at the third file leaves none of them."""
     import gpdepth3d.cli.eval as eval_cli
@@ -804,18 +828,19 @@ def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
     subprocess.run([x.replace("OUT", str(out)) for x in calls["a"]], check=True, capture_output=True)
     assert _fingerprint(out) == refs["a"]
     rng = random.Random(0)
-    outcome = {"killed": 0, "finished": 0, "old set": 0, "new set": 0}
+    outcome = {"killed": 0, "finished": 0, "old set": 0, "new set": 0, "leftovers cleaned": 0}
     state = "a"
     rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "6"))
     for round_ in range(rounds):
         new = "b" if state == "a" else "a"
         proc = subprocess.Popen([x.replace("OUT", str(out)) for x in calls[new]], stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
-        time.sleep(rng.uniform(0.3, 1.1) * duration if round_ < rounds - 1 else 0.5 * duration)  # the last: killed
+        time.sleep(rng.uniform(0.5, 1.15) * duration if round_ < rounds - 1 else 0.5 * duration)  # the last: killed
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
         outcome["killed" if proc.wait() == -signal.SIGKILL else "finished"] += 1
-        gio.clean_output_set(out / "f", SET_NAMES)  # what a reader (DepthPosterior.load) or the next writer does
+        # what a reader (DepthPosterior.load) or the next writer does: finish a commit, remove dead temporaries
+        outcome["leftovers cleaned"] += gio.clean_output_set(out / "f", SET_NAMES) > 0
         got = _fingerprint(out)
         assert got in (refs["a"], refs["b"]), f"round {round_}: a mixed set {sorted(got)}"
         outcome["new set" if got == refs[new] else "old set"] += 1
