@@ -1,12 +1,15 @@
-"""Reliability (issue 15): typed errors at every boundary, one-line CLI errors, outputs written as one set.
+"""Reliability: typed errors at every boundary, one-line CLI errors, outputs written as one set, sizes refused early.
 
-* `API_CASES` / `CLI_CASES`: one row per bad input found by the fuzz run of issue 15; each must raise
-  its typed error (API) or print one line and exit 1 (CLI), and leave no output behind.
+* `API_CASES` / `CLI_CASES`: one row per bad input; each must raise its typed error (API) or print one
+  line and exit 1 (CLI), and leave no output behind.
 * A hypothesis property test: for small random inputs (shapes, dtypes, magnitudes, configs) the
   default engine gives a typed error or a finite posterior that matches ``engine="exact"``.
 * Kill tests: `DepthPosterior.save` killed at every step of its write (forked child, ``os._exit``),
-  ``gpdepth3d complete`` killed by SIGKILL at random moments, and two concurrent ``complete``
-  processes on one output: the files on disk are always one complete set (old or new).
+  ``gpdepth3d complete`` (previews included) killed by SIGKILL at random moments, and two concurrent
+  ``complete`` processes on one output: after recovery the files on disk are one complete set (old or new).
+* Sizes: each request too large for the memory limit gets `ProblemTooLargeError` (or a forged file
+  header `DataFormatError`) within a second, in a process capped at one more GiB (``RLIMIT_AS``).
+* The CLI sweep (``GPDEPTH3D_FUZZ_CLI=1``) behind the summary in docs/reliability.md.
 """
 
 from __future__ import annotations
