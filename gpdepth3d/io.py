@@ -509,6 +509,47 @@ def clean_output_set(base: str | Path, names: Sequence[str] = ()) -> int:
             raise _as_output_error(base, exc) from None
 
 
+_ANY_JOURNAL = re.compile(r"^\..+\.[0-9a-f]{8}\.journal$")
+_ANY_TEMP = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^.]+)?$")
+
+
+def clean_output_folder(folder: str | Path) -> int:
+    """Finishes every interrupted commit in ``folder`` and deletes every temporary of a killed writer.
+
+    For a folder a whole run writes (``batch``): like `clean_output_set` for every set in it.
+    Writers still running are not disturbed (their temporaries are locked).
+
+    Returns:
+        How many leftovers were removed or finished.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    count = 0
+    with _folder_lock(folder):
+        try:
+            with os.scandir(folder) as it:
+                hidden = sorted(e.name for e in it if e.name.startswith("."))
+            for n in hidden:
+                if _ANY_JOURNAL.match(n):
+                    base = folder / n[1:].rsplit(".", 2)[0]
+                    count += _recover(base, [])
+            for n in hidden:
+                if _ANY_TEMP.match(n) and (folder / n).is_file():
+                    fd = os.open(folder / n, os.O_RDONLY)
+                    try:
+                        if _flock(fd, blocking=False):
+                            (folder / n).unlink()
+                            count += 1
+                    finally:
+                        os.close(fd)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise _as_output_error(folder, exc) from None
+    return count
+
+
 def _check_names(folder: Path, names: Sequence[str]) -> None:
     for n in names:
         if not isinstance(n, str) or Path(n).name != n or n in ("", ".", ".."):

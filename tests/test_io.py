@@ -401,6 +401,19 @@ class TestOutputSets:
         assert [(tmp_path / n).read_text() for n in ("a.csv", "b.json")] == ["new:a.csv", "new:b.json"]
         assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.json", "c.txt"]
 
+    def test_clean_output_folder_finishes_every_set(self, tmp_path):
+        import multiprocessing
+
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        proc = multiprocessing.get_context("fork").Process(target=_commit_then_die, args=(tmp_path,))
+        proc.start()
+        proc.join(60)
+        (tmp_path / ".t.abcdefgh.tmp.txt").write_text("a dead writer's temporary of another set")
+        assert gio.clean_output_folder(tmp_path) >= 2
+        assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
+        assert gio.clean_output_folder(tmp_path / "missing") == 0
+
     def test_clean_output_set_removes_only_dead_writers_leftovers(self, tmp_path):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
         (tmp_path / ".s.abcdefgh.tmp.txt").write_text("x")
