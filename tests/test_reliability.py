@@ -192,6 +192,7 @@ API_CASES = [
     ("load_depth(None)", lambda t: gio.load_depth(None), InvalidInputError, "path"),
     ("load_sparse(3)", lambda t: gio.load_sparse(3, (8, 8)), InvalidInputError, "path"),
     ("Frame.resized('2')", lambda t: g.datasets.Frame(name="f", rgb=RGB).resized("2"), InvalidInputError, "factor"),
+    ("posterior mean header claims 200000^2", lambda t: DepthPosterior.load(_forged_posterior(t)), DataFormatError, "header claims"),
     ("npy header claims 200000^2", lambda t: gio.load_depth(_forged_npy(t)), DataFormatError, "header claims"),
     ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
 ]
@@ -230,6 +231,16 @@ def _posterior(tmp: Path, **replace) -> Path:
         arrays[k] = np.resize(v, arrays[k].shape) if k in ("mean", "variance") else v
     np.savez(tmp / "p.npz", **arrays)
     return tmp / "p.npz"
+
+
+def _forged_posterior(tmp: Path) -> Path:
+    import zipfile
+
+    good = _posterior(tmp)
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(tmp / "src" / "forged.npz", "w") as dst:
+        for name in src.namelist():
+            dst.writestr(name, _forged_npy(tmp / "src").read_bytes() if name == "mean.npy" else src.read(name))
+    return tmp / "src" / "forged.npz"
 
 
 def _forged_npy(tmp: Path) -> Path:

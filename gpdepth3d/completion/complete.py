@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, GPDepthError, InvalidInputError, describe
+from ..errors import DataFormatError, GPDepthError, InvalidInputError, ProblemTooLargeError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
 from ..mde.align import AlignmentResult
@@ -151,7 +151,7 @@ class DepthPosterior:
             DataFormatError: a missing or corrupt file, a stored config that is not a JSON object,
                 a mean with no finite value, or a variance that is negative or not finite.
         """
-        from ..io import clean_output_set
+        from ..io import check_stored_array, clean_output_set
 
         path = Path(path)
         with contextlib.suppress(GPDepthError, OSError):  # a read-only folder: read what is there
@@ -163,6 +163,8 @@ class DepthPosterior:
             if not isinstance(data, np.lib.npyio.NpzFile):
                 raise ValueError("an .npz archive expected (this is a single array)")
             with data as d:
+                for k in ("mean", "variance", "mde", "sparse_uvd"):  # forged sizes refused before allocating
+                    check_stored_array(path, k)
                 uvd = d["sparse_uvd"].astype(np.float64)
                 size = tuple(int(x) for x in d["sparse_image_size"])
                 sparse = SparseDepth(uvd[:, 0], uvd[:, 1], uvd[:, 2], size)
@@ -196,6 +198,8 @@ class DepthPosterior:
                     warnings=tuple(str(w) for w in d["warnings"]) if "warnings" in d.files else (),
                     mde_slope=float(d["mde_slope"]) if "mde_slope" in d.files else 1.0,
                 )
+        except ProblemTooLargeError:
+            raise
         except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile, GPDepthError) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
