@@ -319,7 +319,13 @@ def _folder_lock(folder: Path) -> Iterator[None]:
     """Holds an exclusive lock on the folder itself (flock on its descriptor): no lock file is made.
 
     Taken only for short steps (making temporary files, a commit, a clean-up), never nested.
+    Without ``fcntl`` (Windows) writers do not take turns.
     """
+    try:
+        import fcntl  # noqa: F401
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError as exc:
