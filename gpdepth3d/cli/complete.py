@@ -116,8 +116,8 @@ def complete_command(
                         ("--gt-png-scale", gt_png_scale)):
         check_png_scale(value, name)
     for name, value in (("--mde-scale", mde_scale), ("--sparse-scale", sparse_scale)):
-        if value is not None:
-            check_png_scale(value, name)  # metres per unit: a finite number > 0
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise InvalidInputError(name, "metres per unit of the file, a finite number > 0", value)
     if gt_invalid_value is not None and not 0 <= gt_invalid_value <= 65535:
         raise InvalidInputError("--gt-invalid-value", "a 16-bit PNG value 0..65535", gt_invalid_value)
     if lidar_image_size is not None:
