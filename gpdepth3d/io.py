@@ -822,7 +822,7 @@ def load_npz_arrays(path: str | Path, names: Sequence[str], what: str = "arrays"
 
 
 def check_image_header(path: str | Path, channels: int = 3) -> None:
-    """Refuses a PNG whose header (IHDR) claims more pixels than the memory limit allows, before decoding.
+    """Refuses a PNG (IHDR) or JPEG (start of frame) whose header claims more pixels than the memory limit allows.
 
     Other formats are left to the decoder (whose errors `load_rgb` / `load_depth` turn into
     `DataFormatError`).
@@ -836,12 +836,36 @@ def check_image_header(path: str | Path, channels: int = 3) -> None:
     path = Path(path)
     with open(path, "rb") as f:
         head = f.read(33)
+        if head.startswith(b"\xff\xd8"):
+            size = _jpeg_size(f)
+            if size is not None:
+                check_array_size(f"image {path}", (*size, channels), np.float64)
+            return
     if not head.startswith(b"\x89PNG\r\n\x1a\n"):
         return
     if len(head) < 33 or head[12:16] != b"IHDR":
         raise DataFormatError(path, "corrupt PNG: no IHDR header")
     width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
     check_array_size(f"image {path}", (height, width, channels), np.float64)
+
+
+def _jpeg_size(f) -> tuple[int, int] | None:
+    """(height, width) from a JPEG's start-of-frame marker, reading marker headers only (None: none found)."""
+    f.seek(2)
+    for _ in range(1000):  # the frame header comes after a few tables
+        marker = f.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            return None
+        if marker[1] in (0xD8, 0x01) or 0xD0 <= marker[1] <= 0xD7:  # markers without a length
+            continue
+        length = f.read(2)
+        if len(length) < 2:
+            return None
+        if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):  # SOFn
+            frame = f.read(5)
+            return (int.from_bytes(frame[1:3], "big"), int.from_bytes(frame[3:5], "big")) if len(frame) == 5 else None
+        f.seek(int.from_bytes(length, "big") - 2, os.SEEK_CUR)
+    return None
 
 
 def _imread(path: Path, flags: int) -> np.ndarray | None:

@@ -46,6 +46,7 @@ from gpdepth3d.errors import (
     InvalidDepthError,
     InvalidInputError,
     OutputError,
+    ProblemTooLargeError,
     ShapeError,
 )
 from gpdepth3d.gp.model import DepthGPConfig
@@ -193,6 +194,7 @@ API_CASES = [
     ("load_sparse(3)", lambda t: gio.load_sparse(3, (8, 8)), InvalidInputError, "path"),
     ("Frame.resized('2')", lambda t: g.datasets.Frame(name="f", rgb=RGB).resized("2"), InvalidInputError, "factor"),
     ("posterior mean header claims 200000^2", lambda t: DepthPosterior.load(_forged_posterior(t)), DataFormatError, "header claims"),
+    ("JPEG header claims 60000^2", lambda t: gio.load_rgb(_forged_jpeg(t)), ProblemTooLargeError, "(60000, 60000, 3)"),
     ("npy header claims 200000^2", lambda t: gio.load_depth(_forged_npy(t)), DataFormatError, "header claims"),
     ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
 ]
@@ -241,6 +243,17 @@ def _forged_posterior(tmp: Path) -> Path:
         for name in src.namelist():
             dst.writestr(name, _forged_npy(tmp / "src").read_bytes() if name == "mean.npy" else src.read(name))
     return tmp / "src" / "forged.npz"
+
+
+def _forged_jpeg(tmp: Path) -> Path:
+    import struct
+
+    ok, buf = cv2.imencode(".jpg", np.zeros((37, 53, 3), np.uint8))
+    data = bytearray(buf.tobytes())
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = struct.pack(">HH", 60000, 60000)
+    (tmp / "big.jpg").write_bytes(bytes(data))
+    return tmp / "big.jpg"
 
 
 def _forged_npy(tmp: Path) -> Path:
