@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 
 from ..errors import DataFormatError
 from ..io import load_depth, load_npz_arrays, load_rgb
