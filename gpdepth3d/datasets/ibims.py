@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from ..errors import DataFormatError
 from ..io import load_depth, load_npz_arrays, load_rgb
 from ..measurements import SparseDepth
