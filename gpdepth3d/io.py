@@ -12,11 +12,13 @@ File conventions:
 
 Writes go to a temporary file in the destination folder and are renamed into place, so an
 interrupted or failed write never leaves a partial file under the final name. Several files that
-belong together (a posterior's ``.npz`` and PNGs) are written as one set (`atomic_write_set`:
-hidden ``.<name>.set-*`` folder, ``.<name>.current`` pointer, ``.<name>.lock``), so a kill, a full
-disk or a concurrent writer leaves the old set or the new one; `write_together` defers the renames
-of a whole block of writes (the CLI's ``eval``). A write that fails raises `OutputError` (an
-`OSError`) naming the path and the cause (disk full, permission denied, a directory in the way).
+belong together (a posterior's ``.npz``, its PNGs and previews) are written as one set
+(`output_set`, `atomic_write_set`): plain files, renamed into place together under a lock on the
+folder after a small journal of the renames is on disk, so a kill, a full disk or a concurrent
+writer leaves the old set or the new one (the next writer finishes an interrupted commit and
+deletes what killed writers left). `write_together` defers the renames of a whole block of writes
+(the CLI's ``eval``). A write that fails raises `OutputError` (an `OSError`) naming the path and
+the cause (disk full, permission denied, a directory in the way, a name too long).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import errno
+import json
 import os
 import re
 import shutil
@@ -66,6 +69,8 @@ _WRITE_PROBLEMS = {
 
 # Deferred renames of `write_together` (per thread / task).
 _PENDING: contextvars.ContextVar[list | None] = contextvars.ContextVar("gpdepth3d_pending_writes", default=None)
+# The `output_set` being written (per thread / task).
+_SET: contextvars.ContextVar["_OutputSet | None"] = contextvars.ContextVar("gpdepth3d_output_set", default=None)
 
 
 def write_problem(exc: OSError) -> str:
@@ -100,7 +105,27 @@ def check_output_path(path: str | Path, argument: str = "path") -> Path:
             if not parent.is_dir():
                 raise OutputError(p, f"{parent} is a file, not a folder")
             break
+    _check_name_length(p)
     return p
+
+
+_TEMP_EXTRA = len(".12345678.tmp") + 1  # what a temporary name adds to the file name (`atomic_path`)
+
+
+def _check_name_length(path: Path) -> None:
+    """Refuses a name (or a folder name) too long for the file system, its temporary name included."""
+    existing = next((q for q in path.absolute().parents if q.exists()), Path("/"))
+    try:
+        limit = os.pathconf(existing, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    parts = [(part, 0) for part in path.parent.parts] + [(path.name, _TEMP_EXTRA)]
+    for part, extra in parts:
+        size = len(os.fsencode(part)) + extra
+        if size > limit:
+            raise OutputError(
+                path, f"file name too long: {size} bytes with the temporary name's {extra}, the file system allows {limit}"
+            )
 
 
 def check_output_folder(folder: str | Path, argument: str = "output_dir") -> Path:
@@ -136,7 +161,10 @@ def _make_parent(path: Path) -> None:
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yields a temporary path beside ``path``; renames it onto ``path`` only if the block succeeds.
 
-    Inside `write_together` the rename waits until the whole block of writes succeeded.
+    The temporary file (``.<stem>.<8 random>.tmp<suffix>``) is held under a lock until it is
+    renamed, so a clean-up by another writer removes only those of killed writers. Inside an
+    `output_set` of the same folder the rename waits for the set's commit; inside
+    `write_together` until the whole block of writes succeeded.
 
     Raises:
         OutputError: when the folder cannot be created or written (read-only, full disk), when
@@ -145,27 +173,39 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = check_output_path(path)
     _make_parent(path)
+    active = _SET.get()
+    joins = active is not None and active.owns(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        with _folder_lock(path.parent):  # no clean-up sees the temporary before it is locked
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+            _flock(fd)
     except OSError as exc:
-        raise OutputError(path, write_problem(exc)) from None
-    os.close(fd)
-    tmp_path = Path(tmp)
+        raise _as_output_error(path, exc) from None
+    tmp_path: Path | None = Path(tmp)
     pending = _PENDING.get()
     try:
         try:
             yield tmp_path
             os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
-            if pending is not None:
-                pending.append((tmp_path, path))
-                tmp_path = None  # type: ignore[assignment]  # renamed (or removed) by write_together
+            os.fsync(fd)  # the data is on disk before any rename can make it visible
+            if joins:
+                active.add(path, tmp_path, fd)
+                tmp_path = None  # renamed (or removed) by the set's commit, which closes fd
+            elif pending is not None:
+                pending.append((tmp_path, path, fd))
+                tmp_path = None  # renamed (or removed) by write_together, which closes fd
             else:
                 os.replace(tmp_path, path)
+                tmp_path = None
         except OSError as exc:
             raise _as_output_error(path, exc) from None
     finally:
-        if tmp_path is not None and tmp_path.exists():
-            tmp_path.unlink()
+        if tmp_path is not None:
+            with contextlib.suppress(OSError):
+                tmp_path.unlink()
+        if tmp_path is not None or not (joins or pending is not None):
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
@@ -211,10 +251,12 @@ def write_together() -> Iterator[None]:
     """Defers the renames of every `atomic_path` write inside the block until the block succeeds.
 
     All files are first written under temporary names; only when the whole block succeeded are
-    they renamed into place (a failure such as a full disk leaves none of the new files, and the
-    old files untouched). Used by the CLI so a command's outputs do not come half-written.
+    they renamed into place, folder by folder, each folder's renames one journalled commit as in
+    `output_set` (a failure such as a full disk leaves none of the new files and the old files
+    untouched; a kill during a commit is finished by the next `write_together` writing there).
+    Used by the CLI so a command's outputs (``eval``'s tables and plots) do not come half-written.
     """
-    pending: list[tuple[Path, Path]] = []
+    pending: list[tuple[Path, Path, int]] = []
     token = _PENDING.set(pending)
     ok = False
     try:
@@ -222,19 +264,27 @@ def write_together() -> Iterator[None]:
         ok = True
     finally:
         _PENDING.reset(token)
+        folders: dict[str, _OutputSet] = {}
+        for tmp, final, fd in pending:
+            key = os.path.abspath(final.parent)
+            if key not in folders:
+                folders[key] = _OutputSet(final.parent / TOGETHER_BASE, ())
+            folders[key].add(final, tmp, fd)
         if ok:
-            for i, (tmp, final) in enumerate(pending):
+            for i, s in enumerate(folders.values()):
                 try:
-                    os.replace(tmp, final)
-                except OSError as exc:
-                    for t, _ in pending[i:]:
-                        with contextlib.suppress(OSError):
-                            t.unlink()
-                    raise OutputError(final, write_problem(exc)) from None
+                    s.commit()
+                except BaseException:
+                    for rest in list(folders.values())[i + 1:]:
+                        rest.discard()
+                    raise
         else:
-            for tmp, _ in pending:
-                with contextlib.suppress(OSError):
-                    tmp.unlink()
+            for s in folders.values():
+                s.discard()
+
+
+TOGETHER_BASE = "gpdepth3d"
+"""Name of the commit journals of `write_together` (``.gpdepth3d.<8 hex>.journal``, while a commit runs)."""
 
 
 # ------------------------------------------------------------------------------ output sets
@@ -244,69 +294,316 @@ def _temp_pattern(name: str) -> re.Pattern:
     return re.compile(rf"^\.{re.escape(p.stem)}\.[A-Za-z0-9_]{{8}}\.tmp{re.escape(p.suffix)}$")
 
 
-@contextlib.contextmanager
-def _locked(lock_path: Path) -> Iterator[None]:
-    """An exclusive advisory lock (fcntl.flock) on ``lock_path``, waited for; no-op without fcntl."""
+def _journal_pattern(base_name: str) -> re.Pattern:
+    """Commit journals of the set ``base_name``: ``.<base name>.<8 hex>.journal``."""
+    return re.compile(rf"^\.{re.escape(base_name)}\.[0-9a-f]{{8}}\.journal$")
+
+
+def _flock(fd: int, *, blocking: bool = True) -> bool:
+    """An exclusive advisory lock (fcntl.flock) on ``fd``; True when taken (always without fcntl)."""
     try:
         import fcntl
+    except ImportError:  # pragma: no cover - Windows: no advisory locks, writers do not take turns
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+    except BlockingIOError:
+        return False
+    except OSError:  # a file system without flock: nothing to wait for
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def _folder_lock(folder: Path) -> Iterator[None]:
+    """Holds an exclusive lock on the folder itself (flock on its descriptor): no lock file is made.
+
+    Taken only for short steps (making temporary files, a commit, a clean-up), never nested.
+    Without ``fcntl`` (Windows) writers do not take turns.
+    """
+    try:
+        import fcntl  # noqa: F401
     except ImportError:  # pragma: no cover - Windows
         yield
         return
     try:
-        fh = open(lock_path, "a")
+        fd = os.open(folder, os.O_RDONLY)
     except OSError as exc:
-        raise OutputError(lock_path, write_problem(exc)) from None
-    with fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
-
-
-def _replace_symlink(link: Path, target: str) -> None:
-    """Points ``link`` at ``target`` atomically (a new link under a temporary name, renamed)."""
-    tmp = link.with_name(f".{link.name}.{os.urandom(4).hex()}.link")
-    os.symlink(target, tmp)
+        raise OutputError(folder, write_problem(exc)) from None
     try:
-        os.replace(tmp, link)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
+        _flock(fd)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
 
 
-def output_set_files(base: str | Path) -> dict[str, Path]:
-    """The hidden files of the output set ``base`` (see `atomic_write_set`): lock, current, set folders."""
-    base = Path(base)
-    return {"lock": base.parent / f".{base.name}.lock", "current": base.parent / f".{base.name}.current"}
+def _fsync_folder(folder: Path) -> None:
+    """Makes the renames in ``folder`` durable (a no-op where folders cannot be opened)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
-def clean_output_set(base: str | Path, names: Sequence[str] = ()) -> int:
-    """Removes what killed writers of the set ``base`` left: set folders not in use, temporary files.
+class _OutputSet:
+    """The files of one `output_set` call: final name -> temporary file (held locked until the commit)."""
 
-    Call with the set's lock held (`atomic_write_set` does). Returns how many entries were removed.
+    def __init__(self, base: Path, members: Sequence[str]):
+        self.base = base
+        self.folder = base.parent
+        self.members: list[str] = list(members)
+        self.temps: dict[str, tuple[Path, int]] = {}
+
+    def owns(self, path: Path) -> bool:
+        return os.path.abspath(path.parent) == os.path.abspath(self.folder)
+
+    def add(self, path: Path, tmp: Path, fd: int) -> None:
+        old = self.temps.pop(path.name, None)
+        self.temps[path.name] = (tmp, fd)
+        if old is not None:  # the same name written twice: the last write counts
+            _drop_temp(*old)
+
+    def discard(self) -> None:
+        for tmp, fd in self.temps.values():
+            _drop_temp(tmp, fd)
+        self.temps.clear()
+
+    def commit(self) -> None:
+        """Renames every file into place under the folder lock, journalled so a kill rolls forward.
+
+        Once the journal is on disk the commit is decided: a failure or an interruption after it
+        leaves the journal and the temporaries for the next writer (or `clean_output_set`) to
+        finish; before it, the temporaries are removed and the old files stay.
+        """
+        folder = self.folder
+        names = list(dict.fromkeys([*self.temps, *self.members]))
+        decided = False
+        try:
+            with _folder_lock(folder):
+                _recover(self.base, names)
+                renames = [[tmp.name, n] for n, (tmp, _) in self.temps.items()]
+                remove = [n for n in self.members if n not in self.temps and os.path.lexists(folder / n)]
+                journal = folder / f".{self.base.name}.{os.urandom(4).hex()}.journal"
+                with open(journal, "w") as f:
+                    f.write(json.dumps({"renames": renames, "remove": remove}))
+                    f.flush()
+                    os.fsync(f.fileno())
+                _fsync_folder(folder)
+                decided = True
+                _apply_journal(folder, renames, remove)
+                _fsync_folder(folder)
+                journal.unlink()
+                _fsync_folder(folder)
+        except OSError as exc:
+            raise _as_output_error(self.base, exc) from None
+        finally:
+            for tmp, fd in self.temps.values():
+                if decided:
+                    with contextlib.suppress(OSError):
+                        os.close(fd)
+                else:
+                    _drop_temp(tmp, fd)
+            self.temps.clear()
+
+
+def _drop_temp(tmp: Path, fd: int) -> None:
+    with contextlib.suppress(OSError):
+        tmp.unlink()
+    with contextlib.suppress(OSError):
+        os.close(fd)
+
+
+def _apply_journal(folder: Path, renames: Sequence[Sequence[str]], remove: Sequence[str]) -> None:
+    """Carries out a commit: each temporary renamed onto its name, then the members not written removed.
+
+    Idempotent, so an interrupted commit is finished by running it again (a temporary already
+    renamed is no longer there).
     """
-    base = Path(base)
+    for tmp, name in renames:
+        if os.path.lexists(folder / tmp):
+            os.replace(folder / tmp, folder / name)
+    for name in remove:
+        with contextlib.suppress(FileNotFoundError):
+            (folder / name).unlink()
+
+
+def _recover(base: Path, names: Sequence[str]) -> int:
+    """Finishes commits of ``base`` a kill interrupted and removes what killed writers left.
+
+    Called with the folder lock held. A journal is written only once all of its temporaries are
+    complete, so it is rolled forward; a temporary whose writer is gone (its lock is free) is
+    deleted. Sets of older versions (symbolic links into ``.<base>.set-*`` folders) become plain files.
+
+    Returns:
+        How many leftovers were removed or finished.
+    """
     folder = base.parent
     if not folder.is_dir():
         return 0
-    current = output_set_files(base)["current"]
-    live = os.readlink(current) if current.is_symlink() else None
-    patterns = [_temp_pattern(n) for n in names]
-    set_folder = re.compile(rf"^\.{re.escape(base.name)}\.set-[A-Za-z0-9_]{{8}}$")
-    links = [re.compile(rf"^\.{re.escape(n)}\.[0-9a-f]{{8}}\.link$") for n in (current.name, *names)]
-    removed = 0
-    for entry in folder.iterdir():
-        n = entry.name
-        if set_folder.match(n) and n != live and entry.is_dir() and not entry.is_symlink():
+    count = 0
+    journal = _journal_pattern(base.name)
+    temps = [_temp_pattern(n) for n in names]
+    legacy_set = re.compile(rf"^\.{re.escape(base.name)}\.set-[A-Za-z0-9_]{{8}}$")
+    legacy_files = {f".{base.name}.current", f".{base.name}.lock"}
+    legacy_link = re.compile(rf"^\.({'|'.join(re.escape(x) for x in [f'{base.name}.current', *names])})\.[0-9a-f]{{8}}\.link$")
+    with os.scandir(folder) as it:  # every leftover is hidden: only those names are matched
+        hidden = sorted(e.name for e in it if e.name.startswith("."))
+    for n in hidden:
+        if journal.match(n):
+            entry = folder / n
+            try:
+                plan = json.loads(entry.read_text())
+                _apply_journal(folder, plan["renames"], plan["remove"])
+            except (ValueError, KeyError, TypeError):
+                pass  # a journal cut while it was written: its commit never started
+            entry.unlink()
+            count += 1
+    _fsync_folder(folder)
+    if f".{base.name}.current" in hidden:  # an older version's set: each name a link into its set folder
+        for n in names:
+            link = folder / n
+            if link.is_symlink():
+                target = link.resolve()
+                if target.is_file() and legacy_set.match(target.parent.name):
+                    os.replace(target, link)
+                else:
+                    link.unlink()
+                count += 1
+    for n in hidden:
+        entry = folder / n
+        if any(p.match(n) for p in temps):
+            with contextlib.suppress(OSError):
+                fd = os.open(entry, os.O_RDONLY)
+                try:
+                    if _flock(fd, blocking=False):  # no writer holds it: a killed writer's leftover
+                        entry.unlink()
+                        count += 1
+                finally:
+                    os.close(fd)
+        elif legacy_set.match(n) and entry.is_dir() and not entry.is_symlink():
             shutil.rmtree(entry, ignore_errors=True)
-            removed += 1
-        elif any(p.match(n) for p in (*patterns, *links)):
+            count += 1
+        elif n in legacy_files or legacy_link.match(n):
             with contextlib.suppress(OSError):
                 entry.unlink()
-                removed += 1
-    return removed
+                count += 1
+    return count
+
+
+def clean_output_set(base: str | Path, names: Sequence[str] = ()) -> int:
+    """Finishes an interrupted commit of the set ``base`` and removes what killed writers left.
+
+    Readers may call it before reading a set a killed writer may have left (each `output_set`
+    commit calls it first). Writers still running are not disturbed (their temporaries are locked).
+
+    Args:
+        base: Path naming the set, e.g. ``out/frame0``.
+        names: The file names of the set (in ``base``'s folder) whose temporaries to remove.
+
+    Returns:
+        How many leftovers were removed or finished.
+    """
+    base = Path(base)
+    if not base.parent.is_dir():
+        return 0
+    with _folder_lock(base.parent):
+        try:
+            return _recover(base, list(names))
+        except OSError as exc:
+            raise _as_output_error(base, exc) from None
+
+
+_ANY_JOURNAL = re.compile(r"^\..+\.[0-9a-f]{8}\.journal$")
+_ANY_TEMP = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[^.]+)?$")
+
+
+def clean_output_folder(folder: str | Path) -> int:
+    """Finishes every interrupted commit in ``folder`` and deletes every temporary of a killed writer.
+
+    For a folder a whole run writes (``batch``): like `clean_output_set` for every set in it.
+    Writers still running are not disturbed (their temporaries are locked).
+
+    Returns:
+        How many leftovers were removed or finished.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    count = 0
+    with _folder_lock(folder):
+        try:
+            with os.scandir(folder) as it:
+                hidden = sorted(e.name for e in it if e.name.startswith("."))
+            for n in hidden:
+                if _ANY_JOURNAL.match(n):
+                    base = folder / n[1:].rsplit(".", 2)[0]
+                    count += _recover(base, [])
+            for n in hidden:
+                if _ANY_TEMP.match(n) and (folder / n).is_file():
+                    fd = os.open(folder / n, os.O_RDONLY)
+                    try:
+                        if _flock(fd, blocking=False):
+                            (folder / n).unlink()
+                            count += 1
+                    finally:
+                        os.close(fd)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            raise _as_output_error(folder, exc) from None
+    return count
+
+
+def _check_names(folder: Path, names: Sequence[str]) -> None:
+    for n in names:
+        if not isinstance(n, str) or Path(n).name != n or n in ("", ".", ".."):
+            raise OutputError(folder / str(n), "a plain file name inside the set's folder expected")
+        check_output_path(folder / n)
+
+
+@contextlib.contextmanager
+def output_set(base: str | Path, *, members: Sequence[str] = ()) -> Iterator[None]:
+    """Makes every file written in the block in ``base``'s folder appear together, or none of them.
+
+    Each `atomic_path` / `atomic_write` inside the block (any function that writes through them,
+    such as `DepthPosterior.save` or `gpdepth3d.experiments.previews.write_previews`) writes a
+    temporary file beside its target; when the block succeeds they are renamed into place under
+    an exclusive lock on the folder, after a small journal listing the renames is made durable.
+    A kill during the renames is rolled forward by the next writer (or `clean_output_set`); a
+    kill before leaves the old files, and its temporaries are deleted by the next writer.
+    Concurrent writers of one set take turns at the commit, the last one winning as a whole.
+    The outputs are plain files: nothing hidden stays beside them.
+
+    Args:
+        base: Path naming the set (its folder and its name), e.g. ``out/frame0``.
+        members: Every name the set may hold; those not written this time (say the error
+            preview of an earlier call with ground truth) are removed in the same commit.
+
+    Raises:
+        OutputError: a file cannot be written; nothing of the new set is then visible.
+    """
+    base = check_output_path(base, "base")
+    _check_names(base.parent, members)
+    outer = _SET.get()
+    if outer is not None and outer.owns(base):  # a set inside a set of the same folder joins it
+        outer.members.extend(m for m in members if m not in outer.members)
+        yield
+        return
+    _make_parent(base)
+    current = _OutputSet(base, members)
+    token = _SET.set(current)
+    ok = False
+    try:
+        yield
+        ok = True
+    finally:
+        _SET.reset(token)
+        if ok:
+            current.commit()
+        else:
+            current.discard()
 
 
 def atomic_write_set(
@@ -317,29 +614,15 @@ def atomic_write_set(
 ) -> list[Path]:
     """Writes several files beside each other as one set: readers see the old set or the new one.
 
-    The files ``base.parent / name`` for each ``name`` of ``writers`` are written as follows,
-    holding the lock ``.<base name>.lock`` (so concurrent writers of one set take turns and the
-    last one wins as a whole):
-
-    1. every file is written into a new hidden folder ``.<base name>.set-<random>/``; a
-       failure (full disk, read-only folder, a writer's error) removes that folder and leaves
-       the old files untouched;
-    2. each public name is a relative symlink ``name -> .<base name>.current/name`` and
-       ``.<base name>.current`` a symlink to the set folder; the new set goes live by one atomic
-       rename of ``.<base name>.current``, so a kill at any point leaves the old set or the new
-       set, never a mix. ``members`` named but not written this time (say the PNGs of an
-       earlier call) are removed from the set with the same rename.
-
-    Folders of earlier killed writers and temporary files of the names are deleted first. A
-    single file with no earlier set is written as a plain file (`atomic_write`). Plain files of
-    the set left by older versions are moved into a set first, without a moment of mixing. On a
-    file system without symbolic links the files are all written under temporary names and then
-    renamed (a failure still leaves the old files; only a kill between the renames can mix).
+    Each ``write(path)`` of ``writers`` writes a temporary file; they are then renamed into
+    place together (`output_set`). Inside an enclosing `output_set` of the same folder the files
+    join that set instead.
 
     Args:
         base: Path naming the set (its folder and its name), e.g. ``out/frame0``.
         writers: File name (in ``base``'s folder) -> ``write(path)`` writing that file.
-        members: Every name the set may hold (default: the names of ``writers``).
+        members: Every name the set may hold (default: the names of ``writers``); those not
+            written this time are removed in the same commit.
 
     Returns:
         The written paths, in the order of ``writers``.
@@ -349,113 +632,14 @@ def atomic_write_set(
     """
     base = check_output_path(base, "base")
     folder = base.parent
-    names = list(writers)
-    all_names = list(dict.fromkeys([*names, *members]))
-    for n in all_names:
-        if Path(n).name != n or n in ("", ".", ".."):
-            raise OutputError(folder / str(n), "a plain file name inside the set's folder expected")
-        check_output_path(folder / n)
-    _make_parent(base)
-    hidden = output_set_files(base)
-    with _locked(hidden["lock"]):
-        try:
-            clean_output_set(base, all_names)
-            present = [n for n in all_names if os.path.lexists(folder / n)]
-            if len(names) == 1 and not hidden["current"].is_symlink() and present in ([], names):
-                atomic_write(folder / names[0], writers[names[0]])
-                return [folder / names[0]]
-            if not _symlinks_work(folder):
-                return _write_then_rename(folder, writers, all_names)
-            return _swap_in_set(base, folder, writers, all_names, hidden["current"])
-        except OSError as exc:
-            raise _as_output_error(base, exc) from None
-
-
-def _swap_in_set(
-    base: Path, folder: Path, writers: Mapping[str, Callable[[Path], None]], all_names: list[str], current: Path
-) -> list[Path]:
-    link_target = {n: f"{current.name}/{n}" for n in all_names}
-    # Plain files of an older writer: hard-link them into a set that goes live first, then turn each
-    # name into a link resolving to the same content (no moment shows a mix).
-    plain = [n for n in all_names if (folder / n).is_file() and not (folder / n).is_symlink()]
-    if plain:
-        old = Path(tempfile.mkdtemp(prefix=f".{base.name}.set-", dir=folder))
-        if current.is_symlink() and (folder / os.readlink(current)).is_dir():
-            for n in all_names:
-                src = folder / os.readlink(current) / n
-                if src.is_file() and n not in plain:
-                    _link_or_copy(src, old / n)
-        for n in plain:
-            _link_or_copy(folder / n, old / n)
-        _replace_symlink(current, old.name)
-        for n in plain:
-            _replace_symlink(folder / n, link_target[n])
-    new = Path(tempfile.mkdtemp(prefix=f".{base.name}.set-", dir=folder))
-    try:
-        os.chmod(new, 0o777 & ~_UMASK)
+    _check_names(folder, list(writers))
+    with output_set(base, members=list(dict.fromkeys([*writers, *members]))):
         for n, write in writers.items():
-            write(new / n)
-            if (new / n).is_file():
-                os.chmod(new / n, 0o666 & ~_UMASK)
-            else:
-                raise OutputError(folder / n, "the writer wrote no file")
-        for n in writers:
-            link = folder / n
-            if not (link.is_symlink() and os.readlink(link) == link_target[n]):
-                _replace_symlink(link, link_target[n])  # dangling or resolving to the old set until the swap
-        previous = os.readlink(current) if current.is_symlink() else None
-        _replace_symlink(current, new.name)  # the commit: one rename
-    except BaseException as exc:
-        shutil.rmtree(new, ignore_errors=True)
-        if isinstance(exc, OSError) and not isinstance(exc, GPDepthError):
-            raise _as_output_error(base, exc) from None
-        raise
-    if previous and previous != new.name:
-        shutil.rmtree(folder / previous, ignore_errors=True)
-    for n in all_names:
-        if n not in writers and (folder / n).is_symlink():
-            with contextlib.suppress(OSError):
-                (folder / n).unlink()  # dangling now: a member of the old set only
+            with atomic_path(folder / n) as tmp:
+                write(tmp)
+                if not tmp.is_file() or tmp.stat().st_size == 0:
+                    raise OutputError(folder / n, "the writer wrote no file")
     return [folder / n for n in writers]
-
-
-_SYMLINKS: dict[int, bool] = {}
-
-
-def _symlinks_work(folder: Path) -> bool:
-    """Whether the file system of ``folder`` supports symbolic links (probed once per device)."""
-    dev = folder.stat().st_dev
-    if dev not in _SYMLINKS:
-        probe = folder / f".gpdepth3d-probe.{os.urandom(4).hex()}.link"
-        try:
-            os.symlink("target", probe)
-            probe.unlink()
-            _SYMLINKS[dev] = True
-        except (OSError, NotImplementedError):
-            _SYMLINKS[dev] = False
-    return _SYMLINKS[dev]
-
-
-def _write_then_rename(folder: Path, writers: Mapping[str, Callable[[Path], None]], all_names: list[str]) -> list[Path]:
-    """Fallback without symbolic links: every file to a temporary name first, then the renames.
-
-    A failed write leaves the old files untouched; only a kill between the renames can mix sets.
-    """
-    with write_together():
-        for n, write in writers.items():
-            atomic_write(folder / n, write)
-    for n in all_names:
-        if n not in writers:
-            with contextlib.suppress(FileNotFoundError):
-                (folder / n).unlink()
-    return [folder / n for n in writers]
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 def save_npz(path: str | Path, **arrays: np.ndarray) -> Path:
@@ -473,18 +657,26 @@ def npz_writer(**arrays: np.ndarray) -> Callable[[Path], None]:
     return write
 
 
-def depth_png_values(depth: np.ndarray, png_scale: float = KITTI_PNG_SCALE, *, argument: str = "depth") -> np.ndarray:
+class PNGRangeWarning(UserWarning):
+    """Depths beyond a 16-bit PNG's range were stored at its limit (the float outputs keep them)."""
+
+
+def depth_png_values(
+    depth: np.ndarray, png_scale: float = KITTI_PNG_SCALE, *, argument: str = "depth", saturate: bool = False
+) -> np.ndarray:
     """The (H, W) uint16 values of a depth PNG, value = round(metres / png_scale).
 
-    0 = no depth: pixels with depth <= 0, NaN or inf (a PNG holds no negative depths).
-
-    Validates everything a depth PNG needs before anything is written.
+    0 = no depth: pixels with depth <= 0, NaN or inf (a PNG holds no negative depths). The
+    range is the format's (KITTI's 1/256: 256 m): beyond it a depth saturates at 65535 with
+    ``saturate``, else it is refused. Everything is validated before anything is written.
 
     Raises:
         ShapeError: if ``depth`` is not 2-D.
         InvalidInputError: if ``png_scale`` is not a finite number > 0.
-        InvalidDepthError: if a depth does not fit 16 bits at ``png_scale``
-            (KITTI's 1/256: 256 m).
+        InvalidDepthError: if a depth does not fit 16 bits at ``png_scale`` and not ``saturate``.
+
+    Warns:
+        PNGRangeWarning: with ``saturate``, naming how many pixels were stored at the limit.
     """
     png_scale = check_png_scale(png_scale)
     d = np.asarray(depth)
@@ -497,12 +689,19 @@ def depth_png_values(depth: np.ndarray, png_scale: float = KITTI_PNG_SCALE, *, a
         valid = np.isfinite(d) & (d > 0)
     values = np.zeros(d.shape, dtype=np.float64)
     values[valid] = np.rint(d[valid] / png_scale)
-    if np.any(values > 65535):
-        raise InvalidDepthError(
-            argument,
-            f"depths up to {65535 * png_scale:.1f} m for a 16-bit PNG with png_scale {png_scale}",
-            f"max {d[valid].max():.4g} m",
+    over = values > 65535
+    n_over = int(np.count_nonzero(over))
+    if n_over:
+        limit = f"{65535 * png_scale:.1f} m for a 16-bit PNG with png_scale {png_scale}"
+        if not saturate:
+            raise InvalidDepthError(argument, f"depths up to {limit}", f"max {d[valid].max():.4g} m")
+        warnings.warn(
+            f"{argument}: {n_over} of {d.size} pixels beyond {limit} (max {d[valid].max():.4g} m) stored as "
+            f"{65535 * png_scale:.1f} m; the float outputs keep the true values",
+            PNGRangeWarning,
+            stacklevel=2,
         )
+        values[over] = 65535
     return values.astype(np.uint16)
 
 
@@ -537,6 +736,149 @@ def check_png_scale(png_scale: float, argument: str = "png_scale") -> float:
     return float(png_scale)
 
 
+def _read_npy_header(fp) -> tuple[tuple[int, ...], np.dtype, int]:
+    """(shape, dtype, header bytes) of the .npy stream ``fp``, read without touching its data."""
+    start = fp.tell()
+    version = np.lib.format.read_magic(fp)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(fp)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(fp)
+    else:
+        shape, _, dtype = np.lib.format._read_array_header(fp, version)
+    return tuple(int(s) for s in shape), np.dtype(dtype), fp.tell() - start
+
+
+def check_stored_array(path: str | Path, member: str | None = None, *, copies: float = 2.0) -> tuple[tuple[int, ...], np.dtype]:
+    """Reads the header of an ``.npy`` file (or of ``member`` of an ``.npz``) and checks its size first.
+
+    A header claiming more values than the file holds (a corrupt or forged file) is refused
+    before NumPy allocates the array it claims, and so is an array whose ``copies`` (the array
+    and its float64 copy) exceed `gpdepth3d.limits.memory_limit`.
+
+    Returns:
+        The stored (shape, dtype).
+
+    Raises:
+        DataFormatError: no such member, an unreadable header, or more data claimed than stored.
+        ProblemTooLargeError: an array too large for the memory limit.
+    """
+    from .limits import check_array_size
+
+    path = Path(path)
+    try:
+        if member is None:
+            with open(path, "rb") as fp:
+                shape, dtype, header = _read_npy_header(fp)
+                stored = os.fstat(fp.fileno()).st_size - header
+            label = str(path)
+        else:
+            with zipfile.ZipFile(path) as zf:
+                name = member if member.endswith(".npy") else member + ".npy"
+                info = zf.getinfo(name)
+                with zf.open(info) as fp:
+                    shape, dtype, header = _read_npy_header(fp)
+                stored = info.file_size - header
+            label = f"{path}[{member}]"
+    except KeyError:
+        raise DataFormatError(path, f"no array '{member}'") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise DataFormatError(path, f"corrupt or unreadable array header: {exc}") from None
+    claimed = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if claimed > stored:
+        raise DataFormatError(
+            label, f"corrupt: the header claims shape {shape} of {dtype} ({claimed} bytes), the file stores {max(stored, 0)}"
+        )
+    check_array_size(f"array {label}", shape, dtype, copies=copies * max(1.0, 8.0 / max(dtype.itemsize, 1)))
+    return shape, dtype
+
+
+def load_npz_arrays(path: str | Path, names: Sequence[str], what: str = "arrays") -> dict[str, np.ndarray]:
+    """Reads the arrays ``names`` of an ``.npz``, each header checked first (`check_stored_array`).
+
+    Raises:
+        DataFormatError: a missing, corrupt or forged file (naming it), or a missing array.
+        ProblemTooLargeError: an array too large for the memory limit.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(path, f"{what} not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not isinstance(data, np.lib.npyio.NpzFile):
+                raise DataFormatError(path, f"{what}: an .npz archive expected (this is a single array)")
+            missing = [n for n in names if n not in data.files]
+            if missing:
+                raise DataFormatError(path, f"{what}: no array {missing[0]!r} (has {data.files})")
+            out = {}
+            for n in names:
+                check_stored_array(path, n)
+                out[n] = data[n]
+            return out
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        if isinstance(exc, GPDepthError):
+            raise
+        raise DataFormatError(path, f"{what}: corrupt or unreadable ({type(exc).__name__}: {exc})") from None
+
+
+def check_image_header(path: str | Path, channels: int = 3) -> None:
+    """Refuses a PNG (IHDR) or JPEG (start of frame) whose header claims more pixels than the memory limit allows.
+
+    Other formats are left to the decoder (whose errors `load_rgb` / `load_depth` turn into
+    `DataFormatError`).
+
+    Raises:
+        DataFormatError: a PNG signature with a header cut short.
+        ProblemTooLargeError: the decoded image would exceed `gpdepth3d.limits.memory_limit`.
+    """
+    from .limits import check_array_size
+
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(33)
+        if head.startswith(b"\xff\xd8"):
+            size = _jpeg_size(f)
+            if size is not None:
+                check_array_size(f"image {path}", (*size, channels), np.float64)
+            return
+    if not head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return
+    if len(head) < 33 or head[12:16] != b"IHDR":
+        raise DataFormatError(path, "corrupt PNG: no IHDR header")
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    check_array_size(f"image {path}", (height, width, channels), np.float64)
+
+
+def _jpeg_size(f) -> tuple[int, int] | None:
+    """(height, width) from a JPEG's start-of-frame marker, reading marker headers only (None: none found)."""
+    f.seek(2)
+    for _ in range(1000):  # the frame header comes after a few tables
+        marker = f.read(2)
+        if len(marker) < 2 or marker[0] != 0xFF:
+            return None
+        if marker[1] in (0xD8, 0x01) or 0xD0 <= marker[1] <= 0xD7:  # markers without a length
+            continue
+        length = f.read(2)
+        if len(length) < 2:
+            return None
+        if 0xC0 <= marker[1] <= 0xCF and marker[1] not in (0xC4, 0xC8, 0xCC):  # SOFn
+            frame = f.read(5)
+            return (int.from_bytes(frame[1:3], "big"), int.from_bytes(frame[3:5], "big")) if len(frame) == 5 else None
+        f.seek(int.from_bytes(length, "big") - 2, os.SEEK_CUR)
+    return None
+
+
+def _imread(path: Path, flags: int) -> np.ndarray | None:
+    """cv2.imread with its size refusals and decoder errors as typed errors."""
+    import cv2
+
+    check_image_header(path)
+    try:
+        return cv2.imread(str(path), flags)
+    except cv2.error as exc:
+        raise DataFormatError(path, f"not a readable image: {str(exc).strip().splitlines()[-1]}") from None
+
+
 def load_depth(
     path: str | Path,
     *,
@@ -553,21 +895,24 @@ def load_depth(
             real-valued (H, W) map (complex, strings, objects).
         InvalidInputError: if ``png_scale`` is not a finite number > 0.
     """
-    path = Path(path)
+    path = _as_path(path)
     png_scale = check_png_scale(png_scale)
     if not path.is_file():
         raise DataFormatError(path, "file not found")
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
+            check_stored_array(path)
             depth = np.load(path, allow_pickle=False)
         elif suffix == ".npz":
             with np.load(path, allow_pickle=False) as data:
-                depth = data[_pick_key(path, list(data.keys()), key)]
+                member = _pick_key(path, list(data.keys()), key)
+                check_stored_array(path, member)
+                depth = data[member]
         elif suffix == ".png":
             import cv2
 
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            raw = _imread(path, cv2.IMREAD_UNCHANGED)
             if raw is None:
                 raise DataFormatError(path, "not a readable PNG")
             if raw.ndim != 2 or raw.dtype != np.uint16:
@@ -592,6 +937,13 @@ def load_depth(
         raise DataFormatError(path, f"expected a 2-D depth map, got shape {depth.shape}")
     depth = np.where(np.isfinite(depth), depth, 0.0)
     return depth
+
+
+def _as_path(path, argument: str = "path") -> Path:
+    """``path`` as a `Path`; a value that is no path at all (None, a number) is refused by name."""
+    if not isinstance(path, (str, os.PathLike)) or str(path) == "":
+        raise InvalidInputError(argument, "a file path", describe(path))
+    return Path(path)
 
 
 def _pick_key(path: Path, keys: list[str], key: str | None) -> str:
@@ -630,7 +982,7 @@ def load_sparse(
         InvalidDepthError: invalid rows in a point list (unless ``drop_invalid``).
         ShapeError: a point list without ``image_size``.
     """
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "file not found")
     suffix = path.suffix.lower()
@@ -640,6 +992,9 @@ def load_sparse(
                 if {"u", "v", "depth"} <= set(data.keys()):
                     if image_size is None:
                         raise ShapeError("image_size", "(height, width) for a point list", None)
+                    for member in ("u", "v", "depth", "sigma"):
+                        if member in data:
+                            check_stored_array(path, member)
                     sigma = data["sigma"] if "sigma" in data else None
                     return _points(path, data["u"], data["v"], data["depth"], image_size, sigma, drop_invalid)
         except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
@@ -700,12 +1055,12 @@ def load_rgb(path: str | Path) -> np.ndarray:
     """
     import cv2
 
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "image not found")
     if path.suffix.lower() in (".jpg", ".jpeg"):
         _check_jpeg_complete(path)
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    bgr = _imread(path, cv2.IMREAD_COLOR)
     if bgr is None:
         raise DataFormatError(path, "not a readable image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
@@ -748,7 +1103,7 @@ def read_matrix(path: Path, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 def load_pose(path: str | Path) -> np.ndarray:
     """Reads a 4x4 ``T_world_camera`` from text: 4 rows of 4 numbers (7-Scenes/TUM) or 12 numbers (3x4)."""
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "pose file not found")
     try:
@@ -764,7 +1119,7 @@ def load_pose(path: str | Path) -> np.ndarray:
 
 def load_poses(path: str | Path) -> list[np.ndarray]:
     """Reads one pose per line (12 numbers, row-major 3x4, KITTI odometry style) as 4x4 matrices."""
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "pose file not found")
     try:

@@ -23,6 +23,58 @@ from .errors import (
 )
 
 
+DEPTH_RANGE = (1e-6, 1e6)
+"""Depths and standard deviations a measurement may have (metres): the MDE's bounds."""
+
+
+LIKELY_UNITS = ((2000.0, "millimetres", 1e-3), (200.0, "centimetres", 1e-2))
+"""(median above which, unit, metres per unit): depths whose median exceeds 200 (2000) "metres" are
+far more likely centimetres (millimetres) of an indoor or street scene than a scene 200 m away."""
+
+
+def likely_unit(depths: np.ndarray) -> tuple[str, float] | None:
+    """The unit depths (finite, > 0) most likely are in when not metres: (name, metres per unit), or None.
+
+    The median decides (`LIKELY_UNITS`): above 2000 millimetres, above 200 centimetres.
+    """
+    d = np.asarray(depths, dtype=np.float64).ravel()
+    with np.errstate(invalid="ignore"):
+        d = d[np.isfinite(d) & (d > 0)]
+    if d.size == 0:
+        return None
+    median = float(np.median(d))
+    for above, unit, factor in LIKELY_UNITS:
+        if median > above:
+            return unit, factor
+    return None
+
+
+def check_metres(depths: np.ndarray, argument: str, option: str) -> None:
+    """Refuses depths that look like millimetres or centimetres, naming the option that converts them.
+
+    Called on a user's files before any work, so a unit slip is caught on one line instead of a
+    depth map wrong by 1000x (or a 16-bit PNG that cannot hold it).
+
+    Args:
+        depths: The depths as read (any shape; 0, NaN and inf are ignored).
+        argument: What they are, e.g. ``"--sparse points.txt"``.
+        option: The option that scales them to metres, e.g. ``"--sparse-scale"``.
+
+    Raises:
+        InvalidDepthError: the median looks like millimetres or centimetres (`likely_unit`).
+    """
+    guess = likely_unit(depths)
+    if guess is not None:
+        unit, factor = guess
+        d = np.asarray(depths, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            median = float(np.median(d[np.isfinite(d) & (d > 0)]))
+        raise InvalidDepthError(
+            argument, "depths in metres",
+            f"median {median:.4g}: these look like {unit}, convert them with {option} {factor:g}",
+        )
+
+
 def _as_shape(image_size: tuple[int, int], argument: str = "image_size") -> tuple[int, int]:
     """Validates (height, width): two integers >= 1 (integral floats accepted); returns ints."""
     expected = "(height, width) with two positive integers"
@@ -80,9 +132,22 @@ class SparseDepth:
             raise InvalidDepthError(
                 "depth", "finite z-depths > 0 (drop invalid points with SparseDepth.from_arrays)", f"{bad} invalid"
             )
+        lo, hi = DEPTH_RANGE
+        outside = (d < lo) | (d > hi)
+        if np.any(outside):  # beyond any camera: the GP's scales would under/overflow
+            raise InvalidDepthError(
+                "depth", f"z-depths in [{lo:g}, {hi:g}] m", f"{int(outside.sum())} outside, e.g. {float(d[outside][0]):g}"
+            )
         s = arrays["sigma"]
         if np.any(s[np.isfinite(s)] <= 0) or np.any(np.isinf(s)):
             raise InvalidDepthError("sigma", "standard deviations > 0 (or NaN for the default)", "<= 0 or inf")
+        with np.errstate(invalid="ignore"):
+            outside = np.isfinite(s) & ((s < lo) | (s > hi))
+        if np.any(outside):
+            raise InvalidDepthError(
+                "sigma", f"standard deviations in [{lo:g}, {hi:g}] m (or NaN for the default)",
+                f"{int(outside.sum())} outside, e.g. {float(s[outside][0]):g}",
+            )
         h, w = shape
         inside = (arrays["u"] >= -0.5) & (arrays["u"] < w - 0.5) & (arrays["v"] >= -0.5) & (arrays["v"] < h - 0.5)
         if not np.all(inside):
@@ -289,6 +354,10 @@ class LidarCalibration:
             T = np.vstack([T, [0, 0, 0, 1]])
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise CalibrationError("T_camera_lidar", "a finite 3x4 or 4x4 transform", describe(T))
+        check_projection(P, "P")
+        check_rotation(T[:3, :3], "T_camera_lidar")
+        if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=ROTATION_ATOL):
+            raise CalibrationError("T_camera_lidar", "a rigid transform with last row [0, 0, 0, 1]", T[3].tolist())
         object.__setattr__(self, "P", P)
         object.__setattr__(self, "T_camera_lidar", T)
 
@@ -313,6 +382,7 @@ class LidarCalibration:
             Tr = Tr.reshape(3, 4)
         except (KeyError, ValueError) as exc:
             raise DataFormatError(path, f"not a KITTI calibration file (missing or malformed {exc})") from None
+        _check_kitti(path, P, R0, Tr, f"P{camera}", "R0_rect", "Tr_velo_to_cam")
         R = np.eye(4)
         R[:3, :3] = R0
         T = R @ np.vstack([Tr, [0, 0, 0, 1]])
@@ -328,6 +398,7 @@ class LidarCalibration:
             Tr = np.hstack([v2c["R"].reshape(3, 3), v2c["T"].reshape(3, 1)])
         except (KeyError, ValueError) as exc:
             raise DataFormatError(folder, f"not a KITTI raw calibration folder (missing {exc})") from None
+        _check_kitti(folder, P, R0, Tr, f"P_rect_0{camera}", "R_rect_00", "calib_velo_to_cam R")
         R = np.eye(4)
         R[:3, :3] = R0
         return cls(P, R @ np.vstack([Tr, [0, 0, 0, 1]]))
@@ -382,6 +453,49 @@ class LidarCalibration:
             v = homog[:, 1] / z
         sparse = SparseDepth.from_arrays(u[keep], v[keep], z[keep], image_size)
         return sparse.rasterize()
+
+
+ROTATION_ATOL = 1e-3
+"""Tolerance of a calibration's rotation: |R R^T - I| and |det R - 1| (KITTI's files: ~1e-7)."""
+
+
+def check_rotation(R: np.ndarray, argument: str) -> None:
+    """Refuses a 3x3 matrix that is not a rotation (orthonormal, det +1) within `ROTATION_ATOL`.
+
+    A scaled or sheared extrinsic multiplies or bends every projected depth silently.
+
+    Raises:
+        CalibrationError: naming ``argument``, with the singular values and the determinant.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    det = float(np.linalg.det(R)) if R.shape == (3, 3) and np.all(np.isfinite(R)) else float("nan")
+    if not (R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=ROTATION_ATOL) and abs(det - 1) < ROTATION_ATOL):
+        sv = np.linalg.svd(R, compute_uv=False) if R.shape == (3, 3) and np.all(np.isfinite(R)) else []
+        raise CalibrationError(
+            argument, "a rotation (orthonormal, det +1: a rigid transform, no scale)",
+            f"singular values {np.round(sv, 4).tolist()}, det {det:.4g}",
+        )
+
+
+def check_projection(P: np.ndarray, argument: str) -> None:
+    """Refuses a 3x4 projection whose 3x3 part is not K R with focal lengths > 0 (e.g. all zeros).
+
+    Raises:
+        CalibrationError: naming ``argument`` and the matrix.
+    """
+    M = np.asarray(P, dtype=np.float64)[:, :3]
+    scale = M[2, 2]
+    if not (abs(scale) > 1e-12 and M[0, 0] / scale > 0 and M[1, 1] / scale > 0 and abs(np.linalg.det(M)) > 1e-12):
+        raise CalibrationError(
+            argument, "a projection K [R | t] with focal lengths > 0 and P[2, 2] != 0", np.round(P, 4).tolist()
+        )
+
+
+def _check_kitti(path: Path, P, R0, Tr, p_name: str, r0_name: str, tr_name: str) -> None:
+    """Checks the three matrices of a KITTI calibration, each error naming the file and the entry."""
+    check_projection(P, f"{path}: {p_name}")
+    check_rotation(R0, f"{path}: {r0_name}")
+    check_rotation(np.asarray(Tr)[:3, :3], f"{path}: {tr_name}")
 
 
 def _read_kitti_kv(path: Path) -> dict[str, np.ndarray]:

@@ -296,9 +296,9 @@ class TestOutputSets:
         assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
         gio.atomic_write_set(tmp_path / "s", self.writers("v2"))
         assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]
-        hidden = gio.output_set_files(tmp_path / "s")
-        assert hidden["lock"].is_file() and hidden["current"].is_symlink()
-        assert len([p for p in tmp_path.iterdir() if p.name.startswith(".s.set-")]) == 1
+        # plain files and nothing else: no links, no hidden lock, pointer or folder
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
+        assert not any(p.is_symlink() for p in tmp_path.iterdir())
 
     def test_failing_writer_keeps_the_old_set(self, tmp_path):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
@@ -314,6 +314,7 @@ class TestOutputSets:
             gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: None, "s.csv": lambda p: None})
         with pytest.raises(gio.OutputError, match="plain file name"):
             gio.atomic_write_set(tmp_path / "s", {"../s.txt": lambda p: None})
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
 
     def test_members_not_written_leave_the_set(self, tmp_path):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
@@ -321,32 +322,143 @@ class TestOutputSets:
         assert self.read(tmp_path) == ["v2:s.txt", None]
         assert not os.path.lexists(tmp_path / "s.csv")
 
-    def test_single_plain_file_when_no_set_exists(self, tmp_path):
-        gio.atomic_write_set(tmp_path / "s", self.writers("v1", ("s.txt",)), members=("s.txt", "s.csv"))
-        assert (tmp_path / "s.txt").is_file() and not (tmp_path / "s.txt").is_symlink()
-
-    def test_without_symlinks_files_are_renamed_after_all_writes(self, tmp_path, monkeypatch):
-        monkeypatch.setattr(gio, "_symlinks_work", lambda folder: False)
+    def test_output_set_gathers_every_write_of_the_block(self, tmp_path):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
-        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"] and not (tmp_path / "s.txt").is_symlink()
+        with pytest.raises(RuntimeError):
+            with gio.output_set(tmp_path / "s", members=("s.txt", "s.csv", "s.png")):
+                gio.atomic_write_set(tmp_path / "s", self.writers("v2", ("s.txt",)))
+                gio.atomic_write(tmp_path / "s.png", lambda p: p.write_text("v2:s.png"))
+                assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]  # nothing renamed yet
+                raise RuntimeError("a failing preview")
+        assert self.read(tmp_path, ("s.txt", "s.csv", "s.png")) == ["v1:s.txt", "v1:s.csv", None]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
+        with gio.output_set(tmp_path / "s", members=("s.txt", "s.csv", "s.png")):
+            gio.atomic_write_set(tmp_path / "s", self.writers("v3", ("s.txt",)))
+            gio.atomic_write(tmp_path / "s.png", lambda p: p.write_text("v3:s.png"))
+            gio.write_json(tmp_path / "other" / "o.json", {})  # another folder: not part of the set
+            assert (tmp_path / "other" / "o.json").is_file()
+        assert self.read(tmp_path, ("s.txt", "s.csv", "s.png")) == ["v3:s.txt", None, "v3:s.png"]
 
-        def fails(p):
-            raise OSError(28, "No space left on device")
-
-        with pytest.raises(gio.OutputError, match="disk full"):
-            gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: p.write_text("v2"), "s.csv": fails})
-        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
-        gio.atomic_write_set(tmp_path / "s", self.writers("v3", ("s.txt",)), members=("s.txt", "s.csv"))
-        assert self.read(tmp_path) == ["v3:s.txt", None]
-
-    def test_clean_output_set_removes_only_its_leftovers(self, tmp_path):
+    def test_interrupted_commit_is_rolled_forward(self, tmp_path, monkeypatch):
         gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
-        (tmp_path / ".s.set-zzzzzzzz").mkdir()
+        real = os.replace
+        calls = {"n": 0}
+
+        def killed_after_one(src, dst):  # the process dies between the renames of the commit
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise KeyboardInterrupt
+            return real(src, dst)
+
+        monkeypatch.setattr(gio.os, "replace", killed_after_one)
+        with pytest.raises(KeyboardInterrupt):
+            gio.atomic_write_set(tmp_path / "s", self.writers("v2"))
+        monkeypatch.setattr(gio.os, "replace", real)
+        assert self.read(tmp_path) == ["v2:s.txt", "v1:s.csv"]  # the journal and a temporary stay
+        gio.atomic_write_set(tmp_path / "t", self.writers("w", ("t.txt",)))  # another set: not touched
+        assert self.read(tmp_path) == ["v2:s.txt", "v1:s.csv"]
+        gio.clean_output_set(tmp_path / "s", ["s.txt", "s.csv"])  # what the next writer does first
+        assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt", "t.txt"]
+
+    def test_killed_commit_leaves_old_or_new_set(self, tmp_path):
+        import multiprocessing
+
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        ctx = multiprocessing.get_context("fork")
+        proc = ctx.Process(target=_commit_then_die, args=(tmp_path,))
+        proc.start()
+        proc.join(60)
+        assert proc.exitcode == 9
+        names = sorted(p.name for p in tmp_path.iterdir())
+        assert any(n.endswith(".journal") for n in names)  # killed after the first rename
+        assert self.read(tmp_path) == ["v2:s.txt", "v1:s.csv"]
+        assert gio.clean_output_set(tmp_path / "s", ["s.txt", "s.csv"]) >= 1
+        assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]  # rolled forward: the complete new set
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
+
+    def test_write_together_commit_is_journalled(self, tmp_path, monkeypatch):
+        for n in ("a.csv", "b.json"):
+            gio.atomic_write(tmp_path / n, lambda p, n=n: p.write_text(f"old:{n}"))
+        real = os.replace
+        calls = {"n": 0}
+
+        def interrupted(src, dst):
+            calls["n"] += 1
+            if calls["n"] == 2:
+                raise KeyboardInterrupt
+            return real(src, dst)
+
+        monkeypatch.setattr(gio.os, "replace", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            with gio.write_together():
+                for n in ("a.csv", "b.json"):
+                    gio.atomic_write(tmp_path / n, lambda p, n=n: p.write_text(f"new:{n}"))
+        monkeypatch.setattr(gio.os, "replace", real)
+        assert [(tmp_path / n).read_text() for n in ("a.csv", "b.json")] == ["new:a.csv", "old:b.json"]
+        with gio.write_together():  # the next run writing there finishes the interrupted commit first
+            gio.atomic_write(tmp_path / "c.txt", lambda p: p.write_text("c"))
+        assert [(tmp_path / n).read_text() for n in ("a.csv", "b.json")] == ["new:a.csv", "new:b.json"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.json", "c.txt"]
+
+    def test_clean_output_folder_finishes_every_set(self, tmp_path):
+        import multiprocessing
+
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
+        proc = multiprocessing.get_context("fork").Process(target=_commit_then_die, args=(tmp_path,))
+        proc.start()
+        proc.join(60)
+        (tmp_path / ".t.abcdefgh.tmp.txt").write_text("a dead writer's temporary of another set")
+        assert gio.clean_output_folder(tmp_path) >= 2
+        assert self.read(tmp_path) == ["v2:s.txt", "v2:s.csv"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
+        assert gio.clean_output_folder(tmp_path / "missing") == 0
+
+    def test_clean_output_set_removes_only_dead_writers_leftovers(self, tmp_path):
+        gio.atomic_write_set(tmp_path / "s", self.writers("v1"))
         (tmp_path / ".s.abcdefgh.tmp.txt").write_text("x")
         (tmp_path / ".t.abcdefgh.tmp.txt").write_text("other set")
-        assert gio.clean_output_set(tmp_path / "s", ["s.txt", "s.csv"]) == 2
+        with gio.atomic_path(tmp_path / "s.csv") as live:  # a writer still running
+            live.write_text("v2")
+            assert gio.clean_output_set(tmp_path / "s", ["s.txt", "s.csv"]) == 1
+            assert live.exists()
         assert (tmp_path / ".t.abcdefgh.tmp.txt").exists()
-        assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
+        assert self.read(tmp_path) == ["v1:s.txt", "v2"]
+
+    def test_links_of_older_versions_become_plain_files(self, tmp_path):
+        old = tmp_path / ".s.set-abcd1234"
+        old.mkdir()
+        for n in ("s.txt", "s.csv"):
+            (old / n).write_text(f"old:{n}")
+        os.symlink(old.name, tmp_path / ".s.current")
+        for n in ("s.txt", "s.csv"):
+            os.symlink(f".s.current/{n}", tmp_path / n)
+        (tmp_path / ".s.lock").write_text("")
+        gio.atomic_write_set(tmp_path / "s", self.writers("v2", ("s.txt",)), members=("s.txt", "s.csv"))
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.txt"]
+        assert not (tmp_path / "s.txt").is_symlink() and self.read(tmp_path) == ["v2:s.txt", None]
+        old.mkdir()
+        (old / "s.txt").write_text("old")
+        os.symlink(old.name, tmp_path / ".s.current")
+        os.symlink(".s.current/s.txt", tmp_path / "s.csv")
+        gio.clean_output_set(tmp_path / "s", ["s.txt", "s.csv"])
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
+        assert (tmp_path / "s.csv").read_text() == "old" and not (tmp_path / "s.csv").is_symlink()
+
+
+def _commit_then_die(folder):
+    """Writes a new set and dies (like SIGKILL: no clean-up) right after the first rename of the commit."""
+    real = os.replace
+    calls = {"n": 0}
+
+    def die(src, dst):
+        real(src, dst)
+        calls["n"] += 1
+        if calls["n"] == 1:
+            os._exit(9)
+
+    gio.os.replace = die
+    gio.atomic_write_set(folder / "s", {n: (lambda p, n=n: p.write_text(f"v2:{n}")) for n in ("s.txt", "s.csv")})
 
 
 class TestOutputChecks:

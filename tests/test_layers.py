@@ -25,6 +25,7 @@ RANKS: dict[str, int] = {
     "sampling": 1,
     "metrics": 1,
     "io": 1,
+    "limits": 1,
     "depthmap": 1,
     "extras": 1,
     "mde": 2,

@@ -91,3 +91,42 @@ class TestWritePreviews:
         std[0] = np.inf
         paths = write_previews(tmp_path / "n", mean, std)
         assert all(p.stat().st_size > 1000 for p in paths)
+
+
+class TestPointsOnPreviews:
+    def test_image_and_points_drawn_beside_depth_and_sigma(self, tmp_path, monkeypatch):
+        from matplotlib.axes import Axes
+
+        from gpdepth3d.measurements import SparseDepth
+
+        mean, std, mde, _ = _maps()
+        rgb = np.zeros((60, 80, 3), np.uint8)
+        rgb[:, :40] = (255, 0, 0)  # the left half red: the first panel shows the image
+        sparse = SparseDepth.from_arrays([10.0, 70.0], [20.0, 40.0], [2.5, 4.5], (60, 80))  # twice the maps' size
+        scattered = []
+        real = Axes.scatter
+
+        def spy(self, x, y, *args, **kwargs):
+            scattered.append((self.get_title(), np.asarray(x), np.asarray(y), kwargs.get("c")))
+            return real(self, x, y, *args, **kwargs)
+
+        monkeypatch.setattr(Axes, "scatter", spy)
+        written = write_previews(tmp_path / "p", mean, std, mde=mde, rgb=rgb, sparse=sparse)
+        assert len(scattered) == 2  # on the image (coloured by depth) and on sigma (white)
+        (_, x0, y0, c0), (_, x1, y1, c1) = scattered
+        np.testing.assert_array_equal(x0, [5, 35])  # pixel columns on the maps' 30x40 grid
+        np.testing.assert_array_equal(y0, [10, 20])
+        np.testing.assert_allclose(c0, [2.5, 4.5])
+        assert c1 == "white"
+        np.testing.assert_array_equal(x1, x0)
+        depth = _read(written[0])
+        red = (depth[..., 2] > 200) & (depth[..., 1] < 60) & (depth[..., 0] < 60)
+        assert red.sum() > 200  # the image panel is drawn
+
+    def test_bad_rgb_and_points(self, tmp_path):
+        mean, std, _, _ = _maps()
+        with pytest.raises(ShapeError, match="rgb"):
+            write_previews(tmp_path / "x", mean, std, rgb=np.zeros((30, 40)))
+        with pytest.raises(InvalidInputError, match="sparse"):
+            write_previews(tmp_path / "x", mean, std, sparse=np.zeros((3, 3)))
+        assert list(tmp_path.iterdir()) == []

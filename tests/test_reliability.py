@@ -1,12 +1,15 @@
-"""Reliability (issue 15): typed errors at every boundary, one-line CLI errors, outputs written as one set.
+"""Reliability: typed errors at every boundary, one-line CLI errors, outputs written as one set, sizes refused early.
 
-* `API_CASES` / `CLI_CASES`: one row per bad input found by the fuzz run of issue 15; each must raise
-  its typed error (API) or print one line and exit 1 (CLI), and leave no output behind.
+* `API_CASES` / `CLI_CASES`: one row per bad input; each must raise its typed error (API) or print one
+  line and exit 1 (CLI), and leave no output behind.
 * A hypothesis property test: for small random inputs (shapes, dtypes, magnitudes, configs) the
   default engine gives a typed error or a finite posterior that matches ``engine="exact"``.
 * Kill tests: `DepthPosterior.save` killed at every step of its write (forked child, ``os._exit``),
-  ``gpdepth3d complete`` killed by SIGKILL at random moments, and two concurrent ``complete``
-  processes on one output: the files on disk are always one complete set (old or new).
+  ``gpdepth3d complete`` (previews included) killed by SIGKILL at random moments, and two concurrent
+  ``complete`` processes on one output: after recovery the files on disk are one complete set (old or new).
+* Sizes: each request too large for the memory limit gets `ProblemTooLargeError` (or a forged file
+  header `DataFormatError`) within a second, in a process capped at one more GiB (``RLIMIT_AS``).
+* The CLI sweep (``GPDEPTH3D_FUZZ_CLI=1``) behind the summary in docs/reliability.md.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from gpdepth3d.errors import (
     InvalidDepthError,
     InvalidInputError,
     OutputError,
+    ProblemTooLargeError,
     ShapeError,
 )
 from gpdepth3d.gp.model import DepthGPConfig
@@ -165,14 +169,98 @@ API_CASES = [
     ("save to a directory", lambda t: _complete_with(config=EXACT).save(_mkdir(t / "d.npz")), OutputError, "directory"),
     ("save under a file", lambda t: _complete_with(config=EXACT).save(_write(t, "f", b"") / "x"), OutputError, "file"),
     ("save empty name", lambda t: _complete_with(config=EXACT).save(""), OutputError, "name"),
-    ("PNG over 256 m", lambda t: _far().save(t / "far", png=True), InvalidDepthError, "256"),
+    ("save a name too long", lambda t: _complete_with(config=EXACT).save(t / ("x" * 250)), OutputError, "too long"),
     ("load posterior of mixed shapes", lambda t: DepthPosterior.load(_mixed_posterior(t)), DataFormatError, "2-D grid"),
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
     ("batch address", lambda t: g.experiments.batch.check_address("not-an-address"), InvalidInputError, "address"),
     ("batch address no port", lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
+    ("sparse depth 1e-300", lambda t: SparseDepth([1.0], [1.0], [1e-300], (8, 8)), InvalidDepthError, "[1e-06, 1e+06] m"),
+    ("sparse depth 1e300", lambda t: SparseDepth.from_arrays([1.0], [1.0], [1e300], (8, 8)), InvalidDepthError, "1e+300"),
+    ("sparse sigma 1e300", lambda t: SparseDepth([1.0], [1.0], [2.0], (8, 8), [1e300]), InvalidDepthError, "sigma"),
+    ("sparse sigma 1e-300", lambda t: SP.with_sigma(1e-300), InvalidDepthError, "sigma"),
+    ("calib Tr_velo_to_cam x2", lambda t: LidarCalibration.from_kitti(_calib(t, tr=2.0)), CalibrationError, "Tr_velo_to_cam"),
+    ("calib P2 all zero", lambda t: LidarCalibration.from_kitti(_calib(t, p=0.0)), CalibrationError, "P2"),
+    ("calib R0_rect no rotation", lambda t: LidarCalibration.from_kitti(_calib(t, r0=[1, 0.3, 0, 0, 1, 0, 0, 0, 1])), CalibrationError, "R0_rect"),
+    ("calib T scaled (API)", lambda t: LidarCalibration(np.eye(3, 4), 2 * np.eye(4)), CalibrationError, "T_camera_lidar"),
+    ("kitti_tiny corrupt npz", lambda t: g.datasets.open_dataset(_corrupt(_kitti_tiny_with_pose(t, 1.0) / "velodyne_02" / "0000000000.npz"))[0], DataFormatError, "0000000000.npz"),
+    ("ibims corrupt sparse npz", lambda t: g.datasets.open_dataset(_ibims(t, corrupt="sparse_100.npz"))[0], DataFormatError, "sparse_100.npz"),
+    ("ibims corrupt gt npz", lambda t: g.datasets.open_dataset(_ibims(t, corrupt="gt.npz"))[0], DataFormatError, "gt.npz"),
+    ("posterior config_json a list", lambda t: DepthPosterior.load(_posterior(t, config_json=np.array("[1, 2]"))), DataFormatError, "JSON object"),
+    ("posterior mean all NaN", lambda t: DepthPosterior.load(_posterior(t, mean=np.full((3, 3), np.nan))), DataFormatError, "no finite"),
+    ("posterior negative variance", lambda t: DepthPosterior.load(_posterior(t, variance=-np.ones((3, 3)))), DataFormatError, "negative"),
+    ("dataset indexed by name", lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 1.0))["0000000000"], InvalidInputError, ".load("),
+    ("load_depth(None)", lambda t: gio.load_depth(None), InvalidInputError, "path"),
+    ("load_sparse(3)", lambda t: gio.load_sparse(3, (8, 8)), InvalidInputError, "path"),
+    ("Frame.resized('2')", lambda t: g.datasets.Frame(name="f", rgb=RGB).resized("2"), InvalidInputError, "factor"),
+    ("posterior mean header claims 200000^2", lambda t: DepthPosterior.load(_forged_posterior(t)), DataFormatError, "header claims"),
+    ("JPEG header claims 60000^2", lambda t: gio.load_rgb(_forged_jpeg(t)), ProblemTooLargeError, "(60000, 60000, 3)"),
+    ("npy header claims 200000^2", lambda t: gio.load_depth(_forged_npy(t)), DataFormatError, "header claims"),
     ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
 ]
+
+
+def _calib(tmp: Path, *, tr: float = 1.0, p: float = 1.0, r0=(1, 0, 0, 0, 1, 0, 0, 0, 1)) -> Path:
+    """A KITTI object calibration file with its Tr_velo_to_cam, P2 and R0_rect changed."""
+    P = p * np.array([721.5, 0, 609.6, 44.9, 0, 721.5, 172.9, 0.2, 0, 0, 1, 0.003])
+    Tr = tr * np.array([0, -1, 0, 0, 0, 0, -1, 0, 1, 0, 0, 0.0])
+    path = tmp / "calib.txt"
+    path.write_text(f"P2: {' '.join(map(str, P))}\nR0_rect: {' '.join(map(str, r0))}\nTr_velo_to_cam: {' '.join(map(str, Tr))}\n")
+    return path
+
+
+def _corrupt(path: Path) -> Path:
+    path.write_bytes(b"PK\x03\x04 not really a zip archive")
+    return path.parents[1]
+
+
+def _ibims(tmp: Path, corrupt: str) -> Path:
+    root = tmp / "ibims"
+    root.mkdir()
+    cv2.imwrite(str(root / "image.png"), np.zeros((10, 20, 3), np.uint8))
+    np.savez(root / "gt.npz", depth=np.ones((10, 20), np.float32))
+    np.savez(root / "sparse_100.npz", u=np.array([1, 2]), v=np.array([1, 2]), depth=np.array([1.0, 1.0]))
+    (root / corrupt).write_bytes(b"\x00" * 64)
+    return root
+
+
+def _posterior(tmp: Path, **replace) -> Path:
+    post = _complete_with(config=EXACT)
+    post.save(tmp / "src" / "ok")
+    with np.load(tmp / "src" / "ok.npz") as d:
+        arrays = {k: d[k] for k in d.files}
+    for k, v in replace.items():
+        arrays[k] = np.resize(v, arrays[k].shape) if k in ("mean", "variance") else v
+    np.savez(tmp / "p.npz", **arrays)
+    return tmp / "p.npz"
+
+
+def _forged_posterior(tmp: Path) -> Path:
+    import zipfile
+
+    good = _posterior(tmp)
+    with zipfile.ZipFile(good) as src, zipfile.ZipFile(tmp / "src" / "forged.npz", "w") as dst:
+        for name in src.namelist():
+            dst.writestr(name, _forged_npy(tmp / "src").read_bytes() if name == "mean.npy" else src.read(name))
+    return tmp / "src" / "forged.npz"
+
+
+def _forged_jpeg(tmp: Path) -> Path:
+    import struct
+
+    ok, buf = cv2.imencode(".jpg", np.zeros((37, 53, 3), np.uint8))
+    data = bytearray(buf.tobytes())
+    sof = data.find(b"\xff\xc0")
+    data[sof + 5 : sof + 9] = struct.pack(">HH", 60000, 60000)
+    (tmp / "big.jpg").write_bytes(bytes(data))
+    return tmp / "big.jpg"
+
+
+def _forged_npy(tmp: Path) -> Path:
+    with open(tmp / "forged.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False, "shape": (200000, 200000)})
+        f.write(b"\0" * 100)
+    return tmp / "forged.npy"
 
 
 def _mixed_posterior(tmp: Path) -> Path:
@@ -223,6 +311,24 @@ def test_real_data_cases(shared_data, tmp_path):
         calib.check_image_size((240, 320))
 
 
+def test_masked_mde_pixels_are_no_mde():
+    mde, sparse = small_problem()
+    garbage = mde.copy()
+    garbage[2:5, 3:9] = -7.0  # would be refused as negative depths if the mask were ignored
+    masked = np.ma.masked_array(garbage, mask=garbage < 0)
+    holes = np.where(garbage < 0, 0.0, garbage)
+    a, b = complete(masked, sparse, config=EXACT), complete(holes, sparse, config=EXACT)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.variance, b.variance)
+
+
+def test_calibration_checks_keep_real_kitti(shared_data):
+    for k in range(3):
+        calib = LidarCalibration.from_kitti(shared_data / "kitti_object" / f"calib_{k:06d}.txt")
+        assert calib.P[0, 0] > 0
+    LidarCalibration.from_kitti(shared_data / "kitti_tiny", camera=2)
+
+
 def test_dropped_points_are_counted(tmp_path):
     path = _points(tmp_path, [[1, 1, 2.0], [2, 2, np.nan], [3, 3, -1.0], [30, 3, 4.0]])
     with pytest.warns(UserWarning, match="dropped 3 of 4 rows \\(2 with a NaN"):
@@ -260,7 +366,7 @@ class TestFailedWrites:
         with pytest.raises(OutputError, match="disk full"):
             replace(post, mean=post.mean + 1).save(tmp_path / "f", png=True)
         assert {n: (tmp_path / n).read_bytes() for n in visible_files(tmp_path)} == before
-        assert len([p for p in tmp_path.iterdir() if ".set-" in p.name]) == 1  # the failed set is gone
+        assert sorted(p.name for p in tmp_path.iterdir()) == visible_files(tmp_path)  # no temporary left
 
     def test_full_disk_single_file(self, tmp_path, monkeypatch):
         def full(*a, **k):
@@ -309,13 +415,11 @@ class TestFailedWrites:
         stale = [tmp_path / ".f.abcd1234.tmp.npz", tmp_path / ".f_mean.abcd1234.tmp.png"]
         for p in stale:
             p.write_bytes(b"x" * 100)
-        (tmp_path / ".f.set-deadbeef").mkdir()
-        (tmp_path / ".f.set-deadbeef" / "f.npz").write_bytes(b"x")
         (tmp_path / ".other.abcd1234.tmp.npz").write_bytes(b"not ours")
         post.save(tmp_path / "f", png=True)
-        assert not any(p.exists() for p in stale) and not (tmp_path / ".f.set-deadbeef").exists()
+        assert not any(p.exists() for p in stale)
         assert (tmp_path / ".other.abcd1234.tmp.npz").exists()
-        assert len([p for p in tmp_path.iterdir() if ".f.set-" in p.name]) == 1
+        assert sorted(p.name for p in tmp_path.iterdir()) == [".other.abcd1234.tmp.npz", "f.npz", "f_mean.png", "f_std.png"]
 
     def test_png_false_after_png_true_drops_old_pngs(self, tmp_path):
         post = _complete_with(config=EXACT)
@@ -338,13 +442,25 @@ def cli_inputs(tmp_path_factory) -> Path:
     t = tmp_path_factory.mktemp("cli_inputs")
     mde, sparse = small_problem(h=24, w=32)
     np.save(t / "mde.npy", mde)
-    np.save(t / "far.npy", mde * 200.0)
+    far = mde * 10.0
+    far[:4] = 500.0  # a band of sky beyond the 16-bit PNG's 256 m
+    np.save(t / "far.npy", far)
+    np.save(t / "mde_mm.npy", mde * 1000.0)
+    np.savetxt(t / "points_mm.txt", np.stack([sparse.u, sparse.v, 1000.0 * sparse.depth], 1))
+    np.savetxt(t / "points_cm.txt", np.stack([sparse.u, sparse.v, 100.0 * sparse.depth], 1))
     np.savetxt(t / "points.txt", np.stack([sparse.u, sparse.v, sparse.depth], 1))
-    np.savetxt(t / "points_far.txt", np.stack([sparse.u, sparse.v, 200.0 * sparse.depth], 1))
+    below = sparse.v >= 4.5  # the points see the street, not the sky
+    np.savetxt(t / "points_far.txt", np.stack([sparse.u, sparse.v, 10.0 * sparse.depth], 1)[below])
     np.save(t / "strs.npy", np.array([["a", "b"], ["c", "d"]]))
+    np.save(t / "zeros.npy", np.zeros_like(mde))
     (t / "binary.txt").write_bytes(bytes(range(256)) * 8)
     (t / "a_file").write_text("x")
     (t / "scan.bin").write_bytes(np.zeros((10, 4), np.float32).tobytes())
+    np.save(t / "big_mde.npy", (2 + np.random.default_rng(0).random((1500, 2000))).astype(np.float32))
+    (t / "calib_x2.txt").write_text(
+        "P2: 721.5 0 609.6 44.9 0 721.5 172.9 0.2 0 0 1 0.003\n"
+        "R0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -2 0 0 0 0 -2 0 2 0 0 0\n"
+    )
     (t / "calib.txt").write_text(
         "P2: 721.5 0 609.6 44.9 0 721.5 172.9 0.2 0 0 1 0.003\n"
         "R0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -1 0 0 0 0 -1 0 1 0 0 0\n"
@@ -370,12 +486,14 @@ CLI_CASES = [
     ("gt png scale negative", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "mde.npy"), "--gt-png-scale", "-1"), "--gt-png-scale"),
     ("gt missing", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "missing.png")), "not found"),
     ("gt corrupt", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "binary.txt")), "binary.txt"),
-    ("depth over 256 m with png", lambda t, o: _complete_args(t, o / "x", mde="far.npy", points="points_far.txt") + ["--preset", "residual", "--gp.engine", "exact"], "256"),
-    ("output empty", lambda t, o: _complete_args(t, Path("")), "name"),
+    ("output empty", lambda t, o: _complete_args(t, ""), "name"),
+    ("gt without a valid pixel", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "zeros.npy")), "--gt"),
     ("output is a directory", lambda t, o: _complete_args(t, (o / "d.npz").mkdir() or o / "d"), "directory"),
     ("output under a file", lambda t, o: _complete_args(t, t / "a_file" / "x"), "file"),
     ("gt invalid value", lambda t, o: _complete_args(t, o / "x", "--gt-invalid-value", "-1"), "--gt-invalid-value"),
     ("lidar image size 0", lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "0", "10"), "--lidar-image-size"),
+    ("lidar image size without lidar", lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "24", "32"), "without --lidar"),
+    ("calib without lidar", lambda t, o: _complete_args(t, o / "x", "--calib", str(t / "calib.txt")), "without --lidar"),
     ("view a .npy", lambda t, o: ["view", "--posterior", str(t / "mde.npy"), "--duration", "0"], "npz"),
     ("view duration -1", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--duration", "-1"], "--duration"),
     ("view bad host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "999.1.1.1", "--duration", "1"], "host"),
@@ -384,6 +502,15 @@ CLI_CASES = [
     ("demo onto a file", lambda t, o: ["demo", "--output", str(t / "a_file" / "d")], "is a file"),
     ("batch onto a file", lambda t, o: ["batch", "--data", str(t), "--output", str(t / "a_file" / "b"), "--workers", "0"], "file"),
     ("batch bad address", lambda t, o: ["batch", "--data", str(t), "--output", str(o / "b"), "--address", "not-an-address"], "address"),
+    ("eval seed -1", lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--seed", "-1"], "--seed"),
+    ("eval device tpu", lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--device", "tpu"], "--device"),
+    ("lidar calib scaled", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "calib_x2.txt"), "--lidar-image-size", "375", "1242", "--output", str(o / "x")], "Tr_velo_to_cam"),
+    ("output size beyond the memory limit", lambda t, o: _complete_args(t, o / "x", "--output-size", "11000", "12000", mde="big_mde.npy"), "memory limit"),
+    ("points in millimetres", lambda t, o: _complete_args(t, o / "x", points="points_mm.txt"), "millimetres, convert them with --sparse-scale 0.001"),
+    ("points in millimetres, no png", lambda t, o: _complete_args(t, o / "x", "--no-png", points="points_mm.txt"), "--sparse-scale 0.001"),
+    ("points in centimetres", lambda t, o: _complete_args(t, o / "x", points="points_cm.txt"), "centimetres, convert them with --sparse-scale 0.01"),
+    ("mde in millimetres", lambda t, o: _complete_args(t, o / "x", mde="mde_mm.npy", points="points_mm.txt"), "--mde-scale 0.001"),
+    ("sparse scale 0", lambda t, o: _complete_args(t, o / "x", "--sparse-scale", "0"), "--sparse-scale"),
     ("unknown preset", lambda t, o: _complete_args(t, o / "x", "--preset", "nope"), "--preset"),
     ("two presets", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--preset=residual"), "--preset"),
     ("preset without a name", lambda t, o: _complete_args(t, o / "x", "--preset"), "--preset"),
@@ -405,6 +532,82 @@ def test_cli_case_one_line_exit_1(case, cli_inputs, tmp_path, capsys):
     assert visible_files(tmp_path) in ([], ["d.npz"])  # nothing written
 
 
+def test_png_saturates_at_its_range_and_npz_keeps_true_values(tmp_path):
+    post = _far()
+    with pytest.warns(gio.PNGRangeWarning, match=r"192 of 192 pixels beyond 256.0 m"):
+        written = post.save(tmp_path / "far", png=True)
+    assert [p.name for p in written] == ["far.npz", "far_mean.png", "far_std.png"]
+    assert np.all(cv2.imread(str(written[1]), cv2.IMREAD_UNCHANGED) == 65535)
+    np.testing.assert_allclose(DepthPosterior.load(written[0]).mean, post.mean, rtol=1e-6)
+    with pytest.raises(InvalidDepthError, match="256"):  # without saturate the range is refused
+        gio.depth_png_values(post.mean)
+
+
+def test_cli_far_depths_saturate_the_png_with_one_warning(cli_inputs, tmp_path, capsys):
+    argv = _complete_args(cli_inputs, tmp_path / "x", mde="far.npy", points="points_far.txt") + [
+        "--preset", "residual", "--gp.engine", "exact"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    warning = [line for line in out.splitlines() if "beyond 256.0 m" in line]
+    assert len(warning) == 1 and warning[0].startswith("warning: posterior mean")
+    assert visible_files(tmp_path) == ["x.npz", "x_depth_preview.png", "x_mean.png", "x_sigma_preview.png", "x_std.png"]
+    assert np.load(tmp_path / "x.npz")["mean"].max() > 256
+
+
+@pytest.mark.slow
+def test_kitti_sky_pixel_beyond_png_range_does_not_fail_the_run(shared_data, tmp_path, capsys):
+    """The README's `complete` line on KITTI object frame 000001 (sky pixels beyond 256 m): exit 0, a warning."""
+    k = shared_data / "kitti_object"
+    argv = ["complete", "--rgb", str(k / "000001.png"), "--mde", "rtmonodepth", "--lidar", str(k / "000001.bin"),
+            "--calib", str(k / "calib_000001.txt"), "--output", str(tmp_path / "k1"),
+            "--models-dir", str(shared_data.parent / "models")]
+    assert cli.main(argv) == 0
+    warning = [line for line in capsys.readouterr().out.splitlines() if "beyond 256.0 m" in line]
+    assert len(warning) == 1 and warning[0].startswith("warning: posterior mean")
+    n = int(warning[0].split(": ")[2].split(" of ")[0])
+    mean = np.load(tmp_path / "k1.npz")["mean"]
+    assert n == int(np.count_nonzero(np.rint(mean / gio.KITTI_PNG_SCALE) > 65535)) > 0
+    png = cv2.imread(str(tmp_path / "k1_mean.png"), cv2.IMREAD_UNCHANGED)
+    assert int(np.count_nonzero(png == 65535)) == n
+
+
+def test_cli_scales_convert_millimetres(cli_inputs, tmp_path):
+    base = ["--preset", "residual", "--gp.engine", "exact", "--no-preview"]
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "m") + base) == 0
+    argv = _complete_args(cli_inputs, tmp_path / "mm", mde="mde_mm.npy", points="points_mm.txt")
+    assert cli.main(argv + base + ["--mde-scale", "0.001", "--sparse-scale", "0.001"]) == 0
+    metres, converted = np.load(tmp_path / "m.npz"), np.load(tmp_path / "mm.npz")
+    np.testing.assert_allclose(converted["mean"], metres["mean"], rtol=1e-5)
+
+
+def test_likely_unit():
+    from gpdepth3d.measurements import check_metres, likely_unit
+
+    assert likely_unit(np.array([1.5, 3.0, 80.0, 0.0, np.nan])) is None  # metres, indoor to street
+    assert likely_unit(np.array([2729.0, 1500.0, 4000.0])) == ("millimetres", 1e-3)
+    assert likely_unit(np.array([273.0, 150.0, 400.0])) == ("centimetres", 1e-2)
+    assert likely_unit(np.zeros(3)) is None
+    with pytest.raises(InvalidDepthError, match="look like millimetres, convert them with --x 0.001"):
+        check_metres(np.full((4, 4), 2500.0), "depths", "--x")
+
+
+def test_cli_output_folder_writes_inside_it(cli_inputs, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    base = ["--preset", "residual", "--gp.engine", "exact", "--no-preview", "--no-png"]
+    assert cli.main(_complete_args(cli_inputs, "out/") + base) == 0  # a new folder, named with a slash
+    assert visible_files(tmp_path) == ["out"] and visible_files(tmp_path / "out") == ["mde.npz"]
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "out") + base) == 0  # an existing folder
+    assert visible_files(tmp_path / "out") == ["mde.npz"]
+
+
+def test_cli_without_gt_removes_the_old_error_preview(cli_inputs, tmp_path):
+    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--gp.engine", "exact", "--no-png"]
+    assert cli.main(argv + ["--gt", str(cli_inputs / "mde.npy")]) == 0
+    assert "x_error_preview.png" in visible_files(tmp_path)
+    assert cli.main(argv) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.npz", "x_depth_preview.png", "x_sigma_preview.png"]
+
+
 def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
     """A read-only folder (simulated: the tests may run as root, which writes anyway) and a full disk."""
     real_access = os.access
@@ -422,6 +625,30 @@ def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "disk full" in err[0]
     assert visible_files(tmp_path) == []
+
+
+def test_cli_full_disk_during_the_previews_keeps_the_old_set(cli_inputs, tmp_path, capsys, monkeypatch):
+    """The previews are part of the set: a full disk while the sigma preview is written leaves the old files."""
+    from matplotlib.figure import Figure
+
+    base = ["--preset", "residual", "--gp.engine", "exact"]
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "x") + base + ["--gt", str(cli_inputs / "mde.npy")]) == 0
+    before = _fingerprint(tmp_path)
+    assert "x_error_preview.png" in before
+    real, calls = Figure.savefig, {"n": 0}
+
+    def full(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", full)
+    capsys.readouterr()
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "x", mde="far.npy", points="points_far.txt") + base) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "disk full" in err[0]
+    assert _fingerprint(tmp_path) == before  # the old set, its error preview included; no temporary
 
 
 def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, monkeypatch):
@@ -571,6 +798,7 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
         step, finished = 1, False
         while not finished:
             finished = _fork_save_killed_at(posts[1 + step % 2], folder / "f", step)
+            gio.clean_output_set(folder / "f", ["f.npz", "f_mean.png", "f_std.png"])  # what a reader or the next run does
             got = assert_one_set(folder, "f", known)
             if prepare is not None:
                 assert got is not None, f"{label}: the old set vanished at step {step}"
@@ -579,8 +807,7 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
         assert assert_one_set(folder, "f", known) is not None
         print(f"save killed at each of its {step - 2} file-system steps ({label}): always one set")
         posts[0].save(folder / "f", png=True)  # the next save cleans what the kills left
-        hidden = sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
-        assert len(hidden) == 3, hidden
+        assert sorted(p.name for p in folder.iterdir()) == ["f.npz", "f_mean.png", "f_std.png"]
 
 
 def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
@@ -588,37 +815,67 @@ def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
             str(inputs / "points.txt"), "--output", str(out), "--preset", "residual", "--gp.engine", "exact"]
 
 
+SET_NAMES = ["f.npz", "f_mean.png", "f_std.png", "f_depth_preview.png", "f_sigma_preview.png", "f_error_preview.png"]
+
+
+def _fingerprint(folder: Path) -> dict[str, bytes]:
+    """Every file in ``folder`` (hidden ones included) -> its content (an npz: its arrays, a zip's time stamps aside)."""
+    out = {}
+    for p in sorted(folder.iterdir()):
+        if p.suffix == ".npz" and not p.name.startswith("."):
+            with np.load(p) as d:
+                out[p.name] = b"".join(np.ascontiguousarray(d[k]).tobytes() for k in ("mean", "variance", "mde"))
+        else:
+            out[p.name] = p.read_bytes() if p.is_file() else b"<folder>"
+    return out
+
+
 @pytest.mark.slow
 def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
-    """SIGKILL of `gpdepth3d complete` after a random delay, several rounds: always one complete set on disk."""
+    """SIGKILL of `gpdepth3d complete` (previews included) at random moments, alternating a call with --gt
+    and one without: after the next writer's recovery exactly the old or the new set is on disk (all six
+    names: a call without --gt has no error preview), and the next run leaves no temporary."""
     mde = np.load(cli_inputs / "mde.npy")
-    names = []
-    for k in range(4):
-        np.save(tmp_path / f"mde{k}.npy", mde * (1 + 0.5 * k))
-        names.append(f"mde{k}.npy")
+    np.save(tmp_path / "a.npy", mde)
+    np.save(tmp_path / "b.npy", mde * 1.5)
     shutil.copy(cli_inputs / "points.txt", tmp_path / "points.txt")
+    calls = {"a": _complete_cmd(tmp_path, Path("OUT") / "f", "a.npy") + ["--gt", str(tmp_path / "a.npy")],
+             "b": _complete_cmd(tmp_path, Path("OUT") / "f", "b.npy")}
+    refs, duration = {}, 0.0
+    for k, argv in calls.items():  # the reference sets, each from an uninterrupted call
+        (tmp_path / f"ref_{k}").mkdir()
+        t0 = time.monotonic()
+        subprocess.run([x.replace("OUT", str(tmp_path / f"ref_{k}")) for x in argv], check=True, capture_output=True)
+        duration = max(duration, time.monotonic() - t0)
+        refs[k] = _fingerprint(tmp_path / f"ref_{k}")
+    assert "f_error_preview.png" in refs["a"] and "f_error_preview.png" not in refs["b"]
+    assert set(refs["a"]) - {"f_error_preview.png"} == set(refs["b"])
     out = tmp_path / "out"
-    t0 = time.monotonic()
-    subprocess.run(_complete_cmd(tmp_path, out / "f", names[0]), check=True, capture_output=True)
-    duration = time.monotonic() - t0
-    known = [np.load(tmp_path / n) for n in names]
+    out.mkdir()
+    subprocess.run([x.replace("OUT", str(out)) for x in calls["a"]], check=True, capture_output=True)
+    assert _fingerprint(out) == refs["a"]
     rng = random.Random(0)
-    kills = 0
-    rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "4"))
-    outcome = {"killed": 0, "finished": 0, "old set": 0, "new set": 0}
+    outcome = {"killed": 0, "finished": 0, "old set": 0, "new set": 0, "leftovers cleaned": 0}
+    state = "a"
+    rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "6"))
     for round_ in range(rounds):
-        proc = subprocess.Popen(_complete_cmd(tmp_path, out / "f", names[round_ % 4]), stdout=subprocess.DEVNULL,
+        new = "b" if state == "a" else "a"
+        proc = subprocess.Popen([x.replace("OUT", str(out)) for x in calls[new]], stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
-        time.sleep((rng.uniform(0.5, 1.05) if round_ < rounds - 1 else 0.4) * duration)  # the last: surely killed
+        time.sleep(rng.uniform(0.5, 1.15) * duration if round_ < rounds - 1 else 0.5 * duration)  # the last: killed
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
-            kills += 1
         outcome["killed" if proc.wait() == -signal.SIGKILL else "finished"] += 1
-        got = assert_one_set(out, "f", known)
-        assert got is not None
-        outcome["new set" if np.allclose(got, known[round_ % 4], rtol=1e-6) else "old set"] += 1
-    print(f"random kills: {outcome}")
-    assert kills >= 1
+        # what a reader (DepthPosterior.load) or the next writer does: finish a commit, remove dead temporaries
+        outcome["leftovers cleaned"] += gio.clean_output_set(out / "f", SET_NAMES) > 0
+        got = _fingerprint(out)
+        assert got in (refs["a"], refs["b"]), f"round {round_}: a mixed set {sorted(got)}"
+        outcome["new set" if got == refs[new] else "old set"] += 1
+        state = "a" if got == refs["a"] else "b"
+    print(f"random kills of complete: {outcome}")
+    assert outcome["killed"] >= 1
+    subprocess.run([x.replace("OUT", str(out)) for x in calls["b"]], check=True, capture_output=True)  # the next run
+    assert _fingerprint(out) == refs["b"]  # its set, no temporary, nothing hidden, no stale error preview
 
 
 @pytest.mark.slow
@@ -640,7 +897,7 @@ def test_concurrent_completes_leave_one_set(cli_inputs, tmp_path):
 
 # ------------------------------------------------------------------------------------------ CLI sweep
 def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
-    """Garbage for every option of every command (215 command lines): for the README's fuzz summary."""
+    """Garbage for every option of every command: the CLI sweep summarised in docs/reliability.md."""
     import itertools
 
     rng = np.random.default_rng(0)
@@ -678,6 +935,17 @@ def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
         for opt, v in [("--gp.units", "feet"), ("--gp.align", "x"), ("--gp.engine", "gpu"), ("--gp.formulation", "x")]:
             cases.append(base() + ["--preset", model, opt, v])
     cases += [base()[:-1] + [o_] for o_ in ["", f"{t}/afile/x", str(t), "/proc/x"]]
+    np.savetxt(t / "p_mm.txt", [[3, 4, 2000.0], [10, 5, 2500.0]])
+    np.save(t / "mde_mm.npy", 1000 * (2 + rng.random((24, 32))))
+    np.savetxt(t / "K.txt", [[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    cases += [base()[:4] + [f"{t}/p_mm.txt"] + base()[4:] + a for a in [[], ["--no-png"], ["--sparse-scale", "0.001"]]]
+    cases += [["complete", "--mde", f"{t}/mde_mm.npy", "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"] + a
+              for a in [[], ["--mde-scale", "0.001"], ["--mde-scale", "-1"]]]
+    cases += [base() + [opt, v] for opt in ("--sparse-scale", "--mde-scale") for v in ["0", "nan", "-1", "abc", "1e400"]]
+    cases += [base() + a for a in [["--ply", f"{out}/c.ply"], ["--ply", f"{out}/c.txt"], ["--ply", f"{t}/afile/c.ply"],
+                                   ["--ply", f"{out}/c.ply", "--intrinsics", f"{t}/K.txt"], ["--ply", str(t)]]]
+    cases += [base()[:-1] + [f"{out}/folder{next(o)}/"], base() + ["--gt", f"{t}/zeros.npy"]]
+    np.save(t / "zeros.npy", np.zeros((24, 32)))
     cases += [["view", "--posterior", "x.npz", "--duration", v] for v in ["-1", "nan", "abc"]]
     cases += [["view", "--posterior", "x.npz", "--host", h, "--duration", "0"]
               for h in ["999.1.1.1", "0.0.0.0", "", "::", "example.invalid", "1.2.3.4"]]
@@ -719,8 +987,10 @@ def test_cli_sweep(tmp_path):
         else:
             key = "exit 0" if rc == 0 else "other exit"
         counts[key] += 1
-    print(f"CLI sweep: {sum(counts.values())} command lines: {counts}")
+    leftovers = [p for p in (tmp_path / "out").rglob("*") if p.name.startswith(".")] if (tmp_path / "out").exists() else []
+    print(f"CLI sweep: {sum(counts.values())} command lines: {counts}; leftover temporaries {len(leftovers)}")
     assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
+    assert leftovers == []
 
 
 def test_typed_errors_pickle_with_their_attributes():
@@ -733,3 +1003,132 @@ def test_typed_errors_pickle_with_their_attributes():
                   OutputError("o", "disk full"), ConnectionFailedError("tcp://h:1", "no answer"), ProblemTooLargeError("big")):
         back = pickle.loads(pickle.dumps(error))
         assert type(back) is type(error) and str(back) == str(error) and vars(back) == vars(error)
+
+
+# ------------------------------------------------------------------------------------------ sizes
+MEMORY_GUARD_SCRIPT = r'''
+import json, resource, struct, sys, time, zipfile, zlib
+from pathlib import Path
+import numpy as np
+import cv2
+import gpdepth3d as g
+from gpdepth3d import io as gio
+from gpdepth3d.datasets.base import Frame
+
+t = Path(sys.argv[1])
+rng = np.random.default_rng(0)
+def points(h, w):
+    return g.SparseDepth.from_arrays(rng.uniform(0, w - 1, 50), rng.uniform(0, h - 1, 50), 2 + rng.random(50), (h, w))
+big_mde, small_mde = 2 + rng.random((1500, 2000)), 2 + rng.random((240, 320))
+big_pts, small_pts = points(1500, 2000), points(240, 320)
+g.complete(small_mde[:24, :32], points(24, 32))  # warm: the engine's kernels, BLAS threads, allocator arenas
+header = {"descr": "<f8", "fortran_order": False, "shape": (200000, 200000)}
+with open(t / "forged.npy", "wb") as f:
+    np.lib.format.write_array_header_1_0(f, header)
+    f.write(b"\0" * (300 - f.tell()))
+with zipfile.ZipFile(t / "forged.npz", "w") as z:
+    z.writestr("depth.npy", (t / "forged.npy").read_bytes())
+cv2.imwrite(str(t / "small.png"), np.ones((4, 4), np.uint16))
+png = bytearray((t / "small.png").read_bytes())
+png[16:24] = struct.pack(">II", 100000, 100000)
+png[29:33] = struct.pack(">I", zlib.crc32(bytes(png[12:29])) & 0xFFFFFFFF)
+(t / "forged.png").write_bytes(bytes(png))
+frame = Frame(name="f", rgb=np.zeros((375, 1242, 3), np.uint8), depth=np.ones((375, 1242)))
+cases = {
+    "output 11000x12000 from a 1500x2000 MDE": lambda: g.complete(big_mde, big_pts, output_shape=(11000, 12000)),
+    "16x output 3840x5120 from a 240x320 MDE": lambda: g.complete(small_mde, small_pts, output_shape=(3840, 5120)),
+    "Frame.resized(100)": lambda: frame.resized(100),
+    "npy header claiming 200000^2": lambda: gio.load_depth(t / "forged.npy"),
+    "npz header claiming 200000^2": lambda: gio.load_depth(t / "forged.npz"),
+    "PNG header claiming 100000^2 (depth)": lambda: gio.load_depth(t / "forged.png"),
+    "PNG header claiming 100000^2 (image)": lambda: gio.load_rgb(t / "forged.png"),
+}
+with open("/proc/self/statm") as f:
+    vm = int(f.read().split()[0]) * resource.getpagesize()
+cap = vm + 2**30  # one more GiB of address space than the process holds now
+resource.setrlimit(resource.RLIMIT_AS, (cap, resource.getrlimit(resource.RLIMIT_AS)[1]))
+out = {}
+for name, call in cases.items():
+    cpu, wall = time.process_time(), time.perf_counter()
+    try:
+        call()
+        kind, message = "no error", ""
+    except BaseException as exc:
+        kind, message = type(exc).__name__, str(exc)
+    out[name] = {"error": kind, "message": message, "cpu_s": time.process_time() - cpu, "wall_s": time.perf_counter() - wall}
+print(json.dumps(out))
+'''
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="RLIMIT_AS and /proc/self/statm")
+def test_sizes_refused_before_memory_is_spent_under_a_memory_cap(tmp_path):
+    """Each size case of the fuzz gets its typed error within a second, in a process capped at +1 GiB of memory."""
+    import json
+
+    script = tmp_path / "guard.py"
+    script.write_text(MEMORY_GUARD_SCRIPT)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    run = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    results = json.loads(run.stdout.strip().splitlines()[-1])
+    expected = {"npy header claiming 200000^2": "DataFormatError", "npz header claiming 200000^2": "DataFormatError"}
+    for name, r in results.items():
+        assert r["error"] == expected.get(name, "ProblemTooLargeError"), (name, r)
+        assert r["cpu_s"] < 1.0, (name, r)
+    sizes = {"output 11000x12000": "(11000, 12000)", "16x output": "(3840, 5120)", "Frame.resized": "(37500, 124200)",
+             "PNG header": "(100000, 100000, 3)"}
+    for name, r in results.items():
+        if r["error"] == "ProblemTooLargeError":
+            size = next(v for k, v in sizes.items() if name.startswith(k))
+            assert size in r["message"] and "memory limit of" in r["message"], r["message"]
+    print({k: (r["error"], round(r["cpu_s"], 3)) for k, r in results.items()})
+
+
+def test_memory_limit_reads_its_setting(monkeypatch):
+    from gpdepth3d import limits
+    from gpdepth3d.errors import ProblemTooLargeError
+
+    monkeypatch.setenv(limits.ENV_VAR, "1")
+    assert limits.memory_limit() <= 2**20
+    with pytest.raises(ProblemTooLargeError, match=r"output_shape \(48, 64\) from an MDE map of shape \(24, 32\)"):
+        check_output_shape((48, 64), (24, 32))
+    for bad in ("abc", "-5", "nan", "0"):
+        monkeypatch.setenv(limits.ENV_VAR, bad)
+        with pytest.raises(InvalidInputError, match=limits.ENV_VAR):
+            limits.memory_limit()
+    monkeypatch.setenv(limits.ENV_VAR, "100000000")
+    assert limits.memory_limit() < 100000000 * 2**20  # capped by the free memory
+    assert limits.completion_bytes((10, 10), (20, 20)) == 400 * limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL + 100 * limits.COMPLETION_BYTES_PER_INPUT_PIXEL
+
+
+def test_cli_ply_cloud_with_sigma(cli_inputs, tmp_path):
+    """complete --ply: one point per pixel, coloured by --rgb, with the posterior's sigma; part of the output set."""
+    np.savetxt(tmp_path / "K.txt", [[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
+    rgb = np.zeros((24, 32, 3), np.uint8)
+    rgb[..., 1] = 200
+    cv2.imwrite(str(tmp_path / "rgb.png"), rgb[..., ::-1])
+    argv = _complete_args(cli_inputs, tmp_path / "out" / "x") + [
+        "--preset", "residual", "--gp.engine", "exact", "--intrinsics", str(tmp_path / "K.txt"),
+        "--rgb", str(tmp_path / "rgb.png"), "--ply", str(tmp_path / "out" / "x.ply"), "--output-size", "48", "64"]
+    assert cli.main(argv) == 0
+    from gpdepth3d.mapping.cloud import ColoredCloud
+
+    post = DepthPosterior.load(tmp_path / "out" / "x.npz")
+    cloud = ColoredCloud.load_ply(tmp_path / "out" / "x.ply")
+    assert len(cloud) == 48 * 64 and np.all(cloud.colors == [0, 200, 0])
+    np.testing.assert_allclose(np.sort(cloud.points[:, 2]), np.sort(post.mean.ravel()), rtol=1e-5)
+    np.testing.assert_allclose(np.sort(cloud.variance), np.sort(post.variance.ravel()), rtol=1e-4)
+    # the camera was resized to the output grid (fx 60, cx 31.5): the first point is pixel (0, 0)
+    z = post.mean[0, 0]
+    np.testing.assert_allclose(cloud.points[0], [-31.5 / 60 * z, -23.5 / 60 * z, z], rtol=1e-5)
+
+
+@pytest.mark.parametrize("extra, text", [
+    (["--ply", "x.txt"], ".ply"),
+    (["--ply", "x.ply"], "--intrinsics"),
+])
+def test_cli_ply_refused_before_work(cli_inputs, tmp_path, capsys, extra, text):
+    assert cli.main(_complete_args(cli_inputs, tmp_path / "x") + extra) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and text in err[0]
+    assert visible_files(tmp_path) == []

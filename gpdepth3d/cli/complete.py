@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import OutputError
 from ..gp.model import DepthGPConfig
-from ..io import check_output_path
+from ..io import PNGRangeWarning, check_output_path, output_set
 from ._options import GPPreset
 
 METRIC_COLUMNS: dict[str, str] = {
@@ -33,7 +33,7 @@ def _print_metrics(rows: dict[str, dict[str, float]]) -> None:
 def complete_command(
     *,
     mde: str,
-    output: Path,
+    output: str,
     sparse: Optional[Path] = None,
     lidar: Optional[Path] = None,
     calib: Optional[Path] = None,
@@ -52,6 +52,9 @@ def complete_command(
     models_dir: Optional[Path] = None,
     drop_invalid_points: bool = False,
     preview: bool = True,
+    mde_scale: Optional[float] = None,
+    sparse_scale: Optional[float] = None,
+    ply: Optional[Path] = None,
 ) -> None:
     """Complete one frame: an RGB image through a front-end (or an MDE depth map) + sparse depth -> depth and sigma.
 
@@ -65,7 +68,8 @@ def complete_command(
         mde: The monocular depth: a front-end run on --rgb, "fastdepth" (FastDepth TFLite, NYU, indoor; needs the
             [tflite] extra), "rtmonodepth" (RT-MonoDepth-S ONNX, KITTI, outdoor), "rtmonodepth-mono" or a
             .onnx/.tflite model file; or a depth map file (.npy/.npz in metres, 16-bit .png with --mde-png-scale).
-        output: Output path (the .npz suffix is added).
+        output: Output path (the .npz suffix is added); an existing folder or a name ending in "/" writes inside
+            that folder, named after the --rgb (or --mde) file.
         sparse: Sparse depth: a sparse depth map (.npy/.npz/.png) or a point list (.npz with u, v, depth; .txt lines
             "u v depth [sigma]" in MDE pixels and metres, or "X Y Z" camera-frame metres with --sparse-points xyz).
         lidar: Instead of --sparse: a raw KITTI Velodyne scan (.bin), projected with --calib (closest point per pixel).
@@ -85,24 +89,35 @@ def complete_command(
         gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
         output_size: Output HEIGHT WIDTH (default: the MDE size; larger upsamples).
         png: Also write 16-bit PNGs of mean and std.
-        rgb: RGB image to run the front-end named by --mde on (the MDE map is then the network's output).
+        rgb: RGB image to run the front-end named by --mde on (the MDE map is then the network's output); with an
+            MDE depth file, the image drawn in the previews and colouring --ply.
         models_dir: Folder of the named front-ends' models (default: $GPDEPTH3D_MODELS or ../shared/models).
         drop_invalid_points: Drop point-list rows with a NaN/negative depth or outside the image (their count is
             printed as a warning) instead of refusing the file.
         preview: Also write the colourised previews (PNG with colour bars).
+        mde_scale: Metres per unit of an MDE depth file (0.001 for millimetres). Unset, the file must hold metres:
+            values that look like millimetres or centimetres are refused before any work.
+        sparse_scale: Metres per unit of the sparse depths (and sigmas), any format (0.001 for millimetres). Unset,
+            they must be metres: values that look like millimetres or centimetres are refused before any work.
+        ply: Also write the posterior as a coloured point cloud (binary PLY with per-point sigma, variance and
+            confidence; `gpdepth3d.mapping.cloud`), back-projected with --intrinsics or the --calib of --lidar and
+            coloured by --rgb (grey without it).
     """
     from ..camera import PinholeCamera
     from ..completion.complete import DepthCompleter, PosteriorWarning
     from ..completion.problem import check_output_shape
     from ..errors import InvalidInputError
     from ..io import check_png_scale, load_depth, load_sparse, read_matrix
-    from ..measurements import LidarCalibration, load_velodyne, project_points
+    from ..measurements import LidarCalibration, SparseDepth, check_metres, load_velodyne, project_points
     from ..metrics import calibration_metrics, depth_metrics
 
     # Everything is checked and read before anything is computed or written.
     for name, value in (("--mde-png-scale", mde_png_scale), ("--sparse-png-scale", sparse_png_scale),
                         ("--gt-png-scale", gt_png_scale)):
         check_png_scale(value, name)
+    for name, value in (("--mde-scale", mde_scale), ("--sparse-scale", sparse_scale)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise InvalidInputError(name, "metres per unit of the file, a finite number > 0", value)
     if gt_invalid_value is not None and not 0 <= gt_invalid_value <= 65535:
         raise InvalidInputError("--gt-invalid-value", "a 16-bit PNG value 0..65535", gt_invalid_value)
     if lidar_image_size is not None:
@@ -111,15 +126,29 @@ def complete_command(
         _as_shape(lidar_image_size, "--lidar-image-size")
     from ..experiments.previews import preview_paths, write_previews
 
-    out_npz = check_output_path(output, "--output").with_suffix(".npz")
+    out_npz = output_npz(output, Path(rgb) if rgb is not None else Path(mde))
     base = out_npz.with_suffix("")
+    png_names = [out_npz.stem + s for s in ("_mean.png", "_std.png")]
+    preview_names = [p.name for p in preview_paths(base, with_error=True)]
     check_output_targets(
-        [out_npz] + ([out_npz.with_name(out_npz.stem + s) for s in ("_mean.png", "_std.png")] if png else [])
+        [out_npz] + ([out_npz.with_name(n) for n in png_names] if png else [])
         + (preview_paths(base, with_error=gt is not None) if preview else [])
     )
+    if ply is not None:
+        ply = check_output_path(ply, "--ply")
+        if ply.suffix.lower() != ".ply":
+            raise InvalidInputError("--ply", "a file name ending in .ply", str(ply))
+        if intrinsics is None and (lidar is None or calib is None):
+            raise InvalidInputError("--ply", "intrinsics to back-project with: --intrinsics K.txt, or --lidar with --calib",
+                                    "neither")
+        check_output_targets([ply])
     if (sparse is None) == (lidar is None):
         raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
+    for name, value in (("--calib", calib), ("--lidar-image-size", lidar_image_size)):
+        if value is not None and lidar is None:
+            raise InvalidInputError(name, "--lidar (it belongs to a LiDAR scan)", f"{name} without --lidar")
     is_file = Path(mde).suffix.lower() in DEPTH_FILE_SUFFIXES
+    image = None
     if not is_file:
         if rgb is None:
             raise InvalidInputError(
@@ -129,19 +158,32 @@ def complete_command(
         from ..mde import load_frontend
 
         network = load_frontend(mde, models_dir=models_dir)
-        mde_depth = network(load_rgb(rgb))
+        image = load_rgb(rgb)
+        mde_depth = network(image)
     else:
         mde_depth = load_depth(Path(mde), png_scale=mde_png_scale)
+        if rgb is not None:
+            from ..io import load_rgb
+
+            image = load_rgb(rgb)
+        if mde_scale is None:
+            check_metres(mde_depth, f"--mde {mde}", "--mde-scale")
+        else:
+            mde_depth = mde_depth * mde_scale
     out_shape = check_output_shape(output_size, mde_depth.shape)
     gt_depth = None
     if gt is not None:
         gt_depth = load_depth(gt, png_scale=gt_png_scale, invalid_value=gt_invalid_value)
+        if not np.any(gt_depth > 0):
+            from ..errors import EmptyInputError
+
+            raise EmptyInputError("--gt", "a ground-truth map with at least one valid depth (> 0)", "none valid")
         if abs((gt_depth.shape[1] / gt_depth.shape[0]) / (out_shape[1] / out_shape[0]) - 1.0) > 0.01:
             raise InvalidInputError(
                 "--gt", f"a depth map of the image with the MDE's aspect ratio ({out_shape[1]}x{out_shape[0]})",
                 f"{gt_depth.shape[1]}x{gt_depth.shape[0]}",
             )
-    camera = None
+    camera = calibration_camera = None
     if intrinsics is not None:
         camera = PinholeCamera.from_K(read_matrix(intrinsics, (3, 3), "intrinsics"), mde_depth.shape[1], mde_depth.shape[0])
     if lidar is not None:
@@ -150,7 +192,10 @@ def complete_command(
         calibration = LidarCalibration.from_kitti(calib)
         if lidar_image_size is None:
             calibration.check_image_size(mde_depth.shape, "--lidar-image-size (default: the MDE size)")
-        measurements = calibration.project(load_velodyne(lidar), lidar_image_size or mde_depth.shape)
+        lidar_shape = lidar_image_size or mde_depth.shape
+        measurements = calibration.project(load_velodyne(lidar), lidar_shape)
+        K = calibration.P[:, :3] / calibration.P[2, 2]
+        calibration_camera = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], lidar_shape[1], lidar_shape[0])
     elif sparse_points == "xyz":
         if camera is None:
             raise InvalidInputError("--intrinsics", "intrinsics for --sparse-points xyz", None)
@@ -158,11 +203,16 @@ def complete_command(
         measurements = project_points(xyz, camera)
     else:
         measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points)
+    if sparse is not None:
+        if sparse_scale is None:
+            check_metres(measurements.depth, f"--sparse {sparse}", "--sparse-scale")
+        else:
+            m = measurements
+            measurements = SparseDepth(m.u, m.v, m.depth * sparse_scale, m.image_size, m.sigma * sparse_scale)
     completer = DepthCompleter(gp)
     with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
         warnings.simplefilter("ignore", PosteriorWarning)
         posterior = completer.complete(mde_depth, measurements, output_shape=output_size, frame=out_npz.stem)
-    written = posterior.save(out_npz, png=png)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
         f"({gp.formulation}, engine {gp.engine}) in {sum(posterior.timings.values()):.2f} s"
@@ -182,13 +232,57 @@ def complete_command(
               f"{cal['coverage_2sigma']:.3f} (0.954), +-3 sigma {cal['coverage_3sigma']:.3f} (0.997), median "
               f"|error| / sigma {cal['median_abs_z']:.3f} (0.674), AUSE {cal['ause']:.3f} (0: sigma ranks the errors "
               f"perfectly), NLL {cal['nll']:.3f} [nats per pixel]")
-    if preview:
-        written = list(written) + write_previews(
-            base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth
-        )
+    # One set: the npz, its PNGs and the previews appear together or not at all; names of an
+    # earlier call not written now (its error preview, its PNGs) go in the same commit.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PNGRangeWarning)
+        with output_set(base, members=[out_npz.name, *png_names, *preview_names] + ([ply.name] if ply else [])):
+            written = list(posterior.save(out_npz, png=png))
+            if preview:
+                written += write_previews(
+                    base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth, rgb=image,
+                    sparse=posterior.sparse,
+                )
+            if ply is not None:
+                written.append(_write_cloud(ply, posterior, image, camera or calibration_camera))
+    for w in caught:
+        if issubclass(w.category, PNGRangeWarning):
+            print(f"warning: {w.message}")
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     print(f"wrote {len(written)} files in {out_npz.parent.resolve()}:")
     for path in written:
         print(f"wrote {path}")
+
+
+def _write_cloud(path: Path, posterior, image: Optional[np.ndarray], camera) -> Path:
+    """Back-projects the posterior on its output grid (camera resized to it), coloured by the image (grey without)."""
+    import cv2
+
+    from ..mapping.cloud import backproject_posterior
+
+    h, w = posterior.shape
+    if image is None:
+        colours = np.full((h, w, 3), 128, np.uint8)
+    else:
+        shrink = image.shape[0] > h
+        colours = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    cloud = backproject_posterior(posterior, colours, camera.resized(w, h))
+    return cloud.save_ply(path)
+
+
+def output_npz(output: str | Path, source: Path) -> Path:
+    """The posterior file of ``--output``: ``OUTPUT.npz``, or ``OUTPUT/<source stem>.npz`` for a folder.
+
+    A folder is an existing one or a name ending in a path separator (``out/``).
+
+    Raises:
+        OutputError: an empty name or one that cannot be written.
+    """
+    text = os.fspath(output)
+    if text.endswith(("/", os.sep)) or (text and Path(text).is_dir()):
+        return check_output_path(Path(text) / f"{source.stem or 'completion'}.npz", "--output")
+    return check_output_path(text, "--output").with_suffix(".npz")
 
 
 def check_output_targets(paths: list[Path]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
@@ -66,6 +67,10 @@ def eval_command(
     except ValueError:
         raise InvalidInputError("points", "comma-separated numbers such as '50,200,500'", points) from None
     check_output_folder(Path(output), "--output")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise InvalidInputError("--seed", "an integer >= 0", seed)
+    if device is not None and not re.fullmatch(r"cpu|cuda(:\d+)?", device):
+        raise InvalidInputError("--device", "cpu, cuda or cuda:N (default: NumPy on the CPU)", device)
     model = None
     if Path(mde).suffix.lower() in (".tflite", ".onnx"):  # a model file: its kind from the suffix
         model, mde = Path(mde), "fastdepth" if Path(mde).suffix.lower() == ".tflite" else "rtmonodepth"

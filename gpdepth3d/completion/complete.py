@@ -15,6 +15,7 @@ Input rules (documented once, here):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 import warnings
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataFormatError, GPDepthError, InvalidInputError, describe
+from ..errors import DataFormatError, GPDepthError, InvalidInputError, ProblemTooLargeError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
 from ..mde.align import AlignmentResult
@@ -95,18 +96,17 @@ class DepthPosterior:
         """Writes ``mean``, ``variance``, ``std`` and ``mde`` to ``<path>.npz``, as one set with the PNGs.
 
         With ``png=True`` also writes ``<stem>_mean.png`` and ``<stem>_std.png`` as 16-bit PNG in
-        the KITTI convention (value = metres * 256, so depths up to 256 m). Everything is
-        validated before anything is written, and the files of one call appear together or not
-        at all (`gpdepth3d.io.atomic_write_set`: a kill, a full disk or a concurrent save of the
-        same path leaves the complete old set or the complete new set; PNGs of an earlier call
-        with ``png=True`` do not survive a later ``png=False`` call).
+        the KITTI convention (value = metres * 256): values beyond the format's 256 m are stored
+        as 65535 with a `gpdepth3d.io.PNGRangeWarning` counting them (the npz keeps the true
+        values). The files of one call appear together or not at all, as plain files
+        (`gpdepth3d.io.atomic_write_set`; inside a `gpdepth3d.io.output_set` they join it), and
+        PNGs of an earlier call with ``png=True`` do not survive a later ``png=False`` call.
 
         Returns:
             The written paths (npz first).
 
         Raises:
-            OutputError: the path is empty or a directory, or a file cannot be written.
-            InvalidDepthError: ``png=True`` and a mean or std exceeds the PNG range (256 m).
+            OutputError: the path is empty, a directory or too long, or a file cannot be written.
         """
         from ..io import atomic_write_set, check_output_path, depth_png_values, npz_writer, png_writer
 
@@ -135,7 +135,8 @@ class DepthPosterior:
                 (png_names[0], self.mean, "mean"),
                 (png_names[1], self.std, "std"),
             ):
-                writers[name] = png_writer(depth_png_values(values, argument=f"posterior {arg} (png=True)"), path.parent / name)
+                values = depth_png_values(values, argument=f"posterior {arg} ({path.parent / name})", saturate=True)
+                writers[name] = png_writer(values, path.parent / name)
         return atomic_write_set(path.with_suffix(""), writers, members=(npz_name, *png_names))
 
     @classmethod
@@ -143,9 +144,18 @@ class DepthPosterior:
         """Reads a posterior written by `save`, with the config that made it.
 
         ``config`` replaces the stored config (files written before it was stored get
-        ``config`` or `DepthGPConfig()`).
+        ``config`` or `DepthGPConfig()`). A save a kill interrupted is finished first
+        (`gpdepth3d.io.clean_output_set`), so the files read belong to one call.
+
+        Raises:
+            DataFormatError: a missing or corrupt file, a stored config that is not a JSON object,
+                a mean with no finite value, or a variance that is negative or not finite.
         """
+        from ..io import check_stored_array, clean_output_set
+
         path = Path(path)
+        with contextlib.suppress(GPDepthError, OSError):  # a read-only folder: read what is there
+            clean_output_set(path.with_suffix(""))
         if not path.is_file():
             raise DataFormatError(path, "posterior file not found")
         try:
@@ -153,6 +163,8 @@ class DepthPosterior:
             if not isinstance(data, np.lib.npyio.NpzFile):
                 raise ValueError("an .npz archive expected (this is a single array)")
             with data as d:
+                for k in ("mean", "variance", "mde", "sparse_uvd"):  # forged sizes refused before allocating
+                    check_stored_array(path, k)
                 uvd = d["sparse_uvd"].astype(np.float64)
                 size = tuple(int(x) for x in d["sparse_image_size"])
                 sparse = SparseDepth(uvd[:, 0], uvd[:, 1], uvd[:, 2], size)
@@ -160,8 +172,15 @@ class DepthPosterior:
                 mean, variance, mde = (d[k].astype(np.float64) for k in ("mean", "variance", "mde"))
                 if mean.ndim != 2 or variance.shape != mean.shape or mde.shape != mean.shape:
                     raise ValueError(f"mean {mean.shape}, variance {variance.shape}, mde {mde.shape}: not one 2-D grid")
+                if not np.any(np.isfinite(mean)):
+                    raise ValueError("the mean has no finite value")
+                if not np.all(np.isfinite(variance)) or np.any(variance < 0):
+                    bad = int(np.count_nonzero(~(np.isfinite(variance) & (variance >= 0))))
+                    raise ValueError(f"{bad} variances negative or not finite (a variance is finite and >= 0)")
                 if config is None and "config_json" in d.files:
                     stored = json.loads(str(d["config_json"]))
+                    if not isinstance(stored, dict):
+                        raise ValueError(f"config_json: expected a JSON object, got a JSON {type(stored).__name__}")
                     known = {f.name for f in fields(DepthGPConfig)}
                     config = DepthGPConfig(**{k: v for k, v in stored.items() if k in known})
                 rejected = d["rejected"].astype(bool) if "rejected" in d.files else None
@@ -179,6 +198,8 @@ class DepthPosterior:
                     warnings=tuple(str(w) for w in d["warnings"]) if "warnings" in d.files else (),
                     mde_slope=float(d["mde_slope"]) if "mde_slope" in d.files else 1.0,
                 )
+        except ProblemTooLargeError:
+            raise
         except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile, GPDepthError) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 

@@ -7,6 +7,7 @@ import numpy as np
 from ..depthmap import fill_nearest, resize_map
 from ..errors import EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates
+from ..limits import check_completion_size
 from ..mde.align import AlignmentResult, align_depth
 from ..measurements import SparseDepth
 
@@ -43,12 +44,13 @@ def check_output_shape(output_shape, input_shape: tuple[int, int]) -> tuple[int,
             f"at most {MAX_UPSAMPLING}x the MDE size {h}x{w} per side and {MAX_OUTPUT_PIXELS} pixels",
             (ho, wo),
         )
+    check_completion_size((h, w), (ho, wo))  # ProblemTooLargeError before any output array is allocated
     return (ho, wo)
 
 
 def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validates an MDE depth map; returns it as float64 with invalid pixels at 0, and the valid mask."""
-    d = np.asarray(mde_depth)
+    d = np.ma.filled(mde_depth, 0.0) if np.ma.isMaskedArray(mde_depth) else np.asarray(mde_depth)  # masked: no MDE
     if d.ndim != 2 or d.shape[0] < 2 or d.shape[1] < 2:
         raise ShapeError("mde_depth", "a 2-D (H, W) depth map with H, W >= 2", describe(d))
     if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):

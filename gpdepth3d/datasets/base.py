@@ -10,8 +10,12 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose
 from ..io import read_matrix as read_matrix  # noqa: F401  (re-exported for the readers)
-from ..errors import CalibrationError, DataFormatError, InvalidInputError
+from ..errors import CalibrationError, DataFormatError, InvalidInputError, describe
+from ..limits import check_memory
 from ..measurements import LidarCalibration, SparseDepth
+
+RESIZED_BYTES_PER_PIXEL = 40
+"""Peak bytes per pixel of `Frame.resized`: the image, the depth as float32 and float64, temporaries."""
 
 
 def checked_pose(T: np.ndarray, path: Path, where: str = "") -> np.ndarray:
@@ -70,12 +74,15 @@ class Frame:
         """
         import cv2
 
-        if not np.isfinite(factor) or factor <= 0:
-            raise InvalidInputError("factor", "a resolution factor > 0", factor)
+        if (isinstance(factor, (bool, np.bool_)) or not isinstance(factor, (int, float, np.integer, np.floating))
+                or not np.isfinite(factor) or factor <= 0):
+            raise InvalidInputError("factor", "a resolution factor, a finite number > 0", describe(factor))
         if factor == 1:
             return self
         h, w = self.shape
         nh, nw = max(2, int(round(h * factor))), max(2, int(round(w * factor)))
+        # the image (3 bytes), the depth (float32 and float64) and the resize's temporaries, per pixel
+        check_memory(f"frame {self.name} resized {factor:g}x to shape {(nh, nw)}", RESIZED_BYTES_PER_PIXEL * nh * nw)
         rgb = cv2.resize(self.rgb, (nw, nh), interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_LINEAR)
         depth = None
         if self.depth is not None:
@@ -112,6 +119,15 @@ class DatasetReader:
         return len(self.names)
 
     def __getitem__(self, index: int) -> Frame:
+        """The frame at position ``index`` (negative from the end); `load` reads a frame by name.
+
+        Raises:
+            InvalidInputError: ``index`` is not an integer (a frame name: use `load`).
+            IndexError: ``index`` is out of range.
+        """
+        if isinstance(index, (bool, np.bool_)) or not isinstance(index, (int, np.integer)):
+            hint = f" (a frame name: use .load({index!r}))" if isinstance(index, str) else ""
+            raise InvalidInputError("index", f"a frame position, an integer{hint}", describe(index))
         if not -len(self.names) <= index < len(self.names):
             raise IndexError(f"frame index {index} out of range for {len(self.names)} frames")
         return self.load(self.names[index])

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import DataFormatError
-from ..io import load_depth, load_rgb
+from ..io import load_depth, load_npz_arrays, load_rgb
 from ..measurements import SparseDepth
 from .base import DatasetReader, Frame
 
@@ -37,11 +35,8 @@ class IbimsSample(DatasetReader):
     def load_sparse(self, count: int, image_size: tuple[int, int]) -> SparseDepth:
         """The given sparse samples ``sparse_<count>.npz`` as `SparseDepth`."""
         path = self._require(self.root / f"sparse_{count}.npz", "sparse samples")
-        try:
-            with np.load(path, allow_pickle=False) as d:
-                u, v, z = d["u"], d["v"], d["depth"]
-        except (KeyError, ValueError, OSError) as exc:
-            raise DataFormatError(path, f"expected u, v, depth arrays: {exc}") from None
+        d = load_npz_arrays(path, ["u", "v", "depth"], "sparse samples (u, v, depth)")
+        u, v, z = d["u"], d["v"], d["depth"]
         return SparseDepth.from_arrays(u, v, z, image_size)
 
     def load(self, name: str) -> Frame:

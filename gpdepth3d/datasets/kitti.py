@@ -8,7 +8,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..errors import DataFormatError
-from ..io import load_rgb
+from ..io import load_npz_arrays, load_rgb
 from ..measurements import LidarCalibration, SparseDepth, load_velodyne
 from .base import DatasetReader, Frame, checked_pose, read_matrix
 
@@ -51,11 +51,7 @@ class KittiTiny(DatasetReader):
         """The frame ``name`` with its projected LiDAR as ``sparse``."""
         rgb = load_rgb(self._require(self.root / "image_02" / f"{name}.png", "image"))
         path = self._require(self.root / "velodyne_02" / f"{name}.npz", "projected LiDAR")
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                d = np.asarray(data["velodyne_depth"], dtype=np.float64)
-        except (KeyError, ValueError, OSError) as exc:
-            raise DataFormatError(path, f"expected an npz with 'velodyne_depth': {exc}") from None
+        d = np.asarray(load_npz_arrays(path, ["velodyne_depth"], "projected LiDAR")["velodyne_depth"], dtype=np.float64)
         if d.shape != rgb.shape[:2]:
             raise DataFormatError(path, f"LiDAR map {d.shape} != image {rgb.shape[:2]}")
         d = np.where(np.isfinite(d) & (d > 0), d, 0.0)

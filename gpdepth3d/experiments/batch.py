@@ -59,7 +59,7 @@ import numpy as np
 
 from ..errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
 from ..gp.model import DepthGPConfig
-from ..io import to_jsonable, write_json, write_problem
+from ..io import clean_output_folder, to_jsonable, write_json, write_problem
 from ..measurements import SparseDepth, downsample_depth
 from .frames import holdout_lidar, mde_to_grid
 from .scoring import CALIBRATION_NAMES, metric_row
@@ -617,7 +617,7 @@ def check_settings(output_dir: str | Path, config: DepthGPConfig, loader: Any) -
 
 def remove_stale_temp_files(output_dir: str | Path) -> int:
     """Deletes temporary files left by killed writers (``.<stem>.<random>.tmp<suffix>``); returns how many."""
-    n = 0
+    n = clean_output_folder(output_dir)  # finishes interrupted commits of output sets, deletes their temporaries
     for path in Path(output_dir).iterdir():
         if path.is_file() and _TEMP_FILE.match(path.name):
             with contextlib.suppress(FileNotFoundError):

@@ -3,8 +3,10 @@
 The 16-bit PNGs of `DepthPosterior.save` (KITTI convention, metres x 256) look black in an image
 viewer; these previews show the same maps with a colour map, a labelled colour bar and the units:
 
-* ``BASE_depth_preview.png``: the MDE and the GP posterior mean side by side on one depth scale (turbo);
-* ``BASE_sigma_preview.png``: the posterior standard deviation (viridis);
+* ``BASE_depth_preview.png``: the image with the measurements drawn on it, the MDE and the GP posterior
+  mean side by side on one depth scale (turbo; the points coloured on the same scale);
+* ``BASE_sigma_preview.png``: the posterior standard deviation (viridis), the measurements as white
+  dots (sigma is smallest at them);
 * ``BASE_error_preview.png`` (with ground truth): |GP mean − ground truth| and |MDE − ground truth|
   on one scale (magma), grey where there is no ground truth.
 
@@ -21,6 +23,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ..io import atomic_write
+from ..measurements import SparseDepth
 
 PREVIEW_SUFFIXES: dict[str, str] = {
     "depth": "_depth_preview.png",
@@ -28,6 +31,10 @@ PREVIEW_SUFFIXES: dict[str, str] = {
     "error": "_error_preview.png",
 }
 """File name suffix of each preview (appended to the output base name)."""
+
+
+MAX_DOTS = 1500
+"""At most this many measurements are drawn as dots on the sigma preview (a LiDAR scan is thinned)."""
 
 
 def preview_paths(base: str | Path, *, with_error: bool = False) -> list[Path]:
@@ -46,6 +53,22 @@ def _map(value: np.ndarray, argument: str, shape: Optional[tuple[int, ...]]) -> 
     return a
 
 
+def _image(rgb: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """An (H, W, 3) uint8 image resized to ``shape`` (area averaging when shrinking)."""
+    import cv2
+
+    a = np.asarray(rgb)
+    if a.ndim == 2:
+        a = np.repeat(a[..., None], 3, axis=2)
+    if a.ndim != 3 or a.shape[2] not in (3, 4) or a.dtype != np.uint8 or min(a.shape[:2]) < 1:
+        raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
+    a = np.ascontiguousarray(a[..., :3])
+    if a.shape[:2] != shape:
+        shrink = a.shape[0] > shape[0]
+        a = cv2.resize(a, (shape[1], shape[0]), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return a
+
+
 def _range(values: list[np.ndarray], lo_q: float, hi_q: float) -> tuple[float, float]:
     v = np.concatenate([x[np.isfinite(x)].ravel() for x in values])
     if v.size == 0:
@@ -54,12 +77,27 @@ def _range(values: list[np.ndarray], lo_q: float, hi_q: float) -> tuple[float, f
     return lo, hi if hi > lo else lo + max(abs(lo), 1.0) * 1e-3
 
 
-def _figure(panels: list[tuple[str, np.ndarray]], cmap: str, vmin: float, vmax: float, label: str, path: Path) -> Path:
+def _figure(
+    panels: list[tuple[str, np.ndarray]],
+    cmap: str,
+    vmin: float,
+    vmax: float,
+    label: str,
+    path: Path,
+    points: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None,
+    point_panels: tuple[int, ...] = (),
+    point_colour: Optional[str] = None,
+) -> Path:
+    """One row of panels with a shared colour bar; an (H, W, 3) panel is drawn as an image.
+
+    ``points`` (rows, cols, depth) are drawn on the panels ``point_panels``: coloured by depth on
+    the colour scale, or in ``point_colour``.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     import matplotlib
 
-    h, w = panels[0][1].shape
+    h, w = panels[0][1].shape[:2]
     aspect = h / w
     n = len(panels)
     width = 6.0 * n if w >= h else 4.0 * n
@@ -68,8 +106,22 @@ def _figure(panels: list[tuple[str, np.ndarray]], cmap: str, vmin: float, vmax: 
     axes = fig.subplots(1, n, squeeze=False)[0]
     colormap = matplotlib.colormaps[cmap].with_extremes(bad=(0.6, 0.6, 0.6))
     image = None
-    for ax, (title, values) in zip(axes, panels):
-        image = ax.imshow(np.ma.masked_invalid(values), cmap=colormap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    size = max(2.0, 60.0 / max(1.0, np.sqrt(len(points[0])))) if points is not None and len(points[0]) else 2.0
+    for i, (ax, (title, values)) in enumerate(zip(axes, panels)):
+        if values.ndim == 3:
+            ax.imshow(values, interpolation="nearest")
+        else:
+            image = ax.imshow(np.ma.masked_invalid(values), cmap=colormap, vmin=vmin, vmax=vmax, interpolation="nearest")
+        if points is not None and i in point_panels and len(points[0]):
+            rows, cols, depth = points
+            if point_colour is None:
+                few = len(depth) <= 500  # a few points get an outline; a LiDAR scan would turn black with them
+                ax.scatter(cols, rows, c=depth, cmap=colormap, vmin=vmin, vmax=vmax, s=size if few else 0.5,
+                           linewidths=0.3 if few else 0, edgecolors="black")
+            else:
+                step = max(1, len(rows) // MAX_DOTS)  # a dense scan would hide the map: every step-th point
+                ax.scatter(cols[::step], rows[::step], c=point_colour, s=size * 0.5 if len(rows) <= 500 else 0.3,
+                           linewidths=0)
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
     bar = fig.colorbar(image, ax=list(axes), fraction=0.046 / n if n > 1 else 0.046, pad=0.02)
@@ -85,6 +137,8 @@ def write_previews(
     *,
     mde: Optional[np.ndarray] = None,
     depth_gt: Optional[np.ndarray] = None,
+    rgb: Optional[np.ndarray] = None,
+    sparse: Optional[SparseDepth] = None,
 ) -> list[Path]:
     """Writes colourised PNG previews of a depth posterior, each with a colour bar and its units.
 
@@ -94,6 +148,10 @@ def write_previews(
         std: (H, W) posterior standard deviation, metres.
         mde: Optional (H, W) MDE depth, metres, drawn beside the mean on the same scale.
         depth_gt: Optional (H, W) ground-truth depth, metres (0 or NaN = none): adds the error preview.
+        rgb: Optional (h, w, 3) uint8 RGB image of the scene (any size: resized to the mean's), drawn first
+            with ``sparse`` on it.
+        sparse: Optional measurements (any image size of the mean's aspect ratio): drawn on the image
+            (or on the mean) coloured by depth, and on sigma as white dots.
 
     Returns:
         The paths written (depth, sigma, then error with ground truth).
@@ -110,16 +168,30 @@ def write_previews(
         depth_gt = _map(depth_gt, "depth_gt", mean.shape)
     if not isinstance(base, (str, Path)) or not str(base):
         raise InvalidInputError("base", "an output path without suffix", describe(base))
+    if rgb is not None:
+        rgb = _image(rgb, mean.shape)
+    points = None
+    if sparse is not None:
+        if not isinstance(sparse, SparseDepth):
+            raise InvalidInputError("sparse", "a SparseDepth", describe(sparse))
+        rows, cols = sparse.pixel_indices(mean.shape)
+        points = (rows, cols, sparse.depth)
     with np.errstate(invalid="ignore"):
         shown = np.where(mean > 0, mean, np.nan)
         mde_shown = np.where(mde > 0, mde, np.nan) if mde is not None else None
     paths = preview_paths(base, with_error=depth_gt is not None)
     depth_panels = ([("MDE", mde_shown)] if mde_shown is not None else []) + [("GP posterior mean", shown)]
     lo, hi = _range([p[1] for p in depth_panels], 2, 98)
-    _figure(depth_panels, "turbo", lo, hi, "z-depth [m]", paths[0])
+    n_points = 0 if points is None else len(points[0])
+    if rgb is not None:
+        depth_panels.insert(0, (f"image and {n_points} points" if points is not None else "image", rgb))
+    on = (0,) if rgb is not None or points is None else (len(depth_panels) - 1,)
+    _figure(depth_panels, "turbo", lo, hi, "z-depth [m]", paths[0], points, on)
     sig = np.where(np.isfinite(std) & (std >= 0), std, np.nan)
     _, top = _range([sig], 0, 98)
-    _figure([("GP posterior σ", sig)], "viridis", 0.0, top, "σ [m]", paths[1])
+    shown_dots = "" if n_points <= MAX_DOTS else f"{len(range(0, n_points, max(1, n_points // MAX_DOTS)))} of "
+    title = "GP posterior σ" + (f" ({shown_dots}{n_points} points in white)" if points is not None else "")
+    _figure([(title, sig)], "viridis", 0.0, top, "σ [m]", paths[1], points, (0,), "white")
     if depth_gt is not None:
         with np.errstate(invalid="ignore"):
             valid = np.isfinite(depth_gt) & (depth_gt > 0)
