@@ -83,7 +83,7 @@ def complete_command(
         mde_png_scale: Metres per unit of a 16-bit MDE PNG.
         sparse_png_scale: Metres per unit of a 16-bit sparse PNG.
         sparse_points: How a .txt point list is read: "uvd" (pixels + depth) or "xyz" (camera frame, needs --intrinsics).
-        intrinsics: 3x3 K as text (fx 0 cx / 0 fy cy / 0 0 1) for the MDE image; checked against the image size.
+        intrinsics: K of the MDE image: "fx,fy,cx,cy" (pixels), a 3x3 K text file or a KITTI calibration.
         gt: Ground-truth depth for metrics (same formats).
         gt_png_scale: Metres per unit of a 16-bit ground-truth PNG (1/1000 for Kinect millimetres).
         gt_invalid_value: Raw PNG value that marks invalid ground truth (65535 for 7-Scenes).
@@ -103,11 +103,11 @@ def complete_command(
             confidence; `gpdepth3d.mapping.cloud`), back-projected with --intrinsics or the --calib of --lidar and
             coloured by --rgb (grey without it).
     """
-    from ..camera import PinholeCamera
+    from ..camera import PinholeCamera, read_intrinsics
     from ..completion.complete import DepthCompleter, PosteriorWarning
     from ..completion.problem import check_output_shape
     from ..errors import InvalidInputError
-    from ..io import check_png_scale, load_depth, load_sparse, read_matrix
+    from ..io import check_png_scale, load_depth, load_sparse
     from ..measurements import LidarCalibration, SparseDepth, check_metres, load_velodyne, project_points
     from ..metrics import calibration_metrics, depth_metrics
 
@@ -185,7 +185,7 @@ def complete_command(
             )
     camera = calibration_camera = None
     if intrinsics is not None:
-        camera = PinholeCamera.from_K(read_matrix(intrinsics, (3, 3), "intrinsics"), mde_depth.shape[1], mde_depth.shape[0])
+        camera = PinholeCamera.from_K(read_intrinsics(intrinsics), mde_depth.shape[1], mde_depth.shape[0])
     if lidar is not None:
         if calib is None:
             raise InvalidInputError("--calib", "a KITTI calibration for --lidar", None)
