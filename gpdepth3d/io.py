@@ -347,6 +347,9 @@ def _fsync_folder(folder: Path) -> None:
             os.close(fd)
 
 
+# The temporaries `atomic_path` makes: ``.<stem>.<8 random>.tmp<suffix>`` (tempfile.mkstemp).
+_TEMP_NAME = re.compile(r"^\..*\.[A-Za-z0-9_]{8}\.tmp(\.[^.]*)?$")
+
 class _OutputSet:
     """The files of one `output_set` call: final name -> temporary file (held locked until the commit)."""
 
@@ -357,6 +360,10 @@ class _OutputSet:
         self.temps: dict[str, tuple[Path, int]] = {}
 
     def owns(self, path: Path) -> bool:
+        """Whether a write to ``path`` joins this set: a file of its folder, but not one of the
+        temporaries the set's own writers are filling (a writer that itself writes atomically)."""
+        if _TEMP_NAME.match(path.name):
+            return False
         return os.path.abspath(path.parent) == os.path.abspath(self.folder)
 
     def add(self, path: Path, tmp: Path, fd: int) -> None:
