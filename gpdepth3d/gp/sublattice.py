@@ -41,11 +41,7 @@ from numba import get_num_threads, njit, prange
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_in_place
-
-MAX_WINDOW_POINTS = 36
-"""Most points per cell's window (the nearest to its centre): every point for stride 2 (a 6 x 6 window);
-it bounds the cost of coarser lattices (stride k: (k + 2 window_reach(k))^2 pixels per window)."""
-
+from .model import LatticeConfig
 
 def window_reach(stride: int) -> int:
     """Pixels of the GP grid around a lattice cell of stride k whose points krige its detail (the taper): k // 2 + 1.
@@ -192,6 +188,7 @@ def sublattice_kriging(
     stride: int,
     lengthscale: float,
     outputscale: float,
+    max_window_points: int = LatticeConfig.max_window_points,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The sub-lattice kriging of residuals at an output tensor grid (see the module docstring).
 
@@ -206,6 +203,8 @@ def sublattice_kriging(
         stride: The lattice's stride k >= 2 (nodes at k j + (k - 1) / 2).
         lengthscale: Length scale of the exponential kernel, GP-grid pixels.
         outputscale: Its standard deviation s.
+        max_window_points: Most points of one cell's window (the nearest to its centre); it bounds the
+            cost of coarse lattices (stride k: (k + 2 window_reach(k))^2 pixels per window).
 
     Returns:
         corrections (m, Ho, Wo) (``(Ho, Wo)`` for 1-D ``residuals``) to add to the posterior
@@ -263,5 +262,5 @@ def sublattice_kriging(
         threads = get_num_threads()
         cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
         _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index,
-               rows, cols, res, noise, float(outputscale) ** 2, k, reach, MAX_WINDOW_POINTS, corr, vred)
+               rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points), corr, vred)
     return (corr[0] if one else corr), vred
