@@ -263,7 +263,11 @@ def _pooled(posts_and_gt: list) -> dict:
 
 def parts(data: Path, stride: int, fastdepth, rtmonodepth) -> dict:
     """Each part of the default model switched off (or made exact) in turn; see the module docstring."""
-    from gpdepth3d.experiments.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
+    from gpdepth3d.experiments.kitti_protocol import (
+        draw_input,
+        lidar_frames,
+        prepare_kitti_frame,
+    )
 
     cases = {}
     frames = list(g.open_dataset(data / "7scenes"))[::stride]

@@ -120,10 +120,10 @@ def test_a_large_relative_outputscale_stays_allowed_for_the_gaussian_formulation
 
 
 @pytest.mark.parametrize("changes", [
-    dict(nugget=3.0, outputscale=3.0, mde_slope_sigma=3.0, edge_sigma=10.0, local_calibration=100.0,
-         depth_lengthscale=1e3, lengthscale=1e5),
-    dict(nugget=0.0, outputscale=1e-9, mde_slope_sigma=1e-3, edge_sigma=0.0, local_calibration=0.1,
-         depth_lengthscale=1e-3, lengthscale=1e-3),
+    {"nugget": 3.0, "outputscale": 3.0, "mde_slope_sigma": 3.0, "edge_sigma": 10.0, "local_calibration": 100.0,
+     "depth_lengthscale": 1e3, "lengthscale": 1e5},
+    {"nugget": 0.0, "outputscale": 1e-9, "mde_slope_sigma": 1e-3, "edge_sigma": 0.0, "local_calibration": 0.1,
+     "depth_lengthscale": 1e-3, "lengthscale": 1e-3},
 ])
 def test_the_ends_of_the_ranges_give_a_valid_posterior(changes):
     mde, sp = _small_inputs()

@@ -19,8 +19,14 @@ from gpdepth3d.completion.screen import follow_slope, screen
 from gpdepth3d.completion.slope import fit_slope, refit_slope
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
-from gpdepth3d.gp.model import (AssemblyConfig, CalibrationConfig, DepthGPConfig, LatticeConfig, ScreenConfig,
-                                SlopeConfig)
+from gpdepth3d.gp.model import (
+    AssemblyConfig,
+    CalibrationConfig,
+    DepthGPConfig,
+    LatticeConfig,
+    ScreenConfig,
+    SlopeConfig,
+)
 
 
 def _scene(n=120, seed=0, h=30, w=40):
@@ -39,7 +45,7 @@ def _frame(mde, sp, config, output_shape=None):
 
 class TestStages:
     def test_the_stages_give_what_complete_gives(self):
-        truth, mde, sp = _scene()
+        _, mde, sp = _scene()
         config = DepthGPConfig()
         result = log_residual_posterior(make_engine(config), _frame(mde, sp, config), config)
         with warnings.catch_warnings():
@@ -50,7 +56,7 @@ class TestStages:
         assert result.slope == post.mde_slope and result.config == post.config
 
     def test_slope_follows_an_mde_that_over_states_depth_differences(self):
-        truth, mde, sp = _scene()
+        _, mde, sp = _scene()
         config = DepthGPConfig()
         sloped = fit_slope(_frame(mde, sp, config), config)
         assert 0.45 < sloped.a < 0.8  # the points' log depth follows the MDE's with a slope of 1 / 1.6
@@ -58,7 +64,7 @@ class TestStages:
         assert fixed.fit is None and fixed.a == 1.0
 
     def test_refit_without_the_rejected_points_moves_the_slope_and_b(self):
-        truth, mde, sp = _scene(seed=1)
+        _, mde, sp = _scene(seed=1)
         depth = sp.depth.copy()
         depth[:6] *= 0.1  # gross outliers, far too close
         bad = g.SparseDepth(sp.u, sp.v, depth, sp.image_size)
@@ -74,7 +80,7 @@ class TestStages:
         assert follow_slope(screened, first, first, config) is screened
 
     def test_lattice_holds_every_kept_point(self):
-        truth, mde, sp = _scene(n=200)
+        _, mde, sp = _scene(n=200)
         config = DepthGPConfig(lattice_stride=2)
         frame = _frame(mde, sp, config)
         sloped = fit_slope(frame, config)
@@ -112,7 +118,7 @@ class TestNestedConfigs:
 
     def test_a_posterior_saved_with_a_flat_config_loads(self, tmp_path):
         """A file whose config_json has only the flat fields (no nested configs) loads with the nested defaults."""
-        truth, mde, sp = _scene()
+        _, mde, sp = _scene()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PosteriorWarning)
             post = g.complete(mde, sp, config=DepthGPConfig(nugget=0.03))
@@ -125,7 +131,7 @@ class TestNestedConfigs:
         assert DepthPosterior.load(tmp_path / "old.npz").config == post.config
 
     def test_the_options_reach_their_stage(self):
-        truth, mde, sp = _scene(n=300, seed=2)
+        _, mde, sp = _scene(n=300, seed=2)
         base = DepthGPConfig()
         assert lattice_stride(base.replace(lattice=LatticeConfig(dense_stride=2)), 125, 414, 10**4, 32.0) == 2
         assert lattice_stride(base.replace(lattice=LatticeConfig(min_side=200)), 125, 414, 10, 32.0) == 1

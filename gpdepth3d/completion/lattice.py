@@ -6,7 +6,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
+from ..gp.model import (
+    DepthGPConfig,
+    GridProblem,
+    Kernel,
+    output_coordinates,
+    separable_correlation,
+)
 from .log_frame import LogFrame
 from .screen import Screened
 from .slope import Sloped

@@ -25,6 +25,7 @@ import numpy as np
 from ..errors import InvalidInputError, describe
 from .model import CalibrationConfig
 
+
 def local_variance_factor(
     shape: tuple[int, int],
     rows: np.ndarray,

@@ -212,7 +212,7 @@ def screen_points(
     *,
     threshold: float | None = 4.0,
     nu: float = 0.5,
-    options: ScreenConfig = ScreenConfig(),
+    options: ScreenConfig | None = None,
     start: PointFit | None = None,
     around: tuple[float, float] | None = None,
     raise_outputscale: bool = False,
@@ -231,7 +231,7 @@ def screen_points(
         rows, cols, resid, noise: (N,) as in `fit_log_residual`.
         threshold: |z| above which a point is rejected; None keeps every point (one fit).
         nu: Matern smoothness.
-        options: Neighbours, rounds, the fit's subset size and search grid (`ScreenConfig`).
+        options: Neighbours, rounds, the fit's subset size and search grid (`ScreenConfig`; None: its defaults).
         start: Hyperparameters to use instead of fitting (e.g. fixed ones); rejection still runs.
         around: (l, eta) to start the fits' pattern search from (see `fit_log_residual`).
         raise_outputscale: With ``start``: its s is a floor, not a fixed value. Each round, s is
@@ -254,6 +254,7 @@ def screen_points(
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, share, changed = start, None, None, None, None, None
     k_used = None
+    options = options or ScreenConfig()
     max_points = options.max_points
     for _ in range(options.iterations if threshold is not None else 1):
         keep = ~rejected

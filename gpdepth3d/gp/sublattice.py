@@ -40,6 +40,7 @@ from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_in_place
 from .model import LatticeConfig
 
+
 def window_reach(stride: int) -> int:
     """Pixels of the GP grid around a lattice cell of stride k whose points krige its detail (the taper): k // 2 + 1.
 
