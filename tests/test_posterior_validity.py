@@ -218,3 +218,21 @@ def test_posterior_is_valid_for_random_inputs(formulation, engine, examples):
             assert any("posterior mean <= 0" in str(c.message) for c in caught)
 
     check()
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(a=st.floats(-5, 5), lz=st.floats(1e-3, 1e3), s=st.floats(1e-3, 3.0), tau=st.floats(0.0, 3.0),
+       var_b=st.floats(0.0, 9.0), var_a=st.floats(0.0, 9.0), seed=st.integers(0, 2**16))
+def test_assemble_gives_a_variance_for_any_slope_and_weights(a, lz, s, tau, var_b, var_a, seed):
+    """The read-out alone: any slope sign, any kriging weights and an engine variance in [0, s^2] give var >= 0
+    (an overflow to inf is refused by `assemble_depth` with a typed error; NaN or a negative value never comes)."""
+    from gpdepth3d.completion.assemble import assemble
+
+    rng = np.random.default_rng(seed)
+    shape = (4, 5)
+    log_out, x_out = rng.normal(1.0, 1.0, shape), rng.normal(0.0, 2.0, shape)
+    g_mean, g_var = rng.normal(0.0, s, shape), rng.uniform(0.0, s * s, shape)
+    w1, wx = rng.normal(0.5, 1.0, shape), rng.normal(0.0, 3.0, shape)
+    mean, var = assemble(log_out, g_mean, g_var, w1, wx, x_out, b=0.1, s2=s * s, tau2=tau * tau, var_b=var_b,
+                         var_a=var_a, a=a, lz=lz, floor=1e-3, scale_term=True, slope_term=True, variance=True)
+    assert np.all(mean > 0) and np.all(var >= 0)  # NaN fails both
