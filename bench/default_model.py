@@ -14,6 +14,11 @@
   seeds): the default against the same model with its s fixed (``raise_outputscale=False``).
 * speed: the default model (mean + variance) on kitti_tiny frame 0 at 1/3 and full resolution at
   the paper's densities 1/64, 1/16, 1/4 and 1, beside IP-Basic on the same input in the same run.
+* parts: what each part of the default model earns (docs/model.md): RMSE and +-2 sigma of the default and
+  of the default with one part off (depth-aware correlation, slope, edge term, outlier screen, raised s,
+  local calibration) or exact (every pixel instead of the lattice), pooled over the same 7-Scenes frames
+  (50 / 200 / 500 points; 200 with 5 % gross outliers) and over kitti_tiny at 1/3 (RT-MonoDepth-S, the paper's protocol: 20 % of the
+  LiDAR held out, 1/16 and all of the rest as input).
 
 One DepthCompleter per protocol, as a sequence (warm-started fits). Writes
 bench/results/default_model.json and prints a table.
@@ -231,6 +236,63 @@ def speed(data: Path, rtmonodepth, repeats: int = 3) -> dict:
     return out
 
 
+PARTS = {
+    "default": {},
+    "no depth-aware correlation": {"depth_lengthscale": None},
+    "no slope": {"mde_slope_sigma": None},
+    "no edge term": {"edge_sigma": 0.0},
+    "no outlier screen": {"outlier_threshold": None},
+    "s fixed": {"raise_outputscale": False},
+    "no local calibration": {"local_calibration": None},
+    "every pixel (no lattice)": {"lattice_stride": 1},
+}
+"""The default and each variant of `parts` (DepthGPConfig changes)."""
+
+
+def _pooled(posts_and_gt: list) -> dict:
+    """RMSE (mm) and +-2 sigma coverage pooled over the ground-truth pixels of several frames."""
+    err, inside = [], []
+    for post, gt in posts_and_gt:
+        v = gt > 0
+        e = post.mean[v] - gt[v]
+        err.append(e)
+        inside.append(np.abs(e) <= 2 * post.std[v])
+    err = np.concatenate(err)
+    return {"rmse_mm": 1000 * float(np.sqrt(np.mean(err**2))), "coverage_2sigma": float(np.mean(np.concatenate(inside)))}
+
+
+def parts(data: Path, stride: int, fastdepth, rtmonodepth) -> dict:
+    """Each part of the default model switched off (or made exact) in turn; see the module docstring."""
+    from gpdepth3d.experiments.kitti_protocol import (
+        draw_input,
+        lidar_frames,
+        prepare_kitti_frame,
+    )
+
+    cases = {}
+    frames = list(g.open_dataset(data / "7scenes"))[::stride]
+    seven = [(np.asarray(fastdepth(f.resized(0.5).rgb), dtype=np.float64), f.resized(0.5).depth) for f in frames]
+    for n in (50, 200, 500):
+        cases[f"7scenes {n} points"] = [(mde, g.sample_uniform(gt, n=n, rng=1000 * i + n), gt)
+                                        for i, (mde, gt) in enumerate(seven)]
+    rngs = [np.random.default_rng(1000 * i + 200) for i in range(len(seven))]
+    cases["7scenes 200 points, 5 % gross outliers"] = [
+        (mde, gross_outliers(g.sample_uniform(gt, n=200, rng=rng), 0.05, rng=rng), gt) for (mde, gt), rng in zip(seven, rngs)]
+    kitti = [prepare_kitti_frame(name, rgb, lidar, rtmonodepth, factor=3, holdout=0.2, rng=0)
+             for name, rgb, lidar in lidar_frames(g.open_dataset(data / "kitti_tiny"))]
+    for label, density in (("1/16", 1 / 16), ("all", 1.0)):
+        cases[f"kitti_tiny {label}"] = [(s.mde_grid, draw_input("uniform", density, s.lidar.available, rng=i),
+                                         s.lidar.gt_grid) for i, s in enumerate(kitti)]
+    out = {}
+    for variant, changes in PARTS.items():
+        config = g.DepthGPConfig(**changes)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", g.PosteriorWarning)
+            out[variant] = {case: _pooled([(g.DepthCompleter(config)(mde, sp), gt) for mde, sp, gt in inputs])
+                            for case, inputs in cases.items()}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
@@ -241,7 +303,9 @@ def main() -> None:
     result = {"config": repr(g.DepthGPConfig()), "7scenes": seven_scenes(args.data, args.stride, fastdepth)}
     result["vio_sparse"] = vio(args.data, fastdepth)
     result["ibims"] = ibims(args.data, fastdepth)
-    result["speed_kitti"] = speed(args.data, load_frontend("rtmonodepth", models_dir=args.data.parent / "models"))
+    rtmonodepth = load_frontend("rtmonodepth", models_dir=args.data.parent / "models")
+    result["speed_kitti"] = speed(args.data, rtmonodepth)
+    result["parts"] = parts(args.data, args.stride, fastdepth, rtmonodepth)
     write_json(args.output, result)
     print("7-Scenes (FastDepth, 320x240): RMSE mm / +-2 sigma / rejected / min mean / median s")
     for key, r in result["7scenes"].items():
@@ -268,6 +332,10 @@ def main() -> None:
     print("speed, kitti_tiny frame 0 (mean + variance, best of 3 after a warm-up): points / default / IP-Basic")
     for key, r in result["speed_kitti"].items():
         print(f"  {key:32s} {r['points']:6d}  {1000 * r['seconds']:8.1f} ms  {1000 * r['ip_basic_seconds']:7.1f} ms")
+    print("parts of the default model: RMSE mm / +-2 sigma, pooled")
+    for variant, row in result["parts"].items():
+        print(f"  {variant:28s} " + "  ".join(f"{c}: {r['rmse_mm']:5.0f} {100 * r['coverage_2sigma']:4.1f}"
+                                               for c, r in row.items()))
     print(f"wrote {args.output}")
 
 

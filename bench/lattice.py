@@ -6,7 +6,7 @@ For each of the paper's eight uniform densities, on kitti_tiny prepared as the p
 - time: best of ``--repeats`` `DepthCompleter` calls (mean + variance, 1/3 output) on frame 0, every
   stride in the same run, and the ratios to stride 1;
 - accuracy: RMSE over the 7 frames' held-out points and +-2 sigma coverage, for strides 1, 2, 4
-  and the default (automatic: `gpdepth3d.completion.complete.lattice_stride`). Strides 2 and 4 krige
+  and the default (automatic: `gpdepth3d.completion.lattice.lattice_stride`). Strides 2 and 4 krige
   the field's detail below the lattice back (`gpdepth3d.gp.sublattice`, nu = 0.5).
 
 Writes ``bench/results/lattice.json`` (atomically) and prints a table.
@@ -38,7 +38,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from gpdepth3d import DepthGPConfig
-    from gpdepth3d.completion.complete import DepthCompleter, lattice_stride
+    from gpdepth3d.completion.complete import DepthCompleter
+    from gpdepth3d.completion.lattice import lattice_stride
     from gpdepth3d.datasets import open_dataset
     from gpdepth3d.experiments.kitti_protocol import (
         PAPER_DENSITIES, KittiProtocolConfig, lidar_frames, prepare_kitti_frame, draw_input,

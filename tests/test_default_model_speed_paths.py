@@ -14,7 +14,8 @@ import warnings
 import numpy as np
 import pytest
 
-from gpdepth3d.completion.complete import DepthCompleter, _edge_range
+from gpdepth3d.completion.calibrate import edge_range as _edge_range
+from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.model import DepthGPConfig, separable_correlation
 from gpdepth3d.gp.points import PointFit, loo_zscores

@@ -10,7 +10,10 @@ import pytest
 
 import gpdepth3d as g
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.gp.local_calibration import ZSCORE_CAP, local_variance_factor
+from gpdepth3d.gp.local_calibration import local_variance_factor
+from gpdepth3d.gp.model import CalibrationConfig
+
+ZSCORE_CAP = CalibrationConfig().zscore_cap
 
 
 def _direct(shape, rows, cols, z, reach, prior_points):

@@ -12,7 +12,8 @@ import gpdepth3d as g
 from gpdepth3d.completion.complete import PosteriorWarning
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import matern_1d
-from gpdepth3d.gp.points import PointFit, fit_log_residual, loo_zscores, raised_outputscale, screen_points
+from gpdepth3d.gp.fit import PointFit, fit_log_residual, raised_outputscale
+from gpdepth3d.gp.points import loo_zscores, screen_points
 from gpdepth3d.measurements import SparseDepth
 
 
@@ -317,7 +318,8 @@ class TestLogResidualPosterior:
 
 def test_edge_range_at_points_equals_the_filtered_map():
     """The screening's edge term, computed at the points only, is the 3 x 3 max - min filter's value there (borders too)."""
-    from gpdepth3d.completion.complete import _edge_range, _edge_range_at
+    from gpdepth3d.completion.calibrate import edge_range as _edge_range
+    from gpdepth3d.completion.log_frame import edge_range_at as _edge_range_at
 
     depth = np.random.default_rng(0).uniform(0.5, 20.0, (17, 23))
     rows, cols = np.divmod(np.arange(17 * 23), 23)
@@ -328,7 +330,7 @@ def test_edge_range_equals_scipy_max_minus_min_filter():
     """`_edge_range` (OpenCV morphology) gives SciPy's maximum_filter - minimum_filter exactly, borders included."""
     from scipy.ndimage import maximum_filter, minimum_filter
 
-    from gpdepth3d.completion.complete import _edge_range
+    from gpdepth3d.completion.calibrate import edge_range as _edge_range
 
     rng = np.random.default_rng(1)
     for shape, window in (((17, 23), 3), ((40, 61), 7), ((5, 4), 9)):
@@ -341,7 +343,7 @@ class TestLattice:
     """The field's lattice: every pixel, 2nd or 4th (`lattice_stride`)."""
 
     def test_stride_rule(self):
-        from gpdepth3d.completion.complete import lattice_stride
+        from gpdepth3d.completion.lattice import lattice_stride
 
         cfg = g.DepthGPConfig()
         assert lattice_stride(cfg, 125, 414, 3158, 32.0) == 2  # KITTI 1/3, 1/4 of the LiDAR: 6.1 % of the pixels

@@ -13,7 +13,8 @@ import pytest
 from gpdepth3d.gp import _loo
 from gpdepth3d.gp._loo import grid_neighbours, loo_predict
 from gpdepth3d.gp.model import separable_correlation
-from gpdepth3d.gp.points import PointFit, _distance_to, loo_zscores, neighbours_of, screen_points
+from gpdepth3d.gp.fit import PointFit
+from gpdepth3d.gp.points import _distance_to, loo_zscores, neighbours_of, screen_points
 
 
 def _ring_position(dr, dc, d):

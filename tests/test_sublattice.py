@@ -4,7 +4,10 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError, ShapeError
-from gpdepth3d.gp.sublattice import MAX_WINDOW_POINTS, sublattice_kriging, window_reach
+from gpdepth3d.gp.model import LatticeConfig
+from gpdepth3d.gp.sublattice import sublattice_kriging, window_reach
+
+MAX_WINDOW_POINTS = LatticeConfig().max_window_points
 
 
 def _kernel(a_r, a_c, b_r, b_c, l, s):

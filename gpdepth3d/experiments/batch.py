@@ -597,8 +597,7 @@ def check_settings(output_dir: str | Path, config: DepthGPConfig, loader: Any) -
     import dataclasses
 
     path = Path(output_dir) / SETTINGS_NAME
-    model = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
-    model = {k: v for k, v in model.items() if k not in ("engine", "max_exact_points")}
+    model = {k: v for k, v in dataclasses.asdict(config).items() if k not in ("engine", "max_exact_points")}
     settings = {"config": model, "loader": fingerprint(loader)}
     if path.is_file():
         try:

@@ -8,7 +8,7 @@ computed against the same ground truth. Methods (`METHODS`):
 * ``ip_basic``: IP-Basic (Ku et al. 2018) from the sparse points only (`gpdepth3d.experiments.baselines`).
 * ``gp_default_fit``: the default model with ``fit=True``: its length scale, output scale,
   nugget and global scale fitted per frame by marginal likelihood on the points
-  (`gpdepth3d.gp.points.fit_log_residual`), warm-started along the sequence.
+  (`gpdepth3d.gp.fit.fit_log_residual`), warm-started along the sequence.
 * ``gp_balanced``: the paper's balanced GP (`DepthGPConfig.paper`), MDE pixels and points both
   observations; solved on a GP grid of ``balanced_factor`` times the evaluation resolution (the
   paper worked at 1/3 KITTI resolution) with the output at full evaluation resolution.

@@ -23,7 +23,12 @@ from .engine import EngineConfig as EngineConfig
 from .engine import RoutedEngine as RoutedEngine
 from .engine import Solution as Solution
 from .engine import SolveInfo as SolveInfo
+from .model import AssemblyConfig as AssemblyConfig
+from .model import CalibrationConfig as CalibrationConfig
 from .model import DepthGPConfig as DepthGPConfig
+from .model import LatticeConfig as LatticeConfig
+from .model import ScreenConfig as ScreenConfig
+from .model import SlopeConfig as SlopeConfig
 from .model import GridProblem as GridProblem
 from .model import Kernel as Kernel
 from .model import matern_1d as matern_1d

@@ -1,42 +1,19 @@
-"""Local calibration of the posterior variance from the points' leave-one-out z-scores.
+"""Local calibration of the posterior variance from the points' leave-one-out z-scores (docs/model.md).
 
-A stationary GP gives every region of a frame the same prior variance, but the MDE's error is
-not stationary: flat walls and road are off by a smooth scale the points pin down well, depth
-edges and objects the network blurs are off by much more. The points themselves show which is
-which: a point's leave-one-out z-score z_i (its log residual predicted from its neighbours,
-divided by the model's predictive standard deviation; `gpdepth3d.gp.points.loo_zscores`) has
-E[z_i^2] = 1 where the model's variance is right, less where the field is smoother than the model
-says, more where it is rougher. The posterior variance at a pixel x is multiplied by
+A stationary GP gives every region of a frame the same prior variance, but an MDE's error is not
+stationary: flat walls and road are off by a smooth scale the points pin down, depth edges and objects the
+network blurs by much more. A point's leave-one-out z-score z_i (`gpdepth3d.gp.points.loo_zscores`) has
+E[z_i^2] = 1 where the model's variance is right, less where the field is smoother than the model says,
+more where it is rougher. The variance at a pixel x is multiplied by
 
-    f(x) = (sum_i w_i(x) z_i^2 + w_0) / (sum_i w_i(x) + w_0),
-    w_i(x) = exp(-|x - x_i|^2 / (2 r^2)),   r = reach x the points' mean spacing sqrt(A / N),
+    f(x) = (sum_i w_i(x) q_i + w_0) / (sum_i w_i(x) + w_0),   w_i(x) = exp(-|x - x_i|^2 / (2 r^2)),
 
-with A the area of the points' bounding box in pixels and N the number of points: a Gaussian-weighted
-local mean of the squared z-scores with ``prior_points`` pseudo-points at 1 (``w_0`` = that many
-points' weight at their own pixel, in the normalisation of the Gaussian density): far from the
-points f returns to 1 (the model's own variance), near them the points'
-agreement with their neighbours sets it. Nothing here is tuned to a data set: the level of f is the
-data's own mean squared z-score, so the model's global calibration is kept while the variance moves
-to where the errors are.
-
-Points that state their own sigma (triangulated SLAM points) enter with z_i^2 floored at their noise
-share q_i: the part of their leave-one-out predictive variance that the stated noise makes (their
-own and their neighbours' through the kriging weights, `gpdepth3d.gp.points.loo_zscores`). With
-independent errors of the stated size E[z_i^2] = q_i + (1 - q_i) E[field part] >= q_i whatever the
-field, so z_i^2 far below q_i says the point's error is shared with its neighbours (the same poses
-and views): they agree with each other, not with the truth, and the pixels between them are as
-uncertain as the points. Without the floor such points argued sigma down ~2.5x: on 7-Scenes with the
-library's triangulation (bench/calibration.py, every 3rd frame, every Kinect pixel) +-2 sigma covered
-83 %, with it 93 % (94 % without the calibration; AUSE 0.34 / 0.38 / 0.42). Points without a sigma of their own (LiDAR,
-depth-camera samples: the model's ``sigma_meas`` stands in) are not floored: there z^2 below q only
-says the default noise is generous (on KITTI the floor on it raised AUSE 0.22 -> 0.31 at all of the
-LiDAR).
-
-Measured (bench/calibration.py, bench/default_model.py; default model, pooled over frames), without
--> with: 7-Scenes (FastDepth) 50 / 200 / 500 points AUSE 0.58 / 0.63 / 0.66 -> 0.43 / 0.39 / 0.32, median
-|error| / sigma 0.28 / 0.19 / 0.16 -> 0.41 / 0.34 / 0.31 (sharper), +-2 sigma 97.0 / 97.0 / 97.3 -> 94.9 /
-95.9 / 96.6 %; kitti_tiny (1/64 ... all of the LiDAR) AUSE 0.26-0.40 -> 0.14-0.22, +-2 sigma 94.7-95.4 ->
-94.2-95.0 %; real SLAM points (vio_sparse, held out) +-2 sigma 95.6 -> 91.9 %.
+r = reach x the points' mean spacing sqrt(A / N) (A: the points' bounding box), q_i = min(z_i^2, cap), and
+w_0 the weight of ``prior_points`` pseudo-points at q = 1: far from the points f returns to 1. A point with
+a sigma of its own (triangulated SLAM points) enters with q_i at least its noise share (the part of its
+predictive variance its stated noise makes): with independent errors of the stated size E[z_i^2] is at
+least that share, so a z^2 far below it says the error is shared with the neighbours, not that the pixels
+between them are certain. The effect is measured in bench/calibration.py.
 """
 
 from __future__ import annotations
@@ -46,15 +23,7 @@ import math
 import numpy as np
 
 from ..errors import InvalidInputError, describe
-
-PRIOR_POINTS = 2.0
-"""Pseudo-points at f = 1: the weight of the model's own variance against the points' z-scores (a
-Gaussian of 1.5 spacings holds ~14 points). At a radius of 1 spacing, real SLAM points' held-out +-2
-sigma was 89.7 % with 1 pseudo-point and 91.2 % with 2 (7-Scenes AUSE 0.01-0.03 lower with 1); at 1.5
-spacings 91.9 % with either."""
-
-ZSCORE_CAP = 16.0
-"""Squared z-scores enter capped at this (|z| = 4): one point must not set a region's variance alone."""
+from .model import CalibrationConfig
 
 
 def local_variance_factor(
@@ -64,7 +33,8 @@ def local_variance_factor(
     zscores: np.ndarray,
     *,
     reach: float = 1.5,
-    prior_points: float = PRIOR_POINTS,
+    prior_points: float = CalibrationConfig.prior_points,
+    zscore_cap: float = CalibrationConfig.zscore_cap,
     noise_share: np.ndarray | None = None,
 ) -> np.ndarray:
     """The factor f(x) on the posterior variance at every pixel of a grid (see the module).
@@ -76,6 +46,7 @@ def local_variance_factor(
         reach: Gaussian radius in mean point spacings, sqrt(A / N) pixels with A the area of the
             points' bounding box.
         prior_points: Pseudo-points at f = 1 (the weight of the model's own variance).
+        zscore_cap: Squared z-scores enter capped at this (one point must not set a region's variance alone).
         noise_share: (N,) the points' noise shares q_i in [0, 1] (`gpdepth3d.gp.points.loo_zscores`):
             each squared z-score enters as max(z_i^2, q_i) (see the module). None: no floor.
 
@@ -92,7 +63,7 @@ def local_variance_factor(
     z = np.asarray(zscores, dtype=np.float64)
     if not (rows.shape == cols.shape == z.shape and z.ndim == 1):
         raise InvalidInputError("rows, cols, zscores", "three (N,) arrays", f"shapes {rows.shape}, {cols.shape}, {z.shape}")
-    for name, value in (("reach", reach), ("prior_points", prior_points)):
+    for name, value in (("reach", reach), ("prior_points", prior_points), ("zscore_cap", zscore_cap)):
         if not np.isfinite(value) or value <= 0:
             raise InvalidInputError(name, "a finite number > 0", value)
     if not np.all(np.isfinite(z)):
@@ -116,11 +87,10 @@ def local_variance_factor(
     # the sums on bins of ~radius / 3 pixels, each point splatted bilinearly onto the 4 bin centres
     # around it (bin centres on the pixel centres of the c-fold grid, so resizing bilinearly by
     # exactly c and cropping puts them back): the blur is then >= 3 bins wide whatever the density
-    # (all of the LiDAR on a full KITTI image, radius 7 px: 58 -> 8 ms; within ~1 % of the direct
-    # sum in the median, 15 % at worst)
+    # (an approximation of the direct sum: tests/test_local_calibration.py bounds its error)
     c = max(1, int(radius // 3))
     hb, wb = -(-h // c), -(-w // c)
-    q = np.minimum(z * z if noise_share is None else np.maximum(z * z, share), ZSCORE_CAP)
+    q = np.minimum(z * z if noise_share is None else np.maximum(z * z, share), zscore_cap)
     if c == 1:  # the points' own pixels
         cell = rows * w + cols
         sums, weights = np.bincount(cell, q, h * w), np.bincount(cell, None, h * w).astype(np.float64)

@@ -1,82 +1,16 @@
-"""The GP depth model: configuration, kernel and the grid problem every engine solves.
+"""The GP depth model: its configuration, the kernel and the grid problem every engine solves.
 
-Model (Yoon & Kim, "Balanced Depth Completion between Dense Depth Inference and Sparse Range
-Measurements via KISS-GP", IROS 2020, arXiv:2008.05158)::
-
-    f ~ GP(m(x), k(x, x')),    x = (u, v) pixel coordinates of the GP grid
-    k(x, x') = s^2 * M_nu(|u - u'| / l) * M_nu(|v - v'| / l)
-    MDE pixel i:          y_i = f(x_i) + e_i,  e_i ~ N(0, sigma_DL^2)   (balanced only)
-    range measurement j:  z_j = f(x_j) + e_j,  e_j ~ N(0, sigma_meas^2)
-
-``M_nu`` is the one-dimensional Matern correlation. The kernel is the *separable* (product)
-Matern: this is exactly the kernel KISS-GP computes on a Kronecker grid (GPyTorch's
-``GridKernel`` evaluates the base kernel per dimension and takes the Kronecker product), so it
-is the kernel the paper's method used, and every engine here (``exact``, ``kissgp``, ``fast``)
-computes the posterior of this one model.
-
-Formulations:
-
-* ``balanced`` (the paper): constant prior mean m = mean of the valid MDE depths; every valid
-  MDE pixel is an observation with sigma_DL, every measurement one with sigma_meas.
-* ``residual`` (beyond the paper): the prior mean is the MDE (optionally scale-aligned to the
-  measurements); only measurements are observations, so the GP models the spatially correlated
-  error of the MDE and keeps MDE detail where no measurement speaks.
-* ``log_residual`` (the default, beyond the paper): the GP models the MDE's error as a log
-  ratio, which is what a monocular network gets wrong (scale, locally and globally)::
-
-      log d(x) = log MDE(x) + b + g(x) + w(x),   g ~ GP(0, s^2 M(du/l) M(dv/l)),  w ~ N(0, tau^2)
-      measurement j:  log z_j = log d(x_j) + e_j,  e_j ~ N(0, (sigma_j / z_j)^2)
-
-  b is a global log scale with a flat prior (generalised least squares), w the white part of the
-  MDE error (the nugget). b is estimated on each frame's points (their median log ratio; with
-  ``fit=True`` l, s, tau and b are fitted by marginal likelihood, `gpdepth3d.gp.points`; without,
-  s is a floor that the points may raise, ``raise_outputscale``), points
-  whose leave-one-out z-score given their neighbours exceeds ``outlier_threshold`` are rejected
-  (judged with the edge term below added to their noise), and the engines solve for g with the
-  points as observations of noise tau^2 + (sigma_j / z_j)^2. The depth posterior is log-normal: mean
-  exp(mu + v/2) and variance (exp(v) - 1) exp(2 mu + v), with v = Var[g] + tau^2 + Var[b]
-  (1 - k(x)' (K + N)^-1 1)^2; an edge term (``edge_sigma`` x the local MDE depth range) is
-  added to the variance.
-
-  Depth-aware correlation (``depth_lengthscale`` l_z, log-depth units): a correction learned on
-  points at one depth should not carry to pixels at a very different depth (the road at 10 m
-  says little about a building at 30 m right above it; a table's points little about the wall
-  behind it). The cross-covariance of a pixel with the points is multiplied by
-  rho(x) = exp(-|log MDE(x) - zbar(x)| / l_z), where zbar(x) is the kriging-weighted mean log
-  MDE depth of the points that inform x (two further right-hand sides of the one solve: the
-  weights applied to log MDE and to ones). Then E[g(x)] = rho(x) E_0[g(x)], Var[g(x)] = s^2 - rho(x)^2 (s^2 - Var_0[g(x)])
-  and the scale term's weights become rho(x) k(x)' (K + N)^-1 1, with E_0, Var_0 the
-  stationary posterior: exactly the posterior of the product kernel
-  s^2 M(du/l) M(dv/l) exp(-|dz|/l_z) when the informing points share one MDE depth. A pixel at
-  a depth no point speaks for returns to the prior (the scaled MDE, the prior variance) instead
-  of inheriting a correction.
-
-  MDE slope (``mde_slope_sigma``): the MDE's log depth enters with a coefficient a fitted per
-  frame (`gpdepth3d.gp.slope`: generalised least squares on the points, prior N(1,
-  mde_slope_sigma^2), Huber-robust, refitted without the rejected points), i.e. the MDE is
-  re-sloped about the points' median log depth c to c + a (log MDE - c) before the model above
-  sees it; the variance gains Var[a] (log MDE(x) - c - k(x)' (K + N)^-1 (log MDE - c))^2 and the
-  depth-aware gap is measured on the re-sloped MDE. A network that over-states the depth
-  differences of a scene (FastDepth on 7-Scenes: a = 0.4-0.7) is then trusted for its shape as
-  far as the points confirm it; a = 1 is the plain model (KITTI with a KITTI-trained network).
-
-  Means are positive by construction; errors that scale with depth
-  (outdoors: a few cm at 5 m, metres at 60 m) get variances that scale with depth, and the
-  fitted length scale follows the point density (short with full LiDAR, long with 50 points).
-
-Units: with ``units="relative"`` (the default) ``outputscale``, ``sigma_dl`` and ``sigma_meas``
-are fractions of the frame's depth scale (the median valid MDE depth), which makes the paper's
-values (sigma_DL = 0.05, sigma_meas = 0.001: 5 % and 0.1 % of the typical depth; at KITTI's
-~15 m median that is 0.75 m and 1.5 cm) behave the same on KITTI and indoors. With
-``units="metres"`` they are metres. ``lengthscale`` is in pixels of the GP grid (the MDE's
-resolution; the paper used l = 1.5 at 1/3 KITTI resolution). Per-point sigmas given in a
-`SparseDepth` are always metres. Output: posterior mean (metres) and marginal variance (m^2)
-of the latent depth f at every output pixel.
+Three formulations share the separable Matern kernel k(x, x') = s^2 M_nu(|du| / l) M_nu(|dv| / l) on
+pixel coordinates (the kernel KISS-GP computes on a Kronecker grid, Yoon & Kim, IROS 2020,
+arXiv:2008.05158): ``balanced`` (the paper: MDE pixels and points are both observations of depth),
+``residual`` (the MDE is the prior mean, the points the observations) and ``log_residual`` (the default:
+a GP on log(depth / MDE)). The default model's generative story, its stages and their approximations
+are written down in docs/model.md.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
@@ -88,71 +22,183 @@ EngineName = Literal["exact", "kissgp", "fast"]
 
 
 @dataclass(frozen=True)
-class DepthGPConfig:
-    """Hyperparameters and options of the GP depth model (see the module docstring for the maths).
+class ScreenConfig:
+    """How the default model fits its scales to a frame's points and screens them for outliers (docs/model.md).
 
     Attributes:
-        formulation: "log_residual" (the default: a GP on log(depth / MDE), robust to bad
-            points; see the module docstring), "balanced" (the paper: MDE pixels
-            and measurements are both observations) or "residual" (MDE is the prior mean,
-            measurements the only observations).
+        neighbours: Points each leave-one-out z-score is predicted from (their kriging carries almost
+            all of the weight under the exponential kernel's screening effect).
+        iterations: Most fit / reject rounds.
+        max_points: Points of the dense marginal-likelihood fit (an evenly strided or paired subset above).
+        fit_lengthscales: Length scales (GP-grid pixels) searched when ``DepthGPConfig.fit`` is True.
+        fit_nuggets: Nugget shares (tau / s)^2 searched when ``DepthGPConfig.fit`` is True.
+    """
+
+    neighbours: int = 12
+    iterations: int = 3
+    max_points: int = 150
+    fit_lengthscales: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
+    fit_nuggets: tuple[float, ...] = (0.01, 0.03, 0.1, 0.3, 1.0)
+
+    def __post_init__(self) -> None:
+        for name, low in (("neighbours", 1), ("iterations", 1), ("max_points", 3)):
+            object.__setattr__(self, name, _integer(name, getattr(self, name), low))
+        for name in ("fit_lengthscales", "fit_nuggets"):
+            values = getattr(self, name)
+            if isinstance(values, (str, bytes)) or not hasattr(values, "__len__") or not len(values):
+                raise InvalidInputError(name, "a non-empty tuple of numbers > 0", repr(values))
+            object.__setattr__(self, name, tuple(_in_range(name, v, 1e-6, 1e6, "> 0") for v in values))
+
+
+@dataclass(frozen=True)
+class SlopeConfig:
+    """How the MDE's log-depth slope a is fitted per frame (`gpdepth3d.gp.slope`; its prior sigma is
+    ``DepthGPConfig.mde_slope_sigma``).
+
+    Attributes:
+        max_points: Points of the dense robust fit (an evenly strided subset above).
+        huber: Huber threshold on the standardised residuals.
+        iterations: Huber re-weighting rounds.
+        min_points: Fewer points than this keep a = 1.
+    """
+
+    max_points: int = 150
+    huber: float = 2.0
+    iterations: int = 3
+    min_points: int = 3
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "max_points", _integer("max_points", self.max_points, 2))
+        object.__setattr__(self, "iterations", _integer("iterations", self.iterations, 1))
+        object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 3))
+        object.__setattr__(self, "huber", _in_range("huber", self.huber, 0.1, 100.0, "standard deviations"))
+
+
+@dataclass(frozen=True)
+class LatticeConfig:
+    """The automatic lattice of the default model's field (``DepthGPConfig.lattice_stride`` None; docs/model.md).
+
+    A stride-k lattice holds the field on every k-th pixel per side; the field's detail below it is kriged
+    back from the points (`gpdepth3d.gp.sublattice`) where nu = 0.5 and the output is at least as fine as
+    the grid.
+
+    Attributes:
+        sparse_share: Without the detail: points on at most this share of the pixels take stride 2, else 1.
+        detail_share: With the detail: points on at most this share take stride 2, else ``dense_stride``.
+        dense_stride: The stride of dense points with the detail.
+        min_lengthscale: A stride k needs a length scale of at least k / 2 times this (pixels).
+        min_side: Grids with a side below this keep every pixel.
+        max_window_points: Most points of one cell's detail kriging (the nearest to its centre).
+    """
+
+    sparse_share: float = 1 / 32
+    detail_share: float = 1 / 10
+    dense_stride: int = 4
+    min_lengthscale: float = 8.0
+    min_side: int = 16
+    max_window_points: int = 36
+
+    def __post_init__(self) -> None:
+        for name in ("sparse_share", "detail_share"):
+            object.__setattr__(self, name, _in_range(name, getattr(self, name), 0.0, 1.0, "a share of the pixels"))
+        object.__setattr__(self, "dense_stride", _integer("dense_stride", self.dense_stride, 1, 16))
+        object.__setattr__(self, "min_lengthscale", _in_range("min_lengthscale", self.min_lengthscale, 0.0, 1e6, "pixels"))
+        object.__setattr__(self, "min_side", _integer("min_side", self.min_side, 2))
+        object.__setattr__(self, "max_window_points", _integer("max_window_points", self.max_window_points, 1, 400))
+
+
+@dataclass(frozen=True)
+class AssemblyConfig:
+    """Two numerical choices of the default model's per-pixel read-out (docs/model.md, "assemble").
+
+    Attributes:
+        weight_floor: Pixels whose kriging weights sum below this keep the depth-aware factor rho = 1 (their
+            field is at its prior there whatever rho is, and the weighted mean depth is undefined).
+        scale_var_share: The global scale's variance term is bounded by Var[b] instead of solved for when
+            Var[b] is below this share of the nugget variance (thousands of points: high by at most this share).
+    """
+
+    weight_floor: float = 1e-3
+    scale_var_share: float = 0.05
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weight_floor", _in_range("weight_floor", self.weight_floor, 1e-12, 1.0, "a weight sum"))
+        object.__setattr__(self, "scale_var_share",
+                           _in_range("scale_var_share", self.scale_var_share, 0.0, 1.0, "a share of tau^2"))
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """The local calibration of the variance from the points' z-scores (`gpdepth3d.gp.local_calibration`;
+    its reach is ``DepthGPConfig.local_calibration``).
+
+    Attributes:
+        prior_points: Pseudo-points at a factor of 1 (the weight of the model's own variance).
+        zscore_cap: Squared z-scores enter capped at this (one point must not set a region's variance alone).
+        min_points: Frames with fewer kept points keep the model's variance (and warn).
+    """
+
+    prior_points: float = 2.0
+    zscore_cap: float = 16.0
+    min_points: int = 10
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "prior_points", _in_range("prior_points", self.prior_points, 1e-3, 1e3, "points"))
+        object.__setattr__(self, "zscore_cap", _in_range("zscore_cap", self.zscore_cap, 1.0, 1e4, "a squared z-score"))
+        object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 1))
+
+
+_NESTED = {"screen": ScreenConfig, "slope": SlopeConfig, "lattice": LatticeConfig, "assembly": AssemblyConfig,
+           "calibration": CalibrationConfig}
+
+
+@dataclass(frozen=True)
+class DepthGPConfig:
+    """The GP depth model: formulation, kernel, noise and the default model's stages (docs/model.md).
+
+    Scales: with ``units="relative"`` ``outputscale``, ``sigma_dl`` and ``sigma_meas`` are fractions of the
+    frame's median MDE depth (the paper's values then act alike on KITTI and indoors), with "metres" metres;
+    in ``log_residual`` ``outputscale`` and ``nugget`` are log-depth standard deviations. ``lengthscale`` is
+    in pixels of the GP grid (the MDE's). Per-point sigmas of a `SparseDepth` are metres. Each number must lie
+    in its interval of `RANGES`.
+
+    Attributes:
+        formulation: "log_residual" (the default: a GP on log(depth / MDE), robust to bad points),
+            "balanced" (the paper: MDE pixels and points are both observations) or "residual" (the MDE
+            is the prior mean, the points the observations).
         nu: Matern smoothness, one of 0.5, 1.5, 2.5.
         lengthscale: Matern length scale, pixels of the GP grid.
-        outputscale: Prior standard deviation s of the field (relative or metres, see units;
-            log_residual: of the log ratio, dimensionless).
-        sigma_dl: Noise of an MDE pixel (balanced formulation).
-        sigma_meas: Noise of a range measurement (used where a point carries no sigma).
-        units: "relative" (scales are fractions of the median MDE depth) or "metres".
-        align: Residual formulation: fit the MDE to the measurements before using it as the
-            prior mean: "none", "scale" (robust median ratio) or "scale_shift" (robust affine).
-        engine: Which engine computes the posterior: "exact" (dense Cholesky, the reference),
-            "kissgp" (GPyTorch KISS-GP, as the paper), "fast" (grid-structured, the default).
-        max_exact_points: The exact engine refuses problems with more observed pixels.
-        fit: Fit the hyperparameters to each frame before computing its posterior, by maximising
-            the exact marginal likelihood (`gpdepth3d.completion.fit.fit_hyperparameters`: lengthscale,
-            outputscale and, balanced, sigma_dl). A `DepthCompleter` warm-starts each frame's fit
-            from the previous frame's values. Costs ~10-60 factorisations per frame.
-            log_residual: lengthscale, outputscale and nugget are fitted on the frame's points
-            (`gpdepth3d.gp.points.fit_log_residual`, a few ms).
-        nugget: log_residual: standard deviation of the white (pixel-level) part of the MDE's log
-            error, dimensionless (used as given when ``fit`` is False).
-        outlier_threshold: log_residual: a point whose leave-one-out z-score given its
-            neighbours exceeds this is rejected (reported on the posterior); None keeps all.
-        edge_sigma: log_residual: extra standard deviation at MDE depth edges, as a share of
-            the MDE's depth range over a 3-pixel window (colour and range sensors are never
-            perfectly registered, and MDE edges are blurred); 0 turns it off.
-        depth_lengthscale: log_residual: length scale of the depth-aware correlation in log-depth
-            units (0.7: corrections fade to 1/e across a factor of 2 in MDE depth); None turns it
-            off (the stationary pixel kernel alone). Costs two further right-hand sides of the solve.
-        mde_slope_sigma: log_residual: prior standard deviation of the MDE's log-depth coefficient
-            around 1, fitted per frame on the points (`gpdepth3d.gp.slope`); None fixes it at 1
-            (the MDE's depth ordering taken as exact).
-        raise_outputscale: log_residual with ``fit`` False: ``outputscale`` is a floor, raised per
-            frame to the marginal-likelihood s of the points the screen keeps when that is larger
-            (l, nugget and b as configured; `gpdepth3d.gp.points.raised_outputscale`). False keeps
-            s fixed. Measured: 7-Scenes, KITTI (all protocols and densities) and vio_sparse
-            unchanged (s stays 0.2 in all but 3 of ~150 frames and cells, <= 0.23); the iBims hall
-            (3-20 m, FastDepth 2.5x too near) +-2 sigma 83-84 -> 88-91 %, RMSE 3.39 / 2.33 / 2.24 ->
-            2.88 / 2.20 / 2.21 m at 50 / 200 / 500 points (bench/default_model.py, 3 seeds; s raised
-            to 0.23-0.37; a `PosteriorWarning` above 1.25x the configured s).
-        lattice_stride: log_residual: pixels of the GP grid per lattice node of the field, per
-            side; None (automatic, `gpdepth3d.completion.complete.lattice_stride`): with nu = 0.5
-            and an output at least as fine as the grid, where the field's detail below the lattice
-            is kriged back from the points (`gpdepth3d.gp.sublattice`), 2 where the points are on at
-            most 1 in 10 pixels and 4 above; otherwise 2 up to 1 in 32 and 1 above. 1 is the exact
-            model on every pixel; on KITTI at 1/3 (bench/results/lattice.json) stride 2 has
-            0.97-1.00x every pixel's RMSE up to 1/4 of the LiDAR in about half the time, stride 4
-            0.99-1.01x from 1/2 of it on in 0.57-0.78x. The output is at any resolution either way.
-        local_calibration: log_residual: the posterior variance is multiplied per pixel by the
-            local mean squared leave-one-out z-score of the points, Gaussian-weighted with a radius of
-            this many mean point spacings, two pseudo-points at 1 (`gpdepth3d.gp.local_calibration`):
-            the variance shrinks where the points agree with their neighbours and grows where they
-            do not, its level set by the data (a point with a sigma of its own enters with z^2 at
-            least its noise share: errors shared between triangulated points must not shrink sigma
-            between them). The z-scores are the screen's (with
-            ``outlier_threshold`` None they are computed for this); frames with fewer than 10 kept
-            points keep the model's variance. None turns it off. Measured (bench/calibration.py):
-            AUSE 7-Scenes 0.58-0.66 -> 0.32-0.43, KITTI 0.26-0.40 -> 0.14-0.22, +-2 sigma kept in 94-97 %.
+        outputscale: Prior standard deviation s of the field (log_residual: of the log ratio).
+        sigma_dl: Noise of an MDE pixel (balanced).
+        sigma_meas: Noise of a point that carries no sigma of its own.
+        units: "relative" (fractions of the median MDE depth) or "metres".
+        align: residual: fit the MDE to the points before it is the prior mean: "none", "scale" (robust
+            median ratio) or "scale_shift" (robust affine).
+        engine: Compute option: "exact" (dense Cholesky, the reference), "kissgp" (GPyTorch, as the
+            paper) or "fast" (grid-structured, the default); they compute the same posterior.
+        max_exact_points: Compute option: the exact engine refuses problems with more observed pixels.
+        fit: Fit the scales to each frame: balanced / residual by the exact marginal likelihood
+            (`gpdepth3d.completion.fit`), log_residual l, s and tau on the frame's points (`gpdepth3d.gp.fit`).
+        nugget: log_residual: standard deviation tau of the white part of the MDE's log error.
+        outlier_threshold: log_residual: points whose leave-one-out z-score exceeds this are rejected;
+            None keeps every point.
+        edge_sigma: log_residual: extra standard deviation at MDE depth edges, a share of the MDE's
+            depth range over a 3-pixel window (colour and range are never perfectly registered); 0: off.
+        depth_lengthscale: log_residual: length scale l_z of the depth-aware correlation, log depth
+            (corrections fade across depths the points do not share); None: off.
+        mde_slope_sigma: log_residual: prior standard deviation of the MDE's log-depth slope around 1,
+            fitted per frame; None fixes it at 1.
+        raise_outputscale: log_residual without ``fit``: ``outputscale`` is a floor the points may raise
+            (an MDE out of its range gets a wider prior, not a confident wrong mean).
+        lattice_stride: Compute option, log_residual: pixels per lattice node of the field, per side;
+            None: automatic (``lattice``); 1 is the exact model on every pixel.
+        local_calibration: log_residual: reach (mean point spacings) of the local calibration of the
+            variance by the points' z-scores; None: off.
+        screen: log_residual: the fit and outlier screen (`ScreenConfig`).
+        slope: log_residual: the slope fit (`SlopeConfig`).
+        lattice: log_residual: the automatic lattice (`LatticeConfig`).
+        assembly: log_residual: the per-pixel read-out (`AssemblyConfig`).
+        calibration: log_residual: the local calibration (`CalibrationConfig`).
     """
 
     formulation: Formulation = "log_residual"
@@ -174,56 +220,44 @@ class DepthGPConfig:
     raise_outputscale: bool = True
     lattice_stride: int | None = None
     local_calibration: float | None = 1.5
+    screen: ScreenConfig = field(default_factory=ScreenConfig)
+    slope: SlopeConfig = field(default_factory=SlopeConfig)
+    lattice: LatticeConfig = field(default_factory=LatticeConfig)
+    assembly: AssemblyConfig = field(default_factory=AssemblyConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
+        for name, kind in _NESTED.items():  # a nested config read back from JSON comes as a dict
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                known = {f.name for f in fields(kind)}
+                value = kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items() if k in known})
+                object.__setattr__(self, name, value)
+            if not isinstance(value, kind):
+                raise InvalidInputError(name, f"a {kind.__name__}", type(value).__name__)
         if not isinstance(self.formulation, str) or self.formulation not in ("log_residual", "balanced", "residual"):
             raise InvalidInputError("formulation", "'log_residual', 'balanced' or 'residual'", self.formulation)
         if not _is_real(self.nu) or self.nu not in (0.5, 1.5, 2.5):
             raise InvalidInputError("nu", "0.5, 1.5 or 2.5", f"{type(self.nu).__name__} {self.nu!r}")
         object.__setattr__(self, "nu", float(self.nu))
-        for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas"):
-            value = getattr(self, name)
-            if not _is_real(value) or not np.isfinite(value) or not 1e-100 <= value <= 1e100:
-                raise InvalidInputError(
-                    name, "a finite number in [1e-100, 1e100] (> 0)", f"{type(value).__name__} {value!r}"
-                )
-            object.__setattr__(self, name, float(value))
-        m = self.max_exact_points
-        if isinstance(m, (bool, np.bool_)) or not isinstance(m, (int, np.integer)) or m < 1:
-            raise InvalidInputError("max_exact_points", "an integer >= 1", f"{type(m).__name__} {m!r}")
-        object.__setattr__(self, "max_exact_points", int(m))
-        if not isinstance(self.units, str) or self.units not in ("relative", "metres"):
-            raise InvalidInputError("units", "'relative' or 'metres'", self.units)
-        if not isinstance(self.align, str) or self.align not in ("none", "scale", "scale_shift"):
-            raise InvalidInputError("align", "'none', 'scale' or 'scale_shift'", self.align)
-        if not isinstance(self.engine, str) or self.engine not in ("exact", "kissgp", "fast"):
-            raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", self.engine)
+        for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget", "edge_sigma"):
+            object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name]))
+        if self.formulation == "log_residual":  # log-depth scales: exp() of their squares must stay finite
+            _in_range("outputscale", self.outputscale, *RANGES["log_outputscale"])
+        for name in ("outlier_threshold", "depth_lengthscale", "mde_slope_sigma", "local_calibration"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name], none=True))
+        object.__setattr__(self, "max_exact_points", _integer("max_exact_points", self.max_exact_points, 1))
+        if self.lattice_stride is not None:
+            object.__setattr__(self, "lattice_stride",
+                               _integer("lattice_stride", self.lattice_stride, 1, 16, "an integer 1-16, or None (automatic)"))
+        for name, allowed in (("units", ("relative", "metres")), ("align", ("none", "scale", "scale_shift")),
+                              ("engine", ("exact", "kissgp", "fast"))):
+            if not isinstance(getattr(self, name), str) or getattr(self, name) not in allowed:
+                raise InvalidInputError(name, " or ".join(repr(a) for a in allowed), getattr(self, name))
         for name in ("fit", "raise_outputscale"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise InvalidInputError(name, "True or False", getattr(self, name))
-        for name in ("nugget", "edge_sigma"):
-            value = getattr(self, name)
-            if not _is_real(value) or not np.isfinite(value) or not 0 <= value <= 1e100:
-                raise InvalidInputError(name, "a finite number >= 0", f"{type(value).__name__} {value!r}")
-            object.__setattr__(self, name, float(value))
-        k = self.lattice_stride
-        if k is not None:
-            if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)) or not 1 <= k <= 16:
-                raise InvalidInputError("lattice_stride", "an integer 1-16, or None (automatic)", f"{type(k).__name__} {k!r}")
-            object.__setattr__(self, "lattice_stride", int(k))
-        t = self.outlier_threshold
-        if t is not None and (not _is_real(t) or not np.isfinite(t) or t <= 0):
-            raise InvalidInputError("outlier_threshold", "a z-score > 0, or None", f"{type(t).__name__} {t!r}")
-        for name, what in (
-            ("depth_lengthscale", "a log-depth length scale > 0, or None"),
-            ("mde_slope_sigma", "a standard deviation > 0, or None"),
-            ("local_calibration", "a reach in point spacings > 0, or None"),
-        ):
-            value = getattr(self, name)
-            if value is not None:
-                if not _is_real(value) or not np.isfinite(value) or value <= 0:
-                    raise InvalidInputError(name, what, f"{type(value).__name__} {value!r}")
-                object.__setattr__(self, name, float(value))
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
@@ -249,10 +283,9 @@ class DepthGPConfig:
 
     @classmethod
     def residual(cls, **overrides) -> "DepthGPConfig":
-        """Residual formulation with defaults for sparse measurements (hundreds of points).
+        """The residual formulation set for sparse points (hundreds): l = 30 px, s = 0.2 x the median depth.
 
-        Defaults tuned on 7-Scenes with FastDepth at 320x240 (50-500 points; see README):
-        l = 30 px and s = 0.2 x median depth give +-2 sigma coverage ~95 %.
+        Its calibration is measured in bench/eval_7scenes.py.
         """
         base = cls(
             formulation="residual",
@@ -271,6 +304,41 @@ class DepthGPConfig:
     def replace(self, **changes) -> "DepthGPConfig":
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+
+RANGES: dict[str, tuple[float, float, str]] = {
+    "lengthscale": (1e-3, 1e5, "GP-grid pixels"),
+    "outputscale": (1e-9, 1e6, "relative or metres"),
+    "log_outputscale": (1e-9, 3.0, "log depth, formulation log_residual"),
+    "sigma_dl": (1e-9, 1e6, "relative or metres"),
+    "sigma_meas": (1e-9, 1e6, "relative or metres"),
+    "nugget": (0.0, 3.0, "log depth"),
+    "edge_sigma": (0.0, 10.0, "shares of the local MDE depth range"),
+    "outlier_threshold": (1e-3, 1e6, "a z-score"),
+    "depth_lengthscale": (1e-3, 1e3, "log depth"),
+    "mde_slope_sigma": (1e-3, 3.0, "standard deviations of the MDE's log-depth slope"),
+    "local_calibration": (0.1, 100.0, "mean point spacings"),
+}
+"""Accepted interval (inclusive) of each numeric hyperparameter, with its unit. Each bound keeps the
+posterior finite in float64: a log-depth scale above 3 (a factor of 20 at one sigma) puts exp(v / 2)
+of the log-normal mean beyond any depth, a reach or slope sigma of 1e-300 divides by zero."""
+
+
+def _in_range(name: str, value, low: float, high: float, unit: str, *, none: bool = False) -> float:
+    """``value`` as a float when it is a real number in [low, high], else `InvalidInputError` naming ``name``."""
+    if not _is_real(value) or not np.isfinite(value) or not low <= value <= high:
+        expected = f"a number in [{low:g}, {high:g}] ({unit})" + (", or None" if none else "")
+        raise InvalidInputError(name, expected, f"{type(value).__name__} {value!r}")
+    return float(value)
+
+
+def _integer(name: str, value, low: int, high: int | None = None, expected: str | None = None) -> int:
+    """``value`` as an int when it is an integer in [low, high], else `InvalidInputError` naming ``name``."""
+    ok = not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, np.integer))
+    if not ok or value < low or (high is not None and value > high):
+        what = expected or (f"an integer >= {low}" if high is None else f"an integer {low}-{high}")
+        raise InvalidInputError(name, what, f"{type(value).__name__} {value!r}")
+    return int(value)
 
 
 def _is_real(value) -> bool:

@@ -1,198 +1,23 @@
-"""Statistics of the sparse points under the log-residual model: per-frame fit and outlier rejection.
+"""The points' leave-one-out z-scores and the outlier screen of the default model (docs/model.md, "screen").
 
-The default model (`DepthGPConfig.formulation == "log_residual"`, see `gpdepth3d.gp.model`) is a
-GP on the log ratio of true to MDE depth. Its observations are the measured points only, so its
-hyperparameters and its outliers can be judged from the points alone, cheaply:
+* `loo_zscores`: each point's log residual predicted by simple kriging from its nearest neighbours and
+  divided by the predictive standard deviation (close to the full GP's leave-one-out under the
+  exponential kernel's screening effect, at a cost linear in the points).
+* `screen_points`: fit the scales (`gpdepth3d.gp.fit`) and reject the points whose z-score exceeds a
+  threshold, until the rejected set stops changing.
 
-* `fit_log_residual`: maximum marginal likelihood of (length scale l, nugget share eta, output
-  scale s, global log scale b) on a subset of the points. For each (l, eta) on a small grid the
-  scale s^2 and the constant b are profiled out in closed form (b by generalised least squares
-  with a flat prior, i.e. the REML-style criterion), so a fit costs a few dozen Cholesky
-  factorisations of at most ``max_points`` x ``max_points``.
-* `loo_zscores`: leave-one-out predictive z-scores of every point given its nearest
-  neighbours (local simple kriging with the fitted kernel), vectorised over points.
-* `screen_points`: the robust loop that alternates the two: a point whose LOO z-score exceeds
-  the threshold contradicts the MDE and its neighbours beyond what the model allows and is
-  rejected; the fit is repeated without the rejected points.
-
-Everything works in the GP grid's pixel units and in log-depth (dimensionless) units. This
-module needs nothing above `gpdepth3d.errors`.
+Coordinates are GP-grid pixels, residuals log depth.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
 
 from ..errors import InvalidInputError
-from .model import separable_correlation
-
-#: Neighbours of each point in `screen_points`' leave-one-out z-scores.
-_NEIGHBOURS = 12
-#: Length scales (GP-grid pixels) and nugget shares searched by `fit_log_residual`.
-LENGTHSCALES = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
-NUGGETS = (0.01, 0.03, 0.1, 0.3, 1.0)
-
-
-@dataclass(frozen=True)
-class PointFit:
-    """Hyperparameters of the log-residual GP fitted to one frame's points.
-
-    Attributes:
-        lengthscale: l, GP-grid pixels.
-        outputscale: s, standard deviation of the correlated log-ratio field (dimensionless).
-        nugget: tau = s * sqrt(eta), standard deviation of the white part of the MDE's log error.
-        log_scale: b, the generalised-least-squares constant of the log ratio (exp(b) is the
-            global scale that maps the MDE onto the points).
-        log_scale_var: Variance of b (flat prior), from the fitted subset.
-        n_used: Points the fit used.
-    """
-
-    lengthscale: float
-    outputscale: float
-    nugget: float
-    log_scale: float
-    log_scale_var: float
-    n_used: int
-
-    @property
-    def eta(self) -> float:
-        """Nugget share (tau / s)^2."""
-        return (self.nugget / self.outputscale) ** 2 if self.outputscale > 0 else 0.0
-
-
-def _profile(resid: np.ndarray, corr: np.ndarray, noise: np.ndarray, eta: float, s2_prev: float):
-    """Profiled restricted likelihood for one (l, eta); returns (criterion, s2, b, var_b) or None."""
-    n = resid.size
-    # noise (measurement variance) is absolute; fold it in relative to the current s^2 estimate
-    C = corr.copy()
-    C[np.diag_indices(n)] += eta + noise / s2_prev
-    try:
-        L = np.linalg.cholesky(C)
-    except np.linalg.LinAlgError:
-        return None
-    from scipy.linalg import solve_triangular
-
-    a1 = solve_triangular(L, np.ones(n), lower=True, check_finite=False)
-    ar = solve_triangular(L, resid, lower=True, check_finite=False)
-    q = float(a1 @ a1)
-    b = float(a1 @ ar) / q
-    a = ar - b * a1
-    s2 = max(float(a @ a) / max(n - 1, 1), 1e-12)
-    crit = 0.5 * (n - 1) * np.log(s2) + float(np.log(np.diag(L)).sum()) + 0.5 * np.log(q)
-    return crit, s2, b, s2 / q
-
-
-def _fit_subset(rows: np.ndarray, cols: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices of a subset for the fit: random seed points, each with its nearest neighbour.
-
-    A purely random subset of dense points (full LiDAR) has no close pairs, so the likelihood
-    cannot see the short-range correlation and calls it nugget; pairing every seed with its
-    nearest point keeps the points' own spacing in the subset.
-    """
-    from scipy.spatial import cKDTree
-
-    n = rows.size
-    seeds = rng.choice(n, size=size // 2, replace=False)
-    xy = np.column_stack([rows, cols])
-    _, nn = cKDTree(xy).query(xy[seeds], k=2, p=1)
-    pick = np.unique(np.concatenate([seeds, nn[:, 1]]))
-    if pick.size < size:  # duplicates: fill up with random other points
-        rest = np.setdiff1d(np.arange(n), pick)
-        pick = np.union1d(pick, rng.choice(rest, size=min(size - pick.size, rest.size), replace=False))
-    return pick
-
-
-def fit_log_residual(
-    rows: np.ndarray,
-    cols: np.ndarray,
-    resid: np.ndarray,
-    noise: np.ndarray,
-    *,
-    nu: float = 0.5,
-    max_points: int = 150,
-    lengthscales: tuple[float, ...] = LENGTHSCALES,
-    nuggets: tuple[float, ...] = NUGGETS,
-    rng: np.random.Generator | None = None,
-    around: tuple[float, float] | None = None,
-) -> PointFit:
-    """Fits (l, s, tau, b) of the log-residual GP to the points by profiled marginal likelihood.
-
-    Args:
-        rows, cols: (N,) pixel coordinates of the points on the GP grid.
-        resid: (N,) log(measured depth / MDE depth).
-        noise: (N,) measurement variance in log units ((sigma / depth)^2).
-        nu: Matern smoothness.
-        max_points: Fit on a subset of at most this many points (cost max_points^3 per grid
-            cell): half random seeds, half their nearest neighbours.
-        lengthscales, nuggets: The grid searched (pixels; shares of s^2).
-        rng: Generator of the subset (default seeded 0: the same frame gives the same fit).
-        around: (l, eta) of a previous fit (the frame before in a sequence): instead of the
-            whole grid, a pattern search starts at the grid cell nearest to it and moves to the
-            best neighbouring cell until none is better (a few cells instead of all).
-
-    Returns:
-        The fit. With fewer than 3 points the length scale and nugget are the grid's middle
-        values, s the spread of the residuals (at least 0.1) and b their median.
-    """
-    rows = np.asarray(rows, dtype=np.float64)
-    cols = np.asarray(cols, dtype=np.float64)
-    resid = np.asarray(resid, dtype=np.float64)
-    noise = np.asarray(noise, dtype=np.float64)
-    n = resid.size
-    if not (rows.shape == cols.shape == resid.shape == noise.shape) or resid.ndim != 1:
-        raise InvalidInputError("rows, cols, resid, noise", "four (N,) arrays", (rows.shape, cols.shape, resid.shape, noise.shape))
-    if n < 3:
-        b = float(np.median(resid)) if n else 0.0
-        s = max(float(np.std(resid)) if n > 1 else 0.0, 0.1)
-        return PointFit(lengthscales[len(lengthscales) // 2], s, s * np.sqrt(nuggets[0]), b, s * s, n)
-    if n > max_points:
-        pick = _fit_subset(rows, cols, max_points, rng if rng is not None else np.random.default_rng(0))
-        rows, cols, resid, noise = rows[pick], cols[pick], resid[pick], noise[pick]
-        n = pick.size
-    spread = 1.4826 * float(np.median(np.abs(resid - np.median(resid))))
-    s2_guess = max(spread * spread, float(np.median(noise)), 1e-6)
-    corr_cache: dict[int, np.ndarray] = {}
-    scores: dict[tuple[int, int], tuple | None] = {}
-
-    def score(i: int, j: int):
-        if (i, j) not in scores:
-            if i not in corr_cache:
-                corr_cache[i] = separable_correlation(
-                    np.subtract.outer(rows, rows), np.subtract.outer(cols, cols), lengthscales[i], nu
-                )
-            scores[(i, j)] = _profile(resid, corr_cache[i], noise, nuggets[j], s2_guess)
-        return scores[(i, j)]
-
-    if around is None:
-        cells = [(i, j) for i in range(len(lengthscales)) for j in range(len(nuggets))]
-        for cell in cells:
-            score(*cell)
-    else:  # pattern search from the previous fit
-        i = int(np.argmin(np.abs(np.log(np.asarray(lengthscales) / max(around[0], 1e-9)))))
-        j = int(np.argmin(np.abs(np.log(np.asarray(nuggets) / max(around[1], 1e-9)))))
-        while True:
-            here = score(i, j)
-            moves = [
-                (a, b)
-                for a in (i - 1, i, i + 1)
-                for b in (j - 1, j, j + 1)
-                if 0 <= a < len(lengthscales) and 0 <= b < len(nuggets) and (a, b) != (i, j)
-            ]
-            cand = [(score(a, b), (a, b)) for a, b in moves]
-            cand = [(c[0], ab) for c, ab in cand if c is not None]
-            if not cand or (here is not None and min(cand)[0] >= here[0]):
-                break
-            i, j = min(cand)[1]
-    valid = [(out[0], lengthscales[i], nuggets[j], *out[1:]) for (i, j), out in scores.items() if out is not None]
-    best = min(valid) if valid else None
-    if best is None:  # every cell failed (duplicate points with no noise): fall back to a white model
-        b = float(np.median(resid))
-        return PointFit(lengthscales[0], np.sqrt(s2_guess), np.sqrt(s2_guess), b, s2_guess / n, n)
-    _, lengthscale, eta, s2, b, var_b = best
-    return PointFit(float(lengthscale), float(np.sqrt(s2)), float(np.sqrt(s2 * eta)), b, float(var_b), n)
+from .fit import PointFit, fit_log_residual, raised_outputscale
+from .model import ScreenConfig, separable_correlation
 
 
 def loo_zscores(
@@ -370,47 +195,6 @@ def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach:
     return d
 
 
-def raised_outputscale(
-    rows: np.ndarray,
-    cols: np.ndarray,
-    resid: np.ndarray,
-    noise: np.ndarray,
-    start: PointFit,
-    *,
-    nu: float = 0.5,
-    max_points: int = 150,
-) -> PointFit:
-    """``start`` with its s raised to what the points show, never lowered.
-
-    s is profiled by marginal likelihood (`fit_log_residual`, on at most ``max_points`` points
-    evenly strided in their order) at ``start``'s length scale and nugget ratio
-    eta = (tau / s)^2; when that s is larger than ``start``'s, it replaces it (and Var[b] =
-    s^2 / N follows); l, tau and b stay ``start``'s. The configured s is then the least
-    MDE error a frame is assumed to have: a network badly out of its range (FastDepth in a 20 m
-    hall, iBims sample) gets a wider prior instead of a confident wrong mean.
-
-    Args:
-        rows, cols, resid, noise: (N,) as in `fit_log_residual`.
-        start: The configured (floor) hyperparameters.
-        nu: Matern smoothness.
-        max_points: Subset size of the fit.
-    """
-    n = np.asarray(resid).size
-    if n < 3:
-        return start
-    eta = (start.nugget / start.outputscale) ** 2
-    # l is not fitted, so no close pairs are needed: an evenly strided subset in the points' order
-    # (as gp.slope's), not `fit_log_residual`'s k-d tree pairing (1 vs 7 ms at 12.6k points, one thread)
-    take = np.linspace(0, n - 1, min(n, int(max_points))).round().astype(np.int64)
-    fitted = fit_log_residual(np.asarray(rows)[take], np.asarray(cols)[take], np.asarray(resid)[take],
-                              np.asarray(noise)[take], nu=nu, max_points=take.size,
-                              lengthscales=(start.lengthscale,), nuggets=(eta,))
-    if fitted.outputscale <= start.outputscale:
-        return start
-    s = fitted.outputscale
-    return replace(start, outputscale=s, log_scale_var=s * s / n)
-
-
 class Screen(NamedTuple):
     """The result of `screen_points`."""
 
@@ -428,8 +212,7 @@ def screen_points(
     *,
     threshold: float | None = 4.0,
     nu: float = 0.5,
-    max_points: int = 150,
-    iterations: int = 3,
+    options: ScreenConfig | None = None,
     start: PointFit | None = None,
     around: tuple[float, float] | None = None,
     raise_outputscale: bool = False,
@@ -448,8 +231,7 @@ def screen_points(
         rows, cols, resid, noise: (N,) as in `fit_log_residual`.
         threshold: |z| above which a point is rejected; None keeps every point (one fit).
         nu: Matern smoothness.
-        max_points: Subset size of each fit.
-        iterations: Maximum fit/reject rounds.
+        options: Neighbours, rounds, the fit's subset size and search grid (`ScreenConfig`; None: its defaults).
         start: Hyperparameters to use instead of fitting (e.g. fixed ones); rejection still runs.
         around: (l, eta) to start the fits' pattern search from (see `fit_log_residual`).
         raise_outputscale: With ``start``: its s is a floor, not a fixed value. Each round, s is
@@ -472,7 +254,9 @@ def screen_points(
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, share, changed = start, None, None, None, None, None
     k_used = None
-    for _ in range(max(1, iterations) if threshold is not None else 1):
+    options = options or ScreenConfig()
+    max_points = options.max_points
+    for _ in range(options.iterations if threshold is not None else 1):
         keep = ~rejected
         # refit whenever the kept set changed: one gross outlier among hundreds of points is
         # enough to inflate the fitted nugget and scale
@@ -482,7 +266,8 @@ def screen_points(
         refit = changed_set and (start is None or (raise_outputscale and (fitted_on is None or fit is not start)))
         if refit and start is None:
             fit = fit_log_residual(
-                rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points, around=around
+                rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points, around=around,
+                lengthscales=options.fit_lengthscales, nuggets=options.fit_nuggets,
             )
             fitted_on, around = keep, (fit.lengthscale, fit.eta)
         elif refit:
@@ -492,14 +277,14 @@ def screen_points(
         if threshold is None or n < 5:
             break
         only = None
-        k_now = min(_NEIGHBOURS, int(np.count_nonzero(keep)) - 1)
+        k_now = min(options.neighbours, int(np.count_nonzero(keep)) - 1)
         if z is not None and not refit and k_now == k_used:
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
             moved = np.flatnonzero(changed)
             only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach) <= reach), moved)
         k_used = k_now
-        z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=_NEIGHBOURS,
+        z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=options.neighbours,
                                                   exclude=rejected, only=only, radius=True,
                                                   stated=np.zeros(n) if stated is None else stated)
         if only is None:

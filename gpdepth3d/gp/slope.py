@@ -1,23 +1,15 @@
-"""The MDE's log depth as a covariate of the log-residual model: its coefficient per frame.
+"""The MDE's log depth as a covariate of the default model: its slope a per frame (docs/model.md, "slope").
 
-The log-residual model takes the MDE's log depth with a coefficient of exactly 1 (the MDE's
-depth *ordering* is trusted, only its scale and a smooth log ratio are corrected). How much of
-the MDE's depth variation is real differs by network and scene: a KITTI-trained network on
-KITTI gets it nearly right, an indoor network at 224 px on 7-Scenes over-states it (measured:
-the points' log depth follows FastDepth's with a slope of 0.4-0.7 there). So the coefficient
-is a parameter of each frame, fitted on its points by generalised least squares (regression
-kriging with the MDE as covariate)::
+How much of an MDE's depth variation is real differs by network and scene, so the coefficient of its
+centred log depth is fitted on each frame's points by generalised least squares (regression kriging
+with the MDE as covariate)::
 
     log z_j = c + a (log MDE(x_j) - c) + b + g(x_j) + w_j + e_j,   a ~ N(1, sigma_a^2), b flat
 
-with c the points' median log MDE depth (a centring: b and a are then nearly uncorrelated),
-g the stationary GP and w + e the white noise of the model. A Gaussian prior around 1 keeps a
-frame with few points near the plain log-residual model; Huber re-weighting keeps gross
-outliers from tilting the slope (the leave-one-out screen then judges every point against the
-re-sloped MDE, and `gpdepth3d.completion` fits the slope once more without the points it
-rejects). Above ``max_points`` points an evenly strided subset in the points' order is used (a
-raster order spreads it over the image): the fit is one scalar and an offset, and 150 points pin
-them down (7-Scenes RMSE within 1 mm of 400 points).
+with c the points' median log MDE depth (b and a are then nearly uncorrelated), g the stationary GP and
+w + e the white noise. The prior keeps a frame with few points near a = 1; Huber re-weighting keeps gross
+outliers from tilting the slope. Above ``max_points`` points an evenly strided subset is used (the fit is
+one scalar and an offset).
 """
 
 from __future__ import annotations

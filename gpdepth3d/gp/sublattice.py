@@ -21,13 +21,10 @@ tapered local process for the rest; Sang & Huang 2012):
 
     E[g(x)] += w' r,   Var[g(x)] -= w' c,   w = (C_e[pts, pts] + N)^-1 c,   c = C_e[pts, x].
 
-The window is the taper (C_e's correlation along a row or column of cells beyond it is dropped).
-Measured on kitti_tiny at 1/3 (bench/results/lattice.json, held-out LiDAR): with all of the LiDAR the
-stride-2 lattice alone had 1.21x the every-pixel RMSE, with this correction 1.02x; up to 1/4 of the
-LiDAR 0.97-1.00x; the stride-4 lattice (10 x 10-pixel windows, the default for denser points) 0.99-1.01x.
-The window's cost grows with its points (n^3 per cell) and the output pixels per cell: ~15 ms at 1/3
-with all of the LiDAR at stride 2 (2 cores), ~30 ms at stride 4; `gpdepth3d.completion` krigs at the
-GP grid's own pixels and resizes the result to a finer output.
+The window is the taper (C_e's correlation along a row or column of cells beyond it is dropped). Its cost
+grows with its points (n^3 per cell) and the output pixels per cell, so `gpdepth3d.completion` krigs at the
+GP grid's own pixels and resizes the result to a finer output. The effect on accuracy and time is measured
+in bench/lattice.py (bench/results/lattice.json).
 
 Coordinates are GP-grid pixels (pixel centres at integers), the lattice nodes at k j + (k - 1) / 2.
 """
@@ -41,19 +38,13 @@ from numba import get_num_threads, njit, prange
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_in_place
-
-MAX_WINDOW_POINTS = 36
-"""Most points per cell's window (the nearest to its centre): every point for stride 2 (a 6 x 6 window);
-it bounds the cost of coarser lattices (stride k: (k + 2 window_reach(k))^2 pixels per window)."""
+from .model import LatticeConfig
 
 
 def window_reach(stride: int) -> int:
     """Pixels of the GP grid around a lattice cell of stride k whose points krige its detail (the taper): k // 2 + 1.
 
-    A 6 x 6-pixel window for stride 2 and 10 x 10 for stride 4. On kitti_tiny at 1/3 with 1/2 / 3/4 / all
-    of the LiDAR (mean per-frame RMSE against every pixel's), stride 4 with 8 x 8 windows had +3.7 / +2.1 /
-    +1.6 %, with 10 x 10 +1.6 / +0.8 / +1.2 %; stride 2 with 8 x 8 instead of 6 x 6 gained 1-1.5 % at a
-    third more kriging time.
+    A 6 x 6-pixel window for stride 2 and 10 x 10 for stride 4 (their effect: bench/results/lattice.json).
     """
     return int(stride) // 2 + 1
 
@@ -192,6 +183,7 @@ def sublattice_kriging(
     stride: int,
     lengthscale: float,
     outputscale: float,
+    max_window_points: int = LatticeConfig.max_window_points,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The sub-lattice kriging of residuals at an output tensor grid (see the module docstring).
 
@@ -206,6 +198,8 @@ def sublattice_kriging(
         stride: The lattice's stride k >= 2 (nodes at k j + (k - 1) / 2).
         lengthscale: Length scale of the exponential kernel, GP-grid pixels.
         outputscale: Its standard deviation s.
+        max_window_points: Most points of one cell's window (the nearest to its centre); it bounds the
+            cost of coarse lattices (stride k: (k + 2 window_reach(k))^2 pixels per window).
 
     Returns:
         corrections (m, Ho, Wo) (``(Ho, Wo)`` for 1-D ``residuals``) to add to the posterior
@@ -263,5 +257,5 @@ def sublattice_kriging(
         threads = get_num_threads()
         cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
         _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index,
-               rows, cols, res, noise, float(outputscale) ** 2, k, reach, MAX_WINDOW_POINTS, corr, vred)
+               rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points), corr, vred)
     return (corr[0] if one else corr), vred

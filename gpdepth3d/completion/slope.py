@@ -1,0 +1,59 @@
+"""Stage 1 of the default model: the MDE's log-depth slope a of this frame (`gpdepth3d.gp.slope`, docs/model.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..gp.model import DepthGPConfig, Kernel
+from ..gp.slope import SlopeFit, fit_mde_slope
+from .log_frame import LogFrame
+from .threads import single_threaded_blas
+
+
+@dataclass(frozen=True)
+class Sloped:
+    """The MDE re-sloped by the frame's fitted slope.
+
+    Attributes:
+        fit: The slope fit (`SlopeFit`), None when the slope is fixed at 1.
+        log_mde: (H, W) the re-sloped log MDE depth, c + a (log MDE - c).
+        resid: (N,) the points' log residuals against it, log z - log MDE'.
+    """
+
+    fit: SlopeFit | None
+    log_mde: np.ndarray
+    resid: np.ndarray
+
+    @property
+    def a(self) -> float:
+        """The slope (1 when not fitted)."""
+        return self.fit.slope if self.fit is not None else 1.0
+
+
+def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = None) -> Sloped:
+    """Fits the slope on the points ``use`` (default all) with the edge term added to their noise."""
+    rows, cols = frame.rows, frame.cols
+    if config.mde_slope_sigma is None or frame.n < config.slope.min_points:
+        return Sloped(None, frame.log_mde, frame.log_z - frame.log_mde[rows, cols])
+    noise = frame.noise + (config.edge_sigma * frame.edge) ** 2 if config.edge_sigma > 0 else frame.noise
+    use = np.ones(frame.n, dtype=bool) if use is None else use
+    kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
+    with single_threaded_blas():
+        fit = fit_mde_slope(
+            rows[use], cols[use], frame.log_z[use], frame.log_mde[rows[use], cols[use]], noise[use], kernel,
+            config.nugget, prior_sigma=config.mde_slope_sigma, max_points=config.slope.max_points,
+            huber=config.slope.huber, iterations=config.slope.iterations,
+        )
+    log_mde = fit.apply(frame.log_mde)
+    return Sloped(fit, log_mde, frame.log_z - log_mde[rows, cols])
+
+
+def refit_slope(frame: LogFrame, sloped: Sloped, rejected: np.ndarray, config: DepthGPConfig) -> Sloped:
+    """The slope fitted again without the points the screen rejected (one point at a tenth of its depth can
+    still tilt a robust fit); ``sloped`` itself when nothing was rejected or too few points are left."""
+    keep = ~rejected
+    if sloped.fit is None or keep.all() or np.count_nonzero(keep) < config.slope.min_points:
+        return sloped
+    return fit_slope(frame, config, keep)
