@@ -75,8 +75,10 @@ def kitti(data: Path, models: Path) -> dict:
 
     mde = load_frontend("rtmonodepth", models_dir=models)
     protocol = KittiProtocolConfig()
-    setups = [prepare_kitti_frame(name, rgb, lidar, mde, factor=protocol.factor, holdout=protocol.holdout, rng=i)
-              for i, (name, rgb, lidar) in enumerate(lidar_frames(open_dataset(data / "kitti_tiny")))]
+    setups = [
+        prepare_kitti_frame(name, rgb, lidar, mde, factor=protocol.factor, holdout=protocol.holdout, rng=i)
+        for i, (name, rgb, lidar) in enumerate(lidar_frames(open_dataset(data / "kitti_tiny")))
+    ]
     out = {}
     for label, density in (("1/64", 1 / 64), ("1/16", 1 / 16), ("1/4", 1 / 4), ("all", 1.0)):
         for config, key in CONFIGS:
@@ -128,14 +130,19 @@ def seven_scenes_triangulated(data: Path, models: Path, step: int = 3) -> dict:
     inputs = []
     for r in range(0, len(frames), step):
         first = max(0, r - 8)
-        window = frames[first: r + 5]
-        sp = triangulate_frames([f.rgb for f in window], [f.pose for f in window], frames[r].camera, reference=r - first)
+        window = frames[first : r + 5]
+        sp = triangulate_frames(
+            [f.rgb for f in window], [f.pose for f in window], frames[r].camera, reference=r - first
+        )
         small = frames[r].resized(0.5)
         inputs.append((frames[r].name, np.asarray(fastdepth(small.rgb), dtype=np.float64), small.depth, sp))
     out = {}
     # the triangulation's sigma; the same points with a flat 10 % of their depth; with none (the model's sigma_meas)
-    variants = (("", lambda sp: sp), (", flat 10 % sigma", lambda sp: sp.with_sigma(0.1 * sp.depth)),
-                (", no sigma", lambda sp: sp.with_sigma(np.nan)))
+    variants = (
+        ("", lambda sp: sp),
+        (", flat 10 % sigma", lambda sp: sp.with_sigma(0.1 * sp.depth)),
+        (", no sigma", lambda sp: sp.with_sigma(np.nan)),
+    )
     for suffix, given in variants:
         for config, key in CONFIGS:
             completer = g.DepthCompleter(g.DepthGPConfig(**config))
@@ -148,7 +155,9 @@ def seven_scenes_triangulated(data: Path, models: Path, step: int = 3) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
+    parser.add_argument(
+        "--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data"))
+    )
     parser.add_argument("--models", type=Path, default=None, help="models folder (default: <data>/../models)")
     parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "calibration.json")
     args = parser.parse_args(argv)
@@ -157,19 +166,28 @@ def main(argv=None) -> int:
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PosteriorWarning)
-        cases = {**seven_scenes(args.data, models), **seven_scenes_triangulated(args.data, models),
-                 **kitti(args.data, models)}
-    print(f"{'case':38s} {'RMSE':>6s}  cov 1/2/3 sigma      median|z|  AUSE   RMSE without 10 % / 30 % by sigma (oracle)")
+        cases = {
+            **seven_scenes(args.data, models),
+            **seven_scenes_triangulated(args.data, models),
+            **kitti(args.data, models),
+        }
+    print(
+        f"{'case':38s} {'RMSE':>6s}  cov 1/2/3 sigma      median|z|  AUSE   RMSE without 10 % / 30 % by sigma (oracle)"
+    )
     for name, case in cases.items():
         for label, r in ((name, case), ("  without local calib.", case["without_local_calibration"])):
-            print(f"{label:38s} {r['rmse_mm']:6.0f}  {100 * r['coverage_1sigma']:4.1f} / {100 * r['coverage_2sigma']:4.1f} / "
-                  f"{100 * r['coverage_3sigma']:5.2f}   {r['median_abs_z']:.3f}    {r['ause']:.3f}  "
-                  f"{r['rmse_mm_without_10%_by_sigma']:5.0f} / {r['rmse_mm_without_30%_by_sigma']:5.0f} "
-                  f"({r['rmse_mm_without_10%_oracle']:.0f} / {r['rmse_mm_without_30%_oracle']:.0f})")
+            print(
+                f"{label:38s} {r['rmse_mm']:6.0f}  {100 * r['coverage_1sigma']:4.1f} / {100 * r['coverage_2sigma']:4.1f} / "
+                f"{100 * r['coverage_3sigma']:5.2f}   {r['median_abs_z']:.3f}    {r['ause']:.3f}  "
+                f"{r['rmse_mm_without_10%_by_sigma']:5.0f} / {r['rmse_mm_without_30%_by_sigma']:5.0f} "
+                f"({r['rmse_mm_without_10%_oracle']:.0f} / {r['rmse_mm_without_30%_oracle']:.0f})"
+            )
     from gpdepth3d.io import write_json
 
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    print(f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'compared': 'DepthGPConfig(local_calibration=None)', 'cases': cases}, indent=1)}")
+    print(
+        f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'compared': 'DepthGPConfig(local_calibration=None)', 'cases': cases}, indent=1)}"
+    )
     return 0
 
 

@@ -101,12 +101,17 @@ def engine_rows(setup, device: str, repeats: int, kissgp_cell: float, kissgp_tot
                 g = time_completer(gpu, setup, sparse, out_shape, repeats, sync=sync)
                 pc, pg = c.pop("posterior"), g.pop("posterior")
                 row["cpu"], row["cuda"] = c, g
-                row["cuda_vs_cpu"] = {"mean_max_rel": max_rel(pg.mean, pc.mean),
-                                      "variance_max_rel": max_rel(pg.variance, pc.variance)}
+                row["cuda_vs_cpu"] = {
+                    "mean_max_rel": max_rel(pg.mean, pc.mean),
+                    "variance_max_rel": max_rel(pg.variance, pc.variance),
+                }
                 key = (name, res)
                 if key in kiss_stop or kiss_spent > kissgp_total:
-                    row["kissgp_cuda"] = {"skipped": "an earlier cell of this model and resolution timed out"
-                                          if key in kiss_stop else "total KISS-GP budget spent"}
+                    row["kissgp_cuda"] = {
+                        "skipped": "an earlier cell of this model and resolution timed out"
+                        if key in kiss_stop
+                        else "total KISS-GP budget spent"
+                    }
                 else:
                     t = time.perf_counter()
                     row["kissgp_cuda"] = _kissgp_subprocess(name, res, density, device, kissgp_cell)
@@ -115,8 +120,10 @@ def engine_rows(setup, device: str, repeats: int, kissgp_cell: float, kissgp_tot
                         kiss_stop.add(key)
                     elif "mean" in row["kissgp_cuda"]:
                         pk = row["kissgp_cuda"]
-                        pk["vs_cpu_fast"] = {"mean_max_rel": max_rel(pk.pop("mean"), pc.mean),
-                                             "variance_max_rel": max_rel(pk.pop("variance"), pc.variance)}
+                        pk["vs_cpu_fast"] = {
+                            "mean_max_rel": max_rel(pk.pop("mean"), pc.mean),
+                            "variance_max_rel": max_rel(pk.pop("variance"), pc.variance),
+                        }
                 rows.append(row)
                 done(row)
 
@@ -128,8 +135,21 @@ def _kissgp_subprocess(model: str, res: str, density: float, device: str, timeou
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "cell.npz"
-        cmd = [sys.executable, __file__, "--data", str(ARGS.data), "--models", str(ARGS.models_dir), "--device", device,
-               "--kissgp-cell", model, res, repr(density), str(out)]
+        cmd = [
+            sys.executable,
+            __file__,
+            "--data",
+            str(ARGS.data),
+            "--models",
+            str(ARGS.models_dir),
+            "--device",
+            device,
+            "--kissgp-cell",
+            model,
+            res,
+            repr(density),
+            str(out),
+        ]
         try:
             done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
         except subprocess.TimeoutExpired:
@@ -157,8 +177,9 @@ def kissgp_cell(data: Path, models: Path, model: str, res: str, density: float, 
         import torch
 
         sync = torch.cuda.synchronize
-    r = time_completer(c, setup, draw(setup, density), None if res == "1/3" else setup.full_shape, 1, warmup=False,
-                       sync=sync)
+    r = time_completer(
+        c, setup, draw(setup, density), None if res == "1/3" else setup.full_shape, 1, warmup=False, sync=sync
+    )
     post = r.pop("posterior")
     np.savez(out, mean=post.mean, variance=post.variance)
     return r
@@ -167,19 +188,29 @@ def kissgp_cell(data: Path, models: Path, model: str, res: str, density: float, 
 def _fmt(r: dict) -> str:
     k = r.get("kissgp_cuda", {})
     ks = f"{1e3 * k['seconds']:9.1f} ms" if "seconds" in k else f"{'-':>12s}"
-    return (f"{r['model']:8s} {r['resolution']:5s} {r['density']:7.4f} {r['points']:6d}  "
-            f"cpu {1e3 * r['cpu']['seconds']:8.1f} ms ({r['cpu']['route']})  cuda {1e3 * r['cuda']['seconds']:8.1f} ms  "
-            f"kissgp-cuda {ks}  cuda-cpu mean {r['cuda_vs_cpu']['mean_max_rel']:.1e} var {r['cuda_vs_cpu']['variance_max_rel']:.1e}")
+    return (
+        f"{r['model']:8s} {r['resolution']:5s} {r['density']:7.4f} {r['points']:6d}  "
+        f"cpu {1e3 * r['cpu']['seconds']:8.1f} ms ({r['cpu']['route']})  cuda {1e3 * r['cuda']['seconds']:8.1f} ms  "
+        f"kissgp-cuda {ks}  cuda-cpu mean {r['cuda_vs_cpu']['mean_max_rel']:.1e} var {r['cuda_vs_cpu']['variance_max_rel']:.1e}"
+    )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
+    parser.add_argument(
+        "--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data"))
+    )
     parser.add_argument("--models", type=Path, default=None, help="models folder (default: <data>/../models)")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--kissgp-timeout", type=float, default=40.0,
-                        help="seconds per KISS-GP cell (own process); denser cells of the model and output are skipped after one times out")
-    parser.add_argument("--kissgp-total", type=float, default=180.0, help="no new KISS-GP cell after this many seconds of them")
+    parser.add_argument(
+        "--kissgp-timeout",
+        type=float,
+        default=40.0,
+        help="seconds per KISS-GP cell (own process); denser cells of the model and output are skipped after one times out",
+    )
+    parser.add_argument(
+        "--kissgp-total", type=float, default=180.0, help="no new KISS-GP cell after this many seconds of them"
+    )
     parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "cuda.json")
     parser.add_argument("--device", default="cuda", help="torch device of the GPU columns ('cpu': a dry run)")
     parser.add_argument("--kissgp-cell", nargs=4, metavar=("MODEL", "RES", "DENSITY", "OUT"), help=argparse.SUPPRESS)
@@ -198,8 +229,12 @@ def main() -> None:
 
     import torch
 
-    result: dict = {**machine(), "torch": torch.__version__, "cuda_available": torch.cuda.is_available(),
-                    "device": args.device}
+    result: dict = {
+        **machine(),
+        "torch": torch.__version__,
+        "cuda_available": torch.cuda.is_available(),
+        "device": args.device,
+    }
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         result["note"] = "no CUDA device: nothing measured"
         _write(result, args.output)
@@ -209,15 +244,22 @@ def main() -> None:
 
     result["gpu"] = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     result["numba_threads"] = numba.get_num_threads()
-    result["note"] = ("one machine: CPU = its CPU cores (compiled back-end, automatic route), CUDA = its GPU "
-                      "(torch back-end, grid route); the leave-one-out screening of the default model runs on the CPU "
-                      "in both; seconds are wall-clock per frame through DepthCompleter")
+    result["note"] = (
+        "one machine: CPU = its CPU cores (compiled back-end, automatic route), CUDA = its GPU "
+        "(torch back-end, grid route); the leave-one-out screening of the default model runs on the CPU "
+        "in both; seconds are wall-clock per frame through DepthCompleter"
+    )
     t0 = time.perf_counter()
     result["onnx"], mde = onnx_section(args.data, models)
     say(f"onnx: {json.dumps(result['onnx'], default=str)}")
     setup, mde_seconds = kitti_setup(args.data, mde)
-    result["frame"] = {"name": setup.name, "grid": list(setup.grid_shape), "full": list(setup.full_shape),
-                       "available_points": len(setup.lidar.available), "mde_seconds": mde_seconds}
+    result["frame"] = {
+        "name": setup.name,
+        "grid": list(setup.grid_shape),
+        "full": list(setup.full_shape),
+        "available_points": len(setup.lidar.available),
+        "mde_seconds": mde_seconds,
+    }
     _write(result, args.output)
     say("model    res   density points  (best of %d after a warm-up; mean + variance)" % args.repeats)
     result["rows"] = []

@@ -159,8 +159,11 @@ def vio(data: Path, fastdepth) -> dict:
             }
         )
     held = sum(r["held_out"] for r in rows)
-    pooled = lambda key: 1000 * float(  # noqa: E731 - RMSE pooled over all held-out points
-        np.sqrt(sum((r[key] / 1000) ** 2 * r["held_out"] for r in rows) / held)
+    pooled = lambda key: (
+        1000
+        * float(  # noqa: E731 - RMSE pooled over all held-out points
+            np.sqrt(sum((r[key] / 1000) ** 2 * r["held_out"] for r in rows) / held)
+        )
     )
     return {
         "rmse_mm": pooled("rmse_mm"),
@@ -258,38 +261,46 @@ def _pooled(posts_and_gt: list) -> dict:
         err.append(e)
         inside.append(np.abs(e) <= 2 * post.std[v])
     err = np.concatenate(err)
-    return {"rmse_mm": 1000 * float(np.sqrt(np.mean(err**2))), "coverage_2sigma": float(np.mean(np.concatenate(inside)))}
+    return {
+        "rmse_mm": 1000 * float(np.sqrt(np.mean(err**2))),
+        "coverage_2sigma": float(np.mean(np.concatenate(inside))),
+    }
 
 
 def parts(data: Path, stride: int, fastdepth, rtmonodepth) -> dict:
     """Each part of the default model switched off (or made exact) in turn; see the module docstring."""
-    from gpdepth3d.experiments.kitti_protocol import (
-        draw_input,
-        lidar_frames,
-        prepare_kitti_frame,
-    )
+    from gpdepth3d.experiments.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
 
     cases = {}
     frames = list(g.open_dataset(data / "7scenes"))[::stride]
     seven = [(np.asarray(fastdepth(f.resized(0.5).rgb), dtype=np.float64), f.resized(0.5).depth) for f in frames]
     for n in (50, 200, 500):
-        cases[f"7scenes {n} points"] = [(mde, g.sample_uniform(gt, n=n, rng=1000 * i + n), gt)
-                                        for i, (mde, gt) in enumerate(seven)]
+        cases[f"7scenes {n} points"] = [
+            (mde, g.sample_uniform(gt, n=n, rng=1000 * i + n), gt) for i, (mde, gt) in enumerate(seven)
+        ]
     rngs = [np.random.default_rng(1000 * i + 200) for i in range(len(seven))]
     cases["7scenes 200 points, 5 % gross outliers"] = [
-        (mde, gross_outliers(g.sample_uniform(gt, n=200, rng=rng), 0.05, rng=rng), gt) for (mde, gt), rng in zip(seven, rngs)]
-    kitti = [prepare_kitti_frame(name, rgb, lidar, rtmonodepth, factor=3, holdout=0.2, rng=0)
-             for name, rgb, lidar in lidar_frames(g.open_dataset(data / "kitti_tiny"))]
+        (mde, gross_outliers(g.sample_uniform(gt, n=200, rng=rng), 0.05, rng=rng), gt)
+        for (mde, gt), rng in zip(seven, rngs)
+    ]
+    kitti = [
+        prepare_kitti_frame(name, rgb, lidar, rtmonodepth, factor=3, holdout=0.2, rng=0)
+        for name, rgb, lidar in lidar_frames(g.open_dataset(data / "kitti_tiny"))
+    ]
     for label, density in (("1/16", 1 / 16), ("all", 1.0)):
-        cases[f"kitti_tiny {label}"] = [(s.mde_grid, draw_input("uniform", density, s.lidar.available, rng=i),
-                                         s.lidar.gt_grid) for i, s in enumerate(kitti)]
+        cases[f"kitti_tiny {label}"] = [
+            (s.mde_grid, draw_input("uniform", density, s.lidar.available, rng=i), s.lidar.gt_grid)
+            for i, s in enumerate(kitti)
+        ]
     out = {}
     for variant, changes in PARTS.items():
         config = g.DepthGPConfig(**changes)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", g.PosteriorWarning)
-            out[variant] = {case: _pooled([(g.DepthCompleter(config)(mde, sp), gt) for mde, sp, gt in inputs])
-                            for case, inputs in cases.items()}
+            out[variant] = {
+                case: _pooled([(g.DepthCompleter(config)(mde, sp), gt) for mde, sp, gt in inputs])
+                for case, inputs in cases.items()
+            }
     return out
 
 
@@ -327,15 +338,19 @@ def main() -> None:
     print(f"iBims hall (FastDepth alone {b['mde_rmse_mm']:.0f} mm): RMSE mm / +-2 sigma / s, default vs s fixed")
     for n in (50, 200, 500):
         d, f = b[f"{n}_points_default"], b[f"{n}_points_s_fixed"]
-        print(f"  {n:4d} points  {d['rmse_mm']:6.0f}  {d['coverage_2sigma']:.3f}  {np.round(d['outputscale'], 2)}"
-              f"  |  {f['rmse_mm']:6.0f}  {f['coverage_2sigma']:.3f}")
+        print(
+            f"  {n:4d} points  {d['rmse_mm']:6.0f}  {d['coverage_2sigma']:.3f}  {np.round(d['outputscale'], 2)}"
+            f"  |  {f['rmse_mm']:6.0f}  {f['coverage_2sigma']:.3f}"
+        )
     print("speed, kitti_tiny frame 0 (mean + variance, best of 3 after a warm-up): points / default / IP-Basic")
     for key, r in result["speed_kitti"].items():
         print(f"  {key:32s} {r['points']:6d}  {1000 * r['seconds']:8.1f} ms  {1000 * r['ip_basic_seconds']:7.1f} ms")
     print("parts of the default model: RMSE mm / +-2 sigma, pooled")
     for variant, row in result["parts"].items():
-        print(f"  {variant:28s} " + "  ".join(f"{c}: {r['rmse_mm']:5.0f} {100 * r['coverage_2sigma']:4.1f}"
-                                               for c, r in row.items()))
+        print(
+            f"  {variant:28s} "
+            + "  ".join(f"{c}: {r['rmse_mm']:5.0f} {100 * r['coverage_2sigma']:4.1f}" for c, r in row.items())
+        )
     print(f"wrote {args.output}")
 
 

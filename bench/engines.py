@@ -104,7 +104,9 @@ def load_frame(data: Path, size: str):
         truth = downsample_depth(depth, 2)
         r, c = np.nonzero(truth > 0)
         pick = rng.choice(r.size, 500, replace=False)
-        sparse = SparseDepth.from_arrays(c[pick].astype(float), r[pick].astype(float), truth[r[pick], c[pick]], truth.shape)
+        sparse = SparseDepth.from_arrays(
+            c[pick].astype(float), r[pick].astype(float), truth[r[pick], c[pick]], truth.shape
+        )
         config = DepthGPConfig.paper() if size.endswith("balanced") else DepthGPConfig.residual()
         if size.endswith(("_nu15", "_nu25")):
             config = config.replace(nu=1.5 if size.endswith("_nu15") else 2.5)
@@ -119,7 +121,9 @@ def make(engine: str, config):
     from gpdepth3d.gp import EngineConfig
 
     options = {"fast-torch": EngineConfig(backend="torch", route="grid"), "fast-grid": EngineConfig(route="grid")}
-    return DepthCompleter(config.replace(engine=engine.split("-")[0], max_exact_points=100_000), engine=options.get(engine))
+    return DepthCompleter(
+        config.replace(engine=engine.split("-")[0], max_exact_points=100_000), engine=options.get(engine)
+    )
 
 
 def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
@@ -186,8 +190,19 @@ def engines_main(args) -> None:
     rows = []
     for size in args.sizes.split(","):
         for engine in args.engines.split(","):
-            cmd = [sys.executable, __file__, "--suite", "engines", "--data", str(args.data), "--repeats", str(args.repeats),
-                   "--worker", engine, size]
+            cmd = [
+                sys.executable,
+                __file__,
+                "--suite",
+                "engines",
+                "--data",
+                str(args.data),
+                "--repeats",
+                str(args.repeats),
+                "--worker",
+                engine,
+                size,
+            ]
             try:
                 res = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
                 if res.returncode != 0:
@@ -213,7 +228,9 @@ def engines_main(args) -> None:
         k = next((r for r in rows if r["size"] == size and r["engine"] == "kissgp" and "mean_var_s" in r), None)
         if f and k:
             speedups[size] = {"mean": k["mean_s"] / f["mean_s"], "mean_var": k["mean_var_s"] / f["mean_var_s"]}
-            _say(f"speed-up fast vs kissgp on {size}: mean x{speedups[size]['mean']:.0f}, mean+var x{speedups[size]['mean_var']:.0f}")
+            _say(
+                f"speed-up fast vs kissgp on {size}: mean x{speedups[size]['mean']:.0f}, mean+var x{speedups[size]['mean_var']:.0f}"
+            )
     from gpdepth3d.io import write_json
 
     result = {
@@ -241,12 +258,16 @@ def _fmt(r: dict) -> str:
         return f"{r['engine']:10s} {r['size']:22s} ERROR {r['error']}"
     shape = "x".join(map(str, r["shape"]))
     if r["engine"] == "exact":
-        return (f"{r['engine']:10s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  full frame infeasible; "
-                f"{CROP[0]}x{CROP[1]} crop: mean {r['crop_mean_s'] * 1e3:8.1f} ms  mean+var {r['crop_mean_var_s'] * 1e3:8.1f} ms")
+        return (
+            f"{r['engine']:10s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  full frame infeasible; "
+            f"{CROP[0]}x{CROP[1]} crop: mean {r['crop_mean_s'] * 1e3:8.1f} ms  mean+var {r['crop_mean_var_s'] * 1e3:8.1f} ms"
+        )
     engine = r["engine"] + (f" ({r['route']})" if r["engine"] == "fast" and "route" in r else "")
-    return (f"{engine:16s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  first {r['first_s'] * 1e3:9.1f} ms  "
-            f"mean {r['mean_s'] * 1e3:9.1f} ms  mean+var {r['mean_var_s'] * 1e3:9.1f} ms  peak {r['peak_rss_mb']:7.1f} MB  "
-            f"crop err: mean {r['crop_mean_rms_pct_range']:.1e} % of range, std {r['crop_std_max_rel']:.1e} rel")
+    return (
+        f"{engine:16s} {r['size']:22s} {shape:9s} pts {r['points']:6d}  first {r['first_s'] * 1e3:9.1f} ms  "
+        f"mean {r['mean_s'] * 1e3:9.1f} ms  mean+var {r['mean_var_s'] * 1e3:9.1f} ms  peak {r['peak_rss_mb']:7.1f} MB  "
+        f"crop err: mean {r['crop_mean_rms_pct_range']:.1e} % of range, std {r['crop_std_max_rel']:.1e} rel"
+    )
 
 
 # ----------------------------------------------------------------------------- the kitti suite
@@ -267,8 +288,9 @@ def kissgp_cell(data: Path, models: Path, resolution: str, density: float) -> di
 
     setup, _ = kitti_setup(data, _frontend(models))
     c = completer(DepthGPConfig(engine="kissgp"), EngineConfig(device="cpu"))
-    out = time_completer(c, setup, draw(setup, density), None if resolution == "1/3" else setup.full_shape, 1,
-                         warmup=False)
+    out = time_completer(
+        c, setup, draw(setup, density), None if resolution == "1/3" else setup.full_shape, 1, warmup=False
+    )
     out.pop("posterior")
     return out
 
@@ -284,20 +306,33 @@ def kitti_main(args) -> None:
     densities = [float(x) for x in args.densities.split(",")] if args.densities else list(PAPER_DENSITIES)
     result = {**machine(), "suite": "kitti", "repeats": args.repeats}
     setup, mde_seconds = kitti_setup(args.data, _frontend(models))
-    result["frame"] = {"dataset": "kitti_tiny", "name": setup.name, "grid": list(setup.grid_shape),
-                       "full": list(setup.full_shape), "available_points": len(setup.lidar.available),
-                       "mde": "RT-MonoDepth-S (onnxruntime, CPU)", "mde_seconds": mde_seconds}
+    result["frame"] = {
+        "dataset": "kitti_tiny",
+        "name": setup.name,
+        "grid": list(setup.grid_shape),
+        "full": list(setup.full_shape),
+        "available_points": len(setup.lidar.available),
+        "mde": "RT-MonoDepth-S (onnxruntime, CPU)",
+        "mde_seconds": mde_seconds,
+    }
     rows = []
     # with --kissgp-timeout 0, the KISS-GP cells of the previous run in the output file are kept (with its date)
     earlier = {}
     if args.kissgp_timeout <= 0 and args.output.exists():
         old = json.loads(args.output.read_text())
-        earlier = {(r["resolution"], r["density"]): {**r["kissgp"], "from_run": r["kissgp"].get("from_run", old.get("date"))}
-                   for r in old.get("rows", []) if "skipped" not in r.get("kissgp", {"skipped": ""})}
-    _say(f"kitti_tiny {setup.name}, GP grid {setup.grid_shape[0]}x{setup.grid_shape[1]}, mean + variance, "
-         f"best of {args.repeats} after a warm-up (ms; x = ratio to IP-Basic in this run)")
-    _say(f"{'output':6s} {'density':>8s} {'points':>6s} {'IP-Basic':>9s} {'default':>9s} {'x':>5s} {'paper':>9s} "
-         f"{'x':>5s} {'kissgp':>10s}  default's stages (ms), route")
+        earlier = {
+            (r["resolution"], r["density"]): {**r["kissgp"], "from_run": r["kissgp"].get("from_run", old.get("date"))}
+            for r in old.get("rows", [])
+            if "skipped" not in r.get("kissgp", {"skipped": ""})
+        }
+    _say(
+        f"kitti_tiny {setup.name}, GP grid {setup.grid_shape[0]}x{setup.grid_shape[1]}, mean + variance, "
+        f"best of {args.repeats} after a warm-up (ms; x = ratio to IP-Basic in this run)"
+    )
+    _say(
+        f"{'output':6s} {'density':>8s} {'points':>6s} {'IP-Basic':>9s} {'default':>9s} {'x':>5s} {'paper':>9s} "
+        f"{'x':>5s} {'kissgp':>10s}  default's stages (ms), route"
+    )
     for res in ("1/3", "full"):
         out_shape = None if res == "1/3" else setup.full_shape
         default = completer(DepthGPConfig())
@@ -315,10 +350,21 @@ def kitti_main(args) -> None:
             if (res, density) in earlier:
                 row["kissgp"] = earlier[(res, density)]
             elif kiss_stopped:
-                row["kissgp"] = {"skipped": "an earlier cell timed out" if args.kissgp_timeout > 0 else "--kissgp-timeout 0"}
+                row["kissgp"] = {
+                    "skipped": "an earlier cell timed out" if args.kissgp_timeout > 0 else "--kissgp-timeout 0"
+                }
             else:
-                cmd = [sys.executable, __file__, "--data", str(args.data), "--models", str(models),
-                       "--kissgp-cell", res, repr(density)]
+                cmd = [
+                    sys.executable,
+                    __file__,
+                    "--data",
+                    str(args.data),
+                    "--models",
+                    str(models),
+                    "--kissgp-cell",
+                    res,
+                    repr(density),
+                ]
                 try:
                     done = subprocess.run(cmd, capture_output=True, text=True, timeout=args.kissgp_timeout)
                     if done.returncode != 0:
@@ -351,14 +397,18 @@ def _targets(rows: list[dict]) -> dict:
             continue
         slow = [r for r in cells if r["default"]["seconds"] > limit[res]]
         far = [r for r in cells if r["default"]["ratio_to_ip_basic"] > 10]
-        out[res] = {"cells": len(cells), "over_time_limit": [r["density"] for r in slow],
-                    "over_10x_ip_basic": [r["density"] for r in far],
-                    "worst_seconds": max(r["default"]["seconds"] for r in cells),
-                    "worst_ratio_to_ip_basic": max(r["default"]["ratio_to_ip_basic"] for r in cells)}
+        out[res] = {
+            "cells": len(cells),
+            "over_time_limit": [r["density"] for r in slow],
+            "over_10x_ip_basic": [r["density"] for r in far],
+            "worst_seconds": max(r["default"]["seconds"] for r in cells),
+            "worst_ratio_to_ip_basic": max(r["default"]["ratio_to_ip_basic"] for r in cells),
+        }
         out["summary"].append(
             f"default model, output {res}: {len(cells) - len(slow)}/{len(cells)} cells <= {1e3 * limit[res]:.0f} ms, "
             f"{len(cells) - len(far)}/{len(cells)} within 10x IP-Basic (worst {1e3 * out[res]['worst_seconds']:.0f} ms, "
-            f"{out[res]['worst_ratio_to_ip_basic']:.1f}x)")
+            f"{out[res]['worst_ratio_to_ip_basic']:.1f}x)"
+        )
     return out
 
 
@@ -366,9 +416,11 @@ def _fmt_kitti(r: dict) -> str:
     d, p, k = r["default"], r["paper"], r["kissgp"]
     ks = f"{1e3 * k['seconds']:8.0f}ms" if "seconds" in k else ("timeout" if "timeout_seconds" in k else "-")
     stages = " ".join(f"{name}={1e3 * v:.0f}" for name, v in d["stages"].items())
-    return (f"{r['resolution']:6s} {r['density']:8.4f} {r['points']:6d} {1e3 * r['ip_basic_seconds']:9.1f} "
-            f"{1e3 * d['seconds']:9.1f} {d['ratio_to_ip_basic']:5.1f} {1e3 * p['seconds']:9.1f} {p['ratio_to_ip_basic']:5.1f} "
-            f"{ks:>10s}  {stages}, {d['route']}; paper {p['route']}")
+    return (
+        f"{r['resolution']:6s} {r['density']:8.4f} {r['points']:6d} {1e3 * r['ip_basic_seconds']:9.1f} "
+        f"{1e3 * d['seconds']:9.1f} {d['ratio_to_ip_basic']:5.1f} {1e3 * p['seconds']:9.1f} {p['ratio_to_ip_basic']:5.1f} "
+        f"{ks:>10s}  {stages}, {d['route']}; paper {p['route']}"
+    )
 
 
 def _write_json(result: dict, path: Path) -> None:
@@ -381,13 +433,16 @@ def _write_json(result: dict, path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--suite", choices=("kitti", "engines"), default="kitti")
-    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
+    parser.add_argument(
+        "--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data"))
+    )
     parser.add_argument("--models", type=Path, default=None, help="kitti: models folder (default: <data>/../models)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--densities", default="", help="kitti: comma-separated shares (default: the paper's eight)")
     parser.add_argument("--kissgp-timeout", type=float, default=120.0, help="kitti: seconds per KISS-GP cell (0: none)")
-    parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "engines_kitti.json",
-                        help="kitti: the result file")
+    parser.add_argument(
+        "--output", type=Path, default=REPO / "bench" / "results" / "engines_kitti.json", help="kitti: the result file"
+    )
     parser.add_argument("--engines", default="fast,fast-grid,fast-torch,kissgp,exact", help="engines suite")
     parser.add_argument("--sizes", default=",".join(SIZES), help="engines suite")
     parser.add_argument("--timeout", type=float, default=900.0, help="engines suite: seconds per (engine, size) cell")
@@ -396,7 +451,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.kissgp_cell:
         models = args.models or args.data.parent / "models"
-        print(json.dumps(kissgp_cell(args.data, models, args.kissgp_cell[0], float(args.kissgp_cell[1])), default=float))
+        print(
+            json.dumps(kissgp_cell(args.data, models, args.kissgp_cell[0], float(args.kissgp_cell[1])), default=float)
+        )
     elif args.worker:
         print(json.dumps(worker(args.worker[0], args.worker[1], args.data, args.repeats)))
     elif args.suite == "engines":

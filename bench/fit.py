@@ -27,14 +27,34 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=ROOT / "bench" / "results" / "fit_7scenes")
     args = parser.parse_args()
     rows = run_evaluation(
-        args.data / "7scenes", protocols=["uniform", "hband"], levels=[200], output=args.output, stride=args.stride,
-        methods=["mde", "gp_default", "gp_default_fit", "gp_balanced", "gp_balanced_fit", "gp_residual", "gp_residual_fit"], qualitative=False,
+        args.data / "7scenes",
+        protocols=["uniform", "hband"],
+        levels=[200],
+        output=args.output,
+        stride=args.stride,
+        methods=[
+            "mde",
+            "gp_default",
+            "gp_default_fit",
+            "gp_balanced",
+            "gp_balanced_fit",
+            "gp_residual",
+            "gp_residual_fit",
+        ],
+        qualitative=False,
         progress=False,
     )
     print(markdown_table(rows))
-    write_json(ROOT / "bench" / "results" / "fit_7scenes.json",
-               {"dataset": "7scenes", "mde": "FastDepth TFLite", "resolution": "320x240", "command": "python bench/fit.py",
-                "rows": rows})
+    write_json(
+        ROOT / "bench" / "results" / "fit_7scenes.json",
+        {
+            "dataset": "7scenes",
+            "mde": "FastDepth TFLite",
+            "resolution": "320x240",
+            "command": "python bench/fit.py",
+            "rows": rows,
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -107,7 +107,9 @@ def main() -> None:
         rows.setdefault(name, []).extend(run_kitti_frame(frame, rgb, lidar, mde, config, index=index, methods=methods))
         seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - td
         print(f"{name} {frame} done ({k + 1}/{len(jobs)}, {time.perf_counter() - t0:.0f} s)", flush=True)
-        _write(args.output, results, rows, seconds, config, default, same, mde, started, t0, complete=k + 1 == len(jobs))
+        _write(
+            args.output, results, rows, seconds, config, default, same, mde, started, t0, complete=k + 1 == len(jobs)
+        )
     print(args.output.with_suffix(".md").read_text())
     print(f"wrote {args.output.with_suffix('.json')}, .md, .png in {time.perf_counter() - t0:.0f} s")
 
@@ -137,14 +139,23 @@ def _write(output, results, rows, seconds, config, default, same, mde, started, 
         summary = summarize_kitti(rs)
         frames = list(dict.fromkeys(r["frame"] for r in rs))
         rows_csv = write_csv(rs, output.with_name(f"{output.name}_rows_{name}.csv"))  # every cell of every frame
-        results["datasets"][name] = {"frames": frames, "seconds": seconds[name], "summary": summary, "rows": rows_csv.name}
+        results["datasets"][name] = {
+            "frames": frames,
+            "seconds": seconds[name],
+            "summary": summary,
+            "rows": rows_csv.name,
+        }
         md += ["", f"## {name} ({len(frames)} frames: {', '.join(frames)}; {seconds[name]:.0f} s)", ""]
         for res, what in (("full", "full resolution"), ("grid", "1/3 resolution")):
             md += [f"### RMSE (mm), uniform densities, {what}", "", paper_table(summary, resolution=res), ""]
         for protocol in ("hband", "vband"):
             band = "rows" if protocol == "hband" else "columns"
-            md += [f"### RMSE (mm), {protocol} ({band} {getattr(config, protocol)}), full resolution", "",
-                   paper_table(summary, protocol=protocol), ""]
+            md += [
+                f"### RMSE (mm), {protocol} ({band} {getattr(config, protocol)}), full resolution",
+                "",
+                paper_table(summary, protocol=protocol),
+                "",
+            ]
         md += ["### Every cell (mean over frames)", "", full_table(summary), ""]
         plotted += [dict(s, dataset=name) for s in summary]
     results["status"] = status

@@ -31,7 +31,9 @@ from _kitti_speed import REPO, completer, draw, machine, time_completer  # noqa:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data")))
+    parser.add_argument(
+        "--data", type=Path, default=Path(os.environ.get("GPDEPTH3D_DATA", REPO.parent / "shared" / "data"))
+    )
     parser.add_argument("--models", type=Path, default=None, help="models folder (default: <data>/../models)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "lattice.json")
@@ -42,7 +44,11 @@ def main(argv=None) -> int:
     from gpdepth3d.completion.lattice import lattice_stride
     from gpdepth3d.datasets import open_dataset
     from gpdepth3d.experiments.kitti_protocol import (
-        PAPER_DENSITIES, KittiProtocolConfig, lidar_frames, prepare_kitti_frame, draw_input,
+        PAPER_DENSITIES,
+        KittiProtocolConfig,
+        lidar_frames,
+        prepare_kitti_frame,
+        draw_input,
     )
     from gpdepth3d.mde import load_frontend
 
@@ -51,7 +57,9 @@ def main(argv=None) -> int:
     protocol = KittiProtocolConfig()
     setups = []
     for i, (name, rgb, lidar) in enumerate(lidar_frames(open_dataset(args.data / "kitti_tiny"))):
-        setups.append(prepare_kitti_frame(name, rgb, lidar, mde, factor=protocol.factor, holdout=protocol.holdout, rng=i))
+        setups.append(
+            prepare_kitti_frame(name, rgb, lidar, mde, factor=protocol.factor, holdout=protocol.holdout, rng=i)
+        )
     strides = ("stride 1", "stride 2", "stride 4")
     configs = {label: DepthGPConfig(lattice_stride=int(label[-1])) for label in strides}
     configs["default"] = DepthGPConfig()

@@ -26,7 +26,13 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-CASES = [(240, 320, 240, 320), (240, 320, 960, 1280), (240, 320, 1920, 2560), (480, 640, 480, 640), (960, 1280, 960, 1280)]
+CASES = [
+    (240, 320, 240, 320),
+    (240, 320, 960, 1280),
+    (240, 320, 1920, 2560),
+    (480, 640, 480, 640),
+    (960, 1280, 960, 1280),
+]
 
 ONE_CASE = r"""
 import json, resource, sys, time
@@ -57,25 +63,46 @@ def main() -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO), limits.ENV_VAR: "1000000"}
     rows = []
     for h, w, ho, wo in CASES:
-        run = subprocess.run([sys.executable, "-c", ONE_CASE, str(h), str(w), str(ho), str(wo)], capture_output=True,
-                             text=True, env=env, check=True)
+        run = subprocess.run(
+            [sys.executable, "-c", ONE_CASE, str(h), str(w), str(ho), str(wo)],
+            capture_output=True,
+            text=True,
+            env=env,
+            check=True,
+        )
         got = json.loads(run.stdout.strip().splitlines()[-1])
-        rows.append({"mde_shape": [h, w], "output_shape": [ho, wo], "peak_bytes": got["peak_bytes"],
-                     "seconds": round(got["seconds"], 2), "estimate_bytes": limits.completion_bytes((h, w), (ho, wo))})
-        print(f"{h}x{w} -> {ho}x{wo}: peak {got['peak_bytes'] / 2**20:.0f} MiB, "
-              f"estimate {rows[-1]['estimate_bytes'] / 2**20:.0f} MiB, {got['seconds']:.1f} s", flush=True)
-    a = np.array([[r["output_shape"][0] * r["output_shape"][1], r["mde_shape"][0] * r["mde_shape"][1]] for r in rows], float)
+        rows.append(
+            {
+                "mde_shape": [h, w],
+                "output_shape": [ho, wo],
+                "peak_bytes": got["peak_bytes"],
+                "seconds": round(got["seconds"], 2),
+                "estimate_bytes": limits.completion_bytes((h, w), (ho, wo)),
+            }
+        )
+        print(
+            f"{h}x{w} -> {ho}x{wo}: peak {got['peak_bytes'] / 2**20:.0f} MiB, "
+            f"estimate {rows[-1]['estimate_bytes'] / 2**20:.0f} MiB, {got['seconds']:.1f} s",
+            flush=True,
+        )
+    a = np.array(
+        [[r["output_shape"][0] * r["output_shape"][1], r["mde_shape"][0] * r["mde_shape"][1]] for r in rows], float
+    )
     fit, *_ = np.linalg.lstsq(a, np.array([r["peak_bytes"] for r in rows], float), rcond=None)
     print(f"fit: {fit[0]:.0f} bytes per output pixel, {fit[1]:.0f} bytes per MDE pixel")
-    write_json(args.out, {
-        "what": "peak resident memory of one default completion above the process's memory before it",
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_average": os.getloadavg()},
-        "date": time.strftime("%Y-%m-%d"),
-        "fit_bytes_per_output_pixel": fit[0], "fit_bytes_per_mde_pixel": fit[1],
-        "planned_bytes_per_output_pixel": limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL,
-        "planned_bytes_per_mde_pixel_outside_the_engine": limits.COMPLETION_BYTES_PER_INPUT_PIXEL,
-        "rows": rows,
-    })
+    write_json(
+        args.out,
+        {
+            "what": "peak resident memory of one default completion above the process's memory before it",
+            "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_average": os.getloadavg()},
+            "date": time.strftime("%Y-%m-%d"),
+            "fit_bytes_per_output_pixel": fit[0],
+            "fit_bytes_per_mde_pixel": fit[1],
+            "planned_bytes_per_output_pixel": limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL,
+            "planned_bytes_per_mde_pixel_outside_the_engine": limits.COMPLETION_BYTES_PER_INPUT_PIXEL,
+            "rows": rows,
+        },
+    )
     print(f"wrote {args.out}")
 
 

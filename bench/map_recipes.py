@@ -34,7 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 def recipes() -> dict[str, str]:
     """The docs' ``gpdepth3d map`` lines on the shared data, by sequence folder name."""
     text = (REPO / "docs" / "mapping.md").read_text(encoding="utf-8")
-    lines = [line.strip() for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M) if "../shared/data" in line]
+    lines = [
+        line.strip() for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M) if "../shared/data" in line
+    ]
     return {re.search(r"\.\./shared/data/(\w+)", line).group(1): line for line in lines}
 
 
@@ -43,8 +45,13 @@ def run(line: str) -> dict:
     out = REPO / argv[argv.index("--output") + 1]
     load_before = os.getloadavg()
     t0 = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "gpdepth3d.cli", *argv], cwd=REPO, capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    proc = subprocess.run(
+        [sys.executable, "-m", "gpdepth3d.cli", *argv],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     wall = time.monotonic() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{line}\n{proc.stderr[-3000:]}")
@@ -79,13 +86,19 @@ def main() -> None:
     for name, line in recipes().items():
         rows[name] = run(line)
         r = rows[name]
-        print(f"{name:9s} {r['frames_fused']:3d}/{r['frames']:3d} fused, F map {r['fscore_map']:.3f}, "
-              f"MDE alone {r['fscore_mde_only']:.3f}, {r['process_wall_s']:.0f} s "
-              f"(load {r['loadavg_before'][0]:.1f})", flush=True)
-    write_json(args.out, {
-        "sequences": rows,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-    })
+        print(
+            f"{name:9s} {r['frames_fused']:3d}/{r['frames']:3d} fused, F map {r['fscore_map']:.3f}, "
+            f"MDE alone {r['fscore_mde_only']:.3f}, {r['process_wall_s']:.0f} s "
+            f"(load {r['loadavg_before'][0]:.1f})",
+            flush=True,
+        )
+    write_json(
+        args.out,
+        {
+            "sequences": rows,
+            "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        },
+    )
     print(f"wrote {args.out}")
 
 

@@ -43,7 +43,7 @@ def fmt(value: Any, digits: int = 3) -> str:
     if isinstance(value, int):
         return str(value)
     if isinstance(value, float):
-        if value != 0 and (abs(value) >= 10 ** digits):
+        if value != 0 and (abs(value) >= 10**digits):
             return f"{value:.0f}"
         return f"{value:.{digits}g}"
     if isinstance(value, (list, tuple)):
@@ -74,7 +74,9 @@ def _load_of(d: dict) -> str:
             return fmt(v[0] if isinstance(v, list) else v, 2)
     rows = d.get("rows") or d.get("runs")
     if isinstance(rows, list):
-        loads = [r.get(k) for r in rows if isinstance(r, dict) for k in ("load_average_1min", "load_average", "load_before")]
+        loads = [
+            r.get(k) for r in rows if isinstance(r, dict) for k in ("load_average_1min", "load_average", "load_before")
+        ]
         loads = [x for x in loads if isinstance(x, (int, float))]
         if loads:
             return f"{min(loads):.2f}–{max(loads):.2f}"
@@ -152,12 +154,33 @@ def section_default_model(d: dict) -> str:
         if not isinstance(r, dict) or "rmse_mm" not in r:
             continue
         points, _, share = key.partition("_points_outliers_")
-        rows.append([points, pct(float(share)), fmt(round(r["rmse_mm"])), fmt(round(r["mde_rmse_mm"])),
-                     pct(r["coverage_2sigma"]), fmt(r["rejected_mean"]), fmt(1000 * r["median_seconds"], 3)])
+        rows.append(
+            [
+                points,
+                pct(float(share)),
+                fmt(round(r["rmse_mm"])),
+                fmt(round(r["mde_rmse_mm"])),
+                pct(r["coverage_2sigma"]),
+                fmt(r["rejected_mean"]),
+                fmt(1000 * r["median_seconds"], 3),
+            ]
+        )
     if rows:
         parts.append("7-Scenes (FastDepth, 320×240), with and without gross outliers among the points:")
-        parts.append(table(["points", "outliers", "RMSE [mm]", "MDE RMSE [mm]", "±2σ covers", "rejected (mean)",
-                            "median time [ms]"], rows))
+        parts.append(
+            table(
+                [
+                    "points",
+                    "outliers",
+                    "RMSE [mm]",
+                    "MDE RMSE [mm]",
+                    "±2σ covers",
+                    "rejected (mean)",
+                    "median time [ms]",
+                ],
+                rows,
+            )
+        )
     vio = d.get("vio_sparse")
     if vio:
         parts.append(
@@ -168,15 +191,24 @@ def section_default_model(d: dict) -> str:
     speed = d.get("speed_kitti")
     if speed:
         parts.append("Speed, KITTI frame 0 (RT-MonoDepth-S), mean + variance:")
-        parts.append(table(
-            ["case", "points", "GP [ms]", "IP-Basic [ms]"],
-            [[k, fmt(v["points"]), fmt(1000 * v["seconds"]), fmt(1000 * v["ip_basic_seconds"])] for k, v in speed.items()],
-        ))
+        parts.append(
+            table(
+                ["case", "points", "GP [ms]", "IP-Basic [ms]"],
+                [
+                    [k, fmt(v["points"]), fmt(1000 * v["seconds"]), fmt(1000 * v["ip_basic_seconds"])]
+                    for k, v in speed.items()
+                ],
+            )
+        )
     return "\n\n".join(parts)
 
 
 def section_kitti_paper(d: dict) -> str:
-    parts = ["## The paper's KITTI protocol", run_info(d, "python bench/kitti_paper.py"), fmt(d.get("ground_truth", ""))]
+    parts = [
+        "## The paper's KITTI protocol",
+        run_info(d, "python bench/kitti_paper.py"),
+        fmt(d.get("ground_truth", "")),
+    ]
     paper = d.get("paper_rmse_mm", {})
     for name, ds in d.get("datasets", {}).items():
         rows = [r for r in ds["summary"] if r["resolution"] == "full" and r["protocol"] == "uniform"]
@@ -189,7 +221,9 @@ def section_kitti_paper(d: dict) -> str:
             cells += [fmt(round(by[(label, m)]["rmse"])) if (label, m) in by else "–" for m in methods]
             cells += [pct(by[(label, m)].get("coverage_2sigma")) if (label, m) in by else "–" for m in methods[2:]]
             body.append(cells)
-        header = ["density", "points", "paper [mm]"] + [f"{m} [mm]" for m in methods] + [f"{m} ±2σ" for m in methods[2:]]
+        header = (
+            ["density", "points", "paper [mm]"] + [f"{m} [mm]" for m in methods] + [f"{m} ±2σ" for m in methods[2:]]
+        )
         parts.append(f"{name} ({len(ds['frames'])} frames), RMSE at full resolution, uniform densities:")
         parts.append(table(header, body))
     if d.get("paper_note"):
@@ -200,15 +234,25 @@ def section_kitti_paper(d: dict) -> str:
 def section_calibration(d: dict) -> str:
     rows = []
     for case, r in d.get("cases", {}).items():
-        rows.append([case, pct(r["coverage_1sigma"]), pct(r["coverage_2sigma"]), fmt(r["median_abs_z"]), fmt(r["ause"]),
-                     fmt(round(r["rmse_mm"]))])
-    return "\n\n".join([
-        "## How far to trust σ",
-        run_info(d, "python bench/calibration.py"),
-        f"Model: `{d.get('config', 'DepthGPConfig()')}`. Coverage of the posterior intervals, median |error| / σ, "
-        "and AUSE (how well σ orders the errors; 0 is perfect).",
-        table(["case", "±1σ covers", "±2σ covers", "median abs z", "AUSE", "RMSE [mm]"], rows),
-    ])
+        rows.append(
+            [
+                case,
+                pct(r["coverage_1sigma"]),
+                pct(r["coverage_2sigma"]),
+                fmt(r["median_abs_z"]),
+                fmt(r["ause"]),
+                fmt(round(r["rmse_mm"])),
+            ]
+        )
+    return "\n\n".join(
+        [
+            "## How far to trust σ",
+            run_info(d, "python bench/calibration.py"),
+            f"Model: `{d.get('config', 'DepthGPConfig()')}`. Coverage of the posterior intervals, median |error| / σ, "
+            "and AUSE (how well σ orders the errors; 0 is perfect).",
+            table(["case", "±1σ covers", "±2σ covers", "median abs z", "AUSE", "RMSE [mm]"], rows),
+        ]
+    )
 
 
 def section_mapping(fusion: dict, mapper: dict) -> str:
@@ -216,18 +260,41 @@ def section_mapping(fusion: dict, mapper: dict) -> str:
     if fusion:
         parts.append(run_info(fusion, "python bench/fusion.py"))
         m = fusion["mesh_vs_ground_truth_mesh"]
-        rows = [[name, fmt(v["accuracy"]), fmt(v["completeness"]), fmt(v["chamfer"]), fmt(v["precision"]),
-                 fmt(v["recall"]), fmt(v["fscore"])] for name, v in (("MDE only", m["mde"]), ("GP, variance weights", m["gp_variance"]))]
-        parts.append(f"{fusion['frames']} frames at {fmt(fusion['resolution'])}, meshes against the mesh fused from the "
-                     f"Kinect depth (threshold {fmt(m['mde']['threshold'])} m):")
-        parts.append(table(["variant", "accuracy [m]", "completeness [m]", "Chamfer [m]", "precision", "recall", "F-score"], rows))
-        parts.append(f"Per-frame depth RMSE, GP / MDE: {fmt(fusion['depth_rmse_ratio_gp_over_mde'])}; triangulated "
-                     f"points within ±2σ of the Kinect depth: {pct(fusion['points_coverage_2sigma']['all']['within_2sigma'])}.")
+        rows = [
+            [
+                name,
+                fmt(v["accuracy"]),
+                fmt(v["completeness"]),
+                fmt(v["chamfer"]),
+                fmt(v["precision"]),
+                fmt(v["recall"]),
+                fmt(v["fscore"]),
+            ]
+            for name, v in (("MDE only", m["mde"]), ("GP, variance weights", m["gp_variance"]))
+        ]
+        parts.append(
+            f"{fusion['frames']} frames at {fmt(fusion['resolution'])}, meshes against the mesh fused from the "
+            f"Kinect depth (threshold {fmt(m['mde']['threshold'])} m):"
+        )
+        parts.append(
+            table(
+                ["variant", "accuracy [m]", "completeness [m]", "Chamfer [m]", "precision", "recall", "F-score"], rows
+            )
+        )
+        parts.append(
+            f"Per-frame depth RMSE, GP / MDE: {fmt(fusion['depth_rmse_ratio_gp_over_mde'])}; triangulated "
+            f"points within ±2σ of the Kinect depth: {pct(fusion['points_coverage_2sigma']['all']['within_2sigma'])}."
+        )
     if mapper:
         parts.append(run_info(mapper, "python bench/mapper.py"))
-        rows = [[stage, fmt(v["median_ms"]), fmt(v["mean_ms"]), fmt(v["p90_ms"])] for stage, v in mapper["add_frame_ms"].items()]
-        parts.append(f"`Mapper.add_frame` per stage over {mapper['frames']} keyframes (lag {mapper['lag']}, window "
-                     f"{mapper['window']}), wall time:")
+        rows = [
+            [stage, fmt(v["median_ms"]), fmt(v["mean_ms"]), fmt(v["p90_ms"])]
+            for stage, v in mapper["add_frame_ms"].items()
+        ]
+        parts.append(
+            f"`Mapper.add_frame` per stage over {mapper['frames']} keyframes (lag {mapper['lag']}, window "
+            f"{mapper['window']}), wall time:"
+        )
         parts.append(table(["stage", "median [ms]", "mean [ms]", "p90 [ms]"], rows))
     return "\n\n".join(parts)
 
@@ -273,8 +340,20 @@ def section_engines_kitti(d: dict, title: str, script: str) -> str:
     summary = d.get("targets", {}).get("summary")
     if summary:
         parts.append("; ".join(summary) + ".")
-    parts.append(table(["output", "density", "points", "IP-Basic [ms]", "default [ms] (route)", "paper [ms] (route)",
-                        "KISS-GP [ms]"], rows))
+    parts.append(
+        table(
+            [
+                "output",
+                "density",
+                "points",
+                "IP-Basic [ms]",
+                "default [ms] (route)",
+                "paper [ms] (route)",
+                "KISS-GP [ms]",
+            ],
+            rows,
+        )
+    )
     return "\n\n".join(parts)
 
 
@@ -282,30 +361,44 @@ def section_cuda(d: dict) -> str:
     rows = []
     for r in d.get("rows", []):
         cpu, cuda = r.get("cpu") or {}, r.get("cuda") or {}
-        rows.append([r.get("model", ""), r["resolution"], fmt(r["density"]), fmt(r["points"]),
-                     fmt(1000 * cpu["seconds"]) if cpu else "–", fmt(1000 * cuda["seconds"]) if cuda else "–"])
-    return "\n\n".join([
-        "## CPU and CUDA",
-        run_info(d, "python bench/cuda.py") + f" *GPU: {d.get('gpu', 'none')}; torch {d.get('torch', '')}.*",
-        table(["model", "output", "density", "points", "CPU [ms]", "CUDA [ms]"], rows),
-    ])
+        rows.append(
+            [
+                r.get("model", ""),
+                r["resolution"],
+                fmt(r["density"]),
+                fmt(r["points"]),
+                fmt(1000 * cpu["seconds"]) if cpu else "–",
+                fmt(1000 * cuda["seconds"]) if cuda else "–",
+            ]
+        )
+    return "\n\n".join(
+        [
+            "## CPU and CUDA",
+            run_info(d, "python bench/cuda.py") + f" *GPU: {d.get('gpu', 'none')}; torch {d.get('torch', '')}.*",
+            table(["model", "output", "density", "points", "CPU [ms]", "CUDA [ms]"], rows),
+        ]
+    )
 
 
 def section_viewer(d: dict) -> str:
     med = d.get("median", {})
-    return "\n\n".join([
-        "## Viewer start-up",
-        run_info(d, "python bench/viewer_startup.py"),
-        f"{fmt(d.get('what', ''))}: page {fmt(med.get('page'))} s, panel {fmt(med.get('panel'))} s, first frame "
-        f"{fmt(med.get('first_frame'))} s (median of {len(d.get('runs', []))} runs).",
-    ])
+    return "\n\n".join(
+        [
+            "## Viewer start-up",
+            run_info(d, "python bench/viewer_startup.py"),
+            f"{fmt(d.get('what', ''))}: page {fmt(med.get('page'))} s, panel {fmt(med.get('panel'))} s, first frame "
+            f"{fmt(med.get('first_frame'))} s (median of {len(d.get('runs', []))} runs).",
+        ]
+    )
 
 
 def section_batch(d: dict) -> str:
     s = d.get("summary", {})
-    note = (f"{d['settings']['frames']} frames, {d['settings']['resolution']}, {d['settings']['n_input']} points, "
-            f"`{d['settings']['config']}`. Scaling 2 vs 1 worker: {fmt(s.get('scaling_2_vs_1'))}×; overhead "
-            f"{fmt(s.get('overhead_per_frame_s'))} s per frame.")
+    note = (
+        f"{d['settings']['frames']} frames, {d['settings']['resolution']}, {d['settings']['n_input']} points, "
+        f"`{d['settings']['config']}`. Scaling 2 vs 1 worker: {fmt(s.get('scaling_2_vs_1'))}×; overhead "
+        f"{fmt(s.get('overhead_per_frame_s'))} s per frame."
+    )
     return section_rows("Datasets on Dask", "python bench/batch.py", d, note)
 
 
@@ -314,13 +407,22 @@ SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
     ("default_model.json", section_default_model),
     ("kitti_paper.json", section_kitti_paper),
     ("calibration.json", section_calibration),
-    ("engines_kitti.json", lambda d: section_engines_kitti(d, "Speed on KITTI (the shared CPU)", "python bench/engines.py")),
+    (
+        "engines_kitti.json",
+        lambda d: section_engines_kitti(d, "Speed on KITTI (the shared CPU)", "python bench/engines.py"),
+    ),
     ("cuda.json", section_cuda),
-    ("engines.json", lambda d: section_rows("Engines against each other", "python bench/engines.py", d,
-                                            f"MDE: {fmt(d.get('mde', ''))}.")),
+    (
+        "engines.json",
+        lambda d: section_rows(
+            "Engines against each other", "python bench/engines.py", d, f"MDE: {fmt(d.get('mde', ''))}."
+        ),
+    ),
     ("lattice.json", lambda d: section_rows("The lattice stride", "python bench/lattice.py", d)),
-    ("kissgp.json", lambda d: section_rows("The GPyTorch KISS-GP engine", "python bench/kissgp.py", d,
-                                           fmt(d.get("benchmark", "")))),
+    (
+        "kissgp.json",
+        lambda d: section_rows("The GPyTorch KISS-GP engine", "python bench/kissgp.py", d, fmt(d.get("benchmark", ""))),
+    ),
     ("fit_7scenes.json", lambda d: section_rows("Fitted hyperparameters, 7-Scenes", "python bench/fit.py", d)),
     ("batch.json", section_batch),
     ("viewer_startup.json", section_viewer),

@@ -38,8 +38,16 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
 
 
 def _free_port() -> int:
@@ -62,8 +70,20 @@ def one_run(posterior: Path, rgb: Path, executable: str, timeout: float = 120.0)
 
     port = _free_port()
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    cmd = [sys.executable, "-m", "gpdepth3d.cli", "view", "--posterior", str(posterior), "--rgb", str(rgb),
-           "--port", str(port), "--duration", str(timeout)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "gpdepth3d.cli",
+        "view",
+        "--posterior",
+        str(posterior),
+        "--rgb",
+        str(rgb),
+        "--port",
+        str(port),
+        "--duration",
+        str(timeout),
+    ]
     times: dict[str, float] = {}
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -109,11 +129,25 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit("chromium not installed (Debian: apt-get install chromium)")
     if not args.posterior.is_file():
         subprocess.run(
-            [sys.executable, "-m", "gpdepth3d.cli", "complete", "--rgb", str(args.rgb), "--mde", "rtmonodepth",
-             "--lidar", str(SHARED / "data" / "kitti_object" / "000000.bin"),
-             "--calib", str(SHARED / "data" / "kitti_object" / "calib_000000.txt"),
-             "--output", str(args.posterior.with_suffix(""))],
-            check=True, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)),
+            [
+                sys.executable,
+                "-m",
+                "gpdepth3d.cli",
+                "complete",
+                "--rgb",
+                str(args.rgb),
+                "--mde",
+                "rtmonodepth",
+                "--lidar",
+                str(SHARED / "data" / "kitti_object" / "000000.bin"),
+                "--calib",
+                str(SHARED / "data" / "kitti_object" / "calib_000000.txt"),
+                "--output",
+                str(args.posterior.with_suffix("")),
+            ],
+            check=True,
+            cwd=REPO,
+            env=dict(os.environ, PYTHONPATH=str(REPO)),
         )
     runs = []
     for _ in range(args.repeats):
@@ -124,13 +158,19 @@ def main(argv: list[str] | None = None) -> dict:
     events = ("page", "loading", "first_frame", "panel")
     print(f"{'run':<5}" + "".join(f"{e + ' [s]':>17}" for e in events) + f"{'load avg':>10}")
     for i, r in enumerate(runs):
-        print(f"{i:<5}" + "".join(f"{r[e]:>17.2f}" if e in r else f"{'-':>17}" for e in events)
-              + f"{r['load_average']:>10.1f}")
+        print(
+            f"{i:<5}"
+            + "".join(f"{r[e]:>17.2f}" if e in r else f"{'-':>17}" for e in events)
+            + f"{r['load_average']:>10.1f}"
+        )
     median = {e: float(np.median([r[e] for r in runs if e in r])) for e in events if any(e in r for r in runs)}
     print("median " + ", ".join(f"{e} {v:.2f} s" for e, v in median.items()))
     result = {
         "what": "seconds from starting `gpdepth3d view` to each event in headless Chromium",
-        "posterior": str(args.posterior), "rgb": str(args.rgb), "runs": runs, "median": median,
+        "posterior": str(args.posterior),
+        "rgb": str(args.rgb),
+        "runs": runs,
+        "median": median,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
     }

@@ -38,8 +38,9 @@ def _type_name(annotation) -> str:
         return " ".join(_type_name(a) for a in args)
     if origin is typing.Annotated:
         return _type_name(args[0])
-    return {Path: "PATH", str: "TEXT", int: "INT", float: "FLOAT", bool: "flag"}.get(annotation, getattr(
-        annotation, "__name__", str(annotation)))
+    return {Path: "PATH", str: "TEXT", int: "INT", float: "FLOAT", bool: "flag"}.get(
+        annotation, getattr(annotation, "__name__", str(annotation))
+    )
 
 
 def _default(value) -> str:
@@ -93,10 +94,15 @@ def gp_section() -> str:
     from gpdepth3d.cli._options import PRESETS
 
     _, helps = _doc(type(PRESETS["default"]))
-    lines = ["## GP fields (`--gp.FIELD`)", "",
-             "For `complete`, `fuse` and `batch`. Defaults of each preset: `default` is `DepthGPConfig()`, `paper` "
-             "`DepthGPConfig.paper()`, `residual` `DepthGPConfig.residual()`.", "",
-             "| option | default | paper | residual | meaning |", "|---|---|---|---|---|"]
+    lines = [
+        "## GP fields (`--gp.FIELD`)",
+        "",
+        "For `complete`, `fuse` and `batch`. Defaults of each preset: `default` is `DepthGPConfig()`, `paper` "
+        "`DepthGPConfig.paper()`, `residual` `DepthGPConfig.residual()`.",
+        "",
+        "| option | default | paper | residual | meaning |",
+        "|---|---|---|---|---|",
+    ]
     for field in dataclasses.fields(PRESETS["default"]):
         values = [f"`{getattr(PRESETS[p], field.name)}`" for p in ("default", "paper", "residual")]
         flag = f"`--gp.{field.name.replace('_', '-')}`"

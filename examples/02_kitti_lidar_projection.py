@@ -24,8 +24,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="the kitti_object folder")
     parser.add_argument("--frame", default="000000")
-    parser.add_argument("--models", type=Path, default=None,
-                        help="folder of rtmonodepth_s_ms_640_192.onnx (default: ../models beside --data's parent)")
+    parser.add_argument(
+        "--models",
+        type=Path,
+        default=None,
+        help="folder of rtmonodepth_s_ms_640_192.onnx (default: ../models beside --data's parent)",
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/example02"))
     args = parser.parse_args(argv)
 
@@ -56,15 +60,23 @@ def main(argv: list[str] | None = None) -> dict:
     err_mde = mde_full[rr, cc] - test.depth
     rmse_gp, rmse_mde = float(np.sqrt(np.mean(err_gp**2))), float(np.sqrt(np.mean(err_mde**2)))
     inside = float(np.mean(np.abs(err_gp) <= 2 * posterior.std[rr, cc]))
-    print(f"{len(train)} LiDAR pixels in, {len(test)} held out: RT-MonoDepth-S alone {rmse_mde:.2f} m RMSE, "
-          f"GP {rmse_gp:.2f} m, +-2 sigma covers {inside:.1%}; MDE slope {posterior.mde_slope:.2f}")
-    print(f"posterior {posterior.shape}, median std {np.median(posterior.std):.3f} m, "
-          f"solve {posterior.timings['solve']:.2f} s")
+    print(
+        f"{len(train)} LiDAR pixels in, {len(test)} held out: RT-MonoDepth-S alone {rmse_mde:.2f} m RMSE, "
+        f"GP {rmse_gp:.2f} m, +-2 sigma covers {inside:.1%}; MDE slope {posterior.mde_slope:.2f}"
+    )
+    print(
+        f"posterior {posterior.shape}, median std {np.median(posterior.std):.3f} m, "
+        f"solve {posterior.timings['solve']:.2f} s"
+    )
     for path in posterior.save(args.out / f"{args.frame}_posterior", png=True):
         print(f"wrote {path}")
     return {
-        "n_lidar": len(lidar), "shape": posterior.shape, "image_shape": rgb.shape[:2],
-        "rmse_gp": rmse_gp, "rmse_mde": rmse_mde, "coverage_2sigma": inside,
+        "n_lidar": len(lidar),
+        "shape": posterior.shape,
+        "image_shape": rgb.shape[:2],
+        "rmse_gp": rmse_gp,
+        "rmse_mde": rmse_mde,
+        "coverage_2sigma": inside,
     }
 
 

@@ -70,9 +70,7 @@ class PinholeCamera:
             -0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5
         ):
             raise CalibrationError(
-                "cx, cy",
-                f"a principal point inside the {self.width}x{self.height} image",
-                (self.cx, self.cy),
+                "cx, cy", f"a principal point inside the {self.width}x{self.height} image", (self.cx, self.cy)
             )
 
     # ------------------------------------------------------------------ construction

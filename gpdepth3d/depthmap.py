@@ -50,11 +50,7 @@ def fill_nearest(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def resize_map(
-    image: np.ndarray,
-    shape: tuple[int, int],
-    *,
-    shrink: Interpolation = "linear",
-    grow: Interpolation = "linear",
+    image: np.ndarray, shape: tuple[int, int], *, shrink: Interpolation = "linear", grow: Interpolation = "linear"
 ) -> np.ndarray:
     """Resizes an (H, W) or (H, W, C) map to ``shape`` = (rows, cols) with OpenCV.
 

@@ -66,8 +66,9 @@ def missing_dependency(exc: BaseException, module: str | None = None) -> Missing
     if isinstance(exc, ModuleNotFoundError) and name in EXTRAS:
         extras = EXTRAS[name]
         return MissingDependencyError(
-            name, f"not installed; it comes with the {' or '.join(f'[{e}]' for e in extras)} extra "
-            f"(pip install \"gpdepth3d[{extras[0]}]\")"
+            name,
+            f"not installed; it comes with the {' or '.join(f'[{e}]' for e in extras)} extra "
+            f'(pip install "gpdepth3d[{extras[0]}]")',
         )
     return None
 

@@ -124,7 +124,8 @@ def _check_name_length(path: Path) -> None:
         size = len(os.fsencode(part)) + extra
         if size > limit:
             raise OutputError(
-                path, f"file name too long: {size} bytes with the temporary name's {extra}, the file system allows {limit}"
+                path,
+                f"file name too long: {size} bytes with the temporary name's {extra}, the file system allows {limit}",
             )
 
 
@@ -275,7 +276,7 @@ def write_together() -> Iterator[None]:
                 try:
                     s.commit()
                 except BaseException:
-                    for rest in list(folders.values())[i + 1:]:
+                    for rest in list(folders.values())[i + 1 :]:
                         rest.discard()
                     raise
         else:
@@ -349,6 +350,7 @@ def _fsync_folder(folder: Path) -> None:
 
 # The temporaries `atomic_path` makes: ``.<stem>.<8 random>.tmp<suffix>`` (tempfile.mkstemp).
 _TEMP_NAME = re.compile(r"^\..*\.[A-Za-z0-9_]{8}\.tmp(\.[^.]*)?$")
+
 
 class _OutputSet:
     """The files of one `output_set` call: final name -> temporary file (held locked until the commit)."""
@@ -454,7 +456,9 @@ def _recover(base: Path, names: Sequence[str]) -> int:
     temps = [_temp_pattern(n) for n in names]
     legacy_set = re.compile(rf"^\.{re.escape(base.name)}\.set-[A-Za-z0-9_]{{8}}$")
     legacy_files = {f".{base.name}.current", f".{base.name}.lock"}
-    legacy_link = re.compile(rf"^\.({'|'.join(re.escape(x) for x in [f'{base.name}.current', *names])})\.[0-9a-f]{{8}}\.link$")
+    legacy_link = re.compile(
+        rf"^\.({'|'.join(re.escape(x) for x in [f'{base.name}.current', *names])})\.[0-9a-f]{{8}}\.link$"
+    )
     with os.scandir(folder) as it:  # every leftover is hidden: only those names are matched
         hidden = sorted(e.name for e in it if e.name.startswith("."))
     for n in hidden:
@@ -614,10 +618,7 @@ def output_set(base: str | Path, *, members: Sequence[str] = ()) -> Iterator[Non
 
 
 def atomic_write_set(
-    base: str | Path,
-    writers: Mapping[str, Callable[[Path], None]],
-    *,
-    members: Sequence[str] = (),
+    base: str | Path, writers: Mapping[str, Callable[[Path], None]], *, members: Sequence[str] = ()
 ) -> list[Path]:
     """Writes several files beside each other as one set: readers see the old set or the new one.
 
@@ -756,7 +757,9 @@ def _read_npy_header(fp) -> tuple[tuple[int, ...], np.dtype, int]:
     return tuple(int(s) for s in shape), np.dtype(dtype), fp.tell() - start
 
 
-def check_stored_array(path: str | Path, member: str | None = None, *, copies: float = 2.0) -> tuple[tuple[int, ...], np.dtype]:
+def check_stored_array(
+    path: str | Path, member: str | None = None, *, copies: float = 2.0
+) -> tuple[tuple[int, ...], np.dtype]:
     """Reads the header of an ``.npy`` file (or of ``member`` of an ``.npz``) and checks its size first.
 
     A header claiming more values than the file holds (a corrupt or forged file) is refused
@@ -794,7 +797,8 @@ def check_stored_array(path: str | Path, member: str | None = None, *, copies: f
     claimed = int(np.prod(shape, dtype=object)) * dtype.itemsize
     if claimed > stored:
         raise DataFormatError(
-            label, f"corrupt: the header claims shape {shape} of {dtype} ({claimed} bytes), the file stores {max(stored, 0)}"
+            label,
+            f"corrupt: the header claims shape {shape} of {dtype} ({claimed} bytes), the file stores {max(stored, 0)}",
         )
     check_array_size(f"array {label}", shape, dtype, copies=copies * max(1.0, 8.0 / max(dtype.itemsize, 1)))
     return shape, dtype
@@ -887,11 +891,7 @@ def _imread(path: Path, flags: int) -> np.ndarray | None:
 
 
 def load_depth(
-    path: str | Path,
-    *,
-    png_scale: float = KITTI_PNG_SCALE,
-    key: str | None = None,
-    invalid_value: int | None = None,
+    path: str | Path, *, png_scale: float = KITTI_PNG_SCALE, key: str | None = None, invalid_value: int | None = None
 ) -> np.ndarray:
     """Reads a (H, W) depth map in metres from ``.npy``, ``.npz`` or 16-bit ``.png``.
 
@@ -935,7 +935,9 @@ def load_depth(
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise DataFormatError(path, f"corrupt or unreadable: {exc}") from None
     depth = np.asarray(depth)
-    if depth.dtype == np.bool_ or not (np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)):
+    if depth.dtype == np.bool_ or not (
+        np.issubdtype(depth.dtype, np.floating) or np.issubdtype(depth.dtype, np.integer)
+    ):
         raise DataFormatError(path, f"expected a real-valued (float or integer) depth map, got dtype {depth.dtype}")
     depth = depth.astype(np.float64)
     if depth.ndim == 3 and depth.shape[-1] == 1:

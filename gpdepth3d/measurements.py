@@ -14,13 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import PinholeCamera
-from .errors import (
-    CalibrationError,
-    DataFormatError,
-    InvalidDepthError,
-    ShapeError,
-    describe,
-)
+from .errors import CalibrationError, DataFormatError, InvalidDepthError, ShapeError, describe
 
 
 DEPTH_RANGE = (1e-6, 1e6)
@@ -70,7 +64,8 @@ def check_metres(depths: np.ndarray, argument: str, option: str) -> None:
         with np.errstate(invalid="ignore"):
             median = float(np.median(d[np.isfinite(d) & (d > 0)]))
         raise InvalidDepthError(
-            argument, "depths in metres",
+            argument,
+            "depths in metres",
             f"median {median:.4g}: these look like {unit}, convert them with {option} {factor:g}",
         )
 
@@ -136,7 +131,9 @@ class SparseDepth:
         outside = (d < lo) | (d > hi)
         if np.any(outside):  # beyond any camera: the GP's scales would under/overflow
             raise InvalidDepthError(
-                "depth", f"z-depths in [{lo:g}, {hi:g}] m", f"{int(outside.sum())} outside, e.g. {float(d[outside][0]):g}"
+                "depth",
+                f"z-depths in [{lo:g}, {hi:g}] m",
+                f"{int(outside.sum())} outside, e.g. {float(d[outside][0]):g}",
             )
         s = arrays["sigma"]
         if np.any(s[np.isfinite(s)] <= 0) or np.any(np.isinf(s)):
@@ -145,7 +142,8 @@ class SparseDepth:
             outside = np.isfinite(s) & ((s < lo) | (s > hi))
         if np.any(outside):
             raise InvalidDepthError(
-                "sigma", f"standard deviations in [{lo:g}, {hi:g}] m (or NaN for the default)",
+                "sigma",
+                f"standard deviations in [{lo:g}, {hi:g}] m (or NaN for the default)",
                 f"{int(outside.sum())} outside, e.g. {float(s[outside][0]):g}",
             )
         h, w = shape
@@ -427,9 +425,7 @@ class LidarCalibration:
                 f"{w}x{h}",
             )
 
-    def project(
-        self, points_lidar: np.ndarray, image_size: tuple[int, int], *, min_depth: float = 1e-3
-    ) -> SparseDepth:
+    def project(self, points_lidar: np.ndarray, image_size: tuple[int, int], *, min_depth: float = 1e-3) -> SparseDepth:
         """Projects LiDAR points into the image, closest point per pixel.
 
         Args:
@@ -472,7 +468,8 @@ def check_rotation(R: np.ndarray, argument: str) -> None:
     if not (R.shape == (3, 3) and np.allclose(R @ R.T, np.eye(3), atol=ROTATION_ATOL) and abs(det - 1) < ROTATION_ATOL):
         sv = np.linalg.svd(R, compute_uv=False) if R.shape == (3, 3) and np.all(np.isfinite(R)) else []
         raise CalibrationError(
-            argument, "a rotation (orthonormal, det +1: a rigid transform, no scale)",
+            argument,
+            "a rotation (orthonormal, det +1: a rigid transform, no scale)",
             f"singular values {np.round(sv, 4).tolist()}, det {det:.4g}",
         )
 

@@ -70,10 +70,7 @@ def depth_metrics(
 
 
 def calibration_metrics(
-    mean: np.ndarray,
-    variance: np.ndarray,
-    gt: np.ndarray,
-    mask: np.ndarray | None = None,
+    mean: np.ndarray, variance: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None
 ) -> dict[str, float]:
     """How well the posterior variance describes the actual error.
 
@@ -138,7 +135,9 @@ def sparsification(abs_error: np.ndarray, uncertainty: np.ndarray) -> tuple[np.n
     if e2.size == 0 or u.shape != e2.shape:
         raise ShapeError("abs_error, uncertainty", "two arrays of the same length >= 1", f"{e2.shape}, {u.shape}")
     n = e2.size
-    keep = np.maximum(n - (np.arange(SPARSIFICATION_FRACTIONS.size) * n) // SPARSIFICATION_FRACTIONS.size, 1)  # left (exact)
+    keep = np.maximum(
+        n - (np.arange(SPARSIFICATION_FRACTIONS.size) * n) // SPARSIFICATION_FRACTIONS.size, 1
+    )  # left (exact)
     total = np.sum(e2)
     if total == 0:
         ones = np.ones(SPARSIFICATION_FRACTIONS.size)

@@ -79,11 +79,7 @@ def _count(n_available: int, n: int | None, density: float | None) -> int:
 
 
 def sample_uniform(
-    source: np.ndarray | SparseDepth,
-    *,
-    n: int | None = None,
-    density: float | None = None,
-    rng: SeedLike = 0,
+    source: np.ndarray | SparseDepth, *, n: int | None = None, density: float | None = None, rng: SeedLike = 0
 ) -> SparseDepth:
     """Uniform random subset of the available points, without replacement.
 
@@ -102,13 +98,7 @@ def sample_uniform(
     return avail.subset(np.sort(idx))
 
 
-def band_mask(
-    sparse: SparseDepth,
-    *,
-    axis: Literal["horizontal", "vertical"],
-    start: float,
-    stop: float,
-) -> np.ndarray:
+def band_mask(sparse: SparseDepth, *, axis: Literal["horizontal", "vertical"], start: float, stop: float) -> np.ndarray:
     """Boolean mask of the points inside a band of the image.
 
     Args:
@@ -153,9 +143,7 @@ def sample_band(
 
 
 def lidar_elevation(
-    sparse: SparseDepth,
-    calibration: LidarCalibration | None = None,
-    camera: PinholeCamera | None = None,
+    sparse: SparseDepth, calibration: LidarCalibration | None = None, camera: PinholeCamera | None = None
 ) -> np.ndarray:
     """Elevation angle (degrees) of each projected LiDAR point, seen from the LiDAR.
 
@@ -191,9 +179,7 @@ def lidar_elevation(
     return np.degrees(np.arctan2(-p[:, 1], np.hypot(p[:, 0], p[:, 2])))
 
 
-def beam_ids(
-    elevation_deg: np.ndarray, *, min_separation_deg: float = 0.25, bin_deg: float = 0.02
-) -> np.ndarray:
+def beam_ids(elevation_deg: np.ndarray, *, min_separation_deg: float = 0.25, bin_deg: float = 0.02) -> np.ndarray:
     """Beam index of each point from its elevation angle (0 = the highest beam).
 
     A multi-beam LiDAR (KITTI: Velodyne HDL-64E, beams 1/3 to 1/2 degree apart) sweeps each beam
@@ -293,9 +279,7 @@ def holdout_mask(n: int, *, holdout: float = 0.2, rng: SeedLike = 0) -> np.ndarr
     return test
 
 
-def holdout_split(
-    sparse: SparseDepth, *, holdout: float = 0.2, rng: SeedLike = 0
-) -> tuple[SparseDepth, SparseDepth]:
+def holdout_split(sparse: SparseDepth, *, holdout: float = 0.2, rng: SeedLike = 0) -> tuple[SparseDepth, SparseDepth]:
     """Splits measurements into an input share and a held-out share used as ground truth.
 
     Args:
@@ -310,7 +294,9 @@ def holdout_split(
     return sparse.subset(~test), sparse.subset(test)
 
 
-def gross_outliers(sparse: SparseDepth, share: float, *, rng: SeedLike = 0, low: float = 0.1, high: float = 3.0) -> SparseDepth:
+def gross_outliers(
+    sparse: SparseDepth, share: float, *, rng: SeedLike = 0, low: float = 0.1, high: float = 3.0
+) -> SparseDepth:
     """The measurements with a ``share`` of them turned into gross outliers (robustness experiments).
 
     round(share * n) measurements, chosen without replacement, get their depth multiplied by a

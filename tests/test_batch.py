@@ -260,7 +260,9 @@ class TestRunBatchInProcess:
             p.write_bytes(b"partial")
         keep = out / "notes.tmp.txt"  # not a writer's temp name (no leading dot): kept
         keep.write_text("mine")
-        report = run_batch(dataset_frames(tiny_kitti, limit=1), out, config=CONFIG, loader=LOADER, workers=0, progress=False)
+        report = run_batch(
+            dataset_frames(tiny_kitti, limit=1), out, config=CONFIG, loader=LOADER, workers=0, progress=False
+        )
         assert report.temp_files_removed == 2 and not any(p.exists() for p in stale) and keep.exists()
         assert remove_stale_temp_files(out) == 0
 
@@ -269,7 +271,9 @@ class TestRunBatchInProcess:
         (data / "velodyne_02" / "b.npz").write_bytes(b"not a zip")
         out = tmp_path / "out"
         with pytest.raises(FramesFailedError, match=r"1 of 3 frames failed \(first: b: DataFormatError"):
-            batch_command(data=data, output=out, workers=0, n_input=40, gp=DepthGPConfig(engine="exact"), progress=False)
+            batch_command(
+                data=data, output=out, workers=0, n_input=40, gp=DepthGPConfig(engine="exact"), progress=False
+            )
         assert npz_ids(out) == ["a", "c"]
         report = json.loads((out / REPORT_NAME).read_text())
         assert [f["frame_id"] for f in report["failures"]] == ["b"]
@@ -386,8 +390,14 @@ class TestRunBatchDask:
         with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
             with distributed.LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None) as cluster:
                 report = run_batch(
-                    frames, out, config=CONFIG, loader=loader, task="eval", address=cluster.scheduler_address,
-                    max_in_flight=2, progress=False,
+                    frames,
+                    out,
+                    config=CONFIG,
+                    loader=loader,
+                    task="eval",
+                    address=cluster.scheduler_address,
+                    max_in_flight=2,
+                    progress=False,
                 )
                 assert cluster.status.name == "running", "run_batch must not close a cluster it did not start"
         assert report.workers == 2 and report.startup_seconds > 0
@@ -399,7 +409,9 @@ class TestRunBatchDask:
         assert sorted(p.name.split(".")[0] for p in out.glob("*.metrics.json")) == ["a", "d", "e"]
         assert report.aggregate["frames"] == 3 and not report.ok
         # Results from the workers equal the in-process computation.
-        serial = run_batch(frames[:1], tmp_path / "serial", config=CONFIG, loader=loader, task="eval", workers=0, progress=False)
+        serial = run_batch(
+            frames[:1], tmp_path / "serial", config=CONFIG, loader=loader, task="eval", workers=0, progress=False
+        )
         a = json.loads((out / "a.metrics.json").read_text())["metrics"]
         b = json.loads((tmp_path / "serial" / "a.metrics.json").read_text())["metrics"]
         assert a["rmse"] == pytest.approx(b["rmse"], rel=1e-9) and serial.ok
@@ -533,13 +545,17 @@ def test_frame_inputs_is_the_loader_contract():
 
 
 class TestChecks:
-    @pytest.mark.parametrize("good", ["tcp://10.0.0.5:8786", "127.0.0.1:8786", "tls://sched.example.org:1", "tcp://[::1]:8786"])
+    @pytest.mark.parametrize(
+        "good", ["tcp://10.0.0.5:8786", "127.0.0.1:8786", "tls://sched.example.org:1", "tcp://[::1]:8786"]
+    )
     def test_addresses_accepted(self, good):
         from gpdepth3d.experiments.batch import check_address
 
         assert check_address(f" {good} ") == good
 
-    @pytest.mark.parametrize("bad", ["not-an-address", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://h:1", "", 8786])
+    @pytest.mark.parametrize(
+        "bad", ["not-an-address", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://h:1", "", 8786]
+    )
     def test_addresses_refused(self, bad):
         from gpdepth3d.experiments.batch import check_address
 
@@ -569,10 +585,17 @@ class TestChecks:
         from gpdepth3d.errors import ConnectionFailedError
 
         with pytest.raises(InvalidInputError, match="connect_timeout"):
-            run_batch([FrameSpec("a", str(tmp_path), "a")], tmp_path / "o", address="tcp://127.0.0.1:1", connect_timeout=0)
+            run_batch(
+                [FrameSpec("a", str(tmp_path), "a")], tmp_path / "o", address="tcp://127.0.0.1:1", connect_timeout=0
+            )
         with pytest.raises(ConnectionFailedError, match="1 s"):
-            run_batch([FrameSpec("a", str(tmp_path), "a")], tmp_path / "o", address="tcp://127.0.0.1:1",
-                      connect_timeout=1, progress=False)
+            run_batch(
+                [FrameSpec("a", str(tmp_path), "a")],
+                tmp_path / "o",
+                address="tcp://127.0.0.1:1",
+                connect_timeout=1,
+                progress=False,
+            )
 
 
 class TestPreviews:
@@ -589,9 +612,24 @@ class TestPreviews:
 
     def test_the_command_writes_them_unless_told_not_to(self, tiny_kitti, tmp_path, capsys):
         data = tiny_kitti
-        batch_command(data=data, output=tmp_path / "on", workers=0, frames=1, n_input=40,
-                      gp=DepthGPConfig(engine="exact"), progress=False)
+        batch_command(
+            data=data,
+            output=tmp_path / "on",
+            workers=0,
+            frames=1,
+            n_input=40,
+            gp=DepthGPConfig(engine="exact"),
+            progress=False,
+        )
         assert len(list((tmp_path / "on").glob("*_depth_preview.png"))) == 1
-        batch_command(data=data, output=tmp_path / "off", workers=0, frames=1, n_input=40,
-                      gp=DepthGPConfig(engine="exact"), progress=False, preview=False)
+        batch_command(
+            data=data,
+            output=tmp_path / "off",
+            workers=0,
+            frames=1,
+            n_input=40,
+            gp=DepthGPConfig(engine="exact"),
+            progress=False,
+            preview=False,
+        )
         assert not list((tmp_path / "off").glob("*.png")) and len(list((tmp_path / "off").glob("*.npz"))) == 1

@@ -15,7 +15,12 @@ SCRIPTS = sorted([*ROOT.glob("bench/*.py"), *ROOT.glob("examples/*.py")])
 
 def _imports(path: Path):
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 and node.module.split(".")[0] == "gpdepth3d":
+        if (
+            isinstance(node, ast.ImportFrom)
+            and node.module
+            and node.level == 0
+            and node.module.split(".")[0] == "gpdepth3d"
+        ):
             yield node.lineno, node.module, [a.name for a in node.names]
         elif isinstance(node, ast.Import):
             for a in node.names:

@@ -81,7 +81,13 @@ class TestFromK:
         assert cam == CAM
 
     @pytest.mark.parametrize(
-        "K", [np.eye(4), np.eye(3)[:2], np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 2]]), np.array([[1.0, 0, 1], [0.5, 1, 1], [0, 0, 1]])]
+        "K",
+        [
+            np.eye(4),
+            np.eye(3)[:2],
+            np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 2]]),
+            np.array([[1.0, 0, 1], [0.5, 1, 1], [0, 0, 1]]),
+        ],
     )
     def test_bad_K(self, K):
         with pytest.raises(CalibrationError):
@@ -182,7 +188,9 @@ class TestBackprojectPixels:
         p = CAM.backproject_pixels(np.array([[319.5 + 250.0, 239.5 - 120.0]]), np.array([2.0]))
         np.testing.assert_allclose(p, [[1.0, -0.5, 2.0]])
 
-    @pytest.mark.parametrize("uv, depth", [(np.zeros((3, 3)), np.ones(3)), (np.zeros((3, 2)), np.ones(2)), (np.zeros(2), np.ones(1))])
+    @pytest.mark.parametrize(
+        "uv, depth", [(np.zeros((3, 3)), np.ones(3)), (np.zeros((3, 2)), np.ones(2)), (np.zeros(2), np.ones(1))]
+    )
     def test_bad_shapes(self, uv, depth):
         with pytest.raises(ShapeError):
             CAM.backproject_pixels(uv, depth)
@@ -190,7 +198,11 @@ class TestBackprojectPixels:
     @settings(max_examples=50, deadline=None)
     @given(
         cameras,
-        st.lists(st.tuples(st.floats(0, 1, **finite), st.floats(0, 1, **finite), st.floats(0.05, 500.0, **finite)), min_size=1, max_size=20),
+        st.lists(
+            st.tuples(st.floats(0, 1, **finite), st.floats(0, 1, **finite), st.floats(0.05, 500.0, **finite)),
+            min_size=1,
+            max_size=20,
+        ),
     )
     def test_round_trip_backproject_then_project(self, cam, samples):
         s = np.array(samples)
@@ -263,7 +275,9 @@ class TestCheckPose:
 
 class TestTransformPoints:
     @settings(max_examples=50, deadline=None)
-    @given(st.floats(-3, 3, **finite), st.floats(-3, 3, **finite), st.floats(-3, 3, **finite), st.integers(0, 2**31 - 1))
+    @given(
+        st.floats(-3, 3, **finite), st.floats(-3, 3, **finite), st.floats(-3, 3, **finite), st.integers(0, 2**31 - 1)
+    )
     def test_matches_homogeneous_and_inverts(self, rx, ry, rz, seed):
         T = pose(rx, ry, rz, (0.5, 2.0, -1.0))
         p = np.random.default_rng(seed).normal(size=(7, 3))
@@ -296,8 +310,9 @@ class TestReadIntrinsics:
     def test_four_numbers(self):
         from gpdepth3d.camera import read_intrinsics
 
-        np.testing.assert_array_equal(read_intrinsics("721.5, 720,609.6,172.9"),
-                                      [[721.5, 0, 609.6], [0, 720, 172.9], [0, 0, 1]])
+        np.testing.assert_array_equal(
+            read_intrinsics("721.5, 720,609.6,172.9"), [[721.5, 0, 609.6], [0, 720, 172.9], [0, 0, 1]]
+        )
 
     def test_k_file_and_kitti_calibrations(self, tmp_path):
         from gpdepth3d.camera import read_intrinsics
@@ -307,11 +322,14 @@ class TestReadIntrinsics:
         np.testing.assert_array_equal(read_intrinsics(tmp_path / "K.txt"), K)
         P2 = "P2: 7.07e+02 0 6.04e+02 4.5e+01 0 7.08e+02 1.8e+02 -3.4e-01 0 0 1 2.7e-03"
         (tmp_path / "calib_000000.txt").write_text(f"P0: 1 0 0 0 0 1 0 0 0 0 1 0\n{P2}\nR0_rect: 1 0 0 0 1 0 0 0 1\n")
-        np.testing.assert_allclose(read_intrinsics(tmp_path / "calib_000000.txt"), [[707, 0, 604], [0, 708, 180], [0, 0, 1]])
+        np.testing.assert_allclose(
+            read_intrinsics(tmp_path / "calib_000000.txt"), [[707, 0, 604], [0, 708, 180], [0, 0, 1]]
+        )
         raw = tmp_path / "drive"
         raw.mkdir()
-        (raw / "calib_cam_to_cam.txt").write_text("P_rect_00: 1 0 0 0 0 1 0 0 0 0 1 0\nP_rect_02: 721.5 0 609.6 44.9 0 "
-                                                  "721.5 172.9 0.2 0 0 1 0.003\n")
+        (raw / "calib_cam_to_cam.txt").write_text(
+            "P_rect_00: 1 0 0 0 0 1 0 0 0 0 1 0\nP_rect_02: 721.5 0 609.6 44.9 0 721.5 172.9 0.2 0 0 1 0.003\n"
+        )
         np.testing.assert_allclose(read_intrinsics(raw), [[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]])
 
     def test_errors_name_the_problem(self, tmp_path):

@@ -35,10 +35,21 @@ def _write_7scenes_inputs(root: Path, tmp_path: Path, n_points: int = 300):
 class TestCompleteCommand:
     def test_7scenes_prior_and_sampled_points(self, shared_data, tmp_path, capsys):
         gt, mde = _write_7scenes_inputs(shared_data, tmp_path)
-        code = main([
-            "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "points.txt"),
-            "--output", str(tmp_path / "out" / "frame0"), "--gt", str(tmp_path / "gt.npy"), "--preset", "residual",
-        ])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "mde.npy"),
+                "--sparse",
+                str(tmp_path / "points.txt"),
+                "--output",
+                str(tmp_path / "out" / "frame0"),
+                "--gt",
+                str(tmp_path / "gt.npy"),
+                "--preset",
+                "residual",
+            ]
+        )
         assert code == 0
         out = capsys.readouterr().out
         assert "wrote" in out and "RMSE [mm]" in out and "iRMSE [1/km]" in out  # units in the table header
@@ -63,10 +74,21 @@ class TestCompleteCommand:
         from gpdepth3d.io import load_sparse
 
         gt, mde = _write_7scenes_inputs(shared_data, tmp_path, n_points=150)
-        code = main([
-            "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "points.txt"),
-            "--output", str(tmp_path / "fit"), "--no-png", "--preset", "residual", "--gp.fit",
-        ])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "mde.npy"),
+                "--sparse",
+                str(tmp_path / "points.txt"),
+                "--output",
+                str(tmp_path / "fit"),
+                "--no-png",
+                "--preset",
+                "residual",
+                "--gp.fit",
+            ]
+        )
         assert code == 0 and "wrote" in capsys.readouterr().out
         post = DepthPosterior.load(tmp_path / "fit.npz")
         valid = gt > 0
@@ -91,11 +113,25 @@ class TestCompleteCommand:
         small = downsample_depth(lidar.to_depth_map(), 3)
         _, (ri, ci) = distance_transform_edt(small == 0, return_indices=True)
         np.save(tmp_path / "mde.npy", gaussian_filter(small[ri, ci] * 1.3, 2.0))  # stand-in MDE, 125 x 414
-        code = main([
-            "complete", "--mde", str(tmp_path / "mde.npy"), "--lidar", str(folder / "000000.bin"),
-            "--calib", str(folder / "calib_000000.txt"), "--lidar-image-size", "375", "1242",
-            "--output", str(tmp_path / "kitti"), "--no-png", "--preset", "residual",
-        ])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "mde.npy"),
+                "--lidar",
+                str(folder / "000000.bin"),
+                "--calib",
+                str(folder / "calib_000000.txt"),
+                "--lidar-image-size",
+                "375",
+                "1242",
+                "--output",
+                str(tmp_path / "kitti"),
+                "--no-png",
+                "--preset",
+                "residual",
+            ]
+        )
         assert code == 0
         post = DepthPosterior.load(tmp_path / "kitti.npz")
         assert post.mean.shape == (125, 414)
@@ -108,8 +144,17 @@ class TestCompleteCommand:
 
 class TestErrors:
     def test_missing_file_is_one_line_and_exit_1(self, tmp_path, capsys):
-        code = main(["complete", "--mde", str(tmp_path / "nope.npy"), "--sparse", str(tmp_path / "p.txt"),
-                     "--output", str(tmp_path / "o")])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "nope.npy"),
+                "--sparse",
+                str(tmp_path / "p.txt"),
+                "--output",
+                str(tmp_path / "o"),
+            ]
+        )
         assert code == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "nope.npy" in err[0] and "not found" in err[0]
@@ -117,8 +162,19 @@ class TestErrors:
 
     def test_both_sources_rejected(self, tmp_path, capsys):
         np.save(tmp_path / "mde.npy", np.ones((8, 8)))
-        code = main(["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", "a.txt", "--lidar", "b.bin",
-                     "--output", str(tmp_path / "o")])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "mde.npy"),
+                "--sparse",
+                "a.txt",
+                "--lidar",
+                "b.bin",
+                "--output",
+                str(tmp_path / "o"),
+            ]
+        )
         assert code == 1
         assert "--sparse / --lidar" in capsys.readouterr().err
         assert not (tmp_path / "o.npz").exists()
@@ -127,22 +183,42 @@ class TestErrors:
         np.save(tmp_path / "mde.npy", np.ones((48, 64)))
         np.savetxt(tmp_path / "K.txt", [[585, 0, 320], [0, 585, 240], [0, 0, 1]])
         np.savetxt(tmp_path / "xyz.txt", [[0.0, 0.0, 1.0]])
-        code = main(["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "xyz.txt"),
-                     "--sparse-points", "xyz", "--intrinsics", str(tmp_path / "K.txt"), "--output", str(tmp_path / "o")])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "mde.npy"),
+                "--sparse",
+                str(tmp_path / "xyz.txt"),
+                "--sparse-points",
+                "xyz",
+                "--intrinsics",
+                str(tmp_path / "K.txt"),
+                "--output",
+                str(tmp_path / "o"),
+            ]
+        )
         assert code == 1
         assert "principal point" in capsys.readouterr().err
 
 
 class TestOneLineErrors:
-    @pytest.mark.parametrize("argv, line", [
-        (["complete", "--mdee", "x"],
-         "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (see gpdepth3d complete --help)"),
-        (["batch"], "gpdepth3d batch: missing --data, --output (see gpdepth3d batch --help)"),
-        (["complete", "--mde", "m.npy", "--output", "o", "--gp.engine", "nope"],
-         "--gp.engine: expected one of exact, kissgp, fast, got nope (see gpdepth3d complete --help)"),
-        (["complete", "--mde"], "--mde: too few values (see gpdepth3d complete --help)"),
-        (["--frob"], "gpdepth3d: unrecognised --frob (see gpdepth3d --help)"),
-    ])
+    @pytest.mark.parametrize(
+        "argv, line",
+        [
+            (
+                ["complete", "--mdee", "x"],
+                "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (see gpdepth3d complete --help)",
+            ),
+            (["batch"], "gpdepth3d batch: missing --data, --output (see gpdepth3d batch --help)"),
+            (
+                ["complete", "--mde", "m.npy", "--output", "o", "--gp.engine", "nope"],
+                "--gp.engine: expected one of exact, kissgp, fast, got nope (see gpdepth3d complete --help)",
+            ),
+            (["complete", "--mde"], "--mde: too few values (see gpdepth3d complete --help)"),
+            (["--frob"], "gpdepth3d: unrecognised --frob (see gpdepth3d --help)"),
+        ],
+    )
     def test_parse_errors_are_one_line_naming_the_option(self, argv, line, capsys):
         assert main(argv) == 1
         out = capsys.readouterr()
@@ -172,10 +248,15 @@ class TestOneLineErrors:
         assert info.value.code == 0 and "--mde" in capsys.readouterr().out
 
     def test_bad_option_value_is_one_line_exit_1(self, tmp_path, capsys):
-        code = main(["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "--preset", "paper", "--gp.nu", "3.7"])
+        code = main(
+            ["complete", "--mde", "m.npy", "--output", str(tmp_path / "o"), "--preset", "paper", "--gp.nu", "3.7"]
+        )
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 1 and len(err) == 1
-        assert err[0] == "gpdepth3d: error: --gp.nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d complete --help)"
+        assert (
+            err[0]
+            == "gpdepth3d: error: --gp.nu: expected 0.5, 1.5 or 2.5, got float 3.7 (see gpdepth3d complete --help)"
+        )
 
     def test_help_is_untouched(self, capsys):
         import pytest
@@ -206,24 +287,41 @@ class TestOneLineErrors:
     def test_dropped_points_warn_on_one_line(self, tmp_path, capsys):
         np.save(tmp_path / "mde.npy", np.full((12, 16), 2.0))
         np.savetxt(tmp_path / "p.txt", [[1, 1, 2.0], [2, 2, np.nan], [40, 2, 2.0]])
-        argv = ["complete", "--mde", str(tmp_path / "mde.npy"), "--sparse", str(tmp_path / "p.txt"),
-                "--output", str(tmp_path / "o"), "--preset", "residual", "--gp.engine", "exact"]
+        argv = [
+            "complete",
+            "--mde",
+            str(tmp_path / "mde.npy"),
+            "--sparse",
+            str(tmp_path / "p.txt"),
+            "--output",
+            str(tmp_path / "o"),
+            "--preset",
+            "residual",
+            "--gp.engine",
+            "exact",
+        ]
         assert main(argv) == 1 and "2 of 3 rows" in capsys.readouterr().err
         assert main(argv[:7] + ["--drop-invalid-points"] + argv[7:]) == 0
         err = capsys.readouterr().err.strip().splitlines()
-        assert err == [f"gpdepth3d: warning: {tmp_path / 'p.txt'}: dropped 2 of 3 rows (1 with a NaN/inf/<= 0 depth, "
-                       "the others outside the 16x12 image)"]
+        assert err == [
+            f"gpdepth3d: warning: {tmp_path / 'p.txt'}: dropped 2 of 3 rows (1 with a NaN/inf/<= 0 depth, "
+            "the others outside the 16x12 image)"
+        ]
 
 
 class TestDemoCommand:
     def test_demo_runs_from_the_installed_entry_point(self, tmp_path):
         proc = subprocess.run(
             [sys.executable, "-m", "gpdepth3d.cli", "demo", "--output", str(tmp_path / "demo")],
-            capture_output=True, text=True, timeout=600,
+            capture_output=True,
+            text=True,
+            timeout=600,
         )
         assert proc.returncode == 0, proc.stderr
         assert "outputs are in" in proc.stdout
-        lines = {line.split()[0]: line for line in proc.stdout.splitlines() if line[:3] in ("mde", "gp-") and ":" not in line}
+        lines = {
+            line.split()[0]: line for line in proc.stdout.splitlines() if line[:3] in ("mde", "gp-") and ":" not in line
+        }
         rmse = {k: float(v.split()[1]) for k, v in lines.items()}
         mae = {k: float(v.split()[2]) for k, v in lines.items()}
         assert rmse["gp-residual"] < rmse["mde"] and rmse["gp-paper"] < rmse["mde"]
@@ -231,7 +329,9 @@ class TestDemoCommand:
         assert mae["gp-residual"] < mae["mde+scale"] < mae["mde"]
         assert (tmp_path / "demo" / "gp-paper.npz").is_file()
         # the figure and the cloud show the default model; the table says why a global scale can lose in RMSE
-        assert (tmp_path / "demo" / "gp-default.png").is_file() and (tmp_path / "demo" / "gp-default_cloud.ply").is_file()
+        assert (tmp_path / "demo" / "gp-default.png").is_file() and (
+            tmp_path / "demo" / "gp-default_cloud.ply"
+        ).is_file()
         assert "mde+scale is the MDE times one global scale" in proc.stdout
 
 
@@ -246,8 +346,13 @@ class TestThirdPartyNoise:
 
         @functools.wraps(original)
         def noisy(**kwargs):
-            warnings.warn_explicit("\x1b[1mThe TBB threading layer requires TBB version 2021 update 6\x1b[0m",
-                                   UserWarning, "parallel.py", 1, module="numba.np.ufunc.parallel")
+            warnings.warn_explicit(
+                "\x1b[1mThe TBB threading layer requires TBB version 2021 update 6\x1b[0m",
+                UserWarning,
+                "parallel.py",
+                1,
+                module="numba.np.ufunc.parallel",
+            )
             warnings.warn_explicit("\x1b[1mSomething a user\nshould see\x1b[0m", UserWarning, "x.py", 1, module="other")
 
         monkeypatch.setattr(demo, "demo_command", noisy)

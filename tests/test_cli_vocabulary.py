@@ -37,18 +37,25 @@ class TestNormalizeArgv:
         assert normalize_argv(["--help"]) == ["--help"]
         assert normalize_argv(["demo", "--output", "x"]) == ["demo", "--output", "x"]
 
-    @pytest.mark.parametrize("argv, got", [
-        (["complete", "--preset", "nope"], "nope"),
-        (["complete", "--preset"], "nothing"),
-        (["complete", "--preset", "paper", "--preset", "residual"], "paper and residual"),
-    ])
+    @pytest.mark.parametrize(
+        "argv, got",
+        [
+            (["complete", "--preset", "nope"], "nope"),
+            (["complete", "--preset"], "nothing"),
+            (["complete", "--preset", "paper", "--preset", "residual"], "paper and residual"),
+        ],
+    )
     def test_bad_presets(self, argv, got):
         with pytest.raises(InvalidInputError, match="--preset") as info:
             normalize_argv(argv)
         assert got in str(info.value)
 
     def test_presets_are_the_library_configs(self):
-        assert PRESETS == {"default": DepthGPConfig(), "paper": DepthGPConfig.paper(), "residual": DepthGPConfig.residual()}
+        assert PRESETS == {
+            "default": DepthGPConfig(),
+            "paper": DepthGPConfig.paper(),
+            "residual": DepthGPConfig.residual(),
+        }
 
 
 def _spy(monkeypatch, module, name):
@@ -81,8 +88,13 @@ class TestEverySubcommand:
             "fuse": _spy(monkeypatch, fuse, "fuse_command"),
             "batch": _spy(monkeypatch, batch, "batch_command"),
         }
-        required = {"complete": ["--mde", "m.npy"], "demo": [], "eval": ["--data", "d"], "fuse": ["--data", "d"],
-                    "batch": ["--data", "d"]}
+        required = {
+            "complete": ["--mde", "m.npy"],
+            "demo": [],
+            "eval": ["--data", "d"],
+            "fuse": ["--data", "d"],
+            "batch": ["--data", "d"],
+        }
         for command, calls in spies.items():
             assert main([command, *required[command], "--output", "new"]) == 0
             assert Path(calls[-1]["output"]) == Path("new")  # complete takes a str: "out/" names a folder
@@ -118,8 +130,12 @@ class TestEverySubcommand:
             assert f"unrecognised {' '.join(old)}" in capsys.readouterr().err
 
     def test_help_lists_the_new_spellings_only(self, capsys):
-        for command, new, old in (("batch", "--output", "--output-dir"), ("demo", "--output", "--output-dir"),
-                                  ("fuse", "--output", "--out "), ("complete", "--gp.fit", "--model.fit")):
+        for command, new, old in (
+            ("batch", "--output", "--output-dir"),
+            ("demo", "--output", "--output-dir"),
+            ("fuse", "--output", "--out "),
+            ("complete", "--gp.fit", "--model.fit"),
+        ):
             with pytest.raises(SystemExit):
                 main([command, "--help"])
             text = capsys.readouterr().out
@@ -147,8 +163,21 @@ class TestFrontEndOnTheCommandLine:
         scale = net_depth.shape[1] / gt.shape[1]
         pts = np.stack([u[pick] * scale, v[pick] * scale, gt[v[pick], u[pick]]], 1)
         np.savetxt(tmp_path / "points.txt", pts)
-        code = main(["complete", "--rgb", str(rgb), "--mde", "fastdepth", "--models-dir", str(models),
-                     "--sparse", str(tmp_path / "points.txt"), "--output", str(tmp_path / "f0")])
+        code = main(
+            [
+                "complete",
+                "--rgb",
+                str(rgb),
+                "--mde",
+                "fastdepth",
+                "--models-dir",
+                str(models),
+                "--sparse",
+                str(tmp_path / "points.txt"),
+                "--output",
+                str(tmp_path / "f0"),
+            ]
+        )
         out = capsys.readouterr().out
         assert code == 0, out
         post = DepthPosterior.load(tmp_path / "f0.npz")
@@ -163,10 +192,26 @@ class TestCompileNotice:
         """Two `complete` runs with an empty numba cache folder: the first compiles and says so, the second not."""
         np.save(tmp_path / "mde.npy", np.full((24, 32), 2.0))
         np.savetxt(tmp_path / "p.txt", [[3, 4, 2.1], [20, 10, 1.9], [30, 20, 2.05]])
-        env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba_cache"),
-                   PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        cmd = [sys.executable, "-m", "gpdepth3d.cli", "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse",
-               str(tmp_path / "p.txt"), "--output", str(tmp_path / "o"), "--no-preview", "--preset", "residual"]
+        env = dict(
+            os.environ,
+            NUMBA_CACHE_DIR=str(tmp_path / "numba_cache"),
+            PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+        )
+        cmd = [
+            sys.executable,
+            "-m",
+            "gpdepth3d.cli",
+            "complete",
+            "--mde",
+            str(tmp_path / "mde.npy"),
+            "--sparse",
+            str(tmp_path / "p.txt"),
+            "--output",
+            str(tmp_path / "o"),
+            "--no-preview",
+            "--preset",
+            "residual",
+        ]
         first = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
         assert first.returncode == 0, first.stderr
         assert first.stdout.splitlines()[0] == "compiling kernels (once, ~1 min) ..."

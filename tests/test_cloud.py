@@ -53,7 +53,8 @@ class TestConfidence:
         np.testing.assert_allclose(c, [0.5, 0.5, 0.5, 1.0])
         rho = 0.2
         np.testing.assert_allclose(
-            confidence_from_variance(np.array([(rho * 3.0) ** 2]), np.array([3.0])), 1 / (1 + (rho / DEFAULT_RHO_REF) ** 2)
+            confidence_from_variance(np.array([(rho * 3.0) ** 2]), np.array([3.0])),
+            1 / (1 + (rho / DEFAULT_RHO_REF) ** 2),
         )
 
     def test_monotone_and_nan(self):

@@ -15,7 +15,7 @@ from gpdepth3d.gp.compile_notice import on_first_compile
 
 ROOT = Path(__file__).resolve().parents[1]
 
-KERNELS = textwrap.dedent('''
+KERNELS = textwrap.dedent("""
     import numba as nb
 
     @nb.njit(cache=True)
@@ -25,9 +25,9 @@ KERNELS = textwrap.dedent('''
     @nb.njit(cache=True)
     def thrice(x):
         return 3 * x
-''')
+""")
 
-RUN = textwrap.dedent('''
+RUN = textwrap.dedent("""
     import sys
     sys.path.insert(0, sys.argv[1])
     from gpdepth3d.gp.compile_notice import on_first_compile
@@ -37,13 +37,15 @@ RUN = textwrap.dedent('''
         assert k.twice(2) == 4 and k.thrice(2) == 6
     assert k.twice(2.5) == 5.0  # compiled outside the block: not reported
     print(calls)
-''')
+""")
 
 
 def _run(folder: Path) -> str:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("NUMBA_CACHE_DIR", None)  # the cache beside the module, in the test's folder
-    proc = subprocess.run([sys.executable, "-c", RUN, str(folder)], capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", RUN, str(folder)], capture_output=True, text=True, env=env, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr
     return proc.stdout.strip()
 

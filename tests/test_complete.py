@@ -176,13 +176,14 @@ class TestComplete:
             post = complete(f.mde, f.lidar.subset(np.arange(0, len(f.lidar), 3)), config=cfg, variance=False)
             assert depth_metrics(post.mean, f.depth_gt)["rmse"] < mde_m["rmse"]
 
-
     def test_gaussian_presets_say_when_the_mde_scale_is_off_and_when_depths_go_below_zero(self):
         # the paper's model is Gaussian in metres: an MDE in millimetres against points in metres
         # is reported; an MDE in kilometres leaves pixels between the points at or below 0 m,
         # which are counted (frame named) and not clipped
         mde, sparse = small_inputs()
-        with pytest.warns(PosteriorWarning, match=r"frame 7: the MDE's scale disagrees with the points by a factor of 0\.00"):
+        with pytest.warns(
+            PosteriorWarning, match=r"frame 7: the MDE's scale disagrees with the points by a factor of 0\.00"
+        ):
             post = complete(mde * 1000.0, sparse, config=EXACT, frame="7")
         assert len(post.warnings) == 1 and "factor of" in post.warnings[0]
         with pytest.warns(PosteriorWarning) as record:
@@ -199,6 +200,7 @@ class TestComplete:
         assert post.warnings == ()
         assert np.all(post.mean > 0)
 
+
 class TestDepthPosteriorSaveLoad:
     def test_round_trip(self, tmp_path):
         mde, sparse = small_inputs()
@@ -206,7 +208,9 @@ class TestDepthPosteriorSaveLoad:
         written = post.save(tmp_path / "post", png=True)
         assert [p.name for p in written] == ["post.npz", "post_mean.png", "post_std.png"]
         assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
-            "post.npz", "post_mean.png", "post_std.png"
+            "post.npz",
+            "post_mean.png",
+            "post_std.png",
         ]
         assert not any(p.name.startswith(".") or p.is_symlink() for p in tmp_path.iterdir())  # plain files only
         back = DepthPosterior.load(written[0], config=RESIDUAL)

@@ -76,7 +76,9 @@ class TestSevenScenes:
 
         def correlation(frame):
             grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
-            g_img = cv2.GaussianBlur(np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)), (0, 0), 1.5)
+            g_img = cv2.GaussianBlur(
+                np.hypot(cv2.Sobel(grey, cv2.CV_32F, 1, 0), cv2.Sobel(grey, cv2.CV_32F, 0, 1)), (0, 0), 1.5
+            )
             valid = frame.depth > 0
             log_d = np.log(np.where(valid, frame.depth, 1.0)).astype(np.float32)
             g_d = np.hypot(cv2.Sobel(log_d, cv2.CV_32F, 1, 0), cv2.Sobel(log_d, cv2.CV_32F, 0, 1))
@@ -243,8 +245,13 @@ class TestVio:
 class TestOpenDataset:
     @pytest.mark.parametrize(
         "name,cls",
-        [("7scenes", SevenScenes), ("kitti_tiny", KittiTiny), ("kitti_object", KittiObject),
-         ("ibims_sample", IbimsSample), ("vio_sparse", VioSparse)],
+        [
+            ("7scenes", SevenScenes),
+            ("kitti_tiny", KittiTiny),
+            ("kitti_object", KittiObject),
+            ("ibims_sample", IbimsSample),
+            ("vio_sparse", VioSparse),
+        ],
     )
     def test_detect(self, shared_data, name, cls):
         folder = _folder(shared_data, name)

@@ -25,8 +25,15 @@ def problem_with_points(rng, h, w, points, *, nu=0.5, lengthscale=8.0, s=0.5, ou
     prior = rng.normal(5.0, 0.2, (h, w))
     obs = prior + rng.normal(0.0, s, (h, w))
     ho, wo = out or (h, w)
-    return GridProblem(prior, obs, prec, output_coordinates(h, ho), output_coordinates(w, wo),
-                       rng.normal(5.0, 0.2, (ho, wo)), Kernel(nu, lengthscale, s))
+    return GridProblem(
+        prior,
+        obs,
+        prec,
+        output_coordinates(h, ho),
+        output_coordinates(w, wo),
+        rng.normal(5.0, 0.2, (ho, wo)),
+        Kernel(nu, lengthscale, s),
+    )
 
 
 class TestEngineConfig:
@@ -35,9 +42,18 @@ class TestEngineConfig:
         assert (c.name, c.device, c.backend, c.route, c.lattice) == (None, None, "auto", "auto", "observed")
         assert c.replace(route="grid").route == "grid" and c.route == "auto"
 
-    @pytest.mark.parametrize("field,value", [("name", "fastest"), ("backend", "gpu"), ("route", "quick"),
-                                             ("lattice", "half"), ("options", ["tile"]), ("max_exact_points", 0),
-                                             ("max_exact_points", True)])
+    @pytest.mark.parametrize(
+        "field,value",
+        [
+            ("name", "fastest"),
+            ("backend", "gpu"),
+            ("route", "quick"),
+            ("lattice", "half"),
+            ("options", ["tile"]),
+            ("max_exact_points", 0),
+            ("max_exact_points", True),
+        ],
+    )
     def test_bad_values_name_the_field(self, field, value):
         with pytest.raises(InvalidInputError, match=field):
             EngineConfig(**{field: value})
@@ -89,11 +105,18 @@ class TestEngineProtocol:
 
 class TestMakeEngine:
     def test_model_config_names_the_engine_options_set_it_up(self):
-        engine = make_engine(DepthGPConfig(), EngineConfig(route="grid", lattice="full", max_dense_points=7,
-                                                           max_memory_mb=512, options={"tile": 16}))
+        engine = make_engine(
+            DepthGPConfig(),
+            EngineConfig(route="grid", lattice="full", max_dense_points=7, max_memory_mb=512, options={"tile": 16}),
+        )
         assert isinstance(engine, FastEngine)
-        assert (engine.route, engine.lattice, engine.max_dense_points, engine.max_memory_mb, engine.tile) == \
-            ("grid", "full", 7, 512.0, 16)
+        assert (engine.route, engine.lattice, engine.max_dense_points, engine.max_memory_mb, engine.tile) == (
+            "grid",
+            "full",
+            7,
+            512.0,
+            16,
+        )
 
     def test_options_name_overrides_the_model(self):
         engine = make_engine(DepthGPConfig(engine="fast", max_exact_points=77), EngineConfig(name="exact"))
@@ -148,14 +171,23 @@ class TestSolution:
     def test_plan_matches_the_route_taken(self):
         rng = np.random.default_rng(3)
         engine = FastEngine()
-        for problem in (problem_with_points(rng, 30, 40, 10), problem_with_points(rng, 30, 40, 900),
-                        problem_with_points(rng, 12, 14, 10, nu=1.5)):
+        for problem in (
+            problem_with_points(rng, 30, 40, 10),
+            problem_with_points(rng, 30, 40, 900),
+            problem_with_points(rng, 12, 14, 10, nu=1.5),
+        ):
             assert engine.plan(problem) == engine.solve(problem).info.route
 
 
 def engines_and_routes():
-    return [("exact", {}), ("fast", {"route": "grid"}), ("fast", {"route": "grid", "lattice": "full"}),
-            ("fast", {"route": "woodbury"}), ("fast", {"route": "dense"}), ("fast", {"route": "auto"})]
+    return [
+        ("exact", {}),
+        ("fast", {"route": "grid"}),
+        ("fast", {"route": "grid", "lattice": "full"}),
+        ("fast", {"route": "woodbury"}),
+        ("fast", {"route": "dense"}),
+        ("fast", {"route": "auto"}),
+    ]
 
 
 class TestExtraObservations:
@@ -181,8 +213,15 @@ class TestExtraObservations:
         h, w = 16, 20
         prec = np.full((h, w), 1 / 0.05**2)
         prior = np.full((h, w), 10.0)
-        problem = GridProblem(prior, prior + rng.normal(0, 0.1, (h, w)), prec, np.arange(h) * 1.0, np.arange(w) * 1.0,
-                              prior, Kernel(0.5, 1.5, 1.0))
+        problem = GridProblem(
+            prior,
+            prior + rng.normal(0, 0.1, (h, w)),
+            prec,
+            np.arange(h) * 1.0,
+            np.arange(w) * 1.0,
+            prior,
+            Kernel(0.5, 1.5, 1.0),
+        )
         other = prior + rng.normal(0, 0.3, (h, w))
         solution = FastEngine().solve(problem, extra_obs=(other,))
         assert solution.info.route == "neumann"
@@ -321,8 +360,23 @@ class TestEngineOptionsAtTheBoundary:
         assert EngineConfig(device=torch.device("cpu")).device == "cpu"
 
 
-ENGINE_MODULES = ("engine", "fast", "elimination_tree", "grid_prior", "readout", "torch_factor", "observed_lattice",
-                  "routes", "cost_model", "exact", "kissgp", "woodbury", "multifrontal", "markov", "neumann")
+ENGINE_MODULES = (
+    "engine",
+    "fast",
+    "elimination_tree",
+    "grid_prior",
+    "readout",
+    "torch_factor",
+    "observed_lattice",
+    "routes",
+    "cost_model",
+    "exact",
+    "kissgp",
+    "woodbury",
+    "multifrontal",
+    "markov",
+    "neumann",
+)
 
 
 @pytest.mark.parametrize("module", ENGINE_MODULES)
@@ -335,6 +389,9 @@ def test_engine_functions_fit_in_100_lines(module):
 
     path = Path(gpdepth3d.gp.__file__).parent / f"{module}.py"
     tree = ast.parse(path.read_text())
-    long = [(node.name, node.end_lineno - node.lineno + 1 + len(node.decorator_list))
-            for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    long = [
+        (node.name, node.end_lineno - node.lineno + 1 + len(node.decorator_list))
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+    ]
     assert [f for f in long if f[1] > 100] == []

@@ -119,8 +119,14 @@ class TestEvaluateAndOutputs:
         frames = [Frame(name=f"f{i}", rgb=rgb, depth=gt) for i in range(2)]
         suite = MethodSuite(residual=DepthGPConfig.residual(lengthscale=8.0))
         return evaluate(
-            frames, ArrayMDE(mde), protocols=("uniform", "hband"), levels={"uniform": [20, 60], "hband": [20]},
-            methods=("mde", "mde_scale", "gp_residual"), suite=suite, resolution=1.0, progress=False,
+            frames,
+            ArrayMDE(mde),
+            protocols=("uniform", "hband"),
+            levels={"uniform": [20, 60], "hband": [20]},
+            methods=("mde", "mde_scale", "gp_residual"),
+            suite=suite,
+            resolution=1.0,
+            progress=False,
         )
 
     def test_rows_and_summary(self):
@@ -167,8 +173,16 @@ class TestEvalCommand:
             pytest.skip("FastDepth model not found")
         out = tmp_path / "eval"
         summary = eval_command(
-            data, mde="fastdepth", protocol="uniform", points="40,150", output=out, frames=2, stride=30,
-            resolution=0.25, progress=False, methods="mde,mde_scale,ip_basic,gp_balanced,gp_residual,gp_relative",
+            data,
+            mde="fastdepth",
+            protocol="uniform",
+            points="40,150",
+            output=out,
+            frames=2,
+            stride=30,
+            resolution=0.25,
+            progress=False,
+            methods="mde,mde_scale,ip_basic,gp_balanced,gp_residual,gp_relative",
         )
         for name in ("results.csv", "summary.csv", "results.json", "summary.md", "rmse_uniform.png", "qualitative.png"):
             assert (out / name).is_file(), name
@@ -225,9 +239,13 @@ class TestQualitativeChoice:
         from gpdepth3d.experiments.evaluation import qualitative_choice
 
         var, none = SimpleNamespace(variance=np.ones(1)), SimpleNamespace(variance=None)
-        outputs = {("uniform", 50, "gp_relative"): (var, None), ("uniform", 500, "gp_residual"): (var, None),
-                   ("uniform", 50, "gp_default"): (var, None), ("uniform", 200, "gp_default"): (var, None),
-                   ("uniform", 500, "mde"): (none, None)}
+        outputs = {
+            ("uniform", 50, "gp_relative"): (var, None),
+            ("uniform", 500, "gp_residual"): (var, None),
+            ("uniform", 50, "gp_default"): (var, None),
+            ("uniform", 200, "gp_default"): (var, None),
+            ("uniform", 500, "mde"): (none, None),
+        }
         assert qualitative_choice(outputs) == ("uniform", 200, "gp_default")
         del outputs[("uniform", 50, "gp_default")], outputs[("uniform", 200, "gp_default")]
         assert qualitative_choice(outputs) == ("uniform", 500, "gp_residual")

@@ -141,7 +141,15 @@ class TestExactEngineSolve:
 
     def test_small_noise_interpolates(self):
         p = grid_problem(n_obs=4)
-        p = GridProblem(p.prior_mean, p.obs, np.where(p.precision > 0, 1e10, 0.0), p.out_rows, p.out_cols, p.out_prior_mean, p.kernel)
+        p = GridProblem(
+            p.prior_mean,
+            p.obs,
+            np.where(p.precision > 0, 1e10, 0.0),
+            p.out_rows,
+            p.out_cols,
+            p.out_prior_mean,
+            p.kernel,
+        )
         mean, var = ExactEngine().solve(p)
         at = p.precision > 0
         np.testing.assert_allclose(mean[at], p.obs[at], atol=1e-4)
@@ -211,7 +219,9 @@ class TestExtremeValues:
         from gpdepth3d.gp.fast import FastEngine
 
         problem, argument = _bad_problems()[case]
-        solver = ExactEngine() if engine == "exact" else FastEngine(route=engine.split("-")[1] if "-" in engine else "auto")
+        solver = (
+            ExactEngine() if engine == "exact" else FastEngine(route=engine.split("-")[1] if "-" in engine else "auto")
+        )
         with pytest.raises(InvalidInputError, match=argument):
             solver.solve(problem)
 
@@ -221,8 +231,14 @@ class TestExtremeValues:
         from gpdepth3d.gp.fast import FastEngine
 
         p = grid_problem(n_obs=6)
-        big = with_changes(p, prior_mean=p.prior_mean * 3e4, obs=p.obs * 3e4, out_prior_mean=p.out_prior_mean * 3e4,
-                           precision=np.where(p.precision > 0, 1.0, 0.0), kernel=Kernel(0.5, 1.5, 1e4))
+        big = with_changes(
+            p,
+            prior_mean=p.prior_mean * 3e4,
+            obs=p.obs * 3e4,
+            out_prior_mean=p.out_prior_mean * 3e4,
+            precision=np.where(p.precision > 0, 1.0, 0.0),
+            kernel=Kernel(0.5, 1.5, 1e4),
+        )
         m0, v0 = ExactEngine().solve(big)
         m1, v1 = FastEngine().solve(big)
         assert np.all(np.isfinite(m0)) and np.all(np.isfinite(v0))
@@ -230,8 +246,11 @@ class TestExtremeValues:
         np.testing.assert_allclose(np.sqrt(v1), np.sqrt(v0), rtol=1e-7)
 
     @pytest.mark.parametrize("value", [1e300, 1e-300, 1e7, 1e-7])
-    @pytest.mark.parametrize("cfg", [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
-                             ids=["paper", "residual", "residual-exact"])
+    @pytest.mark.parametrize(
+        "cfg",
+        [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
+        ids=["paper", "residual", "residual-exact"],
+    )
     def test_mde_out_of_range_through_complete(self, value, cfg):
         from gpdepth3d.errors import InvalidDepthError
 
@@ -242,10 +261,12 @@ class TestExtremeValues:
         with pytest.raises(InvalidDepthError, match="1 outside"):
             complete(mde, sparse, config=cfg)
 
-
     @pytest.mark.parametrize("value", [1e300, 1e-300, 1e7])
-    @pytest.mark.parametrize("cfg", [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
-                             ids=["paper", "residual", "residual-exact"])
+    @pytest.mark.parametrize(
+        "cfg",
+        [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
+        ids=["paper", "residual", "residual-exact"],
+    )
     def test_one_extreme_sparse_depth(self, value, cfg):
         """One measurement of 1e300 / 1e-300 / 1e7 m: a typed error or a finite posterior, never inf or NaN."""
         from gpdepth3d.errors import GPDepthError

@@ -24,7 +24,9 @@ class TestExample01:
         assert (tmp_path / "posterior.npz").is_file()
 
     def test_7scenes(self, shared_data, tmp_path):
-        result = load_example("01_complete_single_frame").main(["--data", str(shared_data / "7scenes"), "--out", str(tmp_path)])
+        result = load_example("01_complete_single_frame").main(
+            ["--data", str(shared_data / "7scenes"), "--out", str(tmp_path)]
+        )
         assert result["rmse_gp"] < 0.7 * result["rmse_mde"]
         assert 0.8 < result["coverage_2sigma"] <= 1.0
 
@@ -34,7 +36,9 @@ class TestExample02:
         if not (shared_data.parent / "models" / "rtmonodepth_s_ms_640_192.onnx").is_file():
             pytest.skip("RT-MonoDepth-S not found in ../shared/models")
         pytest.importorskip("onnxruntime")
-        result = load_example("02_kitti_lidar_projection").main(["--data", str(shared_data / "kitti_object"), "--out", str(tmp_path)])
+        result = load_example("02_kitti_lidar_projection").main(
+            ["--data", str(shared_data / "kitti_object"), "--out", str(tmp_path)]
+        )
         assert result["n_lidar"] > 10000
         assert result["shape"] == result["image_shape"] and result["image_shape"][1] > 1200  # KITTI sizes vary
         assert (tmp_path / "000000_posterior_mean.png").is_file()

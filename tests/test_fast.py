@@ -25,8 +25,13 @@ def random_problem(rng, h, w, *, nu=0.5, lengthscale=2.0, s=1.3, frac=0.3, out=N
     obs = prior + rng.normal(0.0, 1.0, (h, w))
     ho, wo = out or (h, w)
     return GridProblem(
-        prior, obs, prec, output_coordinates(h, ho), output_coordinates(w, wo),
-        rng.normal(10.0, 1.0, (ho, wo)), Kernel(nu, lengthscale, s),
+        prior,
+        obs,
+        prec,
+        output_coordinates(h, ho),
+        output_coordinates(w, wo),
+        rng.normal(10.0, 1.0, (ho, wo)),
+        Kernel(nu, lengthscale, s),
     )
 
 
@@ -187,12 +192,26 @@ class TestFastEngineBehaviour:
         with pytest.raises(InvalidInputError):
             FastEngine(tile=-3)
         problem = random_problem(np.random.default_rng(8), 5, 5)
-        bad = GridProblem(problem.prior_mean, problem.obs, -problem.precision - 1, problem.out_rows,
-                          problem.out_cols, problem.out_prior_mean, problem.kernel)
+        bad = GridProblem(
+            problem.prior_mean,
+            problem.obs,
+            -problem.precision - 1,
+            problem.out_rows,
+            problem.out_cols,
+            problem.out_prior_mean,
+            problem.kernel,
+        )
         with pytest.raises(InvalidInputError, match="precision"):
             FastEngine().solve(bad)
-        tiny = GridProblem(np.zeros((1, 5)), np.zeros((1, 5)), np.zeros((1, 5)), np.arange(1.0), np.arange(5.0),
-                           np.zeros((1, 5)), problem.kernel)
+        tiny = GridProblem(
+            np.zeros((1, 5)),
+            np.zeros((1, 5)),
+            np.zeros((1, 5)),
+            np.arange(1.0),
+            np.arange(5.0),
+            np.zeros((1, 5)),
+            problem.kernel,
+        )
         with pytest.raises(ShapeError):
             FastEngine().solve(tiny)
         with pytest.raises(InvalidInputError):
@@ -245,9 +264,17 @@ def naive_posterior(problem: GridProblem) -> tuple[np.ndarray, np.ndarray]:
     r, c = np.nonzero(problem.precision > 0)
     orr, occ = np.meshgrid(problem.out_rows, problem.out_cols, indexing="ij")
     orr, occ = orr.ravel(), occ.ravel()
-    K = s2 * matern_1d(np.subtract.outer(r, r), k.nu, k.lengthscale) * matern_1d(np.subtract.outer(c, c), k.nu, k.lengthscale)
+    K = (
+        s2
+        * matern_1d(np.subtract.outer(r, r), k.nu, k.lengthscale)
+        * matern_1d(np.subtract.outer(c, c), k.nu, k.lengthscale)
+    )
     K += np.diag(1.0 / problem.precision[r, c])
-    Kx = s2 * matern_1d(np.subtract.outer(orr, r), k.nu, k.lengthscale) * matern_1d(np.subtract.outer(occ, c), k.nu, k.lengthscale)
+    Kx = (
+        s2
+        * matern_1d(np.subtract.outer(orr, r), k.nu, k.lengthscale)
+        * matern_1d(np.subtract.outer(occ, c), k.nu, k.lengthscale)
+    )
     y = problem.obs[r, c] - problem.prior_mean[r, c]
     mean = problem.out_prior_mean.ravel() + Kx @ np.linalg.solve(K, y)
     var = s2 - np.einsum("ij,ji->i", Kx, np.linalg.solve(K, Kx.T))
@@ -262,8 +289,15 @@ def formulation_problem(rng, h, w, *, nu, lengthscale, balanced, s=0.8, points=2
     prec.ravel()[idx] += 1.0 / (0.002**2 if balanced else rng.uniform(0.05, 0.2, points) ** 2)
     obs = prior + 0.4 * np.sin(np.arange(w) / 5.0)[None, :] + rng.normal(0.0, 0.05, (h, w))
     ho, wo = out or (h, w)
-    return GridProblem(prior, obs, prec, output_coordinates(h, ho), output_coordinates(w, wo),
-                       rng.normal(3.0, 0.1, (ho, wo)), Kernel(nu, lengthscale, s))
+    return GridProblem(
+        prior,
+        obs,
+        prec,
+        output_coordinates(h, ho),
+        output_coordinates(w, wo),
+        rng.normal(3.0, 0.1, (ho, wo)),
+        Kernel(nu, lengthscale, s),
+    )
 
 
 def check_route(problem, route, reference):
@@ -304,23 +338,32 @@ class TestEveryKernelAndRoute:
     def test_synthetic(self, nu, balanced):
         outcomes = {}
         for lengthscale in LENGTHSCALES:
-            problem = formulation_problem(np.random.default_rng(int(nu * 10 + lengthscale)), 12, 16, nu=nu,
-                                          lengthscale=lengthscale, balanced=balanced)
+            problem = formulation_problem(
+                np.random.default_rng(int(nu * 10 + lengthscale)),
+                12,
+                16,
+                nu=nu,
+                lengthscale=lengthscale,
+                balanced=balanced,
+            )
             reference = naive_posterior(problem)
             for route in ROUTES:
                 outcomes[lengthscale, route] = check_route(problem, route, reference)
         assert all(outcomes[lengthscale, r] == "match" for lengthscale in LENGTHSCALES for r in ("auto", "dense"))
         assert outcomes[1.5, "grid"] == "match"  # short length scales stay on the grid route
         if nu == 0.5:
-            assert all(outcomes[lengthscale, r] == "match" for lengthscale in LENGTHSCALES for r in ("grid", "woodbury"))
+            assert all(
+                outcomes[lengthscale, r] == "match" for lengthscale in LENGTHSCALES for r in ("grid", "woodbury")
+            )
             assert outcomes[1.5, "neumann"] == ("match" if balanced else "refused")
         if nu == 2.5:
             assert outcomes[100.0, "grid"] == "refused"  # the precision form cannot hold this kernel in float64
 
     @pytest.mark.parametrize("nu", [1.5, 2.5])
     def test_other_output_grid(self, nu):
-        problem = formulation_problem(np.random.default_rng(3), 10, 13, nu=nu, lengthscale=30.0, balanced=False,
-                                      out=(19, 7))
+        problem = formulation_problem(
+            np.random.default_rng(3), 10, 13, nu=nu, lengthscale=30.0, balanced=False, out=(19, 7)
+        )
         reference = naive_posterior(problem)
         assert check_route(problem, "auto", reference) == "match"
         assert check_route(problem, "dense", reference) == "match"
@@ -348,7 +391,9 @@ class TestEveryKernelAndRoute:
         rng = np.random.default_rng(5)
         r, c = np.nonzero(valid)
         pick = rng.choice(r.size, 30, replace=False)
-        sparse = SparseDepth.from_arrays(c[pick].astype(float), r[pick].astype(float), depth[r[pick], c[pick]], depth.shape)
+        sparse = SparseDepth.from_arrays(
+            c[pick].astype(float), r[pick].astype(float), depth[r[pick], c[pick]], depth.shape
+        )
         mde = gaussian_filter(np.where(valid, depth, np.median(depth[valid])), 2.0) * 1.08  # smooth, biased
         engine = FastEngine()  # one engine for all kernels, as a DepthCompleter keeps it
         base = DepthGPConfig.paper() if balanced else DepthGPConfig.residual()
@@ -361,8 +406,9 @@ class TestEveryKernelAndRoute:
                 post = fast(mde, sparse)
                 route = engine.plan(build_problem(mde, sparse, cfg)[0])
                 scale = float(np.median(mde)) * cfg.outputscale  # s in metres (relative units)
-                np.testing.assert_allclose(post.mean, exact.mean, rtol=0, atol=1e-7 * scale,
-                                           err_msg=f"nu={nu} l={lengthscale} route {route}")
+                np.testing.assert_allclose(
+                    post.mean, exact.mean, rtol=0, atol=1e-7 * scale, err_msg=f"nu={nu} l={lengthscale} route {route}"
+                )
                 np.testing.assert_allclose(post.std, exact.std, rtol=0, atol=1e-7 * scale)
 
 
@@ -399,8 +445,9 @@ class TestRefusals:
         prec = np.full((h, w), 400.0)
         prec[200:400, 300:500] = 0.0
         prior = np.full((h, w), 3.0)
-        problem = GridProblem(prior, prior + rng.normal(0, 0.1, (h, w)), prec, np.arange(h), np.arange(w), prior,
-                              Kernel(0.5, 1.5, 1.0))
+        problem = GridProblem(
+            prior, prior + rng.normal(0, 0.1, (h, w)), prec, np.arange(h), np.arange(w), prior, Kernel(0.5, 1.5, 1.0)
+        )
         assert grid_bytes((h, w), 0.5) > 300 * 2**20
         with pytest.raises(ProblemTooLargeError, match=r"GiB \(limit 0.293 GiB\)"):
             FastEngine(max_memory_mb=300).solve(problem)
@@ -485,7 +532,9 @@ class TestConditioningHelpers:
 
         rng = np.random.default_rng(9)
         mde = 3.0 + np.cumsum(rng.normal(0, 0.02, (16, 20)), axis=1)
-        sparse = SparseDepth.from_arrays(rng.uniform(0, 19, 15), rng.uniform(0, 15, 15), rng.uniform(2.5, 3.5, 15), (16, 20))
+        sparse = SparseDepth.from_arrays(
+            rng.uniform(0, 19, 15), rng.uniform(0, 15, 15), rng.uniform(2.5, 3.5, 15), (16, 20)
+        )
         engine = FastEngine(max_dense_points=0)
         config = DepthGPConfig.paper(nu=2.5, lengthscale=30.0)
         with pytest.raises(ConvergenceError):
@@ -515,10 +564,17 @@ class TestPropertySweep:
 
         @settings(max_examples=40, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
         @given(
-            h=st.integers(2, 7), w=st.integers(2, 8), nu=st.sampled_from(NUS),
-            log_l=st.floats(-0.5, 3.0), log_s=st.floats(-2.0, 3.0), log_noise=st.floats(-4.0, 1.0),
-            frac=st.floats(0.0, 1.0), depth=st.floats(0.5, 1e4), seed=st.integers(0, 2**16),
-            route=st.sampled_from(ROUTES), out=st.sampled_from([None, (5, 3), (9, 11)]),
+            h=st.integers(2, 7),
+            w=st.integers(2, 8),
+            nu=st.sampled_from(NUS),
+            log_l=st.floats(-0.5, 3.0),
+            log_s=st.floats(-2.0, 3.0),
+            log_noise=st.floats(-4.0, 1.0),
+            frac=st.floats(0.0, 1.0),
+            depth=st.floats(0.5, 1e4),
+            seed=st.integers(0, 2**16),
+            route=st.sampled_from(ROUTES),
+            out=st.sampled_from([None, (5, 3), (9, 11)]),
         )
         def check(h, w, nu, log_l, log_s, log_noise, frac, depth, seed, route, out):
             rng = np.random.default_rng(seed)
@@ -526,8 +582,15 @@ class TestPropertySweep:
             prior = depth * (1 + 0.1 * rng.random((h, w)))
             prec = np.where(rng.random((h, w)) < frac, 10.0 ** (-2 * log_noise) * rng.uniform(0.5, 2, (h, w)), 0.0)
             ho, wo = out or (h, w)
-            problem = GridProblem(prior, prior + s * rng.normal(size=(h, w)), prec, output_coordinates(h, ho),
-                                  output_coordinates(w, wo), depth * np.ones((ho, wo)), Kernel(nu, 10.0**log_l, s))
+            problem = GridProblem(
+                prior,
+                prior + s * rng.normal(size=(h, w)),
+                prec,
+                output_coordinates(h, ho),
+                output_coordinates(w, wo),
+                depth * np.ones((ho, wo)),
+                Kernel(nu, 10.0**log_l, s),
+            )
             try:
                 mean, var = FastEngine(route=route).solve(problem)
             except GPDepthError:
@@ -537,7 +600,9 @@ class TestPropertySweep:
             # The numpy reference is itself only as good as cond(K + D) allows: compare where it is reliable.
             r, c = np.nonzero(prec > 0)
             if r.size:
-                K = matern_1d(np.subtract.outer(r, r), nu, 10.0**log_l) * matern_1d(np.subtract.outer(c, c), nu, 10.0**log_l)
+                K = matern_1d(np.subtract.outer(r, r), nu, 10.0**log_l) * matern_1d(
+                    np.subtract.outer(c, c), nu, 10.0**log_l
+                )
                 K += np.diag(1.0 / (prec[r, c] * s * s))
                 if np.linalg.cond(K) > 1e8:
                     return
@@ -559,8 +624,15 @@ def test_single_state_and_between_pixel_outputs_in_one_readout():
     base = random_problem(rng, h, w, lengthscale=6.0, frac=0.15)
     out_rows = np.array([-2.0, 0.0, 0.5, 3.0, 7.25, 16.0, 18.5])
     out_cols = np.array([0.0, 1.0, 4.5, 11.0, 22.0, 23.75])
-    problem = GridProblem(base.prior_mean, base.obs, base.precision, out_rows, out_cols,
-                          rng.normal(10.0, 1.0, (out_rows.size, out_cols.size)), base.kernel)
+    problem = GridProblem(
+        base.prior_mean,
+        base.obs,
+        base.precision,
+        out_rows,
+        out_cols,
+        rng.normal(10.0, 1.0, (out_rows.size, out_cols.size)),
+        base.kernel,
+    )
     engine = FastEngine(route="grid", lattice="full")
     mean, var = engine.solve(problem)
     ref_mean, ref_var = naive_posterior(problem)

@@ -16,8 +16,12 @@ H, W = 32, 40
 
 def sample_field(rng, lengthscale, s, nu=0.5, mean=10.0):
     """One draw of the separable Matern field on the (H, W) grid (dense Kronecker Cholesky)."""
-    Lv = np.linalg.cholesky(matern_1d(np.subtract.outer(np.arange(H), np.arange(H)), nu, lengthscale) + 1e-10 * np.eye(H))
-    Lu = np.linalg.cholesky(matern_1d(np.subtract.outer(np.arange(W), np.arange(W)), nu, lengthscale) + 1e-10 * np.eye(W))
+    Lv = np.linalg.cholesky(
+        matern_1d(np.subtract.outer(np.arange(H), np.arange(H)), nu, lengthscale) + 1e-10 * np.eye(H)
+    )
+    Lu = np.linalg.cholesky(
+        matern_1d(np.subtract.outer(np.arange(W), np.arange(W)), nu, lengthscale) + 1e-10 * np.eye(W)
+    )
     return mean + s * Lv @ rng.standard_normal((H, W)) @ Lu.T
 
 
@@ -53,7 +57,9 @@ class TestLogMarginalLikelihood:
         r, c = np.divmod(rng.choice(small[0] * small[1], 20, replace=False), small[1])
         sparse = SparseDepth.from_arrays(c.astype(float), r.astype(float), f[r, c], small)
         cfg = DepthGPConfig.paper(units="metres", lengthscale=2.0, outputscale=1.2, sigma_dl=0.3, sigma_meas=0.05)
-        assert log_marginal_likelihood(mde, sparse, cfg) == pytest.approx(dense_balanced_lml(mde, sparse, cfg), rel=1e-9)
+        assert log_marginal_likelihood(mde, sparse, cfg) == pytest.approx(
+            dense_balanced_lml(mde, sparse, cfg), rel=1e-9
+        )
 
     def test_residual_matches_dense(self):
         rng = np.random.default_rng(1)
@@ -112,7 +118,9 @@ class TestFitOption:
         import gpdepth3d.completion.fit as fitmod
 
         rng = np.random.default_rng(5)
-        start = DepthGPConfig.paper(units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02, fit=True)
+        start = DepthGPConfig.paper(
+            units="metres", lengthscale=1.0, outputscale=0.3, sigma_dl=0.05, sigma_meas=0.02, fit=True
+        )
         completer = DepthCompleter(start)
         starts = []
         real = fitmod.fit_hyperparameters

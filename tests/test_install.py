@@ -17,8 +17,18 @@ from gpdepth3d.extras import EXTRAS, MissingDependencyError, missing_dependency,
 tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
 ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
-HEAVY = ("torch", "open3d", "viser", "gpytorch", "linear_operator", "trimesh", "pycolmap", "evo", "distributed",
-         "ai_edge_litert")
+HEAVY = (
+    "torch",
+    "open3d",
+    "viser",
+    "gpytorch",
+    "linear_operator",
+    "trimesh",
+    "pycolmap",
+    "evo",
+    "distributed",
+    "ai_edge_litert",
+)
 
 
 def _name(requirement: str) -> str:
@@ -38,8 +48,18 @@ class TestPackageMetadata:
     def test_core_has_no_heavy_package(self):
         core = {_name(r) for r in PYPROJECT["project"]["dependencies"]}
         assert core >= {"numpy", "scipy", "numba", "opencv-python-headless", "pillow", "tyro", "onnxruntime"}
-        assert not core & {"torch", "open3d", "viser", "gpytorch", "linear_operator", "trimesh", "pycolmap", "evo",
-                           "distributed", "ai-edge-litert"}
+        assert not core & {
+            "torch",
+            "open3d",
+            "viser",
+            "gpytorch",
+            "linear_operator",
+            "trimesh",
+            "pycolmap",
+            "evo",
+            "distributed",
+            "ai-edge-litert",
+        }
 
     def test_every_optional_module_is_in_the_extra_it_names(self):
         extras = PYPROJECT["project"]["optional-dependencies"]
@@ -55,14 +75,14 @@ class TestPackageMetadata:
         constraints = (ROOT / ".ci" / "constraints.txt").read_text(encoding="utf-8")
         assert "torch==" in constraints
         assert "-c .ci/constraints.txt" in (ROOT / "scripts" / "install.sh").read_text(encoding="utf-8")
-        assert "install.sh\" dev" in (ROOT / "scripts" / "setup-dev.sh").read_text(encoding="utf-8")
+        assert 'install.sh" dev' in (ROOT / "scripts" / "setup-dev.sh").read_text(encoding="utf-8")
 
 
 class TestMissingDependency:
     def test_missing_package_names_its_extra(self):
         error = missing_dependency(ModuleNotFoundError("No module named 'open3d'", name="open3d"))
         assert isinstance(error, MissingDependencyError) and isinstance(error, GPDepthError)
-        assert '[mapping]' in str(error) and 'pip install "gpdepth3d[mapping]"' in str(error)
+        assert "[mapping]" in str(error) and 'pip install "gpdepth3d[mapping]"' in str(error)
         assert "\n" not in str(error)
 
     def test_open3d_without_libusb_names_the_system_package(self, monkeypatch):
@@ -75,8 +95,7 @@ class TestMissingDependency:
         with pytest.raises(MissingDependencyError) as info:
             require("open3d")
         assert str(info.value) == (
-            "open3d could not be imported: the system library libusb-1.0 is missing "
-            "(sudo apt-get install libusb-1.0-0)"
+            "open3d could not be imported: the system library libusb-1.0 is missing (sudo apt-get install libusb-1.0-0)"
         )
 
     def test_other_errors_are_left_alone(self):
@@ -132,9 +151,21 @@ def test_complete_runs_without_any_extra(tmp_path):
     script.write_text(BLOCKER.format(heavy=HEAVY), encoding="utf-8")
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     run = subprocess.run(
-        [sys.executable, str(script), "complete", "--mde", str(tmp_path / "mde.npy"), "--sparse",
-         str(tmp_path / "points.txt"), "--output", str(tmp_path / "out" / "f")],
-        capture_output=True, text=True, env=env, timeout=900,
+        [
+            sys.executable,
+            str(script),
+            "complete",
+            "--mde",
+            str(tmp_path / "mde.npy"),
+            "--sparse",
+            str(tmp_path / "points.txt"),
+            "--output",
+            str(tmp_path / "out" / "f"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
     )
     assert run.returncode == 0, run.stderr
     assert "LOADED []" in run.stdout and "wrote" in run.stdout

@@ -165,7 +165,12 @@ class TestLoadDepth:
 
     @pytest.mark.parametrize(
         "name, content",
-        [("d.npy", b"not a depth map"), ("d.npz", b"not a depth map"), ("d.npz", b"PK\x03\x04 truncated"), ("d.png", b"\x89PNG\r\n")],
+        [
+            ("d.npy", b"not a depth map"),
+            ("d.npz", b"not a depth map"),
+            ("d.npz", b"PK\x03\x04 truncated"),
+            ("d.png", b"\x89PNG\r\n"),
+        ],
     )
     def test_corrupt_files(self, tmp_path, name, content):
         (tmp_path / name).write_bytes(content)
@@ -466,8 +471,12 @@ class TestOutputChecks:
         assert gio.check_output_path(tmp_path / "new" / "x.npz") == tmp_path / "new" / "x.npz"
         (tmp_path / "d").mkdir()
         (tmp_path / "f").write_text("")
-        for bad, text in (("", "name"), (tmp_path / "d", "directory"), (tmp_path / "f" / "x", "not a folder"),
-                          (3, "file path")):
+        for bad, text in (
+            ("", "name"),
+            (tmp_path / "d", "directory"),
+            (tmp_path / "f" / "x", "not a folder"),
+            (3, "file path"),
+        ):
             with pytest.raises(gio.OutputError, match=text):
                 gio.check_output_path(bad)
 
@@ -513,8 +522,15 @@ class TestWriteJson:
 
         from gpdepth3d.io import to_jsonable, write_json
 
-        data = {"a": np.float32(1.5), "b": np.int64(3), "c": float("nan"), "d": (1, np.inf), "e": np.arange(3),
-                "f": tmp_path, "g": [np.bool_(True)]}
+        data = {
+            "a": np.float32(1.5),
+            "b": np.int64(3),
+            "c": float("nan"),
+            "d": (1, np.inf),
+            "e": np.arange(3),
+            "f": tmp_path,
+            "g": [np.bool_(True)],
+        }
         path = write_json(tmp_path / "x.json", data)
         assert path == tmp_path / "x.json"
         loaded = json.loads(path.read_text())

@@ -176,7 +176,9 @@ class TestSyntheticEndToEnd:
         def mde(image):
             return np.full(image.shape[:2], 15.0)
 
-        cfg = KittiProtocolConfig(densities=(1 / 4, 1.0), protocols=("uniform", "hband"), methods=("mde", "ip_basic", "gp_paper"))
+        cfg = KittiProtocolConfig(
+            densities=(1 / 4, 1.0), protocols=("uniform", "hband"), methods=("mde", "ip_basic", "gp_paper")
+        )
         methods = KittiMethods(paper=DepthGPConfig.paper(engine="exact"))
         rows = run_kitti_protocol([("wall", rgb, lidar)], mde, cfg, methods=methods)
         assert len(rows) == 2 * 2 * 3 * 2
@@ -205,7 +207,9 @@ class TestSyntheticEndToEnd:
         with pytest.raises(EmptyInputError, match="frames"):
             run_kitti_protocol([], lambda im: im)
         with pytest.raises(InvalidInputError, match="method"):
-            setup = prepare_kitti_frame("x", np.zeros((30, 30, 3), np.uint8), np.ones((30, 30)), lambda im: np.ones((30, 30)))
+            setup = prepare_kitti_frame(
+                "x", np.zeros((30, 30, 3), np.uint8), np.ones((30, 30)), lambda im: np.ones((30, 30))
+            )
             KittiMethods().run("midas", setup, setup.lidar.available, "grid")
 
 

@@ -131,7 +131,7 @@ def find_cycle(graph: dict[str, list[tuple[str, int]]]) -> list[str] | None:
         stack.append(module)
         for target, _ in graph.get(module, ()):
             if state.get(target) == 1:
-                return stack[stack.index(target):] + [target]
+                return stack[stack.index(target) :] + [target]
             if target not in state:
                 cycle = visit(target)
                 if cycle:
@@ -169,7 +169,10 @@ def test_the_graph_sees_known_edges():
     assert "gpdepth3d.completion.fit" in graph["gpdepth3d.completion.complete"]  # inside a method
     assert "gpdepth3d.mde" in graph["gpdepth3d.cli.fuse"]  # inside a function (load_frontend)
     assert {"gpdepth3d.datasets", "gpdepth3d.completion.complete"} <= graph["gpdepth3d.experiments.batch"]
-    assert "gpdepth3d.errors" in graph["gpdepth3d.gp.fit"] and "gpdepth3d.completion.problem" not in graph["gpdepth3d.gp.fit"]
+    assert (
+        "gpdepth3d.errors" in graph["gpdepth3d.gp.fit"]
+        and "gpdepth3d.completion.problem" not in graph["gpdepth3d.gp.fit"]
+    )
 
 
 # ------------------------------------------------------------------------------------ a fake tree
@@ -206,9 +209,17 @@ def test_fake_tree_clean(tmp_path):
     "rel, code, expected",
     [
         # a function-level relative import from gp up to completion
-        ("gp/model.py", "def f():\n    from ..completion.complete import complete\n", "gp.model:3 imports gpdepth3d.completion.complete"),
+        (
+            "gp/model.py",
+            "def f():\n    from ..completion.complete import complete\n",
+            "gp.model:3 imports gpdepth3d.completion.complete",
+        ),
         # an absolute import from completion up to mapping
-        ("completion/complete.py", "import gpdepth3d.mapping.cloud\n", "completion.complete:3 imports gpdepth3d.mapping.cloud"),
+        (
+            "completion/complete.py",
+            "import gpdepth3d.mapping.cloud\n",
+            "completion.complete:3 imports gpdepth3d.mapping.cloud",
+        ),
         # `from .. import x` of a higher package
         ("camera.py", "def f():\n    from . import mapping\n", "camera:3 imports gpdepth3d.mapping"),
         # gp may import nothing but errors, even from a lower layer

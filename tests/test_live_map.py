@@ -57,7 +57,9 @@ class TestLiveMapViewer:
             assert sorted(viewer.frustums) == [0, 3, 6, 9]
             assert viewer.refreshes == 4 and viewer.cloud is not None
             cloud = result.mapper.point_cloud()
-            np.testing.assert_allclose(np.sort(viewer.cloud.points[:, 2]), np.sort(cloud.points[:, 2].astype(np.float32)), atol=1e-5)
+            np.testing.assert_allclose(
+                np.sort(viewer.cloud.points[:, 2]), np.sort(cloud.points[:, 2].astype(np.float32)), atol=1e-5
+            )
             colors, _ = sigma_colors(cloud.sigma)
             order = np.lexsort(cloud.points.T)
             shown = np.lexsort(viewer.cloud.points.T.astype(np.float64))
@@ -70,8 +72,7 @@ class TestLiveMapViewer:
     def test_refresh_is_rate_limited(self, sequence):
         seq = sequence.sequence
         with LiveMapViewer(seq.camera, seq.poses, port=0, refresh_s=3600) as viewer:
-            map_sequence(sequence, mde=_flat_mde, config=FAST, max_frames=3,
-                         on_frame=viewer.update)
+            map_sequence(sequence, mde=_flat_mde, config=FAST, max_frames=3, on_frame=viewer.update)
             assert viewer.refreshes == 1 and len(viewer.frustums) == 3
 
     def test_a_failing_draw_does_not_stop_the_mapping(self, sequence):
@@ -108,7 +109,10 @@ class TestInBrowser:
         seq = sequence.sequence
         with sync_playwright() as p:
             context = p.chromium.launch_persistent_context(
-                str(tmp_path / "profile"), executable_path=executable, headless=True, args=CHROMIUM_ARGS,
+                str(tmp_path / "profile"),
+                executable_path=executable,
+                headless=True,
+                args=CHROMIUM_ARGS,
                 viewport={"width": 1000, "height": 700},
             )
             try:

@@ -92,16 +92,19 @@ class TestFactor:
         agree = local_variance_factor(shape, rows, cols, np.zeros(z.size), noise_share=np.full(z.size, 0.5))
         assert np.all((agree >= 0.5 - 1e-9) & (agree <= 1.0 + 1e-9))  # z = 0 everywhere: no lower than the share
 
-    @pytest.mark.parametrize("args, kwargs, name", [
-        (((10, 10), [1], [1], [0.5]), {"noise_share": [1.5]}, "noise_share"),
-        (((10, 10), [1, 2], [1, 2], [0.5, 0.5]), {"noise_share": [0.5]}, "noise_share"),
-        (((10, 10), [1, 2], [1], [0.5, 0.5]), {}, "rows, cols, zscores"),
-        (((10, 10), [1], [10], [0.5]), {}, "rows, cols"),
-        (((10, 10), [-1], [1], [0.5]), {}, "rows, cols"),
-        (((10, 10), [1], [1], [np.nan]), {}, "zscores"),
-        (((10, 10), [1], [1], [0.5]), {"reach": 0.0}, "reach"),
-        (((10, 10), [1], [1], [0.5]), {"prior_points": -1.0}, "prior_points"),
-    ])
+    @pytest.mark.parametrize(
+        "args, kwargs, name",
+        [
+            (((10, 10), [1], [1], [0.5]), {"noise_share": [1.5]}, "noise_share"),
+            (((10, 10), [1, 2], [1, 2], [0.5, 0.5]), {"noise_share": [0.5]}, "noise_share"),
+            (((10, 10), [1, 2], [1], [0.5, 0.5]), {}, "rows, cols, zscores"),
+            (((10, 10), [1], [10], [0.5]), {}, "rows, cols"),
+            (((10, 10), [-1], [1], [0.5]), {}, "rows, cols"),
+            (((10, 10), [1], [1], [np.nan]), {}, "zscores"),
+            (((10, 10), [1], [1], [0.5]), {"reach": 0.0}, "reach"),
+            (((10, 10), [1], [1], [0.5]), {"prior_points": -1.0}, "prior_points"),
+        ],
+    )
     def test_bad_input_is_refused_by_name(self, args, kwargs, name):
         with pytest.raises(InvalidInputError, match=name):
             local_variance_factor(*(np.asarray(a) if isinstance(a, list) else a for a in args), **kwargs)
@@ -177,4 +180,3 @@ class TestInsideComplete:
         assert g.DepthGPConfig.paper().local_calibration is None
         assert g.DepthGPConfig.residual().local_calibration is None
         assert g.DepthGPConfig().local_calibration == 1.5
-

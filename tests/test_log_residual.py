@@ -158,9 +158,18 @@ class TestLogResidualPosterior:
         """Fixed hyperparameters, no rejection, no edge term: the posterior is a closed form."""
         truth, mde = _scene()
         sp = g.sample_uniform(truth, n=40, rng=1)
-        cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, local_calibration=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=None,
-                              mde_slope_sigma=None)
+        cfg = g.DepthGPConfig(
+            fit=False,
+            outlier_threshold=None,
+            local_calibration=None,
+            edge_sigma=0.0,
+            lengthscale=6.0,
+            outputscale=0.3,
+            nugget=0.04,
+            sigma_meas=0.01,
+            depth_lengthscale=None,
+            mde_slope_sigma=None,
+        )
         post = g.complete(mde, sp, config=cfg)
         mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01)
         np.testing.assert_allclose(post.mean.ravel(), np.exp(mu + v / 2), rtol=1e-9)
@@ -174,9 +183,18 @@ class TestLogResidualPosterior:
         mde = np.where(rr >= 12, 2.0, 2.0 * np.exp(1.2 * np.sin(cc / 5.0) + 0.4 * rr / h))
         truth = mde * np.exp(0.2 + 0.1 * np.cos(cc / 7.0))
         sp = g.sample_uniform(np.where(rr >= 12, truth, 0.0), n=40, rng=3)
-        cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, local_calibration=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.04, sigma_meas=0.01, depth_lengthscale=lz,
-                              mde_slope_sigma=None)
+        cfg = g.DepthGPConfig(
+            fit=False,
+            outlier_threshold=None,
+            local_calibration=None,
+            edge_sigma=0.0,
+            lengthscale=6.0,
+            outputscale=0.3,
+            nugget=0.04,
+            sigma_meas=0.01,
+            depth_lengthscale=lz,
+            mde_slope_sigma=None,
+        )
         post = g.complete(mde, sp, config=cfg)
         rho = np.exp(-np.abs(np.log(mde.ravel()) - np.log(2.0)) / lz)
         mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01, depth_factor=rho)
@@ -187,6 +205,7 @@ class TestLogResidualPosterior:
         near = off & (rr >= 9) & (rr < 12)
         assert near.any()
         stationary = g.complete(mde, sp, config=cfg.replace(depth_lengthscale=None))
+
         def correction(p):  # E[g] at the pixels: log-normal median minus the scaled MDE
             v = np.log1p(p.variance[near] / p.mean[near] ** 2)
             return np.log(p.mean[near]) - v / 2 - np.log(mde[near]) - b
@@ -198,9 +217,18 @@ class TestLogResidualPosterior:
         """With Var[b] <= 5 % of tau^2 the scale term is bounded by Var[b], not solved for: variance high by <= 5 %."""
         truth, mde = _scene()
         sp = g.sample_uniform(truth, n=600, rng=5)
-        cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, local_calibration=None, edge_sigma=0.0, lengthscale=6.0, outputscale=0.3,
-                              nugget=0.06, sigma_meas=0.01, depth_lengthscale=None,
-                              mde_slope_sigma=None)
+        cfg = g.DepthGPConfig(
+            fit=False,
+            outlier_threshold=None,
+            local_calibration=None,
+            edge_sigma=0.0,
+            lengthscale=6.0,
+            outputscale=0.3,
+            nugget=0.06,
+            sigma_meas=0.01,
+            depth_lengthscale=None,
+            mde_slope_sigma=None,
+        )
         post = g.complete(mde, sp, config=cfg)
         _, exact, _ = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.06, sigma=0.01)
         got = np.log1p(post.variance.ravel() / post.mean.ravel() ** 2)  # log-normal: var / mean^2 = expm1(v)
@@ -303,9 +331,17 @@ class TestLogResidualPosterior:
         with pytest.raises(InvalidInputError, match="log_residual"):
             build_problem(mde, g.sample_uniform(truth, n=5, rng=0), g.DepthGPConfig())
 
-    @pytest.mark.parametrize("field, value", [("nugget", -1.0), ("edge_sigma", float("nan")), ("outlier_threshold", 0.0),
-                                              ("depth_lengthscale", 0.0), ("depth_lengthscale", "1"),
-                                              ("raise_outputscale", "yes")])
+    @pytest.mark.parametrize(
+        "field, value",
+        [
+            ("nugget", -1.0),
+            ("edge_sigma", float("nan")),
+            ("outlier_threshold", 0.0),
+            ("depth_lengthscale", 0.0),
+            ("depth_lengthscale", "1"),
+            ("raise_outputscale", "yes"),
+        ],
+    )
     def test_config_validation(self, field, value):
         with pytest.raises(InvalidInputError, match=field):
             g.DepthGPConfig(**{field: value})
@@ -313,7 +349,14 @@ class TestLogResidualPosterior:
     def test_paper_preset_is_the_paper(self):
         p = g.DepthGPConfig.paper()
         assert (p.formulation, p.nu, p.lengthscale, p.outputscale, p.sigma_dl, p.sigma_meas, p.fit) == (
-            "balanced", 0.5, 1.5, 1.0, 0.05, 0.001, False)
+            "balanced",
+            0.5,
+            1.5,
+            1.0,
+            0.05,
+            0.001,
+            False,
+        )
 
 
 def test_edge_range_at_points_equals_the_filtered_map():
@@ -385,7 +428,12 @@ class TestLattice:
         assert np.median(gap) < 0.01 and np.max(gap) < 0.06  # largest next to the points
         spread = np.log(coarse.std / fine.std)
         # about the same sd, never much surer; wider at the points' own pixels (they inform a node beside them)
-        assert np.median(np.abs(spread)) < 0.05 and np.percentile(spread, 1) > -0.1 and np.min(spread) > -0.2 and np.max(spread) < 0.5
+        assert (
+            np.median(np.abs(spread)) < 0.05
+            and np.percentile(spread, 1) > -0.1
+            and np.min(spread) > -0.2
+            and np.max(spread) < 0.5
+        )
         rmse = lambda p: np.sqrt(np.mean((p.mean - truth) ** 2))  # noqa: E731
         assert rmse(coarse) < 1.05 * rmse(fine)
         # any output resolution, as on the pixel lattice
@@ -432,7 +480,8 @@ class TestLattice:
         assert rmse(auto) < 1.05 * rmse(fine)
         np.testing.assert_array_equal(
             g.complete(mde, sp, output_shape=(32, 48)).mean,
-            g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=(32, 48)).mean)
+            g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=(32, 48)).mean,
+        )
         # finer outputs, also by non-integer factors and in one axis only: the detail resized from the grid's pixels
         for out in [(100, 150), (64, 150), (130, 96)]:
             a = g.complete(mde, sp, output_shape=out)
@@ -443,8 +492,9 @@ class TestLattice:
     def test_points_sharing_a_node_count_as_their_precision_weighted_mean(self):
         """Two points in one 2 x 2 cell with the same residual inform the node as one point with both precisions."""
         truth, mde = _scene(32, 32, seed=13)
-        cfg = g.DepthGPConfig(lattice_stride=2, outlier_threshold=None, mde_slope_sigma=None, edge_sigma=0.0,
-                              depth_lengthscale=None)
+        cfg = g.DepthGPConfig(
+            lattice_stride=2, outlier_threshold=None, mde_slope_sigma=None, edge_sigma=0.0, depth_lengthscale=None
+        )
         u, v = np.array([10.0, 11.0, 25.0]), np.array([8.0, 9.0, 20.0])  # pixel centres (10, 8), (11, 9): one cell
         depth = mde[v.astype(int), u.astype(int)] * 1.3
         two = g.complete(mde, SparseDepth(u, v, depth, (32, 32), np.full(3, 0.01 * depth)), config=cfg)

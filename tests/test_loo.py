@@ -69,8 +69,9 @@ class TestNeighbours:
     def test_ring_search_is_brute_force_with_the_tie_order(self, seed):
         """Random point sets (with and without several points on a pixel), exclusions and target subsets."""
         rng = np.random.default_rng(seed)
-        rows, cols = _points(rng, int(rng.integers(20, 600)), int(rng.integers(2, 90)), int(rng.integers(2, 120)),
-                             dup=seed % 2 == 1)
+        rows, cols = _points(
+            rng, int(rng.integers(20, 600)), int(rng.integers(2, 90)), int(rng.integers(2, 120)), dup=seed % 2 == 1
+        )
         n = rows.size
         usable = rng.random(n) > 0.2
         usable[:2] = True
@@ -139,7 +140,9 @@ def _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu, share=False):
     out, shares = np.empty(len(targets)), np.empty(len(targets))
     for q, i in enumerate(targets):
         N = nn[q]
-        K = s2 * separable_correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], fit.lengthscale, nu)
+        K = s2 * separable_correlation(
+            rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], fit.lengthscale, nu
+        )
         K[np.diag_indices(len(N))] += tau2 + noise[N]
         kx = s2 * separable_correlation(rows[i] - rows[N], cols[i] - cols[N], fit.lengthscale, nu)
         w = np.linalg.solve(K, kx)
@@ -161,17 +164,20 @@ class TestKriging:
         fit = PointFit(9.0, 0.2, 0.02, 0.0, 1e-4, n)
         targets = rng.choice(n, n_targets, replace=False)
         nn, _ = neighbours_of(rows, cols, np.ones(n, bool), targets, 12)
-        z, share = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu,
-                               stated=noise)
+        z, share = loo_predict(
+            rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu, stated=noise
+        )
         z_ref, share_ref = _kriging_reference(rows, cols, r, noise, fit, targets, nn, nu, share=True)
         np.testing.assert_allclose(z, z_ref, rtol=1e-9, atol=1e-10)
         np.testing.assert_allclose(share, share_ref, rtol=1e-9, atol=1e-12)
         assert np.all((share > 0) & (share < 1))
-        _, half = loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu,
-                              stated=noise / 2)
+        _, half = loo_predict(
+            rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu, stated=noise / 2
+        )
         np.testing.assert_allclose(half, share / 2, rtol=1e-12)  # the share of the stated part only
-        np.testing.assert_array_equal(loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02,
-                                                  lengthscale=9.0, nu=nu), z)  # z alone without `stated`
+        np.testing.assert_array_equal(
+            loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu), z
+        )  # z alone without `stated`
 
     def test_noise_share_is_a_floor_of_the_mean_squared_zscore(self):
         """With independent noises as stated, E[z^2] = share + (1 - share) x (field calibration): a field drawn
@@ -222,7 +228,9 @@ class TestKriging:
         z, share = loo_zscores(rows, cols, r, noise, fit, only=targets, stated=noise)
         for q in np.flatnonzero(singular):
             N = nn[q]
-            K = 0.04 * separable_correlation(rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], 9.0, 0.5)
+            K = 0.04 * separable_correlation(
+                rows[N][:, None] - rows[N][None], cols[N][:, None] - cols[N][None], 9.0, 0.5
+            )
             K[np.diag_indices(len(N))] += noise[N]
             kx = 0.04 * separable_correlation(rows[q] - rows[N], cols[q] - cols[N], 9.0, 0.5)
             wq = np.linalg.lstsq(K, kx, rcond=None)[0]

@@ -20,11 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 RECIPES = {
     "hololens": "gpdepth3d map --images ../shared/data/hololens/images --poses ../shared/data/hololens/poses_images.txt "
-                "--intrinsics ../shared/data/hololens/K.txt --depth ../shared/data/hololens/depth "
-                "--output gpdepth3d_out/map_hololens",
+    "--intrinsics ../shared/data/hololens/K.txt --depth ../shared/data/hololens/depth "
+    "--output gpdepth3d_out/map_hololens",
     "7scenes": "gpdepth3d map --images ../shared/data/7scenes --poses ../shared/data/7scenes --intrinsics 525,525,320,240 "
-               "--depth ../shared/data/7scenes --depth-invalid 65535 "
-               "--depth-intrinsics ../shared/data/7scenes/camera-intrinsics.txt --output gpdepth3d_out/map_7scenes",
+    "--depth ../shared/data/7scenes --depth-invalid 65535 "
+    "--depth-intrinsics ../shared/data/7scenes/camera-intrinsics.txt --output gpdepth3d_out/map_7scenes",
 }
 FRAMES = {"hololens": 94, "7scenes": 60}
 MAP_FILES = ("mesh.ply", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json")
@@ -99,12 +99,23 @@ class TestErrors:
 
     def test_inputs(self, shared_data, tmp_path, capsys):
         holo = shared_data / "hololens"
-        base = ["map", "--images", str(holo / "images"), "--intrinsics", str(holo / "K.txt"), "--output", str(tmp_path / "o")]
+        base = [
+            "map",
+            "--images",
+            str(holo / "images"),
+            "--intrinsics",
+            str(holo / "K.txt"),
+            "--output",
+            str(tmp_path / "o"),
+        ]
         bad_tum = tmp_path / "traj.txt"
         bad_tum.write_text("0.0 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 2\n")
         cases = [
             (["--poses", str(tmp_path / "missing.txt")], "missing.txt: trajectory file not found"),
-            (["--poses", str(shared_data / "kitti_tiny" / "poses.txt")], "one pose per image in order (94 images), got 474 poses"),
+            (
+                ["--poses", str(shared_data / "kitti_tiny" / "poses.txt")],
+                "one pose per image in order (94 images), got 474 poses",
+            ),
             (["--poses", str(holo / "poses.txt")], "got 373 poses"),
             (["--poses", str(bad_tum)], "line 2: quaternion of norm 2"),
             (["--poses", str(holo / "poses_images.txt"), "--intrinsics", "500,500,270"], "intrinsics"),
@@ -121,8 +132,18 @@ class TestErrors:
 
     def test_fuse_metric_samples(self, shared_data, tmp_path, capsys):
         for n in ("0", "-1"):
-            code, _, err = _run(["fuse", "--data", str(shared_data / "7scenes"), "--output", str(tmp_path / "f"),
-                                 "--metric-samples", n], capsys)
+            code, _, err = _run(
+                [
+                    "fuse",
+                    "--data",
+                    str(shared_data / "7scenes"),
+                    "--output",
+                    str(tmp_path / "f"),
+                    "--metric-samples",
+                    n,
+                ],
+                capsys,
+            )
             assert code == 1 and "--metric-samples: expected an integer >= 1" in err
 
 
@@ -130,16 +151,52 @@ class TestErrors:
 def test_view_and_fuse_print_f(shared_data, models_dir, tmp_path, capsys):
     """`map --view` serves the growing map and says where; `fuse` prints its F-scores."""
     holo = shared_data / "hololens"
-    code, out, err = _run(["map", "--images", str(holo / "images"), "--poses", str(holo / "poses_images.txt"),
-                           "--intrinsics", str(holo / "K.txt"), "--frames", "6", "--view", "--port", "0",
-                           "--view-duration", "0", "--models-dir", str(models_dir), "--output", str(tmp_path / "v")],
-                          capsys)
+    code, out, err = _run(
+        [
+            "map",
+            "--images",
+            str(holo / "images"),
+            "--poses",
+            str(holo / "poses_images.txt"),
+            "--intrinsics",
+            str(holo / "K.txt"),
+            "--frames",
+            "6",
+            "--view",
+            "--port",
+            "0",
+            "--view-duration",
+            "0",
+            "--models-dir",
+            str(models_dir),
+            "--output",
+            str(tmp_path / "v"),
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert re.search(r"viewer running at http://127.0.0.1:\d+ \(the map appears as it grows\)", out)
     assert "F-score" not in out  # no depth given: no metrics
     assert json.loads((tmp_path / "v" / "metrics.json").read_text())["metrics"] is None
-    code, out, err = _run(["fuse", "--data", str(shared_data / "7scenes"), "--output", str(tmp_path / "f"),
-                           "--frames", "4", "--working-scale", "0.25", "--voxel-size", "0.05", "--metric-samples", "2000",
-                           "--models-dir", str(models_dir)], capsys)
+    code, out, err = _run(
+        [
+            "fuse",
+            "--data",
+            str(shared_data / "7scenes"),
+            "--output",
+            str(tmp_path / "f"),
+            "--frames",
+            "4",
+            "--working-scale",
+            "0.25",
+            "--voxel-size",
+            "0.05",
+            "--metric-samples",
+            "2000",
+            "--models-dir",
+            str(models_dir),
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert re.search(r"F-score at 5 cm against the ground-truth mesh: mde \d\.\d{3}", out)

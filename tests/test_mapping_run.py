@@ -35,8 +35,15 @@ def seven(shared_data: Path, tmp_path: Path) -> Path:
 
 
 def _open(seven: Path, **kw):
-    return open_posed_sequence(seven / "rgb", seven / "traj.txt", "525,525,320,240", depth=seven / "depth",
-                               depth_invalid=65535, depth_intrinsics="585,585,320,240", **kw)
+    return open_posed_sequence(
+        seven / "rgb",
+        seven / "traj.txt",
+        "525,525,320,240",
+        depth=seven / "depth",
+        depth_invalid=65535,
+        depth_intrinsics="585,585,320,240",
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +62,9 @@ class TestOpen:
         inputs = _open(seven)
         assert inputs.pose_format == "tum" and len(inputs.sequence) == 8 and inputs.map_points is None
         f = inputs.sequence.frame(3)
-        np.testing.assert_allclose(f.pose, check_pose(np.loadtxt(shared_data / "7scenes" / "frame-000015.pose.txt")), atol=1e-6)
+        np.testing.assert_allclose(
+            f.pose, check_pose(np.loadtxt(shared_data / "7scenes" / "frame-000015.pose.txt")), atol=1e-6
+        )
         assert f.depth is not None and f.depth.shape == (480, 640)
 
     def test_errors(self, seven: Path):
@@ -64,7 +73,9 @@ class TestOpen:
         with pytest.raises(InvalidInputError, match="pose_format"):
             _open(seven, pose_format="euroc")
         with pytest.raises(ShapeError, match="8 images"):
-            open_posed_sequence(seven / "rgb", seven / "traj.txt", "525,525,320,240", depth=str(seven / "depth" / "1000.0*.png"))
+            open_posed_sequence(
+                seven / "rgb", seven / "traj.txt", "525,525,320,240", depth=str(seven / "depth" / "1000.0*.png")
+            )
         first = sorted((seven / "rgb").iterdir())[0]
         first.rename(first.with_name("2000.000000.jpg"))
         with pytest.raises(DataFormatError, match=r"2000.000000.jpg: no pose within 0.02 s \(1 of 8"):
@@ -86,7 +97,8 @@ class TestMapSequence:
         out = tmp_path / "out"
         written = write_map(result, out)
         assert sorted(p.name for p in written) == sorted(
-            ["mesh.ply", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json"])
+            ["mesh.ply", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json"]
+        )
         back = Mapper.load(out)
         assert sorted(back.keyframes) == sorted(result.mapper.keyframes) and len(back.keyframes) == 7
         cloud = ColoredCloud.load_ply(out / "cloud.ply")

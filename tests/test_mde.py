@@ -19,7 +19,9 @@ class TestCheckRgb:
     def test_accepts_uint8(self):
         assert check_rgb(RGB).shape == (30, 40, 3)
 
-    @pytest.mark.parametrize("bad", [np.zeros((30, 40)), np.zeros((30, 40, 4), np.uint8), np.zeros((1, 40, 3), np.uint8)])
+    @pytest.mark.parametrize(
+        "bad", [np.zeros((30, 40)), np.zeros((30, 40, 4), np.uint8), np.zeros((1, 40, 3), np.uint8)]
+    )
     def test_shape(self, bad):
         with pytest.raises(ShapeError):
             check_rgb(bad)

@@ -232,7 +232,10 @@ class TestDownsampleDepth:
         blocks = np.where(d > 0, d, np.inf).reshape(24, 4, 80, 4)
         np.testing.assert_array_equal(out, np.where(np.isinf(blocks.min(axis=(1, 3))), 0, blocks.min(axis=(1, 3))))
 
-    @pytest.mark.parametrize("depth, factor", [(np.ones((4, 4, 1)), 2), (np.ones(4), 1), (np.ones((4, 4)), 0), (np.ones((4, 4)), 1.5), (np.ones((4, 4)), 5)])
+    @pytest.mark.parametrize(
+        "depth, factor",
+        [(np.ones((4, 4, 1)), 2), (np.ones(4), 1), (np.ones((4, 4)), 0), (np.ones((4, 4)), 1.5), (np.ones((4, 4)), 5)],
+    )
     def test_errors(self, depth, factor):
         with pytest.raises(ShapeError):
             downsample_depth(depth, factor)
@@ -260,7 +263,13 @@ class TestLidarCalibration:
         assert c.T_camera_lidar.shape == (4, 4)
 
     @pytest.mark.parametrize(
-        "P, T", [(np.eye(3), np.eye(4)), (np.full((3, 4), np.nan), np.eye(4)), (np.eye(3, 4), np.eye(3)), (np.eye(3, 4), np.full((4, 4), np.inf))]
+        "P, T",
+        [
+            (np.eye(3), np.eye(4)),
+            (np.full((3, 4), np.nan), np.eye(4)),
+            (np.eye(3, 4), np.eye(3)),
+            (np.eye(3, 4), np.full((4, 4), np.inf)),
+        ],
     )
     def test_bad_matrices(self, P, T):
         with pytest.raises(CalibrationError):
@@ -371,7 +380,9 @@ class TestCalibrationImageSize:
 
 
 class TestImageSizeValidation:
-    @pytest.mark.parametrize("size", [(float("nan"), 5), (float("inf"), 5), None, 10, "ab", (2.5, 4), (0, 4), (True, 4), (1, 2, 3)])
+    @pytest.mark.parametrize(
+        "size", [(float("nan"), 5), (float("inf"), 5), None, 10, "ab", (2.5, 4), (0, 4), (True, 4), (1, 2, 3)]
+    )
     def test_bad_image_sizes(self, size):
         with pytest.raises(ShapeError, match="image_size"):
             SparseDepth.empty(size)

@@ -190,7 +190,9 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
     from gpdepth3d.gp import EngineConfig
 
     # 50 points: "auto" would take the Woodbury route
-    completer = DepthCompleter(DepthGPConfig.residual(engine="fast", lengthscale=5.0), engine=EngineConfig(route="grid"))
+    completer = DepthCompleter(
+        DepthGPConfig.residual(engine="fast", lengthscale=5.0), engine=EngineConfig(route="grid")
+    )
     engine = completer.engine
 
     def frame():
@@ -236,8 +238,9 @@ class TestPriorReuse:
         prec = np.zeros((h, w))
         idx = rng.choice(h * w, n, replace=False)
         prec.flat[idx] = rng.uniform(10.0, 1e4, n)
-        return GridProblem(p.prior_mean, p.obs, prec, p.out_rows, p.out_cols, p.out_prior_mean,
-                           Kernel(nu, 3.0, rng.uniform(0.5, 2.0)))
+        return GridProblem(
+            p.prior_mean, p.obs, prec, p.out_rows, p.out_cols, p.out_prior_mean, Kernel(nu, 3.0, rng.uniform(0.5, 2.0))
+        )
 
     @pytest.mark.parametrize("nu", [0.5, 1.5])
     def test_frames_reusing_the_prior_factor_are_exact(self, nu):
@@ -250,7 +253,8 @@ class TestPriorReuse:
             np.testing.assert_allclose(m1, m0, atol=1e-9)
             np.testing.assert_allclose(v1, v0, rtol=1e-8)
             assert engine.log_marginal_likelihood(problem) == pytest.approx(
-                fresh.log_marginal_likelihood(problem), rel=1e-10)
+                fresh.log_marginal_likelihood(problem), rel=1e-10
+            )
         assert engine._prior_factor is not None and fresh._prior_factor is None
         fronts = engine._prior_factor[1].tree
         prec = np.zeros(fronts.nvar)
@@ -274,10 +278,15 @@ def test_bins_and_ancestors_partition_a_grid_tree(threads):
     from gpdepth3d.gp.elimination_tree import build_tree as _build_tree, front_tree as _front_tree
 
     base = _front_tree(_build_tree(93, 414, 1, 24, 40))
-    fronts = FrontTree.build(base.st, base.no, base.parent,
-                             [base.bnd[base.bnd_ptr[f]:base.bnd_ptr[f + 1]] for f in range(base.st.size)], base.nvar,
-                             threads=threads)
-    bins = [set(fronts.bin_order[fronts.bin_ptr[b]:fronts.bin_ptr[b + 1]].tolist()) for b in range(threads)]
+    fronts = FrontTree.build(
+        base.st,
+        base.no,
+        base.parent,
+        [base.bnd[base.bnd_ptr[f] : base.bnd_ptr[f + 1]] for f in range(base.st.size)],
+        base.nvar,
+        threads=threads,
+    )
+    bins = [set(fronts.bin_order[fronts.bin_ptr[b] : fronts.bin_ptr[b + 1]].tolist()) for b in range(threads)]
     seq = set(fronts.seq_order.tolist())
     assert sum(len(b) for b in bins) + len(seq) == fronts.st.size
     assert set().union(*bins, seq) == set(range(fronts.st.size))

@@ -115,11 +115,19 @@ class TestRoute:
         forced = FastEngine(route="neumann")
         problem = balanced_problem(rng, 10, 12)
         assert forced.log_marginal_likelihood(problem) == pytest.approx(
-            FastEngine(route="grid").log_marginal_likelihood(problem), rel=1e-12)
+            FastEngine(route="grid").log_marginal_likelihood(problem), rel=1e-12
+        )
         assert forced.plan(problem, lml=True) == "grid"  # the series has no log-determinant
         nu15 = balanced_problem(rng, 10, 12)
-        nu15 = GridProblem(nu15.prior_mean, nu15.obs, nu15.precision, nu15.out_rows, nu15.out_cols,
-                           nu15.out_prior_mean, Kernel(1.5, 1.5, 1.0))
+        nu15 = GridProblem(
+            nu15.prior_mean,
+            nu15.obs,
+            nu15.precision,
+            nu15.out_rows,
+            nu15.out_cols,
+            nu15.out_prior_mean,
+            Kernel(1.5, 1.5, 1.0),
+        )
         with pytest.raises(InvalidInputError, match="route"):
             FastEngine(route="neumann").solve(nu15)
 

@@ -49,7 +49,9 @@ def metric_model(models_dir: Path) -> RTMonoDepthONNX:
 class TestRTMonoDepthONNX:
     def test_matches_direct_onnxruntime_call(self, metric_model, kitti_rgb, models_dir):
         """The front-end equals onnxruntime on the documented pre-processing and monodepth2's conversion."""
-        session = onnxruntime.InferenceSession(str(models_dir / RTMONODEPTH_FILES[True]), providers=["CPUExecutionProvider"])
+        session = onnxruntime.InferenceSession(
+            str(models_dir / RTMONODEPTH_FILES[True]), providers=["CPUExecutionProvider"]
+        )
         x = cv2.resize(kitti_rgb, (640, 192), interpolation=cv2.INTER_AREA).astype(np.float32) / np.float32(255.0)
         (disp,) = session.run(["disp"], {"rgb": x.transpose(2, 0, 1)[None].copy()})
         assert disp.shape == (1, 1, 192, 640)
@@ -137,7 +139,9 @@ class TestONNXDepthModel:
     def test_providers(self):
         providers = default_providers()
         assert providers[-1] == "CPUExecutionProvider"
-        assert ("CUDAExecutionProvider" in providers) == ("CUDAExecutionProvider" in onnxruntime.get_available_providers())
+        assert ("CUDAExecutionProvider" in providers) == (
+            "CUDAExecutionProvider" in onnxruntime.get_available_providers()
+        )
 
     def test_known_hashes(self, models_dir):
         for metric, name in RTMONODEPTH_FILES.items():
@@ -206,9 +210,18 @@ class TestCompleteCommand:
         np.save(tmp_path / "lidar.npy", lidar)
         code = main(
             [
-                "complete", "--rgb", str(tmp_path / "rgb.png"), "--mde", "rtmonodepth",
-                "--models-dir", str(models_dir), "--sparse", str(tmp_path / "lidar.npy"),
-                "--output", str(tmp_path / "out"), "--no-png",
+                "complete",
+                "--rgb",
+                str(tmp_path / "rgb.png"),
+                "--mde",
+                "rtmonodepth",
+                "--models-dir",
+                str(models_dir),
+                "--sparse",
+                str(tmp_path / "lidar.npy"),
+                "--output",
+                str(tmp_path / "out"),
+                "--no-png",
             ]
         )
         assert code == 0, capsys.readouterr().err
@@ -224,8 +237,19 @@ class TestCompleteCommand:
 
         cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((20, 30, 3), np.uint8))
         np.save(tmp_path / "s.npy", np.ones((20, 30)))
-        code = main(["complete", "--rgb", str(tmp_path / "rgb.png"), "--mde", "midas", "--sparse",
-                     str(tmp_path / "s.npy"), "--output", str(tmp_path / "o")])
+        code = main(
+            [
+                "complete",
+                "--rgb",
+                str(tmp_path / "rgb.png"),
+                "--mde",
+                "midas",
+                "--sparse",
+                str(tmp_path / "s.npy"),
+                "--output",
+                str(tmp_path / "o"),
+            ]
+        )
         assert code == 1
         assert "name_or_path" in capsys.readouterr().err
 
@@ -238,8 +262,15 @@ class TestEvalAndBatchWithNetwork:
         data = shared_data / "kitti_tiny"
         assert gpdepth3d.mde.default_models_dir(near=data) == models_dir  # the rule run_evaluation uses
         summary = eval_command(
-            data, mde="rtmonodepth", protocol="uniform", points="200", output=tmp_path, frames=1,
-            methods="mde,mde_scale", qualitative=False, progress=False,
+            data,
+            mde="rtmonodepth",
+            protocol="uniform",
+            points="200",
+            output=tmp_path,
+            frames=1,
+            methods="mde,mde_scale",
+            qualitative=False,
+            progress=False,
         )
         by = {s["method"]: s for s in summary}
         # README: RT-MonoDepth-S alone on kitti_tiny ~5.3 m RMSE against the LiDAR; scaling by the points helps

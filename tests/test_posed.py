@@ -95,7 +95,10 @@ class TestPosedSequence:
 
     def test_match_depth(self):
         images = [Path("a.color.jpg"), Path("b.color.jpg")]
-        assert match_depth(images, [Path("b.depth.png"), Path("a.depth.png")]) == [Path("a.depth.png"), Path("b.depth.png")]
+        assert match_depth(images, [Path("b.depth.png"), Path("a.depth.png")]) == [
+            Path("a.depth.png"),
+            Path("b.depth.png"),
+        ]
         assert match_depth(images, [Path("x.png"), Path("y.png")]) == [Path("x.png"), Path("y.png")]
 
 
@@ -114,8 +117,9 @@ class TestRealSequences:
         images = list_files(d, (".png", ".jpg"), "color", "images")
         assert len(images) == 60 and images[0].name == "frame-000000.color.jpg"
         poses = associate_poses(read_trajectory(d), [p.name for p in images])
-        seq = PosedSequence(d, poses, "525,525,320,240", depth=d, depth_invalid=65535,
-                            depth_intrinsics=d / "camera-intrinsics.txt")
+        seq = PosedSequence(
+            d, poses, "525,525,320,240", depth=d, depth_invalid=65535, depth_intrinsics=d / "camera-intrinsics.txt"
+        )
         ours, ref = seq[7], SevenScenes(d)[7]
         assert ours.name == ref.name and ours.camera == ref.camera
         np.testing.assert_array_equal(ours.depth, ref.depth)

@@ -72,16 +72,18 @@ class TestRealCases:
         disparity, lidar = kitti_disparity
         _assert_valid(_quiet(disparity, lidar, config))
 
-    @pytest.mark.parametrize("config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact")],
-                             ids=["default", "mapper", "exact"])
+    @pytest.mark.parametrize(
+        "config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact")], ids=["default", "mapper", "exact"]
+    )
     def test_kitti_disparity_with_200_points(self, kitti_disparity, config):
         disparity, lidar = kitti_disparity
         post = _quiet(disparity, g.sample_uniform(lidar, n=200, rng=0), config)
         _assert_valid(post)
         assert post.mde_slope < 0  # the points say the MDE runs backwards; the variance is still a variance
 
-    @pytest.mark.parametrize("config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact")],
-                             ids=["default", "mapper", "exact"])
+    @pytest.mark.parametrize(
+        "config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact")], ids=["default", "mapper", "exact"]
+    )
     def test_seven_scenes_points_at_1_and_10_m(self, seven_scenes_two_depths, config):
         _assert_valid(_quiet(*seven_scenes_two_depths, config))
 
@@ -104,12 +106,21 @@ def _small_inputs(seed: int = 0):
     return mde, g.SparseDepth(u, v, depth, (20, 28))
 
 
-@pytest.mark.parametrize("field, value", [
-    ("nugget", 100.0), ("outputscale", 50.0), ("nugget", 3.01),
-    ("mde_slope_sigma", 1e-300), ("mde_slope_sigma", 1e300),
-    ("local_calibration", 1e-300), ("local_calibration", 1e300),
-    ("depth_lengthscale", 1e-320), ("edge_sigma", 1e100), ("lengthscale", 1e-300),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("nugget", 100.0),
+        ("outputscale", 50.0),
+        ("nugget", 3.01),
+        ("mde_slope_sigma", 1e-300),
+        ("mde_slope_sigma", 1e300),
+        ("local_calibration", 1e-300),
+        ("local_calibration", 1e300),
+        ("depth_lengthscale", 1e-320),
+        ("edge_sigma", 1e100),
+        ("lengthscale", 1e-300),
+    ],
+)
 def test_hyperparameters_outside_their_range_are_refused_by_name(field, value):
     with pytest.raises(InvalidInputError, match=rf"{field}: expected a number in \["):
         g.DepthGPConfig(**{field: value})
@@ -119,12 +130,29 @@ def test_a_large_relative_outputscale_stays_allowed_for_the_gaussian_formulation
     assert g.DepthGPConfig.paper(outputscale=50.0).outputscale == 50.0
 
 
-@pytest.mark.parametrize("changes", [
-    {"nugget": 3.0, "outputscale": 3.0, "mde_slope_sigma": 3.0, "edge_sigma": 10.0, "local_calibration": 100.0,
-     "depth_lengthscale": 1e3, "lengthscale": 1e5},
-    {"nugget": 0.0, "outputscale": 1e-9, "mde_slope_sigma": 1e-3, "edge_sigma": 0.0, "local_calibration": 0.1,
-     "depth_lengthscale": 1e-3, "lengthscale": 1e-3},
-])
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {
+            "nugget": 3.0,
+            "outputscale": 3.0,
+            "mde_slope_sigma": 3.0,
+            "edge_sigma": 10.0,
+            "local_calibration": 100.0,
+            "depth_lengthscale": 1e3,
+            "lengthscale": 1e5,
+        },
+        {
+            "nugget": 0.0,
+            "outputscale": 1e-9,
+            "mde_slope_sigma": 1e-3,
+            "edge_sigma": 0.0,
+            "local_calibration": 0.1,
+            "depth_lengthscale": 1e-3,
+            "lengthscale": 1e-3,
+        },
+    ],
+)
 def test_the_ends_of_the_ranges_give_a_valid_posterior(changes):
     mde, sp = _small_inputs()
     for engine in ("fast", "exact"):
@@ -146,9 +174,17 @@ def test_a_fitted_scale_stays_inside_the_range():
         _assert_valid(post)
 
 
-@pytest.mark.parametrize("config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact"),
-                                    g.DepthGPConfig(outlier_threshold=None), g.DepthGPConfig(fit=True)],
-                         ids=["default", "mapper", "exact", "no-screen", "fit"])
+@pytest.mark.parametrize(
+    "config",
+    [
+        g.DepthGPConfig(),
+        MAPPER_GP,
+        g.DepthGPConfig(engine="exact"),
+        g.DepthGPConfig(outlier_threshold=None),
+        g.DepthGPConfig(fit=True),
+    ],
+    ids=["default", "mapper", "exact", "no-screen", "fit"],
+)
 def test_without_variance_the_mean_is_bit_identical_on_small_frames(config):
     mde, sp = _small_inputs(1)
     for shape in (None, (40, 56), (10, 14)):
@@ -185,8 +221,12 @@ def _points(kind: str, mde: np.ndarray, n: int, seed: int) -> g.SparseDepth:
     return g.SparseDepth(u, v, np.maximum(depth, 1e-3), (h, w), sigma)
 
 
-FORMULATIONS = {"log_residual": g.DepthGPConfig(), "log_residual_fit": g.DepthGPConfig(fit=True),
-                "balanced": g.DepthGPConfig.paper(), "residual": g.DepthGPConfig.residual()}
+FORMULATIONS = {
+    "log_residual": g.DepthGPConfig(),
+    "log_residual_fit": g.DepthGPConfig(fit=True),
+    "balanced": g.DepthGPConfig.paper(),
+    "residual": g.DepthGPConfig.residual(),
+}
 
 
 @pytest.mark.parametrize("formulation", sorted(FORMULATIONS))
@@ -195,12 +235,16 @@ def test_posterior_is_valid_for_random_inputs(formulation, engine, examples):
     if engine == "kissgp":
         pytest.importorskip("gpytorch")
 
-    @settings(max_examples=examples, deadline=None, derandomize=True,
-              suppress_health_check=[HealthCheck.too_slow])
-    @given(mde_kind=st.sampled_from(["depth", "disparity", "flipped", "constant"]),
-           point_kind=st.sampled_from(["uniform", "two_clusters"]),
-           h=st.integers(6, 20), w=st.integers(6, 24), n=st.integers(0, 60), seed=st.integers(0, 2**16),
-           upsample=st.booleans())
+    @settings(max_examples=examples, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+    @given(
+        mde_kind=st.sampled_from(["depth", "disparity", "flipped", "constant"]),
+        point_kind=st.sampled_from(["uniform", "two_clusters"]),
+        h=st.integers(6, 20),
+        w=st.integers(6, 24),
+        n=st.integers(0, 60),
+        seed=st.integers(0, 2**16),
+        upsample=st.booleans(),
+    )
     def check(mde_kind, point_kind, h, w, n, seed, upsample):
         mde = _mde(mde_kind, h, w, seed)
         sparse = _points(point_kind, mde, n, seed + 1)
@@ -221,8 +265,15 @@ def test_posterior_is_valid_for_random_inputs(formulation, engine, examples):
 
 
 @settings(max_examples=200, deadline=None, derandomize=True)
-@given(a=st.floats(-5, 5), lz=st.floats(1e-3, 1e3), s=st.floats(1e-3, 3.0), tau=st.floats(0.0, 3.0),
-       var_b=st.floats(0.0, 9.0), var_a=st.floats(0.0, 9.0), seed=st.integers(0, 2**16))
+@given(
+    a=st.floats(-5, 5),
+    lz=st.floats(1e-3, 1e3),
+    s=st.floats(1e-3, 3.0),
+    tau=st.floats(0.0, 3.0),
+    var_b=st.floats(0.0, 9.0),
+    var_a=st.floats(0.0, 9.0),
+    seed=st.integers(0, 2**16),
+)
 def test_assemble_gives_a_variance_for_any_slope_and_weights(a, lz, s, tau, var_b, var_a, seed):
     """The read-out alone: any slope sign, any kriging weights and an engine variance in [0, s^2] give var >= 0
     (an overflow to inf is refused by `assemble_depth` with a typed error; NaN or a negative value never comes)."""
@@ -233,6 +284,23 @@ def test_assemble_gives_a_variance_for_any_slope_and_weights(a, lz, s, tau, var_
     log_out, x_out = rng.normal(1.0, 1.0, shape), rng.normal(0.0, 2.0, shape)
     g_mean, g_var = rng.normal(0.0, s, shape), rng.uniform(0.0, s * s, shape)
     w1, wx = rng.normal(0.5, 1.0, shape), rng.normal(0.0, 3.0, shape)
-    mean, var = assemble(log_out, g_mean, g_var, w1, wx, x_out, b=0.1, s2=s * s, tau2=tau * tau, var_b=var_b,
-                         var_a=var_a, a=a, lz=lz, floor=1e-3, scale_term=True, slope_term=True, variance=True)
+    mean, var = assemble(
+        log_out,
+        g_mean,
+        g_var,
+        w1,
+        wx,
+        x_out,
+        b=0.1,
+        s2=s * s,
+        tau2=tau * tau,
+        var_b=var_b,
+        var_a=var_a,
+        a=a,
+        lz=lz,
+        floor=1e-3,
+        scale_term=True,
+        slope_term=True,
+        variance=True,
+    )
     assert np.all(mean > 0) and np.all(var >= 0)  # NaN fails both

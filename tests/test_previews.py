@@ -29,10 +29,16 @@ class TestWritePreviews:
     def test_files_beside_the_base_name(self, tmp_path):
         mean, std, mde, gt = _maps()
         written = write_previews(tmp_path / "f0", mean, std, mde=mde)
-        assert written == preview_paths(tmp_path / "f0") == [tmp_path / "f0_depth_preview.png", tmp_path / "f0_sigma_preview.png"]
+        assert (
+            written
+            == preview_paths(tmp_path / "f0")
+            == [tmp_path / "f0_depth_preview.png", tmp_path / "f0_sigma_preview.png"]
+        )
         written = write_previews(tmp_path / "f1", mean, std, depth_gt=gt)
         assert [p.name for p in written] == ["f1" + PREVIEW_SUFFIXES[k] for k in ("depth", "sigma", "error")]
-        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in preview_paths(tmp_path / "f0") + written)
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            p.name for p in preview_paths(tmp_path / "f0") + written
+        )
 
     def test_the_map_is_coloured_by_value(self, tmp_path):
         """A left-to-right depth ramp: the picture changes colour from left to right (not a black 16-bit PNG)."""

@@ -59,7 +59,9 @@ EXACT = DepthGPConfig.residual(engine="exact")
 def small_problem(seed: int = 0, h: int = 12, w: int = 16, scale: float = 1.0):
     rng = np.random.default_rng(seed)
     mde = scale * (2.0 + rng.random((h, w)))
-    sparse = SparseDepth.from_arrays(rng.uniform(0, w - 1, 6), rng.uniform(0, h - 1, 6), scale * (2.0 + rng.random(6)), (h, w))
+    sparse = SparseDepth.from_arrays(
+        rng.uniform(0, w - 1, 6), rng.uniform(0, h - 1, 6), scale * (2.0 + rng.random(6)), (h, w)
+    )
     return mde, sparse
 
 
@@ -139,7 +141,12 @@ API_CASES = [
     ("nu 3.7", lambda t: DepthGPConfig(nu=3.7), InvalidInputError, "nu"),
     ("sigma_dl denormal", lambda t: DepthGPConfig(sigma_dl=1e-320), InvalidInputError, "sigma_dl"),
     ("lengthscale 1e300", lambda t: DepthGPConfig(lengthscale=1e300), InvalidInputError, "lengthscale"),
-    ("load a .npy as posterior", lambda t: DepthPosterior.load(_npy(t, "p.npy", np.ones((3, 3)))), DataFormatError, "npz"),
+    (
+        "load a .npy as posterior",
+        lambda t: DepthPosterior.load(_npy(t, "p.npy", np.ones((3, 3)))),
+        DataFormatError,
+        "npz",
+    ),
     ("max_exact_points -5", lambda t: DepthGPConfig(max_exact_points=-5), InvalidInputError, "max_exact_points"),
     ("max_exact_points str", lambda t: DepthGPConfig(max_exact_points="many"), InvalidInputError, "max_exact_points"),
     ("image_size nan", lambda t: SparseDepth.empty((float("nan"), 5)), ShapeError, "image_size"),
@@ -153,19 +160,74 @@ API_CASES = [
     ("check_pose det 8", lambda t: check_pose(2 * np.eye(4) + np.diag([0, 0, 0, -1])), CalibrationError, "det"),
     ("sample_uniform rng -1", lambda t: sample_uniform(np.ones((4, 4)), n=2, rng=-1), InvalidInputError, "rng"),
     ("sample_uniform n inf", lambda t: sample_uniform(np.ones((4, 4)), n=float("inf")), InvalidInputError, "n"),
-    ("calib binary", lambda t: LidarCalibration.from_kitti(_write(t, "c.txt", bytes(range(256)) * 4)), DataFormatError, "binary"),
-    ("variance -1", lambda t: backproject_depth(np.ones((8, 8)), RGB, CAM, variance=-np.ones((8, 8))), InvalidInputError, "variance"),
-    ("load_depth png_scale -1", lambda t: gio.load_depth(_npy(t, "d.npy", np.ones((4, 4))), png_scale=-1), InvalidInputError, "png_scale"),
-    ("load_depth png_scale nan", lambda t: gio.load_depth(_npy(t, "d.npy", np.ones((4, 4))), png_scale=float("nan")), InvalidInputError, "png_scale"),
+    (
+        "calib binary",
+        lambda t: LidarCalibration.from_kitti(_write(t, "c.txt", bytes(range(256)) * 4)),
+        DataFormatError,
+        "binary",
+    ),
+    (
+        "variance -1",
+        lambda t: backproject_depth(np.ones((8, 8)), RGB, CAM, variance=-np.ones((8, 8))),
+        InvalidInputError,
+        "variance",
+    ),
+    (
+        "load_depth png_scale -1",
+        lambda t: gio.load_depth(_npy(t, "d.npy", np.ones((4, 4))), png_scale=-1),
+        InvalidInputError,
+        "png_scale",
+    ),
+    (
+        "load_depth png_scale nan",
+        lambda t: gio.load_depth(_npy(t, "d.npy", np.ones((4, 4))), png_scale=float("nan")),
+        InvalidInputError,
+        "png_scale",
+    ),
     ("complex npy", lambda t: gio.load_depth(_npy(t, "c.npy", np.ones((4, 4)) * (1 + 1j))), DataFormatError, "complex"),
-    ("string npy", lambda t: gio.load_depth(_npy(t, "s.npy", np.array([["a", "b"], ["c", "d"]]))), DataFormatError, "dtype"),
-    ("point NaN depth", lambda t: gio.load_sparse(_points(t, [[1, 1, 2.0], [2, 2, np.nan]]), (8, 8)), InvalidDepthError, "1 of 2 rows"),
-    ("point negative depth", lambda t: gio.load_sparse(_points(t, [[1, 1, -2.0], [2, 2, 3]]), (8, 8)), InvalidDepthError, "1 of 2 rows"),
-    ("point outside image", lambda t: gio.load_sparse(_points(t, [[1, 1, 2.0], [20, 2, 3]]), (8, 8)), InvalidDepthError, "outside"),
-    ("bin not 16-byte records", lambda t: load_velodyne(_write(t, "s.bin", b"\0" * 36)), DataFormatError, "multiple of 16"),
+    (
+        "string npy",
+        lambda t: gio.load_depth(_npy(t, "s.npy", np.array([["a", "b"], ["c", "d"]]))),
+        DataFormatError,
+        "dtype",
+    ),
+    (
+        "point NaN depth",
+        lambda t: gio.load_sparse(_points(t, [[1, 1, 2.0], [2, 2, np.nan]]), (8, 8)),
+        InvalidDepthError,
+        "1 of 2 rows",
+    ),
+    (
+        "point negative depth",
+        lambda t: gio.load_sparse(_points(t, [[1, 1, -2.0], [2, 2, 3]]), (8, 8)),
+        InvalidDepthError,
+        "1 of 2 rows",
+    ),
+    (
+        "point outside image",
+        lambda t: gio.load_sparse(_points(t, [[1, 1, 2.0], [20, 2, 3]]), (8, 8)),
+        InvalidDepthError,
+        "outside",
+    ),
+    (
+        "bin not 16-byte records",
+        lambda t: load_velodyne(_write(t, "s.bin", b"\0" * 36)),
+        DataFormatError,
+        "multiple of 16",
+    ),
     ("truncated JPEG", lambda t: gio.load_rgb(_truncated_jpeg(t)), DataFormatError, "truncated"),
-    ("kitti_tiny pose det 8", lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 2.0)), DataFormatError, "rigid"),
-    ("7scenes pose det 8", lambda t: g.datasets.open_dataset(_seven_scenes_with_pose(t, 2.0))[0], DataFormatError, "rigid"),
+    (
+        "kitti_tiny pose det 8",
+        lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 2.0)),
+        DataFormatError,
+        "rigid",
+    ),
+    (
+        "7scenes pose det 8",
+        lambda t: g.datasets.open_dataset(_seven_scenes_with_pose(t, 2.0))[0],
+        DataFormatError,
+        "rigid",
+    ),
     ("save to a directory", lambda t: _complete_with(config=EXACT).save(_mkdir(t / "d.npz")), OutputError, "directory"),
     ("save under a file", lambda t: _complete_with(config=EXACT).save(_write(t, "f", b"") / "x"), OutputError, "file"),
     ("save empty name", lambda t: _complete_with(config=EXACT).save(""), OutputError, "name"),
@@ -174,29 +236,106 @@ API_CASES = [
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
     ("batch address", lambda t: g.experiments.batch.check_address("not-an-address"), InvalidInputError, "address"),
-    ("batch address no port", lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"), InvalidInputError, "address"),
-    ("sparse depth 1e-300", lambda t: SparseDepth([1.0], [1.0], [1e-300], (8, 8)), InvalidDepthError, "[1e-06, 1e+06] m"),
-    ("sparse depth 1e300", lambda t: SparseDepth.from_arrays([1.0], [1.0], [1e300], (8, 8)), InvalidDepthError, "1e+300"),
+    (
+        "batch address no port",
+        lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"),
+        InvalidInputError,
+        "address",
+    ),
+    (
+        "sparse depth 1e-300",
+        lambda t: SparseDepth([1.0], [1.0], [1e-300], (8, 8)),
+        InvalidDepthError,
+        "[1e-06, 1e+06] m",
+    ),
+    (
+        "sparse depth 1e300",
+        lambda t: SparseDepth.from_arrays([1.0], [1.0], [1e300], (8, 8)),
+        InvalidDepthError,
+        "1e+300",
+    ),
     ("sparse sigma 1e300", lambda t: SparseDepth([1.0], [1.0], [2.0], (8, 8), [1e300]), InvalidDepthError, "sigma"),
     ("sparse sigma 1e-300", lambda t: SP.with_sigma(1e-300), InvalidDepthError, "sigma"),
-    ("calib Tr_velo_to_cam x2", lambda t: LidarCalibration.from_kitti(_calib(t, tr=2.0)), CalibrationError, "Tr_velo_to_cam"),
+    (
+        "calib Tr_velo_to_cam x2",
+        lambda t: LidarCalibration.from_kitti(_calib(t, tr=2.0)),
+        CalibrationError,
+        "Tr_velo_to_cam",
+    ),
     ("calib P2 all zero", lambda t: LidarCalibration.from_kitti(_calib(t, p=0.0)), CalibrationError, "P2"),
-    ("calib R0_rect no rotation", lambda t: LidarCalibration.from_kitti(_calib(t, r0=[1, 0.3, 0, 0, 1, 0, 0, 0, 1])), CalibrationError, "R0_rect"),
-    ("calib T scaled (API)", lambda t: LidarCalibration(np.eye(3, 4), 2 * np.eye(4)), CalibrationError, "T_camera_lidar"),
-    ("kitti_tiny corrupt npz", lambda t: g.datasets.open_dataset(_corrupt(_kitti_tiny_with_pose(t, 1.0) / "velodyne_02" / "0000000000.npz"))[0], DataFormatError, "0000000000.npz"),
-    ("ibims corrupt sparse npz", lambda t: g.datasets.open_dataset(_ibims(t, corrupt="sparse_100.npz"))[0], DataFormatError, "sparse_100.npz"),
-    ("ibims corrupt gt npz", lambda t: g.datasets.open_dataset(_ibims(t, corrupt="gt.npz"))[0], DataFormatError, "gt.npz"),
-    ("posterior config_json a list", lambda t: DepthPosterior.load(_posterior(t, config_json=np.array("[1, 2]"))), DataFormatError, "JSON object"),
-    ("posterior mean all NaN", lambda t: DepthPosterior.load(_posterior(t, mean=np.full((3, 3), np.nan))), DataFormatError, "no finite"),
-    ("posterior negative variance", lambda t: DepthPosterior.load(_posterior(t, variance=-np.ones((3, 3)))), DataFormatError, "negative"),
-    ("dataset indexed by name", lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 1.0))["0000000000"], InvalidInputError, ".load("),
+    (
+        "calib R0_rect no rotation",
+        lambda t: LidarCalibration.from_kitti(_calib(t, r0=[1, 0.3, 0, 0, 1, 0, 0, 0, 1])),
+        CalibrationError,
+        "R0_rect",
+    ),
+    (
+        "calib T scaled (API)",
+        lambda t: LidarCalibration(np.eye(3, 4), 2 * np.eye(4)),
+        CalibrationError,
+        "T_camera_lidar",
+    ),
+    (
+        "kitti_tiny corrupt npz",
+        lambda t: g.datasets.open_dataset(_corrupt(_kitti_tiny_with_pose(t, 1.0) / "velodyne_02" / "0000000000.npz"))[
+            0
+        ],
+        DataFormatError,
+        "0000000000.npz",
+    ),
+    (
+        "ibims corrupt sparse npz",
+        lambda t: g.datasets.open_dataset(_ibims(t, corrupt="sparse_100.npz"))[0],
+        DataFormatError,
+        "sparse_100.npz",
+    ),
+    (
+        "ibims corrupt gt npz",
+        lambda t: g.datasets.open_dataset(_ibims(t, corrupt="gt.npz"))[0],
+        DataFormatError,
+        "gt.npz",
+    ),
+    (
+        "posterior config_json a list",
+        lambda t: DepthPosterior.load(_posterior(t, config_json=np.array("[1, 2]"))),
+        DataFormatError,
+        "JSON object",
+    ),
+    (
+        "posterior mean all NaN",
+        lambda t: DepthPosterior.load(_posterior(t, mean=np.full((3, 3), np.nan))),
+        DataFormatError,
+        "no finite",
+    ),
+    (
+        "posterior negative variance",
+        lambda t: DepthPosterior.load(_posterior(t, variance=-np.ones((3, 3)))),
+        DataFormatError,
+        "negative",
+    ),
+    (
+        "dataset indexed by name",
+        lambda t: g.datasets.open_dataset(_kitti_tiny_with_pose(t, 1.0))["0000000000"],
+        InvalidInputError,
+        ".load(",
+    ),
     ("load_depth(None)", lambda t: gio.load_depth(None), InvalidInputError, "path"),
     ("load_sparse(3)", lambda t: gio.load_sparse(3, (8, 8)), InvalidInputError, "path"),
     ("Frame.resized('2')", lambda t: g.datasets.Frame(name="f", rgb=RGB).resized("2"), InvalidInputError, "factor"),
-    ("posterior mean header claims 200000^2", lambda t: DepthPosterior.load(_forged_posterior(t)), DataFormatError, "header claims"),
+    (
+        "posterior mean header claims 200000^2",
+        lambda t: DepthPosterior.load(_forged_posterior(t)),
+        DataFormatError,
+        "header claims",
+    ),
     ("JPEG header claims 60000^2", lambda t: gio.load_rgb(_forged_jpeg(t)), ProblemTooLargeError, "(60000, 60000, 3)"),
     ("npy header claims 200000^2", lambda t: gio.load_depth(_forged_npy(t)), DataFormatError, "header claims"),
-    ("batch output under a file", lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"), OutputError, "file"),
+    (
+        "batch output under a file",
+        lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"),
+        OutputError,
+        "file",
+    ),
 ]
 
 
@@ -205,7 +344,9 @@ def _calib(tmp: Path, *, tr: float = 1.0, p: float = 1.0, r0=(1, 0, 0, 0, 1, 0, 
     P = p * np.array([721.5, 0, 609.6, 44.9, 0, 721.5, 172.9, 0.2, 0, 0, 1, 0.003])
     Tr = tr * np.array([0, -1, 0, 0, 0, 0, -1, 0, 1, 0, 0, 0.0])
     path = tmp / "calib.txt"
-    path.write_text(f"P2: {' '.join(map(str, P))}\nR0_rect: {' '.join(map(str, r0))}\nTr_velo_to_cam: {' '.join(map(str, Tr))}\n")
+    path.write_text(
+        f"P2: {' '.join(map(str, P))}\nR0_rect: {' '.join(map(str, r0))}\nTr_velo_to_cam: {' '.join(map(str, Tr))}\n"
+    )
     return path
 
 
@@ -264,8 +405,16 @@ def _forged_npy(tmp: Path) -> Path:
 
 
 def _mixed_posterior(tmp: Path) -> Path:
-    np.savez(tmp / "p.npz", mean=np.ones((3, 3)), variance=np.ones((3, 2)), mde=np.ones((3, 3)), sparse_uvd=np.zeros((0, 3)),
-             sparse_image_size=np.array([3, 3]), depth_scale=1.0, alignment=np.array([1.0, 0.0]))
+    np.savez(
+        tmp / "p.npz",
+        mean=np.ones((3, 3)),
+        variance=np.ones((3, 2)),
+        mde=np.ones((3, 3)),
+        sparse_uvd=np.zeros((0, 3)),
+        sparse_image_size=np.array([3, 3]),
+        depth_scale=1.0,
+        alignment=np.array([1.0, 0.0]),
+    )
     return tmp / "p.npz"
 
 
@@ -419,7 +568,12 @@ class TestFailedWrites:
         post.save(tmp_path / "f", png=True)
         assert not any(p.exists() for p in stale)
         assert (tmp_path / ".other.abcd1234.tmp.npz").exists()
-        assert sorted(p.name for p in tmp_path.iterdir()) == [".other.abcd1234.tmp.npz", "f.npz", "f_mean.png", "f_std.png"]
+        assert sorted(p.name for p in tmp_path.iterdir()) == [
+            ".other.abcd1234.tmp.npz",
+            "f.npz",
+            "f_mean.png",
+            "f_std.png",
+        ]
 
     def test_png_false_after_png_true_drops_old_pngs(self, tmp_path):
         post = _complete_with(config=EXACT)
@@ -475,15 +629,51 @@ def _complete_args(t: Path, out: Path, *extra: str, mde: str = "mde.npy", points
 # (id, argv builder (inputs folder, output folder), text of the one-line error)
 CLI_CASES = [
     ("bad option value", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--gp.nu", "3.7"), "nu"),
-    ("non-number option", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--gp.lengthscale", "abc"), "lengthscale"),
+    (
+        "non-number option",
+        lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--gp.lengthscale", "abc"),
+        "lengthscale",
+    ),
     ("unknown option", lambda t, o: ["complete", "--mdee", "x.npy"], "--mde"),
     ("mde of strings", lambda t, o: _complete_args(t, o / "x", mde="strs.npy"), "dtype"),
-    ("binary calib", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "binary.txt"), "--output", str(o / "x")], "binary"),
-    ("lidar without image size", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "calib.txt"), "--output", str(o / "x")], "lidar-image-size"),
+    (
+        "binary calib",
+        lambda t, o: [
+            "complete",
+            "--mde",
+            str(t / "mde.npy"),
+            "--lidar",
+            str(t / "scan.bin"),
+            "--calib",
+            str(t / "binary.txt"),
+            "--output",
+            str(o / "x"),
+        ],
+        "binary",
+    ),
+    (
+        "lidar without image size",
+        lambda t, o: [
+            "complete",
+            "--mde",
+            str(t / "mde.npy"),
+            "--lidar",
+            str(t / "scan.bin"),
+            "--calib",
+            str(t / "calib.txt"),
+            "--output",
+            str(o / "x"),
+        ],
+        "lidar-image-size",
+    ),
     ("output size huge", lambda t, o: _complete_args(t, o / "x", "--output-size", "100000", "100000"), "output_shape"),
     ("mde png scale 0", lambda t, o: _complete_args(t, o / "x", "--mde-png-scale", "0"), "--mde-png-scale"),
     ("mde png scale nan", lambda t, o: _complete_args(t, o / "x", "--mde-png-scale", "nan"), "--mde-png-scale"),
-    ("gt png scale negative", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "mde.npy"), "--gt-png-scale", "-1"), "--gt-png-scale"),
+    (
+        "gt png scale negative",
+        lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "mde.npy"), "--gt-png-scale", "-1"),
+        "--gt-png-scale",
+    ),
     ("gt missing", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "missing.png")), "not found"),
     ("gt corrupt", lambda t, o: _complete_args(t, o / "x", "--gt", str(t / "binary.txt")), "binary.txt"),
     ("output empty", lambda t, o: _complete_args(t, ""), "name"),
@@ -491,31 +681,122 @@ CLI_CASES = [
     ("output is a directory", lambda t, o: _complete_args(t, (o / "d.npz").mkdir() or o / "d"), "directory"),
     ("output under a file", lambda t, o: _complete_args(t, t / "a_file" / "x"), "file"),
     ("gt invalid value", lambda t, o: _complete_args(t, o / "x", "--gt-invalid-value", "-1"), "--gt-invalid-value"),
-    ("lidar image size 0", lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "0", "10"), "--lidar-image-size"),
-    ("lidar image size without lidar", lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "24", "32"), "without --lidar"),
-    ("calib without lidar", lambda t, o: _complete_args(t, o / "x", "--calib", str(t / "calib.txt")), "without --lidar"),
+    (
+        "lidar image size 0",
+        lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "0", "10"),
+        "--lidar-image-size",
+    ),
+    (
+        "lidar image size without lidar",
+        lambda t, o: _complete_args(t, o / "x", "--lidar-image-size", "24", "32"),
+        "without --lidar",
+    ),
+    (
+        "calib without lidar",
+        lambda t, o: _complete_args(t, o / "x", "--calib", str(t / "calib.txt")),
+        "without --lidar",
+    ),
     ("view a .npy", lambda t, o: ["view", "--posterior", str(t / "mde.npy"), "--duration", "0"], "npz"),
     ("view duration -1", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--duration", "-1"], "--duration"),
-    ("view bad host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "999.1.1.1", "--duration", "1"], "host"),
-    ("view remote host", lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "0.0.0.0", "--duration", "1"], "--allow-remote"),
-    ("eval onto a file", lambda t, o: ["eval", "--data", str(t), "--output", str(t / "a_file")], "a file is in the way"),
+    (
+        "view bad host",
+        lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "999.1.1.1", "--duration", "1"],
+        "host",
+    ),
+    (
+        "view remote host",
+        lambda t, o: ["view", "--posterior", str(t / "x.npz"), "--host", "0.0.0.0", "--duration", "1"],
+        "--allow-remote",
+    ),
+    (
+        "eval onto a file",
+        lambda t, o: ["eval", "--data", str(t), "--output", str(t / "a_file")],
+        "a file is in the way",
+    ),
     ("demo onto a file", lambda t, o: ["demo", "--output", str(t / "a_file" / "d")], "is a file"),
-    ("batch onto a file", lambda t, o: ["batch", "--data", str(t), "--output", str(t / "a_file" / "b"), "--workers", "0"], "file"),
-    ("batch bad address", lambda t, o: ["batch", "--data", str(t), "--output", str(o / "b"), "--address", "not-an-address"], "address"),
+    (
+        "batch onto a file",
+        lambda t, o: ["batch", "--data", str(t), "--output", str(t / "a_file" / "b"), "--workers", "0"],
+        "file",
+    ),
+    (
+        "batch bad address",
+        lambda t, o: ["batch", "--data", str(t), "--output", str(o / "b"), "--address", "not-an-address"],
+        "address",
+    ),
     ("eval seed -1", lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--seed", "-1"], "--seed"),
-    ("eval device tpu", lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--device", "tpu"], "--device"),
-    ("lidar calib scaled", lambda t, o: ["complete", "--mde", str(t / "mde.npy"), "--lidar", str(t / "scan.bin"), "--calib", str(t / "calib_x2.txt"), "--lidar-image-size", "375", "1242", "--output", str(o / "x")], "Tr_velo_to_cam"),
-    ("output size beyond the memory limit", lambda t, o: _complete_args(t, o / "x", "--output-size", "11000", "12000", mde="big_mde.npy"), "memory limit"),
-    ("points in millimetres", lambda t, o: _complete_args(t, o / "x", points="points_mm.txt"), "millimetres, convert them with --sparse-scale 0.001"),
-    ("points in millimetres, no png", lambda t, o: _complete_args(t, o / "x", "--no-png", points="points_mm.txt"), "--sparse-scale 0.001"),
-    ("points in centimetres", lambda t, o: _complete_args(t, o / "x", points="points_cm.txt"), "centimetres, convert them with --sparse-scale 0.01"),
-    ("mde in millimetres", lambda t, o: _complete_args(t, o / "x", mde="mde_mm.npy", points="points_mm.txt"), "--mde-scale 0.001"),
+    (
+        "eval device tpu",
+        lambda t, o: ["eval", "--data", str(t), "--output", str(o / "ev"), "--device", "tpu"],
+        "--device",
+    ),
+    (
+        "lidar calib scaled",
+        lambda t, o: [
+            "complete",
+            "--mde",
+            str(t / "mde.npy"),
+            "--lidar",
+            str(t / "scan.bin"),
+            "--calib",
+            str(t / "calib_x2.txt"),
+            "--lidar-image-size",
+            "375",
+            "1242",
+            "--output",
+            str(o / "x"),
+        ],
+        "Tr_velo_to_cam",
+    ),
+    (
+        "output size beyond the memory limit",
+        lambda t, o: _complete_args(t, o / "x", "--output-size", "11000", "12000", mde="big_mde.npy"),
+        "memory limit",
+    ),
+    (
+        "points in millimetres",
+        lambda t, o: _complete_args(t, o / "x", points="points_mm.txt"),
+        "millimetres, convert them with --sparse-scale 0.001",
+    ),
+    (
+        "points in millimetres, no png",
+        lambda t, o: _complete_args(t, o / "x", "--no-png", points="points_mm.txt"),
+        "--sparse-scale 0.001",
+    ),
+    (
+        "points in centimetres",
+        lambda t, o: _complete_args(t, o / "x", points="points_cm.txt"),
+        "centimetres, convert them with --sparse-scale 0.01",
+    ),
+    (
+        "mde in millimetres",
+        lambda t, o: _complete_args(t, o / "x", mde="mde_mm.npy", points="points_mm.txt"),
+        "--mde-scale 0.001",
+    ),
     ("sparse scale 0", lambda t, o: _complete_args(t, o / "x", "--sparse-scale", "0"), "--sparse-scale"),
     ("unknown preset", lambda t, o: _complete_args(t, o / "x", "--preset", "nope"), "--preset"),
     ("two presets", lambda t, o: _complete_args(t, o / "x", "--preset", "paper", "--preset=residual"), "--preset"),
     ("preset without a name", lambda t, o: _complete_args(t, o / "x", "--preset"), "--preset"),
-    ("front-end without --rgb", lambda t, o: ["complete", "--mde", "fastdepth", "--sparse", str(t / "points.txt"), "--output", str(o / "x")], "--rgb"),
-    ("unknown front-end", lambda t, o: ["complete", "--mde", "nonet", "--rgb", str(t / "mde.npy"), "--sparse", str(t / "points.txt"), "--output", str(o / "x")], "nonet"),
+    (
+        "front-end without --rgb",
+        lambda t, o: ["complete", "--mde", "fastdepth", "--sparse", str(t / "points.txt"), "--output", str(o / "x")],
+        "--rgb",
+    ),
+    (
+        "unknown front-end",
+        lambda t, o: [
+            "complete",
+            "--mde",
+            "nonet",
+            "--rgb",
+            str(t / "mde.npy"),
+            "--sparse",
+            str(t / "points.txt"),
+            "--output",
+            str(o / "x"),
+        ],
+        "nonet",
+    ),
 ]
 
 
@@ -545,7 +826,11 @@ def test_png_saturates_at_its_range_and_npz_keeps_true_values(tmp_path):
 
 def test_cli_far_depths_saturate_the_png_with_one_warning(cli_inputs, tmp_path, capsys):
     argv = _complete_args(cli_inputs, tmp_path / "x", mde="far.npy", points="points_far.txt") + [
-        "--preset", "residual", "--gp.engine", "exact"]
+        "--preset",
+        "residual",
+        "--gp.engine",
+        "exact",
+    ]
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
     warning = [line for line in out.splitlines() if "beyond 256.0 m" in line]
@@ -558,9 +843,21 @@ def test_cli_far_depths_saturate_the_png_with_one_warning(cli_inputs, tmp_path, 
 def test_kitti_sky_pixel_beyond_png_range_does_not_fail_the_run(shared_data, tmp_path, capsys):
     """The README's `complete` line on KITTI object frame 000001 (sky pixels beyond 256 m): exit 0, a warning."""
     k = shared_data / "kitti_object"
-    argv = ["complete", "--rgb", str(k / "000001.png"), "--mde", "rtmonodepth", "--lidar", str(k / "000001.bin"),
-            "--calib", str(k / "calib_000001.txt"), "--output", str(tmp_path / "k1"),
-            "--models-dir", str(shared_data.parent / "models")]
+    argv = [
+        "complete",
+        "--rgb",
+        str(k / "000001.png"),
+        "--mde",
+        "rtmonodepth",
+        "--lidar",
+        str(k / "000001.bin"),
+        "--calib",
+        str(k / "calib_000001.txt"),
+        "--output",
+        str(tmp_path / "k1"),
+        "--models-dir",
+        str(shared_data.parent / "models"),
+    ]
     assert cli.main(argv) == 0
     warning = [line for line in capsys.readouterr().out.splitlines() if "beyond 256.0 m" in line]
     assert len(warning) == 1 and warning[0].startswith("warning: posterior mean")
@@ -611,7 +908,9 @@ def test_cli_without_gt_removes_the_old_error_preview(cli_inputs, tmp_path):
 def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
     """A read-only folder (simulated: the tests may run as root, which writes anyway) and a full disk."""
     real_access = os.access
-    monkeypatch.setattr(os, "access", lambda p, mode, **k: False if str(p).startswith(str(tmp_path)) else real_access(p, mode, **k))
+    monkeypatch.setattr(
+        os, "access", lambda p, mode, **k: False if str(p).startswith(str(tmp_path)) else real_access(p, mode, **k)
+    )
     assert cli.main(_complete_args(cli_inputs, tmp_path / "ro" / "x")) == 1
     assert "not writable" in capsys.readouterr().err
     monkeypatch.setattr(os, "access", real_access)
@@ -693,7 +992,9 @@ def test_property_typed_error_or_exact_posterior():
         n = draw(st.integers(0, 6))
         depth = magnitude * (1.0 + rng.random(n)) * draw(st.sampled_from([1.0, 1.0, 3.0, 0.2]))
         sh, sw = draw(st.sampled_from([(h, w), (2 * h, 2 * w), (h + 1, w)]))
-        sparse = SparseDepth.from_arrays(rng.uniform(-0.5, sw - 0.6, n), rng.uniform(-0.5, sh - 0.6, n), depth, (sh, sw))
+        sparse = SparseDepth.from_arrays(
+            rng.uniform(-0.5, sw - 0.6, n), rng.uniform(-0.5, sh - 0.6, n), depth, (sh, sw)
+        )
         config = DepthGPConfig(
             formulation=draw(st.sampled_from(["balanced", "residual"])),
             nu=draw(st.sampled_from([0.5, 1.5, 2.5])),
@@ -766,8 +1067,15 @@ def _fork_save_killed_at(post: DepthPosterior, base: Path, step: int) -> bool:
 
                 return call
 
-            for mod, name in ((os, "replace"), (os, "symlink"), (os, "link"), (os, "unlink"), (shutil, "rmtree"),
-                              (gio.tempfile, "mkdtemp"), (gio.tempfile, "mkstemp")):
+            for mod, name in (
+                (os, "replace"),
+                (os, "symlink"),
+                (os, "link"),
+                (os, "unlink"),
+                (shutil, "rmtree"),
+                (gio.tempfile, "mkdtemp"),
+                (gio.tempfile, "mkstemp"),
+            ):
                 setattr(mod, name, dying(getattr(mod, name)))
             post.save(base, png=True)
             os._exit(0)
@@ -798,7 +1106,9 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
         step, finished = 1, False
         while not finished:
             finished = _fork_save_killed_at(posts[1 + step % 2], folder / "f", step)
-            gio.clean_output_set(folder / "f", ["f.npz", "f_mean.png", "f_std.png"])  # what a reader or the next run does
+            gio.clean_output_set(
+                folder / "f", ["f.npz", "f_mean.png", "f_std.png"]
+            )  # what a reader or the next run does
             got = assert_one_set(folder, "f", known)
             if prepare is not None:
                 assert got is not None, f"{label}: the old set vanished at step {step}"
@@ -811,8 +1121,22 @@ def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
 
 
 def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
-    return [sys.executable, "-m", "gpdepth3d.cli", "complete", "--mde", str(inputs / mde), "--sparse",
-            str(inputs / "points.txt"), "--output", str(out), "--preset", "residual", "--gp.engine", "exact"]
+    return [
+        sys.executable,
+        "-m",
+        "gpdepth3d.cli",
+        "complete",
+        "--mde",
+        str(inputs / mde),
+        "--sparse",
+        str(inputs / "points.txt"),
+        "--output",
+        str(out),
+        "--preset",
+        "residual",
+        "--gp.engine",
+        "exact",
+    ]
 
 
 SET_NAMES = ["f.npz", "f_mean.png", "f_std.png", "f_depth_preview.png", "f_sigma_preview.png", "f_error_preview.png"]
@@ -839,8 +1163,10 @@ def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
     np.save(tmp_path / "a.npy", mde)
     np.save(tmp_path / "b.npy", mde * 1.5)
     shutil.copy(cli_inputs / "points.txt", tmp_path / "points.txt")
-    calls = {"a": _complete_cmd(tmp_path, Path("OUT") / "f", "a.npy") + ["--gt", str(tmp_path / "a.npy")],
-             "b": _complete_cmd(tmp_path, Path("OUT") / "f", "b.npy")}
+    calls = {
+        "a": _complete_cmd(tmp_path, Path("OUT") / "f", "a.npy") + ["--gt", str(tmp_path / "a.npy")],
+        "b": _complete_cmd(tmp_path, Path("OUT") / "f", "b.npy"),
+    }
     refs, duration = {}, 0.0
     for k, argv in calls.items():  # the reference sets, each from an uninterrupted call
         (tmp_path / f"ref_{k}").mkdir()
@@ -860,8 +1186,9 @@ def test_complete_killed_at_random_moments(cli_inputs, tmp_path):
     rounds = int(os.environ.get("GPDEPTH3D_KILL_ROUNDS", "6"))
     for round_ in range(rounds):
         new = "b" if state == "a" else "a"
-        proc = subprocess.Popen([x.replace("OUT", str(out)) for x in calls[new]], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(
+            [x.replace("OUT", str(out)) for x in calls[new]], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
         time.sleep(rng.uniform(0.5, 1.15) * duration if round_ < rounds - 1 else 0.5 * duration)  # the last: killed
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
@@ -887,8 +1214,12 @@ def test_concurrent_completes_leave_one_set(cli_inputs, tmp_path):
     shutil.copy(cli_inputs / "points.txt", tmp_path / "points.txt")
     known = [mde, mde * 2]
     for _ in range(int(os.environ.get("GPDEPTH3D_CONCURRENT_ROUNDS", "2"))):
-        procs = [subprocess.Popen(_complete_cmd(tmp_path, tmp_path / "out" / "f", n), stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.PIPE) for n in ("a.npy", "b.npy")]
+        procs = [
+            subprocess.Popen(
+                _complete_cmd(tmp_path, tmp_path / "out" / "f", n), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+            )
+            for n in ("a.npy", "b.npy")
+        ]
         for p in procs:
             _, err = p.communicate()
             assert p.returncode == 0, err
@@ -920,15 +1251,32 @@ def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
     for opt in ["--mde-png-scale", "--sparse-png-scale", "--gt-png-scale", "--gt-invalid-value"]:
         cases += [base() + [opt, v] for v in bad_values]
     for opt in ["--output-size", "--lidar-image-size"]:
-        cases += [base() + [opt, a, b] for a, b in itertools.product(["0", "-5", "nan", "2.5", "100000"], ["10", "abc"])]
-    for f in [f"{t}/c.npy", f"{t}/obj.npy", f"{t}/d1.npy", f"{t}/bin.txt", f"{t}/afile", f"{t}/empty.txt", "/nonexistent.npy", str(t)]:
+        cases += [
+            base() + [opt, a, b] for a, b in itertools.product(["0", "-5", "nan", "2.5", "100000"], ["10", "abc"])
+        ]
+    for f in [
+        f"{t}/c.npy",
+        f"{t}/obj.npy",
+        f"{t}/d1.npy",
+        f"{t}/bin.txt",
+        f"{t}/afile",
+        f"{t}/empty.txt",
+        "/nonexistent.npy",
+        str(t),
+    ]:
         cases.append(["complete", "--mde", f, "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"])
         cases.append(base()[:4] + [f, "--output", f"{out}/o{next(o)}"])
         cases.append(base() + ["--gt", f])
         cases.append(base() + ["--intrinsics", f, "--sparse-points", "xyz"])
         cases.append(["complete", "--mde", f"{t}/mde.npy", "--lidar", f, "--calib", f, "--output", f"{out}/o{next(o)}"])
-    fields = ["--gp.nu", "--gp.lengthscale", "--gp.outputscale", "--gp.sigma-dl", "--gp.sigma-meas",
-              "--gp.max-exact-points"]
+    fields = [
+        "--gp.nu",
+        "--gp.lengthscale",
+        "--gp.outputscale",
+        "--gp.sigma-dl",
+        "--gp.sigma-meas",
+        "--gp.max-exact-points",
+    ]
     for model, opt in itertools.product(["paper", "residual"], fields):
         cases += [base() + ["--preset", model, opt, v] for v in ["nan", "-1", "0", "abc", "inf", "1e-320"]]
     for model in ["paper", "residual"]:
@@ -939,31 +1287,73 @@ def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
     np.save(t / "mde_mm.npy", 1000 * (2 + rng.random((24, 32))))
     np.savetxt(t / "K.txt", [[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
     cases += [base()[:4] + [f"{t}/p_mm.txt"] + base()[4:] + a for a in [[], ["--no-png"], ["--sparse-scale", "0.001"]]]
-    cases += [["complete", "--mde", f"{t}/mde_mm.npy", "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"] + a
-              for a in [[], ["--mde-scale", "0.001"], ["--mde-scale", "-1"]]]
-    cases += [base() + [opt, v] for opt in ("--sparse-scale", "--mde-scale") for v in ["0", "nan", "-1", "abc", "1e400"]]
-    cases += [base() + a for a in [["--ply", f"{out}/c.ply"], ["--ply", f"{out}/c.txt"], ["--ply", f"{t}/afile/c.ply"],
-                                   ["--ply", f"{out}/c.ply", "--intrinsics", f"{t}/K.txt"], ["--ply", str(t)]]]
+    cases += [
+        ["complete", "--mde", f"{t}/mde_mm.npy", "--sparse", f"{t}/p.txt", "--output", f"{out}/o{next(o)}"] + a
+        for a in [[], ["--mde-scale", "0.001"], ["--mde-scale", "-1"]]
+    ]
+    cases += [
+        base() + [opt, v] for opt in ("--sparse-scale", "--mde-scale") for v in ["0", "nan", "-1", "abc", "1e400"]
+    ]
+    cases += [
+        base() + a
+        for a in [
+            ["--ply", f"{out}/c.ply"],
+            ["--ply", f"{out}/c.txt"],
+            ["--ply", f"{t}/afile/c.ply"],
+            ["--ply", f"{out}/c.ply", "--intrinsics", f"{t}/K.txt"],
+            ["--ply", str(t)],
+        ]
+    ]
     cases += [base()[:-1] + [f"{out}/folder{next(o)}/"], base() + ["--gt", f"{t}/zeros.npy"]]
     np.save(t / "zeros.npy", np.zeros((24, 32)))
     cases += [["view", "--posterior", "x.npz", "--duration", v] for v in ["-1", "nan", "abc"]]
-    cases += [["view", "--posterior", "x.npz", "--host", h, "--duration", "0"]
-              for h in ["999.1.1.1", "0.0.0.0", "", "::", "example.invalid", "1.2.3.4"]]
+    cases += [
+        ["view", "--posterior", "x.npz", "--host", h, "--duration", "0"]
+        for h in ["999.1.1.1", "0.0.0.0", "", "::", "example.invalid", "1.2.3.4"]
+    ]
     cases += [["view", "--posterior", "x.npz", "--port", p, "--duration", "0"] for p in ["-1", "70000", "abc"]]
-    cases += [["view", "--posterior", f"{t}/bin.txt", "--duration", "0"], ["view", "--posterior", f"{t}/mde.npy", "--duration", "0"]]
-    cases += [["demo"] + a for a in [["--output", f"{t}/afile/x"], ["--output", f"{out}/demo"], ["--seed", "-1"], ["--seed", "abc"]]]
-    cases += [["eval"] + a for a in [
-        ["--data", str(t)], ["--data", "/nonexistent"], ["--data", seven, "--output", f"{t}/afile"],
-        ["--data", seven, "--protocol", "bogus"], ["--data", seven, "--points", "a,b"], ["--data", seven, "--stride", "0"],
-        ["--data", seven, "--frames", "-1"], ["--data", seven, "--resolution", "nan"], ["--data", seven, "--methods", "x"]]]
-    cases += [["batch", "--data", kitti, "--output", f"{out}/b"] + a for a in [
-        ["--address", "not-an-address"], ["--output", f"{t}/afile/x"], ["--workers", "-1"], ["--frames", "-3"],
-        ["--repeat", "0"], ["--factor", "0"], ["--n-input", "-5"], ["--connect-timeout", "-1"]]]
+    cases += [
+        ["view", "--posterior", f"{t}/bin.txt", "--duration", "0"],
+        ["view", "--posterior", f"{t}/mde.npy", "--duration", "0"],
+    ]
+    cases += [
+        ["demo"] + a
+        for a in [["--output", f"{t}/afile/x"], ["--output", f"{out}/demo"], ["--seed", "-1"], ["--seed", "abc"]]
+    ]
+    cases += [
+        ["eval"] + a
+        for a in [
+            ["--data", str(t)],
+            ["--data", "/nonexistent"],
+            ["--data", seven, "--output", f"{t}/afile"],
+            ["--data", seven, "--protocol", "bogus"],
+            ["--data", seven, "--points", "a,b"],
+            ["--data", seven, "--stride", "0"],
+            ["--data", seven, "--frames", "-1"],
+            ["--data", seven, "--resolution", "nan"],
+            ["--data", seven, "--methods", "x"],
+        ]
+    ]
+    cases += [
+        ["batch", "--data", kitti, "--output", f"{out}/b"] + a
+        for a in [
+            ["--address", "not-an-address"],
+            ["--output", f"{t}/afile/x"],
+            ["--workers", "-1"],
+            ["--frames", "-3"],
+            ["--repeat", "0"],
+            ["--factor", "0"],
+            ["--n-input", "-5"],
+            ["--connect-timeout", "-1"],
+        ]
+    ]
     cases += [["fuse"] + a for a in [["--data", "/nonexistent"], ["--data", str(t)], ["--output", f"{t}/afile/x"]]]
     return cases
 
 
-@pytest.mark.skipif(not os.environ.get("GPDEPTH3D_FUZZ_CLI"), reason="the CLI sweep runs with GPDEPTH3D_FUZZ_CLI=1 (minutes)")
+@pytest.mark.skipif(
+    not os.environ.get("GPDEPTH3D_FUZZ_CLI"), reason="the CLI sweep runs with GPDEPTH3D_FUZZ_CLI=1 (minutes)"
+)
 def test_cli_sweep(tmp_path):
     """Every command line of `cli_sweep_cases` exits 0 (a valid, if odd, input) or prints one line and exits 1."""
     import contextlib
@@ -978,8 +1368,11 @@ def test_cli_sweep(tmp_path):
                 rc = cli.main(argv)
             except SystemExit as exc:
                 rc = exc.code
-        lines = [line for line in err.getvalue().splitlines()
-                 if line.strip() and not line.startswith(("gpdepth3d: warning", "INFO:")) and "%|" not in line]
+        lines = [
+            line
+            for line in err.getvalue().splitlines()
+            if line.strip() and not line.startswith(("gpdepth3d: warning", "INFO:")) and "%|" not in line
+        ]
         if rc == 1 and any("unexpected" in line for line in lines):
             key = "unexpected"
         elif rc == 1:
@@ -987,7 +1380,9 @@ def test_cli_sweep(tmp_path):
         else:
             key = "exit 0" if rc == 0 else "other exit"
         counts[key] += 1
-    leftovers = [p for p in (tmp_path / "out").rglob("*") if p.name.startswith(".")] if (tmp_path / "out").exists() else []
+    leftovers = (
+        [p for p in (tmp_path / "out").rglob("*") if p.name.startswith(".")] if (tmp_path / "out").exists() else []
+    )
     print(f"CLI sweep: {sum(counts.values())} command lines: {counts}; leftover temporaries {len(leftovers)}")
     assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
     assert leftovers == []
@@ -999,14 +1394,20 @@ def test_typed_errors_pickle_with_their_attributes():
 
     from gpdepth3d.errors import ConnectionFailedError, ProblemTooLargeError
 
-    for error in (InvalidInputError("a", "b", [1]), ShapeError("s", "t", (2,)), DataFormatError("p", "q"),
-                  OutputError("o", "disk full"), ConnectionFailedError("tcp://h:1", "no answer"), ProblemTooLargeError("big")):
+    for error in (
+        InvalidInputError("a", "b", [1]),
+        ShapeError("s", "t", (2,)),
+        DataFormatError("p", "q"),
+        OutputError("o", "disk full"),
+        ConnectionFailedError("tcp://h:1", "no answer"),
+        ProblemTooLargeError("big"),
+    ):
         back = pickle.loads(pickle.dumps(error))
         assert type(back) is type(error) and str(back) == str(error) and vars(back) == vars(error)
 
 
 # ------------------------------------------------------------------------------------------ sizes
-MEMORY_GUARD_SCRIPT = r'''
+MEMORY_GUARD_SCRIPT = r"""
 import json, resource, struct, sys, time, zipfile, zlib
 from pathlib import Path
 import numpy as np
@@ -1057,7 +1458,7 @@ for name, call in cases.items():
         kind, message = type(exc).__name__, str(exc)
     out[name] = {"error": kind, "message": message, "cpu_s": time.process_time() - cpu, "wall_s": time.perf_counter() - wall}
 print(json.dumps(out))
-'''
+"""
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="RLIMIT_AS and /proc/self/statm")
@@ -1068,15 +1469,21 @@ def test_sizes_refused_before_memory_is_spent_under_a_memory_cap(tmp_path):
     script = tmp_path / "guard.py"
     script.write_text(MEMORY_GUARD_SCRIPT)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    run = subprocess.run([sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, env=env, timeout=600)
+    run = subprocess.run(
+        [sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, env=env, timeout=600
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     results = json.loads(run.stdout.strip().splitlines()[-1])
     expected = {"npy header claiming 200000^2": "DataFormatError", "npz header claiming 200000^2": "DataFormatError"}
     for name, r in results.items():
         assert r["error"] == expected.get(name, "ProblemTooLargeError"), (name, r)
         assert r["cpu_s"] < 1.0, (name, r)
-    sizes = {"output 11000x12000": "(11000, 12000)", "16x output": "(3840, 5120)", "Frame.resized": "(37500, 124200)",
-             "PNG header": "(100000, 100000, 3)"}
+    sizes = {
+        "output 11000x12000": "(11000, 12000)",
+        "16x output": "(3840, 5120)",
+        "Frame.resized": "(37500, 124200)",
+        "PNG header": "(100000, 100000, 3)",
+    }
     for name, r in results.items():
         if r["error"] == "ProblemTooLargeError":
             size = next(v for k, v in sizes.items() if name.startswith(k))
@@ -1098,7 +1505,10 @@ def test_memory_limit_reads_its_setting(monkeypatch):
             limits.memory_limit()
     monkeypatch.setenv(limits.ENV_VAR, "100000000")
     assert limits.memory_limit() < 100000000 * 2**20  # capped by the free memory
-    assert limits.completion_bytes((10, 10), (20, 20)) == 400 * limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL + 100 * limits.COMPLETION_BYTES_PER_INPUT_PIXEL
+    assert (
+        limits.completion_bytes((10, 10), (20, 20))
+        == 400 * limits.COMPLETION_BYTES_PER_OUTPUT_PIXEL + 100 * limits.COMPLETION_BYTES_PER_INPUT_PIXEL
+    )
 
 
 def test_cli_ply_cloud_with_sigma(cli_inputs, tmp_path):
@@ -1108,8 +1518,20 @@ def test_cli_ply_cloud_with_sigma(cli_inputs, tmp_path):
     rgb[..., 1] = 200
     cv2.imwrite(str(tmp_path / "rgb.png"), rgb[..., ::-1])
     argv = _complete_args(cli_inputs, tmp_path / "out" / "x") + [
-        "--preset", "residual", "--gp.engine", "exact", "--intrinsics", str(tmp_path / "K.txt"),
-        "--rgb", str(tmp_path / "rgb.png"), "--ply", str(tmp_path / "out" / "x.ply"), "--output-size", "48", "64"]
+        "--preset",
+        "residual",
+        "--gp.engine",
+        "exact",
+        "--intrinsics",
+        str(tmp_path / "K.txt"),
+        "--rgb",
+        str(tmp_path / "rgb.png"),
+        "--ply",
+        str(tmp_path / "out" / "x.ply"),
+        "--output-size",
+        "48",
+        "64",
+    ]
     assert cli.main(argv) == 0
     from gpdepth3d.mapping.cloud import ColoredCloud
 
@@ -1123,10 +1545,7 @@ def test_cli_ply_cloud_with_sigma(cli_inputs, tmp_path):
     np.testing.assert_allclose(cloud.points[0], [-31.5 / 60 * z, -23.5 / 60 * z, z], rtol=1e-5)
 
 
-@pytest.mark.parametrize("extra, text", [
-    (["--ply", "x.txt"], ".ply"),
-    (["--ply", "x.ply"], "--intrinsics"),
-])
+@pytest.mark.parametrize("extra, text", [(["--ply", "x.txt"], ".ply"), (["--ply", "x.ply"], "--intrinsics")])
 def test_cli_ply_refused_before_work(cli_inputs, tmp_path, capsys, extra, text):
     assert cli.main(_complete_args(cli_inputs, tmp_path / "x") + extra) == 1
     err = capsys.readouterr().err.strip().splitlines()

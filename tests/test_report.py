@@ -50,7 +50,12 @@ def test_tables_follow_the_json(tmp_path):
 
 def test_no_development_history_in_the_docs():
     """No numbered session labels or dated lab notes in the README, docs and results."""
-    files = [ROOT / "README.md", ROOT / "CHANGELOG.md", *(ROOT / "docs").glob("*.md"), *(ROOT / "bench" / "results").glob("*.json")]
+    files = [
+        ROOT / "README.md",
+        ROOT / "CHANGELOG.md",
+        *(ROOT / "docs").glob("*.md"),
+        *(ROOT / "bench" / "results").glob("*.json"),
+    ]
     for path in files:
         if path.is_file():
             text = path.read_text(encoding="utf-8")

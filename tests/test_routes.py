@@ -8,7 +8,7 @@ import pytest
 from gpdepth3d.errors import InvalidInputError, ProblemTooLargeError
 from gpdepth3d.gp.cost_model import dense_seconds, grid_seconds, woodbury_seconds
 from gpdepth3d.gp.model import GridProblem, Kernel
-from gpdepth3d.gp.routes import (ROUTES, IllConditionedError, Refusal, Route, RouteCost, RouteQuery, choose_route)
+from gpdepth3d.gp.routes import ROUTES, IllConditionedError, Refusal, Route, RouteCost, RouteQuery, choose_route
 
 
 def problem(h=30, w=40, points=20, *, nu=0.5, lengthscale=5.0, every=False, noise=0.05):
@@ -17,13 +17,19 @@ def problem(h=30, w=40, points=20, *, nu=0.5, lengthscale=5.0, every=False, nois
     idx = rng.choice(h * w, points, replace=False)
     prec.ravel()[idx] += 1.0 / noise**2
     prior = np.full((h, w), 3.0)
-    return GridProblem(prior, prior + rng.normal(0, 0.1, (h, w)), prec, np.arange(h, dtype=float),
-                       np.arange(w, dtype=float), prior, Kernel(nu, lengthscale, 0.5))
+    return GridProblem(
+        prior,
+        prior + rng.normal(0, 0.1, (h, w)),
+        prec,
+        np.arange(h, dtype=float),
+        np.arange(w, dtype=float),
+        prior,
+        Kernel(nu, lengthscale, 0.5),
+    )
 
 
 def query(p, *, route="auto", backend="compiled", budget=2**34, max_dense_points=6000, variance=True, lml=False):
-    return RouteQuery(p, p, variance, 0, lml, route != "auto", backend, budget, max_dense_points,
-                      neumann_buffers={})
+    return RouteQuery(p, p, variance, 0, lml, route != "auto", backend, budget, max_dense_points, neumann_buffers={})
 
 
 def test_every_route_is_a_route_with_a_name():

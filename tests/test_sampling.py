@@ -63,8 +63,17 @@ class TestUniform:
             as_available(np.zeros(5))
         with pytest.raises(InvalidInputError):
             make_rng("seed")
-        for bad in (dict(n=5, rng=-1), dict(n=float("inf")), dict(n=float("nan")), dict(n="5"), dict(n=True),
-                    dict(n=2.5), dict(density=float("nan")), dict(density="0.5"), dict(n=5, rng=True)):
+        for bad in (
+            dict(n=5, rng=-1),
+            dict(n=float("inf")),
+            dict(n=float("nan")),
+            dict(n="5"),
+            dict(n=True),
+            dict(n=2.5),
+            dict(density=float("nan")),
+            dict(density="0.5"),
+            dict(n=5, rng=True),
+        ):
             with pytest.raises(InvalidInputError):
                 sample_uniform(DENSE, **bad)
         assert len(sample_uniform(DENSE, n=5.0, rng=np.int64(2))) == 5  # integral floats and numpy seeds are fine

@@ -103,8 +103,18 @@ def test_posterior_matches_a_dense_reference_with_the_slope():
     truth, mde = _scene()
     sp = g.sample_uniform(truth, n=50, rng=1)
     l, s, tau, sig = 6.0, 0.3, 0.04, 0.01
-    cfg = g.DepthGPConfig(fit=False, outlier_threshold=None, local_calibration=None, edge_sigma=0.0, lengthscale=l, outputscale=s,
-                          nugget=tau, sigma_meas=sig, depth_lengthscale=None, mde_slope_sigma=0.5)
+    cfg = g.DepthGPConfig(
+        fit=False,
+        outlier_threshold=None,
+        local_calibration=None,
+        edge_sigma=0.0,
+        lengthscale=l,
+        outputscale=s,
+        nugget=tau,
+        sigma_meas=sig,
+        depth_lengthscale=None,
+        mde_slope_sigma=0.5,
+    )
     post = g.complete(mde, sp, config=cfg)
     rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
     x = np.log(mde[rows, cols])
@@ -168,4 +178,6 @@ def test_an_mde_the_points_contradict_warns(recwarn):
     with pytest.warns(g.PosteriorWarning, match=r"frame 7: the points follow the MDE's depth differences only weakly"):
         post = g.complete(disparity, g.sample_uniform(truth, n=80, rng=5), frame="7")
     assert post.mde_slope < 0.2
-    assert np.sqrt(np.mean((post.mean - truth) ** 2)) < 0.5 * np.sqrt(np.mean((disparity * np.median(truth / disparity) - truth) ** 2))
+    assert np.sqrt(np.mean((post.mean - truth) ** 2)) < 0.5 * np.sqrt(
+        np.mean((disparity * np.median(truth / disparity) - truth) ** 2)
+    )

@@ -33,7 +33,7 @@ def _scene(n=120, seed=0, h=30, w=40):
     rng = np.random.default_rng(seed)
     rr, cc = np.mgrid[0:h, 0:w]
     truth = 2.0 + 2.0 * rr / h + 0.3 * np.sin(cc / 6.0)
-    mde = truth ** 1.6 * 0.5 * np.exp(0.05 * rng.standard_normal((h, w)))  # over-states depth differences
+    mde = truth**1.6 * 0.5 * np.exp(0.05 * rng.standard_normal((h, w)))  # over-states depth differences
     sp = g.sample_uniform(truth, n=n, rng=seed)
     return truth, mde, sp
 
@@ -93,26 +93,30 @@ class TestStages:
 
 
 class TestNestedConfigs:
-    @pytest.mark.parametrize("make, field", [
-        (lambda: ScreenConfig(neighbours=0), "neighbours"),
-        (lambda: ScreenConfig(fit_nuggets=()), "fit_nuggets"),
-        (lambda: ScreenConfig(fit_lengthscales=(2.0, -1.0)), "fit_lengthscales"),
-        (lambda: SlopeConfig(huber=0.0), "huber"),
-        (lambda: SlopeConfig(min_points=2), "min_points"),
-        (lambda: LatticeConfig(detail_share=2.0), "detail_share"),
-        (lambda: LatticeConfig(dense_stride=17), "dense_stride"),
-        (lambda: AssemblyConfig(weight_floor=0.0), "weight_floor"),
-        (lambda: CalibrationConfig(zscore_cap=0.5), "zscore_cap"),
-        (lambda: DepthGPConfig(screen={"neighbours": "many"}), "neighbours"),
-        (lambda: DepthGPConfig(slope=3), "slope"),
-    ])
+    @pytest.mark.parametrize(
+        "make, field",
+        [
+            (lambda: ScreenConfig(neighbours=0), "neighbours"),
+            (lambda: ScreenConfig(fit_nuggets=()), "fit_nuggets"),
+            (lambda: ScreenConfig(fit_lengthscales=(2.0, -1.0)), "fit_lengthscales"),
+            (lambda: SlopeConfig(huber=0.0), "huber"),
+            (lambda: SlopeConfig(min_points=2), "min_points"),
+            (lambda: LatticeConfig(detail_share=2.0), "detail_share"),
+            (lambda: LatticeConfig(dense_stride=17), "dense_stride"),
+            (lambda: AssemblyConfig(weight_floor=0.0), "weight_floor"),
+            (lambda: CalibrationConfig(zscore_cap=0.5), "zscore_cap"),
+            (lambda: DepthGPConfig(screen={"neighbours": "many"}), "neighbours"),
+            (lambda: DepthGPConfig(slope=3), "slope"),
+        ],
+    )
     def test_bad_values_are_refused_by_name(self, make, field):
         with pytest.raises(InvalidInputError, match=field):
             make()
 
     def test_json_round_trip(self):
-        config = DepthGPConfig(screen=ScreenConfig(neighbours=8, fit_nuggets=(0.1, 1.0)),
-                               calibration=CalibrationConfig(prior_points=3.0))
+        config = DepthGPConfig(
+            screen=ScreenConfig(neighbours=8, fit_nuggets=(0.1, 1.0)), calibration=CalibrationConfig(prior_points=3.0)
+        )
         back = DepthGPConfig(**json.loads(json.dumps(asdict(config))))
         assert back == config and isinstance(back.screen.fit_nuggets, tuple)
 
@@ -138,9 +142,11 @@ class TestNestedConfigs:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PosteriorWarning)
             ref = g.complete(mde, sp, config=base)
-            for changed in (base.replace(screen=ScreenConfig(neighbours=4)),
-                            base.replace(slope=SlopeConfig(max_points=10)),
-                            base.replace(calibration=CalibrationConfig(prior_points=50.0))):
+            for changed in (
+                base.replace(screen=ScreenConfig(neighbours=4)),
+                base.replace(slope=SlopeConfig(max_points=10)),
+                base.replace(calibration=CalibrationConfig(prior_points=50.0)),
+            ):
                 post = g.complete(mde, sp, config=changed)
                 assert not np.array_equal(post.variance, ref.variance)
             few = g.complete(mde, sp, config=base.replace(calibration=CalibrationConfig(min_points=10**4)))

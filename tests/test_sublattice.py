@@ -23,7 +23,9 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
     Knn = _kernel(NR, NC, NR, NC, l, s)
 
     def ce(ar, ac, br, bc):
-        return _kernel(ar, ac, br, bc, l, s) - _kernel(ar, ac, NR, NC, l, s) @ np.linalg.solve(Knn, _kernel(NR, NC, br, bc, l, s))
+        return _kernel(ar, ac, br, bc, l, s) - _kernel(ar, ac, NR, NC, l, s) @ np.linalg.solve(
+            Knn, _kernel(NR, NC, br, bc, l, s)
+        )
 
     corr = np.zeros((out_rows.size, out_cols.size))
     vred = np.zeros_like(corr)
@@ -52,7 +54,9 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
     return corr, vred
 
 
-@pytest.mark.parametrize("k, shape, share", [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 3), (4, (13, 17), 1)])
+@pytest.mark.parametrize(
+    "k, shape, share", [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 3), (4, (13, 17), 1)]
+)
 def test_matches_the_dense_conditional_covariance(k, shape, share):
     """share 1: a point on every pixel, so stride 4's 10 x 10 windows keep only their MAX_WINDOW_POINTS nearest."""
     rng = np.random.default_rng(k + shape[0])
@@ -63,7 +67,9 @@ def test_matches_the_dense_conditional_covariance(k, shape, share):
     noise = rng.uniform(1e-4, 4e-3, rows.size)
     out_rows = np.array([0.0, 1.0, 2.5, 4.0, (h - 1) / 2 + 0.3, h - 1.0])
     out_cols = np.array([0.0, 0.7, 3.0, 5.5, w - 1.0])
-    corr, vred = sublattice_kriging(out_rows, out_cols, rows, cols, resid, noise, shape, stride=k, lengthscale=4.0, outputscale=0.3)
+    corr, vred = sublattice_kriging(
+        out_rows, out_cols, rows, cols, resid, noise, shape, stride=k, lengthscale=4.0, outputscale=0.3
+    )
     c_ref, v_ref = _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, 4.0, 0.3)
     np.testing.assert_allclose(corr, c_ref, atol=1e-10)
     np.testing.assert_allclose(vred, v_ref, atol=1e-12)
@@ -107,8 +113,18 @@ def test_every_row_of_cells_is_done_whatever_the_thread_count():
 
 
 def test_a_point_corrects_its_own_pixel_and_nothing_far_away():
-    corr, vred = sublattice_kriging(np.arange(20.0), np.arange(20.0), np.array([9]), np.array([9]), np.array([0.3]),
-                                    np.array([1e-6]), (20, 20), stride=2, lengthscale=8.0, outputscale=0.3)
+    corr, vred = sublattice_kriging(
+        np.arange(20.0),
+        np.arange(20.0),
+        np.array([9]),
+        np.array([9]),
+        np.array([0.3]),
+        np.array([1e-6]),
+        (20, 20),
+        stride=2,
+        lengthscale=8.0,
+        outputscale=0.3,
+    )
     # one point: w = c / (c + n) with c its residual's prior variance, vred = w c
     c = vred[9, 9] / 2 + np.sqrt(vred[9, 9] ** 2 / 4 + vred[9, 9] * 1e-6)
     assert corr[9, 9] == pytest.approx(0.3 * c / (c + 1e-6), rel=1e-9)
@@ -122,7 +138,9 @@ def test_bad_input_is_refused_by_name():
     with pytest.raises(InvalidInputError, match="stride"):
         sublattice_kriging(*args, [1], [1], [0.1], [1e-3], (4, 4), stride=1, lengthscale=2.0, outputscale=0.1)
     with pytest.raises(InvalidInputError, match="one point per pixel"):
-        sublattice_kriging(*args, [1, 1], [1, 1], [0.1, 0.2], [1e-3, 1e-3], (4, 4), stride=2, lengthscale=2.0, outputscale=0.1)
+        sublattice_kriging(
+            *args, [1, 1], [1, 1], [0.1, 0.2], [1e-3, 1e-3], (4, 4), stride=2, lengthscale=2.0, outputscale=0.1
+        )
     with pytest.raises(ShapeError, match="outside"):
         sublattice_kriging(*args, [4], [1], [0.1], [1e-3], (4, 4), stride=2, lengthscale=2.0, outputscale=0.1)
     with pytest.raises(InvalidInputError, match="noise"):
@@ -131,8 +149,9 @@ def test_bad_input_is_refused_by_name():
 
 def test_a_noise_free_point_on_a_node_leaves_its_cell_uncorrected():
     """Stride 3: pixel 1 is a node, where the residual's prior variance is 0 (a singular system without noise)."""
-    corr, vred = sublattice_kriging(np.arange(9.0), np.arange(9.0), [1], [1], [0.2], [0.0], (9, 9), stride=3,
-                                    lengthscale=4.0, outputscale=0.3)
+    corr, vred = sublattice_kriging(
+        np.arange(9.0), np.arange(9.0), [1], [1], [0.2], [0.0], (9, 9), stride=3, lengthscale=4.0, outputscale=0.3
+    )
     assert np.all(np.isfinite(corr)) and np.all(np.isfinite(vred))
     assert np.all(corr[:3, :3] == 0) and np.all(vred[:3, :3] == 0)
 

@@ -238,8 +238,7 @@ class TestSimulateMDE:
         assert np.abs(np.diff(log_err, axis=1)).max() < 0.02  # low frequency: tiny pixel-to-pixel change
 
     @pytest.mark.parametrize(
-        "kwargs",
-        [{"scale": 0.0}, {"blur_sigma": -1.0}, {"field_amplitude": float("inf")}, {"field_lengthscale": 0.0}],
+        "kwargs", [{"scale": 0.0}, {"blur_sigma": -1.0}, {"field_amplitude": float("inf")}, {"field_lengthscale": 0.0}]
     )
     def test_bad_simulation(self, kwargs):
         with pytest.raises(InvalidInputError):

@@ -80,7 +80,9 @@ PINNED_RMSE_MM = {50: 250.0, 200: 200.0, 500: 166.0}
 def test_seven_scenes_accuracy_calibration_and_outliers(seven_scenes_inputs, n):
     rmse, mde_rmse, cover, lowest, _ = _seven_scenes(seven_scenes_inputs, n, 0.0)
     assert rmse < 0.65 * mde_rmse
-    assert rmse <= PINNED_RMSE_MM[n], f"{n} points: {rmse:.0f} mm (issue target {dict(zip((50, 200, 500), (250, 170, 140)))[n]})"
+    assert rmse <= PINNED_RMSE_MM[n], (
+        f"{n} points: {rmse:.0f} mm (issue target {dict(zip((50, 200, 500), (250, 170, 140)))[n]})"
+    )
     assert 0.92 <= cover <= 0.97, f"+-2 sigma covers {cover:.3f}"
     assert lowest > 0
     bad_rmse, _, bad_cover, bad_lowest, rejected = _seven_scenes(seven_scenes_inputs, n, 0.05)
@@ -128,9 +130,10 @@ def test_seven_scenes_triangulated_points_are_calibrated_densely(shared_data, fa
     completer = g.DepthCompleter()
     covers, se, se_scaled = [], [], []
     for r in range(0, len(frames), 6):
-        window = frames[max(0, r - 8): r + 5]
-        sp = triangulate_frames([f.rgb for f in window], [f.pose for f in window], frames[r].camera,
-                                reference=r - max(0, r - 8))
+        window = frames[max(0, r - 8) : r + 5]
+        sp = triangulate_frames(
+            [f.rgb for f in window], [f.pose for f in window], frames[r].camera, reference=r - max(0, r - 8)
+        )
         assert len(sp) > 100 and np.all(np.isfinite(sp.sigma))
         small = frames[r].resized(0.5)
         mde, gt = np.asarray(fastdepth(small.rgb), dtype=np.float64), small.depth
@@ -202,8 +205,9 @@ def test_kitti_tiny_never_worse_than_the_mde_and_calibrated(shared_data):
     if not (models / "rtmonodepth_s_ms_640_192.onnx").is_file() or not (shared_data / "kitti_tiny").is_dir():
         pytest.skip("kitti_tiny or RT-MonoDepth-S not found")
     net = load_frontend("rtmonodepth", models_dir=models)
-    cfg = KittiProtocolConfig(densities=(1 / 64, 1 / 16, 1.0), methods=("mde", "ip_basic", "gp_default"),
-                              full_resolution=False)
+    cfg = KittiProtocolConfig(
+        densities=(1 / 64, 1 / 16, 1.0), methods=("mde", "ip_basic", "gp_default"), full_resolution=False
+    )
     rows = []
     for i, (name, rgb, lidar) in enumerate(lidar_frames(g.open_dataset(shared_data / "kitti_tiny"))):
         with warnings.catch_warnings():

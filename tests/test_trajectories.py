@@ -139,7 +139,9 @@ class TestKITTI:
             read_kitti_poses(bad)
 
 
-def _write_colmap(folder: Path, poses: np.ndarray, points: np.ndarray, model: str = "PINHOLE", binary: bool = True) -> None:
+def _write_colmap(
+    folder: Path, poses: np.ndarray, points: np.ndarray, model: str = "PINHOLE", binary: bool = True
+) -> None:
     import pycolmap
 
     rec = pycolmap.Reconstruction()
@@ -183,7 +185,10 @@ class TestColmap:
         mp = model.map_points(first)
         assert mp.shape == (30, 3)
         # the keypoints sit where gpdepth3d's camera projects the map points with the read pose
-        pcam = mp @ invert_pose(model.images[first].T_world_camera)[:3, :3].T + invert_pose(model.images[first].T_world_camera)[:3, 3]
+        pcam = (
+            mp @ invert_pose(model.images[first].T_world_camera)[:3, :3].T
+            + invert_pose(model.images[first].T_world_camera)[:3, 3]
+        )
         uv, _ = model.cameras[1].project(pcam)
         np.testing.assert_allclose(uv, model.images[first].uv, atol=1e-6)
         with pytest.raises(InvalidInputError):
@@ -267,8 +272,12 @@ class TestTUMChecks:
 
     def test_bad_lines(self, tmp_path: Path):
         path = tmp_path / "t.txt"
-        for text, match in [("0 0 0 0 0 0 0\n", "expected 8 numbers"), ("0 0 0 nan 0 0 0 1\n", "NaN"),
-                            ("0 0 0 x 0 0 0 1\n", "not numbers"), ("# only a comment\n", "no poses")]:
+        for text, match in [
+            ("0 0 0 0 0 0 0\n", "expected 8 numbers"),
+            ("0 0 0 nan 0 0 0 1\n", "NaN"),
+            ("0 0 0 x 0 0 0 1\n", "not numbers"),
+            ("# only a comment\n", "no poses"),
+        ]:
             path.write_text(text)
             with pytest.raises(DataFormatError, match=match):
                 read_tum_trajectory(path)
@@ -374,8 +383,12 @@ class TestAnyFormat:
             assert detect_pose_format(path) == fmt
             traj = read_trajectory(path)
             np.testing.assert_allclose(traj.poses, ref, atol=1e-6, err_msg=fmt)
-            np.testing.assert_allclose(associate_poses(traj, images[fmt][::-1] if fmt in ("files", "colmap", "tum") else images[fmt]),
-                                       ref[::-1] if fmt in ("files", "colmap", "tum") else ref, atol=1e-6, err_msg=fmt)
+            np.testing.assert_allclose(
+                associate_poses(traj, images[fmt][::-1] if fmt in ("files", "colmap", "tum") else images[fmt]),
+                ref[::-1] if fmt in ("files", "colmap", "tum") else ref,
+                atol=1e-6,
+                err_msg=fmt,
+            )
         with pytest.raises(InvalidInputError, match="format"):
             read_trajectory(written["tum"], "euroc")
 

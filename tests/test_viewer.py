@@ -19,13 +19,7 @@ import tyro
 from gpdepth3d.camera import PinholeCamera, transform_points
 from gpdepth3d.mapping.cloud import backproject_depth
 from gpdepth3d.completion.complete import DepthPosterior, complete
-from gpdepth3d.errors import (
-    CalibrationError,
-    DataFormatError,
-    EmptyInputError,
-    InvalidInputError,
-    ShapeError,
-)
+from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import load_pose, load_poses
 from gpdepth3d.metrics import depth_metrics
@@ -263,8 +257,18 @@ class TestShow:
         nodes = set(viewer.server.scene._handle_from_node_name)
         for name in ("/mde/points", "/gp/points", "/sparse/points", "/gt/points", "/cameras/0000"):
             assert name in nodes
-        assert {"show_mde", "show_gp", "show_sparse", "show_gt", "show_cameras", "layout", "color_by",
-                "max_sigma", "filter_mde", "point_size"} <= set(viewer.controls)
+        assert {
+            "show_mde",
+            "show_gp",
+            "show_sparse",
+            "show_gt",
+            "show_cameras",
+            "layout",
+            "color_by",
+            "max_sigma",
+            "filter_mde",
+            "point_size",
+        } <= set(viewer.controls)
         assert "error" in viewer.controls["color_by"].options
         viewer.controls["show_mde"].value = False
         assert viewer.groups["mde"].visible is False
@@ -458,7 +462,9 @@ class TestLoadingState:
                 names = [what for what, _ in v.events]
                 assert names[0] == "loading" and names[-1] == "loaded"
                 # a sequence: the first frame's cloud at once, before the panel and the full clouds
-                assert names.index("preview") < names.index("panel") < names.index("cloud:mde") < names.index("cloud:gp")
+                assert (
+                    names.index("preview") < names.index("panel") < names.index("cloud:mde") < names.index("cloud:gp")
+                )
                 times = [t for _, t in v.events]
                 assert times == sorted(times)
                 assert v._preview is None  # the preview node is gone once the full clouds are in
@@ -553,7 +559,9 @@ class TestViewCommand:
         make_posterior(room).save(tmp_path / "a.npz")
         make_posterior(room, seed=1).save(tmp_path / "b.npz")
         np.savetxt(tmp_path / "poses.txt", np.stack([room.T_world_camera[:3].ravel(), T2[:3].ravel()]))
-        view_command(posterior=(tmp_path / "a.npz", tmp_path / "b.npz"), poses=(tmp_path / "poses.txt",), port=0, duration=0)
+        view_command(
+            posterior=(tmp_path / "a.npz", tmp_path / "b.npz"), poses=(tmp_path / "poses.txt",), port=0, duration=0
+        )
         assert "viewer running at" in capsys.readouterr().out
         with pytest.raises(InvalidInputError, match="--poses"):
             view_command(posterior=(tmp_path / "a.npz",) * 3, poses=(tmp_path / "poses.txt",), duration=0)
@@ -655,8 +663,16 @@ class TestInBrowser:
                     page.goto(viewer.url, timeout=30_000)
                     page.wait_for_selector("canvas", timeout=30_000)
                     # The GUI as the user sees it: folder, layer and control labels in the DOM.
-                    for text in ("Max σ (m)", "MDE only", "GP refined", "Sparse measurements", "Ground truth",
-                                 "Colour by", "Point size (m)", "RMSE mm"):
+                    for text in (
+                        "Max σ (m)",
+                        "MDE only",
+                        "GP refined",
+                        "Sparse measurements",
+                        "Ground truth",
+                        "Colour by",
+                        "Point size (m)",
+                        "RMSE mm",
+                    ):
                         page.get_by_text(text, exact=True).first.wait_for(timeout=30_000)
                     assert _poll(lambda: len(viewer.server.get_clients()) >= 1, 10)
                     assert page.evaluate(

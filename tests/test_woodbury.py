@@ -27,7 +27,9 @@ def sparse_problem(rng, h, w, m, *, lengthscale=5.0, s=0.8, out_rows=None, out_c
     obs = prior + rng.normal(0.0, 0.6, (h, w))
     rows = np.arange(h, dtype=float) if out_rows is None else np.asarray(out_rows, float)
     cols = np.arange(w, dtype=float) if out_cols is None else np.asarray(out_cols, float)
-    return GridProblem(prior, obs, prec, rows, cols, rng.normal(3.0, 0.5, (rows.size, cols.size)), Kernel(nu, lengthscale, s))
+    return GridProblem(
+        prior, obs, prec, rows, cols, rng.normal(3.0, 0.5, (rows.size, cols.size)), Kernel(nu, lengthscale, s)
+    )
 
 
 class TestAgainstExact:
@@ -43,8 +45,14 @@ class TestAgainstExact:
     @pytest.mark.parametrize("out", [(47, 63), (7, 9), (23, 31)])
     def test_output_grids(self, out):
         h, w = 23, 31
-        problem = sparse_problem(np.random.default_rng(1), h, w, 60, out_rows=output_coordinates(h, out[0]),
-                                 out_cols=output_coordinates(w, out[1]))
+        problem = sparse_problem(
+            np.random.default_rng(1),
+            h,
+            w,
+            60,
+            out_rows=output_coordinates(h, out[0]),
+            out_cols=output_coordinates(w, out[1]),
+        )
         m0, v0 = ExactEngine().solve(problem)
         m1, v1 = FastEngine(route="woodbury").solve(problem)
         np.testing.assert_allclose(m1, m0, atol=1e-10)
@@ -67,8 +75,15 @@ class TestAgainstExact:
         for r, c in [(0, 0), (0, w - 1), (h - 1, 0), (h - 1, w - 1), (0, 5), (6, 0), (h - 1, 9), (4, w - 1), (5, 5)]:
             prec[r, c] = 1e3
         prior = np.full((h, w), 2.0)
-        problem = GridProblem(prior, prior + rng.normal(0, 0.3, (h, w)), prec, output_coordinates(h, 2 * h),
-                              output_coordinates(w, 2 * w), np.full((2 * h, 2 * w), 2.0), Kernel(0.5, 3.0, 0.5))
+        problem = GridProblem(
+            prior,
+            prior + rng.normal(0, 0.3, (h, w)),
+            prec,
+            output_coordinates(h, 2 * h),
+            output_coordinates(w, 2 * w),
+            np.full((2 * h, 2 * w), 2.0),
+            Kernel(0.5, 3.0, 0.5),
+        )
         m0, v0 = ExactEngine().solve(problem)
         post = WoodburyPosterior(problem)
         np.testing.assert_allclose(post.mean(), m0, atol=1e-11)
@@ -80,8 +95,15 @@ class TestAgainstExact:
         prec[4, 6] = 1 / sig**2
         obs = np.zeros((h, w))
         obs[4, 6] = 1.0
-        problem = GridProblem(np.zeros((h, w)), obs, prec, np.arange(h, dtype=float), np.arange(w, dtype=float),
-                              np.zeros((h, w)), Kernel(0.5, l, s))
+        problem = GridProblem(
+            np.zeros((h, w)),
+            obs,
+            prec,
+            np.arange(h, dtype=float),
+            np.arange(w, dtype=float),
+            np.zeros((h, w)),
+            Kernel(0.5, l, s),
+        )
         r, c = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
         rho = np.exp(-(np.abs(r - 4) + np.abs(c - 6)) / l)
         gain = s**2 / (s**2 + sig**2)
@@ -139,7 +161,11 @@ class TestRoute:
         assert engine.solve(tiny_noise).info.route == "grid"
 
     def test_cost_model_grows_with_points(self):
-        assert woodbury_seconds(100, 76800, True) < woodbury_seconds(1000, 76800, True) < woodbury_seconds(4000, 76800, True)
+        assert (
+            woodbury_seconds(100, 76800, True)
+            < woodbury_seconds(1000, 76800, True)
+            < woodbury_seconds(4000, 76800, True)
+        )
         assert woodbury_seconds(500, 76800, False) < woodbury_seconds(500, 76800, True)
 
     def test_bad_route(self):
@@ -177,7 +203,9 @@ def test_real_frame_routes_agree(seven_scenes_frame):
     assert auto.engine.plan(build_problem(mde, sparse, config)[0]) == "woodbury"
     np.testing.assert_allclose(a.mean, g.mean, atol=1e-9)
     np.testing.assert_allclose(a.std, g.std, rtol=1e-8)
-    assert np.sqrt(np.mean((a.mean - depth) ** 2, where=depth > 0)) < np.sqrt(np.mean((mde - depth) ** 2, where=depth > 0))
+    assert np.sqrt(np.mean((a.mean - depth) ** 2, where=depth > 0)) < np.sqrt(
+        np.mean((mde - depth) ** 2, where=depth > 0)
+    )
 
 
 def test_concurrent_callers_share_an_engine():

@@ -133,7 +133,12 @@ def _compile_notice(argv: list[str]):
     """Prints `COMPILE_NOTICE` once when a command compiles kernels (not for `view` or --help: no numba import)."""
     import contextlib
 
-    if not argv or argv[0] not in ("complete", "demo", "eval", "fuse", "map", "batch") or "--help" in argv or "-h" in argv:
+    if (
+        not argv
+        or argv[0] not in ("complete", "demo", "eval", "fuse", "map", "batch")
+        or "--help" in argv
+        or "-h" in argv
+    ):
         return contextlib.nullcontext()
     from ..gp.compile_notice import on_first_compile
 
@@ -163,7 +168,10 @@ def main(argv: list[str] | None = None) -> int:
         quiet = hook is None and not ({"-h", "--help"} & set(argv))
         with _compile_notice(argv), hook or contextlib.nullcontext():
             tyro.extras.subcommand_cli_from_dict(
-                commands, args=argv, prog="gpdepth3d", config=(tyro.conf.CascadeSubcommandArgs,),
+                commands,
+                args=argv,
+                prog="gpdepth3d",
+                config=(tyro.conf.CascadeSubcommandArgs,),
                 console_outputs=not quiet,
             )
     except SystemExit as exc:

@@ -78,7 +78,11 @@ def batch_command(
         output,
         config=gp,
         loader=HoldoutInputs(
-            factor=factor, n_input=n_input, mde=mde, seed=seed, models_dir=None if models_dir is None else str(models_dir)
+            factor=factor,
+            n_input=n_input,
+            mde=mde,
+            seed=seed,
+            models_dir=None if models_dir is None else str(models_dir),
         ),
         task=task,
         workers=workers,

@@ -15,7 +15,11 @@ from ..io import PNGRangeWarning, check_output_path, output_set
 from ._options import GPPreset
 
 METRIC_COLUMNS: dict[str, str] = {
-    "rmse": "RMSE [mm]", "mae": "MAE [mm]", "irmse": "iRMSE [1/km]", "imae": "iMAE [1/km]", "rel": "REL [-]",
+    "rmse": "RMSE [mm]",
+    "mae": "MAE [mm]",
+    "irmse": "iRMSE [1/km]",
+    "imae": "iMAE [1/km]",
+    "rel": "REL [-]",
     "delta1": "δ1 [-]",
 }
 """The metrics table's columns and their headers with units."""
@@ -112,8 +116,11 @@ def complete_command(
     from ..metrics import calibration_metrics, depth_metrics
 
     # Everything is checked and read before anything is computed or written.
-    for name, value in (("--mde-png-scale", mde_png_scale), ("--sparse-png-scale", sparse_png_scale),
-                        ("--gt-png-scale", gt_png_scale)):
+    for name, value in (
+        ("--mde-png-scale", mde_png_scale),
+        ("--sparse-png-scale", sparse_png_scale),
+        ("--gt-png-scale", gt_png_scale),
+    ):
         check_png_scale(value, name)
     for name, value in (("--mde-scale", mde_scale), ("--sparse-scale", sparse_scale)):
         if value is not None and not (np.isfinite(value) and value > 0):
@@ -131,7 +138,8 @@ def complete_command(
     png_names = [out_npz.stem + s for s in ("_mean.png", "_std.png")]
     preview_names = [p.name for p in preview_paths(base, with_error=True)]
     check_output_targets(
-        [out_npz] + ([out_npz.with_name(n) for n in png_names] if png else [])
+        [out_npz]
+        + ([out_npz.with_name(n) for n in png_names] if png else [])
         + (preview_paths(base, with_error=gt is not None) if preview else [])
     )
     if ply is not None:
@@ -139,8 +147,9 @@ def complete_command(
         if ply.suffix.lower() != ".ply":
             raise InvalidInputError("--ply", "a file name ending in .ply", str(ply))
         if intrinsics is None and (lidar is None or calib is None):
-            raise InvalidInputError("--ply", "intrinsics to back-project with: --intrinsics K.txt, or --lidar with --calib",
-                                    "neither")
+            raise InvalidInputError(
+                "--ply", "intrinsics to back-project with: --intrinsics K.txt, or --lidar with --calib", "neither"
+            )
         check_output_targets([ply])
     if (sparse is None) == (lidar is None):
         raise InvalidInputError("--sparse / --lidar", "exactly one source of measurements", "both or neither")
@@ -180,7 +189,8 @@ def complete_command(
             raise EmptyInputError("--gt", "a ground-truth map with at least one valid depth (> 0)", "none valid")
         if abs((gt_depth.shape[1] / gt_depth.shape[0]) / (out_shape[1] / out_shape[0]) - 1.0) > 0.01:
             raise InvalidInputError(
-                "--gt", f"a depth map of the image with the MDE's aspect ratio ({out_shape[1]}x{out_shape[0]})",
+                "--gt",
+                f"a depth map of the image with the MDE's aspect ratio ({out_shape[1]}x{out_shape[0]})",
                 f"{gt_depth.shape[1]}x{gt_depth.shape[0]}",
             )
     camera = calibration_camera = None
@@ -202,7 +212,9 @@ def complete_command(
         xyz = _load_table(sparse, 3)
         measurements = project_points(xyz, camera)
     else:
-        measurements = load_sparse(sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points)
+        measurements = load_sparse(
+            sparse, mde_depth.shape, png_scale=sparse_png_scale, drop_invalid=drop_invalid_points
+        )
     if sparse is not None:
         if sparse_scale is None:
             check_metres(measurements.depth, f"--sparse {sparse}", "--sparse-scale")
@@ -228,10 +240,12 @@ def complete_command(
         rows = {"mde": depth_metrics(posterior.mde, gt_depth), "gp": depth_metrics(posterior.mean, gt_depth)}
         _print_metrics(rows)
         cal = calibration_metrics(posterior.mean, posterior.variance, gt_depth)
-        print(f"calibration: +-1 sigma coverage {cal['coverage_1sigma']:.3f} (calibrated 0.683), +-2 sigma "
-              f"{cal['coverage_2sigma']:.3f} (0.954), +-3 sigma {cal['coverage_3sigma']:.3f} (0.997), median "
-              f"|error| / sigma {cal['median_abs_z']:.3f} (0.674), AUSE {cal['ause']:.3f} (0: sigma ranks the errors "
-              f"perfectly), NLL {cal['nll']:.3f} [nats per pixel]")
+        print(
+            f"calibration: +-1 sigma coverage {cal['coverage_1sigma']:.3f} (calibrated 0.683), +-2 sigma "
+            f"{cal['coverage_2sigma']:.3f} (0.954), +-3 sigma {cal['coverage_3sigma']:.3f} (0.997), median "
+            f"|error| / sigma {cal['median_abs_z']:.3f} (0.674), AUSE {cal['ause']:.3f} (0: sigma ranks the errors "
+            f"perfectly), NLL {cal['nll']:.3f} [nats per pixel]"
+        )
     # One set: the npz, its PNGs and the previews appear together or not at all; names of an
     # earlier call not written now (its error preview, its PNGs) go in the same commit.
     with warnings.catch_warnings(record=True) as caught:
@@ -240,7 +254,12 @@ def complete_command(
             written = list(posterior.save(out_npz, png=png))
             if preview:
                 written += write_previews(
-                    base, posterior.mean, posterior.std, mde=posterior.mde, depth_gt=gt_depth, rgb=image,
+                    base,
+                    posterior.mean,
+                    posterior.std,
+                    mde=posterior.mde,
+                    depth_gt=gt_depth,
+                    rgb=image,
                     sparse=posterior.sparse,
                 )
             if ply is not None:

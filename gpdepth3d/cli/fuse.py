@@ -83,13 +83,7 @@ def fuse_command(
     K = COLOUR_INTRINSICS.copy()
     K[0, 0] = K[1, 1] = rgb_focal
     result = fuse_sequence(
-        data,
-        mde=network,
-        rgb_K=K,
-        config=config,
-        max_frames=frames,
-        threshold=threshold,
-        metric_samples=metric_samples,
+        data, mde=network, rgb_K=K, config=config, max_frames=frames, threshold=threshold, metric_samples=metric_samples
     )
     out = Path(output)
     written = []
@@ -117,8 +111,10 @@ def fuse_command(
         print(f"skipped {message}")
     if result["empty_meshes"]:
         print(f"no surface above the weight threshold yet in: {', '.join(result['empty_meshes'])} (no mesh written)")
-    print(f"{result['frames_fused']} of {result['frames']} frames fused; wrote {len(written)} meshes and "
-          f"{out / 'metrics.json'} (in {out.resolve()})")
+    print(
+        f"{result['frames_fused']} of {result['frames']} frames fused; wrote {len(written)} meshes and "
+        f"{out / 'metrics.json'} (in {out.resolve()})"
+    )
     for path in written:
         print(f"wrote {path}")
     scores = [f"{name} {m['fscore']:.3f}" for name, m in result["metrics"].items() if m is not None]

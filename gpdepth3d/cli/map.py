@@ -100,15 +100,25 @@ def map_command(
         raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
     check_output_folder(Path(output), "--output")
     inputs = open_posed_sequence(
-        str(images), poses, intrinsics, pose_format=pose_format, association=association,
-        max_time_difference=max_time_difference, depth=None if depth is None else str(depth),
-        depth_scale=depth_scale, depth_invalid=depth_invalid, depth_intrinsics=depth_intrinsics,
+        str(images),
+        poses,
+        intrinsics,
+        pose_format=pose_format,
+        association=association,
+        max_time_difference=max_time_difference,
+        depth=None if depth is None else str(depth),
+        depth_scale=depth_scale,
+        depth_invalid=depth_invalid,
+        depth_intrinsics=depth_intrinsics,
     )
     base = MapperConfig()
     config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
     seq = inputs.sequence
-    print(f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
-          + (", with depth" if seq.depth_files is not None else ""), flush=True)
+    print(
+        f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
+        + (", with depth" if seq.depth_files is not None else ""),
+        flush=True,
+    )
     live = None
     if view:
         from ..viewer.live_map import LiveMapViewer
@@ -120,9 +130,16 @@ def map_command(
         try:
             network = load_frontend(mde, models_dir=models_dir)
             result = map_sequence(
-                inputs, mde=network, config=config, working_width=working_width, stride=stride,
-                max_frames=frames, threshold=threshold, metric_samples=metric_samples,
-                progress=sys.stderr.isatty(), on_frame=None if live is None else live.update,
+                inputs,
+                mde=network,
+                config=config,
+                working_width=working_width,
+                stride=stride,
+                max_frames=frames,
+                threshold=threshold,
+                metric_samples=metric_samples,
+                progress=sys.stderr.isatty(),
+                on_frame=None if live is None else live.update,
             )
         except BaseException:
             if live is not None:
@@ -131,26 +148,39 @@ def map_command(
     _report_warnings(caught)
     summary = map_summary(result)
     summary["inputs"] = {
-        "images": str(images), "poses": str(poses), "pose_format": inputs.pose_format, "intrinsics": intrinsics,
-        "depth": None if depth is None else str(depth), "depth_scale": depth_scale, "mde": str(mde),
-        "stride": stride, "frames": frames, "working_width": working_width,
+        "images": str(images),
+        "poses": str(poses),
+        "pose_format": inputs.pose_format,
+        "intrinsics": intrinsics,
+        "depth": None if depth is None else str(depth),
+        "depth_scale": depth_scale,
+        "mde": str(mde),
+        "stride": stride,
+        "frames": frames,
+        "working_width": working_width,
     }
     written = write_map(result, output, mesh_format=mesh_format, summary=summary)
     for message in result.frame_errors:
         print(f"skipped {message}")
     if result.frames_without_points:
-        print(f"{len(result.frames_without_points)} frame(s) had no sparse point and were fused from the MDE with "
-              "its prior variance")
-    print(f"mapped {result.frames_fused} of {result.frames} frames in {result.timing['wall']:.1f} s "
-          f"(median {result.sparse_points:.0f} points a frame); wrote {len(written)} files to {Path(output).resolve()}")
+        print(
+            f"{len(result.frames_without_points)} frame(s) had no sparse point and were fused from the MDE with "
+            "its prior variance"
+        )
+    print(
+        f"mapped {result.frames_fused} of {result.frames} frames in {result.timing['wall']:.1f} s "
+        f"(median {result.sparse_points:.0f} points a frame); wrote {len(written)} files to {Path(output).resolve()}"
+    )
     for path in written:
         print(f"wrote {path}")
     if result.metrics is not None:
         print(_fscore_line(result.metrics, threshold))
     if live is not None:
         live.finish(result)
-        print(f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})",
-              flush=True)
+        print(
+            f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})",
+            flush=True,
+        )
         live.wait(view_duration)
         live.stop()
     return summary
@@ -158,8 +188,13 @@ def map_command(
 
 def _fscore_line(metrics: dict, threshold: float) -> str:
     """One line with the map's and the MDE-only map's F-score against the sensor depth."""
+
     def f(m):
-        return "no surface" if m is None else f"{m['fscore']:.3f} (precision {m['precision']:.3f}, recall {m['recall']:.3f})"
+        return (
+            "no surface"
+            if m is None
+            else f"{m['fscore']:.3f} (precision {m['precision']:.3f}, recall {m['recall']:.3f})"
+        )
 
     return f"F-score at {threshold * 100:g} cm against the sensor depth: map {f(metrics['map'])}; MDE alone {f(metrics['mde'])}"
 

@@ -90,8 +90,10 @@ def view_command(
     K = read_intrinsics(intrinsics) if intrinsics is not None else None
     stored = [None if K is not None else stored_intrinsics(path) for path in posterior]
     if K is None and n and any(k is None for k in stored):
-        print("view: no --intrinsics and none in the posterior file; assuming a 60 degree horizontal field of view "
-              "(give --intrinsics K.txt, a KITTI calib file or fx,fy,cx,cy)")
+        print(
+            "view: no --intrinsics and none in the posterior file; assuming a 60 degree horizontal field of view "
+            "(give --intrinsics K.txt, a KITTI calib file or fx,fy,cx,cy)"
+        )
     frames = [
         ViewerFrame.from_files(
             path,
@@ -111,10 +113,15 @@ def view_command(
     ) as viewer:
         if taken or (port and viewer.port != port):
             print(f"view: port {port} is taken (by another program); using port {viewer.port} instead")
-        print(f"viewer running at {viewer.url} ({'Ctrl-C to stop' if duration is None else f'{duration:g} s'})",
-              flush=True)
+        print(
+            f"viewer running at {viewer.url} ({'Ctrl-C to stop' if duration is None else f'{duration:g} s'})",
+            flush=True,
+        )
         viewer.wait_loaded()
-        print(f"view: {len(frames)} frame(s) and {len(mesh)} mesh(es) on the page "
-              f"({viewer.events[-1][1]:.1f} s after the server started)", flush=True)
+        print(
+            f"view: {len(frames)} frame(s) and {len(mesh)} mesh(es) on the page "
+            f"({viewer.events[-1][1]:.1f} s after the server started)",
+            flush=True,
+        )
         viewer.wait(duration)
     print("viewer stopped")

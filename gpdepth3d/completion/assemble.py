@@ -44,8 +44,9 @@ class DepthMoments:
     mde: np.ndarray
 
 
-def assemble_depth(frame: LogFrame, sloped: Sloped, screened: Screened, lattice: Lattice, field: FieldPosterior,
-                   config: DepthGPConfig) -> DepthMoments:
+def assemble_depth(
+    frame: LogFrame, sloped: Sloped, screened: Screened, lattice: Lattice, field: FieldPosterior, config: DepthGPConfig
+) -> DepthMoments:
     """The depth's moments from the field, the global scale b and the slope a (see the module docstring).
 
     Raises:
@@ -62,16 +63,29 @@ def assemble_depth(frame: LogFrame, sloped: Sloped, screened: Screened, lattice:
     w1 = field.extra[0] if field.extra else None
     wx = field.extra[1] if len(field.extra) > 1 else None
     mean, var = assemble(
-        log_out, field.mean, field.variance, w1, wx, x_out, b=fit.log_scale, s2=fit.outputscale**2,
-        tau2=fit.nugget**2, var_b=fit.log_scale_var, var_a=sloped.fit.slope_var if lattice.slope_term else 0.0,
-        a=sloped.a, lz=config.depth_lengthscale if lattice.depth_aware else None,
-        floor=config.assembly.weight_floor, scale_term=lattice.scale_term, slope_term=lattice.slope_term,
+        log_out,
+        field.mean,
+        field.variance,
+        w1,
+        wx,
+        x_out,
+        b=fit.log_scale,
+        s2=fit.outputscale**2,
+        tau2=fit.nugget**2,
+        var_b=fit.log_scale_var,
+        var_a=sloped.fit.slope_var if lattice.slope_term else 0.0,
+        a=sloped.a,
+        lz=config.depth_lengthscale if lattice.depth_aware else None,
+        floor=config.assembly.weight_floor,
+        scale_term=lattice.scale_term,
+        slope_term=lattice.slope_term,
         variance=True,
     )
     bad = ~(np.isfinite(mean) & (mean > 0) & np.isfinite(var))
     if bad.any():
         raise InvalidInputError(
-            "mde_depth, sparse", "an MDE and points whose log-normal posterior is finite in float64",
+            "mde_depth, sparse",
+            "an MDE and points whose log-normal posterior is finite in float64",
             f"{int(np.count_nonzero(bad))} pixels overflow (MDE depths {float(frame.base.min()):g}-"
             f"{float(frame.base.max()):g} m, fitted slope {sloped.a:.3g})",
         )
@@ -79,8 +93,28 @@ def assemble_depth(frame: LogFrame, sloped: Sloped, screened: Screened, lattice:
 
 
 @njit(cache=True, nogil=True)
-def _assemble(log_out, g_mean, g_var, w1, wx, x_out, b, s2, tau2, var_b, var_a, a, inv_lz, floor,
-              depth_aware, scale_term, slope_term, want_var, mean, var):  # pragma: no cover - compiled
+def _assemble(
+    log_out,
+    g_mean,
+    g_var,
+    w1,
+    wx,
+    x_out,
+    b,
+    s2,
+    tau2,
+    var_b,
+    var_a,
+    a,
+    inv_lz,
+    floor,
+    depth_aware,
+    scale_term,
+    slope_term,
+    want_var,
+    mean,
+    var,
+):  # pragma: no cover - compiled
     n = log_out.size
     for i in range(n):
         rho = 1.0
@@ -107,8 +141,9 @@ def _assemble(log_out, g_mean, g_var, w1, wx, x_out, b, s2, tau2, var_b, var_a, 
             var[i] = math.expm1(v) * m * m
 
 
-def assemble(log_out, g_mean, g_var, w1, wx, x_out, *, b, s2, tau2, var_b, var_a, a, lz, floor,
-             scale_term, slope_term, variance):
+def assemble(
+    log_out, g_mean, g_var, w1, wx, x_out, *, b, s2, tau2, var_b, var_a, a, lz, floor, scale_term, slope_term, variance
+):
     """Posterior mean and variance (depth, m and m^2) of every output pixel, as arrays (the compiled pass).
 
     ``w1``, ``wx``, ``x_out`` may be None when neither the depth-aware correlation (``lz`` None),
@@ -122,11 +157,25 @@ def assemble(log_out, g_mean, g_var, w1, wx, x_out, *, b, s2, tau2, var_b, var_a
     mean = np.empty(log_out.size)
     var = np.empty(log_out.size) if variance else zeros
     _assemble(
-        flat(log_out), flat(g_mean), flat(g_var) if variance else zeros,
-        flat(w1) if w1 is not None else zeros, flat(wx) if wx is not None else zeros,
+        flat(log_out),
+        flat(g_mean),
+        flat(g_var) if variance else zeros,
+        flat(w1) if w1 is not None else zeros,
+        flat(wx) if wx is not None else zeros,
         flat(x_out) if x_out is not None else zeros,
-        float(b), float(s2), float(tau2), float(var_b), float(var_a), float(a),
-        1.0 / float(lz) if depth_aware else 0.0, float(floor),
-        bool(depth_aware), bool(scale_term and variance), bool(slope_term and variance), bool(variance), mean, var,
+        float(b),
+        float(s2),
+        float(tau2),
+        float(var_b),
+        float(var_a),
+        float(a),
+        1.0 / float(lz) if depth_aware else 0.0,
+        float(floor),
+        bool(depth_aware),
+        bool(scale_term and variance),
+        bool(slope_term and variance),
+        bool(variance),
+        mean,
+        var,
     )
     return mean.reshape(shape), (var.reshape(shape) if variance else np.full(shape, np.nan))

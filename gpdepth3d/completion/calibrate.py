@@ -29,8 +29,9 @@ class Calibrated:
     factor: np.ndarray | None
 
 
-def calibrate(moments: DepthMoments, frame: LogFrame, sloped: Sloped, screened: Screened,
-              config: DepthGPConfig) -> Calibrated:
+def calibrate(
+    moments: DepthMoments, frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig
+) -> Calibrated:
     """Adds the edge term (``edge_sigma`` x the MDE's local depth range, scaled by exp(b)) and multiplies by the
     local factor of the points' squared z-scores (`gpdepth3d.gp.local_calibration`; frames with fewer than
     ``calibration.min_points`` kept points keep the model's variance)."""
@@ -45,12 +46,24 @@ def calibrate(moments: DepthMoments, frame: LogFrame, sloped: Sloped, screened: 
     zscores, shares = screened.zscores, screened.shares
     if config.outlier_threshold is None:  # no screen ran: the z-scores computed here
         with single_threaded_blas():
-            zscores, shares = loo_zscores(frame.rows, frame.cols, sloped.resid,
-                                          screened.noise, screened.fit, nu=config.nu,
-                                          neighbours=config.screen.neighbours, stated=frame.stated)
+            zscores, shares = loo_zscores(
+                frame.rows,
+                frame.cols,
+                sloped.resid,
+                screened.noise,
+                screened.fit,
+                nu=config.nu,
+                neighbours=config.screen.neighbours,
+                stated=frame.stated,
+            )
     factor = local_variance_factor(
-        frame.shape, frame.rows[keep], frame.cols[keep], zscores[keep], reach=config.local_calibration,
-        prior_points=config.calibration.prior_points, zscore_cap=config.calibration.zscore_cap,
+        frame.shape,
+        frame.rows[keep],
+        frame.cols[keep],
+        zscores[keep],
+        reach=config.local_calibration,
+        prior_points=config.calibration.prior_points,
+        zscore_cap=config.calibration.zscore_cap,
         noise_share=shares[keep],
     )
     factor = frame.to_output(factor)

@@ -133,10 +133,7 @@ class DepthPosterior:
             )
         }
         if png:
-            for name, values, arg in (
-                (png_names[0], self.mean, "mean"),
-                (png_names[1], self.std, "std"),
-            ):
+            for name, values, arg in ((png_names[0], self.mean, "mean"), (png_names[1], self.std, "std")):
                 values = depth_png_values(values, argument=f"posterior {arg} ({path.parent / name})", saturate=True)
                 writers[name] = png_writer(values, path.parent / name)
         return atomic_write_set(path.with_suffix(""), writers, members=(npz_name, *png_names))
@@ -202,7 +199,16 @@ class DepthPosterior:
                 )
         except ProblemTooLargeError:
             raise
-        except (KeyError, ValueError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile, GPDepthError) as exc:
+        except (
+            KeyError,
+            ValueError,
+            TypeError,
+            IndexError,
+            OSError,
+            EOFError,
+            zipfile.BadZipFile,
+            GPDepthError,
+        ) as exc:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
 
@@ -302,7 +308,11 @@ class DepthCompleter:
         inputs = log_frame(mde, valid, grid_sparse, out_shape, self.config)
         t1 = time.perf_counter()
         result = log_residual_posterior(
-            self.engine, inputs, self.config, variance=variance, name=f"frame {frame}: " if frame is not None else "",
+            self.engine,
+            inputs,
+            self.config,
+            variance=variance,
+            name=f"frame {frame}: " if frame is not None else "",
             previous=self._point_fit if self.fitted is not None else None,
         )
         for message in result.warnings:
@@ -347,6 +357,4 @@ def complete(
 
     See `DepthCompleter.complete` for the arguments; the module docstring states the input rules.
     """
-    return DepthCompleter(config).complete(
-        mde_depth, sparse, output_shape=output_shape, variance=variance, frame=frame
-    )
+    return DepthCompleter(config).complete(mde_depth, sparse, output_shape=output_shape, variance=variance, frame=frame)

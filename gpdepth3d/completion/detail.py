@@ -27,9 +27,16 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     at = _at_points(fields, lattice.rows, lattice.cols, (h, w))
     kernel = lattice.problem.kernel
     corr, reduction = sublattice_kriging(
-        np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), lattice.rows, lattice.cols,
-        lattice.targets - at.T, lattice.white, (h, w), stride=lattice.stride,
-        lengthscale=lattice.lengthscale, outputscale=kernel.outputscale,
+        np.arange(h, dtype=np.float64),
+        np.arange(w, dtype=np.float64),
+        lattice.rows,
+        lattice.cols,
+        lattice.targets - at.T,
+        lattice.white,
+        (h, w),
+        stride=lattice.stride,
+        lengthscale=lattice.lengthscale,
+        outputscale=kernel.outputscale,
         max_window_points=config.lattice.max_window_points,
     )
     if not frame.same_grid:

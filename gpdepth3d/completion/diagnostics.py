@@ -29,8 +29,9 @@ OUTPUTSCALE_WARN = 1.25
 """The points raised s above this factor of the configured s."""
 
 
-def log_residual_warnings(frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig,
-                          name: str) -> tuple[str, ...]:
+def log_residual_warnings(
+    frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig, name: str
+) -> tuple[str, ...]:
     """The default model's warnings of one frame (``name``: "frame X: " or "")."""
     fit, rejected = screened.fit, screened.rejected
     n_kept = int(np.count_nonzero(~rejected))
@@ -39,19 +40,27 @@ def log_residual_warnings(frame: LogFrame, sloped: Sloped, screened: Screened, c
     if frame.n and not 1.0 / SCALE_WARN_FACTOR <= scale <= SCALE_WARN_FACTOR:
         messages.append(scale_message(name, scale, float(np.median(frame.base))))
     if n_kept < FEW_POINTS:
-        messages.append(f"{name}only {n_kept} usable points: the posterior is the MDE with the prior's variance "
-                        f"(s = {fit.outputscale:.2f} in log depth) away from them")
+        messages.append(
+            f"{name}only {n_kept} usable points: the posterior is the MDE with the prior's variance "
+            f"(s = {fit.outputscale:.2f} in log depth) away from them"
+        )
     elif (far := _far_share(frame, ~rejected)) > COVERAGE_WARN:
         reach = max(frame.shape) / COVERAGE_REACH
-        messages.append(f"{name}the points cover little of the image: {far:.0%} of it is "
-                        f"farther than {reach:.0f} px from any point (the variance grows there)")
+        messages.append(
+            f"{name}the points cover little of the image: {far:.0%} of it is "
+            f"farther than {reach:.0f} px from any point (the variance grows there)"
+        )
     if sloped.fit is not None and sloped.a < SLOPE_WARN:
-        messages.append(f"{name}the points follow the MDE's depth differences only weakly (slope {sloped.a:.2f} in log "
-                        f"depth; 1 = fully): its shape is barely used, check that it is depth (not disparity) of this image")
+        messages.append(
+            f"{name}the points follow the MDE's depth differences only weakly (slope {sloped.a:.2f} in log "
+            f"depth; 1 = fully): its shape is barely used, check that it is depth (not disparity) of this image"
+        )
     if not config.fit and fit.outputscale > OUTPUTSCALE_WARN * config.outputscale:
-        messages.append(f"{name}the MDE's log-depth error at the points has s = {fit.outputscale:.2f}, above the "
-                        f"configured {config.outputscale:.2f}: the variance is widened to match (is the MDE out of its "
-                        f"range here?)")
+        messages.append(
+            f"{name}the MDE's log-depth error at the points has s = {fit.outputscale:.2f}, above the "
+            f"configured {config.outputscale:.2f}: the variance is widened to match (is the MDE out of its "
+            f"range here?)"
+        )
     if frame.n and rejected.mean() > REJECTED_WARN:
         messages.append(f"{name}{int(rejected.sum())} of {frame.n} points ({rejected.mean():.0%}) rejected as outliers")
     return tuple(messages)
@@ -74,8 +83,9 @@ def scale_message(name: str, factor: float, median_mde: float) -> str:
     )
 
 
-def gaussian_warnings(mean: np.ndarray, mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth,
-                      name: str) -> tuple[str, ...]:
+def gaussian_warnings(
+    mean: np.ndarray, mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth, name: str
+) -> tuple[str, ...]:
     """What a posterior of the Gaussian formulations (``balanced``, ``residual``) cannot support.
 
     These models are Gaussian in metres (the paper's model as the paper states it), so nothing keeps their

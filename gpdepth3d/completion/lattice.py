@@ -6,13 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..gp.model import (
-    DepthGPConfig,
-    GridProblem,
-    Kernel,
-    output_coordinates,
-    separable_correlation,
-)
+from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
 from .log_frame import LogFrame
 from .screen import Screened
 from .slope import Sloped
@@ -49,8 +43,14 @@ class Lattice:
     slope_term: bool
 
 
-def lattice_stride(config: DepthGPConfig, h: int, w: int, n_points: int, lengthscale: float,
-                   output_shape: tuple[int, int] | None = None) -> int:
+def lattice_stride(
+    config: DepthGPConfig,
+    h: int,
+    w: int,
+    n_points: int,
+    lengthscale: float,
+    output_shape: tuple[int, int] | None = None,
+) -> int:
     """Pixels of the GP grid per lattice node, per side (``config.lattice_stride``, else `LatticeConfig`'s rule).
 
     With the sub-lattice detail (nu = 0.5 and an output at least as fine as the grid, ``output_shape`` None:
@@ -84,7 +84,9 @@ def build_lattice(frame: LogFrame, sloped: Sloped, screened: Screened, config: D
     k = lattice_stride(config, h, w, r.size, fit.lengthscale, frame.out_shape)
     hl, wl = -(-h // k), -(-w // k)
     off_r, off_c = r - (k * (r // k) + (k - 1) / 2), c - (k * (c // k) + (k - 1) / 2)
-    between = 2 * fit.outputscale**2 * (1 - separable_correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0
+    between = (
+        2 * fit.outputscale**2 * (1 - separable_correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0
+    )
     white = fit.nugget**2 + frame.noise[keep]
     precision_pt = 1.0 / (white + between)
     cell = (r // k) * wl + c // k
@@ -109,6 +111,20 @@ def build_lattice(frame: LogFrame, sloped: Sloped, screened: Screened, config: D
     out_rows = (output_coordinates(h, frame.out_shape[0]) - (k - 1) / 2) / k
     out_cols = (output_coordinates(w, frame.out_shape[1]) - (k - 1) / 2) / k
     kernel = Kernel(config.nu, fit.lengthscale / k, fit.outputscale)
-    problem = GridProblem(np.zeros((hl, wl)), on_lattice(targets[0]), precision, out_rows, out_cols,
-                          np.zeros(frame.out_shape), kernel)
-    return Lattice(k, fit.lengthscale, problem, extra, r, c, np.stack(targets, 1), white, centre, depth_aware, scale_term, slope_term)
+    problem = GridProblem(
+        np.zeros((hl, wl)), on_lattice(targets[0]), precision, out_rows, out_cols, np.zeros(frame.out_shape), kernel
+    )
+    return Lattice(
+        k,
+        fit.lengthscale,
+        problem,
+        extra,
+        r,
+        c,
+        np.stack(targets, 1),
+        white,
+        centre,
+        depth_aware,
+        scale_term,
+        slope_term,
+    )

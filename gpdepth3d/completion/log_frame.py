@@ -54,8 +54,9 @@ class LogFrame:
         return field if self.same_grid else resize_map(field, self.out_shape)
 
 
-def log_frame(mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth, out_shape: tuple[int, int],
-              config: DepthGPConfig) -> LogFrame:
+def log_frame(
+    mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth, out_shape: tuple[int, int], config: DepthGPConfig
+) -> LogFrame:
     """The `LogFrame` of validated inputs (`gpdepth3d.completion.problem._frame_inputs`)."""
     h, w = mde.shape
     base = fill_nearest(mde, valid) if valid.any() else np.full((h, w), float(np.median(grid_sparse.depth)))
@@ -72,5 +73,7 @@ def log_frame(mde: np.ndarray, valid: np.ndarray, grid_sparse: SparseDepth, out_
 def edge_range_at(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N,) max - min of ``depth`` over the 3 x 3 pixels around (rows, cols) (borders: the edge pixel repeated)."""
     h, w = depth.shape
-    around = [depth[np.clip(rows + dr, 0, h - 1), np.clip(cols + dc, 0, w - 1)] for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
+    around = [
+        depth[np.clip(rows + dr, 0, h - 1), np.clip(cols + dc, 0, w - 1)] for dr in (-1, 0, 1) for dc in (-1, 0, 1)
+    ]
     return np.max(around, axis=0) - np.min(around, axis=0)

@@ -56,8 +56,15 @@ class LogResidualPosterior:
     slope: float
 
 
-def log_residual_posterior(engine, frame: LogFrame, config: DepthGPConfig, *, variance: bool = True,
-                           name: str = "", previous: PointFit | None = None) -> LogResidualPosterior:
+def log_residual_posterior(
+    engine,
+    frame: LogFrame,
+    config: DepthGPConfig,
+    *,
+    variance: bool = True,
+    name: str = "",
+    previous: PointFit | None = None,
+) -> LogResidualPosterior:
     """Runs the default model's stages on one frame; ``previous`` starts the scales' search (sequences)."""
     t0 = time.perf_counter()
     first = fit_slope(frame, config)
@@ -72,9 +79,14 @@ def log_residual_posterior(engine, frame: LogFrame, config: DepthGPConfig, *, va
     t2 = time.perf_counter()
     fit = screened.fit
     return LogResidualPosterior(
-        mean=moments.mean, variance=var, fit=fit,
+        mean=moments.mean,
+        variance=var,
+        fit=fit,
         config=config.replace(lengthscale=fit.lengthscale, outputscale=fit.outputscale, nugget=fit.nugget),
-        rejected=screened.rejected, warnings=log_residual_warnings(frame, sloped, screened, config, name),
+        rejected=screened.rejected,
+        warnings=log_residual_warnings(frame, sloped, screened, config, name),
         alignment=AlignmentResult(float(np.exp(fit.log_scale)), 0.0, int(np.count_nonzero(screened.keep))),
-        timings={"fit": t1 - t0, "solve": t2 - t1}, info=field.info, slope=sloped.a,
+        timings={"fit": t1 - t0, "solve": t2 - t1},
+        info=field.info,
+        slope=sloped.a,
     )

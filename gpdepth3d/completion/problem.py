@@ -65,8 +65,9 @@ def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     outside = valid & ((d < 1e-6) | (d > 1e6))  # beyond any camera: the GP's scales would under/overflow
     if np.any(outside):
         raise InvalidDepthError(
-            "mde_depth", "z-depths in [1e-6, 1e6] m (0/NaN/inf = no depth)",
-            f"{int(outside.sum())} outside, e.g. {float(d[outside].flat[0]):g}"
+            "mde_depth",
+            "z-depths in [1e-6, 1e6] m (0/NaN/inf = no depth)",
+            f"{int(outside.sum())} outside, e.g. {float(d[outside].flat[0]):g}",
         )
     return np.where(valid, d, 0.0), valid
 
@@ -82,9 +83,7 @@ def _frame_inputs(
     sh, sw = sparse.image_size
     if abs((sw / sh) / (w / h) - 1.0) > 0.01:
         raise ShapeError(
-            "sparse",
-            f"measurements of an image with the aspect ratio of mde_depth {w}x{h}",
-            f"image size {sw}x{sh}",
+            "sparse", f"measurements of an image with the aspect ratio of mde_depth {w}x{h}", f"image size {sw}x{sh}"
         )
     grid_sparse = sparse.rasterize((h, w))
     if not valid.any() and len(grid_sparse) == 0:
@@ -93,10 +92,7 @@ def _frame_inputs(
 
 
 def build_problem(
-    mde_depth: np.ndarray,
-    sparse: SparseDepth,
-    config: DepthGPConfig,
-    output_shape: tuple[int, int] | None = None,
+    mde_depth: np.ndarray, sparse: SparseDepth, config: DepthGPConfig, output_shape: tuple[int, int] | None = None
 ) -> tuple[GridProblem, SparseDepth, float, AlignmentResult]:
     """Turns an MDE map and measurements into the `GridProblem` of ``config``'s formulation.
 

@@ -56,9 +56,17 @@ def screen(frame: LogFrame, sloped: Sloped, config: DepthGPConfig, previous: Poi
     around = (previous.lengthscale, previous.eta) if previous is not None else None
     with single_threaded_blas():
         fit, rejected, zscores, shares = screen_points(
-            frame.rows, frame.cols, resid, noise, threshold=config.outlier_threshold, nu=config.nu,
-            options=config.screen, start=start, around=around,
-            raise_outputscale=start is not None and config.raise_outputscale, stated=frame.stated,
+            frame.rows,
+            frame.cols,
+            resid,
+            noise,
+            threshold=config.outlier_threshold,
+            nu=config.nu,
+            options=config.screen,
+            start=start,
+            around=around,
+            raise_outputscale=start is not None and config.raise_outputscale,
+            stated=frame.stated,
         )
     return Screened(fit, rejected, zscores, shares, noise)
 

@@ -42,9 +42,17 @@ def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = N
     kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
     with single_threaded_blas():
         fit = fit_mde_slope(
-            rows[use], cols[use], frame.log_z[use], frame.log_mde[rows[use], cols[use]], noise[use], kernel,
-            config.nugget, prior_sigma=config.mde_slope_sigma, max_points=config.slope.max_points,
-            huber=config.slope.huber, iterations=config.slope.iterations,
+            rows[use],
+            cols[use],
+            frame.log_z[use],
+            frame.log_mde[rows[use], cols[use]],
+            noise[use],
+            kernel,
+            config.nugget,
+            prior_sigma=config.mde_slope_sigma,
+            max_points=config.slope.max_points,
+            huber=config.slope.huber,
+            iterations=config.slope.iterations,
         )
     log_mde = fit.apply(frame.log_mde)
     return Sloped(fit, log_mde, frame.log_z - log_mde[rows, cols])

@@ -74,8 +74,12 @@ class Frame:
         """
         import cv2
 
-        if (isinstance(factor, (bool, np.bool_)) or not isinstance(factor, (int, float, np.integer, np.floating))
-                or not np.isfinite(factor) or factor <= 0):
+        if (
+            isinstance(factor, (bool, np.bool_))
+            or not isinstance(factor, (int, float, np.integer, np.floating))
+            or not np.isfinite(factor)
+            or factor <= 0
+        ):
             raise InvalidInputError("factor", "a resolution factor, a finite number > 0", describe(factor))
         if factor == 1:
             return self

@@ -88,7 +88,9 @@ def read_intrinsics(spec: str | Path | Sequence[float] | np.ndarray, width: int,
         if values.size == 9:
             values = read_matrix(path, (3, 3), "intrinsics")
         elif values.size != 4:
-            raise DataFormatError(path, f"intrinsics: expected a 3x3 K (9 numbers) or fx fy cx cy (4), got {values.size}")
+            raise DataFormatError(
+                path, f"intrinsics: expected a 3x3 K (9 numbers) or fx fy cx cy (4), got {values.size}"
+            )
     elif isinstance(spec, (str, Path)):
         text = str(spec)
         try:
@@ -204,15 +206,23 @@ class PosedSequence(DatasetReader):
                 raise CalibrationError(f"pose of {name}", exc.expected, exc.got) from None
         self.poses = np.stack(checked)
         self.depth_scale = check_png_scale(depth_scale, "depth_scale")
-        if depth_invalid is not None and (isinstance(depth_invalid, bool) or int(depth_invalid) != depth_invalid or not 0 < depth_invalid < 65536):
+        if depth_invalid is not None and (
+            isinstance(depth_invalid, bool) or int(depth_invalid) != depth_invalid or not 0 < depth_invalid < 65536
+        ):
             raise InvalidInputError("depth_invalid", "a 16-bit PNG value in 1..65535 (or None)", depth_invalid)
         self.depth_invalid = None if depth_invalid is None else int(depth_invalid)
-        self.depth_files = None if depth is None else match_depth(self.image_files, list_files(depth, DEPTH_SUFFIXES, "depth", "depth"))
+        self.depth_files = (
+            None
+            if depth is None
+            else match_depth(self.image_files, list_files(depth, DEPTH_SUFFIXES, "depth", "depth"))
+        )
         first = load_rgb(self.image_files[0])
         h, w = first.shape[:2]
         self.camera = intrinsics if isinstance(intrinsics, PinholeCamera) else read_intrinsics(intrinsics, w, h)
         if self.camera.shape != (h, w):
-            raise ShapeError("intrinsics", f"a camera of the images' size {w}x{h}", f"{self.camera.width}x{self.camera.height}")
+            raise ShapeError(
+                "intrinsics", f"a camera of the images' size {w}x{h}", f"{self.camera.width}x{self.camera.height}"
+            )
         if depth_intrinsics is None or isinstance(depth_intrinsics, PinholeCamera):
             self.depth_camera = depth_intrinsics
             if depth_intrinsics is not None and self.depth_files is None:
@@ -226,7 +236,9 @@ class PosedSequence(DatasetReader):
     def load(self, name: str) -> Frame:
         """The frame ``name`` (an image name up to its first dot; `names`)."""
         if name not in self.names:
-            raise InvalidInputError("name", f"the name of a frame of the sequence ({len(self.names)} frames)", describe(name))
+            raise InvalidInputError(
+                "name", f"the name of a frame of the sequence ({len(self.names)} frames)", describe(name)
+            )
         return self.frame(self.names.index(name))
 
     def __getitem__(self, index: int) -> Frame:
@@ -245,14 +257,19 @@ class PosedSequence(DatasetReader):
         path = self.image_files[i]
         rgb = load_rgb(path)
         if rgb.shape[:2] != self.camera.shape:
-            raise DataFormatError(path, f"image of {rgb.shape[1]}x{rgb.shape[0]}, the sequence's are {self.camera.width}x{self.camera.height}")
+            raise DataFormatError(
+                path,
+                f"image of {rgb.shape[1]}x{rgb.shape[0]}, the sequence's are {self.camera.width}x{self.camera.height}",
+            )
         depth = None
         if self.depth_files is not None:
             dpath = self.depth_files[i]
             depth = load_depth(dpath, png_scale=self.depth_scale, invalid_value=self.depth_invalid)
             expected = (self.depth_camera or self.camera).shape
             if depth.shape != expected:
-                raise DataFormatError(dpath, f"depth of {depth.shape[1]}x{depth.shape[0]}, expected {expected[1]}x{expected[0]}")
+                raise DataFormatError(
+                    dpath, f"depth of {depth.shape[1]}x{depth.shape[0]}, expected {expected[1]}x{expected[0]}"
+                )
             if depth.max(initial=0.0) <= 0:
                 raise DataFormatError(dpath, "no valid depth pixel (check --depth-scale and --depth-invalid)")
             if self.depth_camera is not None:
@@ -263,4 +280,3 @@ class PosedSequence(DatasetReader):
     def __iter__(self):
         for i in range(len(self)):
             yield self.frame(i)
-

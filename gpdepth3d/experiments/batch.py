@@ -102,17 +102,15 @@ def check_frame_id(frame_id: str) -> str:
     """Returns ``frame_id`` if it is a safe, non-hidden file name stem, else raises `InvalidInputError`."""
     if not isinstance(frame_id, str) or not _FRAME_ID.match(frame_id):
         raise InvalidInputError(
-            "frame_id", "1-200 characters of letters, digits, '_', '.', '+', '-' (not starting with '.' or '-')", frame_id
+            "frame_id",
+            "1-200 characters of letters, digits, '_', '.', '+', '-' (not starting with '.' or '-')",
+            frame_id,
         )
     return frame_id
 
 
 def dataset_frames(
-    root: str | Path,
-    kind: str | None = None,
-    *,
-    repeat: int = 1,
-    limit: int | None = None,
+    root: str | Path, kind: str | None = None, *, repeat: int = 1, limit: int | None = None
 ) -> list[FrameSpec]:
     """Frame specs of every frame of a dataset folder, optionally repeated and truncated.
 
@@ -415,8 +413,12 @@ def process_frame(
             inputs.mde, inputs.sparse, variance=variance or task == "eval", frame=spec.frame_id
         )
         if previews:  # before the posterior: the frame's last file marks it done
-            write_previews(Path(output_dir) / spec.frame_id, posterior.mean, np.sqrt(np.maximum(posterior.variance, 0)),
-                           mde=inputs.mde if np.shape(inputs.mde) == posterior.mean.shape else None)
+            write_previews(
+                Path(output_dir) / spec.frame_id,
+                posterior.mean,
+                np.sqrt(np.maximum(posterior.variance, 0)),
+                mde=inputs.mde if np.shape(inputs.mde) == posterior.mean.shape else None,
+            )
         posterior.save(paths["posterior"], png=png)
         metrics = None
         if task == "eval":
@@ -514,7 +516,11 @@ class BatchReport:
         for f in self.failures:
             lines.append(f"  FAILED {f.frame_id}: {f.error}")
         if self.aggregate:
-            keys = [k for k in ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_2sigma") if k in self.aggregate]
+            keys = [
+                k
+                for k in ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_2sigma")
+                if k in self.aggregate
+            ]
             lines.append(
                 f"  mean over {self.aggregate['frames']} frames: "
                 + ", ".join(f"{k} {self.aggregate[k]:.4g}" for k in keys)
@@ -685,11 +691,7 @@ def _client(workers: int, address: str | None, connect_timeout: float = 10.0) ->
     distributed = _import_dask()
     if address is None:
         cluster = distributed.LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=logging.ERROR,
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR
         )
         try:
             with distributed.Client(cluster) as client:
@@ -710,7 +712,9 @@ def _client(workers: int, address: str | None, connect_timeout: float = 10.0) ->
                 try:
                     client.wait_for_workers(1, timeout=connect_timeout)
                 except (OSError, TimeoutError, asyncio.TimeoutError):
-                    raise ConnectionFailedError(address, f"the scheduler has no worker after {connect_timeout:g} s") from None
+                    raise ConnectionFailedError(
+                        address, f"the scheduler has no worker after {connect_timeout:g} s"
+                    ) from None
                 threads = sum(client.nthreads().values())
             client.run(warm_up)
             yield client, threads
@@ -822,7 +826,9 @@ def run_batch(
                 bar.close()
         compute = time.perf_counter() - t_compute if todo else 0.0
 
-        failures = tuple(FrameFailure(r.frame_id, r.error or "unknown error", r.traceback or "") for r in results if not r.ok)
+        failures = tuple(
+            FrameFailure(r.frame_id, r.error or "unknown error", r.traceback or "") for r in results if not r.ok
+        )
         n_computed = sum(r.ok for r in results)
         aggregate = aggregate_metrics(output_dir, [f.frame_id for f in frames]) if task == "eval" else None
         report = BatchReport(

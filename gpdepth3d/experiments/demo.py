@@ -47,10 +47,7 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
     yield f"image {w}x{h}; LiDAR {len(frame.lidar)} points; sparse subset {len(thin)} points"
 
     scale = align_depth(frame.mde[frame.lidar.v.astype(int), frame.lidar.u.astype(int)], frame.lidar.depth, "scale")
-    results = {
-        "mde": (frame.mde, None),
-        "mde+scale": (scale.apply(frame.mde), None),
-    }
+    results = {"mde": (frame.mde, None), "mde+scale": (scale.apply(frame.mde), None)}
     posteriors = {}
     runs = {
         "gp-default": (DepthGPConfig(), frame.lidar),
@@ -67,7 +64,13 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
     header = f"{'method':<18}{'RMSE [mm]':>10}{'MAE [mm]':>10}{'REL [-]':>8}{'δ1 [-]':>7}{'±2σ cov [-]':>12}"
     yield header
     for name, (pred, var) in results.items():
-        m = metric_row(pred, var, frame.depth_gt, depth_keys=("rmse", "mae", "rel", "delta1"), calibration_keys=("coverage_2sigma",))
+        m = metric_row(
+            pred,
+            var,
+            frame.depth_gt,
+            depth_keys=("rmse", "mae", "rel", "delta1"),
+            calibration_keys=("coverage_2sigma",),
+        )
         cov = f"{m['coverage_2sigma']:>12.3f}" if var is not None else f"{'-':>12}"
         yield f"{name:<18}{m['rmse']:>10.0f}{m['mae']:>10.0f}{m['rel']:>8.3f}{m['delta1']:>7.3f}{cov}"
     yield SCALE_NOTE
@@ -79,8 +82,11 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
         written += post.save(output_dir / name, png=True)
     # what a person can look at: colourised depth, sigma and error of the default model, with colour bars
     written += write_previews(
-        output_dir / "gp-default", posteriors["gp-default"].mean, posteriors["gp-default"].std,
-        mde=frame.mde, depth_gt=frame.depth_gt,
+        output_dir / "gp-default",
+        posteriors["gp-default"].mean,
+        posteriors["gp-default"].std,
+        mde=frame.mde,
+        depth_gt=frame.depth_gt,
     )
     written += _extras(frame, posteriors, output_dir)
     for path in written:
@@ -95,8 +101,14 @@ def _extras(frame, posteriors, output_dir: Path) -> list[Path]:
 
     post = posteriors["gp-default"]
     figure = plot_qualitative(
-        frame.rgb, frame.mde, post.sparse, post.mean, post.std, frame.depth_gt,
-        output_dir / "gp-default.png", title="GP default on a SIMULATED street (simulated LiDAR and MDE)",
+        frame.rgb,
+        frame.mde,
+        post.sparse,
+        post.mean,
+        post.std,
+        frame.depth_gt,
+        output_dir / "gp-default.png",
+        title="GP default on a SIMULATED street (simulated LiDAR and MDE)",
     )
     # Far, uncertain pixels (the sky is filled by the MDE) are dropped by a depth limit; every
     # point keeps its variance and confidence as PLY properties.

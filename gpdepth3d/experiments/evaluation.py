@@ -54,11 +54,7 @@ from ..completion.complete import DepthCompleter
 from ..completion.fit import fit_hyperparameters
 from ..datasets import Frame, open_dataset
 from ..depthmap import fill_nearest, resize_map
-from ..errors import (
-    EmptyInputError,
-    InvalidInputError,
-    ProblemTooLargeError,
-)
+from ..errors import EmptyInputError, InvalidInputError, ProblemTooLargeError
 from ..gp.model import DepthGPConfig
 from ..io import atomic_path, atomic_write, write_json
 from ..mde.align import align_depth
@@ -102,11 +98,7 @@ class MethodOutput:
 
 
 def relative_residual(
-    mde: np.ndarray,
-    sparse: SparseDepth,
-    completer: DepthCompleter,
-    *,
-    white: float = 0.0,
+    mde: np.ndarray, sparse: SparseDepth, completer: DepthCompleter, *, white: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residual GP on the depth ratio rho = depth / MDE, with an optional white MDE error.
 
@@ -220,7 +212,9 @@ class MethodSuite:
             return MethodOutput(post.mean, post.variance, time.perf_counter() - t0)
         if name == "gp_residual_fit":
             # the library's one fitter (exact marginal likelihood; sigma_meas absorbs the MDE's white error)
-            fitted = fit_hyperparameters(mde, sparse, self.residual, params=("lengthscale", "outputscale", "sigma_meas"))
+            fitted = fit_hyperparameters(
+                mde, sparse, self.residual, params=("lengthscale", "outputscale", "sigma_meas")
+            )
             # the fitted config differs per frame: no caching of completers for it
             engine = self._completer(self.residual, len(sparse), mde.size).config.engine
             post = DepthCompleter(fitted.replace(engine=engine)).complete(mde, sparse)
@@ -270,12 +264,7 @@ def level_label(protocol: str, level: float) -> str:
 
 
 def draw_sparse(
-    protocol: str,
-    level: float,
-    available: SparseDepth,
-    *,
-    rng: np.random.Generator,
-    beams: np.ndarray | None = None,
+    protocol: str, level: float, available: SparseDepth, *, rng: np.random.Generator, beams: np.ndarray | None = None
 ) -> SparseDepth:
     """The sparse input of one protocol level, drawn from the available points.
 
@@ -414,9 +403,7 @@ def evaluate(
     bar = tqdm(frames, desc="eval", unit="frame", disable=not progress, total=len(frames))
     for index, frame in enumerate(bar):
         rng = np.random.default_rng([seed, index])
-        setup = prepare_frame(
-            frame, mde, resolution=resolution, rng=rng, need_beams="scanlines" in protocols
-        )
+        setup = prepare_frame(frame, mde, resolution=resolution, rng=rng, need_beams="scanlines" in protocols)
         outputs: dict = {}
         for protocol in protocols:
             for level in protocol_levels(protocol, levels.get(protocol)):
@@ -487,16 +474,29 @@ def write_csv(rows: Sequence[dict], path: str | Path) -> Path:
 
 
 TABLE_UNITS: dict[str, str] = {
-    "rmse": "mm", "mae": "mm", "irmse": "1/km", "imae": "1/km", "rel": "-", "delta1": "%", "delta2": "%",
-    "delta3": "%", "nll": "nats/px", "coverage_1sigma": "%", "coverage_2sigma": "%",
+    "rmse": "mm",
+    "mae": "mm",
+    "irmse": "1/km",
+    "imae": "1/km",
+    "rel": "-",
+    "delta1": "%",
+    "delta2": "%",
+    "delta3": "%",
+    "nll": "nats/px",
+    "coverage_1sigma": "%",
+    "coverage_2sigma": "%",
 }
 """Units of the columns of `markdown_table` (shown in its header)."""
 
 
 def markdown_table(summary: Sequence[dict], *, metrics: Sequence[str] | None = None) -> str:
     """A markdown table of the summary: one row per (protocol, level, method)."""
-    metrics = list(metrics or ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_1sigma", "coverage_2sigma"))
-    head = ["protocol", "level", "method", "points"] + [f"{k} [{TABLE_UNITS[k]}]" if k in TABLE_UNITS else k for k in metrics]
+    metrics = list(
+        metrics or ("rmse", "mae", "irmse", "imae", "rel", "delta1", "nll", "coverage_1sigma", "coverage_2sigma")
+    )
+    head = ["protocol", "level", "method", "points"] + [
+        f"{k} [{TABLE_UNITS[k]}]" if k in TABLE_UNITS else k for k in metrics
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for s in summary:
         cells = [s["protocol"], s["label"], s["method"], f"{s['n_points']:.0f}"]

@@ -96,7 +96,9 @@ def holdout_lidar(lidar_depth: np.ndarray, *, factor: int = 3, holdout: float = 
     h, w = grid.shape
     available_all = SparseDepth.from_depth_map(grid)
     if len(available_all) < 2:
-        raise EmptyInputError("lidar_depth", "at least two LiDAR pixels on the grid to hold some out", len(available_all))
+        raise EmptyInputError(
+            "lidar_depth", "at least two LiDAR pixels on the grid to hold some out", len(available_all)
+        )
     pool, held = holdout_split(available_all, holdout=holdout, rng=rng)
     gt_grid = np.zeros((h, w))
     gt_grid[held.v.astype(np.int64), held.u.astype(np.int64)] = held.depth

@@ -121,7 +121,7 @@ class KittiProtocolConfig:
 
 
 def density_label(density: float) -> str:
-    """"1/64", "3/4", "1x" for the paper's levels, else the number."""
+    """ "1/64", "3/4", "1x" for the paper's levels, else the number."""
     if density >= 1:
         return "1x"
     for den in (2, 4, 8, 16, 32, 64, 128):
@@ -268,19 +268,13 @@ class KittiMethods:
             config = self.paper if method == "gp_paper" else self.default
             completer = self._completer(config)
             completer.fitted = None  # with config.fit: every call fits from the config, as complete() would
-            post = completer.complete(
-                setup.mde_grid, sparse, output_shape=setup.full_shape if full else None
-            )
+            post = completer.complete(setup.mde_grid, sparse, output_shape=setup.full_shape if full else None)
             return post.mean, post.variance, time.perf_counter() - t0
         raise InvalidInputError("method", f"one of {METHODS}", method)
 
 
 def evaluate_kitti_frame(
-    setup: KittiFrameSetup,
-    config: KittiProtocolConfig,
-    *,
-    methods: KittiMethods | None = None,
-    rng: SeedLike = 0,
+    setup: KittiFrameSetup, config: KittiProtocolConfig, *, methods: KittiMethods | None = None, rng: SeedLike = 0
 ) -> list[dict]:
     """Every protocol, density, method and resolution on one prepared frame: one row each.
 
@@ -294,7 +288,9 @@ def evaluate_kitti_frame(
     rows: list[dict] = []
     for protocol in config.protocols:
         for density in config.densities:
-            sparse = draw_input(protocol, density, setup.lidar.available, rng=rng, hband=config.hband, vband=config.vband)
+            sparse = draw_input(
+                protocol, density, setup.lidar.available, rng=rng, hband=config.hband, vband=config.vband
+            )
             for method in config.methods:
                 for res in resolutions:
                     gt = setup.lidar.gt_full if res == "full" else setup.lidar.gt_grid
@@ -445,8 +441,22 @@ def paper_table(summary: Sequence[dict], *, resolution: str = "full", protocol: 
 def full_table(summary: Sequence[dict]) -> str:
     """Markdown: every summary row with RMSE, MAE, iRMSE, iMAE, calibration, the smallest mean and the
     seconds per frame (wall time of the method; noisy on a shared machine)."""
-    head = ["resolution", "protocol", "density", "method", "points", "RMSE mm", "MAE mm", "iRMSE 1/km", "iMAE 1/km",
-            "NLL", "±1σ", "±2σ", "min mean m", "s / frame"]
+    head = [
+        "resolution",
+        "protocol",
+        "density",
+        "method",
+        "points",
+        "RMSE mm",
+        "MAE mm",
+        "iRMSE 1/km",
+        "iMAE 1/km",
+        "NLL",
+        "±1σ",
+        "±2σ",
+        "min mean m",
+        "s / frame",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
     for s in summary:
         cells = [s["resolution"], s["protocol"], s["label"], s["method"], f"{s['n_points']:.0f}"]
@@ -487,15 +497,26 @@ def plot_kitti(summary: Sequence[dict], path: str | Path, *, title: str = "") ->
             for method in dict.fromkeys(s["method"] for s in rows):
                 for res, style in (("full", "-"), ("grid", ":")):
                     rs = sorted(
-                        (s for s in rows if s["method"] == method and s["resolution"] == res), key=lambda s: s["density"]
+                        (s for s in rows if s["method"] == method and s["resolution"] == res),
+                        key=lambda s: s["density"],
                     )
                     if rs:
-                        ax.plot([s["density"] for s in rs], [s["rmse"] for s in rs], style, marker="o", ms=3,
-                                lw=3.0 if method == "gp_paper" else 1.5,  # visible under an identical default
-                                color=colours.get(method), label=f"{method} ({res})")
+                        ax.plot(
+                            [s["density"] for s in rs],
+                            [s["rmse"] for s in rs],
+                            style,
+                            marker="o",
+                            ms=3,
+                            lw=3.0 if method == "gp_paper" else 1.5,  # visible under an identical default
+                            color=colours.get(method),
+                            label=f"{method} ({res})",
+                        )
             if protocol == "uniform":
-                paper = [(d, PAPER_KITTI_RMSE_MM[density_label(d)]) for d in PAPER_DENSITIES
-                         if density_label(d) in PAPER_KITTI_RMSE_MM]
+                paper = [
+                    (d, PAPER_KITTI_RMSE_MM[density_label(d)])
+                    for d in PAPER_DENSITIES
+                    if density_label(d) in PAPER_KITTI_RMSE_MM
+                ]
                 ax.plot(*zip(*paper), "kx", ms=8, label="paper (KITTI, monodepth2)")
                 ax.axhline(PAPER_KITTI_RMSE_MM["mde"], color="k", lw=0.8, ls="--", label="paper: MDE alone")
             ax.set_xscale("log", base=2)

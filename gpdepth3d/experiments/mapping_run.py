@@ -92,7 +92,11 @@ def fuse_sequence(
     if n < 1:
         raise EmptyInputError("data", "a sequence with frames", "none")
     first = reader[0]
-    rgb_cam = first.camera if rgb_K is None else PinholeCamera.from_K(np.asarray(rgb_K), first.camera.width, first.camera.height)
+    rgb_cam = (
+        first.camera
+        if rgb_K is None
+        else PinholeCamera.from_K(np.asarray(rgb_K), first.camera.width, first.camera.height)
+    )
     depth_cam = first.camera
     times: list[dict] = []
     npoints: list[int] = []
@@ -168,22 +172,33 @@ def fuse_sequence(
         on_frame=evaluate,
     )
     mapper = mapped.mapper
-    volumes = {"mde": extra.get("mde"), "gp_uniform": extra.get("gp_uniform"), "gp_variance": mapper.fusion, "gt": extra.get("gt")}
+    volumes = {
+        "mde": extra.get("mde"),
+        "gp_uniform": extra.get("gp_uniform"),
+        "gp_variance": mapper.fusion,
+        "gt": extra.get("gt"),
+    }
     meshes = {}
     for name, volume in volumes.items():
-        meshes[name] = volume.extract_mesh(allow_empty=True) if volume is not None and volume.frames_integrated else None
+        meshes[name] = (
+            volume.extract_mesh(allow_empty=True) if volume is not None and volume.frames_integrated else None
+        )
     empty = sorted(k for k, m in meshes.items() if m is None or len(m.faces) == 0)
     metrics: dict[str, Any] = {}
     for k, m in meshes.items():
         if k == "gt":
             continue
         metrics[k] = (
-            None if k in empty or "gt" in empty else mesh_metrics(m, meshes["gt"], threshold=threshold, samples=metric_samples)
+            None
+            if k in empty or "gt" in empty
+            else mesh_metrics(m, meshes["gt"], threshold=threshold, samples=metric_samples)
         )
     keys = sorted({k for t in times for k in t})
     timing = {k: float(np.mean([t[k] for t in times if k in t])) for k in keys}
     # the names bench/fusion.py reads
-    timing.update({"triangulate": timing.get("points", 0.0), "refine": timing.get("gp", 0.0), "fuse": timing.get("fusion", 0.0)})
+    timing.update(
+        {"triangulate": timing.get("points", 0.0), "refine": timing.get("gp", 0.0), "fuse": timing.get("fusion", 0.0)}
+    )
     return {
         "meshes": meshes,
         "metrics": metrics,
@@ -282,7 +297,12 @@ def open_posed_sequence(
         trajectory = read_trajectory(poses, pose_format)
         matched = associate_poses(trajectory, names, by=association, max_difference=max_time_difference)
     sequence = PosedSequence(
-        files, matched, camera, depth=depth, depth_scale=depth_scale, depth_invalid=depth_invalid,
+        files,
+        matched,
+        camera,
+        depth=depth,
+        depth_scale=depth_scale,
+        depth_invalid=depth_invalid,
         depth_intrinsics=depth_intrinsics,
     )
     return PosedInputs(sequence, pose_format, map_points)
@@ -402,13 +422,15 @@ def map_sequence(
     ):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise InvalidInputError(name, f"an integer >= {low}", value)
-    if max_frames is not None and (isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1):
+    if max_frames is not None and (
+        isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1
+    ):
         raise InvalidInputError("max_frames", "an integer >= 1 (or None for all)", max_frames)
     if not (isinstance(threshold, (int, float)) and np.isfinite(threshold) and threshold > 0):
         raise InvalidInputError("threshold", "a distance > 0 (metres)", threshold)
     if len(sequence) == 0:
         raise EmptyInputError("inputs", "a sequence with frames", "none")
-    indices = list(range(0, len(sequence), int(stride)))[: max_frames]
+    indices = list(range(0, len(sequence), int(stride)))[:max_frames]
     camera = camera or getattr(sequence, "camera", None) or sequence[indices[0]].camera
     config = config or MapperConfig()
     if working_width is not None:
@@ -455,8 +477,14 @@ def map_sequence(
             if not volumes:
                 volumes.update(reference=TSDFFusion(work, uniform), mde=TSDFFusion(work, uniform))
             pts, _ = frame.camera.backproject(frame.depth)
-            _integrate(volumes["reference"], project_points(pts, work).to_depth_map(), frame, work, frame_errors,
-                       "sensor-depth volume")
+            _integrate(
+                volumes["reference"],
+                project_points(pts, work).to_depth_map(),
+                frame,
+                work,
+                frame_errors,
+                "sensor-depth volume",
+            )
         result_frame = record(result) if result is not None else None
         if on_frame is not None:
             on_frame(FrameEvent(mapper, frame, result, result_frame, dict(mapper.timings[-1])))
@@ -466,7 +494,9 @@ def map_sequence(
             on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
     bar.close()
     if fused == 0:
-        raise EmptyInputError("images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3]))
+        raise EmptyInputError(
+            "images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3])
+        )
     mesh, cloud = _map_surface(mapper)
     metrics = None
     if volumes and volumes["reference"].frames_integrated:
@@ -504,7 +534,9 @@ def _map_surface(mapper: Mapper) -> tuple[Any, ColoredCloud]:
         return trimesh.Trimesh(), empty
 
 
-def _integrate(volume: TSDFFusion, depth: np.ndarray, frame: Frame, work: PinholeCamera, errors: list, what: str) -> None:
+def _integrate(
+    volume: TSDFFusion, depth: np.ndarray, frame: Frame, work: PinholeCamera, errors: list, what: str
+) -> None:
     """Fuses one comparison depth (uniform weights) with the frame's colour; a failure is recorded, not raised."""
     import cv2
 
@@ -520,7 +552,9 @@ MAP_FILES = ("mesh", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", 
 the files of `Mapper.save` (what `Mapper.load` reads back from that folder) and the metrics."""
 
 
-def write_map(result: MapResult, output: str | Path, *, mesh_format: str = "ply", summary: dict | None = None) -> list[Path]:
+def write_map(
+    result: MapResult, output: str | Path, *, mesh_format: str = "ply", summary: dict | None = None
+) -> list[Path]:
     """Writes the mesh, the cloud with per-point sigma, the map and the metrics into ``output``, as one set.
 
     The files (`MAP_FILES`) appear together or not at all (`gpdepth3d.io.atomic_write_set`); the
@@ -574,8 +608,14 @@ def map_summary(result: MapResult) -> dict[str, Any]:
         "cloud_points": int(len(result.cloud)),
         "timing_median_s_per_frame": {k: v for k, v in result.timing.items() if k != "wall"},
         "wall_s": result.timing.get("wall"),
-        "camera": [result.mapper.camera.fx, result.mapper.camera.fy, result.mapper.camera.cx, result.mapper.camera.cy,
-                   result.mapper.camera.width, result.mapper.camera.height],
+        "camera": [
+            result.mapper.camera.fx,
+            result.mapper.camera.fy,
+            result.mapper.camera.cx,
+            result.mapper.camera.cy,
+            result.mapper.camera.width,
+            result.mapper.camera.height,
+        ],
         "working_size": [result.mapper.work_camera.width, result.mapper.work_camera.height],
         "config": asdict(result.mapper.config),
     }

@@ -111,17 +111,29 @@ def _figure(
         if values.ndim == 3:
             ax.imshow(values, interpolation="nearest")
         else:
-            image = ax.imshow(np.ma.masked_invalid(values), cmap=colormap, vmin=vmin, vmax=vmax, interpolation="nearest")
+            image = ax.imshow(
+                np.ma.masked_invalid(values), cmap=colormap, vmin=vmin, vmax=vmax, interpolation="nearest"
+            )
         if points is not None and i in point_panels and len(points[0]):
             rows, cols, depth = points
             if point_colour is None:
                 few = len(depth) <= 500  # a few points get an outline; a LiDAR scan would turn black with them
-                ax.scatter(cols, rows, c=depth, cmap=colormap, vmin=vmin, vmax=vmax, s=size if few else 0.5,
-                           linewidths=0.3 if few else 0, edgecolors="black")
+                ax.scatter(
+                    cols,
+                    rows,
+                    c=depth,
+                    cmap=colormap,
+                    vmin=vmin,
+                    vmax=vmax,
+                    s=size if few else 0.5,
+                    linewidths=0.3 if few else 0,
+                    edgecolors="black",
+                )
             else:
                 step = max(1, len(rows) // MAX_DOTS)  # a dense scan would hide the map: every step-th point
-                ax.scatter(cols[::step], rows[::step], c=point_colour, s=size * 0.5 if len(rows) <= 500 else 0.3,
-                           linewidths=0)
+                ax.scatter(
+                    cols[::step], rows[::step], c=point_colour, s=size * 0.5 if len(rows) <= 500 else 0.3, linewidths=0
+                )
         ax.set_title(title, fontsize=9)
         ax.set_axis_off()
     bar = fig.colorbar(image, ax=list(axes), fraction=0.046 / n if n > 1 else 0.046, pad=0.02)

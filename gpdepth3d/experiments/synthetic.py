@@ -390,7 +390,7 @@ def _pattern(prim, p: np.ndarray, normal: np.ndarray, base: np.ndarray) -> np.nd
         boards = np.mod(np.floor(x / 0.18), 3.0)
         base = base * (0.85 + 0.08 * boards)[:, None]
     elif prim.pattern == "tiles":
-        grid = (np.mod(np.floor(x / 0.5) + np.floor(y / 0.5), 2.0) == 0)
+        grid = np.mod(np.floor(x / 0.5) + np.floor(y / 0.5), 2.0) == 0
         base = base * np.where(grid, 1.0, 0.8)[:, None]
     elif prim.pattern == "car":
         top = prim.centre[2] + prim.half[2]

@@ -80,8 +80,13 @@ def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: Eng
         fields = ("device", "backend", "route", "threads", "max_dense_points", "max_memory_mb", "lattice")
         extra = check_engine_options(FastEngine, options.options, fields)
         return FastEngine(
-            device=options.device, backend=options.backend, route=options.route, threads=options.threads,
-            max_dense_points=options.max_dense_points, max_memory_mb=options.max_memory_mb,
-            lattice=options.lattice, **extra,
+            device=options.device,
+            backend=options.backend,
+            route=options.route,
+            threads=options.threads,
+            max_dense_points=options.max_dense_points,
+            max_memory_mb=options.max_memory_mb,
+            lattice=options.lattice,
+            **extra,
         )
     raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", name)

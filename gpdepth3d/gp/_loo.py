@@ -157,8 +157,25 @@ def _loo_lanes(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, 
 def _loo_parallel(z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec):
     t = nn.shape[0]
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
-        _loo_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2,
-                   inv_l, nu, er, ec)
+        _loo_range(
+            c0 * CHUNK,
+            min(t, (c0 + 1) * CHUNK),
+            z,
+            share,
+            rows,
+            cols,
+            r,
+            noise,
+            stated,
+            targets,
+            nn,
+            s2,
+            tau2,
+            inv_l,
+            nu,
+            er,
+            ec,
+        )
 
 
 @nb.njit(**_FLAGS)
@@ -398,9 +415,21 @@ def loo_predict(
             ec = np.exp(-np.arange(int(span_c) + 1) / float(lengthscale))
     noise = np.ascontiguousarray(noise, dtype=np.float64)
     part = noise if stated is None else np.ascontiguousarray(stated, dtype=np.float64)
-    args = (rows, cols, np.ascontiguousarray(r, dtype=np.float64), noise, part,
-            np.ascontiguousarray(targets, dtype=np.int64), np.ascontiguousarray(nn, dtype=np.int64),
-            float(outputscale) ** 2, float(nugget) ** 2, 1.0 / float(lengthscale), float(nu), er, ec)
+    args = (
+        rows,
+        cols,
+        np.ascontiguousarray(r, dtype=np.float64),
+        noise,
+        part,
+        np.ascontiguousarray(targets, dtype=np.int64),
+        np.ascontiguousarray(nn, dtype=np.int64),
+        float(outputscale) ** 2,
+        float(nugget) ** 2,
+        1.0 / float(lengthscale),
+        float(nu),
+        er,
+        ec,
+    )
     z, share = np.empty(nn.shape[0]), np.empty(nn.shape[0])
     if nn.shape[0] <= CHUNK:
         _loo_range(0, nn.shape[0], z, share, *args)

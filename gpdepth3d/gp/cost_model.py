@@ -65,8 +65,9 @@ def grid_bytes(shape: tuple[int, int], nu: float) -> int:
     return int(GRID_BYTES * ds * ds * n * max(np.log2(n), 1.0))
 
 
-def grid_seconds(h: int, w: int, nu: float, variance: bool, n_out: int = 0, extra: int = 0,
-                 readout: bool = False) -> float:
+def grid_seconds(
+    h: int, w: int, nu: float, variance: bool, n_out: int = 0, extra: int = 0, readout: bool = False
+) -> float:
     """Seconds of the grid route on an h x w lattice with ``extra`` further right-hand sides.
 
     Fronts are ds = d^2 times larger for nu > 0.5; with ``readout`` the n_out output pixels are

@@ -159,7 +159,7 @@ def _template_variables(tpl: Template, origins: np.ndarray, wp: int, ds: int, pi
     vnode_chunks, t_base, t_no = [], [0], []
     for tau, o in enumerate(tpl.own):
         k = o.shape[0]
-        glob = (origins[:, None, :] + o[None, :, :])  # (T, k, 2)
+        glob = origins[:, None, :] + o[None, :, :]  # (T, k, 2)
         pix = glob[..., 0] * wp + glob[..., 1]
         pix_var[pix.ravel()] = t_base[-1] + np.arange(T * k) * ds
         vnode_chunks.append(np.repeat(tau * T + np.arange(T), k * ds))
@@ -202,8 +202,9 @@ def _top_dissection(nr: int, nc: int, th: int, tw: int, hp: int, wp: int) -> dic
     return top
 
 
-def _template_fronts(tpl: Template, origins: np.ndarray, hp: int, wp: int, ds: int, pix_var: np.ndarray,
-                     nvar: int, t_no: list):
+def _template_fronts(
+    tpl: Template, origins: np.ndarray, hp: int, wp: int, ds: int, pix_var: np.ndarray, nvar: int, t_no: list
+):
     """Per template node: its rings' global variables (T, nb), front sizes, and positions in the parent's front."""
     states = np.arange(ds)
     T = origins.shape[0]
@@ -280,16 +281,36 @@ def build_tree(h: int, w: int, ds: int, tile: int, leaf_pixels: int) -> Eliminat
         raise RuntimeError("internal error: a padded pixel has no variable")
     top_bnd = [np.sort((pix_var[g][:, None] + np.arange(ds)).ravel()) for g in top["ring"]]
     top_starts = np.array(top_starts)
-    top_nf = np.array([top_starts[x + 1] - top_starts[x] + top_bnd[x].size for x in range(len(top_bnd))],
-                      dtype=np.int64)
+    top_nf = np.array(
+        [top_starts[x + 1] - top_starts[x] + top_bnd[x].size for x in range(len(top_bnd))], dtype=np.int64
+    )
     t_bnd, t_nf, t_loc, t_ea = _template_fronts(tpl, origins, hp, wp, ds, pix_var, nvar, t_no)
     ntop = len(top_bnd)
     tree = EliminationTree(
-        shape=(h, w), padded=(hp, wp), ds=ds, tpl=tpl, origins=origins, nvar=int(nvar), pix_var=pix_var,
-        vnode=np.concatenate(vnode_chunks), t_base=np.array(t_base), t_no=np.array(t_no), t_nf=t_nf,
-        t_bnd=t_bnd, t_loc=t_loc, t_ea=t_ea, top_starts=top_starts, top_bnd=top_bnd, top_nf=top_nf,
-        top_parent=np.array(top["parent"], dtype=np.int64), top_children=top["children"], top_tiles=top["tiles"],
-        top_loc=[None] * ntop, top_ea=[None] * ntop, tile_loc=None, tile_ea=None,
+        shape=(h, w),
+        padded=(hp, wp),
+        ds=ds,
+        tpl=tpl,
+        origins=origins,
+        nvar=int(nvar),
+        pix_var=pix_var,
+        vnode=np.concatenate(vnode_chunks),
+        t_base=np.array(t_base),
+        t_no=np.array(t_no),
+        t_nf=t_nf,
+        t_bnd=t_bnd,
+        t_loc=t_loc,
+        t_ea=t_ea,
+        top_starts=top_starts,
+        top_bnd=top_bnd,
+        top_nf=top_nf,
+        top_parent=np.array(top["parent"], dtype=np.int64),
+        top_children=top["children"],
+        top_tiles=top["tiles"],
+        top_loc=[None] * ntop,
+        top_ea=[None] * ntop,
+        tile_loc=None,
+        tile_ea=None,
         tile_parent=np.full(T, -1, dtype=np.int64),
     )
     _link_fronts(tree)

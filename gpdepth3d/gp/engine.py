@@ -75,12 +75,16 @@ def check_engine_options(engine_class: type, options: dict, fixed: tuple = ()) -
             `EngineConfig` field sets.
     """
     params = inspect.signature(engine_class.__init__).parameters
-    accepted = sorted(n for n, p in params.items() if n != "self" and n not in fixed
-                      and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY))
+    accepted = sorted(
+        n
+        for n, p in params.items()
+        if n != "self" and n not in fixed and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+    )
     for key in options:
         if key not in accepted:
-            raise InvalidInputError("options", f"keyword arguments of {engine_class.__name__} among {accepted}",
-                                    repr(key))
+            raise InvalidInputError(
+                "options", f"keyword arguments of {engine_class.__name__} among {accepted}", repr(key)
+            )
     return dict(options)
 
 
@@ -132,14 +136,21 @@ class EngineConfig:
             raise InvalidInputError("lattice", "'observed' or 'full'", self.lattice)
         if not isinstance(self.options, dict) or not all(isinstance(k, str) for k in self.options):
             raise InvalidInputError("options", "a dict of keyword arguments", describe(self.options))
-        for name, low, optional in (("max_exact_points", 1, True), ("threads", 1, True),
-                                    ("max_dense_points", 0, False)):
+        for name, low, optional in (
+            ("max_exact_points", 1, True),
+            ("threads", 1, True),
+            ("max_dense_points", 0, False),
+        ):
             v = getattr(self, name)
             if (v is not None or not optional) and not _is_int(v, low):
                 raise InvalidInputError(name, ("None or " if optional else "") + f"an integer >= {low}", describe(v))
         v = self.max_memory_mb
-        if v is not None and (isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating))
-                              or not np.isfinite(v) or not v > 0):
+        if v is not None and (
+            isinstance(v, (bool, np.bool_))
+            or not isinstance(v, (int, float, np.integer, np.floating))
+            or not np.isfinite(v)
+            or not v > 0
+        ):
             raise InvalidInputError("max_memory_mb", "None or a finite number > 0", describe(v))
 
     def replace(self, **changes) -> "EngineConfig":

@@ -55,20 +55,27 @@ def check_problem(problem: GridProblem) -> None:
     pmax = float(prec.max(initial=0.0))
     if pmax * float(k.outputscale) ** 2 > MAX_PRECISION_RATIO:
         raise InvalidInputError(
-            "problem.precision", f"observation precisions <= {MAX_PRECISION_RATIO:g} / outputscale^2 "
-            f"(noise std >= 1e-15 x {float(k.outputscale):g} m)", f"max {pmax:g} 1/m^2")
+            "problem.precision",
+            f"observation precisions <= {MAX_PRECISION_RATIO:g} / outputscale^2 "
+            f"(noise std >= 1e-15 x {float(k.outputscale):g} m)",
+            f"max {pmax:g} 1/m^2",
+        )
     for name in ("out_rows", "out_cols"):
         if not np.all(np.isfinite(np.asarray(getattr(problem, name), dtype=np.float64))):
             raise InvalidInputError(f"problem.{name}", "finite output coordinates", "non-finite values")
     observed = prec > 0
-    for name, values in (("prior_mean", np.asarray(problem.prior_mean, np.float64)[observed]),
-                         ("obs", np.asarray(problem.obs, np.float64)[observed]),
-                         ("out_prior_mean", np.asarray(problem.out_prior_mean, np.float64))):
+    for name, values in (
+        ("prior_mean", np.asarray(problem.prior_mean, np.float64)[observed]),
+        ("obs", np.asarray(problem.obs, np.float64)[observed]),
+        ("out_prior_mean", np.asarray(problem.out_prior_mean, np.float64)),
+    ):
         bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_DEPTH)
         if np.any(bad):
             raise InvalidDepthError(
-                f"problem.{name}", f"finite depths within +-{MAX_ABS_DEPTH:g} m",
-                f"{int(bad.sum())} values outside, e.g. {float(values[bad][0]):g}")
+                f"problem.{name}",
+                f"finite depths within +-{MAX_ABS_DEPTH:g} m",
+                f"{int(bad.sum())} values outside, e.g. {float(values[bad][0]):g}",
+            )
 
 
 def _factor(problem: GridProblem):
@@ -111,11 +118,7 @@ def dense_posterior(
 
 
 def dense_solve(
-    problem: GridProblem,
-    *,
-    variance: bool = True,
-    extra_obs: tuple = (),
-    max_cross_entries: int = 60_000_000,
+    problem: GridProblem, *, variance: bool = True, extra_obs: tuple = (), max_cross_entries: int = 60_000_000
 ) -> tuple[np.ndarray, np.ndarray | None, tuple]:
     """`dense_posterior` with further observation vectors sharing the factorisation.
 
@@ -135,7 +138,11 @@ def dense_solve(
     m = ho * wo
     out_prior = np.asarray(problem.out_prior_mean, np.float64)
     if not np.any(problem.precision > 0):
-        return out_prior.copy(), (np.full((ho, wo), s2) if variance else None), tuple(out_prior.copy() for _ in extra_obs)
+        return (
+            out_prior.copy(),
+            (np.full((ho, wo), s2) if variance else None),
+            tuple(out_prior.copy() for _ in extra_obs),
+        )
     rows, cols, chol, resid = _factor(problem)
     n = rows.shape[0]
     prior_obs = np.asarray(problem.prior_mean, np.float64)[rows, cols]
@@ -219,7 +226,8 @@ class ExactEngine:
                 f"({self.max_points} observed pixels, {self.max_cross_entries} cross entries); "
                 "use engine='fast' or a smaller crop"
             )
-        mean, var, extras = dense_solve(problem, variance=variance, extra_obs=extra,
-                                        max_cross_entries=self.max_cross_entries)
+        mean, var, extras = dense_solve(
+            problem, variance=variance, extra_obs=extra, max_cross_entries=self.max_cross_entries
+        )
         info = SolveInfo("exact", "dense", {"total": time.perf_counter() - t0}, {"observed": n})
         return Solution(mean, var, info, extras)

@@ -87,11 +87,16 @@ class FastEngine:
         max_memory_mb: float | None = None,
         lattice: str = "observed",
     ):
-        for name, value in (("threads", threads), ("tile", tile), ("leaf_pixels", leaf_pixels),
-                            ("cache_size", cache_size)):
+        for name, value in (
+            ("threads", threads),
+            ("tile", tile),
+            ("leaf_pixels", leaf_pixels),
+            ("cache_size", cache_size),
+        ):
             if (value is not None or name == "cache_size") and not _is_int(value, 1):
-                raise InvalidInputError(name, ("an" if name == "cache_size" else "None or an") + " integer >= 1",
-                                        describe(value))
+                raise InvalidInputError(
+                    name, ("an" if name == "cache_size" else "None or an") + " integer >= 1", describe(value)
+                )
         self.threads = threads
         if backend not in ("auto", "compiled", "torch"):
             raise InvalidInputError("backend", "'auto', 'compiled' or 'torch'", backend)
@@ -106,13 +111,19 @@ class FastEngine:
         if route not in ("auto", "grid", "woodbury", "neumann", "dense"):
             raise InvalidInputError("route", "'auto', 'grid', 'woodbury', 'neumann' or 'dense'", route)
         self.route = route
-        if isinstance(max_dense_points, (bool, np.bool_)) or not isinstance(max_dense_points, (int, np.integer)) \
-                or max_dense_points < 0:
+        if (
+            isinstance(max_dense_points, (bool, np.bool_))
+            or not isinstance(max_dense_points, (int, np.integer))
+            or max_dense_points < 0
+        ):
             raise InvalidInputError("max_dense_points", "an integer >= 0", max_dense_points)
         self.max_dense_points = int(max_dense_points)
-        if max_memory_mb is not None and (isinstance(max_memory_mb, (bool, np.bool_))
-                                          or not isinstance(max_memory_mb, (int, float, np.integer, np.floating))
-                                          or not max_memory_mb > 0 or not np.isfinite(max_memory_mb)):
+        if max_memory_mb is not None and (
+            isinstance(max_memory_mb, (bool, np.bool_))
+            or not isinstance(max_memory_mb, (int, float, np.integer, np.floating))
+            or not max_memory_mb > 0
+            or not np.isfinite(max_memory_mb)
+        ):
             raise InvalidInputError("max_memory_mb", "None or a finite number > 0", max_memory_mb)
         self.max_memory_mb = None if max_memory_mb is None else float(max_memory_mb)
         if lattice not in ("observed", "full"):
@@ -165,7 +176,13 @@ class FastEngine:
 
     def _readout(self, tree: EliminationTree, problem: GridProblem) -> Readout:
         k = problem.kernel
-        key = (tree.__dict__["_key"], problem.out_rows.tobytes(), problem.out_cols.tobytes(), float(k.nu), float(k.lengthscale))
+        key = (
+            tree.__dict__["_key"],
+            problem.out_rows.tobytes(),
+            problem.out_cols.tobytes(),
+            float(k.nu),
+            float(k.lengthscale),
+        )
         return self._cached(
             self._readouts, key, lambda: build_readout(tree, problem.out_rows, problem.out_cols, k.nu, k.lengthscale)
         )
@@ -208,8 +225,17 @@ class FastEngine:
             route = "grid"  # the series gives no log-determinant
         sub = self._lattice_problem(problem) if route in ("auto", "grid") or lml else problem
         query = RouteQuery(
-            problem, sub, bool(variance), int(extra), bool(lml), route != "auto", self.backend, self._budget(),
-            self.max_dense_points, self._grid_buffers_held(*sub.shape, problem.kernel.nu), self._neumann_buffers,
+            problem,
+            sub,
+            bool(variance),
+            int(extra),
+            bool(lml),
+            route != "auto",
+            self.backend,
+            self._budget(),
+            self.max_dense_points,
+            self._grid_buffers_held(*sub.shape, problem.kernel.nu),
+            self._neumann_buffers,
         )
         choice = choose_route(query, route)
         return choice.name, choice.payload, sub
@@ -324,9 +350,13 @@ class FastEngine:
         r0, r1, c0, c1 = box
         win = (slice(r0, r1), slice(c0, c1))
         return GridProblem(
-            np.asarray(problem.prior_mean)[win], np.asarray(problem.obs)[win], np.asarray(problem.precision)[win],
-            np.asarray(problem.out_rows, np.float64) - r0, np.asarray(problem.out_cols, np.float64) - c0,
-            problem.out_prior_mean, problem.kernel,
+            np.asarray(problem.prior_mean)[win],
+            np.asarray(problem.obs)[win],
+            np.asarray(problem.precision)[win],
+            np.asarray(problem.out_rows, np.float64) - r0,
+            np.asarray(problem.out_cols, np.float64) - c0,
+            problem.out_prior_mean,
+            problem.kernel,
         )
 
     def solve(self, problem: GridProblem, *, variance: bool = True, extra_obs=()) -> Solution:
@@ -470,11 +500,15 @@ class FastEngine:
         hp, wp = tree.padded
         Qv, _ = chain_precision(np.arange(hp, dtype=np.float64), k.nu, k.lengthscale)
         Qu, _ = chain_precision(np.arange(wp, dtype=np.float64), k.nu, k.lengthscale)
-        X = mu[tree.pix_var[:, None] + np.arange(tree.ds)].reshape(hp, wp, d, d).transpose(0, 2, 1, 3).reshape(hp * d, wp * d)
+        X = (
+            mu[tree.pix_var[:, None] + np.arange(tree.ds)]
+            .reshape(hp, wp, d, d)
+            .transpose(0, 2, 1, 3)
+            .reshape(hp * d, wp * d)
+        )
         quad = float(np.sum(X * (Qv @ (Qu @ X.T).T))) / s2
         logdet_q = prior.logdet - tree.nvar * np.log(s2)
         return data - 0.5 * quad + 0.5 * logdet_q - 0.5 * factor.logdet
-
 
 
 def _check_problem(problem: GridProblem) -> None:

@@ -53,12 +53,18 @@ def fit_params(config: DepthGPConfig, params: Sequence[str] | None = None) -> tu
             config.formulation,
         )
     if params is None:
-        return ("lengthscale", "outputscale", "sigma_dl") if config.formulation == "balanced" else ("lengthscale", "outputscale")
+        return (
+            ("lengthscale", "outputscale", "sigma_dl")
+            if config.formulation == "balanced"
+            else ("lengthscale", "outputscale")
+        )
     names = tuple(params)
     if not names or any(n not in FIT_BOUNDS for n in names) or len(set(names)) != len(names):
         raise InvalidInputError("params", f"distinct names from {sorted(FIT_BOUNDS)}", params)
     if config.formulation == "residual" and "sigma_dl" in names:
-        raise InvalidInputError("params", "no sigma_dl in the residual formulation (MDE pixels are not observed)", names)
+        raise InvalidInputError(
+            "params", "no sigma_dl in the residual formulation (MDE pixels are not observed)", names
+        )
     return names
 
 
@@ -122,8 +128,7 @@ def maximise_log_marginal_likelihood(
 
     f0 = objective(x0)
     result = scipy.optimize.minimize(
-        objective, x0, method="L-BFGS-B", bounds=bounds,
-        options={"maxiter": max_iterations, "eps": 1e-6},
+        objective, x0, method="L-BFGS-B", bounds=bounds, options={"maxiter": max_iterations, "eps": 1e-6}
     )
     best = result.x if result.fun <= f0 else x0
     return config.replace(**{n: float(np.exp(v)) for n, v in zip(names, best)})
@@ -236,7 +241,9 @@ def fit_log_residual(
     noise = np.asarray(noise, dtype=np.float64)
     n = resid.size
     if not (rows.shape == cols.shape == resid.shape == noise.shape) or resid.ndim != 1:
-        raise InvalidInputError("rows, cols, resid, noise", "four (N,) arrays", (rows.shape, cols.shape, resid.shape, noise.shape))
+        raise InvalidInputError(
+            "rows, cols, resid, noise", "four (N,) arrays", (rows.shape, cols.shape, resid.shape, noise.shape)
+        )
     if n < 3:
         b = float(np.median(resid)) if n else 0.0
         s = min(max(float(np.std(resid)) if n > 1 else 0.0, 0.1), LOG_SCALE_MAX)
@@ -288,9 +295,9 @@ def fit_log_residual(
     _, lengthscale, eta, s2, b, var_b = best
     if s2 > LOG_SCALE_MAX**2:  # capped at the config's bound; Var[b] = s^2 / q follows
         var_b, s2 = var_b * LOG_SCALE_MAX**2 / s2, LOG_SCALE_MAX**2
-    return PointFit(float(lengthscale), float(np.sqrt(s2)), float(min(np.sqrt(s2 * eta), LOG_SCALE_MAX)), b, float(var_b), n)
-
-
+    return PointFit(
+        float(lengthscale), float(np.sqrt(s2)), float(min(np.sqrt(s2 * eta), LOG_SCALE_MAX)), b, float(var_b), n
+    )
 
 
 def raised_outputscale(
@@ -325,9 +332,16 @@ def raised_outputscale(
     # l is not fitted, so no close pairs are needed: an evenly strided subset in the points' order
     # (as gp.slope's), not `fit_log_residual`'s k-d tree pairing (cheaper, and l is not fitted)
     take = np.linspace(0, n - 1, min(n, int(max_points))).round().astype(np.int64)
-    fitted = fit_log_residual(np.asarray(rows)[take], np.asarray(cols)[take], np.asarray(resid)[take],
-                              np.asarray(noise)[take], nu=nu, max_points=take.size,
-                              lengthscales=(start.lengthscale,), nuggets=(eta,))
+    fitted = fit_log_residual(
+        np.asarray(rows)[take],
+        np.asarray(cols)[take],
+        np.asarray(resid)[take],
+        np.asarray(noise)[take],
+        nu=nu,
+        max_points=take.size,
+        lengthscales=(start.lengthscale,),
+        nuggets=(eta,),
+    )
     if fitted.outputscale <= start.outputscale:
         return start
     s = fitted.outputscale

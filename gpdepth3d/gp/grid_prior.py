@@ -60,8 +60,10 @@ def _prior_pattern(tree: EliminationTree) -> dict:
         inside = (gb[..., 0] >= 0) & (gb[..., 0] < hp) & (gb[..., 1] >= 0) & (gb[..., 1] < wp)
         inside &= (ga[..., 0] >= 0) & (ga[..., 0] < hp) & (ga[..., 1] >= 0) & (ga[..., 1] < wp)
         coords = (
-            np.clip(ga[..., 0], 0, hp - 1).ravel(), np.clip(ga[..., 1], 0, wp - 1).ravel(),
-            np.clip(gb[..., 0], 0, hp - 1).ravel(), np.clip(gb[..., 1], 0, wp - 1).ravel(),
+            np.clip(ga[..., 0], 0, hp - 1).ravel(),
+            np.clip(ga[..., 1], 0, wp - 1).ravel(),
+            np.clip(gb[..., 0], 0, hp - 1).ravel(),
+            np.clip(gb[..., 1], 0, wp - 1).ravel(),
         )
         pos = ((pa * ds)[:, None, None] + np.arange(ds)[None, :, None]) * nf + (pb * ds)[:, None, None] + np.arange(ds)
         template.append((pos.ravel(), coords, inside))
@@ -133,7 +135,6 @@ def build_batched_prior(tree: EliminationTree, nu: float, lengthscale: float) ->
         top_qpos.append(pos)
         top_qval.append(values(*coords).ravel())
     return BatchedPrior(t_qpos, t_qval, top_qpos, top_qval, logdet)
-
 
 
 @dataclass

@@ -79,9 +79,7 @@ class PixelGridInterpolationKernel(gpytorch.kernels.GridInterpolationKernel):
 class _KissGPModel(gpytorch.models.ExactGP):
     """The paper's model: zero mean (data are residuals), ScaleKernel(KISS-GP(Matern))."""
 
-    def __init__(
-        self, train_x, train_y, likelihood, *, nu: float, lengthscale: float, shape, pad: int, toeplitz: bool
-    ):
+    def __init__(self, train_x, train_y, likelihood, *, nu: float, lengthscale: float, shape, pad: int, toeplitz: bool):
         super().__init__(train_x, train_y, likelihood)
         self.mean_module = gpytorch.means.ZeroMean()
         base = gpytorch.kernels.MaternKernel(nu=nu)
@@ -98,7 +96,7 @@ class _KissGPModel(gpytorch.models.ExactGP):
 
 
 def default_device() -> str:
-    """"cuda" when torch sees a GPU, else "cpu"."""
+    """ "cuda" when torch sees a GPU, else "cpu"."""
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
@@ -156,8 +154,11 @@ class KissGPEngine:
                 "variance_method", "'auto', 'cholesky', 'probe', 'solve' or 'love'", variance_method
             )
         for name, value in (("cg_tolerance", cg_tolerance), ("variance_cg_tolerance", variance_cg_tolerance)):
-            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                    or not (math.isfinite(value) and 0 < value < 1):
+            if (
+                isinstance(value, (bool, np.bool_))
+                or not isinstance(value, (int, float, np.integer, np.floating))
+                or not (math.isfinite(value) and 0 < value < 1)
+            ):
                 raise InvalidInputError(name, "a value in (0, 1)", value)
         for name, value, low in (
             ("max_cg_iterations", max_cg_iterations, 1),
@@ -249,7 +250,13 @@ class KissGPEngine:
         noise = self._tensor(1.0 / (problem.precision[rows, cols] * s * s))
         likelihood = gpytorch.likelihoods.FixedNoiseGaussianLikelihood(noise=noise, learn_additional_noise=False)
         model = _KissGPModel(
-            train_x, y, likelihood, nu=k.nu, lengthscale=k.lengthscale, shape=(h, w), pad=self.pad,
+            train_x,
+            y,
+            likelihood,
+            nu=k.nu,
+            lengthscale=k.lengthscale,
+            shape=(h, w),
+            pad=self.pad,
             toeplitz=self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE,
         ).to(device=self.device, dtype=torch.float64)
         model.eval()
@@ -267,8 +274,10 @@ class KissGPEngine:
             precond = None
             constant_noise = bool(torch.all(noise == noise[0]))
             if constant_noise and self.preconditioner_size > 0 and n > self.preconditioner_size:
-                with linear_operator.settings.max_preconditioner_size(self.preconditioner_size), \
-                        linear_operator.settings.min_preconditioning_size(0):
+                with (
+                    linear_operator.settings.max_preconditioner_size(self.preconditioner_size),
+                    linear_operator.settings.min_preconditioning_size(0),
+                ):
                     precond = A._preconditioner()[0]
             stats["preconditioner"] = "pivoted_cholesky" if precond is not None else "none"
             t1 = time.perf_counter()
@@ -434,13 +443,15 @@ class KissGPEngine:
 
     def _variance_love(self, model, test_x, stats) -> torch.Tensor:
         """GPyTorch LOVE (fast_pred_var) predictive variance with a rank-r Lanczos root."""
-        with gpytorch.settings.fast_pred_var(True), gpytorch.settings.max_root_decomposition_size(
-            self.root_decomposition_size
-        ), gpytorch.settings.max_cg_iterations(self.max_cg_iterations), gpytorch.settings.eval_cg_tolerance(
-            self.cg_tolerance
-        ), gpytorch.settings.cg_tolerance(self.cg_tolerance), linear_operator.settings.max_preconditioner_size(
-            0
-        ), linear_operator.settings.max_cholesky_size(0):  # always the Lanczos root, as on large frames
+        with (
+            gpytorch.settings.fast_pred_var(True),
+            gpytorch.settings.max_root_decomposition_size(self.root_decomposition_size),
+            gpytorch.settings.max_cg_iterations(self.max_cg_iterations),
+            gpytorch.settings.eval_cg_tolerance(self.cg_tolerance),
+            gpytorch.settings.cg_tolerance(self.cg_tolerance),
+            linear_operator.settings.max_preconditioner_size(0),
+            linear_operator.settings.max_cholesky_size(0),
+        ):  # always the Lanczos root, as on large frames
             var = model(test_x).variance
         stats["root_decomposition_size"] = self.root_decomposition_size
         return var

@@ -62,7 +62,9 @@ def local_variance_factor(
     cols = np.asarray(cols)
     z = np.asarray(zscores, dtype=np.float64)
     if not (rows.shape == cols.shape == z.shape and z.ndim == 1):
-        raise InvalidInputError("rows, cols, zscores", "three (N,) arrays", f"shapes {rows.shape}, {cols.shape}, {z.shape}")
+        raise InvalidInputError(
+            "rows, cols, zscores", "three (N,) arrays", f"shapes {rows.shape}, {cols.shape}, {z.shape}"
+        )
     for name, value in (("reach", reach), ("prior_points", prior_points), ("zscore_cap", zscore_cap)):
         if not np.isfinite(value) or value <= 0:
             raise InvalidInputError(name, "a finite number > 0", value)
@@ -77,7 +79,11 @@ def local_variance_factor(
     rows = rows.astype(np.int64)
     cols = cols.astype(np.int64)
     if rows.min() < 0 or cols.min() < 0 or rows.max() >= h or cols.max() >= w:
-        raise InvalidInputError("rows, cols", f"pixels inside a {h} x {w} grid", f"rows {rows.min()}..{rows.max()}, cols {cols.min()}..{cols.max()}")
+        raise InvalidInputError(
+            "rows, cols",
+            f"pixels inside a {h} x {w} grid",
+            f"rows {rows.min()}..{rows.max()}, cols {cols.min()}..{cols.max()}",
+        )
     import cv2
 
     # the points' mean spacing where they are: over their bounding box, not the whole grid (points in

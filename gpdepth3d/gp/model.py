@@ -102,7 +102,9 @@ class LatticeConfig:
         for name in ("sparse_share", "detail_share"):
             object.__setattr__(self, name, _in_range(name, getattr(self, name), 0.0, 1.0, "a share of the pixels"))
         object.__setattr__(self, "dense_stride", _integer("dense_stride", self.dense_stride, 1, 16))
-        object.__setattr__(self, "min_lengthscale", _in_range("min_lengthscale", self.min_lengthscale, 0.0, 1e6, "pixels"))
+        object.__setattr__(
+            self, "min_lengthscale", _in_range("min_lengthscale", self.min_lengthscale, 0.0, 1e6, "pixels")
+        )
         object.__setattr__(self, "min_side", _integer("min_side", self.min_side, 2))
         object.__setattr__(self, "max_window_points", _integer("max_window_points", self.max_window_points, 1, 400))
 
@@ -122,9 +124,12 @@ class AssemblyConfig:
     scale_var_share: float = 0.05
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "weight_floor", _in_range("weight_floor", self.weight_floor, 1e-12, 1.0, "a weight sum"))
-        object.__setattr__(self, "scale_var_share",
-                           _in_range("scale_var_share", self.scale_var_share, 0.0, 1.0, "a share of tau^2"))
+        object.__setattr__(
+            self, "weight_floor", _in_range("weight_floor", self.weight_floor, 1e-12, 1.0, "a weight sum")
+        )
+        object.__setattr__(
+            self, "scale_var_share", _in_range("scale_var_share", self.scale_var_share, 0.0, 1.0, "a share of tau^2")
+        )
 
 
 @dataclass(frozen=True)
@@ -148,8 +153,13 @@ class CalibrationConfig:
         object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 1))
 
 
-_NESTED = {"screen": ScreenConfig, "slope": SlopeConfig, "lattice": LatticeConfig, "assembly": AssemblyConfig,
-           "calibration": CalibrationConfig}
+_NESTED = {
+    "screen": ScreenConfig,
+    "slope": SlopeConfig,
+    "lattice": LatticeConfig,
+    "assembly": AssemblyConfig,
+    "calibration": CalibrationConfig,
+}
 
 
 @dataclass(frozen=True)
@@ -249,10 +259,16 @@ class DepthGPConfig:
                 object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name], none=True))
         object.__setattr__(self, "max_exact_points", _integer("max_exact_points", self.max_exact_points, 1))
         if self.lattice_stride is not None:
-            object.__setattr__(self, "lattice_stride",
-                               _integer("lattice_stride", self.lattice_stride, 1, 16, "an integer 1-16, or None (automatic)"))
-        for name, allowed in (("units", ("relative", "metres")), ("align", ("none", "scale", "scale_shift")),
-                              ("engine", ("exact", "kissgp", "fast"))):
+            object.__setattr__(
+                self,
+                "lattice_stride",
+                _integer("lattice_stride", self.lattice_stride, 1, 16, "an integer 1-16, or None (automatic)"),
+            )
+        for name, allowed in (
+            ("units", ("relative", "metres")),
+            ("align", ("none", "scale", "scale_shift")),
+            ("engine", ("exact", "kissgp", "fast")),
+        ):
             if not isinstance(getattr(self, name), str) or getattr(self, name) not in allowed:
                 raise InvalidInputError(name, " or ".join(repr(a) for a in allowed), getattr(self, name))
         for name in ("fit", "raise_outputscale"):

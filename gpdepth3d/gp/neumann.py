@@ -84,8 +84,16 @@ def _coefficients(dv, ov, du, ou, prec, inv_s2, coef):
 def _apply_at(coef, r, c, x, a, b):
     """(E x)_(r, c) for a window x whose cell (a, b) is pixel (r, c) (coef indices unpadded + _PAD)."""
     e = coef[r + _PAD, c + _PAD]
-    return (e[0] * x[a - 1, b - 1] + e[1] * x[a - 1, b] + e[2] * x[a - 1, b + 1] + e[3] * x[a, b - 1]
-            + e[4] * x[a, b + 1] + e[5] * x[a + 1, b - 1] + e[6] * x[a + 1, b] + e[7] * x[a + 1, b + 1])
+    return (
+        e[0] * x[a - 1, b - 1]
+        + e[1] * x[a - 1, b]
+        + e[2] * x[a - 1, b + 1]
+        + e[3] * x[a, b - 1]
+        + e[4] * x[a, b + 1]
+        + e[5] * x[a + 1, b - 1]
+        + e[6] * x[a + 1, b]
+        + e[7] * x[a + 1, b + 1]
+    )
 
 
 @nb.njit(cache=True, nogil=True)
@@ -194,7 +202,9 @@ class NeumannPosterior:
             coef = np.zeros(shape)
         self._workspace = workspace
         with numeric_section():  # numba parallel regions: one at a time per process
-            self.M, self.isq, self.coef, rho = _coefficients(dv, ov, du, ou, prec, 1.0 / float(k.outputscale) ** 2, coef)
+            self.M, self.isq, self.coef, rho = _coefficients(
+                dv, ov, du, ou, prec, 1.0 / float(k.outputscale) ** 2, coef
+            )
         self.rho = float(rho)
 
     def release(self) -> None:

@@ -84,8 +84,19 @@ def loo_zscores(
 
     stated_part = np.zeros(n) if stated is None else np.asarray(stated, dtype=np.float64)
     with numeric_section():
-        z, share = loo_predict(rows, cols, r, noise, targets, nn, outputscale=fit.outputscale, nugget=fit.nugget,
-                               lengthscale=fit.lengthscale, nu=nu, stated=stated_part)
+        z, share = loo_predict(
+            rows,
+            cols,
+            r,
+            noise,
+            targets,
+            nn,
+            outputscale=fit.outputscale,
+            nugget=fit.nugget,
+            lengthscale=fit.lengthscale,
+            nu=nu,
+            stated=stated_part,
+        )
     bad = ~np.isfinite(z)
     if np.any(bad):  # a neighbourhood whose matrix is not numerically positive definite
         z[bad], share[bad] = _loo_lstsq(rows, cols, r, noise, stated_part, targets[bad], nn[bad], fit, nu)
@@ -246,7 +257,7 @@ def screen_points(
     Returns:
         A `Screen`: the fit without the flagged points, the (N,) bool mask of the flagged points,
         the (N,) final leave-one-out z-scores and noise shares (`loo_zscores`; 0 where not computed).
-    """
+    """  # fmt: skip
     resid = np.asarray(resid, dtype=np.float64)
     n = resid.size
     rejected = np.zeros(n, dtype=bool)
@@ -268,10 +279,12 @@ def screen_points(
             fit = fit_log_residual(
                 rows[keep], cols[keep], resid[keep], noise[keep], nu=nu, max_points=max_points, around=around,
                 lengthscales=options.fit_lengthscales, nuggets=options.fit_nuggets,
-            )
+            )  # fmt: skip
             fitted_on, around = keep, (fit.lengthscale, fit.eta)
         elif refit:
-            raised = raised_outputscale(rows[keep], cols[keep], resid[keep], noise[keep], start, nu=nu, max_points=max_points)
+            raised = raised_outputscale(
+                rows[keep], cols[keep], resid[keep], noise[keep], start, nu=nu, max_points=max_points
+            )
             fitted_on, refit = keep, raised is not fit  # s unchanged: only the points near a change are recomputed
             fit = raised
         if threshold is None or n < 5:
@@ -286,7 +299,7 @@ def screen_points(
         k_used = k_now
         z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=options.neighbours,
                                                   exclude=rejected, only=only, radius=True,
-                                                  stated=np.zeros(n) if stated is None else stated)
+                                                  stated=np.zeros(n) if stated is None else stated)  # fmt: skip
         if only is None:
             z, reach, share = z_new, reach_new, share_new
         else:

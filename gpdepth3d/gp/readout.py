@@ -29,7 +29,9 @@ class Readout:
     corner_wgt: np.ndarray  # (Ho Wo, 4 ds) their weights
 
 
-def build_readout(tree: EliminationTree, out_rows: np.ndarray, out_cols: np.ndarray, nu: float, lengthscale: float) -> Readout:
+def build_readout(
+    tree: EliminationTree, out_rows: np.ndarray, out_cols: np.ndarray, nu: float, lengthscale: float
+) -> Readout:
     h, w = tree.shape
     hp, wp = tree.padded
     d = state_dim(nu)
@@ -67,7 +69,9 @@ def build_readout(tree: EliminationTree, out_rows: np.ndarray, out_cols: np.ndar
             continue
         tiles = owner[sel] - tau * T
         pix = np.repeat(cpix[sel], ds, axis=1).reshape(-1, 2)
-        pos = tree.tile_positions(tau, np.repeat(tiles, 4 * ds), pix, np.tile(states, sel.size)).reshape(sel.size, 4 * ds)
+        pos = tree.tile_positions(tau, np.repeat(tiles, 4 * ds), pix, np.tile(states, sel.size)).reshape(
+            sel.size, 4 * ds
+        )
         t_groups.append((sel, tiles, pos, wgt[sel]))
     top_groups = []
     for x in range(tree.ntop):
@@ -81,7 +85,6 @@ def build_readout(tree: EliminationTree, out_rows: np.ndarray, out_cols: np.ndar
         top_groups.append((sel, pos, wgt[sel]))
     corner_vars = (pvar[:, :, None] + np.arange(ds)).reshape(m, 4 * ds)
     return Readout(wmat(fr, wr, h), wmat(fc, wc, w), resid, t_groups, top_groups, corner_vars, wgt)
-
 
 
 def frontal_readout(fronts: FrontTree, readout: Readout) -> tuple:
@@ -100,15 +103,29 @@ def frontal_readout(fronts: FrontTree, readout: Readout) -> tuple:
         single = np.count_nonzero(nz, axis=1) == 1
         out_single = np.nonzero(single)[0]
         k = np.argmax(nz[out_single], axis=1)
-        simple = (out_single.astype(np.int64), readout.corner_vars[out_single, k],
-                  readout.corner_wgt[out_single, k] ** 2)
+        simple = (
+            out_single.astype(np.int64),
+            readout.corner_vars[out_single, k],
+            readout.corner_wgt[out_single, k] ** 2,
+        )
         rest = np.nonzero(~single)[0]
         v = readout.corner_vars[rest]
         f = fronts.front_of[v.min(axis=1)]
         pos = fronts.positions(np.repeat(f, v.shape[1]), v.ravel()).reshape(v.shape)
         srt = np.argsort(f, kind="stable")
         ptr = np.searchsorted(f[srt], np.arange(fronts.st.size + 1)).astype(np.int64)
-        cached = (fronts, ((ptr, rest[srt].astype(np.int64), np.ascontiguousarray(pos[srt]),
-                            np.ascontiguousarray(readout.corner_wgt[rest[srt]]), readout.corner_vars.shape[0]), simple))
+        cached = (
+            fronts,
+            (
+                (
+                    ptr,
+                    rest[srt].astype(np.int64),
+                    np.ascontiguousarray(pos[srt]),
+                    np.ascontiguousarray(readout.corner_wgt[rest[srt]]),
+                    readout.corner_vars.shape[0],
+                ),
+                simple,
+            ),
+        )
         readout.__dict__["_frontal"] = cached
     return cached[1]

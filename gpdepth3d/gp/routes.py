@@ -14,9 +14,18 @@ from typing import NoReturn, Protocol, runtime_checkable
 import numpy as np
 
 from ..errors import ConvergenceError, InvalidInputError, ProblemTooLargeError
-from .cost_model import (GRID_MAX_ERROR, NEUMANN_BYTES_PER_PIXEL, NEUMANN_MIN_OBSERVED, WOODBURY_MAX_SNR,
-                         dense_seconds, grid_bytes, grid_error_estimate, grid_seconds, woodbury_bytes,
-                         woodbury_seconds)
+from .cost_model import (
+    GRID_MAX_ERROR,
+    NEUMANN_BYTES_PER_PIXEL,
+    NEUMANN_MIN_OBSERVED,
+    WOODBURY_MAX_SNR,
+    dense_seconds,
+    grid_bytes,
+    grid_error_estimate,
+    grid_seconds,
+    woodbury_bytes,
+    woodbury_seconds,
+)
 from .exact import dense_bytes
 from .model import GridProblem
 from .neumann import NEUMANN_MEAN_TOL, NeumannPosterior
@@ -75,8 +84,11 @@ class RouteQuery:
     def near_noiseless(self) -> bool:
         """Some observation's noise is tiny against the outputscale (`WOODBURY_MAX_SNR`)."""
         prec = np.asarray(self.problem.precision, dtype=np.float64)
-        return bool(prec.size and prec.max() > 0
-                    and float(prec.max()) * float(self.problem.kernel.outputscale) ** 2 > WOODBURY_MAX_SNR)
+        return bool(
+            prec.size
+            and prec.max() > 0
+            and float(prec.max()) * float(self.problem.kernel.outputscale) ** 2 > WOODBURY_MAX_SNR
+        )
 
 
 @dataclass(frozen=True)
@@ -140,9 +152,13 @@ class GridRoute:
         k = q.lattice.kernel
         err = grid_error_estimate(q.lattice)
         if err > GRID_MAX_ERROR:
-            return Refusal("conditioning", (
-                f"its precision form is too ill-conditioned for the Matern kernel nu={k.nu}, "
-                f"lengthscale={k.lengthscale:g} px (estimated error {err:.2g} x outputscale > {GRID_MAX_ERROR:g})"))
+            return Refusal(
+                "conditioning",
+                (
+                    f"its precision form is too ill-conditioned for the Matern kernel nu={k.nu}, "
+                    f"lengthscale={k.lengthscale:g} px (estimated error {err:.2g} x outputscale > {GRID_MAX_ERROR:g})"
+                ),
+            )
         return _memory(self._bytes(q), q.budget)
 
     @staticmethod
@@ -151,8 +167,7 @@ class GridRoute:
 
     def cost(self, q: RouteQuery) -> RouteCost:
         h, w = q.lattice.shape
-        seconds = grid_seconds(h, w, q.problem.kernel.nu, q.variance, q.out_pixels, q.extra,
-                               q.lattice is not q.problem)
+        seconds = grid_seconds(h, w, q.problem.kernel.nu, q.variance, q.out_pixels, q.extra, q.lattice is not q.problem)
         return RouteCost(seconds, self._bytes(q))
 
     def yields_to(self, q: RouteQuery) -> tuple[str, ...]:
@@ -190,8 +205,11 @@ class WoodburyRoute:
     def fits(self, q: RouteQuery) -> Refusal | None:
         nu = q.problem.kernel.nu
         if nu != 0.5:
-            return Refusal("applicability", "it needs nu = 0.5",
-                           f"'auto', 'grid' or 'dense' for nu = {nu} ('woodbury' needs nu = 0.5)")
+            return Refusal(
+                "applicability",
+                "it needs nu = 0.5",
+                f"'auto', 'grid' or 'dense' for nu = {nu} ('woodbury' needs nu = 0.5)",
+            )
         if not q.forced and q.backend != "compiled":
             return Refusal("limit", "auto takes it with the compiled back-end only")
         if not q.forced and q.observed and q.near_noiseless:
@@ -199,8 +217,9 @@ class WoodburyRoute:
         return _memory(woodbury_bytes(q.observed, q.out_pixels), q.budget)
 
     def cost(self, q: RouteQuery) -> RouteCost:
-        return RouteCost(woodbury_seconds(q.observed, q.out_pixels, q.variance, q.extra),
-                         woodbury_bytes(q.observed, q.out_pixels))
+        return RouteCost(
+            woodbury_seconds(q.observed, q.out_pixels, q.variance, q.extra), woodbury_bytes(q.observed, q.out_pixels)
+        )
 
     def yields_to(self, q: RouteQuery) -> tuple[str, ...]:
         return ()
@@ -217,11 +236,17 @@ class NeumannRoute:
     def _cheap_refusal(self, q: RouteQuery) -> Refusal | None:
         nu, (h, w) = q.problem.kernel.nu, q.lattice.shape
         if nu != 0.5:
-            return Refusal("applicability", "it needs nu = 0.5",
-                           f"'auto', 'grid' or 'dense' for nu = {nu} ('neumann' needs nu = 0.5)")
+            return Refusal(
+                "applicability",
+                "it needs nu = 0.5",
+                f"'auto', 'grid' or 'dense' for nu = {nu} ('neumann' needs nu = 0.5)",
+            )
         if not q.problem.output_is_input:
-            return Refusal("applicability", "it needs the output grid to be the input grid",
-                           "'auto', 'grid' or 'woodbury' for an output grid other than the input")
+            return Refusal(
+                "applicability",
+                "it needs the output grid to be the input grid",
+                "'auto', 'grid' or 'woodbury' for an output grid other than the input",
+            )
         if not q.forced and (q.backend != "compiled" or q.lml):
             return Refusal("limit", "auto takes it with the compiled back-end, and not for the likelihood")
         if not q.forced and q.observed < NEUMANN_MIN_OBSERVED * h * w:
@@ -239,10 +264,12 @@ class NeumannRoute:
             ok = series.seconds(q.variance) is not None
         if not ok:
             series.release()
-            return Refusal("applicability" if q.forced else "limit",
-                           f"the series converges too slowly (rho = {series.rho:.3g})",
-                           "'auto' or 'grid': the precision is not diagonally dominant enough for 'neumann'",
-                           f"rho = {series.rho:.3g}")
+            return Refusal(
+                "applicability" if q.forced else "limit",
+                f"the series converges too slowly (rho = {series.rho:.3g})",
+                "'auto' or 'grid': the precision is not diagonally dominant enough for 'neumann'",
+                f"rho = {series.rho:.3g}",
+            )
         q.scratch[self.name] = series
         return None
 
@@ -319,9 +346,11 @@ def refuse(refusals: dict, problem: GridProblem) -> NoReturn:
     """
     k = problem.kernel
     text = "; ".join(f"the {r} route is refused: {why.text}" for r, why in refusals.items())
-    msg = (f"fast engine: no route for a {problem.shape[0]} x {problem.shape[1]} grid with "
-           f"{int(np.count_nonzero(np.asarray(problem.precision) > 0))} observed pixels, Matern nu={k.nu}, "
-           f"lengthscale={k.lengthscale:g} px: {text}")
+    msg = (
+        f"fast engine: no route for a {problem.shape[0]} x {problem.shape[1]} grid with "
+        f"{int(np.count_nonzero(np.asarray(problem.precision) > 0))} observed pixels, Matern nu={k.nu}, "
+        f"lengthscale={k.lengthscale:g} px: {text}"
+    )
     kinds = {why.kind for why in refusals.values()}
     if "conditioning" in kinds and "memory" not in kinds:
         raise IllConditionedError(msg + "; use a smaller lengthscale or nu, or fewer observed pixels")

@@ -24,20 +24,29 @@ def _device_arrays(tree: EliminationTree, prior: BatchedPrior, readout: "Readout
     if key not in cache:
         t = lambda a: None if a is None else torch.as_tensor(np.asarray(a), device=device)  # noqa: E731
         cache[key] = {
-            "t_bnd": [t(b) for b in tree.t_bnd], "t_loc": [t(x) for x in tree.t_loc],
-            "t_ea": [t(x) for x in tree.t_ea], "top_bnd": [t(b) for b in tree.top_bnd],
-            "top_loc": [t(x) for x in tree.top_loc], "top_ea": [t(x) for x in tree.top_ea],
-            "tile_loc": t(tree.tile_loc), "tile_ea": t(tree.tile_ea),
+            "t_bnd": [t(b) for b in tree.t_bnd],
+            "t_loc": [t(x) for x in tree.t_loc],
+            "t_ea": [t(x) for x in tree.t_ea],
+            "top_bnd": [t(b) for b in tree.top_bnd],
+            "top_loc": [t(x) for x in tree.top_loc],
+            "top_ea": [t(x) for x in tree.top_ea],
+            "tile_loc": t(tree.tile_loc),
+            "tile_ea": t(tree.tile_ea),
             "top_tiles": [t(np.array(x, dtype=np.int64)) for x in tree.top_tiles],
             "t_diag": [t(np.arange(no) * (nf + 1)) for no, nf in zip(tree.t_no, tree.t_nf)],
-            "top_diag": [t(np.arange(tree.top_starts[x + 1] - tree.top_starts[x]) * (tree.top_nf[x] + 1)) for x in range(tree.ntop)],
+            "top_diag": [
+                t(np.arange(tree.top_starts[x + 1] - tree.top_starts[x]) * (tree.top_nf[x] + 1))
+                for x in range(tree.ntop)
+            ],
         }
     pcache = prior.__dict__.setdefault("_dev", {})
     if key not in pcache:
         t = lambda a: torch.as_tensor(np.asarray(a), device=device)  # noqa: E731
         pcache[key] = {
-            "t_qpos": [t(x) for x in prior.t_qpos], "t_qval": [t(x) for x in prior.t_qval],
-            "top_qpos": [t(x) for x in prior.top_qpos], "top_qval": [t(x) for x in prior.top_qval],
+            "t_qpos": [t(x) for x in prior.t_qpos],
+            "t_qval": [t(x) for x in prior.t_qval],
+            "top_qpos": [t(x) for x in prior.top_qpos],
+            "top_qval": [t(x) for x in prior.top_qval],
         }
     rdev = None
     if readout is not None:
@@ -225,8 +234,6 @@ class TorchFactor:
             if p >= 0 and min(tpl.children[p]) == tau:
                 tsig[p] = None
         return diag.cpu().numpy(), (out.cpu().numpy() if out is not None else None)
-
-
 
 
 @contextmanager

@@ -232,7 +232,9 @@ class WoodburyPosterior:
         self.rr, self.cc = rows.astype(np.float64), cols.astype(np.float64)
         self.s2 = float(k.outputscale) ** 2
         self.inv_l = 1.0 / float(k.lengthscale)
-        self.resid = np.asarray(problem.obs, np.float64)[rows, cols] - np.asarray(problem.prior_mean, np.float64)[rows, cols]
+        self.resid = (
+            np.asarray(problem.obs, np.float64)[rows, cols] - np.asarray(problem.prior_mean, np.float64)[rows, cols]
+        )
         self._rows_axis = _Axis(problem.out_rows)
         self._cols_axis = _Axis(problem.out_cols)
         self.m = int(rows.size)
@@ -245,7 +247,9 @@ class WoodburyPosterior:
             self.A = _correlations(rows, cols, er, ec, 1.0 / (prec[rows, cols] * self.s2))
             self.L, info = scipy.linalg.lapack.dpotrf(self.A, lower=1, clean=0)
             if info != 0:
-                raise np.linalg.LinAlgError(f"the observed-pixel covariance is not positive definite (dpotrf info={info})")
+                raise np.linalg.LinAlgError(
+                    f"the observed-pixel covariance is not positive definite (dpotrf info={info})"
+                )
             self.alpha, _ = scipy.linalg.lapack.dpotrs(self.L, self.resid, lower=1)
 
     def _unsort(self, img: np.ndarray) -> np.ndarray:

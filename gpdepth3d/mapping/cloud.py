@@ -365,7 +365,9 @@ def backproject_depth(
             negative = var < -1e-12  # round-off of a posterior variance may dip a hair below 0
         if np.any(negative):
             raise InvalidInputError(
-                "variance", "variances >= 0 m^2 (NaN = unknown)", f"{int(negative.sum())} negative, min {var[negative].min():.3g}"
+                "variance",
+                "variances >= 0 m^2 (NaN = unknown)",
+                f"{int(negative.sum())} negative, min {var[negative].min():.3g}",
             )
     else:
         var = np.full(d.shape, np.nan)

@@ -136,7 +136,9 @@ class PoseCheck:
     inverted: bool
 
 
-def _visible_fraction(points_world: np.ndarray, T_world_camera: np.ndarray, camera: PinholeCamera, min_depth: float) -> float:
+def _visible_fraction(
+    points_world: np.ndarray, T_world_camera: np.ndarray, camera: PinholeCamera, min_depth: float
+) -> float:
     pc = transform_points(invert_pose(T_world_camera), points_world)
     front = pc[:, 2] > min_depth
     if not front.any():
@@ -226,7 +228,9 @@ class Trajectory:
             raise InvalidInputError("timestamps", "finite seconds (or NaN for none)", "inf")
         finite = ts[np.isfinite(ts)]
         if np.unique(finite).size != finite.size:
-            raise InvalidInputError("timestamps", "unique timestamps", f"{finite.size - np.unique(finite).size} repeated")
+            raise InvalidInputError(
+                "timestamps", "unique timestamps", f"{finite.size - np.unique(finite).size} repeated"
+            )
         names = tuple(str(n) for n in self.names)
         if names and len(names) != len(poses):
             raise ShapeError("names", f"{len(poses)} names (one per pose) or none", f"{len(names)}")
@@ -648,11 +652,7 @@ def _name_keys(names: list[str]) -> list[str]:
 
 
 def associate_poses(
-    trajectory: Trajectory,
-    image_names: list[str],
-    *,
-    by: str = "auto",
-    max_difference: float = 0.02,
+    trajectory: Trajectory, image_names: list[str], *, by: str = "auto", max_difference: float = 0.02
 ) -> np.ndarray:
     """The pose of each image: (N, 4, 4) ``T_world_camera`` in the order of ``image_names``.
 
@@ -688,9 +688,7 @@ def associate_poses(
             by = "order"
     if by == "order":
         if len(trajectory) != len(names):
-            raise ShapeError(
-                "poses", f"one pose per image in order ({len(names)} images)", f"{len(trajectory)} poses"
-            )
+            raise ShapeError("poses", f"one pose per image in order ({len(names)} images)", f"{len(trajectory)} poses")
         return trajectory.poses.copy()
     if by == "timestamp":
         if not np.any(np.isfinite(trajectory.timestamps)):
@@ -722,7 +720,11 @@ def associate_poses(
         if len(lookup) == len(trajectory) and all(k in lookup for k in key):
             return trajectory.poses[np.array([lookup[k] for k in key])]
     # which images lack a pose: by the unique naming that matches the most images
-    usable = [(sum(k in lookup for k in key), lookup, key) for lookup, key in zip(lookups, keys) if len(lookup) == len(trajectory)]
+    usable = [
+        (sum(k in lookup for k in key), lookup, key)
+        for lookup, key in zip(lookups, keys)
+        if len(lookup) == len(trajectory)
+    ]
     if not usable:
         raise DataFormatError(names[0], "no pose of that name (and the poses' names are not unique)")
     _, lookup, key = max(usable, key=lambda u: u[0])

@@ -34,7 +34,9 @@ FRONTEND_FILES: dict[str, str] = {
 """File name of each named front-end's model (in `default_models_dir`)."""
 
 
-def load_frontend(name_or_path: "str | Path", *, models_dir: "str | Path | None" = None, num_threads: "int | None" = None):
+def load_frontend(
+    name_or_path: "str | Path", *, models_dir: "str | Path | None" = None, num_threads: "int | None" = None
+):
     """A monocular front-end by preset name or model file.
 
     Args:

@@ -45,11 +45,7 @@ class FileMDE:
     """
 
     def __init__(
-        self,
-        folder: str | Path,
-        *,
-        pattern: str = "{name}.npy",
-        loader: Callable[[Path], np.ndarray] | None = None,
+        self, folder: str | Path, *, pattern: str = "{name}.npy", loader: Callable[[Path], np.ndarray] | None = None
     ):
         self.folder = Path(folder)
         if not self.folder.is_dir():

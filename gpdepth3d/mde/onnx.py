@@ -114,7 +114,9 @@ class ONNXDepthModel:
         for name, value in (("depth_factor", depth_factor), ("input_divisor", input_divisor)):
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(name, "a finite value > 0", value)
-        if output == "sigmoid_disparity" and not (np.isfinite(min_disp) and np.isfinite(max_disp) and 0 < min_disp < max_disp):
+        if output == "sigmoid_disparity" and not (
+            np.isfinite(min_disp) and np.isfinite(max_disp) and 0 < min_disp < max_disp
+        ):
             raise InvalidInputError("min_disp, max_disp", "0 < min_disp < max_disp", (min_disp, max_disp))
         if num_threads is not None and (int(num_threads) != num_threads or num_threads < 1):
             raise InvalidInputError("num_threads", "None or an integer >= 1", num_threads)

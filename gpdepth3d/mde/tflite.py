@@ -38,7 +38,9 @@ def _runtime_info_dropped() -> Iterator[None]:
             os.dup2(saved, 2)
             os.close(saved)
             caught.seek(0)
-            kept = [line for line in caught.read().decode(errors="replace").splitlines() if not line.startswith("INFO:")]
+            kept = [
+                line for line in caught.read().decode(errors="replace").splitlines() if not line.startswith("INFO:")
+            ]
             if kept:
                 print("\n".join(kept), file=sys.stderr)
 
@@ -79,7 +81,9 @@ class FastDepthTFLite:
         Interpreter = _interpreter_class()
         try:
             if num_threads is None:
-                num_threads = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+                num_threads = (
+                    len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+                )
             self.num_threads = int(num_threads)
             with _runtime_info_dropped():
                 self._interp = Interpreter(model_path=str(self.model_path), num_threads=self.num_threads)

@@ -130,7 +130,9 @@ class TorchModuleMDE:
             return out[0]
         if isinstance(out, dict):
             if len(out) != 1:
-                raise InvalidInputError("select", "a function picking the depth from the module's dict output", list(out))
+                raise InvalidInputError(
+                    "select", "a function picking the depth from the module's dict output", list(out)
+                )
             return next(iter(out.values()))
         return out
 

@@ -241,9 +241,7 @@ def _check_aspect(camera: PinholeCamera, shape: tuple[int, ...], argument: str) 
     h, w = int(shape[0]), int(shape[1])
     if abs((w / h) / (camera.width / camera.height) - 1.0) > 0.01:
         raise ShapeError(
-            argument,
-            f"an image with the aspect ratio of the camera ({camera.width}x{camera.height})",
-            f"{w}x{h}",
+            argument, f"an image with the aspect ratio of the camera ({camera.width}x{camera.height})", f"{w}x{h}"
         )
 
 
@@ -287,12 +285,7 @@ class _Layer:
 
 
 def _lift_map(
-    depth: np.ndarray,
-    rgb: np.ndarray,
-    camera: PinholeCamera,
-    T: np.ndarray,
-    stride: int,
-    extras: dict[str, np.ndarray],
+    depth: np.ndarray, rgb: np.ndarray, camera: PinholeCamera, T: np.ndarray, stride: int, extras: dict[str, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Back-projects a depth map with `cloud.backproject_depth`; samples per-pixel ``extras`` at each point."""
     from ..mapping.cloud import backproject_depth
@@ -449,7 +442,9 @@ class Viewer:
         self._loading_text = self.server.gui.add_markdown(self._loading_message(0))
         self._event("loading")
         if background:
-            threading.Thread(target=self._load, args=(list(meshes), True), name="gpdepth3d-viewer-load", daemon=True).start()
+            threading.Thread(
+                target=self._load, args=(list(meshes), True), name="gpdepth3d-viewer-load", daemon=True
+            ).start()
         else:
             self._load(list(meshes), False)
 
@@ -543,7 +538,12 @@ class Viewer:
         median = float(np.median(mean[mean > 0])) if np.any(mean > 0) else 1.0
         size = 1.5 * self.stride * median / (frame.camera.fx * frame.posterior.shape[1] / frame.camera.width)
         self._preview = self.server.scene.add_point_cloud(
-            "/preview", layer.points, layer.rgb, point_size=size, point_shape="square", precision="float32",
+            "/preview",
+            layer.points,
+            layer.rgb,
+            point_size=size,
+            point_shape="square",
+            precision="float32",
             point_shading="flat",
         )
         self._event("preview")
@@ -630,9 +630,15 @@ class Viewer:
                 point_shading="flat",
             )
             if key != "sparse":
-                self._labels.append(scene.add_label(
-                    f"/{key}/label", label, position=centre + up * 0.6 * height, anchor="bottom-center", visible=side
-                ))
+                self._labels.append(
+                    scene.add_label(
+                        f"/{key}/label",
+                        label,
+                        position=centre + up * 0.6 * height,
+                        anchor="bottom-center",
+                        visible=side,
+                    )
+                )
             self._event(f"cloud:{key}")
         if preview is not None:
             preview.remove()
@@ -642,7 +648,9 @@ class Viewer:
 
         self.frustums = []
         if self.frames:
-            self.groups["cameras"] = scene.add_frame("/cameras", show_axes=False, position=self._group_position("cameras"))
+            self.groups["cameras"] = scene.add_frame(
+                "/cameras", show_axes=False, position=self._group_position("cameras")
+            )
             scale = self.config.frustum_scale or 0.05 * max(extent, height)
             for i, f in enumerate(self.frames):
                 cam = f.camera
@@ -673,7 +681,10 @@ class Viewer:
                 self.meshes.append(scene.add_mesh_trimesh(f"/meshes/{i:03d}", mesh))
             self._labels.append(
                 scene.add_label(
-                    "/meshes/label", "Fused mesh", position=centre + up * 0.6 * height, anchor="bottom-center",
+                    "/meshes/label",
+                    "Fused mesh",
+                    position=centre + up * 0.6 * height,
+                    anchor="bottom-center",
                     visible=side,
                 )
             )
@@ -768,10 +779,7 @@ class Viewer:
         if not self.metrics:
             return "No ground truth: metrics unavailable."
         n_gt = sum(f.depth_gt is not None for f in self.frames)
-        lines = [
-            "| | RMSE mm | MAE mm | REL | δ1 |",
-            "|---|---:|---:|---:|---:|",
-        ]
+        lines = ["| | RMSE mm | MAE mm | REL | δ1 |", "|---|---:|---:|---:|---:|"]
         for key in ("mde", "gp"):
             m = self.metrics[key]
             lines.append(

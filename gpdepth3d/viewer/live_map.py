@@ -188,8 +188,13 @@ class LiveMapViewer:
         with self._lock:
             if self.cloud is None:
                 self.cloud = self.server.scene.add_point_cloud(
-                    "/map/points", points, colors, point_size=0.6 * self._voxel, point_shape="square",
-                    precision="float32", point_shading="flat",
+                    "/map/points",
+                    points,
+                    colors,
+                    point_size=0.6 * self._voxel,
+                    point_shape="square",
+                    precision="float32",
+                    point_shading="flat",
                 )
             else:
                 self.cloud.points = points
@@ -282,4 +287,3 @@ class LiveMapViewer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
