@@ -1,7 +1,7 @@
 """Writes docs/cli.md from the commands' signatures and docstrings: ``python docs/make_cli.py``.
 
 The page is what ``gpdepth3d COMMAND --help`` prints, in one place: each command's description, every option
-with its type, default and meaning, the GP fields of ``--gp.FIELD``, and the exit codes. tests/test_cli_docs.py
+with its type, default and meaning, the GP fields of ``--gp.FIELD``, and the exit codes. tests/cli/test_cli_docs.py
 regenerates it and fails when it differs.
 """
 

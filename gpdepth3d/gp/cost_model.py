@@ -29,10 +29,10 @@ s^2 (1 - quadratic form) cancels near a point whose noise is tiny against s (err
 ratio), the grid's factorisation does not."""
 GRID_MAX_ERROR = 1e-7
 """Largest `grid_error_estimate` (relative to s) at which the grid route is taken: calibrated
-against the dense engine (nu = 1.5, 2.5; l = 1.5-100 px; both formulations) in tests/test_fast.py."""
+against the dense engine (nu = 1.5, 2.5; l = 1.5-100 px; both formulations) in tests/gp/test_fast.py."""
 GRID_BYTES = 80.0
 """Bytes per ds^2 n log2 n of the grid route's numeric phase (factor, update stack, covariance
-fronts, symbolic structure), an upper bound checked in tests/test_fast.py."""
+fronts, symbolic structure), an upper bound checked in tests/gp/test_fast.py."""
 NEUMANN_BYTES_PER_PIXEL = 200
 """Bytes per grid pixel of the Neumann route (coefficient images and work arrays)."""
 NEUMANN_MIN_OBSERVED = 0.9

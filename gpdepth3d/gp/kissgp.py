@@ -373,7 +373,7 @@ class KissGPEngine:
         (S Z)_ic = S_ii + the sum of S_ij over the other pixels j of i's colour, all at least d
         pixels away. With dense observations (the balanced formulation) the posterior covariance
         of observed pixels decays within a pixel or two, so this matches the exact engine to the
-        bound tests/test_kissgp.py checks. Output pixels over unobserved pixels (holes),
+        bound tests/gp/test_kissgp.py checks. Output pixels over unobserved pixels (holes),
         where the posterior covariance is long-ranged, each get a column of their own (exact).
         """
         ho, wo = problem.out_shape

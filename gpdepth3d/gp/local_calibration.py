@@ -93,7 +93,7 @@ def local_variance_factor(
     # the sums on bins of ~radius / 3 pixels, each point splatted bilinearly onto the 4 bin centres
     # around it (bin centres on the pixel centres of the c-fold grid, so resizing bilinearly by
     # exactly c and cropping puts them back): the blur is then >= 3 bins wide whatever the density
-    # (an approximation of the direct sum: tests/test_local_calibration.py bounds its error)
+    # (an approximation of the direct sum: tests/gp/test_local_calibration.py bounds its error)
     c = max(1, int(radius // 3))
     hb, wb = -(-h // c), -(-w // c)
     q = np.minimum(z * z if noise_share is None else np.maximum(z * z, share), zscore_cap)

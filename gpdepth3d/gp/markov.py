@@ -11,7 +11,7 @@ so the joint precision of all states is block tridiagonal with d x d blocks (d =
 The states are f and its derivatives in units of 1 / lam = l / sqrt(2 nu) (x_k = f^(k) / lam^k),
 whose covariance is O(1) at any length scale, and the process noise of a step is integrated by
 quadrature for short steps (P_inf - A P_inf A^T cancels catastrophically there): both keep the
-chains accurate at long length scales, where the raw form loses digits (tests/test_fast.py). For
+chains accurate at long length scales, where the raw form loses digits (tests/gp/test_fast.py). For
 nu = 0.5 (d = 1) this is the Ornstein-Uhlenbeck precision with rho_i = exp(-d_i / l). The
 separable 2-D field then has the Kronecker precision Qv (x) Qu over (row state, column state)
 pairs, which is what `gpdepth3d.gp.fast` factorises.

@@ -21,7 +21,7 @@ from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.mapping.mapper import MAPPER_GP
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class TestNormalizeArgv:

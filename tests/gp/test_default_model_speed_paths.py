@@ -88,7 +88,7 @@ def _loo_reference(rows, cols, resid, noise, fit, nn):
 
 def test_leave_one_out_kernel_equals_numpy(kitti):
     """All of the LiDAR (12.6k points): the ring search finds the 12 nearest (their distances are the brute-force
-    ones, checked on every 50th point; the tie rule is tests/test_loo.py's) and the compiled kriging equals
+    ones, checked on every 50th point; the tie rule is tests/gp/test_loo.py's) and the compiled kriging equals
     NumPy's batched solves on them."""
     from gpdepth3d.gp.points import neighbours_of
 

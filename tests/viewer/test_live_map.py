@@ -130,7 +130,7 @@ class TestInBrowser:
                     elapsed = time.monotonic() - start
                     print(f"first picture {elapsed:.2f} s after the viewer started")
                     # the scene (path and first camera) was sent within 5 s of the start; the wall clock of the
-                    # drawing on this shared machine is reported above, not asserted (as tests/test_viewer.py does)
+                    # drawing on this shared machine is reported above, not asserted (as tests/viewer/test_viewer.py does)
                     assert viewer.events[1][0] == "first_camera" and viewer.events[1][1] < 5.0
                 finally:
                     viewer.stop()

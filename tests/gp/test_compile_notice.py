@@ -13,7 +13,7 @@ import pytest
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.compile_notice import on_first_compile
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 KERNELS = textwrap.dedent("""
     import numba as nb

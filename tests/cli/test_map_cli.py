@@ -16,7 +16,7 @@ import pytest
 
 from gpdepth3d.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 RECIPES = {
     "hololens": "gpdepth3d map --images ../shared/data/hololens/images --poses ../shared/data/hololens/poses_images.txt "

@@ -6,7 +6,7 @@ import importlib.util
 import inspect
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _make_cli():
