@@ -173,6 +173,9 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             is removed; nothing appears under ``path``).
     """
     path = check_output_path(path)
+    if _TEMP_NAME.match(path.name):  # already a temporary (a set's writer that itself writes atomically): fill it
+        yield path
+        return
     _make_parent(path)
     active = _SET.get()
     joins = active is not None and active.owns(path)
@@ -362,10 +365,6 @@ class _OutputSet:
         self.temps: dict[str, tuple[Path, int]] = {}
 
     def owns(self, path: Path) -> bool:
-        """Whether a write to ``path`` joins this set: a file of its folder, but not one of the
-        temporaries the set's own writers are filling (a writer that itself writes atomically)."""
-        if _TEMP_NAME.match(path.name):
-            return False
         return os.path.abspath(path.parent) == os.path.abspath(self.folder)
 
     def add(self, path: Path, tmp: Path, fd: int) -> None:

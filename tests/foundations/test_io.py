@@ -450,6 +450,16 @@ class TestOutputSets:
         assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
         assert (tmp_path / "s.csv").read_text() == "old" and not (tmp_path / "s.csv").is_symlink()
 
+    def test_writers_that_write_atomically_themselves(self, tmp_path):
+        """A set's writer may call an atomic writer (a mesh or PLY saver): its file joins the set whole."""
+        writers = {
+            name: (lambda p, name=name: gio.atomic_write(p, lambda q: q.write_text(name)))
+            for name in ("s.a", "s.b", "s.c")
+        }
+        written = gio.atomic_write_set(tmp_path / "s", writers)
+        assert [p.read_text() for p in written] == ["s.a", "s.b", "s.c"]
+        assert listing(tmp_path) == ["s.a", "s.b", "s.c"]
+
 
 def _commit_then_die(folder):
     """Writes a new set and dies (like SIGKILL: no clean-up) right after the first rename of the commit."""

@@ -224,7 +224,7 @@ class TestRuntimeLogFilter:
         from pathlib import Path
 
         pytest.importorskip("ai_edge_litert")
-        model = Path(__file__).resolve().parents[2] / "shared" / "models" / "fast_depth_224.tflite"
+        model = Path(__file__).resolve().parents[3] / "shared" / "models" / "fast_depth_224.tflite"
         if not model.is_file():
             pytest.skip("FastDepth model not in ../shared/models")
         from gpdepth3d.mde.tflite import FastDepthTFLite
