@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
+from gpdepth3d.errors import (
+    CalibrationError,
+    DataFormatError,
+    EmptyInputError,
+    InvalidInputError,
+    ProblemTooLargeError,
+    ShapeError,
+)
 from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
@@ -403,6 +410,35 @@ class TestRobustness:
         with pytest.raises(EmptyInputError):
             fusion.extract_mesh()
         assert len(fusion.extract_mesh(allow_empty=True).faces) == 0
+
+
+class TestMemoryGuard:
+    @pytest.mark.parametrize("voxel", [1e-5, 1e-4, 1e-3])
+    def test_a_voxel_that_would_exhaust_memory_is_refused_up_front(self, voxel, monkeypatch):
+        import resource
+        import time
+
+        import gpdepth3d.mapping.fusion as fusion_module
+
+        monkeypatch.setattr(fusion_module, "memory_limit", lambda: 2**30)  # a 1 GiB machine
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=voxel, truncation=0.06, block_count=64))
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        t0 = time.perf_counter()
+        with pytest.raises(ProblemTooLargeError, match=f"voxel_size: .*got {voxel} m"):
+            fusion.integrate(_plane(), np.eye(4))
+        assert time.perf_counter() - t0 < 1.0
+        assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000  # KiB: nothing large was allocated
+        assert fusion.frames_integrated == 0
+
+    def test_sizes_that_fit_pass_and_a_huge_initial_grid_is_refused(self, monkeypatch):
+        import gpdepth3d.mapping.fusion as fusion_module
+
+        monkeypatch.setattr(fusion_module, "memory_limit", lambda: 2**30)
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.01, truncation=0.04))
+        assert fusion.integrate(_plane(), np.eye(4)).voxels > 0
+        with pytest.raises(ProblemTooLargeError, match="block_count"):
+            TSDFFusion(CAM, FusionConfig(voxel_size=0.01, truncation=0.04, block_count=10**6))
+        assert 0 < fusion_module.memory_limit() and fusion.block_bytes == 8**3 * 4 * 5
 
 
 class TestReintegration:

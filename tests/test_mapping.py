@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -194,6 +195,14 @@ class TestMapper:
             Mapper(CAM, mde="fastdepth")  # type: ignore[arg-type]
         with pytest.raises(InvalidInputError):
             MapperConfig(working_scale=2.0)
+        for bad_id in ("a", float("nan"), 1.5, True, object()):
+            with pytest.raises(InvalidInputError, match="keyframe_id"):
+                mapper.add_frame(rgb, np.eye(4), mde_depth=np.ones((60, 80)), keyframe_id=bad_id)
+        for bad_sigma in ("x", -1.0, float("nan"), np.ones((2, 2)), [0.1, "y"]):
+            with pytest.raises(InvalidInputError, match="map_points_sigma"):
+                mapper.add_frame(rgb, np.eye(4), mde_depth=np.ones((60, 80)), map_points_world=np.ones((2, 3)),
+                                 map_points_sigma=bad_sigma)
+        assert mapper.frames == 0 and not mapper.pending  # refused before anything was added
         empty = mapper.add_frame(rgb, np.eye(4), mde_depth=np.zeros((60, 80)))  # data, not an error
         assert not empty.fused and empty.error.startswith("frame 0: ") and mapper.failures == [empty.error]
         assert mapper.frames == 0 and not mapper.keyframes
@@ -330,6 +339,13 @@ class TestRobustness:
         assert res.pose_check.inverted and res.pose_check.visible_inverse == 1.0
         assert res.map_points.used < 50 and res.map_points.outside + res.map_points.behind > 150
         assert any("looks inverted" in w for w in res.warnings) and any("outside the image" in w for w in res.warnings)
+        # the flagged frame is reported by name and not fused; the run goes on
+        assert not res.fused and res.error.startswith("frame 0: pose check: CalibrationError") and mapper.failures == [res.error]
+        assert 0 not in mapper.keyframes and mapper.frames == 0
+        forced = Mapper(f.camera, replace(_small_config(), fuse_inverted_poses=True))
+        with pytest.warns(InvertedPoseWarning):
+            res = forced.add_frame(f.rgb, invert_pose(f.pose), mde_depth=_standin_mde(f.depth), map_points_world=world)
+        assert res.fused and res.error is None
         # a correct pose: map points with NaN rows and some outside the image are counted, not silently dropped
         cam_pts = np.array([[5.0, 0.0, 1.0], [0.0, 0.0, -1.0], [np.nan, 0.0, 1.0]])
         extra = cam_pts @ f.pose[:3, :3].T + f.pose[:3, 3]

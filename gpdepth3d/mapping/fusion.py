@@ -80,7 +80,7 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose
 from .cloud import ColoredCloud
-from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
+from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ProblemTooLargeError, ShapeError, describe
 from ..io import atomic_path, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -225,6 +225,16 @@ class FusionConfig:
         return np.clip(self.truncation_sigma * sigma, self.truncation, self.truncation_max).astype(np.float32)
 
 
+def memory_limit() -> int:
+    """Bytes a TSDF volume may plan to use: half the machine's physical memory (8 GiB when unknown)."""
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 2
+    except (AttributeError, ValueError, OSError):
+        return 8 * 2**30
+
+
 def weights_from_variance(
     variance: np.ndarray,
     *,
@@ -320,6 +330,11 @@ class TSDFFusion:
             o3c.Tensor([0.0], device=self._device)
         except Exception as exc:  # noqa: BLE001 - Open3D raises RuntimeError for unavailable devices
             raise InvalidInputError("device", "an Open3D device this build supports", f"{self.config.device}: {exc}")
+        if _vbg is None and self.config.block_count * self.block_bytes > memory_limit():
+            raise ProblemTooLargeError(
+                f"block_count: expected initial blocks that fit in {memory_limit() / 2**30:.1f} GiB, got "
+                f"{self.config.block_count} blocks of {self.block_bytes} bytes"
+            )
         if _vbg is not None:
             self.vbg = _vbg
         else:
@@ -412,6 +427,7 @@ class TSDFFusion:
             if var.shape != d.shape:
                 raise ShapeError("variance", f"the shape of depth {d.shape}", describe(var))
         trunc = cfg.pixel_truncation(variance, d.shape)
+        self._check_band_memory(d, trunc)
         d, w, var32, n_bad, pixels, bad_weights = _masked_frame(
             np.ascontiguousarray(d, dtype=np.float64), w, var, float(cfg.depth_min), float(cfg.depth_max)
         )
@@ -445,6 +461,38 @@ class TSDFFusion:
         self._dirty.append(keys)
         self.frames_integrated += 1
         return IntegrationStats(voxels=n, pixels=pixels, invalid_pixels=n_bad, block_keys=keys)
+
+    @property
+    def block_bytes(self) -> int:
+        """Bytes one voxel block holds (float32 channels of ``block_resolution``^3 voxels)."""
+        channels = 2 + 3 * bool(self.config.integrate_color) + bool(self.config.integrate_variance)
+        return int(self.config.block_resolution) ** 3 * 4 * channels
+
+    def _check_band_memory(self, depth: np.ndarray, trunc: np.ndarray) -> None:
+        """Refuses a frame whose truncation band would need more than `memory_limit` (blocks and search grid).
+
+        Estimate: the frame's surface area (each pixel's footprint ``d^2 / (fx fy)``) in blocks,
+        times the blocks the band spans along a ray, plus the dense grid `_band_blocks` marks them in.
+        """
+        cam, b = self.camera, float(self.config.voxel_size * self.config.block_resolution)
+        with np.errstate(invalid="ignore"):
+            dv = np.asarray(depth, dtype=np.float64)
+            dv = dv[np.isfinite(dv) & (dv > self.config.depth_min) & (dv < self.config.depth_max)]
+        if not dv.size:
+            return
+        tau = float(np.max(trunc))
+        area = float(np.sum(dv * dv)) / (cam.fx * cam.fy)
+        blocks = area / b**2 * (2.0 * tau / b + 1.0)
+        reach = (float(dv.max()) + tau) * float(np.hypot(np.hypot(cam.width / cam.fx, cam.height / cam.fy), 1.0))
+        grid = (reach / b + 2.0) ** 3  # one byte a cell
+        need = blocks * self.block_bytes + grid
+        limit = memory_limit()
+        if need > limit:
+            raise ProblemTooLargeError(
+                f"voxel_size: expected a voxel whose blocks for one {cam.width}x{cam.height} frame fit in "
+                f"{limit / 2**30:.1f} GiB (half the machine's memory), got {self.config.voxel_size} m: about "
+                f"{need / 2**30:.3g} GiB; use a larger voxel_size (or a smaller truncation / depth_max)"
+            )
 
     @contextlib.contextmanager
     def _threads(self) -> Iterator[None]:

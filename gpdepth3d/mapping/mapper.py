@@ -57,7 +57,7 @@ from ..camera import PinholeCamera, check_pose, transform_points
 from .cloud import ColoredCloud
 from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
-from ..errors import DataFormatError, GPDepthError, InvalidInputError, ShapeError, describe
+from ..errors import CalibrationError, DataFormatError, GPDepthError, InvalidInputError, ShapeError, describe
 from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
 from ..gp.model import DepthGPConfig
 from ..io import save_npz, write_json
@@ -303,6 +303,9 @@ class MapperConfig:
             settings interleaved in one process on the busy shared machine) took 1.10x (450; 1.15x
             in a second run) and 1.33x (600) the time of 300 points with 400 features (the GP
             solve grows with the points): 600 would pass the 100 ms target.
+        fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
+            (`check_pose_orientation`); False (default): the frame is reported (``FrameResult.error``,
+            `Mapper.failures`) and not fused, since such a pose puts its depth in the wrong place.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the
             working resolution (about 0.6 MB a frame at 320x240), needed by
             `Mapper.update_poses` and `Mapper.save`.
@@ -324,6 +327,7 @@ class MapperConfig:
     working_scale: float = 1.0
     max_points: int = 450
     keep_keyframes: bool = True
+    fuse_inverted_poses: bool = False
 
     def __post_init__(self) -> None:
         if int(self.max_points) != self.max_points or self.max_points < 1:
@@ -564,6 +568,26 @@ def _median(x: np.ndarray) -> float:
     return float((p[m - 1] + p[m]) / 2)
 
 
+def _keyframe_id(value: Any) -> int:
+    """A keyframe id as an int; a bool, a string, NaN or a fraction raise `InvalidInputError`."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError("keyframe_id", "an integer", value)
+    if not np.isfinite(value) or int(value) != value:
+        raise InvalidInputError("keyframe_id", "an integer", value)
+    return int(value)
+
+
+def _sigma_array(value: Any) -> np.ndarray:
+    """Map point sigma(s) as float64 (a number or (N,) numbers, finite, > 0 metres) or `InvalidInputError`."""
+    try:
+        sigma = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidInputError("map_points_sigma", "depth sigma(s) in metres: a number or (N,) numbers", value) from None
+    if sigma.ndim > 1 or not np.all(np.isfinite(sigma)) or not np.all(sigma > 0):
+        raise InvalidInputError("map_points_sigma", "finite depth sigma(s) > 0 metres, a number or (N,)", describe(sigma))
+    return sigma
+
+
 def _describe_error(stage: str, exc: BaseException) -> str:
     return f"{stage}: {type(exc).__name__}: {exc}"
 
@@ -665,8 +689,8 @@ class Mapper:
         Raises:
             ShapeError: on image / depth size mismatches.
             CalibrationError: on a non-rigid pose.
-            InvalidInputError: when neither mde_depth nor a front-end is given, or the
-                keyframe id is taken.
+            InvalidInputError: when neither mde_depth nor a front-end is given, the keyframe id
+                is taken or not an integer, or map_points_sigma is not finite and > 0.
         """
         t_start = time.perf_counter()
         timings = dict.fromkeys(STAGES, 0.0)
@@ -679,10 +703,9 @@ class Mapper:
             raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
         if sparse is not None and not isinstance(sparse, SparseDepth):
             raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
-        kid = self._next_id if keyframe_id is None else keyframe_id
-        if isinstance(kid, bool) or int(kid) != kid:
-            raise InvalidInputError("keyframe_id", "an integer", kid)
-        kid = int(kid)
+        kid = self._next_id if keyframe_id is None else _keyframe_id(keyframe_id)
+        if map_points_sigma is not None:
+            map_points_sigma = _sigma_array(map_points_sigma)
         if kid in self.keyframes or any(p.kid == kid for p in self._queue):
             raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
         if mde_depth is not None:
@@ -853,6 +876,12 @@ class Mapper:
 
         if entry.error is not None:
             return failed(entry.error[0], entry.error[1])
+        check = entry.pose_check
+        if check is not None and check.inverted and not self.config.fuse_inverted_poses:
+            return failed("pose check", CalibrationError(
+                "T_world_camera", "a pose that sees its map points (not fused: MapperConfig.fuse_inverted_poses)",
+                f"{check.visible:.0%} of {check.points} points visible, {check.visible_inverse:.0%} under its inverse",
+            ))
         mde = entry.mde
         work_shape = self.work_camera.shape
 
