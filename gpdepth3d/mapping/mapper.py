@@ -63,6 +63,7 @@ from ..gp.model import DepthGPConfig
 from ..io import save_npz, write_json
 from ..measurements import SparseDepth, project_points
 from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation, invert_pose
+from .refinding import Refinder, RefindConfig
 from .triangulation import TrackTriangulator, TriangulationConfig, detect_features, triangulate_frames
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
@@ -219,6 +220,9 @@ class MapperConfig:
         fusion: TSDF options (weighting "variance" uses the posterior variance). With
             ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
         triangulation: Feature triangulation options.
+        refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
+            motion): views chosen by parallax, ORB matches under the poses' epipolar geometry
+            (`gpdepth3d.mapping.refinding`); ``RefindConfig(detector="none")`` turns it off.
         refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
         triangulate: Triangulate features against earlier frames of the window.
         window: Number of earlier frames a frame's features are triangulated with.
@@ -314,6 +318,7 @@ class MapperConfig:
     gp: DepthGPConfig = MAPPER_GP
     fusion: FusionConfig = field(default_factory=FusionConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    refind: RefindConfig = field(default_factory=RefindConfig)
     refine: bool = True
     triangulate: bool = True
     window: int = 8
@@ -633,6 +638,7 @@ class Mapper:
         self.fusion = TSDFFusion(self.work_camera, fusion_cfg)
         self._window: deque[list] = deque(maxlen=int(self.config.window))
         self._tracker: TrackTriangulator | None = None
+        self._refinder = Refinder(camera, self.config.refind, self.config.triangulation)
         self._queue: deque[_Pending] = deque()
         self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
@@ -747,14 +753,16 @@ class Mapper:
                 entry.notes.append(f"frame {kid}: " + _describe_error("map points", exc))
         self._queue.append(entry)
         ready: _Pending | None = None
+        if self._refinds:
+            self._refinder.add(rgb, T, kid)
         if self._lagged:
             tracker = self._get_tracker()
             try:
                 points = tracker.add(rgb, T, key=kid)
                 for p in self._queue:
                     if p.kid == tracker.last_key:
-                        p.triangulated = points
                         self._check_tracks(p, tracker.tracks_seen.pop(p.kid, 0), len(points))
+                        p.triangulated = self._with_refound(p, points)
             except Exception as exc:  # noqa: BLE001 - no points from this step; the MDE still counts
                 entry.notes.append(f"frame {kid}: " + _describe_error("triangulation", exc))
                 tracker.reset()  # the tracks start again; the frames waiting get no triangulated points
@@ -764,7 +772,7 @@ class Mapper:
             ready = self._queue.popleft()
             if self.config.triangulate:
                 try:
-                    ready.triangulated = self._triangulate(rgb, T, kid)
+                    ready.triangulated = self._with_refound(ready, self._triangulate(rgb, T, kid))
                 except Exception as exc:  # noqa: BLE001 - no points from this frame; the MDE still counts
                     ready.notes.append(f"frame {kid}: " + _describe_error("triangulation", exc))
         timings["points"] = time.perf_counter() - t0
@@ -799,10 +807,10 @@ class Mapper:
             t_start = time.perf_counter()
             entry = self._queue.popleft()
             if points.get(entry.kid) is not None:
-                entry.triangulated = points[entry.kid]
-                self._check_tracks(entry, self._tracker.tracks_seen.pop(entry.kid, 0), len(entry.triangulated))
+                self._check_tracks(entry, self._tracker.tracks_seen.pop(entry.kid, 0), len(points[entry.kid]))
+                entry.triangulated = self._with_refound(entry, points[entry.kid])
             timings = dict.fromkeys(STAGES, 0.0)
-            timings["points"] = t_points
+            timings["points"] = t_points + time.perf_counter() - t_start
             results.append(self._finish(entry, timings, t_start))
         return results
 
@@ -810,6 +818,25 @@ class Mapper:
     def pending(self) -> tuple[int, ...]:
         """Ids of the frames added but not yet refined and fused (waiting for ``config.lag`` later views)."""
         return tuple(p.kid for p in self._queue)
+
+    @property
+    def _refinds(self) -> bool:
+        cfg = self.config
+        return cfg.triangulate and cfg.triangulation.detector == "klt" and cfg.refind.detector != "none"
+
+    def _with_refound(self, entry: _Pending, points: SparseDepth) -> SparseDepth:
+        """The frame's track points, plus descriptor points when they are fewer than ``refind.below``."""
+        if not self._refinds or len(points) >= self.config.refind.below or entry.mde is None:
+            return points
+        valid = entry.mde[entry.mde > 0]
+        if not valid.size:
+            return points
+        try:
+            extra = self._refinder.points(entry.kid, _median(valid))
+        except Exception as exc:  # noqa: BLE001 - the frame keeps its track points
+            entry.notes.append(f"frame {entry.kid}: " + _describe_error("descriptor re-finding", exc))
+            return points
+        return merge_sparse(points, extra, image_size=self.camera.shape)
 
     @property
     def _lagged(self) -> bool:
@@ -1020,6 +1047,7 @@ class Mapper:
             waiting[kid].T = new.pop(kid)
         if self._tracker is not None:
             self._tracker.update_poses({p.kid: p.T for p in self._queue})
+        self._refinder.update_poses({**{k: new[k] for k in new}, **{p.kid: p.T for p in self._queue}})
         moved = [kid for kid, T in new.items() if not np.array_equal(T, self.keyframes[kid].T_world_camera)]
         if not moved:
             return PoseUpdate((), (), 0, time.perf_counter() - t0)
@@ -1149,7 +1177,8 @@ class Mapper:
                     gp=DepthGPConfig(**{"local_calibration": None, **saved["gp"]}),
                     fusion=FusionConfig(**saved["fusion"]),
                     triangulation=TriangulationConfig(**_tuples(saved["triangulation"])),
-                    **{k: v for k, v in saved.items() if k not in ("gp", "fusion", "triangulation")},
+                    refind=RefindConfig(**saved.get("refind", {})),
+                    **{k: v for k, v in saved.items() if k not in ("gp", "fusion", "triangulation", "refind")},
                 )
         except (KeyError, TypeError, ValueError) as exc:
             raise DataFormatError(folder / "mapper.json", f"not a saved gpdepth3d map: {exc}") from None
