@@ -13,7 +13,8 @@ the MDE, the library's own triangulated points (no sensor depth used), and in th
 * ``mde_only``: the MDE depth of every frame fused with uniform weights (``MapperConfig(refine=False)``);
 * ``reference``: the sensor depth fused with uniform weights (the mesh every other one is scored against);
 * with ``--colmap``: a second Mapper fed pycolmap's points (`gpdepth3d.mapping.colmap_points`; features,
-  matching and triangulation with the sequence's poses held fixed) as SLAM map points, no own points.
+  matching and triangulation with the sequence's poses held fixed) as SLAM map points, no own points,
+  each with a depth sigma of ``--colmap-sigma`` times its distance.
 
 Measured: `gpdepth3d.metrics.mesh_metrics` at 5 cm (50k samples), the points per frame, the +-2 sigma
 coverage of the points against the sensor depth, frames fused with points / without, and the
@@ -117,17 +118,18 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
         rows.append({
             "frame": result.keyframe_id, "points": len(result.sparse), "fused": result.fused,
             "within_2sigma": inside, "with_sensor_depth": known, "error": result.error,
-            "point_weight": getattr(result, "point_weight", None),
+            "fallback_weight": result.fallback_weight, "map_scale": result.map_scale,
         })
         results.append(result)
 
     add_ms = []
     for i, frame in enumerate(frames):
         t0 = time.perf_counter()
-        pts = None if map_points is None else map_points
+        pts, sigma = (None, None) if map_points is None else map_points.get(i, (np.zeros((0, 3)), None))
+        if sigma is not None and not len(sigma):
+            sigma = None
         result = mapper.add_frame(frame.rgb, frame.pose, mde_depth=mde_depths[i][0], keyframe_id=i,
-                                  map_points_world=pts[0] if pts is not None else None,
-                                  map_points_sigma=pts[1] if pts is not None else None)
+                                  map_points_world=pts, map_points_sigma=sigma)
         add_ms.append(1000 * (time.perf_counter() - t0 + mde_depths[i][1]))
         if result is not None:
             record(result)
@@ -158,6 +160,28 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
     }
 
 
+def colmap_run(frames: list, mde_depths: list, config, relative_sigma: float) -> dict:
+    """pycolmap's points (poses held fixed) as the Mapper's map points, each frame given those it observes."""
+    import tempfile
+
+    from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
+    from gpdepth3d.mapping.trajectories import read_colmap_model
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as work:
+        model = read_colmap_model(triangulate_with_colmap([f.rgb for f in frames], [f.pose for f in frames],
+                                                          frames[0].camera, work))
+    seconds = time.perf_counter() - t0
+    by_frame = {}
+    for image_id, image in model.images.items():
+        pts = model.map_points(image_id)
+        by_frame[int(image.name[:5])] = (pts, relative_sigma * np.linalg.norm(pts - frames[int(image.name[:5])].pose[:3, 3], axis=1))
+    row = run_sequence(frames, mde_depths, config, map_points=by_frame)
+    return {"fscore": row["fscore"], "points": int(len(model.points)), "seconds_pycolmap": seconds,
+            "relative_sigma_given": relative_sigma, "points_within_2sigma": row["points_within_2sigma"],
+            "points_per_frame_median": row["points_per_frame_median"], "metrics": row["metrics"]}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -165,6 +189,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sequences", nargs="+", default=["7scenes", "hololens"], choices=sorted(LOADERS))
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--colmap", action="store_true", help="also map with pycolmap's points")
+    parser.add_argument("--colmap-sigma", type=float, default=0.03, help="their depth sigma, a fraction of the distance")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "mapping_sequences.json")
@@ -194,15 +219,7 @@ def main(argv: list[str] | None = None) -> dict:
         row["frames"] = len(frames)
         row["fscore_gain_over_mde_only"] = row["fscore"] - row["fscore_mde_only"]
         if args.colmap:
-            from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
-
-            t0 = time.perf_counter()
-            points = triangulate_with_colmap([f.rgb for f in frames], [f.pose for f in frames], frames[0].camera)
-            colmap_s = time.perf_counter() - t0
-            cfg = replace(config, triangulate=False)
-            crow = run_sequence(frames, mde_depths, cfg, map_points=(points.xyz, points.sigma))
-            row["colmap"] = {"fscore": crow["fscore"], "points": int(len(points.xyz)), "seconds": colmap_s,
-                             "points_within_2sigma": crow["points_within_2sigma"], "metrics": crow["metrics"]}
+            row["colmap"] = colmap_run(frames, mde_depths, replace(config, triangulate=False), args.colmap_sigma)
         row["config"] = asdict(config)
         report["sequences"][seq] = row
         print(f"{seq}: F {row['fscore']:.3f} (MDE only {row['fscore_mde_only']:.3f}), points/frame "

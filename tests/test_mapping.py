@@ -792,7 +792,8 @@ class TestMapScale:
 
 
 class TestUncertainPixels:
-    """`FusionConfig.max_relative_sigma` in the Mapper: pixels less certain than 20 % of their depth are not fused."""
+    """`FusionConfig.max_relative_sigma` and ``fallback_weight`` in the Mapper: pixels less certain than 20 % of
+    their depth (no point informs them) are fused with the fallback weight, which the frame's points lower."""
 
     @staticmethod
     def _mapper(rel_sigma_left: float, rel_sigma_right: float, **fusion):
@@ -807,22 +808,25 @@ class TestUncertainPixels:
         cfg = MapperConfig(triangulate=False, fusion=FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.01, **fusion))
         return Mapper(CAM, cfg, completer=Completer())
 
-    def test_only_confident_pixels_make_surface(self):
+    def test_uninformed_pixels_fall_back_unless_the_frame_has_points(self):
         rgb = np.zeros(CAM.shape + (3,), np.uint8)
-        x_extent = {}
-        for cut in (0.2, None):
-            mapper = self._mapper(0.1, 0.3, max_relative_sigma=cut)
-            res = mapper.add_frame(rgb, np.eye(4), mde_depth=np.full(CAM.shape, 1.5))
+        points = SparseDepth.from_arrays(np.arange(40.0), np.full(40, 5.0), np.full(40, 1.5), CAM.shape, 0.01)
+        x_extent, fallback = {}, {}
+        for case, kwargs in (("points", dict(sparse=points)), ("none", {})):
+            mapper = self._mapper(0.1, 0.3)
+            res = mapper.add_frame(rgb, np.eye(4), mde_depth=np.full(CAM.shape, 1.5), **kwargs)
             assert res.fused and res.error is None
             x = mapper.mesh().vertices[:, 0]
-            x_extent[cut] = (x.min(), x.max())
-        # the camera sees x in [-0.59, 0.61] m at 1.5 m; the cut keeps the left half only
-        assert x_extent[0.2][0] < -0.5 and x_extent[0.2][1] < 0.05
-        assert x_extent[None][0] < -0.5 and x_extent[None][1] > 0.5
+            x_extent[case], fallback[case] = (x.min(), x.max()), res.fallback_weight
+        # the camera sees x in [-0.59, 0.61] m at 1.5 m: with 40 points the right half is left to other
+        # frames; without any point the frame falls back to its (MDE) depth there, at half weight, and says so
+        assert x_extent["points"][0] < -0.5 and x_extent["points"][1] < 0.05 and fallback["points"] < 0.01
+        assert x_extent["none"][0] < -0.5 and x_extent["none"][1] > 0.5 and fallback["none"] == 0.5
+        assert any("no points: fused as the MDE" in w for w in res.warnings)
 
-    def test_frame_with_nothing_certain_is_kept_not_failed(self):
+    def test_frame_with_nothing_certain_and_no_fallback_is_kept_not_failed(self):
         rgb = np.zeros(CAM.shape + (3,), np.uint8)
-        mapper = self._mapper(0.3, 0.3)
+        mapper = self._mapper(0.3, 0.3, fallback_weight=0.0)
         res = mapper.add_frame(rgb, np.eye(4), mde_depth=np.full(CAM.shape, 1.5), keyframe_id=7)
         assert res.fused and res.error is None and mapper.failures == []
         assert any("nothing fused" in w for w in res.warnings)

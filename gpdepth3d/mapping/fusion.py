@@ -166,7 +166,10 @@ class FusionConfig:
     weight_cap: float = 100.0
     weighting: Weighting = "variance"
     sigma_ref: float = 0.1
+    relative_sigma_ref: float | None = 0.05
     max_relative_sigma: float | None = 0.2
+    fallback_weight: float = 0.5
+    fallback_points: float = 10.0
     weight_threshold: float = 0.5
     truncation_sigma: float = 0.0
     truncation_max: float = 0.4
@@ -178,7 +181,7 @@ class FusionConfig:
     cpu_threads: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("voxel_size", "truncation", "depth_max", "weight_cap", "sigma_ref"):
+        for name in ("voxel_size", "truncation", "depth_max", "weight_cap", "sigma_ref", "fallback_points"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(name, "a finite value > 0", value)
@@ -188,6 +191,12 @@ class FusionConfig:
             raise InvalidInputError("depth_min, depth_max", "0 <= depth_min < depth_max", (self.depth_min, self.depth_max))
         if self.weighting not in ("uniform", "variance"):
             raise InvalidInputError("weighting", "'uniform' or 'variance'", self.weighting)
+        if not (np.isfinite(self.fallback_weight) and 0 <= self.fallback_weight <= 1):
+            raise InvalidInputError("fallback_weight", "a weight in [0, 1]", self.fallback_weight)
+        if self.relative_sigma_ref is not None and (
+            isinstance(self.relative_sigma_ref, bool) or not np.isfinite(self.relative_sigma_ref) or self.relative_sigma_ref <= 0
+        ):
+            raise InvalidInputError("relative_sigma_ref", "a finite value > 0 (or None)", self.relative_sigma_ref)
         if self.max_relative_sigma is not None and (
             isinstance(self.max_relative_sigma, bool) or not np.isfinite(self.max_relative_sigma) or self.max_relative_sigma <= 0
         ):
@@ -204,6 +213,15 @@ class FusionConfig:
             raise InvalidInputError("block_count", "an integer >= 1", self.block_count)
         if isinstance(self.cpu_threads, bool) or int(self.cpu_threads) != self.cpu_threads or self.cpu_threads < 0:
             raise InvalidInputError("cpu_threads", "an integer >= 0", self.cpu_threads)
+
+    def fallback_for(self, points: int) -> float:
+        """Weight of the uninformed pixels of a frame with ``points`` measurements: ``fallback_weight *
+        exp(-points / fallback_points)``, 0 once that factor is below 1e-3 (a frame without points falls
+        back to its MDE; one with points leaves what they do not inform to the frames whose points do)."""
+        if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 0:
+            raise InvalidInputError("points", "a count >= 0", points)
+        share = np.exp(-int(points) / self.fallback_points)
+        return float(self.fallback_weight * share) if share > 1e-3 else 0.0  # below 1e-3: not worth a voxel update
 
     @property
     def tsdf_scale(self) -> float:
@@ -241,15 +259,21 @@ def weights_from_variance(
     sigma_ref: float,
     depth: np.ndarray | None = None,
     max_relative_sigma: float | None = None,
+    relative_sigma_ref: float | None = None,
+    fallback_weight: float = 0.0,
 ) -> np.ndarray:
-    """Per-pixel fusion weights ``1 / (1 + variance / sigma_ref^2)`` in [0, 1].
+    """Per-pixel fusion weights in [0, 1]: ``1 / (1 + variance / s^2)``, s = sigma_ref or relative_sigma_ref * depth.
+
+    Pixels less certain than ``max_relative_sigma`` x depth (no point informs them: the MDE alone)
+    get ``fallback_weight`` instead (`FusionConfig.max_relative_sigma`, `FusionConfig.fallback_weight`).
 
     Args:
         variance: (H, W) depth variance, m^2. Non-finite or negative entries get weight 0.
-        sigma_ref: Standard deviation (metres) at which the weight is 0.5.
-        depth: (H, W) depth, metres; needed with ``max_relative_sigma``.
-        max_relative_sigma: Pixels whose standard deviation exceeds this fraction of their
-            depth get weight 0 (None: no such cut; see `FusionConfig.max_relative_sigma`).
+        sigma_ref: Standard deviation (metres) at which the weight is 0.5 (without ``relative_sigma_ref``).
+        depth: (H, W) depth, metres; needed with ``max_relative_sigma`` or ``relative_sigma_ref``.
+        max_relative_sigma: sigma / depth above which a pixel counts as uninformed (None: none does).
+        relative_sigma_ref: sigma / depth at which the weight is 0.5 (None: ``sigma_ref`` in metres).
+        fallback_weight: Weight of the uninformed pixels, in [0, 1].
 
     Returns:
         (H, W) float64 weights.
@@ -257,19 +281,27 @@ def weights_from_variance(
     var = np.asarray(variance, dtype=np.float64)
     if not np.isfinite(sigma_ref) or sigma_ref <= 0:
         raise InvalidInputError("sigma_ref", "a finite value > 0 (metres)", sigma_ref)
+    for name, value in (("max_relative_sigma", max_relative_sigma), ("relative_sigma_ref", relative_sigma_ref)):
+        if value is not None and (not np.isfinite(value) or value <= 0):
+            raise InvalidInputError(name, "a finite value > 0 (or None)", value)
+    if not (np.isfinite(fallback_weight) and 0 <= fallback_weight <= 1):
+        raise InvalidInputError("fallback_weight", "a weight in [0, 1]", fallback_weight)
     ok = np.isfinite(var) & (var >= 0)
-    if max_relative_sigma is not None:
-        if not np.isfinite(max_relative_sigma) or max_relative_sigma <= 0:
-            raise InvalidInputError("max_relative_sigma", "a finite value > 0 (or None)", max_relative_sigma)
-        if depth is None:
-            raise InvalidInputError("depth", "the (H, W) depth map the variance belongs to (max_relative_sigma is set)", None)
-        d = np.asarray(depth, dtype=np.float64)
-        if d.shape != var.shape:
-            raise ShapeError("depth", f"the shape of variance {var.shape}", describe(d))
-        with np.errstate(invalid="ignore"):
-            ok &= var <= np.square(max_relative_sigma * d)
-    with np.errstate(invalid="ignore"):
-        return np.where(ok, 1.0 / (1.0 + np.where(ok, var, 0.0) / sigma_ref**2), 0.0)
+    var = np.where(ok, var, 0.0)
+    if max_relative_sigma is None and relative_sigma_ref is None:
+        return np.where(ok, 1.0 / (1.0 + var / sigma_ref**2), 0.0)
+    if depth is None:
+        raise InvalidInputError("depth", "the (H, W) depth map the variance belongs to (relative sigmas are set)", None)
+    d = np.asarray(depth, dtype=np.float64)
+    if d.shape != var.shape:
+        raise ShapeError("depth", f"the shape of variance {var.shape}", describe(d))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d2 = np.where(np.isfinite(d) & (d > 0), d * d, np.inf)
+        scale2 = sigma_ref**2 if relative_sigma_ref is None else relative_sigma_ref**2 * d2
+        w = 1.0 / (1.0 + var / scale2)
+        if max_relative_sigma is not None:
+            w = np.where(var <= max_relative_sigma**2 * d2, w, fallback_weight)
+    return np.where(ok & np.isfinite(w), w, 0.0)
 
 
 @dataclass(frozen=True)
@@ -744,16 +776,21 @@ class TSDFFusion:
                         keys.append((b[:, 0] * _KEY_SPAN + b[:, 1]) * _KEY_SPAN + b[:, 2])
         return torch.unique(torch.cat(keys)).cpu().numpy()
 
-    def weights_for(self, variance: np.ndarray | None, depth: np.ndarray | None = None) -> np.ndarray | None:
+    def weights_for(
+        self, variance: np.ndarray | None, depth: np.ndarray | None = None, *, points: int = 0
+    ) -> np.ndarray | None:
         """The per-pixel weights of this volume's weighting for a variance map (None = uniform).
 
-        ``depth`` (the depth map the variance belongs to, metres) is needed when
-        ``config.max_relative_sigma`` is set (the default) and the weighting is "variance".
+        ``depth`` (the depth map the variance belongs to, metres) is needed with the relative
+        settings (the default) and the weighting "variance"; ``points`` is the number of sparse
+        measurements the frame had (they set its uninformed pixels' weight, `FusionConfig.fallback_for`).
         """
         if self.config.weighting == "uniform" or variance is None:
             return None
+        cfg = self.config
         return weights_from_variance(
-            variance, sigma_ref=self.config.sigma_ref, depth=depth, max_relative_sigma=self.config.max_relative_sigma
+            variance, sigma_ref=cfg.sigma_ref, depth=depth, max_relative_sigma=cfg.max_relative_sigma,
+            relative_sigma_ref=cfg.relative_sigma_ref, fallback_weight=cfg.fallback_for(points),
         )
 
     def integrate_posterior(
@@ -764,7 +801,7 @@ class TSDFFusion:
             posterior.mean,
             T_world_camera,
             rgb=rgb,
-            weights=self.weights_for(posterior.variance, posterior.mean),
+            weights=self.weights_for(posterior.variance, posterior.mean, points=len(getattr(posterior, "sparse", ()))),
             variance=posterior.variance if self.config.integrate_variance else None,
         )
 

@@ -395,6 +395,9 @@ class FrameResult:
         pose_check: The inverted-pose check on the map points, or None.
         map_scale: The factor the frame's triangulated depths (and sigmas) were divided by to
             agree with the map (``MapperConfig.map_scale_weight``; 1 when not applied).
+        fallback_weight: Fusion weight of its pixels no point informs (the MDE alone;
+            `FusionConfig.fallback_for`): the configured fallback for a frame without points, near 0
+            for one with many; 1 without refinement (uniform weights).
     """
 
     depth: np.ndarray
@@ -411,6 +414,7 @@ class FrameResult:
     map_points: MapPointStats | None = None
     pose_check: PoseCheck | None = None
     map_scale: float = 1.0
+    fallback_weight: float = 0.0
 
 
 @dataclass
@@ -424,6 +428,8 @@ class Keyframe:
         variance: (h, w) float32 depth variance, m^2 (NaN when not refining).
         rgb: (h, w, 3) uint8 colour.
         block_keys: (M,) int64 keys of the TSDF blocks it reached.
+        points: Sparse measurements it was refined with (they set its fallback weight,
+            `FusionConfig.fallback_for`).
     """
 
     keyframe_id: int
@@ -432,6 +438,7 @@ class Keyframe:
     variance: np.ndarray
     rgb: np.ndarray
     block_keys: np.ndarray
+    points: int = 0
 
 
 @dataclass(frozen=True)
@@ -940,25 +947,25 @@ class Mapper:
         depth32 = np.where(bad, 0.0, depth).astype(np.float32)
         var32 = np.asarray(variance, dtype=np.float32)
         try:
-            stats = self._integrate(depth32, var32, T, entry.work_rgb)
+            stats = self._integrate(depth32, var32, T, entry.work_rgb, points=len(measurements) if self.config.refine else 0)
         except Exception as exc:  # noqa: BLE001 - e.g. nothing in range; recorded, the run goes on
             timings["fusion"] = time.perf_counter() - t0
             result = failed("fusion", exc, mde, posterior)
             return replace(result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked)
+        fallback = self.fusion.config.fallback_for(len(measurements)) if self.config.refine else 1.0
         if stats.pixels == 0:
-            notes.append(
-                f"frame {kid}: no pixel with sigma <= {self.fusion.config.max_relative_sigma} x depth "
-                "(FusionConfig.max_relative_sigma): nothing fused"
-            )
+            notes.append(f"frame {kid}: no pixel informed by points and no fallback weight left: nothing fused")
+        elif self.config.refine and len(measurements) == 0:
+            notes.append(f"frame {kid}: no points: fused as the MDE with its prior variance, weight {fallback:.2f}")
         if self.config.keep_keyframes:
-            self.keyframes[kid] = Keyframe(kid, T, depth32, var32, entry.work_rgb, stats.block_keys)
+            self.keyframes[kid] = Keyframe(kid, T, depth32, var32, entry.work_rgb, stats.block_keys, len(measurements))
         timings["fusion"] = time.perf_counter() - t0
         self.frames += 1
         timings["total"] = time.perf_counter() - t_start
         self.timings.append(timings)
         return FrameResult(
             depth32.astype(np.float64), var32.astype(np.float64), mde, measurements, posterior, timings, kid, True,
-            None, tuple(notes), masked, entry.map_stats, entry.pose_check, scale,
+            None, tuple(notes), masked, entry.map_stats, entry.pose_check, scale, fallback,
         )
 
     def _check_mde(self, mde_depth: np.ndarray) -> np.ndarray:
@@ -972,10 +979,11 @@ class Mapper:
             )
         return mde_depth
 
-    def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None) -> IntegrationStats:
-        weights = self.fusion.weights_for(var32, depth32)
-        if weights is not None and self.fusion.config.max_relative_sigma is not None and not np.any(weights > 0):
-            # every pixel less certain than FusionConfig.max_relative_sigma: nothing to fuse, not a failure
+    def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None,
+                   points: int = 0) -> IntegrationStats:
+        weights = self.fusion.weights_for(var32, depth32, points=points)
+        if weights is not None and not np.any(weights > 0):
+            # every pixel uninformed and no fallback weight left: nothing to fuse, not a failure
             return IntegrationStats(0, 0, 0, np.zeros(0, np.int64))
         return self.fusion.integrate(
             depth32,
@@ -1066,7 +1074,7 @@ class Mapper:
         redone = []
         for kid, kf in self.keyframes.items():
             if kid in new and kid in moved or np.intersect1d(kf.block_keys, blocks, assume_unique=True).size:
-                stats = self._integrate(kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks)
+                stats = self._integrate(kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks, points=kf.points)
                 if kid in moved:
                     kf.block_keys = stats.block_keys
                 redone.append(kid)
@@ -1129,6 +1137,7 @@ class Mapper:
             rgb=np.stack([kf.rgb for kf in kfs]) if kfs else np.zeros((0, h, w, 3), np.uint8),
             block_keys=np.concatenate(keys) if keys else np.zeros(0, np.int64),
             block_counts=np.array([k.size for k in keys], dtype=np.int64),
+            points=np.array([kf.points for kf in kfs], dtype=np.int64),
         )
         self.fusion.save(folder / "volume.npz")
         c = self.camera
@@ -1191,6 +1200,7 @@ class Mapper:
             with np.load(folder / "keyframes.npz", allow_pickle=False) as d:
                 offsets = np.concatenate([[0], np.cumsum(d["block_counts"])])
                 keys = d["block_keys"]
+                points = d["points"] if "points" in d.files else np.zeros(len(d["ids"]), np.int64)
                 for i, kid in enumerate(d["ids"]):
                     mapper.keyframes[int(kid)] = Keyframe(
                         int(kid),
@@ -1199,6 +1209,7 @@ class Mapper:
                         d["variance"][i].astype(np.float32),
                         d["rgb"][i].astype(np.uint8),
                         keys[offsets[i] : offsets[i + 1]].astype(np.int64),
+                        int(points[i]),
                     )
         except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise DataFormatError(folder / "keyframes.npz", f"not a saved keyframe store: {exc}") from None
