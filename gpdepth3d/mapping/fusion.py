@@ -30,9 +30,11 @@ Weightings (`FusionConfig.weighting`):
   ``(sigma_ref / sigma)^2``: inverse-variance weighting (the optimal weights for averaging
   independent Gaussian readings of the signed distance) saturated at one observation, so that
   ``weight_cap`` and ``weight_threshold`` keep their usual meaning ("number of observations").
-  Pixels whose sigma exceeds ``max_relative_sigma`` (default 0.2) times their depth get weight 0:
-  with the default GP those are the pixels no point informs, the MDE's shape alone
-  (`FusionConfig.max_relative_sigma`; `TSDFFusion.weights_for` then needs the depth map).
+  With ``relative_sigma_ref`` (default) the reference is that fraction of the pixel's depth.
+  Pixels whose sigma exceeds ``max_relative_sigma`` (default 0.2) times their depth, the pixels no
+  point informs, get the frame's fallback weight (`FusionConfig.fallback_for`: a frame without
+  points falls back to its MDE depth, one with many leaves them out); `TSDFFusion.weights_for`
+  then needs the depth map.
 
 Truncation from the variance (``FusionConfig.truncation_sigma`` k > 0): a pixel's truncation is
 ``tau = clip(k * sigma, truncation, truncation_max)``, sigma its depth standard deviation, and every
@@ -104,47 +106,24 @@ class FusionConfig:
             ``w / (cap + w)``; makes the map adapt).
         weighting: "uniform" (every pixel weight 1) or "variance" (from the posterior variance,
             see the module docstring).
-        sigma_ref: Variance weighting: depth standard deviation (metres) at which a pixel
-            counts as half an observation.
-        max_relative_sigma: Variance weighting: pixels whose standard deviation exceeds this
-            fraction of their depth get weight 0 (None: fuse every pixel). With the default GP
-            (log-normal, prior s = 0.2 in log depth) a pixel far from every point keeps about the
-            prior's relative sigma, 0.20-0.22 (the scale disagreement of `Mapper` frames adds to
-            it): its depth is the MDE's shape alone. In the Mapper's 60 frames of 7-Scenes (the
-            defaults before this cut) such pixels are off by 0.235 m (median |error| against
-            the Kinect, 13.7 % of depth; 12 % of them within 5 cm; at 1-1.5 m 21 cm too far),
-            the others by 0.126 m (6.9 %; 24 %; 3 cm too far): the near part of the depth-range
-            compression comes from them, and averaged into voxels other frames saw with
-            evidence they blur those. On the Mapper's posteriors of the 60 shared
-            7-Scenes frames (bench/fusion.py defaults with ``max_points`` 600 and 800 KLT
-            features; 27 % of the pixels above 0.2, most of them in 0.2-0.225) fused again with
-            each cut, each half fused alone against the Kinect mesh of the same frames (weight
-            threshold halved): chosen on the even frames, F at 5 cm 0.458 / 0.459 / 0.481 /
-            0.480 / 0.474 / 0.414 with None / 0.225 / 0.2 / 0.175 / 0.15 / 0.12; confirmed on
-            the odd frames 0.459 / 0.459 / 0.470 / 0.464 / 0.461 / 0.404, frames 0-29 0.414 /
-            0.414 / 0.433 / 0.429 / 0.428 / 0.357 and 30-59 0.421 / 0.422 / 0.430 / 0.437 /
-            0.433 / 0.417; full sequence 0.444 / 0.451 / 0.461 / 0.459 / 0.459 / 0.399
-            (precision 0.440 -> 0.468, recall 0.447 -> 0.454 with 0.2). Below 0.15 whole
-            surfaces lose support (recall 0.31 at 0.12). Pixels without a variance get weight 0
-            as before; uniform weighting is not affected. A frame without any measurement keeps
-            the prior's sigma everywhere and fuses nothing (the `Mapper` notes it and keeps the
-            keyframe); None fuses it.
+        sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
+            (metres) at which a pixel counts as half an observation.
+        relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
+            observation (default 0.05; None: ``sigma_ref`` in metres). Relative, so that a room at
+            1 m and a hall at 5 m meet the same ``weight_threshold``.
+        max_relative_sigma: Variance weighting: pixels with sigma / depth above this count as
+            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma,
+            0.20-0.22 for the default model) and get the fallback weight instead (None: none does).
+        fallback_weight: Weight in [0, 1] of the uninformed pixels of a frame without points: such
+            a frame falls back to its MDE depth, down-weighted. A frame with points gives them
+            ``fallback_weight * exp(-points / fallback_points)`` (`fallback_for`): what its points
+            do not inform, the frames whose points do inform it fill in.
+        fallback_points: Points at which a frame's fallback weight has fallen by 1/e.
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
-            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``.
-            Measured on the 60 shared 7-Scenes frames (the Mapper's posteriors of a
-            bench/fusion.py run with the defaults of the time, fused again, 320x240, 2 cm voxels,
-            truncation 8 cm): F at 5 cm 0.378 (fixed) -> 0.400 with k = 1, truncation_max 0.2 m
-            and weight_threshold 1.0 (fusion 18 -> 24 ms a frame), 0.412 with truncation_max
-            0.4 m (61 ms: the band is five times deeper); with weight_threshold 0.5 0.404. Not
-            the default: it does not hold on both halves of the sequence (each half fused
-            alone, weight threshold halved: even frames 0.408 -> 0.390, odd 0.377 -> 0.404,
-            frames 0-29 0.383 -> 0.413, 30-59 0.358 -> 0.335; other k, truncation_max and
-            thresholds likewise gain on two splits and lose on the other two). Where frames
-            carry a scale error their surfaces are averaged in instead of clipped. With the
-            Mapper's ``map_scale_weight`` 0.65 (after it) k = 1, truncation_max 0.2 m, weight
-            threshold 1.0 loses on the whole sequence too: 0.400 -> 0.393.
+            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation`` (the
+            variance-dependent one did not gain on every split of the shared 7-Scenes frames).
         truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
             truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.

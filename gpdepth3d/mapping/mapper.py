@@ -200,119 +200,46 @@ MAPPER_GP = DepthGPConfig(local_calibration=None)
 class MapperConfig:
     """Options of the `Mapper`.
 
+    Numbers behind the defaults (F at 5 cm, chosen on one half of a sequence, confirmed on the
+    other): bench/results/mapping_settings.json and bench/results/mapping_sequences.json.
+
     Attributes:
-        gp: GP model of the refinement: the library's default model without the local calibration
-            of its variance (`MAPPER_GP`: `DepthGPConfig(local_calibration=None)`, fixed hyperparameters,
-            on the fast engine). The triangulated points' errors are correlated within the clusters they
-            form on image features (shared poses and views): they agree with their neighbours far better
-            than independent errors would (median leave-one-out z^2 0.04, mean 0.29 on 7-Scenes). Before
-            the calibration floored such points' z^2 at their noise share (`gpdepth3d.gp.local_calibration`,
-            session 13) it shrank the variance between them (median factor 0.39) where the fusion's cut
-            (``FusionConfig.max_relative_sigma``) and weights, chosen on the stationary variance, need it:
-            bench/fusion.py (60 frames, 2026-11-23) F at 5 cm 0.450 without it; with it 0.393 at the 0.2
-            cut, 0.424 / 0.411 / 0.395 / 0.339 at 0.1 / 0.15 / 0.07 / 0.05, 0.422 with 10 pseudo-points
-            instead of 2. With the floor it gives F 0.447, within the ~0.005 that runs differ by: kept
-            off, as no gain was measured for switching. Measured on 10 frames of 7-Scenes at 320x240
-            (FastDepth, 150 Kinect samples, one torch thread, busy shared machine) before the
-            fit was made cheaper: a per-frame fit (``fit=True``) cost 528-654 ms of CPU a frame,
-            fixed values 31 ms, with the same median error (65 / 66 mm) and +-2 sigma coverage
-            (0.94 / 0.96); the outlier of the mapping tests is rejected either way.
-        fusion: TSDF options (weighting "variance" uses the posterior variance). With
-            ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
-        triangulation: Feature triangulation options.
+        gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's
+            variance, fixed hyperparameters, fast engine): the fusion weights need that variance.
+        fusion: TSDF options (weighting "variance" uses the posterior variance). With ``refine``
+            the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
+        triangulation: Feature tracking and triangulation options.
         refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
             motion): views chosen by parallax, ORB matches under the poses' epipolar geometry
             (`gpdepth3d.mapping.refinding`); ``RefindConfig(detector="none")`` turns it off.
         refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
-        triangulate: Triangulate features against earlier frames of the window.
-        window: Number of earlier frames a frame's features are triangulated with.
-        lag: Number of later frames a frame waits for before it is triangulated, refined and
-            fused (a fixed lag; KLT tracks, the default detector): its features are then
-            triangulated from up to ``window`` earlier *and* ``lag`` later views. `Mapper.add_frame`
-            then returns the frame added ``lag`` calls earlier and `Mapper.flush` the last ones.
-            Measured on the 60 shared 7-Scenes frames (bench/fusion.py, own points, window 8):
-            lag 4 gives every frame points (lag 0: the first 3-4 frames none), per-frame depth
-            RMSE 0.68-0.69 x FastDepth's instead of 0.79-0.85 and a better mesh (F at 5 cm
-            0.30 vs 0.26): one view's pose error pulls the depth less when views lie on both
-            sides. 0 fuses each frame in the call that adds it (points from earlier frames only).
-        fuse_depth: The depth fused from a posterior: "median" (default) or "mean". The TSDF's
-            zero crossing is where the surface is as likely in front as behind: the posterior
-            median. For the default log-normal posterior that is
-            ``mean / sqrt(1 + variance / mean^2)``; the mean lies farther by a factor
-            ``exp(v / 2)`` (v the log variance: 2 % at 20 % relative sigma, more at MDE edges).
-            For the Gaussian formulations ("balanced", "residual") both are the mean. Measured
-            (bench/fusion.py): F at 5 cm 0.30 -> 0.33 with the median.
-        map_scale_weight: Weight of the map in the depth scale of a frame's triangulated points
-            (`map_scale`; 0 turns it off). The points of one frame share the errors of their
-            views' poses, which shows as a common scale error of the frame (on 7-Scenes the
-            median per-frame bias is ~3 %, > 10 % in 7 of 60 frames); the keyframes already
-            fused measure that scale independently. The frame's points are divided by
-            ``exp(weight * log s)``, s the map's median depth ratio: 0.5 weighs the frame and
-            the map equally. Measured (bench/fusion.py, 7-Scenes): F at 5 cm 0.29 -> 0.35 with
-            0.5 (0.32 with 0.3, 0.35 with 0.7; 1.0 made it worse, 0.27: the map then follows
-            each frame's error). With ``map_scale_max_sigma`` 0.3 and ``scale_variance`` (the map
-            then compares more keyframe pixels and its frames with a large scale disagreement
-            weigh less) the map is the better estimate: 0.65 (default). Chosen on the even frames
-            (bench/fusion.py runs, each half fused alone against the Kinect mesh of the same
-            frames, weight threshold halved): F at 5 cm even 0.382 / 0.409 / 0.435 / 0.441 /
-            0.368 / 0.297 with 0.35 / 0.5 / 0.65 / 0.8 / 0.9 / 1.0; confirmed on the odd frames
-            0.358 / 0.377 / 0.401 / 0.402 / 0.353 / 0.296 and on frames 0-29 0.358 / 0.382 /
-            0.410 / 0.431 / 0.426 / 0.417, 30-59 0.340 / 0.359 / 0.369 / 0.367 / 0.284 / 0.212;
-            full sequence 0.356 / 0.378 / 0.402 / 0.408 / 0.338 / 0.285, per-frame depth RMSE
-            0.634 / 0.626 / 0.623 / 0.632 / 0.659 / 0.729 x FastDepth's. 0.65 rather than 0.8
-            (within 0.006 of it on the halves): 0.9 already drifts. Needs ``keep_keyframes``.
+        triangulate: Triangulate the frames' own features.
+        window: Earlier frames a frame's KLT tracks are triangulated with.
+        lag: Later frames a frame waits for before it is triangulated, refined and fused: views
+            on both sides pull its depth less with one view's pose error. `add_frame` then returns
+            the frame added ``lag`` calls earlier, `flush` the last ones; 0 fuses each frame at once.
+        fuse_depth: "median" (default) or "mean" of the posterior: the TSDF's zero crossing is where
+            the surface is as likely in front as behind, the median (log-normal:
+            ``mean / sqrt(1 + variance / mean^2)``).
+        map_scale_weight: Weight in [0, 1] of the map in the depth scale of a frame's triangulated
+            points (`map_scale`; 0 off): the points of one frame share their views' pose errors, a
+            common scale error that the keyframes already fused measure independently.
         map_scale_keyframes: The most recent keyframes `map_scale` compares with.
-        map_scale_max_sigma: Keyframe pixels whose standard deviation is above this fraction of
-            their depth are not compared by `map_scale`. With 0.1 (before) few pixels away from
-            a keyframe's own points qualify (the refined depth's relative sigma is mostly
-            0.1-0.2), and in the fast frames of 7-Scenes `map_scale` found too few keyframes
-            (frames 25-29, 38, 39 got no correction while their points were 7-21 % too far).
-            Chosen on the even frames of the 60 shared 7-Scenes frames and confirmed on the
-            odd ones (bench/fusion.py run, each half's frames fused alone against the Kinect
-            mesh of the same frames, weight threshold halved with half the frames): F at 5 cm
-            even 0.387 (0.1) / 0.393 (0.2) / 0.397 (0.3), odd 0.354 / 0.370 / 0.377; frames
-            0-29 0.334 / 0.376 / 0.379 but frames 30-59 0.366 / 0.344 / 0.354 (there the first
-            frames of the half are the worst ones). Full sequence 0.360 / 0.363 / 0.369,
-            per-frame depth RMSE 0.652 / 0.625 / 0.626 x FastDepth's.
-        scale_variance: Add the frame's remaining scale uncertainty to the variance that is
-            fused (and kept in the keyframe store): ``w (1 - w) (log s)^2 depth^2``, w the
-            ``map_scale_weight`` and log s the disagreement of the frame's points with the map.
-            The GP treats the points' errors as independent, but the points of one frame share
-            the errors of its views' poses, a common scale error the posterior variance does
-            not contain. Frame and map are two estimates of that scale; when each has variance
-            v (equal weights), their difference has variance 2v and the weighted estimate
-            ``w(1-w)`` times that: the squared disagreement estimates it without a new
-            constant. The |log s| of a frame ranks its points' true |bias| with Spearman 0.62
-            on 7-Scenes (the points' median relative sigma 0.57, blur measured by the
-            Laplacian's variance -0.12). Measured with ``map_scale_max_sigma`` 0.3 and
-            ``map_scale_weight`` 0.5 (bench/fusion.py, same protocol as above): F at 5 cm full 0.369 -> 0.376-0.378,
-            even 0.397 -> 0.408, odd 0.377 -> 0.377, frames 0-29 0.379 -> 0.383, 30-59
-            0.354 -> 0.358; with 0.1: full 0.360 -> 0.367. The depth fused is unchanged; the
-            frame weighs less in the volume and, its pixels being less certain, in the
-            `map_scale` of later frames.
-        min_baseline: Earlier frames closer than this to the current camera centre are not
-            used for triangulation (metres).
+        map_scale_max_sigma: Keyframe pixels less certain than this fraction of their depth are
+            not compared by `map_scale`.
+        scale_variance: Add the frame's remaining scale uncertainty ``w (1 - w) (log s)^2 depth^2``
+            (w the ``map_scale_weight``, log s the disagreement with the map) to the fused variance:
+            the GP treats its points' errors as independent, but they share this scale error.
+        min_baseline: Earlier frames closer than this to the camera centre are not used by the
+            descriptor detectors ("orb", "sift"), metres.
         working_scale: Resolution of refinement and fusion relative to the RGB images.
-        max_points: At most this many measurements per frame go to the GP, the most certain
-            (smallest sigma / depth; points without sigma count as certain). 450 (before: 300):
-            with the tracker's 800 KLT features (`TriangulationConfig.max_features`) 300 left
-            out the points away from the most certain (F at 5 cm 0.401 on the 60 shared
-            7-Scenes frames, 0.407 with 400 features). Chosen on the even frames (bench/fusion.py
-            protocol, each half fused alone against the Kinect mesh of the same frames, weight
-            threshold halved, ``FusionConfig.max_relative_sigma`` None): F at 5 cm 0.424 / 0.454
-            / 0.458 / 0.452 with 300 / 450 / 600 / 800, confirmed on the odd frames 0.409 /
-            0.454 / 0.459 / 0.446; full sequence 0.401 / 0.442 / 0.443 / 0.437; with the cut at
-            0.2 (the default) 450 / 600: even 0.474 / 0.481, odd 0.462 / 0.470, full 0.455 /
-            0.461. 450 rather than 600 for time: `Mapper.add_frame` (without the MDE, old and new
-            settings interleaved in one process on the busy shared machine) took 1.10x (450; 1.15x
-            in a second run) and 1.33x (600) the time of 300 points with 400 features (the GP
-            solve grows with the points): 600 would pass the 100 ms target.
+        max_points: Most measurements per frame given to the GP, the most certain first (smallest
+            sigma / depth): the GP solve grows with them.
+        keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
+            resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
         fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
             (`check_pose_orientation`); False (default): the frame is reported (``FrameResult.error``,
             `Mapper.failures`) and not fused, since such a pose puts its depth in the wrong place.
-        keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the
-            working resolution (about 0.6 MB a frame at 320x240), needed by
-            `Mapper.update_poses` and `Mapper.save`.
     """
 
     gp: DepthGPConfig = MAPPER_GP

@@ -65,18 +65,8 @@ class TriangulationConfig:
         detector: "klt" (Shi-Tomasi corners followed by pyramidal Lucas-Kanade: sub-pixel
             tracks, the default), "orb" or "sift" (descriptor matching, OpenCV).
         max_features: Most keypoints detected per image (tracks kept alive for "klt");
-            None: 800 for "klt", 3000 for "orb" / "sift". 800 rather than 400 (before): the
-            corner spacing (``min_corner_distance``) still spreads them, and with 400 the
-            Mapper had ~250 points a frame (94-160 in the blurred frames 23-39 of the shared
-            7-Scenes sequence), with 800 ~370 (120-240) at its ``max_points``. Measured with the
-            `Mapper` (bench/fusion.py protocol, its ``max_points`` 600, each half of the 60
-            frames fused alone against the Kinect mesh of the same frames, weight threshold
-            halved): F at 5 cm even frames 0.439 / 0.458 / 0.455 with 400 / 800 / 1200, odd
-            0.405 / 0.459 / 0.450, frames 0-29 0.411 / 0.413 / 0.409, 30-59 0.370 / 0.415 /
-            0.419, full sequence 0.406 / 0.443 / 0.442 (per-frame depth RMSE 0.625 / 0.588 /
-            0.590 x FastDepth's). With ``min_corner_distance`` 5 instead of 8 (more points,
-            ~490 a frame): full 0.425, frames 0-29 0.405. The tracking step costs more
-            (the Mapper's "points" stage about 1.2-1.4x, a few ms at 320x240).
+            None: 800 for "klt", 3000 for "orb" / "sift" (numbers behind 800:
+            bench/results/mapping_settings.json).
         min_corner_distance: Smallest distance between two "klt" corners, pixels.
         klt_window: Lucas-Kanade window side, pixels.
         klt_levels: Lucas-Kanade pyramid levels above the image.
