@@ -54,17 +54,31 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from ..camera import PinholeCamera, check_pose, transform_points
-from .cloud import ColoredCloud
 from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
-from ..errors import CalibrationError, DataFormatError, GPDepthError, InvalidInputError, ShapeError, describe
-from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
+from ..errors import (
+    CalibrationError,
+    DataFormatError,
+    GPDepthError,
+    InvalidInputError,
+    ShapeError,
+    describe,
+)
 from ..gp.model import DepthGPConfig
 from ..io import save_npz, write_json
 from ..measurements import SparseDepth, project_points
-from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation, invert_pose
-from .refinding import Refinder, RefindConfig
-from .triangulation import TrackTriangulator, TriangulationConfig, detect_features, triangulate_frames
+from .cloud import ColoredCloud
+from .features import detect_features
+from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
+from .refinding import RefindConfig, Refinder
+from .tracks import TrackTriangulator, triangulate_frames
+from .trajectories import (
+    InvertedPoseWarning,
+    PoseCheck,
+    check_pose_orientation,
+    invert_pose,
+)
+from .triangulation_config import TriangulationConfig
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
@@ -226,7 +240,8 @@ class MapperConfig:
             common scale error that the keyframes already fused measure independently.
         map_scale_keyframes: The most recent keyframes `map_scale` compares with.
         map_scale_max_sigma: Keyframe pixels less certain than this fraction of their depth are
-            not compared by `map_scale`.
+            not compared by `map_scale`: below ``FusionConfig.max_relative_sigma``, so that the
+            scale comes from pixels that points informed, not from keyframes' MDE fallback.
         scale_variance: Add the frame's remaining scale uncertainty ``w (1 - w) (log s)^2 depth^2``
             (w the ``map_scale_weight``, log s the disagreement with the map) to the fused variance:
             the GP treats its points' errors as independent, but they share this scale error.
@@ -253,7 +268,7 @@ class MapperConfig:
     fuse_depth: Literal["median", "mean"] = "median"
     map_scale_weight: float = 0.65
     map_scale_keyframes: int = 20
-    map_scale_max_sigma: float = 0.3
+    map_scale_max_sigma: float = 0.15
     scale_variance: bool = True
     min_baseline: float = 0.05
     working_scale: float = 1.0

@@ -19,13 +19,9 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..errors import InvalidInputError
 from ..measurements import SparseDepth
-from .triangulation import (
-    Features,
-    TriangulationConfig,
-    _gray,
-    detect_features,
-    triangulate_frames,
-)
+from .features import Features, _gray, detect_features
+from .tracks import triangulate_frames
+from .triangulation_config import TriangulationConfig
 
 
 @dataclass(frozen=True)
