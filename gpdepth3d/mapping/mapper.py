@@ -651,18 +651,9 @@ class Mapper:
         timings = dict.fromkeys(STAGES, 0.0)
         T = check_pose(T_world_camera)
         rgb = np.asarray(rgb)
-        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-            raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
-        self.camera.check_image(rgb, "rgb")
-        if mde_depth is None and self.mde is None:
-            raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
-        if sparse is not None and not isinstance(sparse, SparseDepth):
-            raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
-        kid = self._next_id if keyframe_id is None else _keyframe_id(keyframe_id)
+        kid = self._check_frame_args(rgb, mde_depth, sparse, keyframe_id)
         if map_points_sigma is not None:
             map_points_sigma = _sigma_array(map_points_sigma)
-        if kid in self.keyframes or any(p.kid == kid for p in self._queue):
-            raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
         if mde_depth is not None:
             mde_depth = self._check_mde(mde_depth)
         self._next_id = max(self._next_id, kid + 1)
@@ -683,23 +674,18 @@ class Mapper:
         if sparse is not None:
             entry.parts.append(sparse.rasterize(self.camera.shape))
         if map_points_world is not None:
-            try:
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always", InvertedPoseWarning)
-                    entry.pose_check = check_pose_orientation(map_points_world, T, self.camera, frame=kid)
-                for w in caught:
-                    entry.notes.append(str(w.message))
-                    warnings.warn(w.message, w.category, stacklevel=2)
-                points, entry.map_stats = project_map_points(map_points_world, T, self.camera, sigma=map_points_sigma)
-                st = entry.map_stats
-                if st.outside or st.behind or st.nonfinite:
-                    entry.notes.append(
-                        f"frame {kid}: {st.outside} of {st.given} map points outside the image, "
-                        f"{st.behind} behind the camera, {st.nonfinite} not finite"
-                    )
-                entry.parts.append(points)
-            except GPDepthError as exc:  # e.g. a bad sigma: the frame goes on without the map points
-                entry.notes.append(f"frame {kid}: " + _describe_error("map points", exc))
+            self._add_map_points(entry, map_points_world, map_points_sigma)
+        ready = self._track_step(entry, rgb)
+        timings["points"] = time.perf_counter() - t0
+        if ready is None:
+            timings["total"] = time.perf_counter() - t_start
+            self.timings.append(timings)
+            return None
+        return self._finish(ready, timings, t_start)
+
+    def _track_step(self, entry: _Pending, rgb: np.ndarray) -> _Pending | None:
+        """Queues the frame, runs one tracking step, and returns the frame whose turn it is (None while the lag fills)."""
+        kid, T = entry.kid, entry.T
         self._queue.append(entry)
         ready: _Pending | None = None
         if self._refinds:
@@ -724,12 +710,28 @@ class Mapper:
                     ready.triangulated = self._with_refound(ready, self._triangulate(rgb, T, kid))
                 except Exception as exc:  # noqa: BLE001 - no points from this frame; the MDE still counts
                     ready.notes.append(f"frame {kid}: " + _describe_error("triangulation", exc))
-        timings["points"] = time.perf_counter() - t0
-        if ready is None:
-            timings["total"] = time.perf_counter() - t_start
-            self.timings.append(timings)
-            return None
-        return self._finish(ready, timings, t_start)
+        return ready
+
+    def _add_map_points(self, entry: _Pending, points_world: np.ndarray, sigma: np.ndarray | None) -> None:
+        """The frame's SLAM map points as measurements, with the inverted-pose check and what was dropped."""
+        kid, T = entry.kid, entry.T
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", InvertedPoseWarning)
+                entry.pose_check = check_pose_orientation(points_world, T, self.camera, frame=kid)
+            for w in caught:
+                entry.notes.append(str(w.message))
+                warnings.warn(w.message, w.category, stacklevel=3)
+            points, entry.map_stats = project_map_points(points_world, T, self.camera, sigma=sigma)
+            st = entry.map_stats
+            if st.outside or st.behind or st.nonfinite:
+                entry.notes.append(
+                    f"frame {kid}: {st.outside} of {st.given} map points outside the image, "
+                    f"{st.behind} behind the camera, {st.nonfinite} not finite"
+                )
+            entry.parts.append(points)
+        except GPDepthError as exc:  # e.g. a bad sigma: the frame goes on without the map points
+            entry.notes.append(f"frame {kid}: " + _describe_error("map points", exc))
 
     def flush(self) -> list[FrameResult]:
         """Refines and fuses the frames still waiting for later views (``config.lag``), oldest first.
@@ -909,6 +911,20 @@ class Mapper:
             depth32.astype(np.float64), var32.astype(np.float64), mde, measurements, posterior, timings, kid, True,
             None, tuple(notes), masked, entry.map_stats, entry.pose_check, scale, fallback,
         )
+
+    def _check_frame_args(self, rgb: np.ndarray, mde_depth, sparse, keyframe_id) -> int:
+        """Validates `add_frame`'s image, MDE source, measurements and id; returns the keyframe id."""
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
+        self.camera.check_image(rgb, "rgb")
+        if mde_depth is None and self.mde is None:
+            raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
+        if sparse is not None and not isinstance(sparse, SparseDepth):
+            raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
+        kid = self._next_id if keyframe_id is None else _keyframe_id(keyframe_id)
+        if kid in self.keyframes or any(p.kid == kid for p in self._queue):
+            raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
+        return kid
 
     def _check_mde(self, mde_depth: np.ndarray) -> np.ndarray:
         mde_depth = np.asarray(mde_depth, dtype=np.float64)

@@ -195,6 +195,69 @@ def _cauchy_weights(r: np.ndarray, scale: float) -> np.ndarray:
     return 1.0 / (1.0 + np.sum(r**2, axis=-1) / scale**2)
 
 
+def _refined_depths(prob, rho, mask, xbar, obs, config: TriangulationConfig):
+    """Robust refinement of the inverse depths: (rho, residuals, valid observations).
+
+    A wide Cauchy scale first (the given poses can be several pixels off), then the final one;
+    observations beyond ``max_reprojection_error`` are then dropped.
+    """
+    final_scale = 2.0
+    if config.refine_poses:
+        for scale, iters in ((8.0, 4), (final_scale, 6)):
+            rho = _levenberg_marquardt(prob, rho, scale, iters)
+        _, _, r, valid = prob.residuals(rho)
+        err_px = np.linalg.norm(r, axis=-1) * prob.pixel_sigma
+        prob.mask = mask & valid & (err_px <= config.max_reprojection_error)
+        rho = _levenberg_marquardt(prob, rho, final_scale, 3)
+        _, _, r, valid = prob.residuals(rho)
+        return rho, r, valid
+    # poses held: independent 1-D problems, one compiled loop over the tracks
+    return _held_pose_depths(
+        xbar, obs, mask, prob.R, prob.t, prob.f, prob.c, prob.pixel_sigma, rho, final_scale,
+        float(config.max_reprojection_error),
+    )
+
+
+def _pixel_noise(r: np.ndarray, valid: np.ndarray, unit: float, n_others: int, config: TriangulationConfig) -> tuple[float, float]:
+    """(noise seen in the residuals, pixel sigma used) in pixels: the Rayleigh median of the 2-D
+    residual norms (``r`` in units of ``unit`` pixels), dof-corrected, and at least ``config.pixel_sigma``."""
+    n_obs = int(valid.sum())
+    n_par = int(valid.any(axis=1).sum()) + 6 * n_others
+    if n_obs * 2 > n_par + 2:
+        med = np.median(np.linalg.norm(r[valid], axis=-1)) * unit / np.sqrt(2 * np.log(2))
+        seen = float(med * np.sqrt(2 * n_obs / (2 * n_obs - n_par)))
+    else:
+        seen = float(config.pixel_sigma)
+    return seen, max(float(config.pixel_sigma), seen)
+
+
+def _inverse_depth_variance(prob, rho, valid, xbar, sigma_px: float, seen: float, config: TriangulationConfig) -> np.ndarray:
+    """(N,) variance of each track's inverse depth: pixel noise and the poses' uncertainty."""
+    if config.refine_poses:
+        prob.pixel_sigma = sigma_px
+        _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
+        n_pts, nj = H_xr.shape[:2]
+        A = H_xr.reshape(n_pts, nj * 6)
+        inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
+        B = A * inv[:, None]
+        S, _, _ = prob.schur(h_rr, H_xr, H_xx)
+        # joint estimate: the marginal of the inverse depth (Schur complement of the poses)
+        try:
+            S_inv = np.linalg.inv(S)
+        except np.linalg.LinAlgError:
+            S_inv = np.linalg.pinv(S)
+        var_rho = inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
+    else:
+        # poses held at their given values: their whole prior uncertainty reaches the depth
+        # through d rho / d xi = -H_rho_rho^-1 H_rho_xi
+        var_rho = _held_pose_variance(xbar, rho, valid, prob.R, prob.t, prob.f / sigma_px, 1.0 / prob.prior)
+    if config.variance_factor:
+        # a posteriori variance factor: residuals larger than the pixel noise say the poses
+        # (or the tracks) are worse than assumed, in the directions the images cannot see too
+        var_rho = var_rho * max(1.0, seen / float(config.pixel_sigma)) ** 2
+    return var_rho
+
+
 def triangulate_tracks(
     tracks: np.ndarray,
     poses: Sequence[np.ndarray] | np.ndarray,
@@ -280,57 +343,15 @@ def triangulate_tracks(
     rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
     mask &= rho_ok[:, None]
     prob.mask = mask
-    # Robust refinement: a wide Cauchy scale first (the given poses can be several pixels
-    # off), then the final one; observations beyond max_reprojection_error are then dropped.
-    final_scale = 2.0
-    if config.refine_poses:
-        for scale, iters in ((8.0, 4), (final_scale, 6)):
-            rho = _levenberg_marquardt(prob, rho, scale, iters)
-        _, _, r, valid = prob.residuals(rho)
-        err_px = np.linalg.norm(r, axis=-1) * prob.pixel_sigma
-        prob.mask = mask = mask & valid & (err_px <= config.max_reprojection_error)
-        rho = _levenberg_marquardt(prob, rho, final_scale, 3)
-        _, _, r, valid = prob.residuals(rho)
-    else:
-        # poses held: independent 1-D problems, one compiled loop over the tracks
-        rho, r, valid = _held_pose_depths(
-            xbar, obs, mask, prob.R, prob.t, prob.f, prob.c, prob.pixel_sigma, rho, final_scale,
-            float(config.max_reprojection_error),
-        )
+    rho, r, valid = _refined_depths(prob, rho, mask, xbar, obs, config)
 
-    # Noise level actually seen (Rayleigh median of 2-D residual norms), dof-corrected.
-    n_obs = int(valid.sum())
-    live = valid.any(axis=1)
-    n_par = int(live.sum()) + 6 * len(others)
-    if n_obs * 2 > n_par + 2:
-        med = np.median(np.linalg.norm(r[valid], axis=-1)) * prob.pixel_sigma / np.sqrt(2 * np.log(2))
-        seen = float(med * np.sqrt(2 * n_obs / (2 * n_obs - n_par)))
-    else:
-        seen = float(config.pixel_sigma)
-    sigma_px = max(float(config.pixel_sigma), seen)
-    if config.refine_poses:
-        prob.pixel_sigma = sigma_px
-        _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
-        n_pts, nj = H_xr.shape[:2]
-        A = H_xr.reshape(n_pts, nj * 6)
-        inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
-        B = A * inv[:, None]
-        S, _, _ = prob.schur(h_rr, H_xr, H_xx)
-        # joint estimate: the marginal of the inverse depth (Schur complement of the poses)
-        try:
-            S_inv = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
-            S_inv = np.linalg.pinv(S)
-        var_rho = inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
-    else:
-        # poses held at their given values: their whole prior uncertainty reaches the depth
-        # through d rho / d xi = -H_rho_rho^-1 H_rho_xi
-        var_rho = _held_pose_variance(xbar, rho, valid, prob.R, prob.t, prob.f / sigma_px, 1.0 / prob.prior)
-    if config.variance_factor:
-        # a posteriori variance factor: residuals larger than the pixel noise say the poses
-        # (or the tracks) are worse than assumed, in the directions the images cannot see too
-        var_rho = var_rho * max(1.0, seen / float(config.pixel_sigma)) ** 2
+    seen, sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)
+    var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
+    return _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
 
+
+def _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config) -> MultiViewPoints:
+    """Depth and sigma of each track, the geometry checks, and the `MultiViewPoints` of those that pass."""
     depth = np.where(rho > 0, 1.0 / np.where(rho > 0, rho, 1.0), np.nan)
     with np.errstate(invalid="ignore"):
         sigma_geo = np.sqrt(np.maximum(var_rho, 0.0)) * depth**2
