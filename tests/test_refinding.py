@@ -108,3 +108,34 @@ class TestRealMotion:
         moved[0, 3] += 1.0
         refinder.update_poses({1: moved, 7: np.eye(4)})
         np.testing.assert_array_equal(refinder._frames[1][1], moved)
+
+
+def test_mapper_refinds_where_tracks_fail_and_reports_frames_without_points(shared_data):
+    # the Mapper's defaults (KLT, window 8, lag 4) on the HoloLens walk, frames 16-29, with a stand-in MDE
+    # (the sensor depth hole-filled, 12 % too far): with re-finding the frames whose tracks break get
+    # descriptor points; without it some frames have (almost) none and fall back to their MDE, reported
+    from scipy.ndimage import distance_transform_edt
+
+    from gpdepth3d.mapping.mapper import Mapper, MapperConfig
+
+    idx = list(range(16, 30))
+    rgbs, poses, depths, cam = _hololens(shared_data, idx)
+
+    def standin(depth):
+        _, (ri, ci) = distance_transform_edt(depth <= 0, return_indices=True)
+        return 1.12 * depth[ri, ci]
+
+    def run(refind: RefindConfig):
+        mapper = Mapper(cam, MapperConfig(working_scale=0.5, refind=refind))
+        results = [mapper.add_frame(rgb, T, mde_depth=standin(d)) for rgb, T, d in zip(rgbs, poses, depths)]
+        return [r for r in results if r is not None] + mapper.flush()
+
+    on, off = run(RefindConfig()), run(RefindConfig(detector="none"))
+    points_on, points_off = np.array([len(r.sparse) for r in on]), np.array([len(r.sparse) for r in off])
+    assert len(on) == len(off) == len(idx) and all(r.fused for r in on)
+    assert np.all(points_on >= points_off) and (points_off < 20).sum() >= 2 and (points_on < 20).sum() < (points_off < 20).sum()
+    lonely = [r for r in off if len(r.sparse) == 0]
+    assert len(lonely) >= 2
+    for r in lonely:  # a frame without points: fused down-weighted, and said so
+        assert r.fused and r.fallback_weight == 0.5 and any("no points" in w for w in r.warnings)
+    assert all(r.fallback_weight < 0.01 for r in on if len(r.sparse) > 60)
