@@ -22,26 +22,18 @@ Given posed RGB frames (``T_world_camera``, e.g. from a SLAM system) and intrins
   the residuals are larger than the assumed pixel noise (inconsistent poses in a frame then
   widen every sigma of that frame); a relative floor ``depth_sigma_floor`` is added in quadrature.
 
-Measured on the 60 shared 7-Scenes frames (the sequence's own poses, colour camera f = 525;
-bench/fusion.py and experiments of issue 14). With 4 earlier frames (`TrackTriangulator`,
-``lag=0``): +-2 sigma covers ~93 % of the points' errors against the Kinect depth, ~200 points
-a frame, the median point ~6 % off, 4 frames without points. With 8 earlier and 4 later views
-(``lag=4``, the Mapper's default): ~250-275 points in every frame, median ~5 % off, median
-per-frame |bias| 2.8 % instead of 3.7 %, +-2 sigma 91-92 %. What limits the accuracy is the
-poses: with the given poses KLT tracks reproject 2.4 px off (median; the images' relative
-poses differ from the given ones by ~0.24 deg and ~0.8 cm between consecutive frames, up to
-1.5 deg / 3 cm in the fast, blurred frames 20-40). A bundle adjustment of the whole sequence
-with the given poses as priors (0.5 deg, 2 cm) brings that to 1.0 px, but the points it
-triangulates are no closer to the Kinect surface (median 5.5 cm off either way) and the fused
-mesh was not better; neither a time offset between colour and depth poses, nor a colour-depth
-extrinsic, nor self-calibrated intrinsics (f, c, k1, k2 stay at 525, 320, 240, ~0) explain it.
-Refining the neighbours' poses per reference (``refine_poses``) made the depth worse (median
-per-frame |bias| 3.7 % -> 5-11 %, window 4 or 8), so it is off by default and the pose
-uncertainty goes into sigma instead.
+Accuracy on the shared sequences (points per frame, +-2 sigma coverage against the sensor depth):
+bench/results/mapping_sequences.json; what limits it is the given poses (the residuals show them
+a few pixels off), so the pose uncertainty goes into sigma rather than into a per-frame pose
+refinement (``refine_poses``, off by default: it made the depth worse).
 
-The two-view functions (`triangulate_matches`, `triangulate_pair`) remain: they triangulate one
-pair with ``cv2.triangulatePoints`` and propagate ``pixel_sigma`` through the DLT (central
-differences), checking cheirality, reprojection error and parallax.
+Modules: `triangulation_config` (options), `features` (detection, matching), `tracks` (KLT and
+descriptor tracks, the streaming `TrackTriangulator`), `multiview` (`triangulate_tracks`),
+`two_view` (`triangulate_matches`, `triangulate_pair`); this module re-exports their public names.
+
+The two-view functions triangulate one pair with ``cv2.triangulatePoints`` and propagate
+``pixel_sigma`` through the DLT (central differences), checking cheirality, reprojection error
+and parallax.
 """
 
 from .features import Features as Features
