@@ -90,7 +90,7 @@ class TestRealMotion:
         gt = d[iv, iu]
         ok = gt > 0
         within = np.abs(points.depth[ok] - gt[ok]) <= 2 * points.sigma[ok]
-        assert ok.sum() > 80 and 0.85 <= within.mean() <= 1.0
+        assert ok.sum() > 80 and 0.85 <= within.mean() <= 0.98  # honest: neither too tight nor too wide
         assert np.median(np.abs(points.depth[ok] - gt[ok]) / gt[ok]) < 0.1  # ORB keypoints, ~0.25 m baselines
         # nothing remembered under that key, or re-finding off: no points, no error
         assert len(refinder.points("unknown", 2.0)) == 0

@@ -104,7 +104,8 @@ class Refinder:
     Args:
         camera: Intrinsics of the images given to `add`.
         config: Re-finding options.
-        triangulation: Triangulation options (sigma model, gates); its detector is replaced.
+        triangulation: Triangulation options (sigma model, gates); its detector is replaced and its
+            ``variance_factor`` turned off (see the comment in the code).
     """
 
     def __init__(self, camera: PinholeCamera, config: RefindConfig | None = None,
@@ -113,7 +114,9 @@ class Refinder:
         self.config = config or RefindConfig()
         base = triangulation or TriangulationConfig()
         detector = "orb" if self.config.detector == "none" else self.config.detector
-        self.triangulation = replace(base, detector=detector, max_features=int(self.config.max_features))
+        # the residuals' pixel noise already enters sigma; the a-posteriori factor would scale the poses'
+        # share by it too, while descriptor keypoints' larger residuals are their localisation, not pose error
+        self.triangulation = replace(base, detector=detector, max_features=int(self.config.max_features), variance_factor=False)
         self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | None]
 
     def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object) -> None:
