@@ -68,12 +68,18 @@ class TestWeights:
     def test_weights_for_applies_the_config_and_the_frames_points(self):
         var = np.array([[0.01, 0.36]])
         depth = np.full(var.shape, 2.0)
+        from gpdepth3d.mapping.mapper import MAPPER_FUSION
+
         cfg = FusionConfig()
-        assert (cfg.max_relative_sigma, cfg.relative_sigma_ref, cfg.fallback_weight) == (0.2, 0.05, 0.5)
+        assert (cfg.max_relative_sigma, cfg.relative_sigma_ref, cfg.fallback_weight) == (0.2, None, 0.5)
+        assert MAPPER_FUSION == FusionConfig(relative_sigma_ref=0.05)
+        rel = TSDFFusion(CAM, MAPPER_FUSION)
         # informed pixel: sigma / depth 0.05 -> 0.5; uninformed: the fallback, which the frame's points lower
-        np.testing.assert_allclose(TSDFFusion(CAM).weights_for(var, depth, points=0), [[0.5, 0.5]])
-        np.testing.assert_allclose(TSDFFusion(CAM).weights_for(var, depth, points=10), [[0.5, 0.5 * np.exp(-1)]])
-        assert TSDFFusion(CAM).weights_for(var, depth, points=400)[0, 1] < 1e-15
+        np.testing.assert_allclose(rel.weights_for(var, depth, points=0), [[0.5, 0.5]])
+        np.testing.assert_allclose(rel.weights_for(var, depth, points=10), [[0.5, 0.5 * np.exp(-1)]])
+        assert rel.weights_for(var, depth, points=400)[0, 1] == 0.0
+        # in metres (the default): sigma 0.1 m -> 0.5
+        np.testing.assert_allclose(TSDFFusion(CAM).weights_for(var, depth, points=400), [[0.5, 0.0]])
         assert cfg.fallback_for(0) == 0.5 and cfg.fallback_for(5) > cfg.fallback_for(6)
         with pytest.raises(InvalidInputError, match="points"):
             cfg.fallback_for(-1)

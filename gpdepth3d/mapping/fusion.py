@@ -30,7 +30,7 @@ Weightings (`FusionConfig.weighting`):
   ``(sigma_ref / sigma)^2``: inverse-variance weighting (the optimal weights for averaging
   independent Gaussian readings of the signed distance) saturated at one observation, so that
   ``weight_cap`` and ``weight_threshold`` keep their usual meaning ("number of observations").
-  With ``relative_sigma_ref`` (default) the reference is that fraction of the pixel's depth.
+  With ``relative_sigma_ref`` (the `Mapper`'s default) the reference is that fraction of the pixel's depth.
   Pixels whose sigma exceeds ``max_relative_sigma`` (default 0.2) times their depth, the pixels no
   point informs, get the frame's fallback weight (`FusionConfig.fallback_for`: a frame without
   points falls back to its MDE depth, one with many leaves them out); `TSDFFusion.weights_for`
@@ -109,8 +109,9 @@ class FusionConfig:
         sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
             (metres) at which a pixel counts as half an observation.
         relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
-            observation (default 0.05; None: ``sigma_ref`` in metres). Relative, so that a room at
-            1 m and a hall at 5 m meet the same ``weight_threshold``.
+            observation (None, default: ``sigma_ref`` in metres; the `Mapper`'s default fusion,
+            ``MAPPER_FUSION``, uses 0.05). Relative, so that a room at 1 m and a hall at 5 m meet the
+            same ``weight_threshold``.
         max_relative_sigma: Variance weighting: pixels with sigma / depth above this count as
             uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma,
             0.20-0.22 for the default model) and get the fallback weight instead (None: none does).
@@ -145,7 +146,7 @@ class FusionConfig:
     weight_cap: float = 100.0
     weighting: Weighting = "variance"
     sigma_ref: float = 0.1
-    relative_sigma_ref: float | None = 0.05
+    relative_sigma_ref: float | None = None
     max_relative_sigma: float | None = 0.2
     fallback_weight: float = 0.5
     fallback_points: float = 10.0

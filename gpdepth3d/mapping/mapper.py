@@ -99,6 +99,9 @@ def _resize_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(depth.astype(np.float32), (shape[1], shape[0]), interpolation=interp).astype(np.float64)
 
 
+MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
+"""The `Mapper`'s TSDF options: variance weights relative to depth (`FusionConfig.relative_sigma_ref`)."""
+
 MAPPER_GP = DepthGPConfig(local_calibration=None)
 """The `Mapper`'s GP: the default model with the variance of the stationary GP (see `MapperConfig.gp`)."""
 
@@ -113,8 +116,8 @@ class MapperConfig:
     Attributes:
         gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's
             variance, fixed hyperparameters, fast engine): the fusion weights need that variance.
-        fusion: TSDF options (weighting "variance" uses the posterior variance). With ``refine``
-            the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
+        fusion: TSDF options (`MAPPER_FUSION`: weights from the posterior variance relative to
+            depth). With ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
         triangulation: Feature tracking and triangulation options.
         refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
             motion): views chosen by parallax, ORB matches under the poses' epipolar geometry
@@ -151,7 +154,7 @@ class MapperConfig:
     """
 
     gp: DepthGPConfig = MAPPER_GP
-    fusion: FusionConfig = field(default_factory=FusionConfig)
+    fusion: FusionConfig = MAPPER_FUSION
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     refind: RefindConfig = field(default_factory=RefindConfig)
     refine: bool = True
