@@ -108,7 +108,7 @@ def main() -> None:
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
     from gpdepth3d.io import to_jsonable
-    from gpdepth3d.mapping.mapper import MAPPER_GP, SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth
+    from gpdepth3d.mapping.mapper import MAPPER_FUSION, MAPPER_GP, SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth
     from gpdepth3d.metrics import mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
@@ -118,7 +118,7 @@ def main() -> None:
 
     overrides = {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.tri)}
     gp_overrides = {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.gp_set)}
-    fusion = FusionConfig(voxel_size=0.02, truncation=0.08, depth_max=5.0)
+    fusion = replace(MAPPER_FUSION, voxel_size=0.02, truncation=0.08, depth_max=5.0)
     config = MapperConfig(
         fusion=fusion,
         working_scale=0.5,

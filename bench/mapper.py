@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     scratch = TSDFFusion(mapper.work_camera, mapper.fusion.config)
     t0 = time.perf_counter()
     for kf in mapper.keyframes.values():
-        scratch.integrate(kf.depth, kf.T_world_camera, rgb=kf.rgb, weights=scratch.weights_for(kf.variance, kf.depth), variance=kf.variance)
+        scratch.integrate(kf.depth, kf.T_world_camera, rgb=kf.rgb, weights=scratch.weights_for(kf.variance, kf.depth, points=kf.points), variance=kf.variance)
     t_scratch = time.perf_counter() - t0
     a, b = _sorted_voxels(mapper.fusion), _sorted_voxels(scratch)
     same_voxels = a["coords"].shape == b["coords"].shape and bool(np.array_equal(a["coords"], b["coords"]))

@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     scratch = g.TSDFFusion(mapper.work_camera, mapper.fusion.config)
     for kf in mapper.keyframes.values():
-        scratch.integrate(kf.depth, kf.T_world_camera, rgb=kf.rgb, weights=scratch.weights_for(kf.variance, kf.depth), variance=kf.variance)
+        scratch.integrate(kf.depth, kf.T_world_camera, rgb=kf.rgb, weights=scratch.weights_for(kf.variance, kf.depth, points=kf.points), variance=kf.variance)
     a, b = _voxels(mapper.fusion), _voxels(scratch)
     identical = a["coords"].shape == b["coords"].shape and all(np.array_equal(a[k], b[k]) for k in a)
     print(f"volume after update_poses identical to fusing from scratch with the corrected poses: {identical}")

@@ -58,8 +58,8 @@ from .mapping.fusion import TSDFFusion as TSDFFusion
 from .mapping.mapper import FrameResult as FrameResult
 from .mapping.mapper import Mapper as Mapper
 from .mapping.mapper import MapperConfig as MapperConfig
-from .mapping.mapper import project_map_points as project_map_points
-from .mapping.mapper import sparse_from_map_points as sparse_from_map_points
+from .mapping.map_points import project_map_points as project_map_points
+from .mapping.map_points import sparse_from_map_points as sparse_from_map_points
 from .mapping.trajectories import associate_poses as associate_poses
 from .mapping.trajectories import check_pose_orientation as check_pose_orientation
 from .mapping.trajectories import invert_pose as invert_pose

@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
+from gpdepth3d.errors import (
+    CalibrationError,
+    DataFormatError,
+    EmptyInputError,
+    InvalidInputError,
+    ProblemTooLargeError,
+    ShapeError,
+)
 from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
@@ -34,12 +41,19 @@ class TestWeights:
         with pytest.raises(InvalidInputError):
             weights_from_variance(var, sigma_ref=0.0)
 
-    def test_relative_sigma_cut(self):
-        # depth 2 m: sigma 0.2 m (10 %) and 0.4 m (20 %) kept, 0.41 m and 0.6 m (> 20 %) weight 0
+    def test_relative_sigma_cut_and_fallback(self):
+        # depth 2 m: sigma 0.2 m (10 %) and 0.4 m (20 %) informed, 0.41 m and 0.6 m (> 20 %) get the fallback weight
         var = np.array([[0.04, 0.16, 0.41**2, 0.36]])
         depth = np.full(var.shape, 2.0)
         w = weights_from_variance(var, sigma_ref=0.1, depth=depth, max_relative_sigma=0.2)
         np.testing.assert_allclose(w, [[0.2, 1 / 17, 0.0, 0.0]])
+        w = weights_from_variance(var, sigma_ref=0.1, depth=depth, max_relative_sigma=0.2, fallback_weight=0.3)
+        np.testing.assert_allclose(w, [[0.2, 1 / 17, 0.3, 0.3]])
+        # relative reference: sigma / depth 0.05 weighs 0.5 at any depth
+        rel = weights_from_variance(var, sigma_ref=0.1, depth=depth, relative_sigma_ref=0.05)
+        np.testing.assert_allclose(rel, 1 / (1 + np.array([[0.01, 0.04, 0.41**2 / 4, 0.09]]) / 0.05**2))
+        far = weights_from_variance(var * 9, sigma_ref=0.1, depth=depth * 3, relative_sigma_ref=0.05)
+        np.testing.assert_allclose(far, rel)
         # without the cut the same formula everywhere
         np.testing.assert_allclose(weights_from_variance(var, sigma_ref=0.1)[0, 2:], [1 / (1 + 0.41**2 / 0.01), 1 / 37])
         with pytest.raises(InvalidInputError, match="depth"):
@@ -48,13 +62,29 @@ class TestWeights:
             weights_from_variance(var, sigma_ref=0.1, depth=np.ones((2, 2)), max_relative_sigma=0.2)
         with pytest.raises(InvalidInputError, match="max_relative_sigma"):
             weights_from_variance(var, sigma_ref=0.1, depth=depth, max_relative_sigma=0.0)
+        with pytest.raises(InvalidInputError, match="fallback_weight"):
+            weights_from_variance(var, sigma_ref=0.1, depth=depth, max_relative_sigma=0.2, fallback_weight=1.5)
 
-    def test_weights_for_applies_the_config_cut(self):
-        var = np.array([[0.04, 0.36]])
+    def test_weights_for_applies_the_config_and_the_frames_points(self):
+        var = np.array([[0.01, 0.36]])
         depth = np.full(var.shape, 2.0)
-        assert FusionConfig().max_relative_sigma == 0.2
-        np.testing.assert_allclose(TSDFFusion(CAM).weights_for(var, depth), [[0.2, 0.0]])
-        np.testing.assert_allclose(TSDFFusion(CAM, FusionConfig(max_relative_sigma=None)).weights_for(var), [[0.2, 1 / 37]])
+        from gpdepth3d.mapping.mapper import MAPPER_FUSION
+
+        cfg = FusionConfig()
+        assert (cfg.max_relative_sigma, cfg.relative_sigma_ref, cfg.fallback_weight) == (0.2, None, 0.5)
+        assert MAPPER_FUSION == FusionConfig(relative_sigma_ref=0.05)
+        rel = TSDFFusion(CAM, MAPPER_FUSION)
+        # informed pixel: sigma / depth 0.05 -> 0.5; uninformed: the fallback, which the frame's points lower
+        np.testing.assert_allclose(rel.weights_for(var, depth, points=0), [[0.5, 0.5]])
+        np.testing.assert_allclose(rel.weights_for(var, depth, points=10), [[0.5, 0.5 * np.exp(-1)]])
+        assert rel.weights_for(var, depth, points=400)[0, 1] == 0.0
+        # in metres (the default): sigma 0.1 m -> 0.5
+        np.testing.assert_allclose(TSDFFusion(CAM).weights_for(var, depth, points=400), [[0.5, 0.0]])
+        assert cfg.fallback_for(0) == 0.5 and cfg.fallback_for(5) > cfg.fallback_for(6)
+        with pytest.raises(InvalidInputError, match="points"):
+            cfg.fallback_for(-1)
+        absolute = FusionConfig(max_relative_sigma=None, relative_sigma_ref=None)
+        np.testing.assert_allclose(TSDFFusion(CAM, absolute).weights_for(var), [[0.5, 1 / 37]])
         assert TSDFFusion(CAM, FusionConfig(weighting="uniform")).weights_for(var) is None
         with pytest.raises(InvalidInputError, match="depth"):
             TSDFFusion(CAM).weights_for(var)
@@ -129,7 +159,8 @@ class TestIntegrate:
         var = np.full(CAM.shape, 0.01)
         var[:, :40] = 0.09
         post = SimpleNamespace(mean=_plane(), variance=var)
-        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.0, sigma_ref=0.1)
+        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.0, sigma_ref=0.1,
+                           relative_sigma_ref=None, max_relative_sigma=None)
         weighted = TSDFFusion(CAM, cfg)
         weighted.integrate_posterior(post, np.eye(4))
         uniform = TSDFFusion(CAM, FusionConfig(**{**cfg.__dict__, "weighting": "uniform"}))
@@ -205,26 +236,28 @@ class TestTruncationFromVariance:
                 FusionConfig(voxel_size=0.02, truncation=0.08, **bad)
         FusionConfig(voxel_size=0.02, truncation=0.5)  # truncation_max only matters with truncation_sigma > 0
 
-    def test_uncertain_pixels_are_not_fused(self):
+    def test_uncertain_pixels_fall_back_by_the_frames_points(self):
         # left half a plane at 1.5 m with sigma 0.1 m (7 %), right half one at 1.8 m with sigma 0.4 m
-        # (22 %): with the default cut (20 % of depth) only the left makes a surface; without it both
+        # (22 %, uninformed): a frame with many points leaves the right half out, one without points
+        # fuses it with the fallback weight; without the cut both halves by their variance
         depth, var = _plane(1.5), np.full(CAM.shape, 0.01)
         depth[:, CAM.width // 2 :] = 1.8
         var[:, CAM.width // 2 :] = 0.16
 
-        def surfaces(cut):
+        def surfaces(cut, points):
             fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, max_relative_sigma=cut, weight_threshold=0.01))
-            fusion.integrate(depth, np.eye(4), weights=fusion.weights_for(var, depth), variance=var)
+            fusion.integrate(depth, np.eye(4), weights=fusion.weights_for(var, depth, points=points), variance=var)
             z = fusion.extract_mesh().vertices[:, 2]
             return bool(np.abs(z - 1.5).min() < 0.01), bool(np.abs(z - 1.8).min() < 0.01)
 
-        assert surfaces(0.2) == (True, False)
-        assert surfaces(None) == (True, True)
-        assert surfaces(0.25) == (True, True)
-        # a frame with every pixel above the cut has nothing to fuse
+        assert surfaces(0.2, 400) == (True, False)
+        assert surfaces(0.2, 0) == (True, True)
+        assert surfaces(None, 400) == (True, True)
+        assert surfaces(0.25, 400) == (True, True)
+        # a frame with every pixel above the cut and many points has nothing to fuse
         fusion = TSDFFusion(CAM)
         with pytest.raises(EmptyInputError):
-            fusion.integrate(_plane(1.8), np.eye(4), weights=fusion.weights_for(np.full(CAM.shape, 0.16), _plane(1.8)))
+            fusion.integrate(_plane(1.8), np.eye(4), weights=fusion.weights_for(np.full(CAM.shape, 0.16), _plane(1.8), points=400))
 
     @pytest.mark.parametrize("sigma_far, expected", [(0.3, 1.461), (0.4, 1.437)])
     def test_disagreeing_frames_meet_at_their_weighted_mean(self, sigma_far, expected):
@@ -233,7 +266,8 @@ class TestTruncationFromVariance:
         # with the fixed 8 cm truncation two surfaces, at each reading
         def fused(k):
             fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.08, truncation_sigma=k, truncation_max=0.4,
-                                                  sigma_ref=0.3, weight_threshold=0.3, max_relative_sigma=None))
+                                                  sigma_ref=0.3, weight_threshold=0.3, max_relative_sigma=None,
+                                                  relative_sigma_ref=None))
             for z, s in ((1.311, 0.3), (1.611, sigma_far)):
                 v = np.full(CAM.shape, s**2)
                 fusion.integrate(_plane(z), np.eye(4), weights=fusion.weights_for(v), variance=v)
@@ -403,6 +437,35 @@ class TestRobustness:
         with pytest.raises(EmptyInputError):
             fusion.extract_mesh()
         assert len(fusion.extract_mesh(allow_empty=True).faces) == 0
+
+
+class TestMemoryGuard:
+    @pytest.mark.parametrize("voxel", [1e-5, 1e-4, 1e-3])
+    def test_a_voxel_that_would_exhaust_memory_is_refused_up_front(self, voxel, monkeypatch):
+        import resource
+        import time
+
+        import gpdepth3d.mapping.fusion as fusion_module
+
+        monkeypatch.setattr(fusion_module, "memory_limit", lambda: 2**30)  # a 1 GiB machine
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=voxel, truncation=0.06, block_count=64))
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        t0 = time.perf_counter()
+        with pytest.raises(ProblemTooLargeError, match=f"voxel_size: .*got {voxel} m"):
+            fusion.integrate(_plane(), np.eye(4))
+        assert time.perf_counter() - t0 < 1.0
+        assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000  # KiB: nothing large was allocated
+        assert fusion.frames_integrated == 0
+
+    def test_sizes_that_fit_pass_and_a_huge_initial_grid_is_refused(self, monkeypatch):
+        import gpdepth3d.mapping.fusion as fusion_module
+
+        monkeypatch.setattr(fusion_module, "memory_limit", lambda: 2**30)
+        fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.01, truncation=0.04))
+        assert fusion.integrate(_plane(), np.eye(4)).voxels > 0
+        with pytest.raises(ProblemTooLargeError, match="block_count"):
+            TSDFFusion(CAM, FusionConfig(voxel_size=0.01, truncation=0.04, block_count=10**6))
+        assert 0 < fusion_module.memory_limit() and fusion.block_bytes == 8**3 * 4 * 5
 
 
 class TestReintegration:

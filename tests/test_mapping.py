@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -194,6 +195,14 @@ class TestMapper:
             Mapper(CAM, mde="fastdepth")  # type: ignore[arg-type]
         with pytest.raises(InvalidInputError):
             MapperConfig(working_scale=2.0)
+        for bad_id in ("a", float("nan"), 1.5, True, object()):
+            with pytest.raises(InvalidInputError, match="keyframe_id"):
+                mapper.add_frame(rgb, np.eye(4), mde_depth=np.ones((60, 80)), keyframe_id=bad_id)
+        for bad_sigma in ("x", -1.0, float("nan"), np.ones((2, 2)), [0.1, "y"]):
+            with pytest.raises(InvalidInputError, match="map_points_sigma"):
+                mapper.add_frame(rgb, np.eye(4), mde_depth=np.ones((60, 80)), map_points_world=np.ones((2, 3)),
+                                 map_points_sigma=bad_sigma)
+        assert mapper.frames == 0 and not mapper.pending  # refused before anything was added
         empty = mapper.add_frame(rgb, np.eye(4), mde_depth=np.zeros((60, 80)))  # data, not an error
         assert not empty.fused and empty.error.startswith("frame 0: ") and mapper.failures == [empty.error]
         assert mapper.frames == 0 and not mapper.keyframes
@@ -236,7 +245,9 @@ def _world_points(frame, n: int, seed: int) -> np.ndarray:
 
 
 def _small_config(**overrides) -> MapperConfig:
-    base = dict(triangulate=False, working_scale=0.25, fusion=FusionConfig(voxel_size=0.04, truncation=0.12))
+    # weights from sigma in metres (these tests' GP is the residual one, less certain in relative terms)
+    base = dict(triangulate=False, working_scale=0.25,
+                fusion=FusionConfig(voxel_size=0.04, truncation=0.12, relative_sigma_ref=None))
     return MapperConfig(**{**base, **overrides})
 
 
@@ -330,6 +341,13 @@ class TestRobustness:
         assert res.pose_check.inverted and res.pose_check.visible_inverse == 1.0
         assert res.map_points.used < 50 and res.map_points.outside + res.map_points.behind > 150
         assert any("looks inverted" in w for w in res.warnings) and any("outside the image" in w for w in res.warnings)
+        # the flagged frame is reported by name and not fused; the run goes on
+        assert not res.fused and res.error.startswith("frame 0: pose check: CalibrationError") and mapper.failures == [res.error]
+        assert 0 not in mapper.keyframes and mapper.frames == 0
+        forced = Mapper(f.camera, replace(_small_config(), fuse_inverted_poses=True))
+        with pytest.warns(InvertedPoseWarning):
+            res = forced.add_frame(f.rgb, invert_pose(f.pose), mde_depth=_standin_mde(f.depth), map_points_world=world)
+        assert res.fused and res.error is None
         # a correct pose: map points with NaN rows and some outside the image are counted, not silently dropped
         cam_pts = np.array([[5.0, 0.0, 1.0], [0.0, 0.0, -1.0], [np.nan, 0.0, 1.0]])
         extra = cam_pts @ f.pose[:3, :3].T + f.pose[:3, 3]
@@ -759,7 +777,7 @@ class TestMapScale:
             mapper._triangulate = lambda rgb, T, kid: scaled[kid]
             for i, f in enumerate(frames):
                 results[key, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
-        assert MapperConfig().scale_variance and MapperConfig().map_scale_max_sigma == 0.3
+        assert MapperConfig().scale_variance and MapperConfig().map_scale_max_sigma == 0.15
         w = MapperConfig().map_scale_weight
         on, off = results["on", 4], results["off", 4]
         assert on.map_scale == pytest.approx(1.3**w, rel=0.03) and off.map_scale == on.map_scale
@@ -776,7 +794,8 @@ class TestMapScale:
 
 
 class TestUncertainPixels:
-    """`FusionConfig.max_relative_sigma` in the Mapper: pixels less certain than 20 % of their depth are not fused."""
+    """`FusionConfig.max_relative_sigma` and ``fallback_weight`` in the Mapper: pixels less certain than 20 % of
+    their depth (no point informs them) are fused with the fallback weight, which the frame's points lower."""
 
     @staticmethod
     def _mapper(rel_sigma_left: float, rel_sigma_right: float, **fusion):
@@ -791,22 +810,25 @@ class TestUncertainPixels:
         cfg = MapperConfig(triangulate=False, fusion=FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.01, **fusion))
         return Mapper(CAM, cfg, completer=Completer())
 
-    def test_only_confident_pixels_make_surface(self):
+    def test_uninformed_pixels_fall_back_unless_the_frame_has_points(self):
         rgb = np.zeros(CAM.shape + (3,), np.uint8)
-        x_extent = {}
-        for cut in (0.2, None):
-            mapper = self._mapper(0.1, 0.3, max_relative_sigma=cut)
-            res = mapper.add_frame(rgb, np.eye(4), mde_depth=np.full(CAM.shape, 1.5))
+        points = SparseDepth.from_arrays(np.arange(40.0), np.full(40, 5.0), np.full(40, 1.5), CAM.shape, 0.01)
+        x_extent, fallback = {}, {}
+        for case, kwargs in (("points", dict(sparse=points)), ("none", {})):
+            mapper = self._mapper(0.1, 0.3)
+            res = mapper.add_frame(rgb, np.eye(4), mde_depth=np.full(CAM.shape, 1.5), **kwargs)
             assert res.fused and res.error is None
             x = mapper.mesh().vertices[:, 0]
-            x_extent[cut] = (x.min(), x.max())
-        # the camera sees x in [-0.59, 0.61] m at 1.5 m; the cut keeps the left half only
-        assert x_extent[0.2][0] < -0.5 and x_extent[0.2][1] < 0.05
-        assert x_extent[None][0] < -0.5 and x_extent[None][1] > 0.5
+            x_extent[case], fallback[case] = (x.min(), x.max()), res.fallback_weight
+        # the camera sees x in [-0.59, 0.61] m at 1.5 m: with 40 points the right half is left to other
+        # frames; without any point the frame falls back to its (MDE) depth there, at half weight, and says so
+        assert x_extent["points"][0] < -0.5 and x_extent["points"][1] < 0.05 and fallback["points"] < 0.01
+        assert x_extent["none"][0] < -0.5 and x_extent["none"][1] > 0.5 and fallback["none"] == 0.5
+        assert any("no points: fused as the MDE" in w for w in res.warnings)
 
-    def test_frame_with_nothing_certain_is_kept_not_failed(self):
+    def test_frame_with_nothing_certain_and_no_fallback_is_kept_not_failed(self):
         rgb = np.zeros(CAM.shape + (3,), np.uint8)
-        mapper = self._mapper(0.3, 0.3)
+        mapper = self._mapper(0.3, 0.3, fallback_weight=0.0)
         res = mapper.add_frame(rgb, np.eye(4), mde_depth=np.full(CAM.shape, 1.5), keyframe_id=7)
         assert res.fused and res.error is None and mapper.failures == []
         assert any("nothing fused" in w for w in res.warnings)

@@ -274,8 +274,12 @@ class TestTriangulateTracks:
 
     def test_held_pose_kernels_match_the_dense_normal_equations(self):
         """The compiled held-pose path (refinement, variance, checks) agrees with `_Problem`'s numpy algebra."""
-        from gpdepth3d.mapping.triangulation import (
-            _held_pose_depths, _held_pose_variance, _linear_inverse_depth, _point_checks, _Problem,
+        from gpdepth3d.mapping.multiview import (
+            _held_pose_depths,
+            _held_pose_variance,
+            _linear_inverse_depth,
+            _point_checks,
+            _Problem,
         )
 
         rng = np.random.default_rng(14)

@@ -1,19 +1,22 @@
 """From posteriors to 3D: coloured clouds, TSDF fusion, triangulation, trajectories, the `Mapper`.
 
-Modules: `cloud`, `fusion`, `triangulation`, `trajectories` and `mapper` (the incremental
-`Mapper`, SLAM map points). The mapper's public names are re-exported here.
+Modules: `cloud` (coloured clouds), `fusion` (TSDF), `trajectories` (poses, COLMAP models), the points a
+frame is refined with (`triangulation_config`, `features`, `tracks`, `multiview`, `two_view`, re-exported
+by `triangulation`; `refinding` for large camera motion; `colmap_points` for pycolmap's), and `mapper`
+(the incremental `Mapper`) with `map_points` (SLAM map points as sparse depth). The mapper's public names are re-exported here.
 """
 
 from .mapper import SEVEN_SCENES_RGB_K as SEVEN_SCENES_RGB_K
 from .mapper import STAGES as STAGES
 from .mapper import FrameResult as FrameResult
 from .mapper import Keyframe as Keyframe
-from .mapper import MapPointStats as MapPointStats
 from .mapper import Mapper as Mapper
 from .mapper import MapperConfig as MapperConfig
 from .mapper import PoseUpdate as PoseUpdate
 from .mapper import fused_depth as fused_depth
 from .mapper import map_scale as map_scale
-from .mapper import merge_sparse as merge_sparse
-from .mapper import project_map_points as project_map_points
-from .mapper import sparse_from_map_points as sparse_from_map_points
+from .map_points import MapPointStats as MapPointStats
+from .map_points import merge_sparse as merge_sparse
+from .map_points import project_map_points as project_map_points
+from .map_points import sparse_from_map_points as sparse_from_map_points
+from .refinding import RefindConfig as RefindConfig

@@ -30,9 +30,11 @@ Weightings (`FusionConfig.weighting`):
   ``(sigma_ref / sigma)^2``: inverse-variance weighting (the optimal weights for averaging
   independent Gaussian readings of the signed distance) saturated at one observation, so that
   ``weight_cap`` and ``weight_threshold`` keep their usual meaning ("number of observations").
-  Pixels whose sigma exceeds ``max_relative_sigma`` (default 0.2) times their depth get weight 0:
-  with the default GP those are the pixels no point informs, the MDE's shape alone
-  (`FusionConfig.max_relative_sigma`; `TSDFFusion.weights_for` then needs the depth map).
+  With ``relative_sigma_ref`` (the `Mapper`'s default) the reference is that fraction of the pixel's depth.
+  Pixels whose sigma exceeds ``max_relative_sigma`` (default 0.2) times their depth, the pixels no
+  point informs, get the frame's fallback weight (`FusionConfig.fallback_for`: a frame without
+  points falls back to its MDE depth, one with many leaves them out); `TSDFFusion.weights_for`
+  then needs the depth map.
 
 Truncation from the variance (``FusionConfig.truncation_sigma`` k > 0): a pixel's truncation is
 ``tau = clip(k * sigma, truncation, truncation_max)``, sigma its depth standard deviation, and every
@@ -80,7 +82,7 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose
 from .cloud import ColoredCloud
-from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
+from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ProblemTooLargeError, ShapeError, describe
 from ..extras import require
 from ..io import atomic_path, write_json
 
@@ -105,47 +107,25 @@ class FusionConfig:
             ``w / (cap + w)``; makes the map adapt).
         weighting: "uniform" (every pixel weight 1) or "variance" (from the posterior variance,
             see the module docstring).
-        sigma_ref: Variance weighting: depth standard deviation (metres) at which a pixel
-            counts as half an observation.
-        max_relative_sigma: Variance weighting: pixels whose standard deviation exceeds this
-            fraction of their depth get weight 0 (None: fuse every pixel). With the default GP
-            (log-normal, prior s = 0.2 in log depth) a pixel far from every point keeps about the
-            prior's relative sigma, 0.20-0.22 (the scale disagreement of `Mapper` frames adds to
-            it): its depth is the MDE's shape alone. In the Mapper's 60 frames of 7-Scenes (the
-            defaults before this cut) such pixels are off by 0.235 m (median |error| against
-            the Kinect, 13.7 % of depth; 12 % of them within 5 cm; at 1-1.5 m 21 cm too far),
-            the others by 0.126 m (6.9 %; 24 %; 3 cm too far): the near part of the depth-range
-            compression comes from them, and averaged into voxels other frames saw with
-            evidence they blur those. On the Mapper's posteriors of the 60 shared
-            7-Scenes frames (bench/fusion.py defaults with ``max_points`` 600 and 800 KLT
-            features; 27 % of the pixels above 0.2, most of them in 0.2-0.225) fused again with
-            each cut, each half fused alone against the Kinect mesh of the same frames (weight
-            threshold halved): chosen on the even frames, F at 5 cm 0.458 / 0.459 / 0.481 /
-            0.480 / 0.474 / 0.414 with None / 0.225 / 0.2 / 0.175 / 0.15 / 0.12; confirmed on
-            the odd frames 0.459 / 0.459 / 0.470 / 0.464 / 0.461 / 0.404, frames 0-29 0.414 /
-            0.414 / 0.433 / 0.429 / 0.428 / 0.357 and 30-59 0.421 / 0.422 / 0.430 / 0.437 /
-            0.433 / 0.417; full sequence 0.444 / 0.451 / 0.461 / 0.459 / 0.459 / 0.399
-            (precision 0.440 -> 0.468, recall 0.447 -> 0.454 with 0.2). Below 0.15 whole
-            surfaces lose support (recall 0.31 at 0.12). Pixels without a variance get weight 0
-            as before; uniform weighting is not affected. A frame without any measurement keeps
-            the prior's sigma everywhere and fuses nothing (the `Mapper` notes it and keeps the
-            keyframe); None fuses it.
+        sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
+            (metres) at which a pixel counts as half an observation.
+        relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
+            observation (None, default: ``sigma_ref`` in metres; the `Mapper`'s default fusion,
+            ``MAPPER_FUSION``, uses 0.05). Relative, so that a room at 1 m and a hall at 5 m meet the
+            same ``weight_threshold``.
+        max_relative_sigma: Variance weighting: pixels with sigma / depth above this count as
+            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma,
+            0.20-0.22 for the default model) and get the fallback weight instead (None: none does).
+        fallback_weight: Weight in [0, 1] of the uninformed pixels of a frame without points: such
+            a frame falls back to its MDE depth, down-weighted. A frame with points gives them
+            ``fallback_weight * exp(-points / fallback_points)`` (`fallback_for`): what its points
+            do not inform, the frames whose points do inform it fill in.
+        fallback_points: Points at which a frame's fallback weight has fallen by 1/e.
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
-            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``.
-            Measured on the 60 shared 7-Scenes frames (the Mapper's posteriors of a
-            bench/fusion.py run with the defaults of the time, fused again, 320x240, 2 cm voxels,
-            truncation 8 cm): F at 5 cm 0.378 (fixed) -> 0.400 with k = 1, truncation_max 0.2 m
-            and weight_threshold 1.0 (fusion 18 -> 24 ms a frame), 0.412 with truncation_max
-            0.4 m (61 ms: the band is five times deeper); with weight_threshold 0.5 0.404. Not
-            the default: it does not hold on both halves of the sequence (each half fused
-            alone, weight threshold halved: even frames 0.408 -> 0.390, odd 0.377 -> 0.404,
-            frames 0-29 0.383 -> 0.413, 30-59 0.358 -> 0.335; other k, truncation_max and
-            thresholds likewise gain on two splits and lose on the other two). Where frames
-            carry a scale error their surfaces are averaged in instead of clipped. With the
-            Mapper's ``map_scale_weight`` 0.65 (after it) k = 1, truncation_max 0.2 m, weight
-            threshold 1.0 loses on the whole sequence too: 0.400 -> 0.393.
+            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation`` (the
+            variance-dependent one did not gain on every split of the shared 7-Scenes frames).
         truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
             truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
@@ -167,7 +147,10 @@ class FusionConfig:
     weight_cap: float = 100.0
     weighting: Weighting = "variance"
     sigma_ref: float = 0.1
+    relative_sigma_ref: float | None = None
     max_relative_sigma: float | None = 0.2
+    fallback_weight: float = 0.5
+    fallback_points: float = 10.0
     weight_threshold: float = 0.5
     truncation_sigma: float = 0.0
     truncation_max: float = 0.4
@@ -179,7 +162,7 @@ class FusionConfig:
     cpu_threads: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("voxel_size", "truncation", "depth_max", "weight_cap", "sigma_ref"):
+        for name in ("voxel_size", "truncation", "depth_max", "weight_cap", "sigma_ref", "fallback_points"):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(name, "a finite value > 0", value)
@@ -189,6 +172,12 @@ class FusionConfig:
             raise InvalidInputError("depth_min, depth_max", "0 <= depth_min < depth_max", (self.depth_min, self.depth_max))
         if self.weighting not in ("uniform", "variance"):
             raise InvalidInputError("weighting", "'uniform' or 'variance'", self.weighting)
+        if not (np.isfinite(self.fallback_weight) and 0 <= self.fallback_weight <= 1):
+            raise InvalidInputError("fallback_weight", "a weight in [0, 1]", self.fallback_weight)
+        if self.relative_sigma_ref is not None and (
+            isinstance(self.relative_sigma_ref, bool) or not np.isfinite(self.relative_sigma_ref) or self.relative_sigma_ref <= 0
+        ):
+            raise InvalidInputError("relative_sigma_ref", "a finite value > 0 (or None)", self.relative_sigma_ref)
         if self.max_relative_sigma is not None and (
             isinstance(self.max_relative_sigma, bool) or not np.isfinite(self.max_relative_sigma) or self.max_relative_sigma <= 0
         ):
@@ -205,6 +194,15 @@ class FusionConfig:
             raise InvalidInputError("block_count", "an integer >= 1", self.block_count)
         if isinstance(self.cpu_threads, bool) or int(self.cpu_threads) != self.cpu_threads or self.cpu_threads < 0:
             raise InvalidInputError("cpu_threads", "an integer >= 0", self.cpu_threads)
+
+    def fallback_for(self, points: int) -> float:
+        """Weight of the uninformed pixels of a frame with ``points`` measurements: ``fallback_weight *
+        exp(-points / fallback_points)``, 0 once that factor is below 1e-3 (a frame without points falls
+        back to its MDE; one with points leaves what they do not inform to the frames whose points do)."""
+        if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 0:
+            raise InvalidInputError("points", "a count >= 0", points)
+        share = np.exp(-int(points) / self.fallback_points)
+        return float(self.fallback_weight * share) if share > 1e-3 else 0.0  # below 1e-3: not worth a voxel update
 
     @property
     def tsdf_scale(self) -> float:
@@ -226,21 +224,37 @@ class FusionConfig:
         return np.clip(self.truncation_sigma * sigma, self.truncation, self.truncation_max).astype(np.float32)
 
 
+def memory_limit() -> int:
+    """Bytes a TSDF volume may plan to use: half the machine's physical memory (8 GiB when unknown)."""
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 2
+    except (AttributeError, ValueError, OSError):
+        return 8 * 2**30
+
+
 def weights_from_variance(
     variance: np.ndarray,
     *,
     sigma_ref: float,
     depth: np.ndarray | None = None,
     max_relative_sigma: float | None = None,
+    relative_sigma_ref: float | None = None,
+    fallback_weight: float = 0.0,
 ) -> np.ndarray:
-    """Per-pixel fusion weights ``1 / (1 + variance / sigma_ref^2)`` in [0, 1].
+    """Per-pixel fusion weights in [0, 1]: ``1 / (1 + variance / s^2)``, s = sigma_ref or relative_sigma_ref * depth.
+
+    Pixels less certain than ``max_relative_sigma`` x depth (no point informs them: the MDE alone)
+    get ``fallback_weight`` instead (`FusionConfig.max_relative_sigma`, `FusionConfig.fallback_weight`).
 
     Args:
         variance: (H, W) depth variance, m^2. Non-finite or negative entries get weight 0.
-        sigma_ref: Standard deviation (metres) at which the weight is 0.5.
-        depth: (H, W) depth, metres; needed with ``max_relative_sigma``.
-        max_relative_sigma: Pixels whose standard deviation exceeds this fraction of their
-            depth get weight 0 (None: no such cut; see `FusionConfig.max_relative_sigma`).
+        sigma_ref: Standard deviation (metres) at which the weight is 0.5 (without ``relative_sigma_ref``).
+        depth: (H, W) depth, metres; needed with ``max_relative_sigma`` or ``relative_sigma_ref``.
+        max_relative_sigma: sigma / depth above which a pixel counts as uninformed (None: none does).
+        relative_sigma_ref: sigma / depth at which the weight is 0.5 (None: ``sigma_ref`` in metres).
+        fallback_weight: Weight of the uninformed pixels, in [0, 1].
 
     Returns:
         (H, W) float64 weights.
@@ -248,19 +262,27 @@ def weights_from_variance(
     var = np.asarray(variance, dtype=np.float64)
     if not np.isfinite(sigma_ref) or sigma_ref <= 0:
         raise InvalidInputError("sigma_ref", "a finite value > 0 (metres)", sigma_ref)
+    for name, value in (("max_relative_sigma", max_relative_sigma), ("relative_sigma_ref", relative_sigma_ref)):
+        if value is not None and (not np.isfinite(value) or value <= 0):
+            raise InvalidInputError(name, "a finite value > 0 (or None)", value)
+    if not (np.isfinite(fallback_weight) and 0 <= fallback_weight <= 1):
+        raise InvalidInputError("fallback_weight", "a weight in [0, 1]", fallback_weight)
     ok = np.isfinite(var) & (var >= 0)
-    if max_relative_sigma is not None:
-        if not np.isfinite(max_relative_sigma) or max_relative_sigma <= 0:
-            raise InvalidInputError("max_relative_sigma", "a finite value > 0 (or None)", max_relative_sigma)
-        if depth is None:
-            raise InvalidInputError("depth", "the (H, W) depth map the variance belongs to (max_relative_sigma is set)", None)
-        d = np.asarray(depth, dtype=np.float64)
-        if d.shape != var.shape:
-            raise ShapeError("depth", f"the shape of variance {var.shape}", describe(d))
-        with np.errstate(invalid="ignore"):
-            ok &= var <= np.square(max_relative_sigma * d)
-    with np.errstate(invalid="ignore"):
-        return np.where(ok, 1.0 / (1.0 + np.where(ok, var, 0.0) / sigma_ref**2), 0.0)
+    var = np.where(ok, var, 0.0)
+    if max_relative_sigma is None and relative_sigma_ref is None:
+        return np.where(ok, 1.0 / (1.0 + var / sigma_ref**2), 0.0)
+    if depth is None:
+        raise InvalidInputError("depth", "the (H, W) depth map the variance belongs to (relative sigmas are set)", None)
+    d = np.asarray(depth, dtype=np.float64)
+    if d.shape != var.shape:
+        raise ShapeError("depth", f"the shape of variance {var.shape}", describe(d))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d2 = np.where(np.isfinite(d) & (d > 0), d * d, np.inf)
+        scale2 = sigma_ref**2 if relative_sigma_ref is None else relative_sigma_ref**2 * d2
+        w = 1.0 / (1.0 + var / scale2)
+        if max_relative_sigma is not None:
+            w = np.where(var <= max_relative_sigma**2 * d2, w, fallback_weight)
+    return np.where(ok & np.isfinite(w), w, 0.0)
 
 
 @dataclass(frozen=True)
@@ -321,6 +343,11 @@ class TSDFFusion:
             o3c.Tensor([0.0], device=self._device)
         except Exception as exc:  # noqa: BLE001 - Open3D raises RuntimeError for unavailable devices
             raise InvalidInputError("device", "an Open3D device this build supports", f"{self.config.device}: {exc}")
+        if _vbg is None and self.config.block_count * self.block_bytes > memory_limit():
+            raise ProblemTooLargeError(
+                f"block_count: expected initial blocks that fit in {memory_limit() / 2**30:.1f} GiB, got "
+                f"{self.config.block_count} blocks of {self.block_bytes} bytes"
+            )
         if _vbg is not None:
             self.vbg = _vbg
         else:
@@ -413,6 +440,7 @@ class TSDFFusion:
             if var.shape != d.shape:
                 raise ShapeError("variance", f"the shape of depth {d.shape}", describe(var))
         trunc = cfg.pixel_truncation(variance, d.shape)
+        self._check_band_memory(d, trunc)
         d, w, var32, n_bad, pixels, bad_weights = _masked_frame(
             np.ascontiguousarray(d, dtype=np.float64), w, var, float(cfg.depth_min), float(cfg.depth_max)
         )
@@ -446,6 +474,38 @@ class TSDFFusion:
         self._dirty.append(keys)
         self.frames_integrated += 1
         return IntegrationStats(voxels=n, pixels=pixels, invalid_pixels=n_bad, block_keys=keys)
+
+    @property
+    def block_bytes(self) -> int:
+        """Bytes one voxel block holds (float32 channels of ``block_resolution``^3 voxels)."""
+        channels = 2 + 3 * bool(self.config.integrate_color) + bool(self.config.integrate_variance)
+        return int(self.config.block_resolution) ** 3 * 4 * channels
+
+    def _check_band_memory(self, depth: np.ndarray, trunc: np.ndarray) -> None:
+        """Refuses a frame whose truncation band would need more than `memory_limit` (blocks and search grid).
+
+        Estimate: the frame's surface area (each pixel's footprint ``d^2 / (fx fy)``) in blocks,
+        times the blocks the band spans along a ray, plus the dense grid `_band_blocks` marks them in.
+        """
+        cam, b = self.camera, float(self.config.voxel_size * self.config.block_resolution)
+        with np.errstate(invalid="ignore"):
+            dv = np.asarray(depth, dtype=np.float64)
+            dv = dv[np.isfinite(dv) & (dv > self.config.depth_min) & (dv < self.config.depth_max)]
+        if not dv.size:
+            return
+        tau = float(np.max(trunc))
+        area = float(np.sum(dv * dv)) / (cam.fx * cam.fy)
+        blocks = area / b**2 * (2.0 * tau / b + 1.0)
+        reach = (float(dv.max()) + tau) * float(np.hypot(np.hypot(cam.width / cam.fx, cam.height / cam.fy), 1.0))
+        grid = (reach / b + 2.0) ** 3  # one byte a cell
+        need = blocks * self.block_bytes + grid
+        limit = memory_limit()
+        if need > limit:
+            raise ProblemTooLargeError(
+                f"voxel_size: expected a voxel whose blocks for one {cam.width}x{cam.height} frame fit in "
+                f"{limit / 2**30:.1f} GiB (half the machine's memory), got {self.config.voxel_size} m: about "
+                f"{need / 2**30:.3g} GiB; use a larger voxel_size (or a smaller truncation / depth_max)"
+            )
 
     @contextlib.contextmanager
     def _threads(self) -> Iterator[None]:
@@ -697,16 +757,21 @@ class TSDFFusion:
                         keys.append((b[:, 0] * _KEY_SPAN + b[:, 1]) * _KEY_SPAN + b[:, 2])
         return torch.unique(torch.cat(keys)).cpu().numpy()
 
-    def weights_for(self, variance: np.ndarray | None, depth: np.ndarray | None = None) -> np.ndarray | None:
+    def weights_for(
+        self, variance: np.ndarray | None, depth: np.ndarray | None = None, *, points: int = 0
+    ) -> np.ndarray | None:
         """The per-pixel weights of this volume's weighting for a variance map (None = uniform).
 
-        ``depth`` (the depth map the variance belongs to, metres) is needed when
-        ``config.max_relative_sigma`` is set (the default) and the weighting is "variance".
+        ``depth`` (the depth map the variance belongs to, metres) is needed with the relative
+        settings (the default) and the weighting "variance"; ``points`` is the number of sparse
+        measurements the frame had (they set its uninformed pixels' weight, `FusionConfig.fallback_for`).
         """
         if self.config.weighting == "uniform" or variance is None:
             return None
+        cfg = self.config
         return weights_from_variance(
-            variance, sigma_ref=self.config.sigma_ref, depth=depth, max_relative_sigma=self.config.max_relative_sigma
+            variance, sigma_ref=cfg.sigma_ref, depth=depth, max_relative_sigma=cfg.max_relative_sigma,
+            relative_sigma_ref=cfg.relative_sigma_ref, fallback_weight=cfg.fallback_for(points),
         )
 
     def integrate_posterior(
@@ -717,7 +782,7 @@ class TSDFFusion:
             posterior.mean,
             T_world_camera,
             rgb=rgb,
-            weights=self.weights_for(posterior.variance, posterior.mean),
+            weights=self.weights_for(posterior.variance, posterior.mean, points=len(getattr(posterior, "sparse", ()))),
             variance=posterior.variance if self.config.integrate_variance else None,
         )
 

@@ -54,131 +54,39 @@ from typing import Any, Callable, Literal
 import numpy as np
 
 from ..camera import PinholeCamera, check_pose, transform_points
-from .cloud import ColoredCloud
 from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
-from ..errors import DataFormatError, GPDepthError, InvalidInputError, ShapeError, describe
-from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
+from ..errors import (
+    CalibrationError,
+    DataFormatError,
+    GPDepthError,
+    InvalidInputError,
+    ShapeError,
+    describe,
+)
 from ..gp.model import DepthGPConfig
 from ..io import save_npz, write_json
-from ..measurements import SparseDepth, project_points
-from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation, invert_pose
-from .triangulation import TrackTriangulator, TriangulationConfig, detect_features, triangulate_frames
+from ..measurements import SparseDepth
+from .cloud import ColoredCloud
+from .features import detect_features
+from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
+from .map_points import (
+    MapPointStats,
+    merge_sparse,
+    project_map_points,
+)
+from .refinding import RefindConfig, Refinder
+from .tracks import TrackTriangulator, triangulate_frames
+from .trajectories import (
+    InvertedPoseWarning,
+    PoseCheck,
+    check_pose_orientation,
+)
+from .triangulation_config import TriangulationConfig
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
 
-@dataclass(frozen=True)
-class MapPointStats:
-    """What became of the SLAM map points given for one frame.
-
-    Attributes:
-        given: Points given.
-        nonfinite: Points with a NaN or inf coordinate (dropped).
-        behind: Finite points behind the camera or closer than ``min_depth`` (dropped).
-        outside: Points in front of the camera that project outside the image (dropped).
-        used: Measurements kept (after keeping the closest point per pixel).
-    """
-
-    given: int
-    nonfinite: int
-    behind: int
-    outside: int
-    used: int
-
-
-def project_map_points(
-    points_world: np.ndarray,
-    T_world_camera: np.ndarray,
-    camera: PinholeCamera,
-    *,
-    sigma: float | np.ndarray | None = None,
-    min_depth: float = 1e-3,
-) -> tuple[SparseDepth, MapPointStats]:
-    """SLAM map points (world frame) as sparse depth of one posed camera, with a count of the dropped ones.
-
-    Args:
-        points_world: (N, 3) map points in the world frame, metres.
-        T_world_camera: 4x4 pose of the camera.
-        camera: Intrinsics; points projecting outside the image or behind the camera are dropped
-            (and counted).
-        sigma: Optional per-point (N,) or shared depth standard deviation, metres.
-        min_depth: Points with z below this are dropped.
-
-    Returns:
-        (`SparseDepth` on the camera's grid, closest point per pixel; `MapPointStats`).
-    """
-    T = check_pose(T_world_camera)
-    p = np.asarray(points_world, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ShapeError("points_world", "an (N, 3) array", describe(p))
-    n = p.shape[0]
-    if sigma is not None:
-        s = np.asarray(sigma, dtype=np.float64)
-        if s.ndim > 1 or (s.ndim == 1 and s.shape[0] != n):
-            raise ShapeError("sigma", f"a scalar or shape ({n},)", describe(s))
-        sigma = np.broadcast_to(s, (n,))
-    finite = np.all(np.isfinite(p), axis=1)
-    pc = transform_points(invert_pose(T), p[finite])
-    uv, z = camera.project(pc)
-    front = z > min_depth
-    inside = front & camera.in_image(uv)
-    keep = np.flatnonzero(finite)[inside]
-    sparse = project_points(
-        pc[inside], camera, min_depth=min_depth, sigma=None if sigma is None else sigma[keep]
-    )
-    stats = MapPointStats(
-        given=int(n),
-        nonfinite=int(n - finite.sum()),
-        behind=int((~front).sum()),
-        outside=int((front & ~inside).sum()),
-        used=len(sparse),
-    )
-    return sparse, stats
-
-
-def sparse_from_map_points(
-    points_world: np.ndarray,
-    T_world_camera: np.ndarray,
-    camera: PinholeCamera,
-    *,
-    sigma: float | np.ndarray | None = None,
-    min_depth: float = 1e-3,
-) -> SparseDepth:
-    """SLAM map points (world frame) as sparse depth of one posed camera.
-
-    Points behind the camera, outside the image or not finite are dropped; `project_map_points`
-    returns how many of each (`Mapper.add_frame` reports them on its `FrameResult`).
-
-    Args:
-        points_world: (N, 3) map points in the world frame, metres.
-        T_world_camera: 4x4 pose of the camera.
-        camera: Intrinsics.
-        sigma: Optional per-point (N,) or shared depth standard deviation, metres.
-        min_depth: Points with z below this are dropped.
-
-    Returns:
-        `SparseDepth` on the camera's grid (closest point per pixel).
-    """
-    return project_map_points(points_world, T_world_camera, camera, sigma=sigma, min_depth=min_depth)[0]
-
-
-def merge_sparse(*parts: SparseDepth, image_size: tuple[int, int]) -> SparseDepth:
-    """Concatenates measurements of one image (all of size ``image_size``), closest per pixel."""
-    parts = tuple(p for p in parts if p is not None and len(p))
-    if not parts:
-        return SparseDepth.empty(image_size)
-    for p in parts:
-        if p.image_size != tuple(image_size):
-            raise ShapeError("sparse", f"measurements of a {image_size} image", p.image_size)
-    cat = SparseDepth(
-        np.concatenate([p.u for p in parts]),
-        np.concatenate([p.v for p in parts]),
-        np.concatenate([p.depth for p in parts]),
-        image_size,
-        np.concatenate([p.sigma for p in parts]),
-    )
-    return cat.rasterize()
 
 
 def _resize_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -191,6 +99,9 @@ def _resize_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return cv2.resize(depth.astype(np.float32), (shape[1], shape[0]), interpolation=interp).astype(np.float64)
 
 
+MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
+"""The `Mapper`'s TSDF options: variance weights relative to depth (`FusionConfig.relative_sigma_ref`)."""
+
 MAPPER_GP = DepthGPConfig(local_calibration=None)
 """The `Mapper`'s GP: the default model with the variance of the stationary GP (see `MapperConfig.gp`)."""
 
@@ -199,118 +110,53 @@ MAPPER_GP = DepthGPConfig(local_calibration=None)
 class MapperConfig:
     """Options of the `Mapper`.
 
+    Numbers behind the defaults (F at 5 cm, chosen on one half of a sequence, confirmed on the
+    other): bench/results/mapping_settings.json and bench/results/mapping_sequences.json.
+
     Attributes:
-        gp: GP model of the refinement: the library's default model without the local calibration
-            of its variance (`MAPPER_GP`: `DepthGPConfig(local_calibration=None)`, fixed hyperparameters,
-            on the fast engine). The triangulated points' errors are correlated within the clusters they
-            form on image features (shared poses and views): they agree with their neighbours far better
-            than independent errors would (median leave-one-out z^2 0.04, mean 0.29 on 7-Scenes). Before
-            the calibration floored such points' z^2 at their noise share (`gpdepth3d.gp.local_calibration`,
-            session 13) it shrank the variance between them (median factor 0.39) where the fusion's cut
-            (``FusionConfig.max_relative_sigma``) and weights, chosen on the stationary variance, need it:
-            bench/fusion.py (60 frames, 2026-11-23) F at 5 cm 0.450 without it; with it 0.393 at the 0.2
-            cut, 0.424 / 0.411 / 0.395 / 0.339 at 0.1 / 0.15 / 0.07 / 0.05, 0.422 with 10 pseudo-points
-            instead of 2. With the floor it gives F 0.447, within the ~0.005 that runs differ by: kept
-            off, as no gain was measured for switching. Measured on 10 frames of 7-Scenes at 320x240
-            (FastDepth, 150 Kinect samples, one torch thread, busy shared machine) before the
-            fit was made cheaper: a per-frame fit (``fit=True``) cost 528-654 ms of CPU a frame,
-            fixed values 31 ms, with the same median error (65 / 66 mm) and +-2 sigma coverage
-            (0.94 / 0.96); the outlier of the mapping tests is rejected either way.
-        fusion: TSDF options (weighting "variance" uses the posterior variance). With
-            ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
-        triangulation: Feature triangulation options.
+        gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's
+            variance, fixed hyperparameters, fast engine): the fusion weights need that variance.
+        fusion: TSDF options (`MAPPER_FUSION`: weights from the posterior variance relative to
+            depth). With ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
+        triangulation: Feature tracking and triangulation options.
+        refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
+            motion): views chosen by parallax, ORB matches under the poses' epipolar geometry
+            (`gpdepth3d.mapping.refinding`); ``RefindConfig(detector="none")`` turns it off.
         refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
-        triangulate: Triangulate features against earlier frames of the window.
-        window: Number of earlier frames a frame's features are triangulated with.
-        lag: Number of later frames a frame waits for before it is triangulated, refined and
-            fused (a fixed lag; KLT tracks, the default detector): its features are then
-            triangulated from up to ``window`` earlier *and* ``lag`` later views. `Mapper.add_frame`
-            then returns the frame added ``lag`` calls earlier and `Mapper.flush` the last ones.
-            Measured on the 60 shared 7-Scenes frames (bench/fusion.py, own points, window 8):
-            lag 4 gives every frame points (lag 0: the first 3-4 frames none), per-frame depth
-            RMSE 0.68-0.69 x FastDepth's instead of 0.79-0.85 and a better mesh (F at 5 cm
-            0.30 vs 0.26): one view's pose error pulls the depth less when views lie on both
-            sides. 0 fuses each frame in the call that adds it (points from earlier frames only).
-        fuse_depth: The depth fused from a posterior: "median" (default) or "mean". The TSDF's
-            zero crossing is where the surface is as likely in front as behind: the posterior
-            median. For the default log-normal posterior that is
-            ``mean / sqrt(1 + variance / mean^2)``; the mean lies farther by a factor
-            ``exp(v / 2)`` (v the log variance: 2 % at 20 % relative sigma, more at MDE edges).
-            For the Gaussian formulations ("balanced", "residual") both are the mean. Measured
-            (bench/fusion.py): F at 5 cm 0.30 -> 0.33 with the median.
-        map_scale_weight: Weight of the map in the depth scale of a frame's triangulated points
-            (`map_scale`; 0 turns it off). The points of one frame share the errors of their
-            views' poses, which shows as a common scale error of the frame (on 7-Scenes the
-            median per-frame bias is ~3 %, > 10 % in 7 of 60 frames); the keyframes already
-            fused measure that scale independently. The frame's points are divided by
-            ``exp(weight * log s)``, s the map's median depth ratio: 0.5 weighs the frame and
-            the map equally. Measured (bench/fusion.py, 7-Scenes): F at 5 cm 0.29 -> 0.35 with
-            0.5 (0.32 with 0.3, 0.35 with 0.7; 1.0 made it worse, 0.27: the map then follows
-            each frame's error). With ``map_scale_max_sigma`` 0.3 and ``scale_variance`` (the map
-            then compares more keyframe pixels and its frames with a large scale disagreement
-            weigh less) the map is the better estimate: 0.65 (default). Chosen on the even frames
-            (bench/fusion.py runs, each half fused alone against the Kinect mesh of the same
-            frames, weight threshold halved): F at 5 cm even 0.382 / 0.409 / 0.435 / 0.441 /
-            0.368 / 0.297 with 0.35 / 0.5 / 0.65 / 0.8 / 0.9 / 1.0; confirmed on the odd frames
-            0.358 / 0.377 / 0.401 / 0.402 / 0.353 / 0.296 and on frames 0-29 0.358 / 0.382 /
-            0.410 / 0.431 / 0.426 / 0.417, 30-59 0.340 / 0.359 / 0.369 / 0.367 / 0.284 / 0.212;
-            full sequence 0.356 / 0.378 / 0.402 / 0.408 / 0.338 / 0.285, per-frame depth RMSE
-            0.634 / 0.626 / 0.623 / 0.632 / 0.659 / 0.729 x FastDepth's. 0.65 rather than 0.8
-            (within 0.006 of it on the halves): 0.9 already drifts. Needs ``keep_keyframes``.
+        triangulate: Triangulate the frames' own features.
+        window: Earlier frames a frame's KLT tracks are triangulated with.
+        lag: Later frames a frame waits for before it is triangulated, refined and fused: views
+            on both sides pull its depth less with one view's pose error. `add_frame` then returns
+            the frame added ``lag`` calls earlier, `flush` the last ones; 0 fuses each frame at once.
+        fuse_depth: "median" (default) or "mean" of the posterior: the TSDF's zero crossing is where
+            the surface is as likely in front as behind, the median (log-normal:
+            ``mean / sqrt(1 + variance / mean^2)``).
+        map_scale_weight: Weight in [0, 1] of the map in the depth scale of a frame's triangulated
+            points (`map_scale`; 0 off): the points of one frame share their views' pose errors, a
+            common scale error that the keyframes already fused measure independently.
         map_scale_keyframes: The most recent keyframes `map_scale` compares with.
-        map_scale_max_sigma: Keyframe pixels whose standard deviation is above this fraction of
-            their depth are not compared by `map_scale`. With 0.1 (before) few pixels away from
-            a keyframe's own points qualify (the refined depth's relative sigma is mostly
-            0.1-0.2), and in the fast frames of 7-Scenes `map_scale` found too few keyframes
-            (frames 25-29, 38, 39 got no correction while their points were 7-21 % too far).
-            Chosen on the even frames of the 60 shared 7-Scenes frames and confirmed on the
-            odd ones (bench/fusion.py run, each half's frames fused alone against the Kinect
-            mesh of the same frames, weight threshold halved with half the frames): F at 5 cm
-            even 0.387 (0.1) / 0.393 (0.2) / 0.397 (0.3), odd 0.354 / 0.370 / 0.377; frames
-            0-29 0.334 / 0.376 / 0.379 but frames 30-59 0.366 / 0.344 / 0.354 (there the first
-            frames of the half are the worst ones). Full sequence 0.360 / 0.363 / 0.369,
-            per-frame depth RMSE 0.652 / 0.625 / 0.626 x FastDepth's.
-        scale_variance: Add the frame's remaining scale uncertainty to the variance that is
-            fused (and kept in the keyframe store): ``w (1 - w) (log s)^2 depth^2``, w the
-            ``map_scale_weight`` and log s the disagreement of the frame's points with the map.
-            The GP treats the points' errors as independent, but the points of one frame share
-            the errors of its views' poses, a common scale error the posterior variance does
-            not contain. Frame and map are two estimates of that scale; when each has variance
-            v (equal weights), their difference has variance 2v and the weighted estimate
-            ``w(1-w)`` times that: the squared disagreement estimates it without a new
-            constant. The |log s| of a frame ranks its points' true |bias| with Spearman 0.62
-            on 7-Scenes (the points' median relative sigma 0.57, blur measured by the
-            Laplacian's variance -0.12). Measured with ``map_scale_max_sigma`` 0.3 and
-            ``map_scale_weight`` 0.5 (bench/fusion.py, same protocol as above): F at 5 cm full 0.369 -> 0.376-0.378,
-            even 0.397 -> 0.408, odd 0.377 -> 0.377, frames 0-29 0.379 -> 0.383, 30-59
-            0.354 -> 0.358; with 0.1: full 0.360 -> 0.367. The depth fused is unchanged; the
-            frame weighs less in the volume and, its pixels being less certain, in the
-            `map_scale` of later frames.
-        min_baseline: Earlier frames closer than this to the current camera centre are not
-            used for triangulation (metres).
+        map_scale_max_sigma: Keyframe pixels less certain than this fraction of their depth are
+            not compared by `map_scale`: below ``FusionConfig.max_relative_sigma``, so that the
+            scale comes from pixels that points informed, not from keyframes' MDE fallback.
+        scale_variance: Add the frame's remaining scale uncertainty ``w (1 - w) (log s)^2 depth^2``
+            (w the ``map_scale_weight``, log s the disagreement with the map) to the fused variance:
+            the GP treats its points' errors as independent, but they share this scale error.
+        min_baseline: Earlier frames closer than this to the camera centre are not used by the
+            descriptor detectors ("orb", "sift"), metres.
         working_scale: Resolution of refinement and fusion relative to the RGB images.
-        max_points: At most this many measurements per frame go to the GP, the most certain
-            (smallest sigma / depth; points without sigma count as certain). 450 (before: 300):
-            with the tracker's 800 KLT features (`TriangulationConfig.max_features`) 300 left
-            out the points away from the most certain (F at 5 cm 0.401 on the 60 shared
-            7-Scenes frames, 0.407 with 400 features). Chosen on the even frames (bench/fusion.py
-            protocol, each half fused alone against the Kinect mesh of the same frames, weight
-            threshold halved, ``FusionConfig.max_relative_sigma`` None): F at 5 cm 0.424 / 0.454
-            / 0.458 / 0.452 with 300 / 450 / 600 / 800, confirmed on the odd frames 0.409 /
-            0.454 / 0.459 / 0.446; full sequence 0.401 / 0.442 / 0.443 / 0.437; with the cut at
-            0.2 (the default) 450 / 600: even 0.474 / 0.481, odd 0.462 / 0.470, full 0.455 /
-            0.461. 450 rather than 600 for time: `Mapper.add_frame` (without the MDE, old and new
-            settings interleaved in one process on the busy shared machine) took 1.10x (450; 1.15x
-            in a second run) and 1.33x (600) the time of 300 points with 400 features (the GP
-            solve grows with the points): 600 would pass the 100 ms target.
-        keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the
-            working resolution (about 0.6 MB a frame at 320x240), needed by
-            `Mapper.update_poses` and `Mapper.save`.
+        max_points: Most measurements per frame given to the GP, the most certain first (smallest
+            sigma / depth): the GP solve grows with them.
+        keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
+            resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
+        fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
+            (`check_pose_orientation`); False (default): the frame is reported (``FrameResult.error``,
+            `Mapper.failures`) and not fused, since such a pose puts its depth in the wrong place.
     """
 
     gp: DepthGPConfig = MAPPER_GP
-    fusion: FusionConfig = field(default_factory=FusionConfig)
+    fusion: FusionConfig = MAPPER_FUSION
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    refind: RefindConfig = field(default_factory=RefindConfig)
     refine: bool = True
     triangulate: bool = True
     window: int = 8
@@ -318,12 +164,13 @@ class MapperConfig:
     fuse_depth: Literal["median", "mean"] = "median"
     map_scale_weight: float = 0.65
     map_scale_keyframes: int = 20
-    map_scale_max_sigma: float = 0.3
+    map_scale_max_sigma: float = 0.15
     scale_variance: bool = True
     min_baseline: float = 0.05
     working_scale: float = 1.0
     max_points: int = 450
     keep_keyframes: bool = True
+    fuse_inverted_poses: bool = False
 
     def __post_init__(self) -> None:
         if int(self.max_points) != self.max_points or self.max_points < 1:
@@ -386,6 +233,9 @@ class FrameResult:
         pose_check: The inverted-pose check on the map points, or None.
         map_scale: The factor the frame's triangulated depths (and sigmas) were divided by to
             agree with the map (``MapperConfig.map_scale_weight``; 1 when not applied).
+        fallback_weight: Fusion weight of its pixels no point informs (the MDE alone;
+            `FusionConfig.fallback_for`): the configured fallback for a frame without points, near 0
+            for one with many; 1 without refinement (uniform weights).
     """
 
     depth: np.ndarray
@@ -402,6 +252,7 @@ class FrameResult:
     map_points: MapPointStats | None = None
     pose_check: PoseCheck | None = None
     map_scale: float = 1.0
+    fallback_weight: float = 0.0
 
 
 @dataclass
@@ -415,6 +266,8 @@ class Keyframe:
         variance: (h, w) float32 depth variance, m^2 (NaN when not refining).
         rgb: (h, w, 3) uint8 colour.
         block_keys: (M,) int64 keys of the TSDF blocks it reached.
+        points: Sparse measurements it was refined with (they set its fallback weight,
+            `FusionConfig.fallback_for`).
     """
 
     keyframe_id: int
@@ -423,6 +276,7 @@ class Keyframe:
     variance: np.ndarray
     rgb: np.ndarray
     block_keys: np.ndarray
+    points: int = 0
 
 
 @dataclass(frozen=True)
@@ -564,6 +418,26 @@ def _median(x: np.ndarray) -> float:
     return float((p[m - 1] + p[m]) / 2)
 
 
+def _keyframe_id(value: Any) -> int:
+    """A keyframe id as an int; a bool, a string, NaN or a fraction raise `InvalidInputError`."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InvalidInputError("keyframe_id", "an integer", value)
+    if not np.isfinite(value) or int(value) != value:
+        raise InvalidInputError("keyframe_id", "an integer", value)
+    return int(value)
+
+
+def _sigma_array(value: Any) -> np.ndarray:
+    """Map point sigma(s) as float64 (a number or (N,) numbers, finite, > 0 metres) or `InvalidInputError`."""
+    try:
+        sigma = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidInputError("map_points_sigma", "depth sigma(s) in metres: a number or (N,) numbers", value) from None
+    if sigma.ndim > 1 or not np.all(np.isfinite(sigma)) or not np.all(sigma > 0):
+        raise InvalidInputError("map_points_sigma", "finite depth sigma(s) > 0 metres, a number or (N,)", describe(sigma))
+    return sigma
+
+
 def _describe_error(stage: str, exc: BaseException) -> str:
     return f"{stage}: {type(exc).__name__}: {exc}"
 
@@ -609,6 +483,7 @@ class Mapper:
         self.fusion = TSDFFusion(self.work_camera, fusion_cfg)
         self._window: deque[list] = deque(maxlen=int(self.config.window))
         self._tracker: TrackTriangulator | None = None
+        self._refinder = Refinder(camera, self.config.refind, self.config.triangulation)
         self._queue: deque[_Pending] = deque()
         self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
@@ -665,26 +540,16 @@ class Mapper:
         Raises:
             ShapeError: on image / depth size mismatches.
             CalibrationError: on a non-rigid pose.
-            InvalidInputError: when neither mde_depth nor a front-end is given, or the
-                keyframe id is taken.
+            InvalidInputError: when neither mde_depth nor a front-end is given, the keyframe id
+                is taken or not an integer, or map_points_sigma is not finite and > 0.
         """
         t_start = time.perf_counter()
         timings = dict.fromkeys(STAGES, 0.0)
         T = check_pose(T_world_camera)
         rgb = np.asarray(rgb)
-        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-            raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
-        self.camera.check_image(rgb, "rgb")
-        if mde_depth is None and self.mde is None:
-            raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
-        if sparse is not None and not isinstance(sparse, SparseDepth):
-            raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
-        kid = self._next_id if keyframe_id is None else keyframe_id
-        if isinstance(kid, bool) or int(kid) != kid:
-            raise InvalidInputError("keyframe_id", "an integer", kid)
-        kid = int(kid)
-        if kid in self.keyframes or any(p.kid == kid for p in self._queue):
-            raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
+        kid = self._check_frame_args(rgb, mde_depth, sparse, keyframe_id)
+        if map_points_sigma is not None:
+            map_points_sigma = _sigma_array(map_points_sigma)
         if mde_depth is not None:
             mde_depth = self._check_mde(mde_depth)
         self._next_id = max(self._next_id, kid + 1)
@@ -705,33 +570,30 @@ class Mapper:
         if sparse is not None:
             entry.parts.append(sparse.rasterize(self.camera.shape))
         if map_points_world is not None:
-            try:
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always", InvertedPoseWarning)
-                    entry.pose_check = check_pose_orientation(map_points_world, T, self.camera, frame=kid)
-                for w in caught:
-                    entry.notes.append(str(w.message))
-                    warnings.warn(w.message, w.category, stacklevel=2)
-                points, entry.map_stats = project_map_points(map_points_world, T, self.camera, sigma=map_points_sigma)
-                st = entry.map_stats
-                if st.outside or st.behind or st.nonfinite:
-                    entry.notes.append(
-                        f"frame {kid}: {st.outside} of {st.given} map points outside the image, "
-                        f"{st.behind} behind the camera, {st.nonfinite} not finite"
-                    )
-                entry.parts.append(points)
-            except GPDepthError as exc:  # e.g. a bad sigma: the frame goes on without the map points
-                entry.notes.append(f"frame {kid}: " + _describe_error("map points", exc))
+            self._add_map_points(entry, map_points_world, map_points_sigma)
+        ready = self._track_step(entry, rgb)
+        timings["points"] = time.perf_counter() - t0
+        if ready is None:
+            timings["total"] = time.perf_counter() - t_start
+            self.timings.append(timings)
+            return None
+        return self._finish(ready, timings, t_start)
+
+    def _track_step(self, entry: _Pending, rgb: np.ndarray) -> _Pending | None:
+        """Queues the frame, runs one tracking step, and returns the frame whose turn it is (None while the lag fills)."""
+        kid, T = entry.kid, entry.T
         self._queue.append(entry)
         ready: _Pending | None = None
+        if self._refinds:
+            self._refinder.add(rgb, T, kid)
         if self._lagged:
             tracker = self._get_tracker()
             try:
                 points = tracker.add(rgb, T, key=kid)
                 for p in self._queue:
                     if p.kid == tracker.last_key:
-                        p.triangulated = points
                         self._check_tracks(p, tracker.tracks_seen.pop(p.kid, 0), len(points))
+                        p.triangulated = self._with_refound(p, points)
             except Exception as exc:  # noqa: BLE001 - no points from this step; the MDE still counts
                 entry.notes.append(f"frame {kid}: " + _describe_error("triangulation", exc))
                 tracker.reset()  # the tracks start again; the frames waiting get no triangulated points
@@ -741,15 +603,31 @@ class Mapper:
             ready = self._queue.popleft()
             if self.config.triangulate:
                 try:
-                    ready.triangulated = self._triangulate(rgb, T, kid)
+                    ready.triangulated = self._with_refound(ready, self._triangulate(rgb, T, kid))
                 except Exception as exc:  # noqa: BLE001 - no points from this frame; the MDE still counts
                     ready.notes.append(f"frame {kid}: " + _describe_error("triangulation", exc))
-        timings["points"] = time.perf_counter() - t0
-        if ready is None:
-            timings["total"] = time.perf_counter() - t_start
-            self.timings.append(timings)
-            return None
-        return self._finish(ready, timings, t_start)
+        return ready
+
+    def _add_map_points(self, entry: _Pending, points_world: np.ndarray, sigma: np.ndarray | None) -> None:
+        """The frame's SLAM map points as measurements, with the inverted-pose check and what was dropped."""
+        kid, T = entry.kid, entry.T
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", InvertedPoseWarning)
+                entry.pose_check = check_pose_orientation(points_world, T, self.camera, frame=kid)
+            for w in caught:
+                entry.notes.append(str(w.message))
+                warnings.warn(w.message, w.category, stacklevel=3)
+            points, entry.map_stats = project_map_points(points_world, T, self.camera, sigma=sigma)
+            st = entry.map_stats
+            if st.outside or st.behind or st.nonfinite:
+                entry.notes.append(
+                    f"frame {kid}: {st.outside} of {st.given} map points outside the image, "
+                    f"{st.behind} behind the camera, {st.nonfinite} not finite"
+                )
+            entry.parts.append(points)
+        except GPDepthError as exc:  # e.g. a bad sigma: the frame goes on without the map points
+            entry.notes.append(f"frame {kid}: " + _describe_error("map points", exc))
 
     def flush(self) -> list[FrameResult]:
         """Refines and fuses the frames still waiting for later views (``config.lag``), oldest first.
@@ -776,10 +654,10 @@ class Mapper:
             t_start = time.perf_counter()
             entry = self._queue.popleft()
             if points.get(entry.kid) is not None:
-                entry.triangulated = points[entry.kid]
-                self._check_tracks(entry, self._tracker.tracks_seen.pop(entry.kid, 0), len(entry.triangulated))
+                self._check_tracks(entry, self._tracker.tracks_seen.pop(entry.kid, 0), len(points[entry.kid]))
+                entry.triangulated = self._with_refound(entry, points[entry.kid])
             timings = dict.fromkeys(STAGES, 0.0)
-            timings["points"] = t_points
+            timings["points"] = t_points + time.perf_counter() - t_start
             results.append(self._finish(entry, timings, t_start))
         return results
 
@@ -787,6 +665,25 @@ class Mapper:
     def pending(self) -> tuple[int, ...]:
         """Ids of the frames added but not yet refined and fused (waiting for ``config.lag`` later views)."""
         return tuple(p.kid for p in self._queue)
+
+    @property
+    def _refinds(self) -> bool:
+        cfg = self.config
+        return cfg.triangulate and cfg.triangulation.detector == "klt" and cfg.refind.detector != "none"
+
+    def _with_refound(self, entry: _Pending, points: SparseDepth) -> SparseDepth:
+        """The frame's track points, plus descriptor points when they are fewer than ``refind.below``."""
+        if not self._refinds or len(points) >= self.config.refind.below or entry.mde is None:
+            return points
+        valid = entry.mde[entry.mde > 0]
+        if not valid.size:
+            return points
+        try:
+            extra = self._refinder.points(entry.kid, _median(valid))
+        except Exception as exc:  # noqa: BLE001 - the frame keeps its track points
+            entry.notes.append(f"frame {entry.kid}: " + _describe_error("descriptor re-finding", exc))
+            return points
+        return merge_sparse(points, extra, image_size=self.camera.shape)
 
     @property
     def _lagged(self) -> bool:
@@ -853,6 +750,12 @@ class Mapper:
 
         if entry.error is not None:
             return failed(entry.error[0], entry.error[1])
+        check = entry.pose_check
+        if check is not None and check.inverted and not self.config.fuse_inverted_poses:
+            return failed("pose check", CalibrationError(
+                "T_world_camera", "a pose that sees its map points (not fused: MapperConfig.fuse_inverted_poses)",
+                f"{check.visible:.0%} of {check.points} points visible, {check.visible_inverse:.0%} under its inverse",
+            ))
         mde = entry.mde
         work_shape = self.work_camera.shape
 
@@ -884,26 +787,40 @@ class Mapper:
         depth32 = np.where(bad, 0.0, depth).astype(np.float32)
         var32 = np.asarray(variance, dtype=np.float32)
         try:
-            stats = self._integrate(depth32, var32, T, entry.work_rgb)
+            stats = self._integrate(depth32, var32, T, entry.work_rgb, points=len(measurements) if self.config.refine else 0)
         except Exception as exc:  # noqa: BLE001 - e.g. nothing in range; recorded, the run goes on
             timings["fusion"] = time.perf_counter() - t0
             result = failed("fusion", exc, mde, posterior)
             return replace(result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked)
+        fallback = self.fusion.config.fallback_for(len(measurements)) if self.config.refine else 1.0
         if stats.pixels == 0:
-            notes.append(
-                f"frame {kid}: no pixel with sigma <= {self.fusion.config.max_relative_sigma} x depth "
-                "(FusionConfig.max_relative_sigma): nothing fused"
-            )
+            notes.append(f"frame {kid}: no pixel informed by points and no fallback weight left: nothing fused")
+        elif self.config.refine and len(measurements) == 0:
+            notes.append(f"frame {kid}: no points: fused as the MDE with its prior variance, weight {fallback:.2f}")
         if self.config.keep_keyframes:
-            self.keyframes[kid] = Keyframe(kid, T, depth32, var32, entry.work_rgb, stats.block_keys)
+            self.keyframes[kid] = Keyframe(kid, T, depth32, var32, entry.work_rgb, stats.block_keys, len(measurements))
         timings["fusion"] = time.perf_counter() - t0
         self.frames += 1
         timings["total"] = time.perf_counter() - t_start
         self.timings.append(timings)
         return FrameResult(
             depth32.astype(np.float64), var32.astype(np.float64), mde, measurements, posterior, timings, kid, True,
-            None, tuple(notes), masked, entry.map_stats, entry.pose_check, scale,
+            None, tuple(notes), masked, entry.map_stats, entry.pose_check, scale, fallback,
         )
+
+    def _check_frame_args(self, rgb: np.ndarray, mde_depth, sparse, keyframe_id) -> int:
+        """Validates `add_frame`'s image, MDE source, measurements and id; returns the keyframe id."""
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
+        self.camera.check_image(rgb, "rgb")
+        if mde_depth is None and self.mde is None:
+            raise InvalidInputError("mde_depth", "an MDE depth map (or an mde front-end in Mapper)", None)
+        if sparse is not None and not isinstance(sparse, SparseDepth):
+            raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
+        kid = self._next_id if keyframe_id is None else _keyframe_id(keyframe_id)
+        if kid in self.keyframes or any(p.kid == kid for p in self._queue):
+            raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
+        return kid
 
     def _check_mde(self, mde_depth: np.ndarray) -> np.ndarray:
         mde_depth = np.asarray(mde_depth, dtype=np.float64)
@@ -916,10 +833,11 @@ class Mapper:
             )
         return mde_depth
 
-    def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None) -> IntegrationStats:
-        weights = self.fusion.weights_for(var32, depth32)
-        if weights is not None and self.fusion.config.max_relative_sigma is not None and not np.any(weights > 0):
-            # every pixel less certain than FusionConfig.max_relative_sigma: nothing to fuse, not a failure
+    def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None,
+                   points: int = 0) -> IntegrationStats:
+        weights = self.fusion.weights_for(var32, depth32, points=points)
+        if weights is not None and not np.any(weights > 0):
+            # every pixel uninformed and no fallback weight left: nothing to fuse, not a failure
             return IntegrationStats(0, 0, 0, np.zeros(0, np.int64))
         return self.fusion.integrate(
             depth32,
@@ -991,6 +909,7 @@ class Mapper:
             waiting[kid].T = new.pop(kid)
         if self._tracker is not None:
             self._tracker.update_poses({p.kid: p.T for p in self._queue})
+        self._refinder.update_poses({**{k: new[k] for k in new}, **{p.kid: p.T for p in self._queue}})
         moved = [kid for kid, T in new.items() if not np.array_equal(T, self.keyframes[kid].T_world_camera)]
         if not moved:
             return PoseUpdate((), (), 0, time.perf_counter() - t0)
@@ -1009,7 +928,7 @@ class Mapper:
         redone = []
         for kid, kf in self.keyframes.items():
             if kid in new and kid in moved or np.intersect1d(kf.block_keys, blocks, assume_unique=True).size:
-                stats = self._integrate(kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks)
+                stats = self._integrate(kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks, points=kf.points)
                 if kid in moved:
                     kf.block_keys = stats.block_keys
                 redone.append(kid)
@@ -1072,6 +991,7 @@ class Mapper:
             rgb=np.stack([kf.rgb for kf in kfs]) if kfs else np.zeros((0, h, w, 3), np.uint8),
             block_keys=np.concatenate(keys) if keys else np.zeros(0, np.int64),
             block_counts=np.array([k.size for k in keys], dtype=np.int64),
+            points=np.array([kf.points for kf in kfs], dtype=np.int64),
         )
         self.fusion.save(folder / "volume.npz")
         c = self.camera
@@ -1120,7 +1040,8 @@ class Mapper:
                     gp=DepthGPConfig(**{"local_calibration": None, **saved["gp"]}),
                     fusion=FusionConfig(**saved["fusion"]),
                     triangulation=TriangulationConfig(**_tuples(saved["triangulation"])),
-                    **{k: v for k, v in saved.items() if k not in ("gp", "fusion", "triangulation")},
+                    refind=RefindConfig(**saved.get("refind", {})),
+                    **{k: v for k, v in saved.items() if k not in ("gp", "fusion", "triangulation", "refind")},
                 )
         except (KeyError, TypeError, ValueError) as exc:
             raise DataFormatError(folder / "mapper.json", f"not a saved gpdepth3d map: {exc}") from None
@@ -1133,6 +1054,7 @@ class Mapper:
             with np.load(folder / "keyframes.npz", allow_pickle=False) as d:
                 offsets = np.concatenate([[0], np.cumsum(d["block_counts"])])
                 keys = d["block_keys"]
+                points = d["points"] if "points" in d.files else np.zeros(len(d["ids"]), np.int64)
                 for i, kid in enumerate(d["ids"]):
                     mapper.keyframes[int(kid)] = Keyframe(
                         int(kid),
@@ -1141,6 +1063,7 @@ class Mapper:
                         d["variance"][i].astype(np.float32),
                         d["rgb"][i].astype(np.uint8),
                         keys[offsets[i] : offsets[i + 1]].astype(np.int64),
+                        int(points[i]),
                     )
         except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
             raise DataFormatError(folder / "keyframes.npz", f"not a saved keyframe store: {exc}") from None

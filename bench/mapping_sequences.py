@@ -1,0 +1,236 @@
+"""Mapping on the two shared posed sequences with one set of defaults: mesh F-score, points, sigma, time.
+
+Usage::
+
+    python bench/mapping_sequences.py [--data ../shared/data] [--model ../shared/models/fast_depth_224.tflite]
+                                      [--sequences 7scenes hololens] [--frames N] [--colmap]
+                                      [--set FIELD=VALUE ...] [--out bench/results/mapping_sequences.json]
+
+Per sequence (``7scenes``: 60 frames 640x480; ``hololens``: 94 frames 540x360, ~30 m walk), the
+`gpdepth3d.mapping.Mapper` with the default `MapperConfig` at a 320-px working width, FastDepth as
+the MDE, the library's own triangulated points (no sensor depth used), and in the same pass:
+
+* ``mde_only``: the MDE depth of every frame fused with uniform weights (``MapperConfig(refine=False)``);
+* ``reference``: the sensor depth fused with uniform weights (the mesh every other one is scored against);
+* with ``--colmap``: a second Mapper fed pycolmap's points (`gpdepth3d.mapping.colmap_points`; features,
+  matching and triangulation with the sequence's poses held fixed) as SLAM map points, no own points,
+  each with a depth sigma of ``--colmap-sigma`` times its distance.
+
+Measured: `gpdepth3d.metrics.mesh_metrics` at 5 cm (50k samples), the points per frame, the +-2 sigma
+coverage of the points against the sensor depth, frames fused with points / without, and the
+milliseconds of ``Mapper.add_frame`` (its own stages plus the MDE run on the frame it adds).
+``--set`` overrides a MapperConfig field (``window=8``) or a nested one (``fusion.sigma_ref=0.1``,
+``triangulation.max_features=800``) for experiments; the JSON records the config used. Timings
+are wall-clock on a shared 2-core machine: compare within one run. Results go to
+``bench/results/mapping_sequences.json`` (written atomically).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import os
+import platform
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+WORKING_WIDTH = 320
+
+
+def load_hololens(root: Path, max_frames: int | None = None) -> list:
+    """The HoloLens layout: images/*.png, depth/*.png (uint16 mm, 0 invalid), poses_images.txt, K.txt."""
+    import cv2
+
+    from gpdepth3d.camera import PinholeCamera
+    from gpdepth3d.datasets.base import Frame
+
+    K = np.loadtxt(root / "K.txt").reshape(3, 3)
+    poses = np.loadtxt(root / "poses_images.txt").reshape(-1, 4, 4)
+    names = sorted(p.name for p in (root / "images").glob("*.png"))
+    if len(names) != len(poses):
+        raise SystemExit(f"{root}: {len(names)} images but {len(poses)} poses")
+    frames = []
+    for name, pose in list(zip(names, poses))[:max_frames]:
+        rgb = cv2.cvtColor(cv2.imread(str(root / "images" / name), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        depth = cv2.imread(str(root / "depth" / name), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
+        camera = PinholeCamera.from_K(K, rgb.shape[1], rgb.shape[0])
+        frames.append(Frame(name=name, rgb=rgb, camera=camera, depth=depth, pose=pose))
+    return frames
+
+
+def load_7scenes(root: Path, max_frames: int | None = None) -> list:
+    """7-Scenes frames with the depth registered to the colour camera (the reader's default)."""
+    from gpdepth3d.datasets.sevenscenes import SevenScenes
+
+    reader = SevenScenes(root)
+    n = len(reader) if max_frames is None else min(len(reader), max_frames)
+    return [reader[i] for i in range(n)]
+
+
+LOADERS = {"7scenes": load_7scenes, "hololens": load_hololens}
+
+
+def _override(config, key: str, value):
+    """``replace`` on a frozen config with a dotted field name (``fusion.sigma_ref``)."""
+    head, _, rest = key.partition(".")
+    if rest:
+        return replace(config, **{head: _override(getattr(config, head), rest, value)})
+    return replace(config, **{head: value})
+
+
+def point_coverage(result, frame, camera) -> tuple[int, int]:
+    """(points within +-2 sigma of the sensor depth, points with a sensor depth) of one frame."""
+    sp = result.sparse
+    if not len(sp):
+        return 0, 0
+    iu = np.clip(np.rint(sp.u).astype(np.int64), 0, camera.width - 1)
+    iv = np.clip(np.rint(sp.v).astype(np.int64), 0, camera.height - 1)
+    d = frame.depth[iv, iu]
+    ok = np.isfinite(d) & (d > 0) & np.isfinite(sp.sigma)
+    inside = np.abs(sp.depth[ok] - d[ok]) <= 2 * sp.sigma[ok]
+    return int(inside.sum()), int(ok.sum())
+
+
+def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> dict:
+    """One Mapper pass (plus the MDE-only and reference volumes) over a loaded sequence."""
+    from gpdepth3d.mapping.fusion import TSDFFusion
+    from gpdepth3d.mapping.mapper import Mapper, _resize_depth
+    from gpdepth3d.metrics import mesh_metrics
+
+    camera = frames[0].camera
+    mapper = Mapper(camera, config)
+    work = mapper.work_camera
+    uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
+    mde_volume, ref_volume = TSDFFusion(work, uniform), TSDFFusion(work, uniform)
+    rows, results = [], []
+
+    def record(result) -> None:
+        frame = frames[result.keyframe_id]
+        if result.mde.size:
+            mde_volume.integrate(result.mde, frame.pose, rgb=mapper._work_rgb(frame.rgb))
+        ref_volume.integrate(_resize_depth(frame.depth, work.shape), frame.pose, rgb=mapper._work_rgb(frame.rgb))
+        inside, known = point_coverage(result, frame, camera)
+        rows.append({
+            "frame": result.keyframe_id, "points": len(result.sparse), "fused": result.fused,
+            "within_2sigma": inside, "with_sensor_depth": known, "error": result.error,
+            "fallback_weight": result.fallback_weight, "map_scale": result.map_scale,
+        })
+        results.append(result)
+
+    add_ms = []
+    for i, frame in enumerate(frames):
+        t0 = time.perf_counter()
+        pts, sigma = (None, None) if map_points is None else map_points.get(i, (np.zeros((0, 3)), None))
+        if sigma is not None and not len(sigma):
+            sigma = None
+        result = mapper.add_frame(frame.rgb, frame.pose, mde_depth=mde_depths[i][0], keyframe_id=i,
+                                  map_points_world=pts, map_points_sigma=sigma)
+        add_ms.append(1000 * (time.perf_counter() - t0 + mde_depths[i][1]))
+        if result is not None:
+            record(result)
+    for result in mapper.flush():
+        record(result)
+    reference = ref_volume.extract_mesh()
+    out = {}
+    for name, volume in (("mapper", mapper.fusion), ("mde_only", mde_volume)):
+        mesh = volume.extract_mesh(allow_empty=True)
+        out[name] = mesh_metrics(mesh, reference) if len(mesh.faces) else None
+    inside = sum(r["within_2sigma"] for r in rows)
+    known = sum(r["with_sensor_depth"] for r in rows)
+    points = np.array([r["points"] for r in rows])
+    return {
+        "metrics": out,
+        "fscore": out["mapper"]["fscore"] if out["mapper"] else 0.0,
+        "fscore_mde_only": out["mde_only"]["fscore"] if out["mde_only"] else 0.0,
+        "points_per_frame_median": float(np.median(points)),
+        "frames_with_under_20_points": int(np.sum(points < 20)),
+        "points_within_2sigma": inside / known if known else None,
+        "points_with_sensor_depth": known,
+        "frames_fused": int(sum(r["fused"] for r in rows)),
+        "frame_errors": [r["error"] for r in rows if r["error"]],
+        "add_frame_ms": {"median": float(np.median(add_ms)), "mean": float(np.mean(add_ms)),
+                         "p90": float(np.percentile(add_ms, 90))},
+        "resolution": list(work.shape),
+        "per_frame": rows,
+    }
+
+
+def colmap_run(frames: list, mde_depths: list, config, relative_sigma: float) -> dict:
+    """pycolmap's points (poses held fixed) as the Mapper's map points, each frame given those it observes."""
+    import tempfile
+
+    from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
+    from gpdepth3d.mapping.trajectories import read_colmap_model
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as work:
+        model = read_colmap_model(triangulate_with_colmap([f.rgb for f in frames], [f.pose for f in frames],
+                                                          frames[0].camera, work))
+    seconds = time.perf_counter() - t0
+    by_frame = {}
+    for image_id, image in model.images.items():
+        pts = model.map_points(image_id)
+        by_frame[int(image.name[:5])] = (pts, relative_sigma * np.linalg.norm(pts - frames[int(image.name[:5])].pose[:3, 3], axis=1))
+    row = run_sequence(frames, mde_depths, config, map_points=by_frame)
+    return {"fscore": row["fscore"], "points": int(len(model.points)), "seconds_pycolmap": seconds,
+            "relative_sigma_given": relative_sigma, "points_within_2sigma": row["points_within_2sigma"],
+            "points_per_frame_median": row["points_per_frame_median"], "metrics": row["metrics"]}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    parser.add_argument("--model", type=Path, default=REPO.parent / "shared" / "models" / "fast_depth_224.tflite")
+    parser.add_argument("--sequences", nargs="+", default=["7scenes", "hololens"], choices=sorted(LOADERS))
+    parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument("--colmap", action="store_true", help="also map with pycolmap's points")
+    parser.add_argument("--colmap-sigma", type=float, default=0.03, help="their depth sigma, a fraction of the distance")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "mapping_sequences.json")
+    args = parser.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from gpdepth3d.io import atomic_write, to_jsonable
+    from gpdepth3d.mapping.mapper import MapperConfig
+    from gpdepth3d.mde.tflite import FastDepthTFLite
+
+    mde = FastDepthTFLite(args.model)
+    load_before = os.getloadavg()[0]
+    report = {"sequences": {}, "overrides": args.set}
+    for seq in args.sequences:
+        frames = LOADERS[seq](args.data / seq, args.frames)
+        config = MapperConfig(working_scale=WORKING_WIDTH / frames[0].camera.width)
+        for item in args.set:
+            key, value = item.split("=", 1)
+            config = _override(config, key, ast.literal_eval(value))
+        mde_depths = []
+        for f in frames:
+            t0 = time.perf_counter()
+            mde_depths.append((mde(f.rgb), time.perf_counter() - t0))
+        row = run_sequence(frames, mde_depths, config)
+        row["frames"] = len(frames)
+        row["fscore_gain_over_mde_only"] = row["fscore"] - row["fscore_mde_only"]
+        if args.colmap:
+            row["colmap"] = colmap_run(frames, mde_depths, replace(config, triangulate=False), args.colmap_sigma)
+        row["config"] = asdict(config)
+        report["sequences"][seq] = row
+        print(f"{seq}: F {row['fscore']:.3f} (MDE only {row['fscore_mde_only']:.3f}), points/frame "
+              f"{row['points_per_frame_median']:.0f}, <20 points in {row['frames_with_under_20_points']} frames, "
+              f"+-2 sigma {row['points_within_2sigma']}, add_frame median {row['add_frame_ms']['median']:.0f} ms"
+              + (f", pycolmap points F {row['colmap']['fscore']:.3f}" if args.colmap else ""), flush=True)
+    report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running",
+                         "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]}}
+    atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,150 @@
+"""Keypoints and their matches: Shi-Tomasi corners, ORB / SIFT descriptors (OpenCV), the epipolar gate of given poses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import PinholeCamera, check_pose
+from ..errors import InvalidInputError, ShapeError, describe
+from .triangulation_config import TriangulationConfig
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints and descriptors of one image.
+
+    Attributes:
+        uv: (N, 2) keypoint positions (u, v), pixels (pixel-centre convention).
+        descriptors: (N, D) descriptors (uint8 for ORB, float32 for SIFT; D = 0 for KLT corners).
+        detector: Which detector made them.
+    """
+
+    uv: np.ndarray
+    descriptors: np.ndarray
+    detector: str
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+
+def _gray(rgb: np.ndarray, argument: str) -> np.ndarray:
+    import cv2
+
+    a = np.asarray(rgb)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        if a.dtype != np.uint8:
+            raise ShapeError(argument, "a uint8 RGB image", describe(a))
+        return cv2.cvtColor(a[..., :3], cv2.COLOR_RGB2GRAY)
+    if a.ndim == 2 and a.dtype == np.uint8:
+        return a
+    raise ShapeError(argument, "an (H, W, 3) uint8 RGB or (H, W) uint8 grey image", describe(a))
+
+
+def detect_features(rgb: np.ndarray, *, config: TriangulationConfig | None = None) -> Features:
+    """Detects keypoints (Shi-Tomasi corners for "klt") and descriptors (ORB or SIFT) in an RGB image.
+
+    Args:
+        rgb: (H, W, 3) uint8 RGB image (or (H, W) uint8 grey).
+        config: Detector options.
+
+    Returns:
+        `Features` (possibly empty).
+    """
+    import cv2
+
+    config = config or TriangulationConfig()
+    gray = _gray(rgb, "rgb")
+    if config.detector == "klt":
+        corners = cv2.goodFeaturesToTrack(
+            gray, int(config.max_features), 0.01, float(config.min_corner_distance), blockSize=5
+        )
+        uv = np.zeros((0, 2)) if corners is None else corners.reshape(-1, 2).astype(np.float64)
+        return Features(uv, np.zeros((uv.shape[0], 0), np.float32), "klt")
+    if config.detector == "orb":
+        det = cv2.ORB_create(nfeatures=int(config.max_features))
+    else:
+        det = cv2.SIFT_create(nfeatures=int(config.max_features))
+    kps, desc = det.detectAndCompute(gray, None)
+    if desc is None or len(kps) == 0:
+        dim, dtype = (32, np.uint8) if config.detector == "orb" else (128, np.float32)
+        return Features(np.zeros((0, 2)), np.zeros((0, dim), dtype), config.detector)
+    uv = np.array([kp.pt for kp in kps], dtype=np.float64)
+    # OpenCV keypoint coordinates put pixel centres at integers, as gpdepth3d does.
+    return Features(uv, desc, config.detector)
+
+
+def fundamental_from_poses(
+    camera: PinholeCamera, T_world_a: np.ndarray, T_world_b: np.ndarray
+) -> np.ndarray:
+    """Fundamental matrix F with x_b^T F x_a = 0 for pixels x_a of view a and x_b of view b."""
+    T_ba = np.linalg.inv(check_pose(T_world_b, "T_world_b")) @ check_pose(T_world_a, "T_world_a")
+    R, t = T_ba[:3, :3], T_ba[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    Kinv = np.linalg.inv(camera.K)
+    return Kinv.T @ tx @ R @ Kinv
+
+
+def sampson_distance(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.ndarray:
+    """(N,) Sampson distance (pixels) of correspondences uv_a (N, 2) <-> uv_b (N, 2) to F."""
+    xa = np.hstack([uv_a, np.ones((uv_a.shape[0], 1))])
+    xb = np.hstack([uv_b, np.ones((uv_b.shape[0], 1))])
+    Fxa = xa @ F.T
+    Ftxb = xb @ F
+    num = np.einsum("ij,ij->i", xb, Fxa) ** 2
+    den = Fxa[:, 0] ** 2 + Fxa[:, 1] ** 2 + Ftxb[:, 0] ** 2 + Ftxb[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(num / den)
+
+
+def match_features(
+    a: Features,
+    b: Features,
+    *,
+    config: TriangulationConfig | None = None,
+    F: np.ndarray | None = None,
+) -> np.ndarray:
+    """Matches descriptors of two images with Lowe's ratio test and mutual consistency.
+
+    Args:
+        a: Features of the first image.
+        b: Features of the second image.
+        config: Ratio threshold and epipolar tolerance.
+        F: Optional fundamental matrix (x_b^T F x_a = 0); matches farther than
+            ``max_epipolar_error`` pixels (Sampson distance) are dropped.
+
+    Returns:
+        (M, 2) int64 index pairs (index into a, index into b).
+    """
+    import cv2
+
+    config = config or TriangulationConfig()
+    if a.detector != b.detector:
+        raise InvalidInputError("b", f"features of the same detector as a ({a.detector})", b.detector)
+    if a.detector == "klt":
+        raise InvalidInputError("a", "features with descriptors (detector 'orb' or 'sift')", "klt corners")
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    norm = cv2.NORM_HAMMING if a.detector == "orb" else cv2.NORM_L2
+    matcher = cv2.BFMatcher(norm)
+    knn = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
+    pairs = [
+        (m[0].queryIdx, m[0].trainIdx)
+        for m in knn
+        if len(m) == 2 and m[0].distance < config.ratio * m[1].distance
+    ]
+    if not pairs:
+        return np.zeros((0, 2), np.int64)
+    pairs = np.array(pairs, dtype=np.int64)
+    # Mutual best: keep a match only if a's keypoint is b's best match too.
+    back = matcher.match(b.descriptors, a.descriptors)
+    best_back = np.full(len(b), -1, np.int64)
+    for m in back:
+        best_back[m.queryIdx] = m.trainIdx
+    pairs = pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
+    if F is not None and len(pairs):
+        err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
+        pairs = pairs[np.isfinite(err) & (err <= config.max_epipolar_error)]
+    return pairs
+

@@ -1,0 +1,161 @@
+"""Points across large camera motion: views chosen by parallax, features re-found by their descriptors.
+
+Frame-to-frame KLT tracks (`gpdepth3d.mapping.triangulation.TrackTriangulator`) break when the
+camera moves far between frames (a walk sampled every few frames). `Refinder` keeps the recent
+posed frames; for a frame whose tracks gave few points it picks the views whose baseline over the
+frame's depth lies in a useful range (`select_views`), matches ORB or SIFT descriptors
+(OpenCV) under the epipolar geometry of the given poses, and triangulates the matches from all
+their views (`triangulate_frames`, same sigma model as the tracks). See
+https://docs.opencv.org/4.x/dc/dc3/tutorial_py_matcher.html for the matching.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..errors import InvalidInputError
+from ..measurements import SparseDepth
+from .features import Features, _gray, detect_features
+from .tracks import triangulate_frames
+from .triangulation_config import TriangulationConfig
+
+
+@dataclass(frozen=True)
+class RefindConfig:
+    """When and how features are re-found by descriptor.
+
+    Attributes:
+        detector: "orb" or "sift" (OpenCV), or "none" to turn re-finding off.
+        max_features: Keypoints detected per image.
+        below: A frame whose tracks gave fewer points than this gets descriptor points too.
+        views: Most other views a frame is matched with.
+        min_parallax: Smallest baseline / depth of a view (below it depth is ill-determined); the
+            baseline is its part across the frame's optical axis (moving forward gives no parallax
+            where the frame looks).
+        max_parallax: Largest baseline / depth (beyond it the views see too different images).
+        target_parallax: Views closest to this baseline / depth (in log) are chosen first.
+        max_angle_deg: Largest angle between the optical axes of the frame and a view, degrees.
+        pool: Frames remembered as candidate views (earlier ones and the Mapper's later ones).
+    """
+
+    detector: str = "orb"
+    max_features: int = 2000
+    below: int = 100
+    views: int = 5
+    min_parallax: float = 0.02
+    max_parallax: float = 0.6
+    target_parallax: float = 0.15
+    max_angle_deg: float = 40.0
+    pool: int = 20
+
+    def __post_init__(self) -> None:
+        if self.detector not in ("orb", "sift", "none"):
+            raise InvalidInputError("detector", "'orb', 'sift' or 'none'", self.detector)
+        for name, low in (("max_features", 8), ("below", 0), ("views", 1), ("pool", 2)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < low:
+                raise InvalidInputError(name, f"an integer >= {low}", value)
+        if not 0 < self.min_parallax <= self.target_parallax <= self.max_parallax:
+            raise InvalidInputError(
+                "min_parallax, target_parallax, max_parallax", "0 < min <= target <= max",
+                (self.min_parallax, self.target_parallax, self.max_parallax),
+            )
+        if not 0 < self.max_angle_deg < 180:
+            raise InvalidInputError("max_angle_deg", "an angle in (0, 180) degrees", self.max_angle_deg)
+
+
+def select_views(
+    T_world_camera: np.ndarray, depth: float, candidates: dict, config: RefindConfig | None = None
+) -> list:
+    """Keys of the candidate views to triangulate a frame from, best parallax first.
+
+    Args:
+        T_world_camera: 4x4 pose of the frame.
+        depth: Typical depth of the frame (e.g. the MDE's median), metres.
+        candidates: key -> 4x4 ``T_world_camera`` of the other views.
+        config: Parallax range, target, axis angle and number of views.
+
+    Returns:
+        Up to ``config.views`` keys with baseline / depth in [min_parallax, max_parallax] and
+        optical axes within ``max_angle_deg``, closest to ``target_parallax`` (in log) first.
+    """
+    config = config or RefindConfig()
+    if not np.isfinite(depth) or depth <= 0:
+        raise InvalidInputError("depth", "a typical depth > 0 (metres)", depth)
+    centre, axis = T_world_camera[:3, 3], T_world_camera[:3, 2]
+    cos_max = np.cos(np.radians(config.max_angle_deg))
+    scored = []
+    for key, T in candidates.items():
+        baseline = T[:3, 3] - centre  # its part along the optical axis gives no parallax at the image centre
+        parallax = float(np.linalg.norm(baseline - (baseline @ axis) * axis)) / depth
+        if config.min_parallax <= parallax <= config.max_parallax and float(axis @ T[:3, 2]) >= cos_max:
+            scored.append((abs(np.log(parallax / config.target_parallax)), key))
+    scored.sort(key=lambda item: item[0])
+    return [key for _, key in scored[: int(config.views)]]
+
+
+class Refinder:
+    """Recent posed frames and their descriptors, for triangulating a frame from parallax-chosen views.
+
+    Args:
+        camera: Intrinsics of the images given to `add`.
+        config: Re-finding options.
+        triangulation: Triangulation options (sigma model, gates); its detector is replaced and its
+            ``variance_factor`` turned off (see the comment in the code).
+    """
+
+    def __init__(self, camera: PinholeCamera, config: RefindConfig | None = None,
+                 triangulation: TriangulationConfig | None = None):
+        self.camera = camera
+        self.config = config or RefindConfig()
+        base = triangulation or TriangulationConfig()
+        detector = "orb" if self.config.detector == "none" else self.config.detector
+        # the residuals' pixel noise already enters sigma; the a-posteriori factor would scale the poses'
+        # share by it too, while descriptor keypoints' larger residuals are their localisation, not pose error
+        self.triangulation = replace(base, detector=detector, max_features=int(self.config.max_features), variance_factor=False)
+        self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | None]
+
+    def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object) -> None:
+        """Remembers a posed frame (its grey image; descriptors are computed when first needed)."""
+        self._frames[key] = [_gray(rgb, "rgb"), np.asarray(T_world_camera, dtype=np.float64), None]
+        while len(self._frames) > self.config.pool:
+            self._frames.popitem(last=False)
+
+    def update_poses(self, poses: dict) -> None:
+        """New poses of remembered frames (after a loop closure); unknown keys are ignored."""
+        for key, T in poses.items():
+            if key in self._frames:
+                self._frames[key][1] = np.asarray(T, dtype=np.float64)
+
+    def _features(self, key: object) -> Features:
+        entry = self._frames[key]
+        if entry[2] is None:
+            entry[2] = detect_features(entry[0], config=self.triangulation)
+        return entry[2]
+
+    def points(self, key: object, depth: float) -> SparseDepth:
+        """Descriptor points of remembered frame ``key`` from the views `select_views` picks.
+
+        Args:
+            key: A frame given to `add`.
+            depth: Its typical depth (metres), for the parallax of the candidate views.
+
+        Returns:
+            `SparseDepth` of the frame with per-point sigma (empty without a suitable view).
+        """
+        if self.config.detector == "none" or key not in self._frames:
+            return SparseDepth.empty(self.camera.shape)
+        T = self._frames[key][1]
+        others = {k: v[1] for k, v in self._frames.items() if k != key}
+        views = select_views(T, depth, others, self.config)
+        if not views:
+            return SparseDepth.empty(self.camera.shape)
+        keys = [*views, key]
+        return triangulate_frames(
+            [self._frames[k][0] for k in keys], [self._frames[k][1] for k in keys], self.camera,
+            reference=-1, config=self.triangulation, features=[self._features(k) for k in keys],
+        )

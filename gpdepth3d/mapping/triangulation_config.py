@@ -1,0 +1,99 @@
+"""Options of feature tracking, matching and triangulation (`TriangulationConfig`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ..errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class TriangulationConfig:
+    """Options of feature tracking and triangulation.
+
+    Attributes:
+        detector: "klt" (Shi-Tomasi corners followed by pyramidal Lucas-Kanade: sub-pixel
+            tracks, the default), "orb" or "sift" (descriptor matching, OpenCV).
+        max_features: Most keypoints detected per image (tracks kept alive for "klt");
+            None: 800 for "klt", 3000 for "orb" / "sift" (numbers behind 800:
+            bench/results/mapping_settings.json).
+        min_corner_distance: Smallest distance between two "klt" corners, pixels.
+        klt_window: Lucas-Kanade window side, pixels.
+        klt_levels: Lucas-Kanade pyramid levels above the image.
+        klt_fb_error: Largest forward-backward tracking error of a "klt" step, pixels
+            (0 disables the check).
+        ratio: Lowe ratio test threshold (best / second-best descriptor distance).
+        max_epipolar_error: Largest Sampson distance to the epipolar geometry given by the
+            poses for descriptor matches, pixels (loose: the poses are refined afterwards).
+        max_reprojection_error: Largest reprojection error of an observation, pixels.
+        min_parallax_deg: Smallest angle between two viewing rays at the point, degrees.
+        pixel_sigma: Standard deviation of a keypoint position (u and v), pixels; the noise
+            the residuals show is used when larger.
+        rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to
+            the reference (per axis), degrees.
+        translation_sigma: Prior standard deviation of each neighbour's translation relative
+            to the reference (per axis), metres.
+        refine_poses: Refine the neighbours' poses relative to the reference jointly with the
+            depths (bundle adjustment with the pose prior); off: poses held, their prior
+            uncertainty carried into sigma.
+        variance_factor: Scale each frame's variances by (residual noise / pixel_sigma)^2 when
+            the residuals exceed the assumed pixel noise (a posteriori variance factor).
+        min_views: Fewest views (reference included) that must support a multi-view point.
+        depth_sigma_floor: Relative depth sigma added in quadrature to the propagated one
+            (model errors: keypoints on depth edges, non-rigid or specular surfaces).
+        min_depth: Points nearer than this to the reference camera are dropped, metres.
+        max_depth: Points farther than this are dropped, metres.
+        max_relative_sigma: Points whose depth sigma exceeds this fraction of their depth are dropped.
+    """
+
+    detector: Literal["klt", "orb", "sift"] = "klt"
+    max_features: int | None = None
+    min_corner_distance: float = 8.0
+    klt_window: int = 11
+    klt_levels: int = 3
+    klt_fb_error: float = 1.0
+    ratio: float = 0.8
+    max_epipolar_error: float = 4.0
+    max_reprojection_error: float = 3.0
+    min_parallax_deg: float = 0.5
+    pixel_sigma: float = 0.5
+    rotation_sigma_deg: float = 0.1
+    translation_sigma: float = 0.005
+    refine_poses: bool = False
+    variance_factor: bool = True
+    min_views: int = 2
+    depth_sigma_floor: float = 0.04
+    min_depth: float = 0.1
+    max_depth: float = 20.0
+    max_relative_sigma: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.detector not in ("klt", "orb", "sift"):
+            raise InvalidInputError("detector", "'klt', 'orb' or 'sift'", self.detector)
+        if self.max_features is None:
+            object.__setattr__(self, "max_features", 800 if self.detector == "klt" else 3000)
+        for name, low in (("max_features", 8), ("klt_window", 5), ("klt_levels", 0), ("min_views", 2)):
+            value = getattr(self, name)
+            if int(value) != value or value < low:
+                raise InvalidInputError(name, f"an integer >= {low}", value)
+        if not 0 < self.ratio <= 1:
+            raise InvalidInputError("ratio", "a value in (0, 1]", self.ratio)
+        for name in (
+            "max_epipolar_error", "max_reprojection_error", "pixel_sigma", "max_depth", "max_relative_sigma",
+            "rotation_sigma_deg", "translation_sigma", "min_corner_distance",
+        ):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise InvalidInputError(name, "a finite value > 0", value)
+        for name in ("klt_fb_error", "depth_sigma_floor"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise InvalidInputError(name, "a finite value >= 0", value)
+        if not 0 <= self.min_parallax_deg < 90:
+            raise InvalidInputError("min_parallax_deg", "an angle in [0, 90) degrees", self.min_parallax_deg)
+        if not 0 <= self.min_depth < self.max_depth:
+            raise InvalidInputError("min_depth", f"0 <= min_depth < max_depth ({self.max_depth})", self.min_depth)
+
