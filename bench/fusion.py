@@ -85,15 +85,23 @@ def main() -> None:
     parser.add_argument("--fuse-depth", choices=["median", "mean"], default=None, help="default: MapperConfig's")
     parser.add_argument("--detector", choices=["klt", "orb", "sift"], default="klt")
     parser.add_argument(
-        "--gp", choices=["default", "residual"], default="default",
+        "--gp",
+        choices=["default", "residual"],
+        default="default",
         help="GP model: the Mapper's default (MAPPER_GP) or DepthGPConfig.residual()",
     )
     parser.add_argument(
-        "--tri", action="append", default=[], metavar="FIELD=VALUE",
+        "--tri",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
         help="override a TriangulationConfig field (repeatable), e.g. --tri variance_factor=True",
     )
     parser.add_argument(
-        "--gp-set", action="append", default=[], metavar="FIELD=VALUE",
+        "--gp-set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
         help="override a DepthGPConfig field of the chosen model (repeatable), e.g. --gp-set align='none'",
     )
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "fusion.json")
@@ -108,7 +116,14 @@ def main() -> None:
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
     from gpdepth3d.io import to_jsonable
-    from gpdepth3d.mapping.mapper import MAPPER_FUSION, MAPPER_GP, SEVEN_SCENES_RGB_K, Mapper, MapperConfig, _resize_depth
+    from gpdepth3d.mapping.mapper import (
+        MAPPER_FUSION,
+        MAPPER_GP,
+        SEVEN_SCENES_RGB_K,
+        Mapper,
+        MapperConfig,
+        _resize_depth,
+    )
     from gpdepth3d.metrics import mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
@@ -124,7 +139,11 @@ def main() -> None:
         working_scale=0.5,
         gp=replace(MAPPER_GP if args.gp == "default" else DepthGPConfig.residual(), **gp_overrides),
         triangulation=TriangulationConfig(detector=args.detector, **overrides),
-        **{k: v for k, v in (("window", args.window), ("lag", args.lag), ("fuse_depth", args.fuse_depth)) if v is not None},
+        **{
+            k: v
+            for k, v in (("window", args.window), ("lag", args.lag), ("fuse_depth", args.fuse_depth))
+            if v is not None
+        },
     )
     reader = SevenScenes(args.data)
     n = min(len(reader), args.frames)
@@ -135,7 +154,9 @@ def main() -> None:
     work = mapper.work_camera
     depth_work = depth_cam.resized(work.width, work.height)
     mde_volume = TSDFFusion(work, FusionConfig(voxel_size=0.02, truncation=0.08, depth_max=5.0, weighting="uniform"))
-    gt_volume = TSDFFusion(depth_work, FusionConfig(voxel_size=0.02, truncation=0.08, depth_max=5.0, weighting="uniform"))
+    gt_volume = TSDFFusion(
+        depth_work, FusionConfig(voxel_size=0.02, truncation=0.08, depth_max=5.0, weighting="uniform")
+    )
 
     rows = []
     t_start = time.perf_counter()
@@ -188,7 +209,9 @@ def main() -> None:
     metrics = {k: mesh_metrics(m, meshes["gt"]) for k, m in meshes.items() if k != "gt"}
 
     def coverage(select) -> dict:
-        e = np.concatenate([np.array(r["abs_err"]) for r in rows if "abs_err" in r and select(r["frame"])] or [np.zeros(0)])
+        e = np.concatenate(
+            [np.array(r["abs_err"]) for r in rows if "abs_err" in r and select(r["frame"])] or [np.zeros(0)]
+        )
         s = np.concatenate([np.array(r["sigma"]) for r in rows if "sigma" in r and select(r["frame"])] or [np.zeros(0)])
         return {"points": int(e.size), "within_2sigma": float(np.mean(e <= 2 * s)) if e.size else float("nan")}
 
@@ -197,8 +220,13 @@ def main() -> None:
         return float(np.mean(v)) if v else float("nan")
 
     stages = sorted({k for t in call_timings for k in t})
-    timing = {k: {"mean": float(np.mean([t[k] for t in call_timings if k in t])),
-                  "median": float(np.median([t[k] for t in call_timings if k in t]))} for k in stages}
+    timing = {
+        k: {
+            "mean": float(np.mean([t[k] for t in call_timings if k in t])),
+            "median": float(np.median([t[k] for t in call_timings if k in t])),
+        }
+        for k in stages
+    }
     bias = np.array([r["bias"] for r in rows if "bias" in r])
     npts = np.array([r["points"] for r in rows])
     # for comparison, the batch function on the first frame with the 8 frames after it (the
@@ -230,12 +258,18 @@ def main() -> None:
         "points_bias_per_frame": bias.tolist(),
         "frame0_batch_triangulation_with_frames_1_to_8": {
             "points": len(sd0),
-            "within_2sigma": float(np.mean(np.abs(z0[g0] - k0[g0]) <= 2 * np.asarray(sd0.sigma)[g0])) if g0.any() else None,
+            "within_2sigma": float(np.mean(np.abs(z0[g0] - k0[g0]) <= 2 * np.asarray(sd0.sigma)[g0]))
+            if g0.any()
+            else None,
         },
         "timing_s_per_keyframe": timing,
         "wall_s": wall,
         "torch_threads": args.threads,
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "note": "shared 2-core machine, timings noisy"},
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "note": "shared 2-core machine, timings noisy",
+        },
         "config": to_jsonable(asdict(config)),
         "gp_model": args.gp,
         "front_end": f"FastDepthTFLite({args.model.name})",
@@ -243,14 +277,21 @@ def main() -> None:
     }
     atomic_write(args.out, lambda p: p.write_text(json.dumps(summary, indent=2)))
 
-    print(f"\n7-Scenes, {n} frames at {work.width}x{work.height}, {npts.mean():.0f} points/frame ({int(np.sum(npts == 0))} frames without)")
+    print(
+        f"\n7-Scenes, {n} frames at {work.width}x{work.height}, {npts.mean():.0f} points/frame ({int(np.sum(npts == 0))} frames without)"
+    )
     for name, m in metrics.items():
-        print(f"{name:<12} F@5cm {m['fscore']:.3f}  precision {m['precision']:.3f}  recall {m['recall']:.3f}  accuracy {m['accuracy']:.3f} m")
+        print(
+            f"{name:<12} F@5cm {m['fscore']:.3f}  precision {m['precision']:.3f}  recall {m['recall']:.3f}  accuracy {m['accuracy']:.3f} m"
+        )
     print(
         f"per-frame RMSE: GP {mean_of('rmse_gp'):.3f} m, FastDepth {mean_of('rmse_mde'):.3f} m "
         f"(ratio {mean_of('rmse_gp') / mean_of('rmse_mde'):.3f})"
     )
-    print("2-sigma coverage: " + ", ".join(f"{k} {v['within_2sigma']:.3f}" for k, v in summary["points_coverage_2sigma"].items()))
+    print(
+        "2-sigma coverage: "
+        + ", ".join(f"{k} {v['within_2sigma']:.3f}" for k, v in summary["points_coverage_2sigma"].items())
+    )
     print("ms per keyframe (median): " + ", ".join(f"{k} {1e3 * v['median']:.0f}" for k, v in timing.items()))
     print(f"frame 0 (batch, later frames): {len(sd0)} points; written {args.out}")
 

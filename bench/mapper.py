@@ -35,7 +35,7 @@ import json
 import os
 import platform
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -99,10 +99,14 @@ def main(argv: list[str] | None = None) -> dict:
             mesh_incremental.append(time.perf_counter() - t0)
         if r is not None:
             results.append(r)
-        print(f"call {i:2d}: " + (f"frame {r.keyframe_id:2d} fused, {len(r.sparse):4d} points, " if r is not None else "(frame waits), ")
-              + ", ".join(f"{k} {1000 * v:6.1f}" for k, v in calls[-1].items())
-              + f" ms (process CPU {1000 * cpu[-1]:.0f} ms)" + (f", mesh() {1000 * mesh_incremental[-1]:.0f} ms" if r is not None else "")
-              + ("" if r is None or r.fused else f"  NOT FUSED: {r.error}"))
+        print(
+            f"call {i:2d}: "
+            + (f"frame {r.keyframe_id:2d} fused, {len(r.sparse):4d} points, " if r is not None else "(frame waits), ")
+            + ", ".join(f"{k} {1000 * v:6.1f}" for k, v in calls[-1].items())
+            + f" ms (process CPU {1000 * cpu[-1]:.0f} ms)"
+            + (f", mesh() {1000 * mesh_incremental[-1]:.0f} ms" if r is not None else "")
+            + ("" if r is None or r.fused else f"  NOT FUSED: {r.error}")
+        )
     load_after = os.getloadavg()
     t0 = time.perf_counter()
     results += mapper.flush()
@@ -136,7 +140,13 @@ def main(argv: list[str] | None = None) -> dict:
     scratch = TSDFFusion(mapper.work_camera, mapper.fusion.config)
     t0 = time.perf_counter()
     for kf in mapper.keyframes.values():
-        scratch.integrate(kf.depth, kf.T_world_camera, rgb=kf.rgb, weights=scratch.weights_for(kf.variance, kf.depth, points=kf.points), variance=kf.variance)
+        scratch.integrate(
+            kf.depth,
+            kf.T_world_camera,
+            rgb=kf.rgb,
+            weights=scratch.weights_for(kf.variance, kf.depth, points=kf.points),
+            variance=kf.variance,
+        )
     t_scratch = time.perf_counter() - t0
     a, b = _sorted_voxels(mapper.fusion), _sorted_voxels(scratch)
     same_voxels = a["coords"].shape == b["coords"].shape and bool(np.array_equal(a["coords"], b["coords"]))
@@ -181,7 +191,11 @@ def main(argv: list[str] | None = None) -> dict:
             "max_abs_difference": max_diff,
         },
         "torch_threads": args.threads,
-        "machine": {"platform": platform.platform(), "python": platform.python_version(), "note": "shared 2-core machine"},
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "note": "shared 2-core machine",
+        },
         "load_average_1min": {"before": load_before[0], "after": load_after[0]},  # other jobs on the machine
         "config": asdict(config),
         "front_end": f"FastDepthTFLite({args.model.name})",
@@ -189,19 +203,25 @@ def main(argv: list[str] | None = None) -> dict:
     atomic_write(args.out, lambda p: p.write_text(json.dumps(summary, indent=2)))
 
     print(f"\nload average (1 min) {load_before[0]:.2f} before the timed calls, {load_after[0]:.2f} after")
-    print(f"7-Scenes, {n} frames at {mapper.work_camera.width}x{mapper.work_camera.height}, "
-          f"{summary['frames_fused']} fused, median {summary['points_per_frame_median']:.0f} points a frame")
+    print(
+        f"7-Scenes, {n} frames at {mapper.work_camera.width}x{mapper.work_camera.height}, "
+        f"{summary['frames_fused']} fused, median {summary['points_per_frame_median']:.0f} points a frame"
+    )
     print(f"{'stage':<8}{'median ms':>11}{'mean ms':>10}{'p90 ms':>9}")
     for k in keys:
         s = per_stage[k]
         print(f"{k:<8}{s['median_ms']:>11.1f}{s['mean_ms']:>10.1f}{s['p90_ms']:>9.1f}")
     print(f"add_frame process CPU time: median {summary['add_frame_process_cpu_ms']['median']:.0f} ms")
-    print(f"mesh(): incremental after each frame median {1000 * np.median(mesh_incremental):.0f} ms "
-          f"(last 10 frames {1000 * np.median(mesh_incremental[-10:]):.0f} ms), full extraction at 60 frames {t_mesh:.3f} s "
-          f"({mesh_before} faces, full {len(full.faces)}), unchanged map {t_mesh_cached * 1000:.1f} ms; point_cloud() {t_cloud:.3f} s")
+    print(
+        f"mesh(): incremental after each frame median {1000 * np.median(mesh_incremental):.0f} ms "
+        f"(last 10 frames {1000 * np.median(mesh_incremental[-10:]):.0f} ms), full extraction at 60 frames {t_mesh:.3f} s "
+        f"({mesh_before} faces, full {len(full.faces)}), unchanged map {t_mesh_cached * 1000:.1f} ms; point_cloud() {t_cloud:.3f} s"
+    )
     lc = summary["loop_closure"]
-    print(f"update_poses (1 keyframe moved): {lc['update_poses_s']:.3f} s, {lc['reintegrated_keyframes']} keyframes re-integrated, "
-          f"{lc['blocks_rebuilt']} blocks; from scratch {lc['from_scratch_s']:.3f} s; identical voxels: {same_voxels}, max diff {max_diff}")
+    print(
+        f"update_poses (1 keyframe moved): {lc['update_poses_s']:.3f} s, {lc['reintegrated_keyframes']} keyframes re-integrated, "
+        f"{lc['blocks_rebuilt']} blocks; from scratch {lc['from_scratch_s']:.3f} s; identical voxels: {same_voxels}, max diff {max_diff}"
+    )
     print(f"written {args.out}")
     return summary
 

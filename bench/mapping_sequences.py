@@ -115,11 +115,18 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
             mde_volume.integrate(result.mde, frame.pose, rgb=mapper._work_rgb(frame.rgb))
         ref_volume.integrate(_resize_depth(frame.depth, work.shape), frame.pose, rgb=mapper._work_rgb(frame.rgb))
         inside, known = point_coverage(result, frame, camera)
-        rows.append({
-            "frame": result.keyframe_id, "points": len(result.sparse), "fused": result.fused,
-            "within_2sigma": inside, "with_sensor_depth": known, "error": result.error,
-            "fallback_weight": result.fallback_weight, "map_scale": result.map_scale,
-        })
+        rows.append(
+            {
+                "frame": result.keyframe_id,
+                "points": len(result.sparse),
+                "fused": result.fused,
+                "within_2sigma": inside,
+                "with_sensor_depth": known,
+                "error": result.error,
+                "fallback_weight": result.fallback_weight,
+                "map_scale": result.map_scale,
+            }
+        )
         results.append(result)
 
     add_ms = []
@@ -128,8 +135,14 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
         pts, sigma = (None, None) if map_points is None else map_points.get(i, (np.zeros((0, 3)), None))
         if sigma is not None and not len(sigma):
             sigma = None
-        result = mapper.add_frame(frame.rgb, frame.pose, mde_depth=mde_depths[i][0], keyframe_id=i,
-                                  map_points_world=pts, map_points_sigma=sigma)
+        result = mapper.add_frame(
+            frame.rgb,
+            frame.pose,
+            mde_depth=mde_depths[i][0],
+            keyframe_id=i,
+            map_points_world=pts,
+            map_points_sigma=sigma,
+        )
         add_ms.append(1000 * (time.perf_counter() - t0 + mde_depths[i][1]))
         if result is not None:
             record(result)
@@ -153,8 +166,11 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
         "points_with_sensor_depth": known,
         "frames_fused": int(sum(r["fused"] for r in rows)),
         "frame_errors": [r["error"] for r in rows if r["error"]],
-        "add_frame_ms": {"median": float(np.median(add_ms)), "mean": float(np.mean(add_ms)),
-                         "p90": float(np.percentile(add_ms, 90))},
+        "add_frame_ms": {
+            "median": float(np.median(add_ms)),
+            "mean": float(np.mean(add_ms)),
+            "p90": float(np.percentile(add_ms, 90)),
+        },
         "resolution": list(work.shape),
         "per_frame": rows,
     }
@@ -169,17 +185,27 @@ def colmap_run(frames: list, mde_depths: list, config, relative_sigma: float) ->
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:
-        model = read_colmap_model(triangulate_with_colmap([f.rgb for f in frames], [f.pose for f in frames],
-                                                          frames[0].camera, work))
+        model = read_colmap_model(
+            triangulate_with_colmap([f.rgb for f in frames], [f.pose for f in frames], frames[0].camera, work)
+        )
     seconds = time.perf_counter() - t0
     by_frame = {}
     for image_id, image in model.images.items():
         pts = model.map_points(image_id)
-        by_frame[int(image.name[:5])] = (pts, relative_sigma * np.linalg.norm(pts - frames[int(image.name[:5])].pose[:3, 3], axis=1))
+        by_frame[int(image.name[:5])] = (
+            pts,
+            relative_sigma * np.linalg.norm(pts - frames[int(image.name[:5])].pose[:3, 3], axis=1),
+        )
     row = run_sequence(frames, mde_depths, config, map_points=by_frame)
-    return {"fscore": row["fscore"], "points": int(len(model.points)), "seconds_pycolmap": seconds,
-            "relative_sigma_given": relative_sigma, "points_within_2sigma": row["points_within_2sigma"],
-            "points_per_frame_median": row["points_per_frame_median"], "metrics": row["metrics"]}
+    return {
+        "fscore": row["fscore"],
+        "points": int(len(model.points)),
+        "seconds_pycolmap": seconds,
+        "relative_sigma_given": relative_sigma,
+        "points_within_2sigma": row["points_within_2sigma"],
+        "points_per_frame_median": row["points_per_frame_median"],
+        "metrics": row["metrics"],
+    }
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -189,7 +215,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--sequences", nargs="+", default=["7scenes", "hololens"], choices=sorted(LOADERS))
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--colmap", action="store_true", help="also map with pycolmap's points")
-    parser.add_argument("--colmap-sigma", type=float, default=0.03, help="their depth sigma, a fraction of the distance")
+    parser.add_argument(
+        "--colmap-sigma", type=float, default=0.03, help="their depth sigma, a fraction of the distance"
+    )
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "mapping_sequences.json")
@@ -222,12 +250,18 @@ def main(argv: list[str] | None = None) -> dict:
             row["colmap"] = colmap_run(frames, mde_depths, replace(config, triangulate=False), args.colmap_sigma)
         row["config"] = asdict(config)
         report["sequences"][seq] = row
-        print(f"{seq}: F {row['fscore']:.3f} (MDE only {row['fscore_mde_only']:.3f}), points/frame "
-              f"{row['points_per_frame_median']:.0f}, <20 points in {row['frames_with_under_20_points']} frames, "
-              f"+-2 sigma {row['points_within_2sigma']}, add_frame median {row['add_frame_ms']['median']:.0f} ms"
-              + (f", pycolmap points F {row['colmap']['fscore']:.3f}" if args.colmap else ""), flush=True)
-    report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running",
-                         "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]}}
+        print(
+            f"{seq}: F {row['fscore']:.3f} (MDE only {row['fscore_mde_only']:.3f}), points/frame "
+            f"{row['points_per_frame_median']:.0f}, <20 points in {row['frames_with_under_20_points']} frames, "
+            f"+-2 sigma {row['points_within_2sigma']}, add_frame median {row['add_frame_ms']['median']:.0f} ms"
+            + (f", pycolmap points F {row['colmap']['fscore']:.3f}" if args.colmap else ""),
+            flush=True,
+        )
+    report["machine"] = {
+        "platform": platform.platform(),
+        "note": "shared 2-core machine, other jobs running",
+        "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]},
+    }
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
 

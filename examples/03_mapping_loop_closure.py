@@ -46,7 +46,9 @@ def _voxels(fusion: g.TSDFFusion) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=Path("../shared/data/7scenes"), help="a 7-Scenes folder")
-    parser.add_argument("--model", type=Path, default=Path("../shared/models/fast_depth_224.tflite"), help="FastDepth TFLite")
+    parser.add_argument(
+        "--model", type=Path, default=Path("../shared/models/fast_depth_224.tflite"), help="FastDepth TFLite"
+    )
     parser.add_argument("--frames", type=int, default=8, help="number of keyframes")
     parser.add_argument("--out", type=Path, default=Path("outputs/example03"), help="output folder")
     args = parser.parse_args(argv)
@@ -70,9 +72,11 @@ def main(argv: list[str] | None = None) -> dict:
         result = mapper.add_frame(f.rgb, pose, map_points_world=world, map_points_sigma=0.02, keyframe_id=i)
         true_poses[i] = f.pose
         reference.integrate(f.resized(0.25).depth, f.pose)
-        print(f"keyframe {i}: {result.map_points.used} map points, "
-              + ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in result.timings.items())
-              + ("" if result.fused else f"; not fused: {result.error}"))
+        print(
+            f"keyframe {i}: {result.map_points.used} map points, "
+            + ", ".join(f"{k} {1000 * v:.0f} ms" for k, v in result.timings.items())
+            + ("" if result.fused else f"; not fused: {result.error}")
+        )
 
     args.out.mkdir(parents=True, exist_ok=True)
     ref_mesh = reference.extract_mesh()
@@ -85,13 +89,21 @@ def main(argv: list[str] | None = None) -> dict:
     after = mapper.mesh()
     g.save_mesh(after, args.out / "mesh_after.ply")
     m_after = mesh_metrics(after, ref_mesh, samples=20_000)
-    print(f"update_poses: keyframe {drifted_id} moved, {len(update.reintegrated)} keyframes re-integrated over "
-          f"{update.blocks} blocks in {update.seconds:.2f} s")
+    print(
+        f"update_poses: keyframe {drifted_id} moved, {len(update.reintegrated)} keyframes re-integrated over "
+        f"{update.blocks} blocks in {update.seconds:.2f} s"
+    )
     print(f"F-score at 5 cm against the Kinect mesh: before {m_before['fscore']:.3f}, after {m_after['fscore']:.3f}")
 
     scratch = g.TSDFFusion(mapper.work_camera, mapper.fusion.config)
     for kf in mapper.keyframes.values():
-        scratch.integrate(kf.depth, kf.T_world_camera, rgb=kf.rgb, weights=scratch.weights_for(kf.variance, kf.depth, points=kf.points), variance=kf.variance)
+        scratch.integrate(
+            kf.depth,
+            kf.T_world_camera,
+            rgb=kf.rgb,
+            weights=scratch.weights_for(kf.variance, kf.depth, points=kf.points),
+            variance=kf.variance,
+        )
     a, b = _voxels(mapper.fusion), _voxels(scratch)
     identical = a["coords"].shape == b["coords"].shape and all(np.array_equal(a[k], b[k]) for k in a)
     print(f"volume after update_poses identical to fusing from scratch with the corrected poses: {identical}")

@@ -69,7 +69,7 @@ def test_readme_command_lines_are_found():
 @pytest.mark.slow
 def test_readme_command_lines_run_as_written(shared_data, monkeypatch, capsys):
     """Each `gpdepth3d ...` line of the README through the CLI entry point, in order, from the repository root
-    (`fuse`'s line is run by tests/test_mapping.py, `map`'s by tests/cli/test_map_cli.py; `batch --help` exits 0 through argparse/tyro)."""
+    (`fuse`'s line is run by tests/mapping/test_mapping.py, `map`'s by tests/cli/test_map_cli.py; `batch --help` exits 0 through argparse/tyro)."""
     import shlex
 
     from gpdepth3d.cli import main

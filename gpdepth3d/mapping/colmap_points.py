@@ -48,7 +48,9 @@ def _posed_model(database: Path, names: list[str], poses: list[np.ndarray]):
     for image in images:
         T_cw = invert_pose(poses[index[image.name]])
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(T_cw[:3, :3]), T_cw[:3, 3])
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id), pose)
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id), pose
+        )
     return rec
 
 
@@ -91,8 +93,15 @@ def triangulate_with_colmap(
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = int(threads)
     extraction.sift.max_num_features = int(max_features)
-    pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        database,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = int(overlap)
     pairing.num_threads = int(threads)

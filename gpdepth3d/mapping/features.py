@@ -75,9 +75,7 @@ def detect_features(rgb: np.ndarray, *, config: TriangulationConfig | None = Non
     return Features(uv, desc, config.detector)
 
 
-def fundamental_from_poses(
-    camera: PinholeCamera, T_world_a: np.ndarray, T_world_b: np.ndarray
-) -> np.ndarray:
+def fundamental_from_poses(camera: PinholeCamera, T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
     """Fundamental matrix F with x_b^T F x_a = 0 for pixels x_a of view a and x_b of view b."""
     T_ba = np.linalg.inv(check_pose(T_world_b, "T_world_b")) @ check_pose(T_world_a, "T_world_a")
     R, t = T_ba[:3, :3], T_ba[:3, 3]
@@ -99,11 +97,7 @@ def sampson_distance(F: np.ndarray, uv_a: np.ndarray, uv_b: np.ndarray) -> np.nd
 
 
 def match_features(
-    a: Features,
-    b: Features,
-    *,
-    config: TriangulationConfig | None = None,
-    F: np.ndarray | None = None,
+    a: Features, b: Features, *, config: TriangulationConfig | None = None, F: np.ndarray | None = None
 ) -> np.ndarray:
     """Matches descriptors of two images with Lowe's ratio test and mutual consistency.
 
@@ -130,9 +124,7 @@ def match_features(
     matcher = cv2.BFMatcher(norm)
     knn = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
     pairs = [
-        (m[0].queryIdx, m[0].trainIdx)
-        for m in knn
-        if len(m) == 2 and m[0].distance < config.ratio * m[1].distance
+        (m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < config.ratio * m[1].distance
     ]
     if not pairs:
         return np.zeros((0, 2), np.int64)
@@ -147,4 +139,3 @@ def match_features(
         err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
         pairs = pairs[np.isfinite(err) & (err <= config.max_epipolar_error)]
     return pairs
-

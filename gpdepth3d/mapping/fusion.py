@@ -169,25 +169,35 @@ class FusionConfig:
         if self.truncation < self.voxel_size:
             raise InvalidInputError("truncation", f">= voxel_size ({self.voxel_size} m)", self.truncation)
         if not (0 <= self.depth_min < self.depth_max):
-            raise InvalidInputError("depth_min, depth_max", "0 <= depth_min < depth_max", (self.depth_min, self.depth_max))
+            raise InvalidInputError(
+                "depth_min, depth_max", "0 <= depth_min < depth_max", (self.depth_min, self.depth_max)
+            )
         if self.weighting not in ("uniform", "variance"):
             raise InvalidInputError("weighting", "'uniform' or 'variance'", self.weighting)
         if not (np.isfinite(self.fallback_weight) and 0 <= self.fallback_weight <= 1):
             raise InvalidInputError("fallback_weight", "a weight in [0, 1]", self.fallback_weight)
         if self.relative_sigma_ref is not None and (
-            isinstance(self.relative_sigma_ref, bool) or not np.isfinite(self.relative_sigma_ref) or self.relative_sigma_ref <= 0
+            isinstance(self.relative_sigma_ref, bool)
+            or not np.isfinite(self.relative_sigma_ref)
+            or self.relative_sigma_ref <= 0
         ):
             raise InvalidInputError("relative_sigma_ref", "a finite value > 0 (or None)", self.relative_sigma_ref)
         if self.max_relative_sigma is not None and (
-            isinstance(self.max_relative_sigma, bool) or not np.isfinite(self.max_relative_sigma) or self.max_relative_sigma <= 0
+            isinstance(self.max_relative_sigma, bool)
+            or not np.isfinite(self.max_relative_sigma)
+            or self.max_relative_sigma <= 0
         ):
             raise InvalidInputError("max_relative_sigma", "a finite value > 0 (or None)", self.max_relative_sigma)
         if not np.isfinite(self.weight_threshold) or self.weight_threshold < 0:
             raise InvalidInputError("weight_threshold", "a finite value >= 0", self.weight_threshold)
         if not np.isfinite(self.truncation_sigma) or self.truncation_sigma < 0:
             raise InvalidInputError("truncation_sigma", "a finite value >= 0", self.truncation_sigma)
-        if not np.isfinite(self.truncation_max) or (self.truncation_sigma > 0 and self.truncation_max < self.truncation):
-            raise InvalidInputError("truncation_max", f"a finite value >= truncation ({self.truncation} m)", self.truncation_max)
+        if not np.isfinite(self.truncation_max) or (
+            self.truncation_sigma > 0 and self.truncation_max < self.truncation
+        ):
+            raise InvalidInputError(
+                "truncation_max", f"a finite value >= truncation ({self.truncation} m)", self.truncation_max
+            )
         if int(self.block_resolution) != self.block_resolution or self.block_resolution < 2:
             raise InvalidInputError("block_resolution", "an integer >= 2", self.block_resolution)
         if int(self.block_count) != self.block_count or self.block_count < 1:
@@ -547,7 +557,13 @@ class TSDFFusion:
             _to_torch(self.vbg.attribute(name))[buf_idx] = 0.0
 
     def _update(
-        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray,
+        self,
+        keys: np.ndarray,
+        d: np.ndarray,
+        w: np.ndarray,
+        color: np.ndarray | None,
+        var: np.ndarray | None,
+        T: np.ndarray,
         trunc: np.ndarray | None = None,
     ) -> int:
         """The voxel update of one frame over the blocks ``keys`` (see the module docstring).
@@ -565,22 +581,49 @@ class TSDFFusion:
         cfg = self.config
         tsdf = _to_torch(self.vbg.attribute("tsdf")).view(-1).numpy()
         weight = _to_torch(self.vbg.attribute("weight")).view(-1).numpy()
-        col = _to_torch(self.vbg.attribute("color")).view(-1).numpy() if cfg.integrate_color else np.zeros(0, np.float32)
-        vvox = _to_torch(self.vbg.attribute("variance")).view(-1).numpy() if cfg.integrate_variance else np.zeros(0, np.float32)
+        col = (
+            _to_torch(self.vbg.attribute("color")).view(-1).numpy() if cfg.integrate_color else np.zeros(0, np.float32)
+        )
+        vvox = (
+            _to_torch(self.vbg.attribute("variance")).view(-1).numpy()
+            if cfg.integrate_variance
+            else np.zeros(0, np.float32)
+        )
         cam = self.camera
         return int(
             _update_voxels(
-                blocks, buf, int(cfg.block_resolution), float(cfg.voxel_size), T_cw[:3, :3].copy(), T_cw[:3, 3].copy(),
-                float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
-                np.ascontiguousarray(d, np.float32), np.ascontiguousarray(w, np.float32),
+                blocks,
+                buf,
+                int(cfg.block_resolution),
+                float(cfg.voxel_size),
+                T_cw[:3, :3].copy(),
+                T_cw[:3, 3].copy(),
+                float(cam.fx),
+                float(cam.fy),
+                float(cam.cx),
+                float(cam.cy),
+                np.ascontiguousarray(d, np.float32),
+                np.ascontiguousarray(w, np.float32),
                 np.zeros((0, 0, 3), np.float32) if color is None else np.ascontiguousarray(color, np.float32),
                 np.zeros((0, 0), np.float32) if var is None else np.ascontiguousarray(var, np.float32),
-                np.ascontiguousarray(trunc, np.float32), float(cfg.tsdf_scale), float(cfg.weight_cap), tsdf, weight, col, vvox,
+                np.ascontiguousarray(trunc, np.float32),
+                float(cfg.tsdf_scale),
+                float(cfg.weight_cap),
+                tsdf,
+                weight,
+                col,
+                vvox,
             )
         )
 
     def _update_torch(
-        self, keys: np.ndarray, d: np.ndarray, w: np.ndarray, color: np.ndarray | None, var: np.ndarray | None, T: np.ndarray,
+        self,
+        keys: np.ndarray,
+        d: np.ndarray,
+        w: np.ndarray,
+        color: np.ndarray | None,
+        var: np.ndarray | None,
+        T: np.ndarray,
         trunc: np.ndarray | None = None,
     ) -> int:
         """`_update` as torch tensor operations (CUDA, and the CPU reference in the tests)."""
@@ -635,7 +678,9 @@ class TSDFFusion:
         weight[idx] = torch.clamp(wsum, max=float(cfg.weight_cap))
         return n
 
-    def block_keys(self, depth: np.ndarray, T_world_camera: np.ndarray, variance: np.ndarray | None = None) -> np.ndarray:
+    def block_keys(
+        self, depth: np.ndarray, T_world_camera: np.ndarray, variance: np.ndarray | None = None
+    ) -> np.ndarray:
         """(M,) sorted int64 keys of the blocks a depth frame's truncation band touches.
 
         The depth is filtered as `integrate` filters it (range and validity, not weights); the
@@ -646,7 +691,9 @@ class TSDFFusion:
         self.camera.check_image(d, "depth")
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(d) & (d > self.config.depth_min) & (d < self.config.depth_max)
-        return self._band_keys(np.where(ok, d, 0.0).astype(np.float32), T, self.config.pixel_truncation(variance, d.shape))
+        return self._band_keys(
+            np.where(ok, d, 0.0).astype(np.float32), T, self.config.pixel_truncation(variance, d.shape)
+        )
 
     def reset_blocks(self, keys: np.ndarray) -> int:
         """Zeroes TSDF, weight, colour and variance of the given blocks; returns how many existed.
@@ -699,9 +746,17 @@ class TSDFFusion:
             trunc = np.full(np.shape(depth), cfg.truncation, np.float32)
         if self._torch_device == "cpu":
             blocks = _band_blocks(
-                np.ascontiguousarray(depth, np.float32), float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy),
-                np.ascontiguousarray(T[:3, :3], np.float64), np.ascontiguousarray(T[:3, 3], np.float64),
-                np.ascontiguousarray(trunc, np.float32), step, float(cfg.voxel_size * cfg.block_resolution), int(self.BAND_TILE),
+                np.ascontiguousarray(depth, np.float32),
+                float(cam.fx),
+                float(cam.fy),
+                float(cam.cx),
+                float(cam.cy),
+                np.ascontiguousarray(T[:3, :3], np.float64),
+                np.ascontiguousarray(T[:3, 3], np.float64),
+                np.ascontiguousarray(trunc, np.float32),
+                step,
+                float(cfg.voxel_size * cfg.block_resolution),
+                int(self.BAND_TILE),
                 bool(self.BAND_CONSERVATIVE),
             )
             return _blocks_to_keys(blocks)  # the grid is walked in key order: sorted, unique
@@ -722,7 +777,9 @@ class TSDFFusion:
         # per tile: the nearest (depth - truncation) and the farthest (depth + truncation)
         big = torch.where(valid, d - tau, torch.full_like(d, float("inf")))[None, None]
         dmin = -torch.nn.functional.max_pool2d(-big, tile, ceil_mode=True)[0, 0]
-        dmax = torch.nn.functional.max_pool2d(torch.where(valid, d + tau, torch.full_like(d, -1.0))[None, None], tile, ceil_mode=True)[0, 0]
+        dmax = torch.nn.functional.max_pool2d(
+            torch.where(valid, d + tau, torch.full_like(d, -1.0))[None, None], tile, ceil_mode=True
+        )[0, 0]
         ty, tx = torch.nonzero(dmax > 0, as_tuple=True)
         if ty.numel() == 0:
             return np.zeros(0, np.int64)
@@ -770,8 +827,12 @@ class TSDFFusion:
             return None
         cfg = self.config
         return weights_from_variance(
-            variance, sigma_ref=cfg.sigma_ref, depth=depth, max_relative_sigma=cfg.max_relative_sigma,
-            relative_sigma_ref=cfg.relative_sigma_ref, fallback_weight=cfg.fallback_for(points),
+            variance,
+            sigma_ref=cfg.sigma_ref,
+            depth=depth,
+            max_relative_sigma=cfg.max_relative_sigma,
+            relative_sigma_ref=cfg.relative_sigma_ref,
+            fallback_weight=cfg.fallback_for(points),
         )
 
     def integrate_posterior(
@@ -812,7 +873,9 @@ class TSDFFusion:
             "weight": weight[keep].cpu().numpy().astype(np.float64),
         }
         if self.config.integrate_color:
-            out["color"] = self.vbg.attribute("color").reshape((-1, 3))[idx][keep].cpu().numpy().astype(np.float64) / 255
+            out["color"] = (
+                self.vbg.attribute("color").reshape((-1, 3))[idx][keep].cpu().numpy().astype(np.float64) / 255
+            )
         if self.config.integrate_variance:
             out["variance"] = self.vbg.attribute("variance").reshape((-1,))[idx][keep].cpu().numpy().astype(np.float64)
         return out
@@ -866,7 +929,6 @@ class TSDFFusion:
                 passes ``weight_threshold``.
         """
         import torch
-        import trimesh
 
         self._check_nonempty()
         o3d, o3c = self._o3d, self._o3c
@@ -888,7 +950,9 @@ class TSDFFusion:
                 blocks = o3c.Tensor(_keys_to_blocks(candidates), device=self._device)
                 buf, found = self.vbg.hashmap().find(blocks)
                 found_np = found.cpu().numpy().astype(bool).reshape(-1)
-                src = torch.as_tensor(buf.cpu().numpy().astype(np.int64).reshape(-1)[found_np], device=self._torch_device)
+                src = torch.as_tensor(
+                    buf.cpu().numpy().astype(np.int64).reshape(-1)[found_np], device=self._torch_device
+                )
                 grid = o3d.t.geometry.VoxelBlockGrid(
                     self._attributes,
                     tuple(o3c.float32 for _ in self._attributes),
@@ -1024,7 +1088,14 @@ class TSDFFusion:
         if path.suffix.lower() != ".npz":
             raise InvalidInputError("path", "a .npz file name", str(path))
         meta = {
-            "camera": [self.camera.fx, self.camera.fy, self.camera.cx, self.camera.cy, self.camera.width, self.camera.height],
+            "camera": [
+                self.camera.fx,
+                self.camera.fy,
+                self.camera.cx,
+                self.camera.cy,
+                self.camera.width,
+                self.camera.height,
+            ],
             "config": asdict(self.config),
             "frames_integrated": self.frames_integrated,
         }
@@ -1064,7 +1135,9 @@ class TSDFFusion:
 
 # ---------------------------------------------------------------------- compiled CPU kernels
 @nb.njit(cache=True, nogil=True)
-def _masked_frame(depth, weights, variance, depth_min, depth_max):  # pragma: no cover - compiled; tested through integrate
+def _masked_frame(
+    depth, weights, variance, depth_min, depth_max
+):  # pragma: no cover - compiled; tested through integrate
     """The pixels a frame fuses, in one pass (float64 inputs of one shape; ``variance`` may be (0, 0)).
 
     A pixel is fused when its depth is finite, in (depth_min, depth_max), its weight > 0 and
@@ -1102,7 +1175,27 @@ def _masked_frame(depth, weights, variance, depth_min, depth_max):  # pragma: no
 
 @nb.njit(cache=True, nogil=True)
 def _update_voxels(
-    blocks, buf, res, voxel_size, R_cw, t_cw, fx, fy, cx, cy, depth, wpix, color, var, trunc, scale, cap, tsdf, weight, col, vvox
+    blocks,
+    buf,
+    res,
+    voxel_size,
+    R_cw,
+    t_cw,
+    fx,
+    fy,
+    cx,
+    cy,
+    depth,
+    wpix,
+    color,
+    var,
+    trunc,
+    scale,
+    cap,
+    tsdf,
+    weight,
+    col,
+    vvox,
 ):  # pragma: no cover - compiled; tested against the torch update
     """The projective TSDF update of every voxel of the given blocks (see the module docstring).
 
@@ -1117,10 +1210,8 @@ def _update_voxels(
     has_var = var.shape[0] > 0
     n = 0
     r3 = res * res * res
-    # camera coordinates of voxel (x, y, z) of a block: origin + x * ex + y * ey + z * ez
+    # camera coordinates of voxel (x, y, z) of a block: the voxel (0, y, z) plus x steps along ex
     ex = R_cw[:, 0] * voxel_size
-    ey = R_cw[:, 1] * voxel_size
-    ez = R_cw[:, 2] * voxel_size
     for m in range(blocks.shape[0]):
         base = buf[m] * r3
         o0 = blocks[m, 0] * res
@@ -1170,7 +1261,9 @@ def _update_voxels(
 
 
 @nb.njit(cache=True, nogil=True)
-def _band_blocks(depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, conservative):  # pragma: no cover - compiled
+def _band_blocks(
+    depth, fx, fy, cx, cy, R, t, trunc, step, block_size, tile, conservative
+):  # pragma: no cover - compiled
     """(M, 3) int64 coordinates of the blocks the truncation band of a depth frame reaches, in
     key order (x, then y, then z).
 

@@ -68,9 +68,7 @@ def project_map_points(
     front = z > min_depth
     inside = front & camera.in_image(uv)
     keep = np.flatnonzero(finite)[inside]
-    sparse = project_points(
-        pc[inside], camera, min_depth=min_depth, sigma=None if sigma is None else sigma[keep]
-    )
+    sparse = project_points(pc[inside], camera, min_depth=min_depth, sigma=None if sigma is None else sigma[keep])
     stats = MapPointStats(
         given=int(n),
         nonfinite=int(n - finite.sum()),

@@ -56,37 +56,20 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose, transform_points
 from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
-from ..errors import (
-    CalibrationError,
-    DataFormatError,
-    GPDepthError,
-    InvalidInputError,
-    ShapeError,
-    describe,
-)
+from ..errors import CalibrationError, DataFormatError, GPDepthError, InvalidInputError, ShapeError, describe
 from ..gp.model import DepthGPConfig
 from ..io import save_npz, write_json
 from ..measurements import SparseDepth
 from .cloud import ColoredCloud
 from .features import detect_features
 from .fusion import FusionConfig, IntegrationStats, TSDFFusion, save_mesh
-from .map_points import (
-    MapPointStats,
-    merge_sparse,
-    project_map_points,
-)
+from .map_points import MapPointStats, merge_sparse, project_map_points
 from .refinding import RefindConfig, Refinder
 from .tracks import TrackTriangulator, triangulate_frames
-from .trajectories import (
-    InvertedPoseWarning,
-    PoseCheck,
-    check_pose_orientation,
-)
+from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation
 from .triangulation_config import TriangulationConfig
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
-
-
 
 
 def _resize_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -185,7 +168,11 @@ class MapperConfig:
             raise InvalidInputError("map_scale_weight", "a weight in [0, 1]", self.map_scale_weight)
         if not np.isfinite(self.map_scale_max_sigma) or self.map_scale_max_sigma <= 0:
             raise InvalidInputError("map_scale_max_sigma", "a fraction of the depth > 0", self.map_scale_max_sigma)
-        if isinstance(self.map_scale_keyframes, bool) or int(self.map_scale_keyframes) != self.map_scale_keyframes or self.map_scale_keyframes < 1:
+        if (
+            isinstance(self.map_scale_keyframes, bool)
+            or int(self.map_scale_keyframes) != self.map_scale_keyframes
+            or self.map_scale_keyframes < 1
+        ):
             raise InvalidInputError("map_scale_keyframes", "an integer >= 1", self.map_scale_keyframes)
         if not np.isfinite(self.min_baseline) or self.min_baseline < 0:
             raise InvalidInputError("min_baseline", "a distance >= 0 (metres)", self.min_baseline)
@@ -381,7 +368,7 @@ def map_scale(
     T = check_pose(T_world_camera)
     if len(sparse) < min_points:
         return 0.0, 0
-    kfs = list(stored)[-int(recent):]
+    kfs = list(stored)[-int(recent) :]
     if len(kfs) < min_keyframes:
         return 0.0, 0
     pts = transform_points(T, camera.backproject_pixels(sparse.uv, np.asarray(sparse.depth, dtype=np.float64)))
@@ -432,9 +419,13 @@ def _sigma_array(value: Any) -> np.ndarray:
     try:
         sigma = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise InvalidInputError("map_points_sigma", "depth sigma(s) in metres: a number or (N,) numbers", value) from None
+        raise InvalidInputError(
+            "map_points_sigma", "depth sigma(s) in metres: a number or (N,) numbers", value
+        ) from None
     if sigma.ndim > 1 or not np.all(np.isfinite(sigma)) or not np.all(sigma > 0):
-        raise InvalidInputError("map_points_sigma", "finite depth sigma(s) > 0 metres, a number or (N,)", describe(sigma))
+        raise InvalidInputError(
+            "map_points_sigma", "finite depth sigma(s) > 0 metres, a number or (N,)", describe(sigma)
+        )
     return sigma
 
 
@@ -707,7 +698,9 @@ class Mapper:
     def _get_tracker(self) -> TrackTriangulator:
         if self._tracker is None:
             lag = int(self.config.lag) if self._lagged else 0
-            self._tracker = TrackTriangulator(self.camera, self.config.triangulation, window=int(self.config.window), lag=lag)
+            self._tracker = TrackTriangulator(
+                self.camera, self.config.triangulation, window=int(self.config.window), lag=lag
+            )
         return self._tracker
 
     def _finish(self, entry: "_Pending", timings: dict, t_start: float) -> FrameResult:
@@ -723,9 +716,15 @@ class Mapper:
             tri = entry.triangulated
             weight = float(self.config.map_scale_weight)
             if weight > 0 and self.keyframes:
-                log_s, used = map_scale(tri, T, self.camera, self.keyframes.values(), self.work_camera,
-                                        recent=int(self.config.map_scale_keyframes),
-                                        max_relative_sigma=float(self.config.map_scale_max_sigma))
+                log_s, used = map_scale(
+                    tri,
+                    T,
+                    self.camera,
+                    self.keyframes.values(),
+                    self.work_camera,
+                    recent=int(self.config.map_scale_keyframes),
+                    max_relative_sigma=float(self.config.map_scale_max_sigma),
+                )
                 if used:
                     scale = float(np.exp(weight * log_s))
                     scale_var = weight * (1.0 - weight) * log_s**2
@@ -744,18 +743,34 @@ class Mapper:
             timings["total"] = time.perf_counter() - t_start
             self.timings.append(timings)
             return FrameResult(
-                empty, empty, mde, measurements, posterior, timings, kid, False, message, tuple(notes), 0,
-                entry.map_stats, entry.pose_check, scale,
+                empty,
+                empty,
+                mde,
+                measurements,
+                posterior,
+                timings,
+                kid,
+                False,
+                message,
+                tuple(notes),
+                0,
+                entry.map_stats,
+                entry.pose_check,
+                scale,
             )
 
         if entry.error is not None:
             return failed(entry.error[0], entry.error[1])
         check = entry.pose_check
         if check is not None and check.inverted and not self.config.fuse_inverted_poses:
-            return failed("pose check", CalibrationError(
-                "T_world_camera", "a pose that sees its map points (not fused: MapperConfig.fuse_inverted_poses)",
-                f"{check.visible:.0%} of {check.points} points visible, {check.visible_inverse:.0%} under its inverse",
-            ))
+            return failed(
+                "pose check",
+                CalibrationError(
+                    "T_world_camera",
+                    "a pose that sees its map points (not fused: MapperConfig.fuse_inverted_poses)",
+                    f"{check.visible:.0%} of {check.points} points visible, {check.visible_inverse:.0%} under its inverse",
+                ),
+            )
         mde = entry.mde
         work_shape = self.work_camera.shape
 
@@ -787,11 +802,15 @@ class Mapper:
         depth32 = np.where(bad, 0.0, depth).astype(np.float32)
         var32 = np.asarray(variance, dtype=np.float32)
         try:
-            stats = self._integrate(depth32, var32, T, entry.work_rgb, points=len(measurements) if self.config.refine else 0)
+            stats = self._integrate(
+                depth32, var32, T, entry.work_rgb, points=len(measurements) if self.config.refine else 0
+            )
         except Exception as exc:  # noqa: BLE001 - e.g. nothing in range; recorded, the run goes on
             timings["fusion"] = time.perf_counter() - t0
             result = failed("fusion", exc, mde, posterior)
-            return replace(result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked)
+            return replace(
+                result, depth=depth32.astype(np.float64), variance=var32.astype(np.float64), masked_pixels=masked
+            )
         fallback = self.fusion.config.fallback_for(len(measurements)) if self.config.refine else 1.0
         if stats.pixels == 0:
             notes.append(f"frame {kid}: no pixel informed by points and no fallback weight left: nothing fused")
@@ -804,8 +823,21 @@ class Mapper:
         timings["total"] = time.perf_counter() - t_start
         self.timings.append(timings)
         return FrameResult(
-            depth32.astype(np.float64), var32.astype(np.float64), mde, measurements, posterior, timings, kid, True,
-            None, tuple(notes), masked, entry.map_stats, entry.pose_check, scale, fallback,
+            depth32.astype(np.float64),
+            var32.astype(np.float64),
+            mde,
+            measurements,
+            posterior,
+            timings,
+            kid,
+            True,
+            None,
+            tuple(notes),
+            masked,
+            entry.map_stats,
+            entry.pose_check,
+            scale,
+            fallback,
         )
 
     def _check_frame_args(self, rgb: np.ndarray, mde_depth, sparse, keyframe_id) -> int:
@@ -829,12 +861,15 @@ class Mapper:
         h, w = mde_depth.shape
         if abs((w / h) / (self.camera.width / self.camera.height) - 1) > 0.01:
             raise ShapeError(
-                "mde_depth", f"a depth map with the aspect ratio of the {self.camera.width}x{self.camera.height} image", (h, w)
+                "mde_depth",
+                f"a depth map with the aspect ratio of the {self.camera.width}x{self.camera.height} image",
+                (h, w),
             )
         return mde_depth
 
-    def _integrate(self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None,
-                   points: int = 0) -> IntegrationStats:
+    def _integrate(
+        self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None, points: int = 0
+    ) -> IntegrationStats:
         weights = self.fusion.weights_for(var32, depth32, points=points)
         if weights is not None and not np.any(weights > 0):
             # every pixel uninformed and no fallback weight left: nothing to fuse, not a failure
@@ -928,7 +963,9 @@ class Mapper:
         redone = []
         for kid, kf in self.keyframes.items():
             if kid in new and kid in moved or np.intersect1d(kf.block_keys, blocks, assume_unique=True).size:
-                stats = self._integrate(kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks, points=kf.points)
+                stats = self._integrate(
+                    kf.depth, kf.variance, kf.T_world_camera, kf.rgb, blocks=blocks, points=kf.points
+                )
                 if kid in moved:
                     kf.block_keys = stats.block_keys
                 redone.append(kid)
@@ -1048,7 +1085,9 @@ class Mapper:
         mapper = cls(camera, config, mde=mde, completer=completer)
         fusion = TSDFFusion.load(folder / "volume.npz")
         if fusion.camera != mapper.work_camera:
-            raise DataFormatError(folder / "volume.npz", f"volume camera {fusion.camera} is not the map's {mapper.work_camera}")
+            raise DataFormatError(
+                folder / "volume.npz", f"volume camera {fusion.camera} is not the map's {mapper.work_camera}"
+            )
         mapper.fusion = fusion
         try:
             with np.load(folder / "keyframes.npz", allow_pickle=False) as d:

@@ -213,12 +213,23 @@ def _refined_depths(prob, rho, mask, xbar, obs, config: TriangulationConfig):
         return rho, r, valid
     # poses held: independent 1-D problems, one compiled loop over the tracks
     return _held_pose_depths(
-        xbar, obs, mask, prob.R, prob.t, prob.f, prob.c, prob.pixel_sigma, rho, final_scale,
+        xbar,
+        obs,
+        mask,
+        prob.R,
+        prob.t,
+        prob.f,
+        prob.c,
+        prob.pixel_sigma,
+        rho,
+        final_scale,
         float(config.max_reprojection_error),
     )
 
 
-def _pixel_noise(r: np.ndarray, valid: np.ndarray, unit: float, n_others: int, config: TriangulationConfig) -> tuple[float, float]:
+def _pixel_noise(
+    r: np.ndarray, valid: np.ndarray, unit: float, n_others: int, config: TriangulationConfig
+) -> tuple[float, float]:
     """(noise seen in the residuals, pixel sigma used) in pixels: the Rayleigh median of the 2-D
     residual norms (``r`` in units of ``unit`` pixels), dof-corrected, and at least ``config.pixel_sigma``."""
     n_obs = int(valid.sum())
@@ -231,7 +242,9 @@ def _pixel_noise(r: np.ndarray, valid: np.ndarray, unit: float, n_others: int, c
     return seen, max(float(config.pixel_sigma), seen)
 
 
-def _inverse_depth_variance(prob, rho, valid, xbar, sigma_px: float, seen: float, config: TriangulationConfig) -> np.ndarray:
+def _inverse_depth_variance(
+    prob, rho, valid, xbar, sigma_px: float, seen: float, config: TriangulationConfig
+) -> np.ndarray:
     """(N,) variance of each track's inverse depth: pixel noise and the poses' uncertainty."""
     if config.refine_poses:
         prob.pixel_sigma = sigma_px
@@ -316,11 +329,21 @@ def triangulate_tracks(
         raise InvalidInputError("reference", f"an index into {V} views", reference)
     ref = reference % V
     if n and not np.all(np.isfinite(tracks[:, ref])):
-        raise InvalidInputError("tracks", "every track seen (finite) in the reference view", "NaN in the reference view")
+        raise InvalidInputError(
+            "tracks", "every track seen (finite) in the reference view", "NaN in the reference view"
+        )
     others = [k for k in range(V) if k != ref]
     empty = MultiViewPoints(
-        np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)),
-        np.zeros(0, np.int64), np.zeros(0), np.zeros(0), Ts.copy(), float(config.pixel_sigma),
+        np.zeros(0, np.int64),
+        np.zeros((0, 2)),
+        np.zeros(0),
+        np.zeros(0),
+        np.zeros((0, 3)),
+        np.zeros(0, np.int64),
+        np.zeros(0),
+        np.zeros(0),
+        Ts.copy(),
+        float(config.pixel_sigma),
     )
     mask = np.all(np.isfinite(tracks[:, others]), axis=-1)
     keep = np.nonzero(mask.sum(axis=1) >= config.min_views - 1)[0]
@@ -335,8 +358,15 @@ def triangulate_tracks(
         [(uv_ref[:, 0] - camera.cx) / camera.fx, (uv_ref[:, 1] - camera.cy) / camera.fy, np.ones(len(keep))]
     )
     prob = _Problem(
-        xbar, obs, mask, T_jr[:, :3, :3], T_jr[:, :3, 3], camera,
-        config.pixel_sigma, np.radians(config.rotation_sigma_deg), config.translation_sigma,
+        xbar,
+        obs,
+        mask,
+        T_jr[:, :3, :3],
+        T_jr[:, :3, 3],
+        camera,
+        config.pixel_sigma,
+        np.radians(config.rotation_sigma_deg),
+        config.translation_sigma,
     )
     rho = _linear_inverse_depth(xbar, obs, mask, prob.R, prob.t, prob.f, prob.c)
     rho_ok = np.isfinite(rho) & (rho > 0)
@@ -487,7 +517,9 @@ def _held_pose_depths(xbar, obs, mask, R, t, f, c, pixel_sigma, rho0, scale, max
             if it == 3:  # drop the outliers of the first 3 steps
                 for j in range(nj):
                     if m[j]:
-                        _, _, _, r0, r1, ok = _residual(Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma)
+                        _, _, _, r0, r1, ok = _residual(
+                            Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma
+                        )
                         m[j] = ok and np.sqrt(r0 * r0 + r1 * r1) * pixel_sigma <= max_error
                 continue
             h = 0.0
@@ -495,7 +527,9 @@ def _held_pose_depths(xbar, obs, mask, R, t, f, c, pixel_sigma, rho0, scale, max
             for j in range(nj):
                 if not m[j]:
                     continue
-                p0, p1, p2, r0, r1, ok = _residual(Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma)
+                p0, p1, p2, r0, r1, ok = _residual(
+                    Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma
+                )
                 if not ok:
                     continue
                 iz2 = 1.0 / p2**2
@@ -510,7 +544,9 @@ def _held_pose_depths(xbar, obs, mask, R, t, f, c, pixel_sigma, rho0, scale, max
         rho[i] = x
         for j in range(nj):
             if m[j]:
-                _, _, _, r0, r1, ok = _residual(Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma)
+                _, _, _, r0, r1, ok = _residual(
+                    Rx[j, 0], Rx[j, 1], Rx[j, 2], x, t[j], obs[i, j, 0], obs[i, j, 1], f, c, pixel_sigma
+                )
                 if ok:
                     valid[i, j] = True
                     r_out[i, j, 0] = r0
@@ -650,4 +686,3 @@ def _levenberg_marquardt(prob: _Problem, rho: np.ndarray, scale: float, iteratio
         if not improved:
             break
     return rho
-

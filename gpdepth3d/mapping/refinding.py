@@ -61,7 +61,8 @@ class RefindConfig:
                 raise InvalidInputError(name, f"an integer >= {low}", value)
         if not 0 < self.min_parallax <= self.target_parallax <= self.max_parallax:
             raise InvalidInputError(
-                "min_parallax, target_parallax, max_parallax", "0 < min <= target <= max",
+                "min_parallax, target_parallax, max_parallax",
+                "0 < min <= target <= max",
                 (self.min_parallax, self.target_parallax, self.max_parallax),
             )
         if not 0 < self.max_angle_deg < 180:
@@ -108,15 +109,21 @@ class Refinder:
             ``variance_factor`` turned off (see the comment in the code).
     """
 
-    def __init__(self, camera: PinholeCamera, config: RefindConfig | None = None,
-                 triangulation: TriangulationConfig | None = None):
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        config: RefindConfig | None = None,
+        triangulation: TriangulationConfig | None = None,
+    ):
         self.camera = camera
         self.config = config or RefindConfig()
         base = triangulation or TriangulationConfig()
         detector = "orb" if self.config.detector == "none" else self.config.detector
         # the residuals' pixel noise already enters sigma; the a-posteriori factor would scale the poses'
         # share by it too, while descriptor keypoints' larger residuals are their localisation, not pose error
-        self.triangulation = replace(base, detector=detector, max_features=int(self.config.max_features), variance_factor=False)
+        self.triangulation = replace(
+            base, detector=detector, max_features=int(self.config.max_features), variance_factor=False
+        )
         self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | None]
 
     def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object) -> None:
@@ -156,6 +163,10 @@ class Refinder:
             return SparseDepth.empty(self.camera.shape)
         keys = [*views, key]
         return triangulate_frames(
-            [self._frames[k][0] for k in keys], [self._frames[k][1] for k in keys], self.camera,
-            reference=-1, config=self.triangulation, features=[self._features(k) for k in keys],
+            [self._frames[k][0] for k in keys],
+            [self._frames[k][1] for k in keys],
+            self.camera,
+            reference=-1,
+            config=self.triangulation,
+            features=[self._features(k) for k in keys],
         )

@@ -10,19 +10,17 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose
 from ..errors import InvalidInputError, ShapeError, describe
 from ..measurements import SparseDepth
-from .features import (
-    Features,
-    _gray,
-    detect_features,
-    fundamental_from_poses,
-    match_features,
-)
+from .features import Features, _gray, detect_features, fundamental_from_poses, match_features
 from .multiview import MultiViewPoints, triangulate_tracks
 from .triangulation_config import TriangulationConfig
 
 
 def _track_klt(
-    grays: Sequence[np.ndarray], shape: tuple[int, int], start: np.ndarray, order: Sequence[int], config: TriangulationConfig
+    grays: Sequence[np.ndarray],
+    shape: tuple[int, int],
+    start: np.ndarray,
+    order: Sequence[int],
+    config: TriangulationConfig,
 ) -> np.ndarray:
     """Tracks keypoints of view order[0] through the views in ``order`` with pyramidal Lucas-Kanade.
 
@@ -36,8 +34,11 @@ def _track_klt(
     out[:, order[0]] = start
     alive = np.arange(n)
     prev = start.astype(np.float32)
-    params = dict(winSize=(config.klt_window, config.klt_window), maxLevel=config.klt_levels,
-                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03))
+    params = dict(
+        winSize=(config.klt_window, config.klt_window),
+        maxLevel=config.klt_levels,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
+    )
     h, w = shape
     for a, b in zip(order[:-1], order[1:]):
         if alive.size == 0:
@@ -55,7 +56,9 @@ def _track_klt(
     return out
 
 
-def _match_tracks(feats: Sequence[Features], ref: int, camera: PinholeCamera, poses, config: TriangulationConfig) -> np.ndarray:
+def _match_tracks(
+    feats: Sequence[Features], ref: int, camera: PinholeCamera, poses, config: TriangulationConfig
+) -> np.ndarray:
     """Star tracks: every reference keypoint with its descriptor match in each other view."""
     n = len(feats[ref])
     out = np.full((n, len(feats), 2), np.nan)
@@ -214,7 +217,9 @@ class TrackTriangulator:
             `gpdepth3d.mapping.mapper.POSE_TRACK_SHARE`).
     """
 
-    def __init__(self, camera: PinholeCamera, config: TriangulationConfig | None = None, *, window: int = 4, lag: int = 0):
+    def __init__(
+        self, camera: PinholeCamera, config: TriangulationConfig | None = None, *, window: int = 4, lag: int = 0
+    ):
         if not isinstance(camera, PinholeCamera):
             raise InvalidInputError("camera", "a PinholeCamera", type(camera).__name__)
         if isinstance(window, bool) or int(window) != window or window < 1:
@@ -332,7 +337,9 @@ class TrackTriangulator:
         self.tracks_seen[self.last_key] = int(seen.sum())
         if not seen.any():
             return SparseDepth.empty(self.camera.shape)
-        mv = triangulate_tracks(tracks[seen], self._poses, self.camera, reference=col, config=self.config, _checked=True)
+        mv = triangulate_tracks(
+            tracks[seen], self._poses, self.camera, reference=col, config=self.config, _checked=True
+        )
         # point rows refer to the tracks given; map back to all tracks
         self.last = replace(mv, index=np.nonzero(seen)[0][mv.index])
         return mv.to_sparse(self.camera.shape)
@@ -362,7 +369,8 @@ class TrackTriangulator:
             if alive.size:
                 prev = tracks[alive, -1].astype(np.float32).reshape(-1, 1, 2)
                 params = dict(
-                    winSize=(cfg.klt_window, cfg.klt_window), maxLevel=cfg.klt_levels,
+                    winSize=(cfg.klt_window, cfg.klt_window),
+                    maxLevel=cfg.klt_levels,
                     criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
                 )
                 nxt, st, _ = cv2.calcOpticalFlowPyrLK(self._gray, gray, prev, None, **params)
@@ -374,7 +382,11 @@ class TrackTriangulator:
                 nxt = nxt.reshape(-1, 2).astype(np.float64)
                 ok &= (nxt[:, 0] >= 0) & (nxt[:, 0] <= w - 1) & (nxt[:, 1] >= 0) & (nxt[:, 1] <= h - 1)
                 new_col[alive[ok], 0] = nxt[ok]
-        tracks = np.concatenate([tracks.reshape(n, c, 2), new_col], axis=1) if self._gray is not None else np.zeros((0, 1, 2))
+        tracks = (
+            np.concatenate([tracks.reshape(n, c, 2), new_col], axis=1)
+            if self._gray is not None
+            else np.zeros((0, 1, 2))
+        )
         self._poses.append(T)
         self._keys.append(key)
         keep_cols = self.window + self.lag + 1
@@ -403,8 +415,12 @@ class TrackTriangulator:
                 small_mask = cv2.dilate(small_mask, disc)
             small_mask = 255 - small_mask
             corners = cv2.goodFeaturesToTrack(
-                small, int(cfg.max_features - n_live), 0.01, max(1.0, cfg.min_corner_distance / 2),
-                mask=small_mask, blockSize=3,
+                small,
+                int(cfg.max_features - n_live),
+                0.01,
+                max(1.0, cfg.min_corner_distance / 2),
+                mask=small_mask,
+                blockSize=3,
             )
             if corners is not None:
                 corners = corners * 2.0 + 0.5
@@ -412,4 +428,3 @@ class TrackTriangulator:
                 new[:, -1] = corners.reshape(-1, 2)
                 tracks = np.concatenate([tracks, new], axis=0)
         self._tracks = tracks
-

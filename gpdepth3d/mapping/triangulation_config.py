@@ -82,8 +82,14 @@ class TriangulationConfig:
         if not 0 < self.ratio <= 1:
             raise InvalidInputError("ratio", "a value in (0, 1]", self.ratio)
         for name in (
-            "max_epipolar_error", "max_reprojection_error", "pixel_sigma", "max_depth", "max_relative_sigma",
-            "rotation_sigma_deg", "translation_sigma", "min_corner_distance",
+            "max_epipolar_error",
+            "max_reprojection_error",
+            "pixel_sigma",
+            "max_depth",
+            "max_relative_sigma",
+            "rotation_sigma_deg",
+            "translation_sigma",
+            "min_corner_distance",
         ):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
@@ -96,4 +102,3 @@ class TriangulationConfig:
             raise InvalidInputError("min_parallax_deg", "an angle in [0, 90) degrees", self.min_parallax_deg)
         if not 0 <= self.min_depth < self.max_depth:
             raise InvalidInputError("min_depth", f"0 <= min_depth < max_depth ({self.max_depth})", self.min_depth)
-

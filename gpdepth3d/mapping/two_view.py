@@ -8,12 +8,7 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose
 from ..errors import ShapeError, describe
-from .features import (
-    Features,
-    detect_features,
-    fundamental_from_poses,
-    match_features,
-)
+from .features import Features, detect_features, fundamental_from_poses, match_features
 from .tracks import build_tracks
 from .triangulation_config import TriangulationConfig
 
@@ -104,9 +99,7 @@ def triangulate_matches(
         err = np.maximum(np.linalg.norm(proj_r - uv_ref, axis=1), np.linalg.norm(proj_o - uv_other, axis=1))
         ray_r = X - T_wr[:3, 3]
         ray_o = X - T_wo[:3, 3]
-        cosang = np.einsum("ij,ij->i", ray_r, ray_o) / (
-            np.linalg.norm(ray_r, axis=1) * np.linalg.norm(ray_o, axis=1)
-        )
+        cosang = np.einsum("ij,ij->i", ray_r, ray_o) / (np.linalg.norm(ray_r, axis=1) * np.linalg.norm(ray_o, axis=1))
     parallax = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
     ok &= np.isfinite(err) & (err <= config.max_reprojection_error)
     ok &= np.isfinite(parallax) & (parallax >= config.min_parallax_deg)
@@ -167,20 +160,22 @@ def triangulate_pair(
     camera.check_image(rgb_other, "rgb_other")
     if config.detector == "klt":
         tracks = build_tracks(
-            [rgb_ref, rgb_other], [T_world_ref, T_world_other], camera, reference=0, config=config,
+            [rgb_ref, rgb_other],
+            [T_world_ref, T_world_other],
+            camera,
+            reference=0,
+            config=config,
             features=None if features is None else [features[0], features[1]],
         )
         seen = np.isfinite(tracks[:, 1, 0])
-        return triangulate_matches(
-            tracks[seen, 0], tracks[seen, 1], camera, T_world_ref, T_world_other, config=config
-        )
-    fa, fb = features if features is not None else (
-        detect_features(rgb_ref, config=config),
-        detect_features(rgb_other, config=config),
+        return triangulate_matches(tracks[seen, 0], tracks[seen, 1], camera, T_world_ref, T_world_other, config=config)
+    fa, fb = (
+        features
+        if features is not None
+        else (detect_features(rgb_ref, config=config), detect_features(rgb_other, config=config))
     )
     F = fundamental_from_poses(camera, T_world_ref, T_world_other)
     pairs = match_features(fa, fb, config=config, F=F)
     return triangulate_matches(
         fa.uv[pairs[:, 0]], fb.uv[pairs[:, 1]], camera, T_world_ref, T_world_other, config=config
     )
-

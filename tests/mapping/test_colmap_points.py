@@ -52,13 +52,22 @@ def test_pycolmap_points_with_fixed_poses_agree_with_the_sensor_and_feed_the_map
         errors.append(np.abs(z[inside][d > 0] - d[d > 0]) / d[d > 0])
     assert np.median(np.concatenate(errors)) < 0.03
     # and the Mapper takes them as SLAM map points (no own triangulation)
-    config = MapperConfig(triangulate=False, working_scale=0.5, gp=DepthGPConfig.residual(engine="exact"),
-                          fusion=FusionConfig(voxel_size=0.05, truncation=0.15))
+    config = MapperConfig(
+        triangulate=False,
+        working_scale=0.5,
+        gp=DepthGPConfig.residual(engine="exact"),
+        fusion=FusionConfig(voxel_size=0.05, truncation=0.15),
+    )
     mapper = Mapper(cam, config)
     image_id = model.image_by_name("00003.png")
     pts = model.map_points(image_id)
-    res = mapper.add_frame(rgbs[3], poses[3], mde_depth=np.full((180, 270), 2.0), map_points_world=pts,
-                           map_points_sigma=0.03 * np.linalg.norm(pts - poses[3][:3, 3], axis=1))
+    res = mapper.add_frame(
+        rgbs[3],
+        poses[3],
+        mde_depth=np.full((180, 270), 2.0),
+        map_points_world=pts,
+        map_points_sigma=0.03 * np.linalg.norm(pts - poses[3][:3, 3], axis=1),
+    )
     assert res.fused and res.map_points.used > 50
 
 

@@ -68,7 +68,9 @@ class TestGeometry:
         rng = np.random.default_rng(1)
         X = _scene(60, seed=2)
         Ta, Tb = _pose(0.0), _pose(0.25)
-        cfg = TriangulationConfig(max_relative_sigma=1.0, max_reprojection_error=10.0, min_parallax_deg=0.5, pixel_sigma=1.0)
+        cfg = TriangulationConfig(
+            max_relative_sigma=1.0, max_reprojection_error=10.0, min_parallax_deg=0.5, pixel_sigma=1.0
+        )
         ua, ub = _project(X, Ta), _project(X, Tb)
         ref = triangulate_matches(ua, ub, CAM, Ta, Tb, config=cfg)
         assert len(ref) == 60
@@ -119,7 +121,9 @@ class TestGeometry:
         feats = [Features(uv, desc, "sift") for uv in uvs]
         rgbs = [np.zeros((480, 640, 3), np.uint8)] * 3
         # pixel noise only (tiny pose priors), as the pair's sigma
-        sift = TriangulationConfig(detector="sift", depth_sigma_floor=0.0, rotation_sigma_deg=1e-5, translation_sigma=1e-6)
+        sift = TriangulationConfig(
+            detector="sift", depth_sigma_floor=0.0, rotation_sigma_deg=1e-5, translation_sigma=1e-6
+        )
         sparse = triangulate_frames(rgbs, poses, CAM, reference=1, features=feats, config=sift)
         pair = triangulate_pair(rgbs[1], rgbs[0], CAM, poses[1], poses[0], features=(feats[1], feats[0]), config=sift)
         assert len(sparse) >= len(pair) > 100
@@ -156,13 +160,22 @@ class TestGeometry:
         with pytest.raises(InvalidInputError):
             TriangulationConfig(depth_sigma_floor=-0.1)
         with pytest.raises(InvalidInputError):  # KLT corners carry no descriptors to match
-            match_features(Features(ua, np.zeros((10, 0), np.float32), "klt"), Features(ub, np.zeros((10, 0), np.float32), "klt"))
+            match_features(
+                Features(ua, np.zeros((10, 0), np.float32), "klt"), Features(ub, np.zeros((10, 0), np.float32), "klt")
+            )
         with pytest.raises(InvalidInputError):  # features of another detector than configured
-            triangulate_frames([np.zeros((480, 640, 3), np.uint8)] * 2, [Ta, Tb], CAM, features=[Features(ua, np.zeros((10, 128), np.float32), "sift")] * 2)
+            triangulate_frames(
+                [np.zeros((480, 640, 3), np.uint8)] * 2,
+                [Ta, Tb],
+                CAM,
+                features=[Features(ua, np.zeros((10, 128), np.float32), "sift")] * 2,
+            )
         with pytest.raises(InvalidInputError):
             TriangulationConfig(ratio=1.5)
         with pytest.raises(InvalidInputError):
-            match_features(Features(ua, np.zeros((10, 32), np.uint8), "orb"), Features(ub, np.zeros((10, 128), np.float32), "sift"))
+            match_features(
+                Features(ua, np.zeros((10, 32), np.uint8), "orb"), Features(ub, np.zeros((10, 128), np.float32), "sift")
+            )
 
 
 def _rot(rx: float, ry: float, rz: float) -> np.ndarray:
@@ -239,7 +252,11 @@ class TestTriangulateTracks:
         poses = _views()
         clean = _tracks(X, poses)
         cfg = TriangulationConfig(
-            pixel_sigma=0.5, rotation_sigma_deg=0.1, translation_sigma=0.005, depth_sigma_floor=0.0, max_relative_sigma=1.0,
+            pixel_sigma=0.5,
+            rotation_sigma_deg=0.1,
+            translation_sigma=0.005,
+            depth_sigma_floor=0.0,
+            max_relative_sigma=1.0,
             variance_factor=False,
         )
         inside, z_scores = [], []
@@ -257,8 +274,13 @@ class TestTriangulateTracks:
         assert 0.8 < np.std(np.concatenate(z_scores)) < 1.25
         # the pose uncertainty is what makes sigma grow with the depth faster than pixel noise
         # alone does: without it (tiny pose priors) the same tracks get much smaller sigmas
-        tight = TriangulationConfig(pixel_sigma=0.5, rotation_sigma_deg=1e-5, translation_sigma=1e-6, depth_sigma_floor=0.0,
-                                    max_relative_sigma=1.0)
+        tight = TriangulationConfig(
+            pixel_sigma=0.5,
+            rotation_sigma_deg=1e-5,
+            translation_sigma=1e-6,
+            depth_sigma_floor=0.0,
+            max_relative_sigma=1.0,
+        )
         a = triangulate_tracks(clean, poses, CAM, reference=0, config=tight)
         b = triangulate_tracks(clean, poses, CAM, reference=0, config=cfg)
         assert np.median(b.sigma / a.sigma) > 1.5
@@ -339,7 +361,9 @@ class TestTriangulateTracks:
         poses = _views()
         tracks = _tracks(X, poses)
         off = [poses[0]] + [T @ _posed([0.0, 0.0, 0.0], (0.3, -0.3, 0.2)) for T in poses[1:]]
-        cfg = TriangulationConfig(refine_poses=True, rotation_sigma_deg=1.0, translation_sigma=0.01, max_relative_sigma=1.0)
+        cfg = TriangulationConfig(
+            refine_poses=True, rotation_sigma_deg=1.0, translation_sigma=0.01, max_relative_sigma=1.0
+        )
         mv = triangulate_tracks(tracks, off, CAM, reference=0, config=cfg)
         fixed = triangulate_tracks(tracks, off, CAM, reference=0, config=TriangulationConfig(max_relative_sigma=1.0))
 
@@ -349,7 +373,9 @@ class TestTriangulateTracks:
 
         for k in (1, 2, 3):
             assert angle(mv.poses[k], poses[k]) < 0.2 * angle(off[k], poses[k])
-        assert np.median(np.abs(mv.depth / X[mv.index, 2] - 1)) < 0.5 * np.median(np.abs(fixed.depth / X[fixed.index, 2] - 1))
+        assert np.median(np.abs(mv.depth / X[mv.index, 2] - 1)) < 0.5 * np.median(
+            np.abs(fixed.depth / X[fixed.index, 2] - 1)
+        )
 
     def test_checks_and_errors(self):
         X = _scene(50, seed=14)
@@ -464,12 +490,16 @@ class TestTrackTriangulator:
         tex = _texture(1)
         poses = [_posed([0.04 * k, 0.0, 0.0]) for k in range(5)]
         views = [_render_plane(T, tex) for T in poses]
-        sparse = triangulate_frames([v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300))
+        sparse = triangulate_frames(
+            [v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300)
+        )
         assert len(sparse) > 100
         iu = np.rint(sparse.uv).astype(int)
         truth = views[0][1][iu[:, 1], iu[:, 0]]
         assert np.median(np.abs(sparse.depth - truth) / truth) < 0.01
-        tracks = build_tracks([v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300))
+        tracks = build_tracks(
+            [v[0] for v in views], poses, SMALL, reference=0, config=TriangulationConfig(max_features=300)
+        )
         assert tracks.shape[1:] == (5, 2) and np.isfinite(tracks[:, 4, 0]).sum() > 100
         with pytest.raises(InvalidInputError):
             build_tracks([v[0] for v in views], poses, SMALL, reference=5)
@@ -609,5 +639,3 @@ class TestRealSequence:
         e, s, k = _against_kinect(frames[0], rgb_cam, sparse)
         assert np.median(e / k) < 0.08
         assert 0.85 <= np.mean(e <= 2 * s) <= 0.99
-
-

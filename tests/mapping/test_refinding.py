@@ -32,7 +32,11 @@ class TestSelectViews:
             "turned away": _at(0.3, yaw_deg=90.0),
         }
         cfg = RefindConfig(views=3)
-        assert select_views(_at(0.0), 2.0, candidates, cfg) == ["ideal", "near", "far"]  # |log(p / 0.15)|: 0, 1.10, 1.20
+        assert select_views(_at(0.0), 2.0, candidates, cfg) == [
+            "ideal",
+            "near",
+            "far",
+        ]  # |log(p / 0.15)|: 0, 1.10, 1.20
         assert select_views(_at(0.0), 2.0, candidates, RefindConfig(views=1)) == ["ideal"]
         # the same baselines seen from farther away: less parallax, the far view becomes the best one
         assert select_views(_at(0.0), 6.0, candidates, RefindConfig(views=1)) == ["far"]
@@ -133,7 +137,11 @@ def test_mapper_refinds_where_tracks_fail_and_reports_frames_without_points(shar
     on, off = run(RefindConfig()), run(RefindConfig(detector="none"))
     points_on, points_off = np.array([len(r.sparse) for r in on]), np.array([len(r.sparse) for r in off])
     assert len(on) == len(off) == len(idx) and all(r.fused for r in on)
-    assert np.all(points_on >= points_off) and (points_off < 20).sum() >= 2 and (points_on < 20).sum() < (points_off < 20).sum()
+    assert (
+        np.all(points_on >= points_off)
+        and (points_off < 20).sum() >= 2
+        and (points_on < 20).sum() < (points_off < 20).sum()
+    )
     lonely = [r for r in off if len(r.sparse) == 0]
     assert len(lonely) >= 2
     for r in lonely:  # a frame without points: fused down-weighted, and said so

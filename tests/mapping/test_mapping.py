@@ -15,13 +15,7 @@ from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.mapping.fusion import FusionConfig
 from gpdepth3d.gp.model import DepthGPConfig
-from gpdepth3d.mapping import (
-    Mapper,
-    MapperConfig,
-    merge_sparse,
-    project_map_points,
-    sparse_from_map_points,
-)
+from gpdepth3d.mapping import Mapper, MapperConfig, merge_sparse, project_map_points, sparse_from_map_points
 from gpdepth3d.cli.fuse import fuse_command
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.mapping.triangulation import TriangulationConfig
@@ -128,8 +122,9 @@ class TestMapper:
             pts, _ = cam.backproject(f.depth)
             pts = pts[rng.choice(len(pts), 150, replace=False)]
             world = pts @ f.pose[:3, :3].T + f.pose[:3, 3]
-            res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=world,
-                                   map_points_sigma=0.01)
+            res = mapper.add_frame(
+                f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=world, map_points_sigma=0.01
+            )
             gt = project_points(cam.backproject(f.depth)[0], mapper.work_camera).to_depth_map()
             ok = gt > 0
             err_mde = np.median(np.abs(res.mde[ok] - gt[ok]))
@@ -153,7 +148,10 @@ class TestMapper:
             return np.full((120, 160), 2.0)  # any resolution of the same aspect ratio
 
         config = MapperConfig(
-            working_scale=0.25, max_points=80, gp=DepthGPConfig.residual(engine="exact"), fusion=FusionConfig(voxel_size=0.05, truncation=0.15),
+            working_scale=0.25,
+            max_points=80,
+            gp=DepthGPConfig.residual(engine="exact"),
+            fusion=FusionConfig(voxel_size=0.05, truncation=0.15),
             triangulation=TriangulationConfig(detector="orb"),
         )
         mapper = Mapper(cam, config, mde=front_end)
@@ -170,8 +168,15 @@ class TestMapper:
 
     def test_mde_only_mode(self, shared_data):
         f = _frames(shared_data, (0,))[0]
-        mapper = Mapper(f.camera, MapperConfig(refine=False, triangulate=False, working_scale=0.25,
-                                               fusion=FusionConfig(voxel_size=0.04, truncation=0.12)))
+        mapper = Mapper(
+            f.camera,
+            MapperConfig(
+                refine=False,
+                triangulate=False,
+                working_scale=0.25,
+                fusion=FusionConfig(voxel_size=0.04, truncation=0.12),
+            ),
+        )
         res = mapper.add_frame(f.rgb, f.pose, mde_depth=f.depth)
         assert res.posterior is None and np.all(np.isnan(res.variance))
         assert mapper.fusion.config.weighting == "uniform"
@@ -200,8 +205,13 @@ class TestMapper:
                 mapper.add_frame(rgb, np.eye(4), mde_depth=np.ones((60, 80)), keyframe_id=bad_id)
         for bad_sigma in ("x", -1.0, float("nan"), np.ones((2, 2)), [0.1, "y"]):
             with pytest.raises(InvalidInputError, match="map_points_sigma"):
-                mapper.add_frame(rgb, np.eye(4), mde_depth=np.ones((60, 80)), map_points_world=np.ones((2, 3)),
-                                 map_points_sigma=bad_sigma)
+                mapper.add_frame(
+                    rgb,
+                    np.eye(4),
+                    mde_depth=np.ones((60, 80)),
+                    map_points_world=np.ones((2, 3)),
+                    map_points_sigma=bad_sigma,
+                )
         assert mapper.frames == 0 and not mapper.pending  # refused before anything was added
         empty = mapper.add_frame(rgb, np.eye(4), mde_depth=np.zeros((60, 80)))  # data, not an error
         assert not empty.fused and empty.error.startswith("frame 0: ") and mapper.failures == [empty.error]
@@ -218,8 +228,17 @@ class TestFuseCommand:
         out = tmp_path / "fuse"
         # 4 frames: with 3 the tracker triangulates no point, every pixel keeps the GP prior's sigma (> 20 %
         # of depth, FusionConfig.max_relative_sigma) and the variance-weighted mesh is empty (reported, not written)
-        summary = fuse_command(shared_data / "7scenes", out, mde=str(model), frames=4, working_scale=0.25, voxel_size=0.05,
-                               truncation=0.15, sigma_ref=1.0, metric_samples=5000)
+        summary = fuse_command(
+            shared_data / "7scenes",
+            out,
+            mde=str(model),
+            frames=4,
+            working_scale=0.25,
+            voxel_size=0.05,
+            truncation=0.15,
+            sigma_ref=1.0,
+            metric_samples=5000,
+        )
         names = sorted(p.name for p in out.iterdir())
         assert names == ["mesh_gp_uniform.ply", "mesh_gp_variance.ply", "mesh_gt.ply", "mesh_mde.ply", "metrics.json"]
         on_disk = json.loads((out / "metrics.json").read_text())
@@ -246,8 +265,11 @@ def _world_points(frame, n: int, seed: int) -> np.ndarray:
 
 def _small_config(**overrides) -> MapperConfig:
     # weights from sigma in metres (these tests' GP is the residual one, less certain in relative terms)
-    base = dict(triangulate=False, working_scale=0.25,
-                fusion=FusionConfig(voxel_size=0.04, truncation=0.12, relative_sigma_ref=None))
+    base = dict(
+        triangulate=False,
+        working_scale=0.25,
+        fusion=FusionConfig(voxel_size=0.04, truncation=0.12, relative_sigma_ref=None),
+    )
     return MapperConfig(**{**base, **overrides})
 
 
@@ -286,7 +308,9 @@ class TestRobustness:
         world = np.vstack([_world_points(f, 150, 0), outlier])
         sigma = np.r_[np.full(150, 0.01), 0.002]
         mapper = Mapper(cam, _small_config())
-        res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=world, map_points_sigma=sigma)
+        res = mapper.add_frame(
+            f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=world, map_points_sigma=sigma
+        )
         assert res.fused and res.error is None
         assert np.all(np.isfinite(res.depth)) and res.depth.min() >= 0
         assert res.map_points.given == 151 and res.map_points.outside == 0
@@ -297,7 +321,9 @@ class TestRobustness:
     def test_negative_and_nan_mean_masked_and_counted(self, shared_data):
         f = _frames(shared_data, (0,))[0]
         mapper = Mapper(f.camera, _small_config(), completer=_NegativeCompleter())
-        res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 100, 0))
+        res = mapper.add_frame(
+            f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 100, 0)
+        )
         assert res.fused and res.masked_pixels == 7
         assert res.depth[0, 0] == 0 and res.depth[5, 5] == 0 and np.all(np.isfinite(res.depth))
         assert any("7 pixels" in w for w in res.warnings)
@@ -342,7 +368,11 @@ class TestRobustness:
         assert res.map_points.used < 50 and res.map_points.outside + res.map_points.behind > 150
         assert any("looks inverted" in w for w in res.warnings) and any("outside the image" in w for w in res.warnings)
         # the flagged frame is reported by name and not fused; the run goes on
-        assert not res.fused and res.error.startswith("frame 0: pose check: CalibrationError") and mapper.failures == [res.error]
+        assert (
+            not res.fused
+            and res.error.startswith("frame 0: pose check: CalibrationError")
+            and mapper.failures == [res.error]
+        )
         assert 0 not in mapper.keyframes and mapper.frames == 0
         forced = Mapper(f.camera, replace(_small_config(), fuse_inverted_poses=True))
         with pytest.warns(InvertedPoseWarning):
@@ -351,7 +381,9 @@ class TestRobustness:
         # a correct pose: map points with NaN rows and some outside the image are counted, not silently dropped
         cam_pts = np.array([[5.0, 0.0, 1.0], [0.0, 0.0, -1.0], [np.nan, 0.0, 1.0]])
         extra = cam_pts @ f.pose[:3, :3].T + f.pose[:3, 3]
-        res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=np.vstack([world, extra]))
+        res = mapper.add_frame(
+            f.rgb, f.pose, mde_depth=_standin_mde(f.depth), map_points_world=np.vstack([world, extra])
+        )
         assert (res.map_points.outside, res.map_points.behind, res.map_points.nonfinite) == (1, 1, 1)
         assert not res.pose_check.inverted
 
@@ -442,7 +474,12 @@ class TestLoopClosure:
 
         # save and load: the same volume and keyframes; the loaded map goes on updating and fusing
         mapper.save(tmp_path / "map")
-        assert sorted(p.name for p in (tmp_path / "map").iterdir()) == ["keyframes.npz", "mapper.json", "volume.json", "volume.npz"]
+        assert sorted(p.name for p in (tmp_path / "map").iterdir()) == [
+            "keyframes.npz",
+            "mapper.json",
+            "volume.json",
+            "volume.npz",
+        ]
         loaded = Mapper.load(tmp_path / "map")
         c = _sorted_voxels(loaded.fusion)
         for k in a:
@@ -469,7 +506,9 @@ class TestLoopClosure:
     def test_point_cloud_carries_variance(self, shared_data):
         frames = _frames(shared_data, (0, 2))
         sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
-        mapper = self._run(frames, [f.pose for f in frames], _small_config(gp=DepthGPConfig.residual(engine="exact")), sparse)
+        mapper = self._run(
+            frames, [f.pose for f in frames], _small_config(gp=DepthGPConfig.residual(engine="exact")), sparse
+        )
         cloud = mapper.point_cloud()
         assert len(cloud) > 100 and np.all(np.isfinite(cloud.variance)) and np.all(cloud.variance > 0)
         stored = np.concatenate([kf.variance.ravel() for kf in mapper.keyframes.values()])
@@ -492,7 +531,7 @@ class TestFuseAsTheReadmeSays:
         (run from the repository root; only the output folder is moved into tmp_path)."""
         from gpdepth3d.cli import main
 
-        repo = Path(__file__).resolve().parents[1]
+        repo = Path(__file__).resolve().parents[2]
         if shared_data.resolve() != (repo.parent / "shared" / "data").resolve():
             pytest.skip("the README's relative paths need the data at ../shared/data")
         if not (repo.parent / "shared" / "models" / "fast_depth_224.tflite").is_file():
@@ -517,8 +556,17 @@ class TestFuseAsTheReadmeSays:
         pytest.importorskip("ai_edge_litert")
         # one frame whose variance weights (sigma_ref 1 mm) stay below the weight threshold: the
         # variance-weighted mesh is empty, reported, not written; the others are written
-        summary = fuse_command(shared_data / "7scenes", tmp_path, mde=str(model), frames=1, working_scale=0.25,
-                               voxel_size=0.05, truncation=0.15, sigma_ref=0.001, metric_samples=2000)
+        summary = fuse_command(
+            shared_data / "7scenes",
+            tmp_path,
+            mde=str(model),
+            frames=1,
+            working_scale=0.25,
+            voxel_size=0.05,
+            truncation=0.15,
+            sigma_ref=0.001,
+            metric_samples=2000,
+        )
         assert summary["frames_fused"] == 1
         assert "gp_variance" in summary["empty_meshes"] and summary["metrics"]["gp_variance"] is None
         assert all(Path(p).is_file() for p in summary["meshes_written"])
@@ -548,8 +596,13 @@ class TestFixedLag:
     """The Mapper's fixed lag: a frame is triangulated from earlier and later views, then fused."""
 
     def _config(self, **kw) -> MapperConfig:
-        base = dict(working_scale=0.25, window=3, lag=2, gp=DepthGPConfig.residual(engine="exact"),
-                    fusion=FusionConfig(voxel_size=0.04, truncation=0.12))
+        base = dict(
+            working_scale=0.25,
+            window=3,
+            lag=2,
+            gp=DepthGPConfig.residual(engine="exact"),
+            fusion=FusionConfig(voxel_size=0.04, truncation=0.12),
+        )
         return MapperConfig(**{**base, **kw})
 
     def test_frames_come_back_after_lag_calls_with_points_from_both_sides(self, shared_data):
@@ -680,7 +733,9 @@ class TestFusedDepth:
         f = _frames(shared_data, (0,))[0]
         for estimate in ("median", "mean"):
             mapper = Mapper(f.camera, _small_config(fuse_depth=estimate))
-            res = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 60, 0))
+            res = mapper.add_frame(
+                f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 60, 0)
+            )
             expected = fused_depth(res.posterior, estimate)
             np.testing.assert_allclose(res.depth, expected.astype(np.float32), rtol=1e-6)
             if estimate == "median":
@@ -709,7 +764,9 @@ class TestMapScale:
             T = np.eye(4)
             T[:3, 3] = [0.05 * k, 0.02 * k, 0.0]
             d = depth_map(T).astype(np.float32)
-            stored.append(Keyframe(k, T, d, (0.01 * d) ** 2, np.zeros(cam.shape + (3,), np.uint8), np.zeros(0, np.int64)))
+            stored.append(
+                Keyframe(k, T, d, (0.01 * d) ** 2, np.zeros(cam.shape + (3,), np.uint8), np.zeros(0, np.int64))
+            )
         T = np.eye(4)
         T[:3, 3] = [0.12, 0.05, 0.0]
         return cam, stored, T, depth_map(T)
@@ -748,13 +805,18 @@ class TestMapScale:
         for weight in (0.0, 0.5):
             mapper = Mapper(cam, _small_config(triangulate=True, lag=0, map_scale_weight=weight))
             mapper._triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
-            scaled = {i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma) for i, s in enumerate(sparse)}
+            scaled = {
+                i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma)
+                for i, s in enumerate(sparse)
+            }
             for i, f in enumerate(frames):
                 results[weight, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
         assert all(results[0.0, i].map_scale == 1.0 for i in range(5))
         assert [results[0.5, i].map_scale for i in range(3)] == [1.0] * 3  # fewer than 3 keyframes before them
         assert results[0.5, 4].map_scale == pytest.approx(np.sqrt(1.3), rel=0.03)  # halfway, in log
-        np.testing.assert_allclose(np.sort(results[0.5, 4].sparse.depth), np.sort(1.3 * sparse[4].depth / results[0.5, 4].map_scale), rtol=1e-9)
+        np.testing.assert_allclose(
+            np.sort(results[0.5, 4].sparse.depth), np.sort(1.3 * sparse[4].depth / results[0.5, 4].map_scale), rtol=1e-9
+        )
         with pytest.raises(InvalidInputError):
             MapperConfig(map_scale_weight=1.5)
         with pytest.raises(InvalidInputError):
@@ -770,7 +832,10 @@ class TestMapScale:
         frames = _frames(shared_data, (0, 1, 2, 3, 4))
         cam = frames[0].camera
         sparse = [_kinect_sparse(f, cam, 150, i) for i, f in enumerate(frames)]
-        scaled = {i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma) for i, s in enumerate(sparse)}
+        scaled = {
+            i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma)
+            for i, s in enumerate(sparse)
+        }
         results = {}
         for key, kw in (("on", {}), ("off", dict(scale_variance=False)), ("strict", dict(map_scale_max_sigma=1e-6))):
             mapper = Mapper(cam, _small_config(triangulate=True, lag=0, **kw))
@@ -785,12 +850,18 @@ class TestMapScale:
         for i in (3, 4):
             r = results["on", i]
             log_s = np.log(r.map_scale) / w  # the frame's disagreement with the map; a share w of it corrected
-            np.testing.assert_allclose(r.variance, r.posterior.variance + w * (1 - w) * log_s**2 * r.depth**2, rtol=1e-5)
+            np.testing.assert_allclose(
+                r.variance, r.posterior.variance + w * (1 - w) * log_s**2 * r.depth**2, rtol=1e-5
+            )
         assert np.nanmedian(on.variance / on.posterior.variance) > 1.05  # a real share, not rounding
         for i in range(3):  # no map scale (fewer than 3 keyframes before them): no extra variance
-            np.testing.assert_allclose(results["on", i].variance, results["on", i].posterior.variance.astype(np.float32), rtol=1e-6)
+            np.testing.assert_allclose(
+                results["on", i].variance, results["on", i].posterior.variance.astype(np.float32), rtol=1e-6
+            )
         assert results["strict", 4].map_scale == 1.0
-        np.testing.assert_allclose(results["strict", 4].variance, results["strict", 4].posterior.variance.astype(np.float32), rtol=1e-6)
+        np.testing.assert_allclose(
+            results["strict", 4].variance, results["strict", 4].posterior.variance.astype(np.float32), rtol=1e-6
+        )
 
 
 class TestUncertainPixels:
@@ -807,7 +878,9 @@ class TestUncertainPixels:
                 var[:, output_shape[1] // 2 :] = (rel_sigma_right * 1.5) ** 2
                 return SimpleNamespace(mean=np.full(output_shape, 1.5), variance=var, config=None)
 
-        cfg = MapperConfig(triangulate=False, fusion=FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.01, **fusion))
+        cfg = MapperConfig(
+            triangulate=False, fusion=FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.01, **fusion)
+        )
         return Mapper(CAM, cfg, completer=Completer())
 
     def test_uninformed_pixels_fall_back_unless_the_frame_has_points(self):

@@ -159,8 +159,14 @@ class TestIntegrate:
         var = np.full(CAM.shape, 0.01)
         var[:, :40] = 0.09
         post = SimpleNamespace(mean=_plane(), variance=var)
-        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, weight_threshold=0.0, sigma_ref=0.1,
-                           relative_sigma_ref=None, max_relative_sigma=None)
+        cfg = FusionConfig(
+            voxel_size=0.02,
+            truncation=0.06,
+            weight_threshold=0.0,
+            sigma_ref=0.1,
+            relative_sigma_ref=None,
+            max_relative_sigma=None,
+        )
         weighted = TSDFFusion(CAM, cfg)
         weighted.integrate_posterior(post, np.eye(4))
         uniform = TSDFFusion(CAM, FusionConfig(**{**cfg.__dict__, "weighting": "uniform"}))
@@ -224,14 +230,20 @@ class TestTruncationFromVariance:
     def test_pixel_truncation_and_validation(self):
         cfg = FusionConfig(voxel_size=0.02, truncation=0.08, truncation_sigma=2.0, truncation_max=0.3)
         var = np.array([[0.0, 0.05**2, 0.1**2], [0.5**2, np.nan, -1.0]])
-        np.testing.assert_allclose(cfg.pixel_truncation(var, var.shape), [[0.08, 0.1, 0.2], [0.3, 0.08, 0.08]], rtol=1e-6)
+        np.testing.assert_allclose(
+            cfg.pixel_truncation(var, var.shape), [[0.08, 0.1, 0.2], [0.3, 0.08, 0.08]], rtol=1e-6
+        )
         assert cfg.pixel_truncation(None, (2, 3)).tolist() == [[np.float32(0.08)] * 3] * 2
         assert cfg.tsdf_scale == 0.3 and FusionConfig(truncation=0.08).tsdf_scale == 0.08
         off = FusionConfig(voxel_size=0.02, truncation=0.08)  # the default: fixed truncation, variance or not
         np.testing.assert_array_equal(off.pixel_truncation(var, var.shape), np.full(var.shape, np.float32(0.08)))
         with pytest.raises(ShapeError):
             cfg.pixel_truncation(var, (3, 2))
-        for bad in (dict(truncation_sigma=-1.0), dict(truncation_sigma=np.nan), dict(truncation_sigma=1.0, truncation_max=0.05)):
+        for bad in (
+            dict(truncation_sigma=-1.0),
+            dict(truncation_sigma=np.nan),
+            dict(truncation_sigma=1.0, truncation_max=0.05),
+        ):
             with pytest.raises(InvalidInputError):
                 FusionConfig(voxel_size=0.02, truncation=0.08, **bad)
         FusionConfig(voxel_size=0.02, truncation=0.5)  # truncation_max only matters with truncation_sigma > 0
@@ -245,7 +257,9 @@ class TestTruncationFromVariance:
         var[:, CAM.width // 2 :] = 0.16
 
         def surfaces(cut, points):
-            fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, max_relative_sigma=cut, weight_threshold=0.01))
+            fusion = TSDFFusion(
+                CAM, FusionConfig(voxel_size=0.02, truncation=0.06, max_relative_sigma=cut, weight_threshold=0.01)
+            )
             fusion.integrate(depth, np.eye(4), weights=fusion.weights_for(var, depth, points=points), variance=var)
             z = fusion.extract_mesh().vertices[:, 2]
             return bool(np.abs(z - 1.5).min() < 0.01), bool(np.abs(z - 1.8).min() < 0.01)
@@ -257,7 +271,9 @@ class TestTruncationFromVariance:
         # a frame with every pixel above the cut and many points has nothing to fuse
         fusion = TSDFFusion(CAM)
         with pytest.raises(EmptyInputError):
-            fusion.integrate(_plane(1.8), np.eye(4), weights=fusion.weights_for(np.full(CAM.shape, 0.16), _plane(1.8), points=400))
+            fusion.integrate(
+                _plane(1.8), np.eye(4), weights=fusion.weights_for(np.full(CAM.shape, 0.16), _plane(1.8), points=400)
+            )
 
     @pytest.mark.parametrize("sigma_far, expected", [(0.3, 1.461), (0.4, 1.437)])
     def test_disagreeing_frames_meet_at_their_weighted_mean(self, sigma_far, expected):
@@ -265,9 +281,19 @@ class TestTruncationFromVariance:
         # truncation following sigma one surface at the mean weighted by 1 / (1 + var / sigma_ref^2);
         # with the fixed 8 cm truncation two surfaces, at each reading
         def fused(k):
-            fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.08, truncation_sigma=k, truncation_max=0.4,
-                                                  sigma_ref=0.3, weight_threshold=0.3, max_relative_sigma=None,
-                                                  relative_sigma_ref=None))
+            fusion = TSDFFusion(
+                CAM,
+                FusionConfig(
+                    voxel_size=0.02,
+                    truncation=0.08,
+                    truncation_sigma=k,
+                    truncation_max=0.4,
+                    sigma_ref=0.3,
+                    weight_threshold=0.3,
+                    max_relative_sigma=None,
+                    relative_sigma_ref=None,
+                ),
+            )
             for z, s in ((1.311, 0.3), (1.611, sigma_far)):
                 v = np.full(CAM.shape, s**2)
                 fusion.integrate(_plane(z), np.eye(4), weights=fusion.weights_for(v), variance=v)
@@ -283,7 +309,9 @@ class TestTruncationFromVariance:
 
     def test_band_and_update_match_torch_and_reach_the_wide_band(self):
         rng = np.random.default_rng(21)
-        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, truncation_sigma=1.5, truncation_max=0.3, integrate_variance=True)
+        cfg = FusionConfig(
+            voxel_size=0.02, truncation=0.06, truncation_sigma=1.5, truncation_max=0.3, integrate_variance=True
+        )
         compiled, reference = TSDFFusion(CAM, cfg), TSDFFusion(CAM, cfg)
         reference._update = reference._update_torch  # type: ignore[method-assign]
         reference._band_keys = compiled._band_keys  # the same blocks: compare the update alone
@@ -305,7 +333,9 @@ class TestTruncationFromVariance:
             offs = np.linspace(-1.0, 1.0, 33)[None, :, None] * trunc[v, u][:, None, None]
             pts = (rays[:, None, :] * (d32[v, u][:, None, None] + offs)).reshape(-1, 3)
             assert np.isin(np.unique(_keys_of(pts @ T[:3, :3].T + T[:3, 3], bs)), ours).mean() > 0.9
-            kw = dict(weights=fusion_weights(var), variance=var, rgb=rng.integers(0, 255, CAM.shape + (3,), dtype=np.uint8))
+            kw = dict(
+                weights=fusion_weights(var), variance=var, rgb=rng.integers(0, 255, CAM.shape + (3,), dtype=np.uint8)
+            )
             n1, n2 = compiled.integrate(d, T, **kw).voxels, reference.integrate(d, T, **kw).voxels
             # torch computes in float32: voxels within rounding of a half pixel or of a band end differ
             assert abs(n1 - n2) <= 0.003 * n2 and n1 > 1000
@@ -321,12 +351,16 @@ class TestTruncationFromVariance:
 
     def test_reset_and_reintegrate_equals_from_scratch(self):
         rng = np.random.default_rng(5)
-        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, truncation_sigma=1.0, truncation_max=0.25, integrate_variance=True)
+        cfg = FusionConfig(
+            voxel_size=0.02, truncation=0.06, truncation_sigma=1.0, truncation_max=0.25, integrate_variance=True
+        )
         depths = [1.4 + 0.3 * rng.random(CAM.shape) for _ in range(3)]
         variances = [rng.uniform(0.0, 0.3, CAM.shape) ** 2 for _ in range(3)]
         poses = [_shift(0.1 * i) for i in range(3)]
         fusion = TSDFFusion(CAM, cfg)
-        stats = [fusion.integrate(d, T, variance=v, weights=fusion_weights(v)) for d, T, v in zip(depths, poses, variances)]
+        stats = [
+            fusion.integrate(d, T, variance=v, weights=fusion_weights(v)) for d, T, v in zip(depths, poses, variances)
+        ]
         moved = list(poses)
         moved[1] = _shift(0.16, 0.03)
         affected = np.union1d(stats[1].block_keys, fusion.block_keys(depths[1], moved[1], variances[1]))
@@ -418,12 +452,18 @@ class TestRobustness:
         cfg = FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True, depth_max=5.0)
         fusion = TSDFFusion(CAM, cfg)
         stats = fusion.integrate(depth.astype(np.float32), np.eye(4), weights=weights, variance=variance)
-        kept = (depth > cfg.depth_min) & (depth < cfg.depth_max) & (weights > 0) & np.isfinite(variance) & (variance >= 0)
+        kept = (
+            (depth > cfg.depth_min) & (depth < cfg.depth_max) & (weights > 0) & np.isfinite(variance) & (variance >= 0)
+        )
         assert stats.invalid_pixels == 1 and stats.pixels == kept.sum() == CAM.width * CAM.height - 21
         # the same voxels as the frame with those pixels set to no depth
         clean = TSDFFusion(CAM, cfg)
-        clean.integrate(np.where(kept, depth, 0.0).astype(np.float32), np.eye(4), weights=weights,
-                        variance=np.where(kept, variance, 0.0))
+        clean.integrate(
+            np.where(kept, depth, 0.0).astype(np.float32),
+            np.eye(4),
+            weights=weights,
+            variance=np.where(kept, variance, 0.0),
+        )
         a, b = _sorted_voxels(fusion), _sorted_voxels(clean)
         for k in a:
             np.testing.assert_array_equal(a[k], b[k])
@@ -472,13 +512,18 @@ class TestReintegration:
     @pytest.mark.parametrize("color", [True, False])
     def test_reset_and_reintegrate_equals_from_scratch(self, color):
         rng = np.random.default_rng(3)
-        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True, integrate_color=color, weight_cap=2.5)
+        cfg = FusionConfig(
+            voxel_size=0.02, truncation=0.06, integrate_variance=True, integrate_color=color, weight_cap=2.5
+        )
         depths = [1.4 + 0.3 * rng.random(CAM.shape) for _ in range(4)]
         variances = [rng.uniform(0.001, 0.02, CAM.shape) for _ in range(4)]
         rgbs = [rng.integers(0, 255, CAM.shape + (3,), dtype=np.uint8) for _ in range(4)]
         poses = [_shift(0.1 * i) for i in range(4)]
         fusion = TSDFFusion(CAM, cfg)
-        stats = [fusion.integrate(d, T, variance=v, rgb=c, weights=1 / (1 + v)) for d, T, v, c in zip(depths, poses, variances, rgbs)]
+        stats = [
+            fusion.integrate(d, T, variance=v, rgb=c, weights=1 / (1 + v))
+            for d, T, v, c in zip(depths, poses, variances, rgbs)
+        ]
         moved = list(poses)
         moved[1] = _shift(0.13, 0.02)
         affected = np.union1d(stats[1].block_keys, fusion.block_keys(depths[1], moved[1]))
@@ -518,7 +563,9 @@ class TestReintegration:
 class TestPersistence:
     def test_save_load_round_trip(self, tmp_path: Path):
         fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.02, truncation=0.06, integrate_variance=True))
-        fusion.integrate(_plane(), np.eye(4), variance=np.full(CAM.shape, 0.01), rgb=np.full(CAM.shape + (3,), 90, np.uint8))
+        fusion.integrate(
+            _plane(), np.eye(4), variance=np.full(CAM.shape, 0.01), rgb=np.full(CAM.shape + (3,), 90, np.uint8)
+        )
         path = fusion.save(tmp_path / "map" / "volume.npz")
         assert sorted(p.name for p in path.parent.iterdir()) == ["volume.json", "volume.npz"]
         loaded = TSDFFusion.load(path)
@@ -568,7 +615,9 @@ class TestIncrementalMesh:
         poses = [_shift(0.0), _shift(0.3), _shift(0.6, 0.1), _shift(1.5)]
         stats = []
         for i, T in enumerate(poses):
-            depth = 1.2 + 0.4 * rng.random() + 0.05 * np.sin(np.arange(CAM.width) / 7.0)[None, :] * np.ones((CAM.height, 1))
+            depth = (
+                1.2 + 0.4 * rng.random() + 0.05 * np.sin(np.arange(CAM.width) / 7.0)[None, :] * np.ones((CAM.height, 1))
+            )
             stats.append(fusion.integrate(depth, T, rgb=np.full(CAM.shape + (3,), 40 * i, np.uint8)))
             inc, full = fusion.extract_mesh_incremental(), fusion.extract_mesh()
             assert len(inc.faces) == len(full.faces) > 100
@@ -641,13 +690,17 @@ class TestCompiledUpdate:
     def test_voxels_match_the_torch_update(self, color, variance):
         rng = np.random.default_rng(12)
         poses, depths = self._frames(rng)
-        cfg = FusionConfig(voxel_size=0.02, truncation=0.06, integrate_color=color, integrate_variance=variance, weight_cap=2.5)
+        cfg = FusionConfig(
+            voxel_size=0.02, truncation=0.06, integrate_color=color, integrate_variance=variance, weight_cap=2.5
+        )
         cam = self.CAM
         compiled, reference = TSDFFusion(cam, cfg), TSDFFusion(cam, cfg)
         reference._update = reference._update_torch  # type: ignore[method-assign]
         reference._band_keys = compiled._band_keys  # the same blocks for both: compare the update alone
         for d, T in zip(depths, poses):
-            kw = dict(rgb=rng.integers(0, 255, cam.shape + (3,), dtype=np.uint8), weights=rng.uniform(0.2, 1.0, cam.shape))
+            kw = dict(
+                rgb=rng.integers(0, 255, cam.shape + (3,), dtype=np.uint8), weights=rng.uniform(0.2, 1.0, cam.shape)
+            )
             if variance:
                 kw["variance"] = rng.uniform(0.001, 0.02, cam.shape)
             n1, n2 = compiled.integrate(d, T, **kw).voxels, reference.integrate(d, T, **kw).voxels
