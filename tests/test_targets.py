@@ -1,4 +1,4 @@
-"""The default model's accuracy and calibration targets (issue 13) end to end on ../shared/data.
+"""The default model's accuracy and calibration targets end to end on ../shared/data.
 
 Seeded; skipped when the data, the networks or their runtimes are absent. Each test runs the
 library's default `DepthCompleter()` on real frames with real networks (FastDepth indoors,
