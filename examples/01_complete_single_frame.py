@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=None, help="a 7-Scenes folder (default: synthetic scene)")
     parser.add_argument("--points", type=int, default=200, help="number of sparse points")
-    parser.add_argument("--out", type=Path, default=Path("outputs/example01"), help="output folder")
+    parser.add_argument("--output", type=Path, default=Path("outputs/example01"), help="output folder")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
 
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> dict:
     after = g.depth_metrics(posterior.mean, gt)["rmse"]
     cover = g.calibration_metrics(posterior.mean, posterior.variance, gt)["coverage_2sigma"]
     print(f"RMSE MDE {before:.0f} mm -> GP {after:.0f} mm; ±2σ coverage {cover:.2f}")
-    for path in posterior.save(args.out / "posterior", png=True):
+    for path in posterior.save(args.output / "posterior", png=True):
         print(f"wrote {path}")
     return {"rmse_mde": before, "rmse_gp": after, "coverage_2sigma": cover}
 

@@ -30,7 +30,7 @@ def main(argv: list[str] | None = None) -> dict:
         default=None,
         help="folder of rtmonodepth_s_ms_640_192.onnx (default: ../models beside --data's parent)",
     )
-    parser.add_argument("--out", type=Path, default=Path("outputs/example02"))
+    parser.add_argument("--output", type=Path, default=Path("outputs/example02"))
     args = parser.parse_args(argv)
 
     from gpdepth3d.depthmap import resize_map
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"posterior {posterior.shape}, median std {np.median(posterior.std):.3f} m, "
         f"solve {posterior.timings['solve']:.2f} s"
     )
-    for path in posterior.save(args.out / f"{args.frame}_posterior", png=True):
+    for path in posterior.save(args.output / f"{args.frame}_posterior", png=True):
         print(f"wrote {path}")
     return {
         "n_lidar": len(lidar),

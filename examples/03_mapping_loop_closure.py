@@ -1,6 +1,6 @@
 """Dense mapping with a loop closure: fuse 7-Scenes keyframes with one drifted pose, then correct it.
 
-    python examples/03_mapping_loop_closure.py --data ../shared/data/7scenes --out outputs/example03
+    python examples/03_mapping_loop_closure.py --data ../shared/data/7scenes --output outputs/example03
 
 A SLAM back-end hands the `Mapper` posed keyframes and map points. Here the keyframes are the
 first ``--frames`` frames of the 7-Scenes sequence, the depth network is FastDepth (TFLite), and
@@ -47,18 +47,16 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=Path("../shared/data/7scenes"), help="a 7-Scenes folder")
     parser.add_argument(
-        "--model", type=Path, default=Path("../shared/models/fast_depth_224.tflite"), help="FastDepth TFLite"
+        "--models", type=Path, default=Path("../shared/models"), help="folder holding FastDepth (fast_depth_224.tflite)"
     )
     parser.add_argument("--frames", type=int, default=8, help="number of keyframes")
-    parser.add_argument("--out", type=Path, default=Path("outputs/example03"), help="output folder")
+    parser.add_argument("--output", type=Path, default=Path("outputs/example03"), help="output folder")
     args = parser.parse_args(argv)
-    from gpdepth3d.mde.tflite import FastDepthTFLite
-
     reader = SevenScenes(args.data)
     frames = [reader[i] for i in range(min(args.frames, len(reader)))]
     camera = g.PinholeCamera.from_K(SEVEN_SCENES_RGB_K, frames[0].camera.width, frames[0].camera.height)
     config = g.MapperConfig(working_scale=0.25, triangulate=False)
-    mapper = g.Mapper(camera, config, mde=FastDepthTFLite(args.model))
+    mapper = g.Mapper(camera, config, mde=g.load_frontend("fastdepth", models_dir=args.models))
     reference = g.TSDFFusion(frames[0].camera.resized(160, 120), replace(config.fusion, weighting="uniform"))
 
     rng = np.random.default_rng(0)
@@ -78,16 +76,16 @@ def main(argv: list[str] | None = None) -> dict:
             + ("" if result.fused else f"; not fused: {result.error}")
         )
 
-    args.out.mkdir(parents=True, exist_ok=True)
+    args.output.mkdir(parents=True, exist_ok=True)
     ref_mesh = reference.extract_mesh()
-    g.save_mesh(ref_mesh, args.out / "mesh_reference.ply")
+    g.save_mesh(ref_mesh, args.output / "mesh_reference.ply")
     before = mapper.mesh()
-    g.save_mesh(before, args.out / "mesh_before.ply")
+    g.save_mesh(before, args.output / "mesh_before.ply")
     m_before = mesh_metrics(before, ref_mesh, samples=20_000)
 
     update = mapper.update_poses({drifted_id: true_poses[drifted_id]})
     after = mapper.mesh()
-    g.save_mesh(after, args.out / "mesh_after.ply")
+    g.save_mesh(after, args.output / "mesh_after.ply")
     m_after = mesh_metrics(after, ref_mesh, samples=20_000)
     print(
         f"update_poses: keyframe {drifted_id} moved, {len(update.reintegrated)} keyframes re-integrated over "
@@ -108,11 +106,11 @@ def main(argv: list[str] | None = None) -> dict:
     identical = a["coords"].shape == b["coords"].shape and all(np.array_equal(a[k], b[k]) for k in a)
     print(f"volume after update_poses identical to fusing from scratch with the corrected poses: {identical}")
 
-    mapper.save(args.out / "map")
-    loaded = g.Mapper.load(args.out / "map")
+    mapper.save(args.output / "map")
+    loaded = g.Mapper.load(args.output / "map")
     reloaded = _voxels(loaded.fusion)
     same_after_load = all(np.array_equal(a[k], reloaded[k]) for k in a)
-    print(f"saved the map to {args.out / 'map'}; loaded back identical: {same_after_load}")
+    print(f"saved the map to {args.output / 'map'}; loaded back identical: {same_after_load}")
     return {
         "fscore_before": m_before["fscore"],
         "fscore_after": m_after["fscore"],

@@ -19,13 +19,13 @@ def load_example(name: str):
 
 class TestExample01:
     def test_synthetic(self, tmp_path):
-        result = load_example("01_complete_single_frame").main(["--out", str(tmp_path)])
+        result = load_example("01_complete_single_frame").main(["--output", str(tmp_path)])
         assert result["rmse_gp"] < result["rmse_mde"]
         assert (tmp_path / "posterior.npz").is_file()
 
     def test_7scenes(self, shared_data, tmp_path):
         result = load_example("01_complete_single_frame").main(
-            ["--data", str(shared_data / "7scenes"), "--out", str(tmp_path)]
+            ["--data", str(shared_data / "7scenes"), "--output", str(tmp_path)]
         )
         assert result["rmse_gp"] < 0.7 * result["rmse_mde"]
         assert 0.8 < result["coverage_2sigma"] <= 1.0
@@ -37,7 +37,7 @@ class TestExample02:
             pytest.skip("RT-MonoDepth-S not found in ../shared/models")
         pytest.importorskip("onnxruntime")
         result = load_example("02_kitti_lidar_projection").main(
-            ["--data", str(shared_data / "kitti_object"), "--out", str(tmp_path)]
+            ["--data", str(shared_data / "kitti_object"), "--output", str(tmp_path)]
         )
         assert result["n_lidar"] > 10000
         assert result["shape"] == result["image_shape"] and result["image_shape"][1] > 1200  # KITTI sizes vary
@@ -53,10 +53,41 @@ class TestExample03:
             pytest.skip(f"FastDepth model not found at {model}")
         pytest.importorskip("ai_edge_litert")
         result = load_example("03_mapping_loop_closure").main(
-            ["--data", str(shared_data / "7scenes"), "--model", str(model), "--frames", "6", "--out", str(tmp_path)]
+            [
+                "--data",
+                str(shared_data / "7scenes"),
+                "--models",
+                str(model.parent),
+                "--frames",
+                "6",
+                "--output",
+                str(tmp_path),
+            ]
         )
         assert result["identical_to_scratch"] and result["identical_after_load"]
         assert 3 in result["reintegrated"] and result["blocks"] > 0
         assert result["faces_before"] > 1000 and result["faces_after"] > 1000
         names = sorted(p.name for p in tmp_path.iterdir())
         assert names == ["map", "mesh_after.ply", "mesh_before.ply", "mesh_reference.ply"]
+
+
+class TestExample04:
+    def test_colmap_points_hololens(self, shared_data, tmp_path):
+        if not (shared_data.parent / "models" / "fast_depth_224.tflite").is_file():
+            pytest.skip("FastDepth model not found in ../shared/models")
+        pytest.importorskip("ai_edge_litert")
+        pytest.importorskip("pycolmap")
+        result = load_example("04_colmap_map_points").main(
+            [
+                "--data",
+                str(shared_data / "hololens"),
+                "--models",
+                str(shared_data.parent / "models"),
+                "--frames",
+                "8",
+                "--output",
+                str(tmp_path),
+            ]
+        )
+        assert result["points"] > 100 and result["images"] >= 6
+        assert result["mesh"] == tmp_path / "mesh.ply" and result["mesh"].stat().st_size > 0
