@@ -278,7 +278,7 @@ class DepthGPConfig:
             assembly=AssemblyConfig(depth_lengthscale=None, edge_sigma=0.0),
             calibration=CalibrationConfig(reach=None),
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
 
     @classmethod
     def residual(cls, **overrides) -> "DepthGPConfig":
@@ -297,10 +297,14 @@ class DepthGPConfig:
             assembly=AssemblyConfig(depth_lengthscale=None, edge_sigma=0.0),
             calibration=CalibrationConfig(reach=None),
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
 
     def replace(self, **changes) -> "DepthGPConfig":
-        """A copy with some fields changed."""
+        """A copy with some fields changed; a dict for a nested config changes only its keys there
+        (``config.replace(calibration={"reach": None})``)."""
+        for name in _NESTED:
+            if isinstance(changes.get(name), dict):
+                changes[name] = replace(getattr(self, name), **changes[name])
         return replace(self, **changes)
 
     @classmethod
