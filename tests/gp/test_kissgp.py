@@ -3,7 +3,7 @@
 Acceptance set-up: a 48x64 crop of 7-Scenes frame 0 (Kinect depth, metres) is the ground truth;
 the MDE is *simulated* from it (gt * 1.15 + a smooth error field + white noise) and 200
 measurements are sampled from the ground truth. Both formulations are completed with
-``engine="kissgp"`` and ``engine="exact"`` and compared on the input grid.
+the ``kissgp`` and the ``exact`` engine (`EngineConfig.name`) and compared on the input grid.
 
 What is asserted and why (numbers measured on this crop):
 
