@@ -302,8 +302,11 @@ class DepthGPConfig:
     def replace(self, **changes) -> "DepthGPConfig":
         """A copy with some fields changed; a dict for a nested config changes only its keys there
         (``config.replace(calibration={"reach": None})``)."""
-        for name in _NESTED:
+        for name, kind in _NESTED.items():
             if isinstance(changes.get(name), dict):
+                unknown = sorted(set(changes[name]) - {f.name for f in fields(kind)})
+                if unknown:
+                    raise InvalidInputError(name, f"fields of {kind.__name__}", f"unknown keys {unknown}")
                 changes[name] = replace(getattr(self, name), **changes[name])
         return replace(self, **changes)
 

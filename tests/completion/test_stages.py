@@ -122,6 +122,20 @@ class TestNestedConfigs:
         assert back == config and isinstance(back.screen.fit_nuggets, tuple)
         assert DepthGPConfig.from_dict(json.loads(json.dumps(asdict(config)))) == config
 
+    def test_replace_with_a_dict_changes_only_those_fields_of_a_nested_config(self):
+        base = DepthGPConfig.paper()
+        assert base.replace(assembly={"edge_sigma": 0.5}).assembly == AssemblyConfig(
+            depth_lengthscale=None, edge_sigma=0.5
+        )
+        assert DepthGPConfig.paper(calibration={"min_points": 3}).calibration == CalibrationConfig(
+            reach=None, min_points=3
+        )
+        assert base.replace(calibration=CalibrationConfig(min_points=3)).calibration.reach == 1.5  # a config: all of it
+        with pytest.raises(InvalidInputError, match="edge_sigma"):
+            base.replace(assembly={"edge_sigma": -1.0})
+        with pytest.raises(InvalidInputError, match="unknown keys"):
+            base.replace(assembly={"no_such_field": 1.0})
+
     def test_from_dict_reads_the_flat_layout(self):
         """Each flat key of an older file lands in its nested config; compute options are dropped."""
         old = {

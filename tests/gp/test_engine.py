@@ -143,6 +143,8 @@ class TestMakeEngine:
             make_engine(EngineConfig(options={"no_such_option": 1}))
 
     def test_completer_takes_the_engine_options(self):
+        with pytest.raises(InvalidInputError, match="engine"):
+            DepthCompleter(DepthGPConfig.residual(), engine="exact")
         completer = DepthCompleter(DepthGPConfig.residual(), engine=EngineConfig(route="grid"))
         assert isinstance(completer.engine, FastEngine) and completer.engine.route == "grid"
 
