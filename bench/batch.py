@@ -3,7 +3,7 @@
 The ``kitti_tiny`` frames (7) are repeated under new frame ids to ``--frames`` frames (200 by
 default; the copies read the same files but are separate frames with their own samples and
 outputs). Each frame: 1/3 resolution, ``--n-input`` LiDAR points as input (20 % held out),
-``DepthGPConfig.residual(engine=...)``, posterior mean and variance written to ``.npz``.
+``DepthGPConfig.residual()`` on ``EngineConfig(name=...)``, posterior mean and variance written to ``.npz``.
 
 Measured:
 
@@ -54,7 +54,7 @@ def cpu_seconds() -> float:
     return total
 
 
-def plain_loop(frames, out: Path, config, loader) -> float:
+def plain_loop(frames, out: Path, config, engine, loader) -> float:
     """Seconds for the frames done one after the other in this process with one thread."""
     from threadpoolctl import threadpool_limits
 
@@ -64,7 +64,7 @@ def plain_loop(frames, out: Path, config, loader) -> float:
     # Load every native library first: threadpoolctl limits only the pools loaded when it is
     # entered (scipy.linalg's BLAS would otherwise come in during frame 1 with all cores).
     warm_up()
-    make_engine(config)
+    make_engine(engine)
     try:
         import torch
 
@@ -76,7 +76,7 @@ def plain_loop(frames, out: Path, config, loader) -> float:
         with threadpool_limits(1):
             t0 = time.perf_counter()
             for spec in frames:
-                result = process_frame(spec, str(out), config=config, loader=loader)
+                result = process_frame(spec, str(out), config=config, engine=engine, loader=loader)
                 if not result.ok:
                     raise RuntimeError(f"frame {result.frame_id} failed: {result.error}")
             return time.perf_counter() - t0
@@ -99,20 +99,22 @@ def main() -> None:
 
     from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch
     from gpdepth3d.io import write_json
+    from gpdepth3d.gp.engine import EngineConfig
     from gpdepth3d.gp.model import DepthGPConfig
 
     if not args.data.is_dir():
         raise SystemExit(f"kitti_tiny not found at {args.data} (set GPDEPTH3D_DATA or pass --data)")
     n_base = len(dataset_frames(args.data))
     frames = dataset_frames(args.data, repeat=math.ceil(args.frames / n_base), limit=args.frames)
-    config = DepthGPConfig.residual(engine=args.engine)
+    config = DepthGPConfig.residual()
+    engine = EngineConfig(name=args.engine)
     loader = HoldoutInputs(factor=3, n_input=args.n_input)
     scratch = Path(tempfile.mkdtemp(prefix="gpdepth3d_bench_batch_"))
     rows = []
     try:
         load0 = os.getloadavg()
         cpu0 = cpu_seconds()
-        plain_s = plain_loop(frames, scratch / "plain", config, loader)
+        plain_s = plain_loop(frames, scratch / "plain", config, engine, loader)
         plain_cpu = cpu_seconds() - cpu0
         rows.append(
             {
@@ -132,7 +134,9 @@ def main() -> None:
         for w in args.workers:
             load0 = os.getloadavg()
             cpu0 = cpu_seconds()
-            report = run_batch(frames, scratch / f"dask{w}", config=config, loader=loader, workers=w, progress=False)
+            report = run_batch(
+                frames, scratch / f"dask{w}", config=config, engine=engine, loader=loader, workers=w, progress=False
+            )
             if not report.ok:
                 raise RuntimeError(report.summary())
             rows.append(
@@ -190,7 +194,8 @@ def main() -> None:
             "resolution": "1/3 (downsample_depth factor 3)",
             "n_input": args.n_input,
             "holdout": loader.holdout,
-            "config": "DepthGPConfig.residual(engine=%r)" % args.engine,
+            "config": "DepthGPConfig.residual()",
+            "engine": "EngineConfig(name=%r)" % args.engine,
             "threads_per_worker": 1,
         },
         "rows": rows,

@@ -2,7 +2,7 @@
 
 +-2 sigma coverage (the issue's target, `bench/default_model.py`, `bench/kitti_paper.py`) can be right while
 the errors' distribution is far from the posterior's. For the default `DepthGPConfig()`, and beside it the same
-model without the local calibration of its variance (``local_calibration=None``, `gpdepth3d.gp.local_calibration`;
+model without the local calibration of its variance (``calibration.reach=None``, `gpdepth3d.gp.local_calibration`;
 stored under ``without_local_calibration`` in each case), this reports, pooled over the frames' ground-truth pixels
 (`gpdepth3d.metrics.calibration_metrics`):
 
@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _kitti_speed import REPO, machine  # noqa: E402
 
 KEYS = ("coverage_1sigma", "coverage_2sigma", "coverage_3sigma", "median_abs_z", "ause")
-CONFIGS = (({}, None), ({"local_calibration": None}, "without_local_calibration"))
+CONFIGS = (({}, None), ({"calibration": {"reach": None}}, "without_local_calibration"))
 """The default, and the default without the local calibration of its variance (`gpdepth3d.gp.local_calibration`)."""
 
 
@@ -85,7 +85,7 @@ def kitti(data: Path, models: Path) -> dict:
             means, variances, gts = [], [], []
             for i, setup in enumerate(setups):
                 sparse = draw_input("uniform", density, setup.lidar.available, rng=np.random.default_rng([7, i]))
-                post = DepthCompleter(DepthGPConfig(**config))(setup.mde_grid, sparse)
+                post = DepthCompleter(DepthGPConfig().replace(**config))(setup.mde_grid, sparse)
                 means.append(post.mean)
                 variances.append(post.variance)
                 gts.append(setup.lidar.gt_grid)
@@ -106,7 +106,7 @@ def seven_scenes(data: Path, models: Path) -> dict:
     for n in (50, 200, 500):
         for config, key in CONFIGS:
             means, variances, gts = [], [], []
-            completer = g.DepthCompleter(g.DepthGPConfig(**config))
+            completer = g.DepthCompleter(g.DepthGPConfig().replace(**config))
             for i, (name, mde, gt) in enumerate(inputs):
                 sp = g.sample_uniform(gt, n=n, rng=np.random.default_rng(1000 * i + n))  # as bench/default_model.py
                 post = completer(mde, sp, frame=name)
@@ -145,7 +145,7 @@ def seven_scenes_triangulated(data: Path, models: Path, step: int = 3) -> dict:
     )
     for suffix, given in variants:
         for config, key in CONFIGS:
-            completer = g.DepthCompleter(g.DepthGPConfig(**config))
+            completer = g.DepthCompleter(g.DepthGPConfig().replace(**config))
             posts = [(completer(mde, given(sp), frame=name), gt) for name, mde, gt, sp in inputs]
             row = _summary([p.mean for p, _ in posts], [p.variance for p, _ in posts], [gt for _, gt in posts])
             row["points_per_frame"] = float(np.mean([len(sp) for *_, sp in inputs]))
@@ -186,7 +186,7 @@ def main(argv=None) -> int:
 
     args.output.parent.mkdir(parents=True, exist_ok=True)
     print(
-        f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'compared': 'DepthGPConfig(local_calibration=None)', 'cases': cases}, indent=1)}"
+        f"wrote {write_json(args.output, {**machine(), 'config': 'DepthGPConfig()', 'compared': 'DepthGPConfig(calibration=CalibrationConfig(reach=None))', 'cases': cases}, indent=1)}"
     )
     return 0
 

@@ -169,8 +169,8 @@ def kissgp_cell(data: Path, models: Path, model: str, res: str, density: float, 
     from gpdepth3d.mde import RTMonoDepthONNX
 
     setup, _ = kitti_setup(data, RTMonoDepthONNX(models_dir=models, providers=["CPUExecutionProvider"]))
-    config = (DepthGPConfig() if model == "default" else DepthGPConfig.paper()).replace(engine="kissgp")
-    c = completer(config, EngineConfig(device=device))
+    config = DepthGPConfig() if model == "default" else DepthGPConfig.paper()
+    c = completer(config, EngineConfig(name="kissgp", device=device))
     time_completer(c, setup, draw(setup, DENSITIES[0]), None, 1, warmup=False)  # CUDA context, kernels
     sync = None
     if device.startswith("cuda"):

@@ -11,7 +11,7 @@
 * vio_sparse: real SLAM points, 20 % of them held out (seeded) as ground truth; the default model
   against FastDepth scaled to the other 80 % (robust median ratio).
 * ibims_sample: the 3-20 m hall at 320x240, 50 / 200 / 500 uniform samples of the laser scan (3
-  seeds): the default against the same model with its s fixed (``raise_outputscale=False``).
+  seeds): the default against the same model with its s fixed (``screen.raise_outputscale=False``).
 * speed: the default model (mean + variance) on kitti_tiny frame 0 at 1/3 and full resolution at
   the paper's densities 1/64, 1/16, 1/4 and 1, beside IP-Basic on the same input in the same run.
 * parts: what each part of the default model earns (docs/model.md): RMSE and +-2 sigma of the default and
@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 
 import gpdepth3d as g
+from gpdepth3d.gp.engine import EngineConfig
+from gpdepth3d.gp.model import ScreenConfig
 from gpdepth3d.io import write_json
 from gpdepth3d.mde import load_frontend
 from gpdepth3d.sampling import gross_outliers
@@ -177,14 +179,17 @@ def vio(data: Path, fastdepth) -> dict:
 
 def ibims(data: Path, fastdepth, seeds: int = 3) -> dict:
     """The iBims hall (3-20 m) at 320 x 240, uniform samples of the laser scan (seeds 0..seeds-1):
-    the default against the same model with s fixed (``raise_outputscale=False``)."""
+    the default against the same model with s fixed (``screen.raise_outputscale=False``)."""
     frame = g.open_dataset(data / "ibims_sample")[0].resized(0.5)
     mde = np.asarray(fastdepth(frame.rgb), dtype=np.float64)
     gt = frame.depth
     v = gt > 0
     out = {"mde_rmse_mm": 1000 * float(np.sqrt(np.mean((mde[v] - gt[v]) ** 2)))}
     for n in (50, 200, 500):
-        for name, config in (("default", g.DepthGPConfig()), ("s_fixed", g.DepthGPConfig(raise_outputscale=False))):
+        for name, config in (
+            ("default", g.DepthGPConfig()),
+            ("s_fixed", g.DepthGPConfig(screen=ScreenConfig(raise_outputscale=False))),
+        ):
             se, cover, s = [], [], []
             for seed in range(seeds):
                 sp = g.sample_uniform(gt, n=n, rng=np.random.default_rng(seed))
@@ -241,15 +246,15 @@ def speed(data: Path, rtmonodepth, repeats: int = 3) -> dict:
 
 PARTS = {
     "default": {},
-    "no depth-aware correlation": {"depth_lengthscale": None},
-    "no slope": {"mde_slope_sigma": None},
-    "no edge term": {"edge_sigma": 0.0},
-    "no outlier screen": {"outlier_threshold": None},
-    "s fixed": {"raise_outputscale": False},
-    "no local calibration": {"local_calibration": None},
-    "every pixel (no lattice)": {"lattice_stride": 1},
+    "no depth-aware correlation": {"assembly": {"depth_lengthscale": None}},
+    "no slope": {"slope": {"prior_sigma": None}},
+    "no edge term": {"assembly": {"edge_sigma": 0.0}},
+    "no outlier screen": {"screen": {"outlier_threshold": None}},
+    "s fixed": {"screen": {"raise_outputscale": False}},
+    "no local calibration": {"calibration": {"reach": None}},
+    "every pixel (no lattice)": {"engine": {"lattice_stride": 1}},
 }
-"""The default and each variant of `parts` (DepthGPConfig changes)."""
+"""The default and each variant of `parts`: `DepthGPConfig.replace` changes, "engine" an `EngineConfig`'s."""
 
 
 def _pooled(posts_and_gt: list) -> dict:
@@ -294,11 +299,12 @@ def parts(data: Path, stride: int, fastdepth, rtmonodepth) -> dict:
         ]
     out = {}
     for variant, changes in PARTS.items():
-        config = g.DepthGPConfig(**changes)
+        config = g.DepthGPConfig().replace(**{k: v for k, v in changes.items() if k != "engine"})
+        engine = EngineConfig(**changes.get("engine", {}))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", g.PosteriorWarning)
             out[variant] = {
-                case: _pooled([(g.DepthCompleter(config)(mde, sp), gt) for mde, sp, gt in inputs])
+                case: _pooled([(g.DepthCompleter(config, engine=engine)(mde, sp), gt) for mde, sp, gt in inputs])
                 for case, inputs in cases.items()
             }
     return out

@@ -121,9 +121,8 @@ def make(engine: str, config):
     from gpdepth3d.gp import EngineConfig
 
     options = {"fast-torch": EngineConfig(backend="torch", route="grid"), "fast-grid": EngineConfig(route="grid")}
-    return DepthCompleter(
-        config.replace(engine=engine.split("-")[0], max_exact_points=100_000), engine=options.get(engine)
-    )
+    options = options.get(engine, EngineConfig()).replace(name=engine.split("-")[0], max_exact_points=100_000)
+    return DepthCompleter(config, engine=options)
 
 
 def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
@@ -164,20 +163,21 @@ def worker(engine: str, size: str, data: Path, repeats: int) -> dict:
     from gpdepth3d.measurements import SparseDepth
 
     crop_sparse = SparseDepth(su[keep], sv[keep], sparse.depth[keep], CROP)
-    ref = DepthCompleter(config.replace(engine="exact"))(crop_mde, crop_sparse)
-    if engine == "exact":
-        t0 = time.perf_counter()
-        DepthCompleter(config.replace(engine="exact"))(crop_mde, crop_sparse, variance=False)
-        out["crop_mean_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        DepthCompleter(config.replace(engine="exact"))(crop_mde, crop_sparse)
-        out["crop_mean_var_s"] = time.perf_counter() - t0
-        return out
     from gpdepth3d.gp import EngineConfig
 
+    exact = EngineConfig(name="exact")
+    ref = DepthCompleter(config, engine=exact)(crop_mde, crop_sparse)
+    if engine == "exact":
+        t0 = time.perf_counter()
+        DepthCompleter(config, engine=exact)(crop_mde, crop_sparse, variance=False)
+        out["crop_mean_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        DepthCompleter(config, engine=exact)(crop_mde, crop_sparse)
+        out["crop_mean_var_s"] = time.perf_counter() - t0
+        return out
     crop_completer = make(engine, config)
     if out.get("route"):  # the crop is checked on the route the full frame took
-        crop_completer = DepthCompleter(config.replace(engine="fast"), engine=EngineConfig(route=out["route"]))
+        crop_completer = DepthCompleter(config, engine=EngineConfig(route=out["route"]))
     got = crop_completer(crop_mde, crop_sparse)
     rng_depth = float(np.ptp(ref.mean))
     out["crop_mean_rms_pct_range"] = float(100 * np.sqrt(np.mean((got.mean - ref.mean) ** 2)) / rng_depth)
@@ -287,7 +287,7 @@ def kissgp_cell(data: Path, models: Path, resolution: str, density: float) -> di
     from gpdepth3d.gp.model import DepthGPConfig
 
     setup, _ = kitti_setup(data, _frontend(models))
-    c = completer(DepthGPConfig(engine="kissgp"), EngineConfig(device="cpu"))
+    c = completer(DepthGPConfig(), EngineConfig(name="kissgp", device="cpu"))
     out = time_completer(
         c, setup, draw(setup, density), None if resolution == "1/3" else setup.full_shape, 1, warmup=False
     )

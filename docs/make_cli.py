@@ -1,7 +1,8 @@
 """Writes docs/cli.md from the commands' signatures and docstrings: ``python docs/make_cli.py``.
 
 The page is what ``gpdepth3d COMMAND --help`` prints, in one place: each command's description, every option
-with its type, default and meaning, the GP fields of ``--gp.FIELD``, and the exit codes. tests/cli/test_cli_docs.py
+with its type, default and meaning, the GP fields of ``--gp.FIELD``, the engine options of ``--engine.FIELD``, and
+the exit codes. tests/cli/test_cli_docs.py
 regenerates it and fails when it differs.
 """
 
@@ -81,6 +82,9 @@ def command_section(name: str, function) -> str:
         if pname == "gp":
             rows.append(["`--preset default|paper|residual`", "`default`", helps.get(pname, "")])
             continue
+        if pname == "engine":
+            rows.append(["`--engine.FIELD VALUE`", "`EngineConfig()`", helps.get(pname, "") + " See *Engine options*."])
+            continue
         rows.append([_option(pname, annotation, param.default), _default(param.default), helps.get(pname, "")])
     lines = [f"## `gpdepth3d {name}`", "", description, "", "| option | default | meaning |", "|---|---|---|"]
     lines += ["| " + " | ".join(cell.replace("|", "\\|") for cell in r) + " |" for r in rows]
@@ -104,10 +108,44 @@ def gp_section() -> str:
         "|---|---|---|---|---|",
     ]
     for field in dataclasses.fields(PRESETS["default"]):
-        values = [f"`{getattr(PRESETS[p], field.name)}`" for p in ("default", "paper", "residual")]
-        flag = f"`--gp.{field.name.replace('_', '-')}`"
-        lines.append("| " + " | ".join([flag, *values, helps.get(field.name, "").replace("|", "\\|")]) + " |")
+        value = getattr(PRESETS["default"], field.name)
+        if not dataclasses.is_dataclass(value):
+            values = [f"`{getattr(PRESETS[p], field.name)}`" for p in ("default", "paper", "residual")]
+            lines.append(_row(f"--gp.{field.name}", values, helps.get(field.name, "")))
+            continue
+        _, nested_helps = _doc(type(value))  # a nested config: one row per field, --gp.SECTION.FIELD
+        for inner in dataclasses.fields(value):
+            values = [
+                f"`{getattr(getattr(PRESETS[p], field.name), inner.name)}`" for p in ("default", "paper", "residual")
+            ]
+            lines.append(_row(f"--gp.{field.name}.{inner.name}", values, nested_helps.get(inner.name, "")))
     return "\n".join(lines)
+
+
+def engine_section() -> str:
+    """The fields of `EngineConfig`, spelled ``--engine.FIELD``, with their defaults."""
+    from gpdepth3d.gp.engine import EngineConfig
+
+    _, helps = _doc(EngineConfig)
+    lines = [
+        "## Engine options (`--engine.FIELD`)",
+        "",
+        "For `complete` and `batch`: how the posterior is computed (`gpdepth3d.gp.EngineConfig`), not the model.",
+        "",
+        "| option | default | meaning |",
+        "|---|---|---|",
+    ]
+    for field in dataclasses.fields(EngineConfig()):
+        lines.append(
+            _row(f"--engine.{field.name}", [f"`{getattr(EngineConfig(), field.name)}`"], helps.get(field.name, ""))
+        )
+    return "\n".join(lines)
+
+
+def _row(flag: str, values: list[str], meaning: str) -> str:
+    """One table row: the option, its value(s), its meaning (``|`` escaped)."""
+    cells = [f"`{flag.replace('_', '-')}`", *values, meaning]
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
 
 
 def render() -> str:
@@ -125,6 +163,7 @@ def render() -> str:
     ]
     parts += [command_section(name, function) for name, function in functions.items()]
     parts.append(gp_section())
+    parts.append(engine_section())
     return "\n\n".join(parts) + "\n"
 
 

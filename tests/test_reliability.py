@@ -3,7 +3,7 @@
 * `API_CASES` / `CLI_CASES`: one row per bad input; each must raise its typed error (API) or print one
   line and exit 1 (CLI), and leave no output behind.
 * A hypothesis property test: for small random inputs (shapes, dtypes, magnitudes, configs) the
-  default engine gives a typed error or a finite posterior that matches ``engine="exact"``.
+  default engine gives a typed error or a finite posterior that matches the ``exact`` engine.
 * Kill tests: `DepthPosterior.save` killed at every step of its write (forked child, ``os._exit``),
   ``gpdepth3d complete`` (previews included) killed by SIGKILL at random moments, and two concurrent
   ``complete`` processes on one output: after recovery the files on disk are one complete set (old or new).
@@ -49,11 +49,13 @@ from gpdepth3d.errors import (
     ProblemTooLargeError,
     ShapeError,
 )
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.measurements import LidarCalibration, SparseDepth, load_velodyne
 from gpdepth3d.sampling import sample_uniform
 
-EXACT = DepthGPConfig.residual(engine="exact")
+EXACT = DepthGPConfig.residual()
+EXACT_ENGINE = EngineConfig(name="exact")
 
 
 def small_problem(seed: int = 0, h: int = 12, w: int = 16, scale: float = 1.0):
@@ -147,8 +149,8 @@ API_CASES = [
         DataFormatError,
         "npz",
     ),
-    ("max_exact_points -5", lambda t: DepthGPConfig(max_exact_points=-5), InvalidInputError, "max_exact_points"),
-    ("max_exact_points str", lambda t: DepthGPConfig(max_exact_points="many"), InvalidInputError, "max_exact_points"),
+    ("max_exact_points -5", lambda t: EngineConfig(max_exact_points=-5), InvalidInputError, "max_exact_points"),
+    ("max_exact_points str", lambda t: EngineConfig(max_exact_points="many"), InvalidInputError, "max_exact_points"),
     ("image_size nan", lambda t: SparseDepth.empty((float("nan"), 5)), ShapeError, "image_size"),
     ("image_size inf", lambda t: SparseDepth.empty((float("inf"), 5)), ShapeError, "image_size"),
     ("image_size None", lambda t: SparseDepth.empty(None), ShapeError, "image_size"),
@@ -228,10 +230,25 @@ API_CASES = [
         DataFormatError,
         "rigid",
     ),
-    ("save to a directory", lambda t: _complete_with(config=EXACT).save(_mkdir(t / "d.npz")), OutputError, "directory"),
-    ("save under a file", lambda t: _complete_with(config=EXACT).save(_write(t, "f", b"") / "x"), OutputError, "file"),
-    ("save empty name", lambda t: _complete_with(config=EXACT).save(""), OutputError, "name"),
-    ("save a name too long", lambda t: _complete_with(config=EXACT).save(t / ("x" * 250)), OutputError, "too long"),
+    (
+        "save to a directory",
+        lambda t: _complete_with(config=EXACT, engine=EXACT_ENGINE).save(_mkdir(t / "d.npz")),
+        OutputError,
+        "directory",
+    ),
+    (
+        "save under a file",
+        lambda t: _complete_with(config=EXACT, engine=EXACT_ENGINE).save(_write(t, "f", b"") / "x"),
+        OutputError,
+        "file",
+    ),
+    ("save empty name", lambda t: _complete_with(config=EXACT, engine=EXACT_ENGINE).save(""), OutputError, "name"),
+    (
+        "save a name too long",
+        lambda t: _complete_with(config=EXACT, engine=EXACT_ENGINE).save(t / ("x" * 250)),
+        OutputError,
+        "too long",
+    ),
     ("load posterior of mixed shapes", lambda t: DepthPosterior.load(_mixed_posterior(t)), DataFormatError, "2-D grid"),
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
@@ -366,7 +383,7 @@ def _ibims(tmp: Path, corrupt: str) -> Path:
 
 
 def _posterior(tmp: Path, **replace) -> Path:
-    post = _complete_with(config=EXACT)
+    post = _complete_with(config=EXACT, engine=EXACT_ENGINE)
     post.save(tmp / "src" / "ok")
     with np.load(tmp / "src" / "ok.npz") as d:
         arrays = {k: d[k] for k in d.files}
@@ -424,7 +441,7 @@ def _mkdir(path: Path) -> Path:
 
 
 def _far() -> DepthPosterior:
-    post = _complete_with(config=EXACT)
+    post = _complete_with(config=EXACT, engine=EXACT_ENGINE)
     from dataclasses import replace
 
     return replace(post, mean=post.mean + 300.0)
@@ -466,7 +483,10 @@ def test_masked_mde_pixels_are_no_mde():
     garbage[2:5, 3:9] = -7.0  # would be refused as negative depths if the mask were ignored
     masked = np.ma.masked_array(garbage, mask=garbage < 0)
     holes = np.where(garbage < 0, 0.0, garbage)
-    a, b = complete(masked, sparse, config=EXACT), complete(holes, sparse, config=EXACT)
+    a, b = (
+        complete(masked, sparse, config=EXACT, engine=EXACT_ENGINE),
+        complete(holes, sparse, config=EXACT, engine=EXACT_ENGINE),
+    )
     np.testing.assert_array_equal(a.mean, b.mean)
     np.testing.assert_array_equal(a.variance, b.variance)
 
@@ -497,7 +517,7 @@ def test_port_taken_is_detected():
 # ------------------------------------------------------------------------------------------ writes
 class TestFailedWrites:
     def test_full_disk_leaves_old_set(self, tmp_path, monkeypatch):
-        post = _complete_with(config=EXACT)
+        post = _complete_with(config=EXACT, engine=EXACT_ENGINE)
         post.save(tmp_path / "f", png=True)
         before = {n: (tmp_path / n).read_bytes() for n in visible_files(tmp_path)}
         calls = {"n": 0}
@@ -536,7 +556,7 @@ class TestFailedWrites:
         with pytest.raises(OutputError, match="permission denied"):
             gio.save_npz(tmp_path / "x.npz", a=np.ones(3))
         with pytest.raises(OutputError, match="permission denied"):
-            _complete_with(config=EXACT).save(tmp_path / "y", png=True)
+            _complete_with(config=EXACT, engine=EXACT_ENGINE).save(tmp_path / "y", png=True)
         assert visible_files(tmp_path) == []
 
     def test_write_together_all_or_nothing(self, tmp_path):
@@ -559,7 +579,7 @@ class TestFailedWrites:
         assert [(tmp_path / n).read_text() for n in ("a.txt", "b.txt")] == ["new", "new"]
 
     def test_stale_files_of_killed_runs_are_removed(self, tmp_path):
-        post = _complete_with(config=EXACT)
+        post = _complete_with(config=EXACT, engine=EXACT_ENGINE)
         post.save(tmp_path / "f", png=True)
         stale = [tmp_path / ".f.abcd1234.tmp.npz", tmp_path / ".f_mean.abcd1234.tmp.png"]
         for p in stale:
@@ -576,13 +596,13 @@ class TestFailedWrites:
         ]
 
     def test_png_false_after_png_true_drops_old_pngs(self, tmp_path):
-        post = _complete_with(config=EXACT)
+        post = _complete_with(config=EXACT, engine=EXACT_ENGINE)
         post.save(tmp_path / "f", png=True)
         post.save(tmp_path / "f", png=False)
         assert visible_files(tmp_path) == ["f.npz"]
 
     def test_plain_files_of_older_versions_are_taken_over(self, tmp_path):
-        post = _complete_with(config=EXACT)
+        post = _complete_with(config=EXACT, engine=EXACT_ENGINE)
         gio.save_npz(tmp_path / "f.npz", mean=np.zeros(2))
         gio.save_depth_png(tmp_path / "f_mean.png", np.ones((3, 3)))
         post.save(tmp_path / "f", png=True)
@@ -828,7 +848,7 @@ def test_cli_far_depths_saturate_the_png_with_one_warning(cli_inputs, tmp_path, 
     argv = _complete_args(cli_inputs, tmp_path / "x", mde="far.npy", points="points_far.txt") + [
         "--preset",
         "residual",
-        "--gp.engine",
+        "--engine.name",
         "exact",
     ]
     assert cli.main(argv) == 0
@@ -869,7 +889,7 @@ def test_kitti_sky_pixel_beyond_png_range_does_not_fail_the_run(shared_data, tmp
 
 
 def test_cli_scales_convert_millimetres(cli_inputs, tmp_path):
-    base = ["--preset", "residual", "--gp.engine", "exact", "--no-preview"]
+    base = ["--preset", "residual", "--engine.name", "exact", "--no-preview"]
     assert cli.main(_complete_args(cli_inputs, tmp_path / "m") + base) == 0
     argv = _complete_args(cli_inputs, tmp_path / "mm", mde="mde_mm.npy", points="points_mm.txt")
     assert cli.main(argv + base + ["--mde-scale", "0.001", "--sparse-scale", "0.001"]) == 0
@@ -890,7 +910,7 @@ def test_likely_unit():
 
 def test_cli_output_folder_writes_inside_it(cli_inputs, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    base = ["--preset", "residual", "--gp.engine", "exact", "--no-preview", "--no-png"]
+    base = ["--preset", "residual", "--engine.name", "exact", "--no-preview", "--no-png"]
     assert cli.main(_complete_args(cli_inputs, "out/") + base) == 0  # a new folder, named with a slash
     assert visible_files(tmp_path) == ["out"] and visible_files(tmp_path / "out") == ["mde.npz"]
     assert cli.main(_complete_args(cli_inputs, tmp_path / "out") + base) == 0  # an existing folder
@@ -898,7 +918,7 @@ def test_cli_output_folder_writes_inside_it(cli_inputs, tmp_path, monkeypatch):
 
 
 def test_cli_without_gt_removes_the_old_error_preview(cli_inputs, tmp_path):
-    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--gp.engine", "exact", "--no-png"]
+    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--engine.name", "exact", "--no-png"]
     assert cli.main(argv + ["--gt", str(cli_inputs / "mde.npy")]) == 0
     assert "x_error_preview.png" in visible_files(tmp_path)
     assert cli.main(argv) == 0
@@ -919,7 +939,7 @@ def test_cli_unwritable_output(cli_inputs, tmp_path, capsys, monkeypatch):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(np, "savez_compressed", full)
-    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--gp.engine", "exact"]
+    argv = _complete_args(cli_inputs, tmp_path / "x") + ["--preset", "residual", "--engine.name", "exact"]
     assert cli.main(argv) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "disk full" in err[0]
@@ -930,7 +950,7 @@ def test_cli_full_disk_during_the_previews_keeps_the_old_set(cli_inputs, tmp_pat
     """The previews are part of the set: a full disk while the sigma preview is written leaves the old files."""
     from matplotlib.figure import Figure
 
-    base = ["--preset", "residual", "--gp.engine", "exact"]
+    base = ["--preset", "residual", "--engine.name", "exact"]
     assert cli.main(_complete_args(cli_inputs, tmp_path / "x") + base + ["--gt", str(cli_inputs / "mde.npy")]) == 0
     before = _fingerprint(tmp_path)
     assert "x_error_preview.png" in before
@@ -972,7 +992,7 @@ def test_cli_eval_full_disk_leaves_no_partial_set(cli_inputs, tmp_path, capsys, 
 
 # ------------------------------------------------------------------------------------------ property test
 def test_property_typed_error_or_exact_posterior():
-    """Random small inputs: a typed error, or a finite posterior (variance >= 0) equal to engine='exact'."""
+    """Random small inputs: a typed error, or a finite posterior (variance >= 0) equal to the exact engine's."""
     pytest.importorskip("hypothesis")
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
@@ -1020,7 +1040,7 @@ def test_property_typed_error_or_exact_posterior():
             counts[type(exc).__name__] = counts.get(type(exc).__name__, 0) + 1
             return
         counts["posterior"] = counts.get("posterior", 0) + 1
-        exact = complete(mde, sparse, config=config.replace(engine="exact"), output_shape=out)
+        exact = complete(mde, sparse, config=config, engine=EXACT_ENGINE, output_shape=out)
         assert np.all(np.isfinite(fast.mean)) and np.all(np.isfinite(fast.variance))
         assert np.all(fast.variance >= -1e-9 * np.max(np.abs(exact.variance) + 1e-300))
         scale = max(float(np.max(np.abs(exact.mean))), 1e-12)
@@ -1090,7 +1110,7 @@ def _fork_save_killed_at(post: DepthPosterior, base: Path, step: int) -> bool:
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 def test_save_killed_at_every_step_leaves_old_or_new_set(tmp_path):
     mde, sparse = small_problem()
-    posts = [complete(mde * (1 + k), sparse, config=EXACT) for k in range(3)]
+    posts = [complete(mde * (1 + k), sparse, config=EXACT, engine=EXACT_ENGINE) for k in range(3)]
     known = [p.mde for p in posts]
     # first save into an empty folder, then over a plain (pre-set) npz, then over a set
     scenarios = [("empty", None), ("plain", "plain"), ("set", "set")]
@@ -1134,7 +1154,7 @@ def _complete_cmd(inputs: Path, out: Path, mde: str) -> list[str]:
         str(out),
         "--preset",
         "residual",
-        "--gp.engine",
+        "--engine.name",
         "exact",
     ]
 
@@ -1280,7 +1300,12 @@ def cli_sweep_cases(t: Path, out: Path) -> list[list[str]]:
     for model, opt in itertools.product(["paper", "residual"], fields):
         cases += [base() + ["--preset", model, opt, v] for v in ["nan", "-1", "0", "abc", "inf", "1e-320"]]
     for model in ["paper", "residual"]:
-        for opt, v in [("--gp.units", "feet"), ("--gp.align", "x"), ("--gp.engine", "gpu"), ("--gp.formulation", "x")]:
+        for opt, v in [
+            ("--gp.units", "feet"),
+            ("--gp.align", "x"),
+            ("--engine.name", "gpu"),
+            ("--gp.formulation", "x"),
+        ]:
             cases.append(base() + ["--preset", model, opt, v])
     cases += [base()[:-1] + [o_] for o_ in ["", f"{t}/afile/x", str(t), "/proc/x"]]
     np.savetxt(t / "p_mm.txt", [[3, 4, 2000.0], [10, 5, 2500.0]])
@@ -1520,7 +1545,7 @@ def test_cli_ply_cloud_with_sigma(cli_inputs, tmp_path):
     argv = _complete_args(cli_inputs, tmp_path / "out" / "x") + [
         "--preset",
         "residual",
-        "--gp.engine",
+        "--engine.name",
         "exact",
         "--intrinsics",
         str(tmp_path / "K.txt"),

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
+from gpdepth3d.gp.model import CalibrationConfig, ScreenConfig
 from gpdepth3d.sampling import gross_outliers
 
 pytestmark = [pytest.mark.shared_data, pytest.mark.slow]
@@ -91,13 +92,16 @@ def test_seven_scenes_accuracy_calibration_and_outliers(seven_scenes_inputs, n):
 
 
 def test_seven_scenes_sigma_ranks_the_errors(seven_scenes_inputs):
-    """sigma orders the errors (`DepthGPConfig.local_calibration`): pooled over the 10 frames at 200 points,
+    """sigma orders the errors (`CalibrationConfig.reach`): pooled over the 10 frames at 200 points,
     AUSE 0.39 against 0.63 without it on 20 frames (bench/calibration.py), and dropping the 30 %
     least certain pixels removes far more of the error (README, *How far to trust sigma*)."""
     from gpdepth3d.metrics import SPARSIFICATION_FRACTIONS, calibration_metrics, sparsification
 
     out = {}
-    for name, cfg in (("default", g.DepthGPConfig()), ("off", g.DepthGPConfig(local_calibration=None))):
+    for name, cfg in (
+        ("default", g.DepthGPConfig()),
+        ("off", g.DepthGPConfig(calibration=CalibrationConfig(reach=None))),
+    ):
         completer = g.DepthCompleter(cfg)
         means, variances, gts = [], [], []
         for i, (mde, gt) in enumerate(seven_scenes_inputs):
@@ -174,7 +178,7 @@ def test_vio_sparse_beats_scaled_fastdepth_and_is_calibrated(shared_data, fastde
 
 def test_ibims_hall_raises_s_and_stays_near_calibrated(shared_data, fastdepth):
     """A 3-20 m hall that FastDepth (NYU-trained) sees 2.5x too near and flattened: the points raise the
-    prior's s (`DepthGPConfig.raise_outputscale`), which widens the variance and lets the mean follow
+    prior's s (`ScreenConfig.raise_outputscale`), which widens the variance and lets the mean follow
     them. Measured over seeds 0-2: +-2 sigma 88.5 / 90.7 / 88.6 % (83.3 / 84.4 / 84.1 % with s fixed),
     RMSE 2.88 / 2.20 / 2.21 m (3.39 / 2.33 / 2.24). Not an issue target: the bound pins the gain."""
     if not (shared_data / "ibims_sample").is_dir():
@@ -189,7 +193,7 @@ def test_ibims_hall_raises_s_and_stays_near_calibrated(shared_data, fastdepth):
             sp = g.sample_uniform(gt, n=n, rng=np.random.default_rng(seed))
             with pytest.warns(g.PosteriorWarning):  # the MDE's scale (2.5x) and, mostly, the raised s
                 post = g.complete(mde, sp)
-            fixed = _quiet(g.DepthCompleter(g.DepthGPConfig(raise_outputscale=False)), mde, sp)
+            fixed = _quiet(g.DepthCompleter(g.DepthGPConfig(screen=ScreenConfig(raise_outputscale=False))), mde, sp)
             cover.append(np.mean(np.abs(post.mean[v] - gt[v]) <= 2 * post.std[v]))
             fixed_cover.append(np.mean(np.abs(fixed.mean[v] - gt[v]) <= 2 * fixed.std[v]))
         assert np.mean(cover) >= 0.87, f"{n} points: +-2 sigma {np.mean(cover):.3f}"

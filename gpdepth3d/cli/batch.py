@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Literal, Optional
 
 from ..experiments.batch import REPORT_NAME, FramesFailedError, HoldoutInputs, check_address, dataset_frames, run_batch
+from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import check_output_folder
 from ._options import GPPreset
@@ -22,6 +23,7 @@ def batch_command(
     frames: Optional[int] = None,
     repeat: int = 1,
     gp: GPPreset = DepthGPConfig(),
+    engine: EngineConfig = EngineConfig(),
     factor: int = 3,
     n_input: int = 500,
     mde: Literal["none", "standin", "rtmonodepth", "fastdepth"] = "none",
@@ -42,7 +44,7 @@ def batch_command(
     depth; with --mde rtmonodepth (outdoor) or fastdepth (indoor) the network's depth of each frame's image
     is the MDE, with --mde standin a STAND-IN MDE (densified input points with a smooth scale error).
     Exits with an error if any frame failed. The GP is --preset default|paper|residual (default
-    `DepthGPConfig()`), its fields --gp.FIELD, e.g. --gp.engine exact.
+    `DepthGPConfig()`), its fields --gp.FIELD; the engine --engine.name, e.g. --engine.name exact.
 
     Args:
         data: Dataset folder (kitti_tiny, 7scenes, ibims_sample, vio_sparse, kitti_object layouts).
@@ -55,8 +57,9 @@ def batch_command(
             folders must be visible to its workers at the same paths).
         frames: Process at most this many frames (after --repeat).
         repeat: Repeat the dataset's frames this many times under new ids (benchmarks).
-        gp: The GP: --preset default|paper|residual, then --gp.FIELD (--gp.engine: "exact" for up to a few
-            thousand points, "fast" for full frames, "kissgp").
+        gp: The GP: --preset default|paper|residual, then --gp.FIELD.
+        engine: How each posterior is computed: --engine.name "fast" (the default), "exact" (up to a few
+            thousand points) or "kissgp", and the other `gpdepth3d.gp.EngineConfig` options.
         factor: Downsample the dataset resolution by this integer factor (3 = the paper's 1/3).
         n_input: Measurements given as input per frame.
         mde: "rtmonodepth" (RT-MonoDepth-S, outdoor) or "fastdepth" (indoor) run on each frame's image, "none"
@@ -77,6 +80,7 @@ def batch_command(
         specs,
         output,
         config=gp,
+        engine=engine,
         loader=HoldoutInputs(
             factor=factor,
             n_input=n_input,

@@ -10,6 +10,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from ..errors import OutputError
+from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import PNGRangeWarning, check_output_path, output_set
 from ._options import GPPreset
@@ -42,6 +43,7 @@ def complete_command(
     lidar: Optional[Path] = None,
     calib: Optional[Path] = None,
     gp: GPPreset = DepthGPConfig(),
+    engine: EngineConfig = EngineConfig(),
     lidar_image_size: Optional[tuple[int, int]] = None,
     mde_png_scale: float = 1.0 / 256.0,
     sparse_png_scale: float = 1.0 / 256.0,
@@ -84,6 +86,8 @@ def complete_command(
             MDE grid, closest point per pixel.
         gp: The GP: --preset "default" (log-residual, `DepthGPConfig()`, robust to bad points), "paper" (the
             paper's balanced GP) or "residual" (MDE as prior mean), then --gp.FIELD to change one of its fields.
+        engine: How the posterior is computed (the same posterior whichever): --engine.name fast|exact|kissgp,
+            --engine.device cuda, --engine.lattice-stride K (`gpdepth3d.gp.EngineConfig`).
         mde_png_scale: Metres per unit of a 16-bit MDE PNG.
         sparse_png_scale: Metres per unit of a 16-bit sparse PNG.
         sparse_points: How a .txt point list is read: "uvd" (pixels + depth) or "xyz" (camera frame, needs --intrinsics).
@@ -221,13 +225,13 @@ def complete_command(
         else:
             m = measurements
             measurements = SparseDepth(m.u, m.v, m.depth * sparse_scale, m.image_size, m.sigma * sparse_scale)
-    completer = DepthCompleter(gp)
+    completer = DepthCompleter(gp, engine=engine)
     with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
         warnings.simplefilter("ignore", PosteriorWarning)
         posterior = completer.complete(mde_depth, measurements, output_shape=output_size, frame=out_npz.stem)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
-        f"({gp.formulation}, engine {gp.engine}) in {sum(posterior.timings.values()):.2f} s"
+        f"({gp.formulation}, engine {engine.name}) in {sum(posterior.timings.values()):.2f} s"
         + (f"; {posterior.n_rejected} rejected as outliers" if posterior.n_rejected else "")
     )
     for message in posterior.warnings:

@@ -42,7 +42,7 @@ def fuse_command(
     features the library triangulates from the posed RGB frames themselves (not the ground truth);
     the GP is `MapperConfig`'s (the library's default model with the stationary GP's variance,
     `MAPPER_GP`; also what --preset default means here) or --preset paper|residual, and its fields
-    --gp.FIELD (e.g. --gp.engine exact, --gp.local-calibration 1.5). Writes
+    --gp.FIELD (e.g. --gp.calibration.reach 1.5). Writes
     ``mesh_mde``, ``mesh_gp_uniform``, ``mesh_gp_variance``, ``mesh_gt`` (``.<mesh_format>``) and
     ``metrics.json`` (accuracy/completeness/Chamfer/precision/recall against the ground-truth
     mesh, timings, frames that failed) into ``output``, all atomically. A frame that fails is

@@ -75,7 +75,7 @@ def assemble_depth(
         var_b=fit.log_scale_var,
         var_a=sloped.fit.slope_var if lattice.slope_term else 0.0,
         a=sloped.a,
-        lz=config.depth_lengthscale if lattice.depth_aware else None,
+        lz=config.assembly.depth_lengthscale if lattice.depth_aware else None,
         floor=config.assembly.weight_floor,
         scale_term=lattice.scale_term,
         slope_term=lattice.slope_term,

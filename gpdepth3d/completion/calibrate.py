@@ -32,19 +32,19 @@ class Calibrated:
 def calibrate(
     moments: DepthMoments, frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig
 ) -> Calibrated:
-    """Adds the edge term (``edge_sigma`` x the MDE's local depth range, scaled by exp(b)) and multiplies by the
+    """Adds the edge term (``assembly.edge_sigma`` x the MDE's local depth range, scaled by exp(b)) and multiplies by the
     local factor of the points' squared z-scores (`gpdepth3d.gp.local_calibration`; frames with fewer than
     ``calibration.min_points`` kept points keep the model's variance)."""
     var = moments.variance
     h, w = frame.shape
-    if config.edge_sigma > 0:
+    if config.assembly.edge_sigma > 0:
         window = 2 * int(np.ceil(max(frame.out_shape[0] / h, frame.out_shape[1] / w))) + 1
-        var = var + (config.edge_sigma * np.exp(screened.fit.log_scale) * edge_range(moments.mde, window)) ** 2
+        var = var + (config.assembly.edge_sigma * np.exp(screened.fit.log_scale) * edge_range(moments.mde, window)) ** 2
     keep = screened.keep
-    if config.local_calibration is None or np.count_nonzero(keep) < config.calibration.min_points:
+    if config.calibration.reach is None or np.count_nonzero(keep) < config.calibration.min_points:
         return Calibrated(var, None)
     zscores, shares = screened.zscores, screened.shares
-    if config.outlier_threshold is None:  # no screen ran: the z-scores computed here
+    if config.screen.outlier_threshold is None:  # no screen ran: the z-scores computed here
         with single_threaded_blas():
             zscores, shares = loo_zscores(
                 frame.rows,
@@ -61,7 +61,7 @@ def calibrate(
         frame.rows[keep],
         frame.cols[keep],
         zscores[keep],
-        reach=config.local_calibration,
+        reach=config.calibration.reach,
         prior_points=config.calibration.prior_points,
         zscore_cap=config.calibration.zscore_cap,
         noise_share=shares[keep],

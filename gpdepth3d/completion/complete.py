@@ -28,7 +28,7 @@ import numpy as np
 from ..depthmap import resize_map
 from ..errors import DataFormatError, GPDepthError, InvalidInputError, ProblemTooLargeError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
-from ..gp.model import DepthGPConfig
+from ..gp.model import COMPUTE_KEYS, FLAT_KEYS, DepthGPConfig
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
 from .diagnostics import gaussian_warnings
@@ -52,12 +52,12 @@ class DepthPosterior:
         alignment: Scale/shift applied to the MDE (residual formulation), else identity.
         timings: Seconds spent per stage ("fit": hyperparameter fit when config.fit, "setup", "solve").
         rejected: (N,) bool over ``sparse``: points rejected as outliers (log_residual: their
-            leave-one-out z-score given their neighbours exceeded ``config.outlier_threshold``).
+            leave-one-out z-score given their neighbours exceeded ``config.screen.outlier_threshold``).
         warnings: What the posterior could not support, one sentence each (also issued as
             `PosteriorWarning`): an MDE whose scale disagrees with the points by more than a
             factor of 2, almost no points, points covering little of the image, many rejected, an
             MDE whose depth differences the points barely follow (fitted slope < 0.2), an MDE
-            error the points show to be > 1.25x the configured s (``raise_outputscale``); for the
+            error the points show to be > 1.25x the configured s (``screen.raise_outputscale``); for the
             Gaussian formulations (``balanced``, ``residual``) the MDE's scale and pixels whose
             mean is <= 0 m.
         solve: The engine's facts of this call (`gpdepth3d.gp.SolveInfo`: route, seconds per
@@ -180,8 +180,8 @@ class DepthPosterior:
                     stored = json.loads(str(d["config_json"]))
                     if not isinstance(stored, dict):
                         raise ValueError(f"config_json: expected a JSON object, got a JSON {type(stored).__name__}")
-                    known = {f.name for f in fields(DepthGPConfig)}
-                    config = DepthGPConfig(**{k: v for k, v in stored.items() if k in known})
+                    known = {f.name for f in fields(DepthGPConfig)} | set(FLAT_KEYS) | set(COMPUTE_KEYS)
+                    config = DepthGPConfig.from_dict({k: v for k, v in stored.items() if k in known})
                 rejected = d["rejected"].astype(bool) if "rejected" in d.files else None
                 if rejected is not None and rejected.shape != (len(sparse),):
                     raise ValueError(f"rejected {rejected.shape}: not one flag per point ({len(sparse)})")
@@ -224,18 +224,22 @@ class DepthCompleter:
     of a sequence after the first are cheaper. With ``config.fit`` each frame's hyperparameters
     are fitted by maximum marginal likelihood, warm-started from the previous frame's values
     (`fitted`; set it to None to start again from ``config``). ``engine`` (a
-    `gpdepth3d.gp.EngineConfig`) sets the engine's options: device, back-end, route, limits.
+    `gpdepth3d.gp.EngineConfig`) names the engine and sets its options: device, back-end, route, limits,
+    the default model's lattice stride.
 
     Example:
-        >>> completer = DepthCompleter(DepthGPConfig(engine="exact"))
+        >>> completer = DepthCompleter(DepthGPConfig(), engine=EngineConfig(name="exact"))
         >>> posterior = completer(mde_depth, sparse)  # doctest: +SKIP
     """
 
     def __init__(self, config: DepthGPConfig | None = None, *, engine: EngineConfig | None = None):
         if config is not None and not isinstance(config, DepthGPConfig):
             raise InvalidInputError("config", "a DepthGPConfig (or None for the defaults)", describe(config))
+        if engine is not None and not isinstance(engine, EngineConfig):
+            raise InvalidInputError("engine", "an EngineConfig (or None for the defaults)", describe(engine))
         self.config = config or DepthGPConfig()
-        self.engine = make_engine(self.config, engine)
+        self.engine_config = engine or EngineConfig()
+        self.engine = make_engine(self.engine_config)
         self.fitted: DepthGPConfig | None = None
         self._fit_engine = None
         self._point_fit = None
@@ -314,6 +318,7 @@ class DepthCompleter:
             variance=variance,
             name=f"frame {frame}: " if frame is not None else "",
             previous=self._point_fit if self.fitted is not None else None,
+            stride=self.engine_config.lattice_stride,
         )
         for message in result.warnings:
             warnings.warn(message, PosteriorWarning, stacklevel=3)
@@ -349,12 +354,16 @@ def complete(
     sparse: SparseDepth,
     *,
     config: DepthGPConfig | None = None,
+    engine: EngineConfig | None = None,
     output_shape: tuple[int, int] | None = None,
     variance: bool = True,
     frame: str | None = None,
 ) -> DepthPosterior:
     """Completes one frame: dense posterior depth and variance from an MDE map and sparse depth.
 
-    See `DepthCompleter.complete` for the arguments; the module docstring states the input rules.
+    See `DepthCompleter` for ``config`` and ``engine`` and `DepthCompleter.complete` for the other
+    arguments; the module docstring states the input rules.
     """
-    return DepthCompleter(config).complete(mde_depth, sparse, output_shape=output_shape, variance=variance, frame=frame)
+    return DepthCompleter(config, engine=engine).complete(
+        mde_depth, sparse, output_shape=output_shape, variance=variance, frame=frame
+    )

@@ -50,8 +50,10 @@ def lattice_stride(
     n_points: int,
     lengthscale: float,
     output_shape: tuple[int, int] | None = None,
+    stride: int | None = None,
 ) -> int:
-    """Pixels of the GP grid per lattice node, per side (``config.lattice_stride``, else `LatticeConfig`'s rule).
+    """Pixels of the GP grid per lattice node, per side: ``stride`` (`EngineConfig.lattice_stride`), else
+    `LatticeConfig`'s rule.
 
     With the sub-lattice detail (nu = 0.5 and an output at least as fine as the grid, ``output_shape`` None:
     the grid): 2 up to ``detail_share`` of the pixels observed, ``dense_stride`` above; without it 2 up to
@@ -59,7 +61,7 @@ def lattice_stride(
     ``min_lengthscale`` take a finer stride. The rule's measured effect: bench/results/lattice.json.
     """
     rule = config.lattice
-    k = config.lattice_stride
+    k = stride
     if k is None:
         detail = config.nu == 0.5 and (output_shape is None or (output_shape[0] >= h and output_shape[1] >= w))
         if min(h, w) < rule.min_side:
@@ -75,13 +77,15 @@ def lattice_stride(
     return k
 
 
-def build_lattice(frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig) -> Lattice:
+def build_lattice(
+    frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig, stride: int | None = None
+) -> Lattice:
     """Each kept point enters at its lattice node with the field's variance between its pixel and the node added
     to its noise; points sharing a node enter as their precision-weighted mean (exact for them)."""
     h, w = frame.shape
     fit, keep = screened.fit, screened.keep
     r, c = frame.rows[keep], frame.cols[keep]
-    k = lattice_stride(config, h, w, r.size, fit.lengthscale, frame.out_shape)
+    k = lattice_stride(config, h, w, r.size, fit.lengthscale, frame.out_shape, stride)
     hl, wl = -(-h // k), -(-w // k)
     off_r, off_c = r - (k * (r // k) + (k - 1) / 2), c - (k * (c // k) + (k - 1) / 2)
     between = (
@@ -98,7 +102,7 @@ def build_lattice(frame: LogFrame, sloped: Sloped, screened: Screened, config: D
         return out
 
     targets = [sloped.resid[keep] - fit.log_scale]
-    depth_aware = config.depth_lengthscale is not None and r.size > 0
+    depth_aware = config.assembly.depth_lengthscale is not None and r.size > 0
     scale_term = fit.log_scale_var > config.assembly.scale_var_share * fit.nugget**2
     slope_term = sloped.fit is not None and r.size > 0
     x_pts = frame.log_mde[r, c]  # the raw (not re-sloped) log MDE at the points

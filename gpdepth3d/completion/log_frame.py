@@ -22,7 +22,7 @@ class LogFrame:
         log_z: (N,) log of the points' depths.
         noise: (N,) the points' noise variance in log depth, (sigma / z)^2 (``sigma_meas`` where none is given).
         stated: (N,) the part of ``noise`` the points' own sigmas state (0 where ``sigma_meas`` stands in).
-        edge: (N,) the MDE's log-depth range over 3 x 3 pixels around each point (0 when ``edge_sigma`` is 0).
+        edge: (N,) the MDE's log-depth range over 3 x 3 pixels around each point (0 when ``assembly.edge_sigma`` is 0).
         out_shape: (Ho, Wo) of the output.
     """
 
@@ -66,7 +66,7 @@ def log_frame(
     noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
     stated = np.where(np.isfinite(sig), sig / z, 0.0) ** 2
     log_mde = np.log(base)
-    edge = edge_range_at(log_mde, rows, cols) if config.edge_sigma > 0 else np.zeros(rows.size)
+    edge = edge_range_at(log_mde, rows, cols) if config.assembly.edge_sigma > 0 else np.zeros(rows.size)
     return LogFrame(base, log_mde, rows, cols, np.log(z), noise, stated, edge, tuple(out_shape))
 
 

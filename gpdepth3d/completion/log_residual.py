@@ -64,15 +64,17 @@ def log_residual_posterior(
     variance: bool = True,
     name: str = "",
     previous: PointFit | None = None,
+    stride: int | None = None,
 ) -> LogResidualPosterior:
-    """Runs the default model's stages on one frame; ``previous`` starts the scales' search (sequences)."""
+    """Runs the default model's stages on one frame; ``previous`` starts the scales' search (sequences),
+    ``stride`` fixes the lattice's (`gpdepth3d.gp.EngineConfig.lattice_stride`; None: automatic)."""
     t0 = time.perf_counter()
     first = fit_slope(frame, config)
     screened = screen(frame, first, config, previous)
     sloped = refit_slope(frame, first, screened.rejected, config)
     screened = follow_slope(screened, first, sloped, config)
     t1 = time.perf_counter()
-    lattice = build_lattice(frame, sloped, screened, config)
+    lattice = build_lattice(frame, sloped, screened, config, stride)
     field = add_detail(solve_field(engine, lattice), lattice, frame, config)
     moments = assemble_depth(frame, sloped, screened, lattice, field, config)
     var = calibrate(moments, frame, sloped, screened, config).variance if variance else np.full(frame.out_shape, np.nan)

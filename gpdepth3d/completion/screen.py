@@ -45,8 +45,8 @@ def screen(frame: LogFrame, sloped: Sloped, config: DepthGPConfig, previous: Poi
     """
     n, resid = frame.n, sloped.resid
     noise = frame.noise
-    if config.edge_sigma > 0:
-        noise = frame.noise + (config.edge_sigma * (abs(sloped.a) * frame.edge)) ** 2
+    if config.assembly.edge_sigma > 0:
+        noise = frame.noise + (config.assembly.edge_sigma * (abs(sloped.a) * frame.edge)) ** 2
     s = config.outputscale
     b = float(np.median(resid)) if n else 0.0
     if config.fit and n < 3:  # too few to fit: the configured scales, the points' median as b
@@ -60,12 +60,12 @@ def screen(frame: LogFrame, sloped: Sloped, config: DepthGPConfig, previous: Poi
             frame.cols,
             resid,
             noise,
-            threshold=config.outlier_threshold,
+            threshold=config.screen.outlier_threshold,
             nu=config.nu,
             options=config.screen,
             start=start,
             around=around,
-            raise_outputscale=start is not None and config.raise_outputscale,
+            raise_outputscale=start is not None and config.screen.raise_outputscale,
             stated=frame.stated,
         )
     return Screened(fit, rejected, zscores, shares, noise)

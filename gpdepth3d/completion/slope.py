@@ -35,9 +35,11 @@ class Sloped:
 def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = None) -> Sloped:
     """Fits the slope on the points ``use`` (default all) with the edge term added to their noise."""
     rows, cols = frame.rows, frame.cols
-    if config.mde_slope_sigma is None or frame.n < config.slope.min_points:
+    if config.slope.prior_sigma is None or frame.n < config.slope.min_points:
         return Sloped(None, frame.log_mde, frame.log_z - frame.log_mde[rows, cols])
-    noise = frame.noise + (config.edge_sigma * frame.edge) ** 2 if config.edge_sigma > 0 else frame.noise
+    noise = (
+        frame.noise + (config.assembly.edge_sigma * frame.edge) ** 2 if config.assembly.edge_sigma > 0 else frame.noise
+    )
     use = np.ones(frame.n, dtype=bool) if use is None else use
     kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
     with single_threaded_blas():
@@ -49,7 +51,7 @@ def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = N
             noise[use],
             kernel,
             config.nugget,
-            prior_sigma=config.mde_slope_sigma,
+            prior_sigma=config.slope.prior_sigma,
             max_points=config.slope.max_points,
             huber=config.slope.huber,
             iterations=config.slope.iterations,

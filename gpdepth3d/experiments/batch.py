@@ -58,6 +58,7 @@ from typing import Any, Callable, Iterator, Literal, Optional, Sequence
 import numpy as np
 
 from ..errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
+from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import clean_output_folder, to_jsonable, write_json, write_problem
 from ..measurements import SparseDepth, downsample_depth
@@ -376,14 +377,15 @@ _COMPLETERS: dict = {}
 _COMPLETERS_LOCK = threading.Lock()
 
 
-def _completer(config: DepthGPConfig):
-    """One `DepthCompleter` per configuration and worker process (engines cache per-resolution set-up)."""
+def _completer(config: DepthGPConfig, engine: EngineConfig | None = None):
+    """One `DepthCompleter` per configuration, engine and worker process (engines cache per-resolution set-up)."""
     from ..completion.complete import DepthCompleter
 
+    key = (config, engine or EngineConfig())
     with _COMPLETERS_LOCK:
-        if config not in _COMPLETERS:
-            _COMPLETERS[config] = DepthCompleter(config)
-        return _COMPLETERS[config]
+        if key not in _COMPLETERS:
+            _COMPLETERS[key] = DepthCompleter(config, engine=key[1])
+        return _COMPLETERS[key]
 
 
 def process_frame(
@@ -396,6 +398,7 @@ def process_frame(
     variance: bool = True,
     png: bool = False,
     previews: bool = False,
+    engine: EngineConfig | None = None,
 ) -> FrameResult:
     """Does one frame: load, complete, write atomically (and score for ``eval``); never raises.
 
@@ -409,7 +412,7 @@ def process_frame(
         inputs = loader(spec)
         if not isinstance(inputs, FrameInputs):
             raise InvalidInputError("loader", "a callable returning FrameInputs", type(inputs).__name__)
-        posterior = _completer(config).complete(
+        posterior = _completer(config, engine).complete(
             inputs.mde, inputs.sparse, variance=variance or task == "eval", frame=spec.frame_id
         )
         if previews:  # before the posterior: the frame's last file marks it done
@@ -591,24 +594,26 @@ def fingerprint(obj: Any) -> str:
     return f"{getattr(target, '__module__', '?')}.{target.__qualname__}"
 
 
-def check_settings(output_dir: str | Path, config: DepthGPConfig, loader: Any) -> None:
+def check_settings(
+    output_dir: str | Path, config: DepthGPConfig, loader: Any, engine: EngineConfig | None = None
+) -> None:
     """Refuses to mix outputs of different settings in one folder; records them on first use.
 
-    ``output_dir/batch_settings.json`` holds the model config and the `fingerprint` of the
-    loader the existing outputs were made with. A run with other settings raises
-    `InvalidInputError` (skipped frames would otherwise keep results of the old settings).
-    The engine is not part of the settings: every engine computes the same posterior, so a
+    ``output_dir/batch_settings.json`` holds the model config, the lattice stride (it sets the
+    approximation) and the `fingerprint` of the loader the existing outputs were made with. A run with
+    other settings raises `InvalidInputError` (skipped frames would otherwise keep results of the old
+    settings). The engine is not part of the settings: every engine computes the same posterior, so a
     run may be resumed with another one.
     """
     import dataclasses
 
     path = Path(output_dir) / SETTINGS_NAME
-    model = {k: v for k, v in dataclasses.asdict(config).items() if k not in ("engine", "max_exact_points")}
-    settings = {"config": model, "loader": fingerprint(loader)}
+    stride = (engine or EngineConfig()).lattice_stride
+    settings = {"config": dataclasses.asdict(config), "lattice_stride": stride, "loader": fingerprint(loader)}
     if path.is_file():
         try:
-            old = json.loads(path.read_text())
-        except ValueError:
+            old = _stored_settings(json.loads(path.read_text()))
+        except (ValueError, GPDepthError):
             old = None
         if old != to_jsonable(settings):
             raise InvalidInputError(
@@ -618,6 +623,18 @@ def check_settings(output_dir: str | Path, config: DepthGPConfig, loader: Any) -
             )
         return
     write_json(path, settings)
+
+
+def _stored_settings(old):
+    """Settings read back from ``batch_settings.json``; a folder's older flat config is read as its
+    nested equivalent (`DepthGPConfig.from_dict`), its lattice stride taken from that config."""
+    import dataclasses
+
+    if not isinstance(old, dict) or not isinstance(old.get("config"), dict) or "lattice_stride" in old:
+        return old
+    stride = old["config"].get("lattice_stride")
+    config = dataclasses.asdict(DepthGPConfig.from_dict(old["config"]))
+    return to_jsonable({"config": config, "lattice_stride": stride, "loader": old.get("loader")})
 
 
 def remove_stale_temp_files(output_dir: str | Path) -> int:
@@ -725,6 +742,7 @@ def run_batch(
     output_dir: str | Path,
     *,
     config: DepthGPConfig | None = None,
+    engine: EngineConfig | None = None,
     loader: Callable[[FrameSpec], FrameInputs] | None = None,
     task: Task = "complete",
     workers: int | None = None,
@@ -741,8 +759,9 @@ def run_batch(
     Args:
         frames: Frame specs with unique ids (see `dataset_frames`).
         output_dir: Folder of the outputs (created); one run at a time per folder.
-        config: GP model; default ``DepthGPConfig()`` (the library's default model). Its ``engine`` field picks the
-            engine ("exact" for a few thousand points, "fast" for full frames).
+        config: GP model; default ``DepthGPConfig()`` (the library's default model).
+        engine: The engine and its options (`gpdepth3d.gp.EngineConfig`; default the ``fast`` engine; "exact"
+            for a few thousand points).
         loader: Picklable ``loader(spec) -> FrameInputs`` run on the workers; default
             `HoldoutInputs()`.
         task: "complete" (write ``<id>.npz`` posteriors) or "eval" (also write
@@ -791,18 +810,23 @@ def run_batch(
     config = config or DepthGPConfig()
     if not isinstance(config, DepthGPConfig):
         raise InvalidInputError("config", "a DepthGPConfig", type(config).__name__)
+    engine = engine or EngineConfig()
+    if not isinstance(engine, EngineConfig):
+        raise InvalidInputError("engine", "an EngineConfig", type(engine).__name__)
     loader = loader or HoldoutInputs()
     if not callable(loader):
         raise InvalidInputError("loader", "a callable loader(spec) -> FrameInputs", type(loader).__name__)
     output_dir = make_output_dir(output_dir)
 
     with _exclusive(output_dir):
-        check_settings(output_dir, config, loader)
+        check_settings(output_dir, config, loader, engine)
         removed = remove_stale_temp_files(output_dir)
         previews = bool(previews) and (variance or task == "eval")
         todo = [f for f in frames if not frame_done(output_dir, f.frame_id, task, png=png, previews=previews)]
         n_skipped = len(frames) - len(todo)
-        kwargs = dict(config=config, loader=loader, task=task, variance=variance, png=png, previews=previews)
+        kwargs = dict(
+            config=config, engine=engine, loader=loader, task=task, variance=variance, png=png, previews=previews
+        )
         results: list[FrameResult] = []
         startup = 0.0
         t_compute = time.perf_counter()

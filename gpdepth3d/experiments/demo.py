@@ -75,7 +75,7 @@ def run_demo(output_dir: str | Path = "gpdepth3d_demo", *, seed: int = 0, sparse
         yield f"{name:<18}{m['rmse']:>10.0f}{m['mae']:>10.0f}{m['rel']:>8.3f}{m['delta1']:>7.3f}{cov}"
     yield SCALE_NOTE
     for name, post in posteriors.items():
-        yield f"{name}: solved in {post.timings['solve'] * 1000:.0f} ms (engine {post.config.engine})"
+        yield f"{name}: solved in {post.timings['solve'] * 1000:.0f} ms (engine {post.solve.engine})"
 
     written: list[Path] = []
     for name, post in posteriors.items():

@@ -55,6 +55,7 @@ from ..completion.fit import fit_hyperparameters
 from ..datasets import Frame, open_dataset
 from ..depthmap import fill_nearest, resize_map
 from ..errors import EmptyInputError, InvalidInputError, ProblemTooLargeError
+from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import atomic_path, atomic_write, write_json
 from ..mde.align import align_depth
@@ -147,9 +148,9 @@ def relative_residual(
 class MethodSuite:
     """Runs the methods of `METHODS` on one frame with shared engines (caches survive frames).
 
-    A config whose engine is "exact" (the `DepthGPConfig` default) is solved by the exact engine
-    while the problem fits it (``max_exact_points`` observed pixels, 6e7 cross-covariance
-    entries) and by the ``fast`` engine beyond; "fast" and "kissgp" are used as given.
+    With ``engine.name`` "exact" a problem is solved by the exact engine while it fits it
+    (``engine.max_exact_points`` observed pixels, 6e7 cross-covariance entries) and by the ``fast``
+    engine beyond; "fast" and "kissgp" are used as given.
 
     Args:
         residual: Config of ``gp_residual`` (default `DepthGPConfig.residual`).
@@ -158,6 +159,8 @@ class MethodSuite:
         relative_white: White MDE error share of ``gp_relative``.
         balanced_factor: GP grid of ``gp_balanced`` relative to the evaluation resolution.
         device: Torch device for the fast engine (None = NumPy on the CPU).
+        engine: The engine of the ``gp_residual``, ``gp_relative`` and ``gp_balanced`` methods
+            (`gpdepth3d.gp.EngineConfig`; None: the ``fast`` engine).
     """
 
     residual: DepthGPConfig | None = None
@@ -166,6 +169,7 @@ class MethodSuite:
     relative_white: float = 0.05
     balanced_factor: float = 0.5
     device: str | None = None
+    engine: EngineConfig | None = None
     _completers: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -179,17 +183,15 @@ class MethodSuite:
             raise InvalidInputError("balanced_factor", "a resolution factor in (0, 1]", self.balanced_factor)
 
     def _completer(self, config: DepthGPConfig, n_observed: int, n_output: int) -> DepthCompleter:
-        """A cached completer; a config asking for "exact" falls back to "fast" when too large."""
-        engine = config.engine
-        if engine == "exact" and (n_observed > config.max_exact_points or n_observed * n_output > 60_000_000):
-            engine = "fast"
-        cfg = config.replace(engine=engine)
-        if cfg not in self._completers:
-            from ..gp import EngineConfig
-
-            options = EngineConfig(device=self.device) if engine == "fast" and self.device is not None else None
-            self._completers[cfg] = DepthCompleter(cfg, engine=options)
-        return self._completers[cfg]
+        """A cached completer; the "exact" engine falls back to "fast" when the problem is too large for it."""
+        options = self.engine or EngineConfig()
+        if options.name == "exact" and (n_observed > options.max_exact_points or n_observed * n_output > 60_000_000):
+            options = options.replace(name="fast")
+        if options.name == "fast" and self.device is not None:
+            options = options.replace(device=self.device)
+        if (config, options) not in self._completers:
+            self._completers[config, options] = DepthCompleter(config, engine=options)
+        return self._completers[config, options]
 
     def run(self, name: str, mde: np.ndarray, sparse: SparseDepth) -> MethodOutput:
         """Runs method ``name`` on an (H, W) MDE map and the sparse input; output at (H, W)."""
@@ -216,8 +218,8 @@ class MethodSuite:
                 mde, sparse, self.residual, params=("lengthscale", "outputscale", "sigma_meas")
             )
             # the fitted config differs per frame: no caching of completers for it
-            engine = self._completer(self.residual, len(sparse), mde.size).config.engine
-            post = DepthCompleter(fitted.replace(engine=engine)).complete(mde, sparse)
+            engine = self._completer(self.residual, len(sparse), mde.size).engine_config
+            post = DepthCompleter(fitted, engine=engine).complete(mde, sparse)
             note = ""
             return MethodOutput(post.mean, post.variance, time.perf_counter() - t0, note)
         if name == "gp_relative":
@@ -232,7 +234,7 @@ class MethodSuite:
             n_obs = int(np.sum(np.isfinite(small) & (small > 0)))
             completer = self._completer(self.balanced, n_obs, h * w)
             if name == "gp_balanced_fit":  # a fresh fit per frame (no warm start across frames)
-                completer = DepthCompleter(completer.config.replace(fit=True))
+                completer = DepthCompleter(completer.config.replace(fit=True), engine=completer.engine_config)
             post = completer.complete(small, sparse, output_shape=shape)
             note = "" if (gh, gw) == shape else f"GP grid {gw}x{gh}"
             return MethodOutput(post.mean, post.variance, time.perf_counter() - t0, note)

@@ -49,6 +49,7 @@ from .frames import mde_to_grid
 from .scoring import metric_row
 from ..depthmap import resize_map
 from ..errors import EmptyInputError, InvalidInputError, ShapeError, describe
+from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..measurements import SparseDepth
 from ..sampling import PAPER_DENSITIES, SeedLike, make_rng, sample_band, sample_uniform
@@ -232,10 +233,12 @@ class KittiMethods:
     Args:
         paper: Config of ``gp_paper`` (default `DepthGPConfig.paper()`).
         default: Config of ``gp_default`` (default `DepthGPConfig()`, read when built).
+        engine: The engine of both (`gpdepth3d.gp.EngineConfig`; None: the ``fast`` engine).
     """
 
     paper: DepthGPConfig | None = None
     default: DepthGPConfig | None = None
+    engine: EngineConfig | None = None
     _completers: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -246,7 +249,7 @@ class KittiMethods:
         from ..completion.complete import DepthCompleter
 
         if config not in self._completers:
-            self._completers[config] = DepthCompleter(config)
+            self._completers[config] = DepthCompleter(config, engine=self.engine)
         return self._completers[config]
 
     def run(

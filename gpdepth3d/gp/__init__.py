@@ -3,7 +3,7 @@
 Every engine satisfies the `Engine` protocol: it takes a `GridProblem` and returns the same
 posterior as a `Solution` (mean, marginal variance, the means of further observation vectors, and
 `SolveInfo`: the route and stage times of that call; it unpacks as ``mean, variance``).
-`make_engine` builds one from the model config and an `EngineConfig` (device, back-end, route,
+`make_engine` builds one from an `EngineConfig` (the engine's name, device, back-end, route,
 limits; docs/engines.md). They differ only in how they compute it:
 
 * ``exact``: dense Cholesky, the reference for small inputs.
@@ -36,39 +36,29 @@ from ..errors import InvalidInputError
 from .engine import check_engine_options
 
 
-def make_engine(config: DepthGPConfig | EngineConfig | None = None, options: EngineConfig | None = None) -> Engine:
-    """Builds the engine of a model config with the engine options (imports heavy back-ends lazily).
+def make_engine(options: EngineConfig | None = None) -> Engine:
+    """Builds the engine an `EngineConfig` names, with its options (imports heavy back-ends lazily).
 
     Args:
-        config: The model's `DepthGPConfig` (its ``engine`` names the engine unless
-            ``options.name`` does, its ``max_exact_points`` bounds ``exact``), or an
-            `EngineConfig` alone (then ``options`` must be None), or None (the ``fast`` engine).
-        options: The engine's options (`EngineConfig`); None: the defaults.
+        options: The engine and its options; None: the defaults (the ``fast`` engine).
 
     Returns:
         An ``ExactEngine``, ``KissGPEngine`` or ``FastEngine``.
 
     Raises:
-        InvalidInputError: ``config`` or ``options`` of another type, an ``options.options`` key
-            the engine does not take, or an option it rejects (e.g. a device torch does not see).
+        InvalidInputError: ``options`` of another type, an ``options.options`` key the engine does not
+            take, or an option it rejects (e.g. a device torch does not see).
     """
-    if isinstance(config, EngineConfig):
-        if options is not None:
-            raise InvalidInputError("options", "None when config is an EngineConfig", type(options).__name__)
-        config, options = None, config
-    if config is not None and not isinstance(config, DepthGPConfig):
-        raise InvalidInputError("config", "a DepthGPConfig, an EngineConfig or None", type(config).__name__)
     if options is None:
         options = EngineConfig()
     elif not isinstance(options, EngineConfig):
         raise InvalidInputError("options", "an EngineConfig or None", type(options).__name__)
-    name = options.name or (config.engine if config is not None else "fast")
+    name = options.name
     if name == "exact":
         from .exact import ExactEngine
 
         extra = check_engine_options(ExactEngine, options.options, ("max_points",))
-        limit = options.max_exact_points or (config.max_exact_points if config is not None else 6000)
-        return ExactEngine(max_points=limit, **extra)
+        return ExactEngine(max_points=options.max_exact_points, **extra)
     if name == "kissgp":
         from .kissgp import KissGPEngine
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import inspect
 import re
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, Iterator, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Iterator, Literal, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -21,6 +21,7 @@ if TYPE_CHECKING:  # the model imports nothing from here; the annotation only
     from .model import GridProblem
 
 ENGINE_NAMES = ("exact", "kissgp", "fast")
+EngineName = Literal["exact", "kissgp", "fast"]
 FAST_BACKENDS = ("auto", "compiled", "torch")
 FAST_ROUTES = ("auto", "grid", "woodbury", "neumann", "dense")
 DEVICE_PATTERN = re.compile(r"(cpu|cuda|mps)(:[0-9]+)?")
@@ -93,7 +94,8 @@ class EngineConfig:
     """Options of the engine that computes a posterior (not of the model it computes).
 
     Attributes:
-        name: "exact", "kissgp" or "fast"; None takes the model config's ``engine``.
+        name: "exact" (dense Cholesky, the reference), "kissgp" (GPyTorch, as the paper) or "fast"
+            (grid-structured, the default); they compute the same posterior.
         device: Torch device of the ``fast`` engine's torch back-end and of ``kissgp`` ("cpu",
             "cuda", "cuda:1", "mps"; a torch.device is kept as its name); None: the CPU for
             ``fast``, CUDA when available for ``kissgp``. The engine refuses one torch does not see.
@@ -106,14 +108,16 @@ class EngineConfig:
         threads: ``fast`` torch back-end: torch CPU threads during a call (None: unchanged).
         max_dense_points: ``fast``: most observed pixels of the dense route.
         max_memory_mb: ``fast``: memory budget of one call (MiB); None: 3/4 of the free memory.
-        max_exact_points: ``exact``: most observed pixels; None takes the model config's
-            ``max_exact_points``.
+        max_exact_points: ``exact``: most observed pixels (it refuses larger problems).
+        lattice_stride: The default model (``log_residual``): GP-grid pixels per lattice node of its field,
+            per side (1-16); None: automatic (`gpdepth3d.gp.model.LatticeConfig`); 1 is the exact model on
+            every pixel.
         options: Further keyword arguments of the engine's constructor (e.g. ``kissgp``'s
             ``cg_tolerance``, ``fast``'s ``tile``); a key it does not take, or one a field above
             sets, is an `InvalidInputError` on ``options``.
     """
 
-    name: str | None = None
+    name: EngineName = "fast"
     device: str | None = None
     backend: str = "auto"
     route: str = "auto"
@@ -121,12 +125,13 @@ class EngineConfig:
     threads: int | None = 1
     max_dense_points: int = 6000
     max_memory_mb: float | None = None
-    max_exact_points: int | None = None
+    max_exact_points: int = 6000
+    lattice_stride: int | None = None
     options: dict = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
-        if self.name is not None and self.name not in ENGINE_NAMES:
-            raise InvalidInputError("name", f"None or one of {ENGINE_NAMES}", self.name)
+        if not isinstance(self.name, str) or self.name not in ENGINE_NAMES:
+            raise InvalidInputError("name", f"one of {ENGINE_NAMES}", describe(self.name))
         object.__setattr__(self, "device", device_name(self.device))  # a torch.device as its name
         if self.backend not in FAST_BACKENDS:
             raise InvalidInputError("backend", f"one of {FAST_BACKENDS}", self.backend)
@@ -137,7 +142,7 @@ class EngineConfig:
         if not isinstance(self.options, dict) or not all(isinstance(k, str) for k in self.options):
             raise InvalidInputError("options", "a dict of keyword arguments", describe(self.options))
         for name, low, optional in (
-            ("max_exact_points", 1, True),
+            ("max_exact_points", 1, False),
             ("threads", 1, True),
             ("max_dense_points", 0, False),
         ):
@@ -152,6 +157,9 @@ class EngineConfig:
             or not v > 0
         ):
             raise InvalidInputError("max_memory_mb", "None or a finite number > 0", describe(v))
+        k = self.lattice_stride
+        if k is not None and not (_is_int(k, 1) and k <= 16):
+            raise InvalidInputError("lattice_stride", "an integer 1-16, or None (automatic)", describe(k))
 
     def replace(self, **changes) -> "EngineConfig":
         """A copy with some fields changed."""

@@ -10,7 +10,7 @@ are written down in docs/model.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
@@ -18,7 +18,6 @@ import numpy as np
 from ..errors import InvalidInputError
 
 Formulation = Literal["log_residual", "balanced", "residual"]
-EngineName = Literal["exact", "kissgp", "fast"]
 
 
 @dataclass(frozen=True)
@@ -32,6 +31,10 @@ class ScreenConfig:
         max_points: Points of the dense marginal-likelihood fit (an evenly strided or paired subset above).
         fit_lengthscales: Length scales (GP-grid pixels) searched when ``DepthGPConfig.fit`` is True.
         fit_nuggets: Nugget shares (tau / s)^2 searched when ``DepthGPConfig.fit`` is True.
+        outlier_threshold: Points whose leave-one-out z-score (given their neighbours) exceeds this are
+            rejected (a z-score); None keeps every point.
+        raise_outputscale: Without ``DepthGPConfig.fit``: ``outputscale`` is a floor the points may raise
+            (an MDE out of its range gets a wider prior, not a confident wrong mean).
     """
 
     neighbours: int = 12
@@ -39,10 +42,14 @@ class ScreenConfig:
     max_points: int = 150
     fit_lengthscales: tuple[float, ...] = (2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 128.0)
     fit_nuggets: tuple[float, ...] = (0.01, 0.03, 0.1, 0.3, 1.0)
+    outlier_threshold: float | None = 3.5
+    raise_outputscale: bool = True
 
     def __post_init__(self) -> None:
         for name, low in (("neighbours", 1), ("iterations", 1), ("max_points", 3)):
             object.__setattr__(self, name, _integer(name, getattr(self, name), low))
+        _optional(self, "outlier_threshold")
+        _boolean("raise_outputscale", self.raise_outputscale)
         for name in ("fit_lengthscales", "fit_nuggets"):
             values = getattr(self, name)
             if isinstance(values, (str, bytes)) or not hasattr(values, "__len__") or not len(values):
@@ -52,22 +59,25 @@ class ScreenConfig:
 
 @dataclass(frozen=True)
 class SlopeConfig:
-    """How the MDE's log-depth slope a is fitted per frame (`gpdepth3d.gp.slope`; its prior sigma is
-    ``DepthGPConfig.mde_slope_sigma``).
+    """How the MDE's log-depth slope a is fitted per frame (`gpdepth3d.gp.slope`; docs/model.md, "fit slope").
 
     Attributes:
+        prior_sigma: Prior standard deviation of the slope around 1 (a monocular network's depth is right
+            up to scale, its log-depth slope near 1); None fixes a = 1.
         max_points: Points of the dense robust fit (an evenly strided subset above).
         huber: Huber threshold on the standardised residuals.
         iterations: Huber re-weighting rounds.
         min_points: Fewer points than this keep a = 1.
     """
 
+    prior_sigma: float | None = 0.5
     max_points: int = 150
     huber: float = 2.0
     iterations: int = 3
     min_points: int = 3
 
     def __post_init__(self) -> None:
+        _optional(self, "prior_sigma")
         object.__setattr__(self, "max_points", _integer("max_points", self.max_points, 2))
         object.__setattr__(self, "iterations", _integer("iterations", self.iterations, 1))
         object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 3))
@@ -76,7 +86,7 @@ class SlopeConfig:
 
 @dataclass(frozen=True)
 class LatticeConfig:
-    """The automatic lattice of the default model's field (``DepthGPConfig.lattice_stride`` None; docs/model.md).
+    """The automatic lattice of the default model's field (``EngineConfig.lattice_stride`` None; docs/model.md).
 
     A stride-k lattice holds the field on every k-th pixel per side; the field's detail below it is kriged
     back from the points (`gpdepth3d.gp.sublattice`) where nu = 0.5 and the output is at least as fine as
@@ -111,19 +121,29 @@ class LatticeConfig:
 
 @dataclass(frozen=True)
 class AssemblyConfig:
-    """Two numerical choices of the default model's per-pixel read-out (docs/model.md, "assemble").
+    """The default model's per-pixel read-out: depth awareness, edge variance and two numerical choices
+    (docs/model.md, "assemble").
 
     Attributes:
+        depth_lengthscale: Length scale l_z of the depth-aware correlation, log depth (corrections fade
+            across depths the points do not share); None: off.
+        edge_sigma: Extra standard deviation at MDE depth edges, a share of the MDE's depth range over a
+            3-pixel window (colour and range are never perfectly registered); it also enters the points'
+            noise in the slope fit and the screen; 0: off.
         weight_floor: Pixels whose kriging weights sum below this keep the depth-aware factor rho = 1 (their
             field is at its prior there whatever rho is, and the weighted mean depth is undefined).
         scale_var_share: The global scale's variance term is bounded by Var[b] instead of solved for when
             Var[b] is below this share of the nugget variance (thousands of points: high by at most this share).
     """
 
+    depth_lengthscale: float | None = 0.7
+    edge_sigma: float = 1.0
     weight_floor: float = 1e-3
     scale_var_share: float = 0.05
 
     def __post_init__(self) -> None:
+        _optional(self, "depth_lengthscale")
+        object.__setattr__(self, "edge_sigma", _in_range("edge_sigma", self.edge_sigma, *RANGES["edge_sigma"]))
         object.__setattr__(
             self, "weight_floor", _in_range("weight_floor", self.weight_floor, 1e-12, 1.0, "a weight sum")
         )
@@ -134,20 +154,23 @@ class AssemblyConfig:
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """The local calibration of the variance from the points' z-scores (`gpdepth3d.gp.local_calibration`;
-    its reach is ``DepthGPConfig.local_calibration``).
+    """The local calibration of the variance from the points' z-scores (`gpdepth3d.gp.local_calibration`).
 
     Attributes:
+        reach: Reach of the calibration, mean point spacings (how far one point's z-score scales the
+            variance around it); None: off.
         prior_points: Pseudo-points at a factor of 1 (the weight of the model's own variance).
         zscore_cap: Squared z-scores enter capped at this (one point must not set a region's variance alone).
         min_points: Frames with fewer kept points keep the model's variance (and warn).
     """
 
+    reach: float | None = 1.5
     prior_points: float = 2.0
     zscore_cap: float = 16.0
     min_points: int = 10
 
     def __post_init__(self) -> None:
+        _optional(self, "reach")
         object.__setattr__(self, "prior_points", _in_range("prior_points", self.prior_points, 1e-3, 1e3, "points"))
         object.__setattr__(self, "zscore_cap", _in_range("zscore_cap", self.zscore_cap, 1.0, 1e4, "a squared z-score"))
         object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 1))
@@ -184,31 +207,17 @@ class DepthGPConfig:
         units: "relative" (fractions of the median MDE depth) or "metres".
         align: residual: fit the MDE to the points before it is the prior mean: "none", "scale" (robust
             median ratio) or "scale_shift" (robust affine).
-        engine: Compute option: "exact" (dense Cholesky, the reference), "kissgp" (GPyTorch, as the
-            paper) or "fast" (grid-structured, the default); they compute the same posterior.
-        max_exact_points: Compute option: the exact engine refuses problems with more observed pixels.
         fit: Fit the scales to each frame: balanced / residual by the exact marginal likelihood
             (`gpdepth3d.completion.fit`), log_residual l, s and tau on the frame's points (`gpdepth3d.gp.fit`).
         nugget: log_residual: standard deviation tau of the white part of the MDE's log error.
-        outlier_threshold: log_residual: points whose leave-one-out z-score exceeds this are rejected;
-            None keeps every point.
-        edge_sigma: log_residual: extra standard deviation at MDE depth edges, a share of the MDE's
-            depth range over a 3-pixel window (colour and range are never perfectly registered); 0: off.
-        depth_lengthscale: log_residual: length scale l_z of the depth-aware correlation, log depth
-            (corrections fade across depths the points do not share); None: off.
-        mde_slope_sigma: log_residual: prior standard deviation of the MDE's log-depth slope around 1,
-            fitted per frame; None fixes it at 1.
-        raise_outputscale: log_residual without ``fit``: ``outputscale`` is a floor the points may raise
-            (an MDE out of its range gets a wider prior, not a confident wrong mean).
-        lattice_stride: Compute option, log_residual: pixels per lattice node of the field, per side;
-            None: automatic (``lattice``); 1 is the exact model on every pixel.
-        local_calibration: log_residual: reach (mean point spacings) of the local calibration of the
-            variance by the points' z-scores; None: off.
         screen: log_residual: the fit and outlier screen (`ScreenConfig`).
         slope: log_residual: the slope fit (`SlopeConfig`).
         lattice: log_residual: the automatic lattice (`LatticeConfig`).
-        assembly: log_residual: the per-pixel read-out (`AssemblyConfig`).
+        assembly: log_residual: depth awareness, edge variance and the per-pixel read-out (`AssemblyConfig`).
         calibration: log_residual: the local calibration (`CalibrationConfig`).
+
+    Compute options (engine, its limits, the lattice stride) are `gpdepth3d.gp.EngineConfig`'s; a config
+    stored as a dict (a posterior file, a saved map) reads back with `from_dict`.
     """
 
     formulation: Formulation = "log_residual"
@@ -219,17 +228,8 @@ class DepthGPConfig:
     sigma_meas: float = 0.01
     units: Literal["relative", "metres"] = "relative"
     align: Literal["none", "scale", "scale_shift"] = "scale"
-    engine: EngineName = "fast"
-    max_exact_points: int = 6000
     fit: bool = False
     nugget: float = 0.02
-    outlier_threshold: float | None = 3.5
-    edge_sigma: float = 1.0
-    depth_lengthscale: float | None = 0.7
-    mde_slope_sigma: float | None = 0.5
-    raise_outputscale: bool = True
-    lattice_stride: int | None = None
-    local_calibration: float | None = 1.5
     screen: ScreenConfig = field(default_factory=ScreenConfig)
     slope: SlopeConfig = field(default_factory=SlopeConfig)
     lattice: LatticeConfig = field(default_factory=LatticeConfig)
@@ -250,30 +250,14 @@ class DepthGPConfig:
         if not _is_real(self.nu) or self.nu not in (0.5, 1.5, 2.5):
             raise InvalidInputError("nu", "0.5, 1.5 or 2.5", f"{type(self.nu).__name__} {self.nu!r}")
         object.__setattr__(self, "nu", float(self.nu))
-        for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget", "edge_sigma"):
+        for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget"):
             object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name]))
         if self.formulation == "log_residual":  # log-depth scales: exp() of their squares must stay finite
             _in_range("outputscale", self.outputscale, *RANGES["log_outputscale"])
-        for name in ("outlier_threshold", "depth_lengthscale", "mde_slope_sigma", "local_calibration"):
-            if getattr(self, name) is not None:
-                object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name], none=True))
-        object.__setattr__(self, "max_exact_points", _integer("max_exact_points", self.max_exact_points, 1))
-        if self.lattice_stride is not None:
-            object.__setattr__(
-                self,
-                "lattice_stride",
-                _integer("lattice_stride", self.lattice_stride, 1, 16, "an integer 1-16, or None (automatic)"),
-            )
-        for name, allowed in (
-            ("units", ("relative", "metres")),
-            ("align", ("none", "scale", "scale_shift")),
-            ("engine", ("exact", "kissgp", "fast")),
-        ):
+        for name, allowed in (("units", ("relative", "metres")), ("align", ("none", "scale", "scale_shift"))):
             if not isinstance(getattr(self, name), str) or getattr(self, name) not in allowed:
                 raise InvalidInputError(name, " or ".join(repr(a) for a in allowed), getattr(self, name))
-        for name in ("fit", "raise_outputscale"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise InvalidInputError(name, "True or False", getattr(self, name))
+        _boolean("fit", self.fit)
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
@@ -289,13 +273,12 @@ class DepthGPConfig:
             sigma_dl=0.05,
             sigma_meas=0.001,
             fit=False,
-            outlier_threshold=None,
-            edge_sigma=0.0,
-            depth_lengthscale=None,
-            mde_slope_sigma=None,
-            local_calibration=None,
+            screen=ScreenConfig(outlier_threshold=None),
+            slope=SlopeConfig(prior_sigma=None),
+            assembly=AssemblyConfig(depth_lengthscale=None, edge_sigma=0.0),
+            calibration=CalibrationConfig(reach=None),
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
 
     @classmethod
     def residual(cls, **overrides) -> "DepthGPConfig":
@@ -309,17 +292,62 @@ class DepthGPConfig:
             outputscale=0.2,
             sigma_meas=0.01,
             fit=False,
-            outlier_threshold=None,
-            edge_sigma=0.0,
-            depth_lengthscale=None,
-            mde_slope_sigma=None,
-            local_calibration=None,
+            screen=ScreenConfig(outlier_threshold=None),
+            slope=SlopeConfig(prior_sigma=None),
+            assembly=AssemblyConfig(depth_lengthscale=None, edge_sigma=0.0),
+            calibration=CalibrationConfig(reach=None),
         )
-        return replace(base, **overrides)
+        return base.replace(**overrides)
 
     def replace(self, **changes) -> "DepthGPConfig":
-        """A copy with some fields changed."""
+        """A copy with some fields changed; a dict for a nested config changes only its keys there
+        (``config.replace(calibration={"reach": None})``)."""
+        for name, kind in _NESTED.items():
+            if isinstance(changes.get(name), dict):
+                unknown = sorted(set(changes[name]) - {f.name for f in fields(kind)})
+                if unknown:
+                    raise InvalidInputError(name, f"fields of {kind.__name__}", f"unknown keys {unknown}")
+                changes[name] = replace(getattr(self, name), **changes[name])
         return replace(self, **changes)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "DepthGPConfig":
+        """The config a dict holds (``dataclasses.asdict`` of one, e.g. a posterior file's ``config_json``).
+
+        Also reads the flat layout of older files: each key of `FLAT_KEYS` moves to its nested config (a value
+        the nested dict holds wins) and the compute options (`COMPUTE_KEYS`) are dropped (`EngineConfig`'s now).
+
+        Raises:
+            InvalidInputError: ``data`` not a dict, or a key that is no field (argument ``config``).
+        """
+        if not isinstance(data, dict):
+            raise InvalidInputError("config", "a dict of DepthGPConfig fields", type(data).__name__)
+        out = {k: v for k, v in data.items() if k not in COMPUTE_KEYS}
+        for old, (section, name) in FLAT_KEYS.items():
+            if old in out:
+                value = out.pop(old)
+                nested = out.get(section, {})
+                nested = dict(nested if isinstance(nested, dict) else asdict(nested))
+                nested.setdefault(name, value)
+                out[section] = nested
+        unknown = sorted(set(out) - {f.name for f in fields(cls)})
+        if unknown:
+            raise InvalidInputError("config", "DepthGPConfig fields", f"unknown keys {unknown}")
+        return cls(**out)
+
+
+FLAT_KEYS: dict[str, tuple[str, str]] = {
+    "outlier_threshold": ("screen", "outlier_threshold"),
+    "raise_outputscale": ("screen", "raise_outputscale"),
+    "mde_slope_sigma": ("slope", "prior_sigma"),
+    "depth_lengthscale": ("assembly", "depth_lengthscale"),
+    "edge_sigma": ("assembly", "edge_sigma"),
+    "local_calibration": ("calibration", "reach"),
+}
+"""Flat keys of older stored configs -> (nested config, its field) (`DepthGPConfig.from_dict`)."""
+
+COMPUTE_KEYS = ("engine", "max_exact_points", "lattice_stride")
+"""Keys of older stored configs that are compute options, `gpdepth3d.gp.EngineConfig`'s (dropped on reading)."""
 
 
 RANGES: dict[str, tuple[float, float, str]] = {
@@ -332,8 +360,8 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "edge_sigma": (0.0, 10.0, "shares of the local MDE depth range"),
     "outlier_threshold": (1e-3, 1e6, "a z-score"),
     "depth_lengthscale": (1e-3, 1e3, "log depth"),
-    "mde_slope_sigma": (1e-3, 3.0, "standard deviations of the MDE's log-depth slope"),
-    "local_calibration": (0.1, 100.0, "mean point spacings"),
+    "prior_sigma": (1e-3, 3.0, "standard deviations of the MDE's log-depth slope"),
+    "reach": (0.1, 100.0, "mean point spacings"),
 }
 """Accepted interval (inclusive) of each numeric hyperparameter, with its unit. Each bound keeps the
 posterior finite in float64: a log-depth scale above 3 (a factor of 20 at one sigma) puts exp(v / 2)
@@ -346,6 +374,19 @@ def _in_range(name: str, value, low: float, high: float, unit: str, *, none: boo
         expected = f"a number in [{low:g}, {high:g}] ({unit})" + (", or None" if none else "")
         raise InvalidInputError(name, expected, f"{type(value).__name__} {value!r}")
     return float(value)
+
+
+def _optional(config, name: str) -> None:
+    """Checks the optional number ``config.<name>`` against `RANGES` (None passes) and stores it as a float."""
+    value = getattr(config, name)
+    if value is not None:
+        object.__setattr__(config, name, _in_range(name, value, *RANGES[name], none=True))
+
+
+def _boolean(name: str, value) -> None:
+    """`InvalidInputError` naming ``name`` unless ``value`` is True or False."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InvalidInputError(name, "True or False", value)
 
 
 def _integer(name: str, value, low: int, high: int | None = None, expected: str | None = None) -> int:

@@ -212,8 +212,8 @@ class TestOneLineErrors:
             ),
             (["batch"], "gpdepth3d batch: missing --data, --output (see gpdepth3d batch --help)"),
             (
-                ["complete", "--mde", "m.npy", "--output", "o", "--gp.engine", "nope"],
-                "--gp.engine: expected one of exact, kissgp, fast, got nope (see gpdepth3d complete --help)",
+                ["complete", "--mde", "m.npy", "--output", "o", "--engine.name", "nope"],
+                "--engine.name: expected one of exact, kissgp, fast, got nope (see gpdepth3d complete --help)",
             ),
             (["complete", "--mde"], "--mde: too few values (see gpdepth3d complete --help)"),
             (["--frob"], "gpdepth3d: unrecognised --frob (see gpdepth3d --help)"),
@@ -297,7 +297,7 @@ class TestOneLineErrors:
             str(tmp_path / "o"),
             "--preset",
             "residual",
-            "--gp.engine",
+            "--engine.name",
             "exact",
         ]
         assert main(argv) == 1 and "2 of 3 rows" in capsys.readouterr().err

@@ -23,7 +23,10 @@ def test_cli_page_regenerates_identically():
 
 
 def test_every_command_and_option_is_on_the_page():
+    import dataclasses
+
     from gpdepth3d.cli._main import _commands
+    from gpdepth3d.gp.engine import EngineConfig
     from gpdepth3d.gp.model import DepthGPConfig
 
     text = _make_cli().render()
@@ -32,6 +35,15 @@ def test_every_command_and_option_is_on_the_page():
         for param in inspect.signature(function).parameters:
             flag = "--preset" if param == "gp" else "--" + param.replace("_", "-")
             assert f"`{flag}" in text, (name, flag)
-    for field in DepthGPConfig.__dataclass_fields__:
-        assert f"`--gp.{field.replace('_', '-')}`" in text
+    for field in dataclasses.fields(DepthGPConfig):
+        value = getattr(DepthGPConfig(), field.name)
+        names = (
+            [f"{field.name}.{f.name}" for f in dataclasses.fields(value)]
+            if dataclasses.is_dataclass(value)
+            else [field.name]
+        )
+        for n in names:
+            assert f"`--gp.{n.replace('_', '-')}`" in text, n
+    for field in dataclasses.fields(EngineConfig):
+        assert f"`--engine.{field.name.replace('_', '-')}`" in text, field.name
     assert "## Exit codes" in text and "| 1 |" in text

@@ -20,6 +20,7 @@ from gpdepth3d.cli._options import PRESETS, normalize_argv
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.mapping.mapper import MAPPER_GP
+from gpdepth3d.gp.engine import EngineConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -120,8 +121,13 @@ class TestEverySubcommand:
             assert main([command, *required]) == 0
             assert calls[-1]["gp"] == default
             for preset, config in PRESETS.items():
-                assert main([command, *required, "--preset", preset, "--gp.engine", "exact"]) == 0
-                assert calls[-1]["gp"] == (default if preset == "default" else config).replace(engine="exact")
+                assert main([command, *required, "--preset", preset, "--gp.fit"]) == 0
+                assert calls[-1]["gp"] == (default if preset == "default" else config).replace(fit=True)
+            if command != "fuse":  # the engine is an option of its own, not a field of the model
+                assert main([command, *required, "--preset", "paper", "--engine.name", "exact"]) == 0
+                assert calls[-1]["engine"] == EngineConfig(name="exact") and calls[-1]["gp"] == PRESETS["paper"]
+                assert main([command, *required, "--engine.lattice-stride", "2"]) == 0
+                assert calls[-1]["engine"] == EngineConfig(lattice_stride=2)
         calls = _spy(monkeypatch, batch, "batch_command")
         assert main(["batch", "--data", "d", "--output", "o", "--frames", "3"]) == 0
         assert calls[-1]["frames"] == 3 and calls[-1]["workers"] is None  # None: run_batch's default, the CPU count

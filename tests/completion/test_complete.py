@@ -20,9 +20,11 @@ from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import load_depth
 from gpdepth3d.measurements import SparseDepth, downsample_depth
 from gpdepth3d.metrics import calibration_metrics, depth_metrics
+from gpdepth3d.gp.engine import EngineConfig
 
-EXACT = DepthGPConfig.paper(engine="exact")
-RESIDUAL = DepthGPConfig.residual(engine="exact")
+EXACT = DepthGPConfig.paper()
+RESIDUAL = DepthGPConfig.residual()
+EXACT_ENGINE = EngineConfig(name="exact")
 
 
 def small_inputs(h=8, w=10, seed=0):
@@ -104,7 +106,7 @@ class TestBuildProblem:
 class TestComplete:
     def test_shapes_and_fields(self):
         mde, sparse = small_inputs()
-        post = complete(mde, sparse, config=EXACT)
+        post = complete(mde, sparse, config=EXACT, engine=EXACT_ENGINE)
         assert isinstance(post, DepthPosterior)
         assert post.mean.shape == post.variance.shape == post.mde.shape == post.shape == (8, 10)
         np.testing.assert_allclose(post.std, np.sqrt(post.variance))
@@ -113,26 +115,26 @@ class TestComplete:
 
     def test_upsampled_output(self):
         mde, sparse = small_inputs()
-        post = complete(mde, sparse, config=RESIDUAL, output_shape=(16, 20))
+        post = complete(mde, sparse, config=RESIDUAL, engine=EXACT_ENGINE, output_shape=(16, 20))
         assert post.mean.shape == post.variance.shape == post.mde.shape == (16, 20)
         assert np.all(np.isfinite(post.mean)) and np.all(post.variance > 0)
 
     def test_without_variance(self):
         mde, sparse = small_inputs()
-        post = complete(mde, sparse, config=EXACT, variance=False)
+        post = complete(mde, sparse, config=EXACT, engine=EXACT_ENGINE, variance=False)
         assert np.all(np.isnan(post.variance))
-        np.testing.assert_allclose(post.mean, complete(mde, sparse, config=EXACT).mean)
+        np.testing.assert_allclose(post.mean, complete(mde, sparse, config=EXACT, engine=EXACT_ENGINE).mean)
 
     def test_measurements_are_honoured(self):
         mde, sparse = small_inputs()
         for cfg in (EXACT, RESIDUAL):
-            post = complete(mde, sparse, config=cfg)
+            post = complete(mde, sparse, config=cfg, engine=EXACT_ENGINE)
             at = post.mean[sparse.v.astype(int), sparse.u.astype(int)]
             np.testing.assert_allclose(at, sparse.depth, rtol=0.02)
 
     def test_empty_sparse_balanced_follows_the_mde(self):
         mde, _ = small_inputs()
-        post = complete(mde, SparseDepth.empty(mde.shape), config=EXACT)
+        post = complete(mde, SparseDepth.empty(mde.shape), config=EXACT, engine=EXACT_ENGINE)
         rel = (post.mean - mde) / mde
         assert np.sqrt(np.mean(rel**2)) < 0.05
         assert np.corrcoef(post.mean.ravel(), mde.ravel())[0, 1] > 0.9
@@ -141,7 +143,7 @@ class TestComplete:
 
     def test_empty_sparse_residual_is_the_prior(self):
         mde, _ = small_inputs()
-        post = complete(mde, SparseDepth.empty(mde.shape), config=RESIDUAL)
+        post = complete(mde, SparseDepth.empty(mde.shape), config=RESIDUAL, engine=EXACT_ENGINE)
         np.testing.assert_allclose(post.mean, mde)
         scale = np.median(mde)
         np.testing.assert_allclose(post.variance, (RESIDUAL.outputscale * scale) ** 2)
@@ -151,7 +153,7 @@ class TestComplete:
     def test_no_valid_mde_with_measurements(self, cfg):
         _, sparse = small_inputs()
         mde = np.full((8, 10), np.nan)
-        post = complete(mde, sparse, config=cfg)
+        post = complete(mde, sparse, config=cfg, engine=EXACT_ENGINE)
         assert np.all(np.isfinite(post.mean)) and np.all(post.variance > 0)
         assert post.depth_scale == pytest.approx(np.median(sparse.depth))
         at = post.mean[sparse.v.astype(int), sparse.u.astype(int)]
@@ -162,18 +164,20 @@ class TestComplete:
 
     def test_same_result_from_the_completer(self):
         mde, sparse = small_inputs()
-        completer = DepthCompleter(RESIDUAL)
+        completer = DepthCompleter(RESIDUAL, engine=EXACT_ENGINE)
         a = completer(mde, sparse)
         b = completer.complete(mde, sparse)
         np.testing.assert_array_equal(a.mean, b.mean)
-        np.testing.assert_array_equal(a.mean, complete(mde, sparse, config=RESIDUAL).mean)
+        np.testing.assert_array_equal(a.mean, complete(mde, sparse, config=RESIDUAL, engine=EXACT_ENGINE).mean)
         assert DepthCompleter().config == DepthGPConfig()
 
     def test_synthetic_street(self, tiny_street_frame):
         f = tiny_street_frame
         mde_m = depth_metrics(f.mde, f.depth_gt)
         for cfg in (EXACT, RESIDUAL):
-            post = complete(f.mde, f.lidar.subset(np.arange(0, len(f.lidar), 3)), config=cfg, variance=False)
+            post = complete(
+                f.mde, f.lidar.subset(np.arange(0, len(f.lidar), 3)), config=cfg, engine=EXACT_ENGINE, variance=False
+            )
             assert depth_metrics(post.mean, f.depth_gt)["rmse"] < mde_m["rmse"]
 
     def test_gaussian_presets_say_when_the_mde_scale_is_off_and_when_depths_go_below_zero(self):
@@ -184,10 +188,10 @@ class TestComplete:
         with pytest.warns(
             PosteriorWarning, match=r"frame 7: the MDE's scale disagrees with the points by a factor of 0\.00"
         ):
-            post = complete(mde * 1000.0, sparse, config=EXACT, frame="7")
+            post = complete(mde * 1000.0, sparse, config=EXACT, engine=EXACT_ENGINE, frame="7")
         assert len(post.warnings) == 1 and "factor of" in post.warnings[0]
         with pytest.warns(PosteriorWarning) as record:
-            post = complete(mde * 1e-3, sparse, config=EXACT, frame="8")
+            post = complete(mde * 1e-3, sparse, config=EXACT, engine=EXACT_ENGINE, frame="8")
         low = int(np.count_nonzero(post.mean <= 0))
         assert low > 0 and post.mean.min() < 0  # the model's mean, not clipped
         messages = [str(r.message) for r in record]
@@ -196,7 +200,7 @@ class TestComplete:
         # a well-scaled frame says nothing
         with warnings.catch_warnings():
             warnings.simplefilter("error", PosteriorWarning)
-            post = complete(mde, sparse, config=EXACT)
+            post = complete(mde, sparse, config=EXACT, engine=EXACT_ENGINE)
         assert post.warnings == ()
         assert np.all(post.mean > 0)
 
@@ -204,7 +208,7 @@ class TestComplete:
 class TestDepthPosteriorSaveLoad:
     def test_round_trip(self, tmp_path):
         mde, sparse = small_inputs()
-        post = complete(mde, sparse, config=RESIDUAL)
+        post = complete(mde, sparse, config=RESIDUAL, engine=EXACT_ENGINE)
         written = post.save(tmp_path / "post", png=True)
         assert [p.name for p in written] == ["post.npz", "post_mean.png", "post_std.png"]
         assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
@@ -232,7 +236,9 @@ class TestDepthPosteriorSaveLoad:
         cfg = DepthGPConfig(lengthscale=5.0, nugget=0.03)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            post = complete(mde, SparseDepth(sparse.u, sparse.v, depth, sparse.image_size), config=cfg)
+            post = complete(
+                mde, SparseDepth(sparse.u, sparse.v, depth, sparse.image_size), config=cfg, engine=EXACT_ENGINE
+            )
         assert post.solve is not None and post.solve.route in ("grid", "woodbury", "neumann", "dense")
         written = post.save(tmp_path / "post")
         back = DepthPosterior.load(written[0])
@@ -278,7 +284,7 @@ class TestSevenScenesCrop:
         sparse = SparseDepth(cols[pick].astype(float), rows[pick].astype(float), gt[rows[pick], cols[pick]], gt.shape)
         held_out = gt.copy()
         held_out[rows[pick], cols[pick]] = 0.0
-        post = complete(mde, sparse, config=RESIDUAL)
+        post = complete(mde, sparse, config=RESIDUAL, engine=EXACT_ENGINE)
         aligned, _ = align_to_sparse(mde, sparse)
         rmse_gp = depth_metrics(post.mean, held_out)["rmse"]
         rmse_aligned = depth_metrics(aligned, held_out)["rmse"]

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
+from gpdepth3d.gp.engine import EngineConfig
+from gpdepth3d.gp.model import AssemblyConfig, CalibrationConfig, ScreenConfig, SlopeConfig
 from gpdepth3d.completion.complete import PosteriorWarning
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import matern_1d
@@ -160,15 +162,14 @@ class TestLogResidualPosterior:
         sp = g.sample_uniform(truth, n=40, rng=1)
         cfg = g.DepthGPConfig(
             fit=False,
-            outlier_threshold=None,
-            local_calibration=None,
-            edge_sigma=0.0,
             lengthscale=6.0,
             outputscale=0.3,
             nugget=0.04,
             sigma_meas=0.01,
-            depth_lengthscale=None,
-            mde_slope_sigma=None,
+            screen=ScreenConfig(outlier_threshold=None),
+            calibration=CalibrationConfig(reach=None),
+            assembly=AssemblyConfig(edge_sigma=0.0, depth_lengthscale=None),
+            slope=SlopeConfig(prior_sigma=None),
         )
         post = g.complete(mde, sp, config=cfg)
         mu, v, b = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.04, sigma=0.01)
@@ -185,15 +186,14 @@ class TestLogResidualPosterior:
         sp = g.sample_uniform(np.where(rr >= 12, truth, 0.0), n=40, rng=3)
         cfg = g.DepthGPConfig(
             fit=False,
-            outlier_threshold=None,
-            local_calibration=None,
-            edge_sigma=0.0,
             lengthscale=6.0,
             outputscale=0.3,
             nugget=0.04,
             sigma_meas=0.01,
-            depth_lengthscale=lz,
-            mde_slope_sigma=None,
+            screen=ScreenConfig(outlier_threshold=None),
+            calibration=CalibrationConfig(reach=None),
+            assembly=AssemblyConfig(edge_sigma=0.0, depth_lengthscale=lz),
+            slope=SlopeConfig(prior_sigma=None),
         )
         post = g.complete(mde, sp, config=cfg)
         rho = np.exp(-np.abs(np.log(mde.ravel()) - np.log(2.0)) / lz)
@@ -204,7 +204,7 @@ class TestLogResidualPosterior:
         off = np.abs(np.log(mde) - np.log(2.0)) > 1.0
         near = off & (rr >= 9) & (rr < 12)
         assert near.any()
-        stationary = g.complete(mde, sp, config=cfg.replace(depth_lengthscale=None))
+        stationary = g.complete(mde, sp, config=cfg.replace(assembly={"depth_lengthscale": None}))
 
         def correction(p):  # E[g] at the pixels: log-normal median minus the scaled MDE
             v = np.log1p(p.variance[near] / p.mean[near] ** 2)
@@ -219,15 +219,14 @@ class TestLogResidualPosterior:
         sp = g.sample_uniform(truth, n=600, rng=5)
         cfg = g.DepthGPConfig(
             fit=False,
-            outlier_threshold=None,
-            local_calibration=None,
-            edge_sigma=0.0,
             lengthscale=6.0,
             outputscale=0.3,
             nugget=0.06,
             sigma_meas=0.01,
-            depth_lengthscale=None,
-            mde_slope_sigma=None,
+            screen=ScreenConfig(outlier_threshold=None),
+            calibration=CalibrationConfig(reach=None),
+            assembly=AssemblyConfig(edge_sigma=0.0, depth_lengthscale=None),
+            slope=SlopeConfig(prior_sigma=None),
         )
         post = g.complete(mde, sp, config=cfg)
         _, exact, _ = _dense_log_posterior(mde, sp, l=6.0, s=0.3, tau=0.06, sigma=0.01)
@@ -240,7 +239,7 @@ class TestLogResidualPosterior:
         truth, mde = _scene(seed=2)
         sp = g.sample_uniform(truth, n=60, rng=2)
         a = g.complete(mde, sp, config=g.DepthGPConfig(fit=fit))
-        b = g.complete(mde, sp, config=g.DepthGPConfig(engine="exact", fit=fit))
+        b = g.complete(mde, sp, config=g.DepthGPConfig(fit=fit), engine=EngineConfig(name="exact"))
         np.testing.assert_allclose(a.mean, b.mean, rtol=1e-9)
         np.testing.assert_allclose(a.variance, b.variance, rtol=1e-7)
         assert a.config.lengthscale == b.config.lengthscale  # fitted, reported on the posterior
@@ -290,7 +289,7 @@ class TestLogResidualPosterior:
         corner = np.where((rr < 12) & (cc < 16), truth, 0.0)
         sp = g.sample_uniform(corner, n=60, rng=7)
         with pytest.warns(PosteriorWarning, match="cover little of the image"):
-            post = g.complete(mde, sp, config=g.DepthGPConfig(edge_sigma=0.0))
+            post = g.complete(mde, sp, config=g.DepthGPConfig(assembly=AssemblyConfig(edge_sigma=0.0)))
         assert post.std[55, 75] > 3 * post.std[5, 5]
 
     def test_points_wider_than_the_prior_raise_s_and_warn(self):
@@ -306,13 +305,13 @@ class TestLogResidualPosterior:
         sp = g.sample_uniform(truth, n=150, rng=21)
         # the local calibration off: it too widens the variance of a model whose s is too small (from the
         # points' z-scores), and would hide which of the two did it
-        local_off = g.DepthGPConfig(local_calibration=None)
+        local_off = g.DepthGPConfig(calibration=CalibrationConfig(reach=None))
         with pytest.warns(PosteriorWarning, match="points has s = 0.2[5-9], above the configured 0.20"):
             post = g.complete(mde, sp, frame="7", config=local_off)
         assert post.config.outputscale > 0.25 and "frame 7" in post.warnings[0]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PosteriorWarning)
-            fixed = g.complete(mde, sp, config=local_off.replace(raise_outputscale=False))
+            fixed = g.complete(mde, sp, config=local_off.replace(screen={"raise_outputscale": False}))
         assert fixed.config.outputscale == 0.2 and not any("above the configured" in w for w in fixed.warnings)
         assert np.median(post.std) > 1.1 * np.median(fixed.std)
 
@@ -335,16 +334,17 @@ class TestLogResidualPosterior:
         "field, value",
         [
             ("nugget", -1.0),
-            ("edge_sigma", float("nan")),
-            ("outlier_threshold", 0.0),
-            ("depth_lengthscale", 0.0),
-            ("depth_lengthscale", "1"),
-            ("raise_outputscale", "yes"),
+            ("assembly.edge_sigma", float("nan")),
+            ("screen.outlier_threshold", 0.0),
+            ("assembly.depth_lengthscale", 0.0),
+            ("assembly.depth_lengthscale", "1"),
+            ("screen.raise_outputscale", "yes"),
         ],
     )
     def test_config_validation(self, field, value):
-        with pytest.raises(InvalidInputError, match=field):
-            g.DepthGPConfig(**{field: value})
+        section, _, name = field.rpartition(".")
+        with pytest.raises(InvalidInputError, match=name):
+            g.DepthGPConfig().replace(**({section: {name: value}} if section else {name: value}))
 
     def test_paper_preset_is_the_paper(self):
         p = g.DepthGPConfig.paper()
@@ -406,21 +406,21 @@ class TestLattice:
         assert lattice_stride(cfg, 125, 414, 5200, 12.0) == 2  # long enough for stride 2 (8 px), not 4 (16 px)
         assert lattice_stride(cfg, 125, 414, 5200, 16.0) == 4
         assert lattice_stride(cfg, 12, 414, 5, 32.0) == 1  # too few rows
-        assert lattice_stride(cfg.replace(lattice_stride=1), 125, 414, 10, 32.0) == 1
-        assert lattice_stride(cfg.replace(lattice_stride=4), 125, 414, 10**5, 32.0) == 4
-        assert lattice_stride(cfg.replace(lattice_stride=8), 3, 414, 10, 32.0) == 2  # 2 nodes per side at least
+        assert lattice_stride(cfg, 125, 414, 10, 32.0, stride=1) == 1
+        assert lattice_stride(cfg, 125, 414, 10**5, 32.0, stride=4) == 4
+        assert lattice_stride(cfg, 3, 414, 10, 32.0, stride=8) == 2  # 2 nodes per side at least
 
     @pytest.mark.parametrize("bad", [0, 17, 1.5, True, "2", np.nan])
     def test_invalid_stride_is_refused_by_name(self, bad):
         with pytest.raises(InvalidInputError, match="lattice_stride"):
-            g.DepthGPConfig(lattice_stride=bad)
+            EngineConfig(lattice_stride=bad)
 
     @pytest.mark.parametrize("shape", [(64, 96), (63, 97)])
     def test_coarse_lattice_agrees_with_every_pixel_when_points_are_sparse(self, shape):
         truth, mde = _scene(*shape, seed=11)
         sp = g.sample_uniform(truth, n=120, rng=11)
-        fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1))
-        coarse = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=2))
+        fine = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1))
+        coarse = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=2))
         auto = g.complete(mde, sp)  # 120 points on ~6000 pixels: sparse, so the default takes stride 2
         np.testing.assert_array_equal(auto.mean, coarse.mean)
         assert not np.array_equal(fine.mean, coarse.mean)  # the lattice is really coarser
@@ -438,8 +438,8 @@ class TestLattice:
         assert rmse(coarse) < 1.05 * rmse(fine)
         # any output resolution, as on the pixel lattice
         big = (2 * shape[0], 2 * shape[1])
-        up = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=2), output_shape=big)
-        fine_up = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=big)
+        up = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=2), output_shape=big)
+        fine_up = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1), output_shape=big)
         assert up.mean.shape == big and np.all(np.isfinite(up.variance))
         assert np.median(np.abs(np.log(up.mean / fine_up.mean))) < 0.01
 
@@ -448,7 +448,7 @@ class TestLattice:
         (a point informs the node beside it); with its detail kriged back (gp.sublattice) 0.2 % and 2 %."""
         truth, mde = _scene(64, 96, seed=14)
         sp = g.sample_uniform(truth, n=500, rng=14)  # 8 % of the pixels: stride 2 by default
-        fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1))
+        fine = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1))
         coarse = g.complete(mde, sp)
         r, c = sp.v.astype(int), sp.u.astype(int)
         assert np.median(np.abs(np.log(coarse.mean[r, c] / fine.mean[r, c]))) < 0.005
@@ -460,7 +460,9 @@ class TestLattice:
         np.testing.assert_allclose(big.variance[1::3, 1::3], coarse.variance, rtol=1e-5)
         # a coarser output keeps the lattice's own posterior (no detail is read there), close to every pixel's
         small = g.complete(mde, sp, output_shape=(32, 48))
-        small_fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=(32, 48))
+        small_fine = g.complete(
+            mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1), output_shape=(32, 48)
+        )
         assert np.all(np.isfinite(small.variance)) and np.all(small.variance > 0)
         assert np.median(np.abs(np.log(small.mean / small_fine.mean))) < 0.02
 
@@ -469,9 +471,11 @@ class TestLattice:
         an output coarser than the grid reads no detail and keeps every pixel."""
         truth, mde = _scene(64, 96, seed=12)
         sp = g.sample_uniform(truth, n=700, rng=12)
-        fine = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1))
+        fine = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1))
         auto = g.complete(mde, sp)
-        np.testing.assert_array_equal(auto.mean, g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=4)).mean)
+        np.testing.assert_array_equal(
+            auto.mean, g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=4)).mean
+        )
         assert not np.array_equal(auto.mean, fine.mean)
         r, c = sp.v.astype(int), sp.u.astype(int)
         assert np.median(np.abs(np.log(auto.mean[r, c] / fine.mean[r, c]))) < 0.005
@@ -480,25 +484,35 @@ class TestLattice:
         assert rmse(auto) < 1.05 * rmse(fine)
         np.testing.assert_array_equal(
             g.complete(mde, sp, output_shape=(32, 48)).mean,
-            g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=(32, 48)).mean,
+            g.complete(
+                mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1), output_shape=(32, 48)
+            ).mean,
         )
         # finer outputs, also by non-integer factors and in one axis only: the detail resized from the grid's pixels
         for out in [(100, 150), (64, 150), (130, 96)]:
             a = g.complete(mde, sp, output_shape=out)
-            f = g.complete(mde, sp, config=g.DepthGPConfig(lattice_stride=1), output_shape=out)
+            f = g.complete(mde, sp, config=g.DepthGPConfig(), engine=EngineConfig(lattice_stride=1), output_shape=out)
             assert a.mean.shape == out and np.all(np.isfinite(a.variance)) and np.all(a.variance > 0)
             assert np.median(np.abs(np.log(a.mean / f.mean))) < 0.012 and np.median(a.std / f.std) < 1.03
 
     def test_points_sharing_a_node_count_as_their_precision_weighted_mean(self):
         """Two points in one 2 x 2 cell with the same residual inform the node as one point with both precisions."""
         truth, mde = _scene(32, 32, seed=13)
+        stride2 = EngineConfig(lattice_stride=2)
         cfg = g.DepthGPConfig(
-            lattice_stride=2, outlier_threshold=None, mde_slope_sigma=None, edge_sigma=0.0, depth_lengthscale=None
+            screen=ScreenConfig(outlier_threshold=None),
+            slope=SlopeConfig(prior_sigma=None),
+            assembly=AssemblyConfig(edge_sigma=0.0, depth_lengthscale=None),
         )
         u, v = np.array([10.0, 11.0, 25.0]), np.array([8.0, 9.0, 20.0])  # pixel centres (10, 8), (11, 9): one cell
         depth = mde[v.astype(int), u.astype(int)] * 1.3
-        two = g.complete(mde, SparseDepth(u, v, depth, (32, 32), np.full(3, 0.01 * depth)), config=cfg)
-        one = g.complete(mde, SparseDepth(u[1:], v[1:], depth[1:], (32, 32), np.full(2, 0.01 * depth[1:])), config=cfg)
+        two = g.complete(mde, SparseDepth(u, v, depth, (32, 32), np.full(3, 0.01 * depth)), config=cfg, engine=stride2)
+        one = g.complete(
+            mde,
+            SparseDepth(u[1:], v[1:], depth[1:], (32, 32), np.full(2, 0.01 * depth[1:])),
+            config=cfg,
+            engine=stride2,
+        )
         # the shared node is better known with both points: the posterior there pulls harder towards 1.3 x MDE
         ratio_two, ratio_one = two.mean[8, 10] / mde[8, 10], one.mean[8, 10] / mde[8, 10]
         assert abs(ratio_two - 1.3) <= abs(ratio_one - 1.3) + 1e-12

@@ -15,9 +15,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import gpdepth3d as g
+from gpdepth3d.gp.engine import EngineConfig
+from gpdepth3d.gp.model import ScreenConfig
 from gpdepth3d.completion.complete import PosteriorWarning
 from gpdepth3d.errors import GPDepthError, InvalidInputError
 from gpdepth3d.mapping.mapper import MAPPER_GP
+
+EXACT = EngineConfig(name="exact")
 
 
 def _quiet(mde, sparse, config, **kwargs):
@@ -73,19 +77,23 @@ class TestRealCases:
         _assert_valid(_quiet(disparity, lidar, config))
 
     @pytest.mark.parametrize(
-        "config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact")], ids=["default", "mapper", "exact"]
+        "config, engine",
+        [(g.DepthGPConfig(), None), (MAPPER_GP, None), (g.DepthGPConfig(), EXACT)],
+        ids=["default", "mapper", "exact"],
     )
-    def test_kitti_disparity_with_200_points(self, kitti_disparity, config):
+    def test_kitti_disparity_with_200_points(self, kitti_disparity, config, engine):
         disparity, lidar = kitti_disparity
-        post = _quiet(disparity, g.sample_uniform(lidar, n=200, rng=0), config)
+        post = _quiet(disparity, g.sample_uniform(lidar, n=200, rng=0), config, engine=engine)
         _assert_valid(post)
         assert post.mde_slope < 0  # the points say the MDE runs backwards; the variance is still a variance
 
     @pytest.mark.parametrize(
-        "config", [g.DepthGPConfig(), MAPPER_GP, g.DepthGPConfig(engine="exact")], ids=["default", "mapper", "exact"]
+        "config, engine",
+        [(g.DepthGPConfig(), None), (MAPPER_GP, None), (g.DepthGPConfig(), EXACT)],
+        ids=["default", "mapper", "exact"],
     )
-    def test_seven_scenes_points_at_1_and_10_m(self, seven_scenes_two_depths, config):
-        _assert_valid(_quiet(*seven_scenes_two_depths, config))
+    def test_seven_scenes_points_at_1_and_10_m(self, seven_scenes_two_depths, config, engine):
+        _assert_valid(_quiet(*seven_scenes_two_depths, config, engine=engine))
 
     def test_without_variance_the_mean_is_bit_identical(self, kitti_disparity):
         disparity, lidar = kitti_disparity
@@ -106,24 +114,36 @@ def _small_inputs(seed: int = 0):
     return mde, g.SparseDepth(u, v, depth, (20, 28))
 
 
+def _config(**changes) -> g.DepthGPConfig:
+    """The default config with ``changes``; a key "section.field" changes a field of a nested config."""
+    top, nested = {}, {}
+    for key, value in changes.items():
+        if "." in key:
+            section, name = key.split(".")
+            nested.setdefault(section, {})[name] = value
+        else:
+            top[key] = value
+    return g.DepthGPConfig().replace(**top, **nested)
+
+
 @pytest.mark.parametrize(
     "field, value",
     [
         ("nugget", 100.0),
         ("outputscale", 50.0),
         ("nugget", 3.01),
-        ("mde_slope_sigma", 1e-300),
-        ("mde_slope_sigma", 1e300),
-        ("local_calibration", 1e-300),
-        ("local_calibration", 1e300),
-        ("depth_lengthscale", 1e-320),
-        ("edge_sigma", 1e100),
+        ("slope.prior_sigma", 1e-300),
+        ("slope.prior_sigma", 1e300),
+        ("calibration.reach", 1e-300),
+        ("calibration.reach", 1e300),
+        ("assembly.depth_lengthscale", 1e-320),
+        ("assembly.edge_sigma", 1e100),
         ("lengthscale", 1e-300),
     ],
 )
 def test_hyperparameters_outside_their_range_are_refused_by_name(field, value):
-    with pytest.raises(InvalidInputError, match=rf"{field}: expected a number in \["):
-        g.DepthGPConfig(**{field: value})
+    with pytest.raises(InvalidInputError, match=rf"{field.split('.')[-1]}: expected a number in \["):
+        _config(**{field: value})
 
 
 def test_a_large_relative_outputscale_stays_allowed_for_the_gaussian_formulations():
@@ -136,19 +156,19 @@ def test_a_large_relative_outputscale_stays_allowed_for_the_gaussian_formulation
         {
             "nugget": 3.0,
             "outputscale": 3.0,
-            "mde_slope_sigma": 3.0,
-            "edge_sigma": 10.0,
-            "local_calibration": 100.0,
-            "depth_lengthscale": 1e3,
+            "slope.prior_sigma": 3.0,
+            "assembly.edge_sigma": 10.0,
+            "calibration.reach": 100.0,
+            "assembly.depth_lengthscale": 1e3,
             "lengthscale": 1e5,
         },
         {
             "nugget": 0.0,
             "outputscale": 1e-9,
-            "mde_slope_sigma": 1e-3,
-            "edge_sigma": 0.0,
-            "local_calibration": 0.1,
-            "depth_lengthscale": 1e-3,
+            "slope.prior_sigma": 1e-3,
+            "assembly.edge_sigma": 0.0,
+            "calibration.reach": 0.1,
+            "assembly.depth_lengthscale": 1e-3,
             "lengthscale": 1e-3,
         },
     ],
@@ -157,7 +177,7 @@ def test_the_ends_of_the_ranges_give_a_valid_posterior(changes):
     mde, sp = _small_inputs()
     for engine in ("fast", "exact"):
         try:
-            post = _quiet(mde, sp, g.DepthGPConfig(engine=engine, **changes))
+            post = _quiet(mde, sp, _config(**changes), engine=EngineConfig(name=engine))
         except GPDepthError:
             continue  # a typed refusal is allowed; a silent inf or negative variance is not
         _assert_valid(post)
@@ -175,21 +195,21 @@ def test_a_fitted_scale_stays_inside_the_range():
 
 
 @pytest.mark.parametrize(
-    "config",
+    "config, engine",
     [
-        g.DepthGPConfig(),
-        MAPPER_GP,
-        g.DepthGPConfig(engine="exact"),
-        g.DepthGPConfig(outlier_threshold=None),
-        g.DepthGPConfig(fit=True),
+        (g.DepthGPConfig(), None),
+        (MAPPER_GP, None),
+        (g.DepthGPConfig(), EXACT),
+        (g.DepthGPConfig(screen=ScreenConfig(outlier_threshold=None)), None),
+        (g.DepthGPConfig(fit=True), None),
     ],
     ids=["default", "mapper", "exact", "no-screen", "fit"],
 )
-def test_without_variance_the_mean_is_bit_identical_on_small_frames(config):
+def test_without_variance_the_mean_is_bit_identical_on_small_frames(config, engine):
     mde, sp = _small_inputs(1)
     for shape in (None, (40, 56), (10, 14)):
-        a = _quiet(mde, sp, config, output_shape=shape)
-        b = _quiet(mde, sp, config, output_shape=shape, variance=False)
+        a = _quiet(mde, sp, config, engine=engine, output_shape=shape)
+        b = _quiet(mde, sp, config, engine=engine, output_shape=shape, variance=False)
         np.testing.assert_array_equal(a.mean, b.mean)
         assert np.all(np.isnan(b.variance))
 
@@ -248,12 +268,12 @@ def test_posterior_is_valid_for_random_inputs(formulation, engine, examples):
     def check(mde_kind, point_kind, h, w, n, seed, upsample):
         mde = _mde(mde_kind, h, w, seed)
         sparse = _points(point_kind, mde, n, seed + 1)
-        config = FORMULATIONS[formulation].replace(engine=engine)
+        config = FORMULATIONS[formulation]
         shape = (2 * h, 2 * w) if upsample else None
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", PosteriorWarning)
             try:
-                post = g.complete(mde, sparse, config=config, output_shape=shape)
+                post = g.complete(mde, sparse, config=config, engine=EngineConfig(name=engine), output_shape=shape)
             except GPDepthError:
                 return  # a typed error is an allowed answer
         gaussian = not formulation.startswith("log_residual")

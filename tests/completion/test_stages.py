@@ -20,6 +20,7 @@ from gpdepth3d.completion.slope import fit_slope, refit_slope
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
 from gpdepth3d.gp.model import (
+    FLAT_KEYS,
     AssemblyConfig,
     CalibrationConfig,
     DepthGPConfig,
@@ -47,7 +48,7 @@ class TestStages:
     def test_the_stages_give_what_complete_gives(self):
         _, mde, sp = _scene()
         config = DepthGPConfig()
-        result = log_residual_posterior(make_engine(config), _frame(mde, sp, config), config)
+        result = log_residual_posterior(make_engine(), _frame(mde, sp, config), config)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PosteriorWarning)
             post = g.complete(mde, sp, config=config)
@@ -60,7 +61,7 @@ class TestStages:
         config = DepthGPConfig()
         sloped = fit_slope(_frame(mde, sp, config), config)
         assert 0.45 < sloped.a < 0.8  # the points' log depth follows the MDE's with a slope of 1 / 1.6
-        fixed = fit_slope(_frame(mde, sp, config), config.replace(mde_slope_sigma=None))
+        fixed = fit_slope(_frame(mde, sp, config), config.replace(slope={"prior_sigma": None}))
         assert fixed.fit is None and fixed.a == 1.0
 
     def test_refit_without_the_rejected_points_moves_the_slope_and_b(self):
@@ -81,11 +82,11 @@ class TestStages:
 
     def test_lattice_holds_every_kept_point(self):
         _, mde, sp = _scene(n=200)
-        config = DepthGPConfig(lattice_stride=2)
+        config = DepthGPConfig()
         frame = _frame(mde, sp, config)
         sloped = fit_slope(frame, config)
         screened = screen(frame, sloped, config)
-        lattice = build_lattice(frame, sloped, screened, config)
+        lattice = build_lattice(frame, sloped, screened, config, stride=2)
         assert lattice.stride == 2 and lattice.problem.shape == (15, 20)
         observed = np.unique((lattice.rows // 2) * 20 + lattice.cols // 2)
         assert np.count_nonzero(lattice.problem.precision) == observed.size
@@ -119,17 +120,75 @@ class TestNestedConfigs:
         )
         back = DepthGPConfig(**json.loads(json.dumps(asdict(config))))
         assert back == config and isinstance(back.screen.fit_nuggets, tuple)
+        assert DepthGPConfig.from_dict(json.loads(json.dumps(asdict(config)))) == config
+
+    def test_replace_with_a_dict_changes_only_those_fields_of_a_nested_config(self):
+        base = DepthGPConfig.paper()
+        assert base.replace(assembly={"edge_sigma": 0.5}).assembly == AssemblyConfig(
+            depth_lengthscale=None, edge_sigma=0.5
+        )
+        assert DepthGPConfig.paper(calibration={"min_points": 3}).calibration == CalibrationConfig(
+            reach=None, min_points=3
+        )
+        assert base.replace(calibration=CalibrationConfig(min_points=3)).calibration.reach == 1.5  # a config: all of it
+        with pytest.raises(InvalidInputError, match="edge_sigma"):
+            base.replace(assembly={"edge_sigma": -1.0})
+        with pytest.raises(InvalidInputError, match="unknown keys"):
+            base.replace(assembly={"no_such_field": 1.0})
+
+    def test_from_dict_reads_the_flat_layout(self):
+        """Each flat key of an older file lands in its nested config; compute options are dropped."""
+        old = {
+            "formulation": "log_residual",
+            "nugget": 0.03,
+            "engine": "exact",
+            "max_exact_points": 77,
+            "lattice_stride": 2,
+            "outlier_threshold": 2.5,
+            "raise_outputscale": False,
+            "mde_slope_sigma": 0.25,
+            "depth_lengthscale": None,
+            "edge_sigma": 0.5,
+            "local_calibration": 3.0,
+        }
+        config = DepthGPConfig.from_dict(old)
+        assert config == DepthGPConfig(
+            nugget=0.03,
+            screen=ScreenConfig(outlier_threshold=2.5, raise_outputscale=False),
+            slope=SlopeConfig(prior_sigma=0.25),
+            assembly=AssemblyConfig(depth_lengthscale=None, edge_sigma=0.5),
+            calibration=CalibrationConfig(reach=3.0),
+        )
+        # a value the nested dict holds wins over a flat key (a newer file read with a default for an old key)
+        both = DepthGPConfig.from_dict({"local_calibration": None, "calibration": {"reach": 2.0, "min_points": 5}})
+        assert both.calibration == CalibrationConfig(reach=2.0, min_points=5)
+        assert DepthGPConfig.from_dict({"local_calibration": None, "calibration": {"min_points": 5}}).calibration == (
+            CalibrationConfig(reach=None, min_points=5)
+        )
+        with pytest.raises(InvalidInputError, match="unknown keys"):
+            DepthGPConfig.from_dict({"no_such_field": 1})
+        with pytest.raises(InvalidInputError, match="config"):
+            DepthGPConfig.from_dict([("nugget", 0.03)])
+        with pytest.raises(InvalidInputError, match="reach"):
+            DepthGPConfig.from_dict({"local_calibration": -1.0})
 
     def test_a_posterior_saved_with_a_flat_config_loads(self, tmp_path):
-        """A file whose config_json has only the flat fields (no nested configs) loads with the nested defaults."""
+        """A file whose config_json has the older flat layout (no nested configs) loads as the same model."""
         _, mde, sp = _scene()
+        config = DepthGPConfig(
+            nugget=0.03, screen=ScreenConfig(outlier_threshold=3.0), calibration=CalibrationConfig(reach=2.0)
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PosteriorWarning)
-            post = g.complete(mde, sp, config=DepthGPConfig(nugget=0.03))
+            post = g.complete(mde, sp, config=config)
         path = post.save(tmp_path / "p")[0]
         assert DepthPosterior.load(path).config == post.config
         data = dict(np.load(path))
-        flat = {k: v for k, v in json.loads(str(data["config_json"])).items() if not isinstance(v, dict)}
+        stored = json.loads(str(data["config_json"]))
+        flat = {k: v for k, v in stored.items() if not isinstance(v, dict)}
+        flat.update(engine="fast", max_exact_points=6000, lattice_stride=None)
+        for old, (section, name) in FLAT_KEYS.items():
+            flat[old] = stored[section][name]
         data["config_json"] = np.array(json.dumps(flat))
         np.savez(tmp_path / "old.npz", **data)
         assert DepthPosterior.load(tmp_path / "old.npz").config == post.config
@@ -139,6 +198,7 @@ class TestNestedConfigs:
         base = DepthGPConfig()
         assert lattice_stride(base.replace(lattice=LatticeConfig(dense_stride=2)), 125, 414, 10**4, 32.0) == 2
         assert lattice_stride(base.replace(lattice=LatticeConfig(min_side=200)), 125, 414, 10, 32.0) == 1
+        assert lattice_stride(base, 125, 414, 10**4, 32.0, stride=2) == 2  # `EngineConfig.lattice_stride`
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PosteriorWarning)
             ref = g.complete(mde, sp, config=base)
@@ -150,5 +210,5 @@ class TestNestedConfigs:
                 post = g.complete(mde, sp, config=changed)
                 assert not np.array_equal(post.variance, ref.variance)
             few = g.complete(mde, sp, config=base.replace(calibration=CalibrationConfig(min_points=10**4)))
-            off = g.complete(mde, sp, config=base.replace(local_calibration=None))
+            off = g.complete(mde, sp, config=base.replace(calibration={"reach": None}))
         np.testing.assert_array_equal(few.variance, off.variance)  # too few points: the model's own variance

@@ -21,6 +21,8 @@ import numpy as np
 import pytest
 
 from gpdepth3d import DepthGPConfig, complete
+from gpdepth3d.gp.model import FLAT_KEYS
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.experiments.batch import (
     LOCK_NAME,
     REPORT_NAME,
@@ -49,7 +51,8 @@ from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.metrics import depth_metrics
 
 H, W = 45, 150
-CONFIG = DepthGPConfig.residual(engine="exact")
+CONFIG = DepthGPConfig.residual()
+ENGINE = EngineConfig(name="exact")
 LOADER = HoldoutInputs(factor=3, n_input=40)
 TEMP = ".{stem}.abc123.tmp.npz"  # the name pattern gpdepth3d.io.atomic_path uses
 
@@ -186,17 +189,17 @@ class TestHoldoutInputs:
 class TestProcessFrame:
     def test_writes_the_posterior_of_the_inputs(self, tiny_kitti, tmp_path):
         spec = dataset_frames(tiny_kitti)[1]
-        result = process_frame(spec, str(tmp_path), config=CONFIG, loader=LOADER)
+        result = process_frame(spec, str(tmp_path), config=CONFIG, engine=ENGINE, loader=LOADER)
         assert result.ok and result.error is None and result.metrics is None
         saved = DepthPosterior.load(output_paths(tmp_path, spec.frame_id, "complete")["final"])
         inputs = LOADER(spec)
-        direct = complete(inputs.mde, inputs.sparse, config=CONFIG)
+        direct = complete(inputs.mde, inputs.sparse, config=CONFIG, engine=ENGINE)
         np.testing.assert_allclose(saved.mean, direct.mean, rtol=1e-6)
         np.testing.assert_allclose(saved.variance, direct.variance, rtol=1e-5)
 
     def test_eval_writes_metrics_last_and_they_are_right(self, tiny_kitti, tmp_path):
         spec = dataset_frames(tiny_kitti)[2]
-        result = process_frame(spec, str(tmp_path), config=CONFIG, loader=LOADER, task="eval")
+        result = process_frame(spec, str(tmp_path), config=CONFIG, engine=ENGINE, loader=LOADER, task="eval")
         paths = output_paths(tmp_path, spec.frame_id, "eval")
         assert paths["final"] == paths["metrics"] and paths["posterior"].is_file()
         record = json.loads(paths["metrics"].read_text())
@@ -209,10 +212,10 @@ class TestProcessFrame:
 
     def test_errors_are_returned_not_raised(self, tmp_path):
         spec = FrameSpec("bad", str(tmp_path / "nowhere"), "x", "kitti_tiny")
-        result = process_frame(spec, str(tmp_path), config=CONFIG, loader=LOADER)
+        result = process_frame(spec, str(tmp_path), config=CONFIG, engine=ENGINE, loader=LOADER)
         assert not result.ok and result.frame_id == "bad"
         assert result.error.startswith("DataFormatError") and "Traceback" in result.traceback
-        wrong = process_frame(spec, str(tmp_path), config=CONFIG, loader=lambda s: "not inputs")
+        wrong = process_frame(spec, str(tmp_path), config=CONFIG, engine=ENGINE, loader=lambda s: "not inputs")
         assert not wrong.ok and "FrameInputs" in wrong.error
         assert not list(tmp_path.glob("*.npz"))
 
@@ -225,14 +228,14 @@ class TestRunBatchInProcess:
     def test_writes_every_frame_then_skips_them(self, tiny_kitti, tmp_path, capsys):
         frames = dataset_frames(tiny_kitti, repeat=2)
         out = tmp_path / "out"
-        report = run_batch(frames, out, config=CONFIG, loader=LOADER, workers=0, progress=True)
+        report = run_batch(frames, out, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=True)
         bar = capsys.readouterr().err
         assert "8/8" in bar and "frame/s" in bar and "s/frame" not in bar
         assert isinstance(report, BatchReport) and report.ok
         assert (report.n_computed, report.n_skipped, report.failures) == (8, 0, ())
         assert npz_ids(out) == sorted(f.frame_id for f in frames)
         mtimes = {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")}
-        again = run_batch(frames, out, config=CONFIG, loader=LOADER, workers=0, progress=False)
+        again = run_batch(frames, out, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=False)
         assert (again.n_computed, again.n_skipped) == (0, 8) and again.ok
         assert {p.name: p.stat().st_mtime_ns for p in out.glob("*.npz")} == mtimes
         saved = json.loads((out / REPORT_NAME).read_text())
@@ -241,9 +244,13 @@ class TestRunBatchInProcess:
     def test_eval_aggregates_over_all_done_frames(self, tiny_kitti, tmp_path):
         frames = dataset_frames(tiny_kitti)
         out = tmp_path / "eval"
-        first = run_batch(frames[:2], out, config=CONFIG, loader=LOADER, task="eval", workers=0, progress=False)
+        first = run_batch(
+            frames[:2], out, config=CONFIG, engine=ENGINE, loader=LOADER, task="eval", workers=0, progress=False
+        )
         assert first.aggregate["frames"] == 2
-        report = run_batch(frames, out, config=CONFIG, loader=LOADER, task="eval", workers=0, progress=False)
+        report = run_batch(
+            frames, out, config=CONFIG, engine=ENGINE, loader=LOADER, task="eval", workers=0, progress=False
+        )
         assert (report.n_computed, report.n_skipped) == (2, 2)
         per_frame = [json.loads((out / f"{f.frame_id}.metrics.json").read_text())["metrics"] for f in frames]
         assert report.aggregate["frames"] == 4
@@ -261,7 +268,13 @@ class TestRunBatchInProcess:
         keep = out / "notes.tmp.txt"  # not a writer's temp name (no leading dot): kept
         keep.write_text("mine")
         report = run_batch(
-            dataset_frames(tiny_kitti, limit=1), out, config=CONFIG, loader=LOADER, workers=0, progress=False
+            dataset_frames(tiny_kitti, limit=1),
+            out,
+            config=CONFIG,
+            engine=ENGINE,
+            loader=LOADER,
+            workers=0,
+            progress=False,
         )
         assert report.temp_files_removed == 2 and not any(p.exists() for p in stale) and keep.exists()
         assert remove_stale_temp_files(out) == 0
@@ -272,7 +285,13 @@ class TestRunBatchInProcess:
         out = tmp_path / "out"
         with pytest.raises(FramesFailedError, match=r"1 of 3 frames failed \(first: b: DataFormatError"):
             batch_command(
-                data=data, output=out, workers=0, n_input=40, gp=DepthGPConfig(engine="exact"), progress=False
+                data=data,
+                output=out,
+                workers=0,
+                n_input=40,
+                gp=DepthGPConfig(),
+                engine=EngineConfig(name="exact"),
+                progress=False,
             )
         assert npz_ids(out) == ["a", "c"]
         report = json.loads((out / REPORT_NAME).read_text())
@@ -294,19 +313,45 @@ class TestRunBatchInProcess:
 
     def test_other_settings_in_the_same_folder_are_refused(self, tiny_kitti, tmp_path):
         frames = dataset_frames(tiny_kitti, limit=1)
-        run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, progress=False)
+        run_batch(frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=False)
         settings = json.loads((tmp_path / SETTINGS_NAME).read_text())
         assert settings["loader"] == repr(LOADER) and settings["config"]["lengthscale"] == CONFIG.lengthscale
         assert "engine" not in settings["config"]
         with pytest.raises(InvalidInputError, match="new output_dir"):
             run_batch(frames, tmp_path, config=CONFIG.replace(lengthscale=5.0), loader=LOADER, workers=0)
         with pytest.raises(InvalidInputError, match="new output_dir"):
-            run_batch(frames, tmp_path, config=CONFIG, loader=HoldoutInputs(factor=3, n_input=41), workers=0)
-        same = run_batch(frames, tmp_path, config=CONFIG, loader=HoldoutInputs(factor=3, n_input=40), workers=0)
+            run_batch(
+                frames, tmp_path, config=CONFIG, engine=ENGINE, loader=HoldoutInputs(factor=3, n_input=41), workers=0
+            )
+        same = run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=HoldoutInputs(factor=3, n_input=40), workers=0
+        )
         assert same.n_skipped == 1
-        other_engine = run_batch(frames, tmp_path, config=CONFIG.replace(engine="fast"), loader=LOADER, workers=0)
+        other_engine = run_batch(
+            frames, tmp_path, config=CONFIG, engine=EngineConfig(name="fast"), loader=LOADER, workers=0
+        )
         assert other_engine.n_skipped == 1, "engines compute the same posterior: resuming with another is allowed"
+        with pytest.raises(InvalidInputError, match="new output_dir"):  # the stride sets the approximation
+            run_batch(
+                frames, tmp_path, config=CONFIG, engine=ENGINE.replace(lattice_stride=2), loader=LOADER, workers=0
+            )
         assert fingerprint(process_frame) == "gpdepth3d.experiments.batch.process_frame"
+
+    def test_a_folder_with_the_older_flat_settings_resumes(self, tiny_kitti, tmp_path):
+        frames = dataset_frames(tiny_kitti, limit=1)
+        run_batch(frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=False)
+        settings = json.loads((tmp_path / SETTINGS_NAME).read_text())
+        flat = {k: v for k, v in settings["config"].items() if not isinstance(v, dict)}
+        for old, (section, name) in FLAT_KEYS.items():
+            flat[old] = settings["config"][section][name]
+        flat["lattice_stride"] = settings.pop("lattice_stride")
+        (tmp_path / SETTINGS_NAME).write_text(json.dumps({**settings, "config": flat}))
+        again = run_batch(frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=False)
+        assert again.n_skipped == 1
+        with pytest.raises(InvalidInputError, match="new output_dir"):
+            run_batch(
+                frames, tmp_path, config=CONFIG.replace(screen={"outlier_threshold": 2.0}), loader=LOADER, workers=0
+            )
 
     def test_a_second_run_on_a_locked_folder_is_refused(self, tiny_kitti, tmp_path):
         fcntl = pytest.importorskip("fcntl")
@@ -337,19 +382,25 @@ class TestPngOutputs:
     def test_a_frame_beyond_the_png_range_saturates_its_png(self, tiny_kitti, tmp_path):
         frames = dataset_frames(tiny_kitti, limit=2)
         loader = FarAway(factor=3, n_input=40, far=(frames[0].frame_id,))
-        first = run_batch(frames, tmp_path, config=CONFIG, loader=loader, workers=0, png=True, progress=False)
+        first = run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=loader, workers=0, png=True, progress=False
+        )
         assert first.n_computed == 2 and first.ok  # the PNG's range is the format's, not an error of the frame
         paths = output_paths(tmp_path, frames[0].frame_id, "complete", png=True)
         mean = DepthPosterior.load(paths["posterior"]).mean
         assert mean.max() > 256 and load_depth(paths["mean_png"]).max() == 65535 / 256  # the npz keeps true values
-        again = run_batch(frames, tmp_path, config=CONFIG, loader=loader, workers=0, png=True, progress=False)
+        again = run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=loader, workers=0, png=True, progress=False
+        )
         assert again.n_skipped == 2 and again.ok
 
     def test_pngs_asked_for_later_make_frames_not_done(self, tiny_kitti, tmp_path):
         frames = dataset_frames(tiny_kitti, limit=2)
-        run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, png=False, progress=False)
+        run_batch(frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, png=False, progress=False)
         assert not list(tmp_path.glob("*.png"))
-        with_png = run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, png=True, progress=False)
+        with_png = run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, png=True, progress=False
+        )
         assert with_png.n_computed == 2 and with_png.ok
         for f in frames:
             paths = output_paths(tmp_path, f.frame_id, "complete", png=True)
@@ -357,7 +408,9 @@ class TestPngOutputs:
             np.testing.assert_allclose(
                 load_depth(paths["mean_png"]), DepthPosterior.load(paths["posterior"]).mean, atol=0.6 / 256
             )
-        resumed = run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, png=True, progress=False)
+        resumed = run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, png=True, progress=False
+        )
         assert resumed.n_skipped == 2
 
 
@@ -393,6 +446,7 @@ class TestRunBatchDask:
                     frames,
                     out,
                     config=CONFIG,
+                    engine=ENGINE,
                     loader=loader,
                     task="eval",
                     address=cluster.scheduler_address,
@@ -410,7 +464,14 @@ class TestRunBatchDask:
         assert report.aggregate["frames"] == 3 and not report.ok
         # Results from the workers equal the in-process computation.
         serial = run_batch(
-            frames[:1], tmp_path / "serial", config=CONFIG, loader=loader, task="eval", workers=0, progress=False
+            frames[:1],
+            tmp_path / "serial",
+            config=CONFIG,
+            engine=ENGINE,
+            loader=loader,
+            task="eval",
+            workers=0,
+            progress=False,
         )
         a = json.loads((out / "a.metrics.json").read_text())["metrics"]
         b = json.loads((tmp_path / "serial" / "a.metrics.json").read_text())["metrics"]
@@ -424,6 +485,7 @@ KILL_SCRIPT = textwrap.dedent(
     from pathlib import Path
 
     from gpdepth3d import DepthGPConfig
+    from gpdepth3d.gp.engine import EngineConfig
     from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch
 
 
@@ -443,7 +505,8 @@ KILL_SCRIPT = textwrap.dedent(
         Path(os.environ["BATCH_TEST_LOG"]).mkdir(parents=True, exist_ok=True)
         frames = dataset_frames(data, repeat=3)
         loader = LoggingInputs(factor=3, n_input=40)
-        report = run_batch(frames, out, config=DepthGPConfig.residual(engine="exact"), loader=loader,
+        report = run_batch(frames, out, config=DepthGPConfig.residual(),
+                           engine=EngineConfig(name="exact"), loader=loader,
                            workers=1, progress=False)
         print("REPORT " + json.dumps({"computed": report.n_computed, "skipped": report.n_skipped,
                                       "failed": len(report.failures), "removed": report.temp_files_removed}))
@@ -527,7 +590,9 @@ def test_kitti_tiny_eval_beats_the_prior_on_held_out_lidar(shared_data, tmp_path
         pytest.skip(f"kitti_tiny not found in {shared_data}")
     loader = HoldoutInputs(factor=3, n_input=150)
     frames = dataset_frames(kitti, limit=1)
-    report = run_batch(frames, tmp_path, config=CONFIG, loader=loader, task="eval", workers=0, progress=False)
+    report = run_batch(
+        frames, tmp_path, config=CONFIG, engine=ENGINE, loader=loader, task="eval", workers=0, progress=False
+    )
     assert report.ok and report.aggregate["frames"] == 1
     inputs = loader(frames[0])
     assert inputs.sparse.image_size == (125, 414) and len(inputs.sparse) == 150
@@ -601,12 +666,16 @@ class TestChecks:
 class TestPreviews:
     def test_written_per_frame_and_part_of_done(self, tiny_kitti, tmp_path):
         frames = dataset_frames(tiny_kitti, limit=2)
-        run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, previews=True, progress=False)
+        run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, previews=True, progress=False
+        )
         for f in frames:
             for kind in ("depth", "sigma"):
                 assert (tmp_path / f"{f.frame_id}_{kind}_preview.png").is_file()
         (tmp_path / f"{frames[0].frame_id}_sigma_preview.png").unlink()  # a frame missing a preview is redone
-        again = run_batch(frames, tmp_path, config=CONFIG, loader=LOADER, workers=0, previews=True, progress=False)
+        again = run_batch(
+            frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, previews=True, progress=False
+        )
         assert (again.n_computed, again.n_skipped) == (1, 1)
         assert (tmp_path / f"{frames[0].frame_id}_sigma_preview.png").is_file()
 
@@ -618,7 +687,8 @@ class TestPreviews:
             workers=0,
             frames=1,
             n_input=40,
-            gp=DepthGPConfig(engine="exact"),
+            gp=DepthGPConfig(),
+            engine=EngineConfig(name="exact"),
             progress=False,
         )
         assert len(list((tmp_path / "on").glob("*_depth_preview.png"))) == 1
@@ -628,7 +698,8 @@ class TestPreviews:
             workers=0,
             frames=1,
             n_input=40,
-            gp=DepthGPConfig(engine="exact"),
+            gp=DepthGPConfig(),
+            engine=EngineConfig(name="exact"),
             progress=False,
             preview=False,
         )

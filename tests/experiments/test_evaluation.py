@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.datasets import Frame
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.experiments.evaluation import (
     METHODS,
@@ -51,7 +52,8 @@ class TestMethods:
         sparse = sample_uniform(gt, n=40, rng=0)
         suite = MethodSuite(
             residual=DepthGPConfig.residual(lengthscale=8.0),
-            balanced=DepthGPConfig.paper(engine="exact"),
+            balanced=DepthGPConfig.paper(),
+            engine=EngineConfig(name="exact"),
             relative=DepthGPConfig.residual(lengthscale=8.0),
             balanced_factor=0.5,
         )

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import EmptyInputError, InvalidInputError, ShapeError
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.experiments.kitti_protocol import (
     KITTI_PROTOCOLS,
@@ -179,7 +180,7 @@ class TestSyntheticEndToEnd:
         cfg = KittiProtocolConfig(
             densities=(1 / 4, 1.0), protocols=("uniform", "hband"), methods=("mde", "ip_basic", "gp_paper")
         )
-        methods = KittiMethods(paper=DepthGPConfig.paper(engine="exact"))
+        methods = KittiMethods(paper=DepthGPConfig.paper(), engine=EngineConfig(name="exact"))
         rows = run_kitti_protocol([("wall", rgb, lidar)], mde, cfg, methods=methods)
         assert len(rows) == 2 * 2 * 3 * 2
         by = {(r["protocol"], r["label"], r["method"], r["resolution"]): r for r in rows}

@@ -57,7 +57,7 @@ def test_sparse_points_fast_engine_equals_exact(kitti, full):
     out = setup.full_shape if full else None
     fast = _complete(DepthGPConfig(), setup, inputs[1 / 64], out)
     exact = _complete(
-        DepthGPConfig(engine="exact"), setup, inputs[1 / 64], out, EngineConfig(options={"max_cross_entries": 10**9})
+        DepthGPConfig(), setup, inputs[1 / 64], out, EngineConfig(name="exact", options={"max_cross_entries": 10**9})
     )
     _close(fast, exact, 1e-6)
 

@@ -39,7 +39,8 @@ def problem_with_points(rng, h, w, points, *, nu=0.5, lengthscale=8.0, s=0.5, ou
 class TestEngineConfig:
     def test_defaults(self):
         c = EngineConfig()
-        assert (c.name, c.device, c.backend, c.route, c.lattice) == (None, None, "auto", "auto", "observed")
+        assert (c.name, c.device, c.backend, c.route, c.lattice) == ("fast", None, "auto", "auto", "observed")
+        assert (c.max_exact_points, c.lattice_stride) == (6000, None)
         assert c.replace(route="grid").route == "grid" and c.route == "auto"
 
     @pytest.mark.parametrize(
@@ -52,6 +53,11 @@ class TestEngineConfig:
             ("options", ["tile"]),
             ("max_exact_points", 0),
             ("max_exact_points", True),
+            ("max_exact_points", None),
+            ("name", None),
+            ("lattice_stride", 0),
+            ("lattice_stride", 17),
+            ("lattice_stride", 2.0),
         ],
     )
     def test_bad_values_name_the_field(self, field, value):
@@ -104,10 +110,9 @@ class TestEngineProtocol:
 
 
 class TestMakeEngine:
-    def test_model_config_names_the_engine_options_set_it_up(self):
+    def test_the_options_set_the_engine_up(self):
         engine = make_engine(
-            DepthGPConfig(),
-            EngineConfig(route="grid", lattice="full", max_dense_points=7, max_memory_mb=512, options={"tile": 16}),
+            EngineConfig(route="grid", lattice="full", max_dense_points=7, max_memory_mb=512, options={"tile": 16})
         )
         assert isinstance(engine, FastEngine)
         assert (engine.route, engine.lattice, engine.max_dense_points, engine.max_memory_mb, engine.tile) == (
@@ -118,26 +123,28 @@ class TestMakeEngine:
             16,
         )
 
-    def test_options_name_overrides_the_model(self):
-        engine = make_engine(DepthGPConfig(engine="fast", max_exact_points=77), EngineConfig(name="exact"))
+    def test_the_config_names_the_engine_and_bounds_exact(self):
+        engine = make_engine(EngineConfig(name="exact", max_exact_points=77))
         assert isinstance(engine, ExactEngine) and engine.max_points == 77
-        assert make_engine(DepthGPConfig(), EngineConfig(name="exact", max_exact_points=5)).max_points == 5
+        assert make_engine(EngineConfig(name="exact")).max_points == 6000
 
     def test_engine_config_alone_and_none(self):
         assert isinstance(make_engine(EngineConfig(name="exact")), ExactEngine)
         assert isinstance(make_engine(), FastEngine)
 
     def test_bad_arguments(self):
-        with pytest.raises(InvalidInputError, match="config"):
+        with pytest.raises(InvalidInputError, match="options"):
             make_engine("fast")
         with pytest.raises(InvalidInputError, match="options"):
-            make_engine(DepthGPConfig(), {"route": "grid"})
+            make_engine(DepthGPConfig())
         with pytest.raises(InvalidInputError, match="options"):
-            make_engine(EngineConfig(), EngineConfig())
+            make_engine({"route": "grid"})
         with pytest.raises(InvalidInputError, match="options"):
             make_engine(EngineConfig(options={"no_such_option": 1}))
 
     def test_completer_takes_the_engine_options(self):
+        with pytest.raises(InvalidInputError, match="engine"):
+            DepthCompleter(DepthGPConfig.residual(), engine="exact")
         completer = DepthCompleter(DepthGPConfig.residual(), engine=EngineConfig(route="grid"))
         assert isinstance(completer.engine, FastEngine) and completer.engine.route == "grid"
 

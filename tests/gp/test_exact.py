@@ -7,6 +7,7 @@ import pytest
 from scipy.ndimage import map_coordinates
 
 from gpdepth3d.completion.complete import build_problem, complete
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.errors import ProblemTooLargeError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.model import DepthGPConfig, GridProblem, Kernel
@@ -74,12 +75,13 @@ def inputs(seed=0):
     return mde, SparseDepth(u, v, d, (H, W), sigma)
 
 
+EXACT = EngineConfig(name="exact")
 CONFIGS = [
-    DepthGPConfig.paper(engine="exact", nu=0.5, lengthscale=1.5),
-    DepthGPConfig.paper(engine="exact", nu=1.5, lengthscale=2.0, sigma_dl=0.1, sigma_meas=0.01),
-    DepthGPConfig.paper(engine="exact", nu=2.5, lengthscale=1.0, outputscale=0.5, units="metres"),
-    DepthGPConfig.residual(engine="exact", align="none", lengthscale=3.0),
-    DepthGPConfig.residual(engine="exact", align="none", nu=2.5, lengthscale=2.0, units="metres"),
+    DepthGPConfig.paper(nu=0.5, lengthscale=1.5),
+    DepthGPConfig.paper(nu=1.5, lengthscale=2.0, sigma_dl=0.1, sigma_meas=0.01),
+    DepthGPConfig.paper(nu=2.5, lengthscale=1.0, outputscale=0.5, units="metres"),
+    DepthGPConfig.residual(align="none", lengthscale=3.0),
+    DepthGPConfig.residual(align="none", nu=2.5, lengthscale=2.0, units="metres"),
 ]
 
 
@@ -90,7 +92,7 @@ class TestExactEngineVsNaiveGP:
         mde, sparse = inputs()
         if cfg.formulation == "balanced":
             mde[3, 3] = np.nan  # an invalid MDE pixel is not an observation
-        post = complete(mde, sparse, config=cfg, output_shape=out_shape)
+        post = complete(mde, sparse, config=cfg, engine=EXACT, output_shape=out_shape)
         mean, var = naive_posterior(mde, sparse, cfg, out_shape)
         assert post.mean.shape == post.variance.shape == out_shape
         np.testing.assert_allclose(post.mean, mean, rtol=1e-8, atol=1e-8)
@@ -101,7 +103,7 @@ class TestExactEngineVsNaiveGP:
         mde[2, 2] = 0.0
         sparse = SparseDepth(np.array([2.0]), np.array([2.0]), np.array([7.0]), (H, W))
         cfg = CONFIGS[0]
-        post = complete(mde, sparse, config=cfg)
+        post = complete(mde, sparse, config=cfg, engine=EXACT)
         mean, var = naive_posterior(mde, sparse, cfg, (H, W))
         np.testing.assert_allclose(post.mean, mean, rtol=1e-8)
         np.testing.assert_allclose(post.variance, var, rtol=1e-6)
@@ -169,7 +171,7 @@ class TestExactEngineSolve:
         with pytest.raises(ProblemTooLargeError):
             ExactEngine(max_cross_entries=10 * H * W - 1).solve(p)
         with pytest.raises(ProblemTooLargeError):
-            complete(*inputs(), config=DepthGPConfig.paper(engine="exact", max_exact_points=10))
+            complete(*inputs(), config=DepthGPConfig.paper(), engine=EngineConfig(name="exact", max_exact_points=10))
 
     def test_build_problem_feeds_the_engine(self):
         mde, sparse = inputs()
@@ -247,27 +249,27 @@ class TestExtremeValues:
 
     @pytest.mark.parametrize("value", [1e300, 1e-300, 1e7, 1e-7])
     @pytest.mark.parametrize(
-        "cfg",
-        [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
+        "cfg, engine",
+        [(DepthGPConfig.paper(), None), (DepthGPConfig.residual(), None), (DepthGPConfig.residual(), EXACT)],
         ids=["paper", "residual", "residual-exact"],
     )
-    def test_mde_out_of_range_through_complete(self, value, cfg):
+    def test_mde_out_of_range_through_complete(self, value, cfg, engine):
         from gpdepth3d.errors import InvalidDepthError
 
         mde, sparse = inputs()
         with pytest.raises(InvalidDepthError, match=r"mde_depth.*\[1e-6, 1e6\] m"):
-            complete(np.full_like(mde, value), sparse, config=cfg)
+            complete(np.full_like(mde, value), sparse, config=cfg, engine=engine)
         mde[2, 3] = value  # one pixel is enough
         with pytest.raises(InvalidDepthError, match="1 outside"):
-            complete(mde, sparse, config=cfg)
+            complete(mde, sparse, config=cfg, engine=engine)
 
     @pytest.mark.parametrize("value", [1e300, 1e-300, 1e7])
     @pytest.mark.parametrize(
-        "cfg",
-        [DepthGPConfig.paper(), DepthGPConfig.residual(), DepthGPConfig.residual(engine="exact")],
+        "cfg, engine",
+        [(DepthGPConfig.paper(), None), (DepthGPConfig.residual(), None), (DepthGPConfig.residual(), EXACT)],
         ids=["paper", "residual", "residual-exact"],
     )
-    def test_one_extreme_sparse_depth(self, value, cfg):
+    def test_one_extreme_sparse_depth(self, value, cfg, engine):
         """One measurement of 1e300 / 1e-300 / 1e7 m: a typed error or a finite posterior, never inf or NaN."""
         from gpdepth3d.errors import GPDepthError
 
@@ -276,7 +278,7 @@ class TestExtremeValues:
         depth[0] = value
         try:
             bad = SparseDepth(sparse.u, sparse.v, depth, sparse.image_size, sparse.sigma)
-            post = complete(mde, bad, config=cfg)
+            post = complete(mde, bad, config=cfg, engine=engine)
         except GPDepthError:
             return
         assert np.all(np.isfinite(post.mean)) and np.all(np.isfinite(post.std))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.completion.complete import DepthCompleter, build_problem
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.errors import ConvergenceError, InvalidInputError, ShapeError
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.fast import FastEngine
@@ -140,8 +141,8 @@ class TestFastEngineAgainstExact:
         filled = np.where(crop > 0, crop, np.median(crop[crop > 0]))
         mde = gaussian_filter(filled, 3.0) * 1.1  # simulated MDE: smoothed, scaled
         base = DepthGPConfig.paper() if formulation == "balanced" else DepthGPConfig.residual()
-        fast = DepthCompleter(base.replace(engine="fast"))(mde, sparse, output_shape=(48, 128))
-        exact = DepthCompleter(base.replace(engine="exact"))(mde, sparse, output_shape=(48, 128))
+        fast = DepthCompleter(base, engine=EngineConfig(name="fast"))(mde, sparse, output_shape=(48, 128))
+        exact = DepthCompleter(base, engine=EngineConfig(name="exact"))(mde, sparse, output_shape=(48, 128))
         depth_range = float(np.ptp(crop[crop > 0]))
         assert np.sqrt(np.mean((fast.mean - exact.mean) ** 2)) < 1e-6 * depth_range
         np.testing.assert_allclose(fast.std, exact.std, rtol=1e-6)
@@ -220,7 +221,7 @@ class TestFastEngineBehaviour:
     def test_default_engine_is_fast(self):
         from gpdepth3d.gp import make_engine
 
-        assert isinstance(make_engine(DepthGPConfig(engine="fast")), FastEngine)
+        assert isinstance(make_engine(EngineConfig(name="fast")), FastEngine)
 
 
 class TestDevices:
@@ -400,8 +401,8 @@ class TestEveryKernelAndRoute:
         for nu in NUS:
             for lengthscale in LENGTHSCALES:
                 cfg = base.replace(nu=nu, lengthscale=lengthscale)
-                exact = DepthCompleter(cfg.replace(engine="exact"))(mde, sparse)
-                fast = DepthCompleter(cfg.replace(engine="fast"))
+                exact = DepthCompleter(cfg, engine=EngineConfig(name="exact"))(mde, sparse)
+                fast = DepthCompleter(cfg, engine=EngineConfig(name="fast"))
                 fast.engine = engine  # the same engine object for every kernel (its caches)
                 post = fast(mde, sparse)
                 route = engine.plan(build_problem(mde, sparse, cfg)[0])

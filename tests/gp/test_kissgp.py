@@ -3,7 +3,7 @@
 Acceptance set-up: a 48x64 crop of 7-Scenes frame 0 (Kinect depth, metres) is the ground truth;
 the MDE is *simulated* from it (gt * 1.15 + a smooth error field + white noise) and 200
 measurements are sampled from the ground truth. Both formulations are completed with
-``engine="kissgp"`` and ``engine="exact"`` and compared on the input grid.
+the ``kissgp`` and the ``exact`` engine (`EngineConfig.name`) and compared on the input grid.
 
 What is asserted and why (numbers measured on this crop):
 
@@ -25,6 +25,7 @@ import pytest
 import torch
 
 from gpdepth3d import DepthGPConfig, SparseDepth, complete
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.completion.complete import build_problem
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
@@ -67,8 +68,8 @@ def crop(shared_data):
 
 
 def _both(mde, sparse, config, **kwargs):
-    exact = complete(mde, sparse, config=config.replace(engine="exact"), **kwargs)
-    kiss = complete(mde, sparse, config=config.replace(engine="kissgp"), **kwargs)
+    exact = complete(mde, sparse, config=config, engine=EngineConfig(name="exact"), **kwargs)
+    kiss = complete(mde, sparse, config=config, engine=EngineConfig(name="kissgp"), **kwargs)
     return exact, kiss
 
 
@@ -140,8 +141,8 @@ class TestKissGPEngine:
         exact, kiss = _both(mde[:24, :32], SparseDepth.empty((24, 32)), CONFIGS["balanced"])
         _assert_agree(exact, kiss)
         # Residual: no observation at all, the posterior is the prior.
-        post = complete(mde, empty, config=CONFIGS["residual"].replace(engine="kissgp"))
-        ref = complete(mde, empty, config=CONFIGS["residual"].replace(engine="exact"))
+        post = complete(mde, empty, config=CONFIGS["residual"], engine=EngineConfig(name="kissgp"))
+        ref = complete(mde, empty, config=CONFIGS["residual"], engine=EngineConfig(name="exact"))
         np.testing.assert_allclose(post.mean, ref.mean, rtol=0, atol=1e-12)
         np.testing.assert_allclose(post.variance, ref.variance, rtol=1e-12)
 
@@ -197,7 +198,7 @@ class TestKissGPEngine:
             KissGPEngine(device="cpu", max_cg_iterations=3).solve(problem, variance=False)
 
     def test_make_engine_and_default_device(self):
-        engine = make_engine(DepthGPConfig(engine="kissgp"))
+        engine = make_engine(EngineConfig(name="kissgp"))
         assert isinstance(engine, KissGPEngine)
         assert engine.device.type == default_device()
         assert default_device() == ("cuda" if torch.cuda.is_available() else "cpu")

@@ -11,7 +11,7 @@ import pytest
 import gpdepth3d as g
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.local_calibration import local_variance_factor
-from gpdepth3d.gp.model import CalibrationConfig
+from gpdepth3d.gp.model import CalibrationConfig, ScreenConfig
 
 ZSCORE_CAP = CalibrationConfig().zscore_cap
 
@@ -127,7 +127,7 @@ class TestInsideComplete:
         truth, mde = _halves()
         sp = g.sample_uniform(truth, n=400, rng=1)
         post = g.complete(mde, sp)
-        off = g.complete(mde, sp, config=g.DepthGPConfig(local_calibration=None))
+        off = g.complete(mde, sp, config=g.DepthGPConfig(calibration=CalibrationConfig(reach=None)))
         np.testing.assert_array_equal(post.mean, off.mean)  # the mean is untouched
         rel, rel_off = post.std / post.mean, off.std / off.mean
         left, right = np.s_[8:40, 4:26], np.s_[8:40, 38:60]
@@ -144,9 +144,9 @@ class TestInsideComplete:
     def test_without_the_screen_the_zscores_are_computed(self):
         truth, mde = _halves(1)
         sp = g.sample_uniform(truth, n=300, rng=2)
-        base = g.DepthGPConfig(outlier_threshold=None)
+        base = g.DepthGPConfig(screen=ScreenConfig(outlier_threshold=None))
         post = g.complete(mde, sp, config=base)
-        off = g.complete(mde, sp, config=base.replace(local_calibration=None))
+        off = g.complete(mde, sp, config=base.replace(calibration={"reach": None}))
         assert np.all(np.isfinite(post.variance)) and np.all(post.variance > 0)
         ratio = post.variance / off.variance
         assert np.median(ratio[:, 38:]) > 2 * np.median(ratio[:, :26])
@@ -157,7 +157,7 @@ class TestInsideComplete:
         with pytest.warns(g.PosteriorWarning, match="usable points"):
             post = g.complete(mde, sp)
         with pytest.warns(g.PosteriorWarning, match="usable points"):
-            off = g.complete(mde, sp, config=g.DepthGPConfig(local_calibration=None))
+            off = g.complete(mde, sp, config=g.DepthGPConfig(calibration=CalibrationConfig(reach=None)))
         np.testing.assert_array_equal(post.variance, off.variance)
 
     def test_upsampled_output_gets_the_resized_factor(self):
@@ -173,10 +173,10 @@ class TestInsideComplete:
 
     @pytest.mark.parametrize("value", [0.0, -1.0, float("inf"), "1"])
     def test_config_refuses_a_bad_reach(self, value):
-        with pytest.raises(InvalidInputError, match="local_calibration"):
-            g.DepthGPConfig(local_calibration=value)
+        with pytest.raises(InvalidInputError, match="reach"):
+            g.DepthGPConfig(calibration=CalibrationConfig(reach=value))
 
     def test_presets_of_the_paper_and_the_residual_model_leave_it_off(self):
-        assert g.DepthGPConfig.paper().local_calibration is None
-        assert g.DepthGPConfig.residual().local_calibration is None
-        assert g.DepthGPConfig().local_calibration == 1.5
+        assert g.DepthGPConfig.paper().calibration.reach is None
+        assert g.DepthGPConfig.residual().calibration.reach is None
+        assert g.DepthGPConfig().calibration.reach == 1.5

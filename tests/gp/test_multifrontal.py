@@ -190,9 +190,7 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
     from gpdepth3d.gp import EngineConfig
 
     # 50 points: "auto" would take the Woodbury route
-    completer = DepthCompleter(
-        DepthGPConfig.residual(engine="fast", lengthscale=5.0), engine=EngineConfig(route="grid")
-    )
+    completer = DepthCompleter(DepthGPConfig.residual(lengthscale=5.0), engine=EngineConfig(name="fast", route="grid"))
     engine = completer.engine
 
     def frame():
@@ -208,7 +206,7 @@ def test_completer_reuses_per_resolution_setup_and_buffers():
     post = completer(*second)
     assert list(engine._trees.values()) == [tree] and tree.__dict__["_fronts"] is fronts
     assert fronts._pool == [ws]  # the second frame factorised into the first frame's buffers
-    ref = DepthCompleter(completer.config.replace(engine="exact"))(*second)
+    ref = DepthCompleter(completer.config, engine=EngineConfig(name="exact"))(*second)
     np.testing.assert_allclose(post.mean, ref.mean, atol=1e-9)
     np.testing.assert_allclose(post.variance, ref.variance, rtol=1e-8)
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
+from gpdepth3d.gp.model import AssemblyConfig, CalibrationConfig, ScreenConfig, SlopeConfig
 from gpdepth3d.errors import InvalidInputError, ShapeError
 from gpdepth3d.gp.model import Kernel, matern_1d
 from gpdepth3d.gp.slope import SlopeFit, fit_mde_slope
@@ -86,8 +87,8 @@ class TestFitMdeSlope:
             fit_mde_slope(rows, cols, y, x[:5], e, KERNEL, 0.02, prior_sigma=0.5)
         with pytest.raises(InvalidInputError, match="prior_sigma"):
             fit_mde_slope(rows, cols, y, x, e, KERNEL, 0.02, prior_sigma=0.0)
-        with pytest.raises(InvalidInputError, match="mde_slope_sigma"):
-            g.DepthGPConfig(mde_slope_sigma=-1.0)
+        with pytest.raises(InvalidInputError, match="prior_sigma"):
+            g.DepthGPConfig(slope=SlopeConfig(prior_sigma=-1.0))
 
 
 def _scene(h=30, w=40):
@@ -105,15 +106,14 @@ def test_posterior_matches_a_dense_reference_with_the_slope():
     l, s, tau, sig = 6.0, 0.3, 0.04, 0.01
     cfg = g.DepthGPConfig(
         fit=False,
-        outlier_threshold=None,
-        local_calibration=None,
-        edge_sigma=0.0,
         lengthscale=l,
         outputscale=s,
         nugget=tau,
         sigma_meas=sig,
-        depth_lengthscale=None,
-        mde_slope_sigma=0.5,
+        screen=ScreenConfig(outlier_threshold=None),
+        calibration=CalibrationConfig(reach=None),
+        assembly=AssemblyConfig(edge_sigma=0.0, depth_lengthscale=None),
+        slope=SlopeConfig(prior_sigma=0.5),
     )
     post = g.complete(mde, sp, config=cfg)
     rows, cols, z = sp.v.astype(int), sp.u.astype(int), sp.depth
@@ -140,7 +140,7 @@ def test_posterior_matches_a_dense_reference_with_the_slope():
 def test_the_slope_helps_where_the_mde_overstates_depth_variation():
     truth, mde = _scene()
     sp = g.sample_uniform(truth, n=60, rng=2)
-    fixed = g.complete(mde, sp, config=g.DepthGPConfig(mde_slope_sigma=None))
+    fixed = g.complete(mde, sp, config=g.DepthGPConfig(slope=SlopeConfig(prior_sigma=None)))
     fitted = g.complete(mde, sp)
     rmse = lambda p: np.sqrt(np.mean((p.mean - truth) ** 2))  # noqa: E731
     assert rmse(fitted) < 0.7 * rmse(fixed) and fixed.mde_slope == 1.0 and fitted.mde_slope < 0.8

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.mapping.cloud import (
     DEFAULT_RHO_REF,
     ColoredCloud,
@@ -113,7 +114,7 @@ class TestBackproject:
 
         depth, rgb, _ = _frame(3)
         sparse = SparseDepth.from_arrays([4.0, 20.0], [5.0, 15.0], [2.0, 2.5], CAM.shape)
-        post = complete(depth, sparse, config=DepthGPConfig.residual(engine="exact"))
+        post = complete(depth, sparse, config=DepthGPConfig.residual(), engine=EngineConfig(name="exact"))
         cloud = backproject_posterior(post, rgb, CAM)
         assert len(cloud) == depth.size
         np.testing.assert_allclose(cloud.depth, post.mean.ravel())

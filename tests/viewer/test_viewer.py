@@ -17,6 +17,7 @@ import pytest
 import tyro
 
 from gpdepth3d.camera import PinholeCamera, transform_points
+from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.mapping.cloud import backproject_depth
 from gpdepth3d.completion.complete import DepthPosterior, complete
 from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
@@ -409,7 +410,7 @@ class TestShow:
 
     def test_live_posterior_from_complete(self, room):
         small = make_scene(1, kind="room", width=24, height=18)
-        post = complete(small.mde, small.lidar, config=DepthGPConfig(engine="exact"))
+        post = complete(small.mde, small.lidar, config=DepthGPConfig(), engine=EngineConfig(name="exact"))
         with show(ViewerFrame(post, small.camera, rgb=small.rgb, depth_gt=small.depth_gt), port=0) as v:
             assert v.visible_count("gp") == np.count_nonzero(post.mean > 0)
             assert v.metrics["gp"]["rmse"] == pytest.approx(depth_metrics(post.mean, small.depth_gt)["rmse"])
