@@ -22,8 +22,8 @@ truncation 8 cm, depth_max 5 m):
   frames after the frame (the Mapper's fixed lag), with the sequence's poses (no ground truth);
   per-point sigma from pixel noise and pose uncertainty.
 * Refinement: the Mapper's GP, ``MAPPER_GP`` (the library's default model with the stationary GP's
-  variance, ``DepthGPConfig(local_calibration=None)``; whatever it is at the time of the run, it is
-  written into the JSON; ``--gp-set local_calibration=1.5`` gives the library default's variance).
+  variance, ``DepthGPConfig(calibration=CalibrationConfig(reach=None))``; whatever it is at the time of the run, it is
+  written into the JSON; ``--gp-set "calibration={'reach': 1.5}"`` gives the library default's variance).
 * Fusion: variance-weighted TSDF of the posterior median (the Mapper's volume and
   ``fuse_depth``); MDE-only with uniform weights as the
   baseline; the reference mesh is fused from the Kinect depth with the depth camera's
@@ -137,7 +137,7 @@ def main() -> None:
     config = MapperConfig(
         fusion=fusion,
         working_scale=0.5,
-        gp=replace(MAPPER_GP if args.gp == "default" else DepthGPConfig.residual(), **gp_overrides),
+        gp=(MAPPER_GP if args.gp == "default" else DepthGPConfig.residual()).replace(**gp_overrides),
         triangulation=TriangulationConfig(detector=args.detector, **overrides),
         **{
             k: v

@@ -57,7 +57,7 @@ from ..camera import PinholeCamera, check_pose, transform_points
 from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import CalibrationError, DataFormatError, GPDepthError, InvalidInputError, ShapeError, describe
-from ..gp.model import DepthGPConfig
+from ..gp.model import CalibrationConfig, DepthGPConfig
 from ..io import save_npz, write_json
 from ..measurements import SparseDepth
 from .cloud import ColoredCloud
@@ -85,7 +85,7 @@ def _resize_depth(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
 """The `Mapper`'s TSDF options: variance weights relative to depth (`FusionConfig.relative_sigma_ref`)."""
 
-MAPPER_GP = DepthGPConfig(local_calibration=None)
+MAPPER_GP = DepthGPConfig(calibration=CalibrationConfig(reach=None))
 """The `Mapper`'s GP: the default model with the variance of the stationary GP (see `MapperConfig.gp`)."""
 
 
@@ -1074,7 +1074,7 @@ class Mapper:
                 saved = meta["config"]
                 config = MapperConfig(
                     # maps saved before the local calibration of the variance existed had none
-                    gp=DepthGPConfig(**{"local_calibration": None, **saved["gp"]}),
+                    gp=DepthGPConfig.from_dict({"local_calibration": None, **saved["gp"]}),
                     fusion=FusionConfig(**saved["fusion"]),
                     triangulation=TriangulationConfig(**_tuples(saved["triangulation"])),
                     refind=RefindConfig(**saved.get("refind", {})),

@@ -55,7 +55,7 @@ def test_pycolmap_points_with_fixed_poses_agree_with_the_sensor_and_feed_the_map
     config = MapperConfig(
         triangulate=False,
         working_scale=0.5,
-        gp=DepthGPConfig.residual(engine="exact"),
+        gp=DepthGPConfig.residual(),
         fusion=FusionConfig(voxel_size=0.05, truncation=0.15),
     )
     mapper = Mapper(cam, config)

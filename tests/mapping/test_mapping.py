@@ -14,7 +14,8 @@ import pytest
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.mapping.fusion import FusionConfig
-from gpdepth3d.gp.model import DepthGPConfig
+from gpdepth3d.gp.engine import EngineConfig
+from gpdepth3d.gp.model import CalibrationConfig, DepthGPConfig
 from gpdepth3d.mapping import Mapper, MapperConfig, merge_sparse, project_map_points, sparse_from_map_points
 from gpdepth3d.cli.fuse import fuse_command
 from gpdepth3d.measurements import SparseDepth
@@ -113,7 +114,7 @@ class TestMapper:
         config = MapperConfig(
             triangulate=False,
             working_scale=0.25,
-            gp=DepthGPConfig.residual(engine="exact"),
+            gp=DepthGPConfig.residual(),
             fusion=FusionConfig(voxel_size=0.04, truncation=0.12),
         )
         mapper = Mapper(cam, config)
@@ -150,7 +151,7 @@ class TestMapper:
         config = MapperConfig(
             working_scale=0.25,
             max_points=80,
-            gp=DepthGPConfig.residual(engine="exact"),
+            gp=DepthGPConfig.residual(),
             fusion=FusionConfig(voxel_size=0.05, truncation=0.15),
             triangulation=TriangulationConfig(detector="orb"),
         )
@@ -182,7 +183,7 @@ class TestMapper:
         assert mapper.fusion.config.weighting == "uniform"
 
     def test_errors(self, tmp_path: Path):
-        mapper = Mapper(CAM, MapperConfig(triangulate=False, gp=DepthGPConfig.residual(engine="exact")))
+        mapper = Mapper(CAM, MapperConfig(triangulate=False, gp=DepthGPConfig.residual()))
         rgb = np.zeros((60, 80, 3), np.uint8)
         with pytest.raises(EmptyInputError):
             mapper.mesh()
@@ -285,7 +286,7 @@ class _NegativeCompleter:
     def __init__(self):
         from gpdepth3d.completion.complete import DepthCompleter
 
-        self.inner = DepthCompleter(DepthGPConfig.residual(engine="exact"))
+        self.inner = DepthCompleter(DepthGPConfig.residual(), engine=EngineConfig(name="exact"))
 
     def complete(self, mde, sparse, *, output_shape=None):
         from dataclasses import replace as dc_replace
@@ -445,7 +446,7 @@ class TestLoopClosure:
         frames = _frames(shared_data, (0, 4, 8, 30, 34))
         # with the truncation from the variance the moved frame's band is found from its stored variance
         fusion = FusionConfig(voxel_size=0.04, truncation=0.12, truncation_sigma=truncation_sigma, truncation_max=0.4)
-        config = _small_config(gp=DepthGPConfig.residual(engine="exact"), fusion=fusion)
+        config = _small_config(gp=DepthGPConfig.residual(), fusion=fusion)
         sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
         poses = [f.pose for f in frames]
         mapper = self._run(frames, poses, config, sparse)
@@ -486,11 +487,11 @@ class TestLoopClosure:
             np.testing.assert_array_equal(a[k], c[k], err_msg=k)
         assert sorted(loaded.keyframes) == sorted(mapper.keyframes)
         assert loaded.config.gp == mapper.config.gp
-        # a map saved before DepthGPConfig.local_calibration existed: loaded without it, as it was made
+        # a map saved before the calibration had a reach: loaded without it, as it was made
         meta = json.loads((tmp_path / "map" / "mapper.json").read_text())
-        meta["config"]["gp"].pop("local_calibration")
+        meta["config"]["gp"]["calibration"].pop("reach")
         (tmp_path / "map" / "mapper.json").write_text(json.dumps(meta))
-        assert Mapper.load(tmp_path / "map").config.gp.local_calibration is None
+        assert Mapper.load(tmp_path / "map").config.gp.calibration.reach is None
         np.testing.assert_allclose(loaded.keyframes[3].T_world_camera, moved, atol=1e-12)  # snapped by check_pose
         loaded.update_poses({3: poses[3]})
         mapper.update_poses({3: poses[3]})
@@ -506,9 +507,7 @@ class TestLoopClosure:
     def test_point_cloud_carries_variance(self, shared_data):
         frames = _frames(shared_data, (0, 2))
         sparse = [_kinect_sparse(f, f.camera, 80, i) for i, f in enumerate(frames)]
-        mapper = self._run(
-            frames, [f.pose for f in frames], _small_config(gp=DepthGPConfig.residual(engine="exact")), sparse
-        )
+        mapper = self._run(frames, [f.pose for f in frames], _small_config(gp=DepthGPConfig.residual()), sparse)
         cloud = mapper.point_cloud()
         assert len(cloud) > 100 and np.all(np.isfinite(cloud.variance)) and np.all(cloud.variance > 0)
         stored = np.concatenate([kf.variance.ravel() for kf in mapper.keyframes.values()])
@@ -543,7 +542,7 @@ class TestFuseAsTheReadmeSays:
         summary = json.loads((out / "metrics.json").read_text())
         assert summary["frames"] == 60 and summary["frames_fused"] == 60 and summary["frame_errors"] == []
         assert summary["empty_meshes"] == [] and len(summary["meshes_written"]) == 4
-        assert summary["config"]["mapper"]["gp"]["engine"] == "fast"
+        assert summary["config"]["mapper"]["gp"]["calibration"]["reach"] is None  # MAPPER_GP
         for variant in ("mde", "gp_uniform", "gp_variance"):
             m = summary["metrics"][variant]
             assert 0 < m["fscore"] <= 1 and m["chamfer"] > 0
@@ -600,7 +599,7 @@ class TestFixedLag:
             working_scale=0.25,
             window=3,
             lag=2,
-            gp=DepthGPConfig.residual(engine="exact"),
+            gp=DepthGPConfig.residual(),
             fusion=FusionConfig(voxel_size=0.04, truncation=0.12),
         )
         return MapperConfig(**{**base, **kw})
@@ -689,7 +688,7 @@ class TestFixedLag:
         from gpdepth3d.gp.model import DepthGPConfig
         from gpdepth3d.mapping.mapper import MAPPER_GP
 
-        assert MapperConfig().gp == MAPPER_GP == DepthGPConfig(local_calibration=None)
+        assert MapperConfig().gp == MAPPER_GP == DepthGPConfig(calibration=CalibrationConfig(reach=None))
         seen = []
 
         class Stop(Exception):
@@ -701,10 +700,10 @@ class TestFixedLag:
 
         monkeypatch.setattr("gpdepth3d.cli.fuse.MapperConfig", capture)
         monkeypatch.setattr("gpdepth3d.mde.load_frontend", lambda *a, **k: None)
-        for argv, expected in (([], None), (["--gp.local-calibration", "1.5"], 1.5)):
+        for argv, expected in (([], None), (["--gp.calibration.reach", "1.5"], 1.5)):
             main(["fuse", "--data", str(tmp_path), "--output", str(tmp_path / "out"), *argv])  # stops at the config
-            assert seen[-1].local_calibration == expected
-            assert seen[-1].replace(local_calibration=None) == MAPPER_GP
+            assert seen[-1].calibration.reach == expected
+            assert seen[-1].replace(calibration={"reach": None}) == MAPPER_GP
 
 
 class TestFusedDepth:
