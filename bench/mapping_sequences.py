@@ -29,7 +29,7 @@ are wall-clock on a shared 2-core machine: compare within one run. Results go to
 ``--save-frames DIR`` also writes what the Mapper fused (depth, variance, pose, RGB and point count of
 every frame, and the sensor depth) to ``DIR/<sequence>.npz``; ``--refuse DIR`` then skips the Mapper and
 fuses those frames again for every combination of the ``--sweep`` `FusionConfig` values (weights as the
-Mapper computes them), scoring each mesh as above: a fusion setting is tried in seconds, not minutes.
+Mapper computes them), scoring each mesh as above: a fusion setting is tried without running the Mapper again.
 Its results go to ``bench/results/mapping_fusion_sweep.json``.
 """
 
