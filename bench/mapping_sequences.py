@@ -5,6 +5,8 @@ Usage::
     python bench/mapping_sequences.py [--data ../shared/data] [--model ../shared/models/fast_depth_224.tflite]
                                       [--sequences 7scenes hololens] [--frames N] [--colmap]
                                       [--set FIELD=VALUE ...] [--out bench/results/mapping_sequences.json]
+                                      [--save-frames DIR]
+    python bench/mapping_sequences.py --refuse DIR --sweep weight_threshold=0.2,0.5 [--sweep FIELD=V1,V2 ...]
 
 Per sequence (``7scenes``: 60 frames 640x480; ``hololens``: 94 frames 540x360, ~30 m walk), the
 `gpdepth3d.mapping.Mapper` with the default `MapperConfig` at a 320-px working width, FastDepth as
@@ -23,6 +25,12 @@ milliseconds of ``Mapper.add_frame`` (its own stages plus the MDE run on the fra
 ``triangulation.max_features=800``) for experiments; the JSON records the config used. Timings
 are wall-clock on a shared 2-core machine: compare within one run. Results go to
 ``bench/results/mapping_sequences.json`` (written atomically).
+
+``--save-frames DIR`` also writes what the Mapper fused (depth, variance, pose, RGB and point count of
+every frame, and the sensor depth) to ``DIR/<sequence>.npz``; ``--refuse DIR`` then skips the Mapper and
+fuses those frames again for every combination of the ``--sweep`` `FusionConfig` values (weights as the
+Mapper computes them), scoring each mesh as above: a fusion setting is tried without running the Mapper again.
+Its results go to ``bench/results/mapping_fusion_sweep.json``.
 """
 
 from __future__ import annotations
@@ -96,8 +104,61 @@ def point_coverage(result, frame, camera) -> tuple[int, int]:
     return int(inside.sum()), int(ok.sum())
 
 
-def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> dict:
-    """One Mapper pass (plus the MDE-only and reference volumes) over a loaded sequence."""
+def save_fused_frames(path: Path, fused: list, sensor: list, camera) -> Path:
+    """Writes what a Mapper pass fused (`run_sequence`'s ``fused`` records) and the sensor depth to one ``.npz``.
+
+    Per frame: the fused depth and its variance (working size, m and m^2), the pose, the working-size
+    RGB, the points it had, and the sensor depth at the working size (the reference), so that
+    `refuse` can fuse the same posteriors again with other `FusionConfig` settings in seconds.
+    """
+    from gpdepth3d.io import atomic_path
+
+    stack = {k: np.stack([f[k] for f in fused]) for k in ("depth", "variance", "pose", "rgb")}
+    stack["points"] = np.array([f["points"] for f in fused], np.int64)
+    stack["sensor_depth"] = np.stack([s["depth"] for s in sensor]).astype(np.float32)
+    stack["sensor_pose"] = np.stack([s["pose"] for s in sensor])
+    stack["sensor_rgb"] = np.stack([s["rgb"] for s in sensor])
+    stack["camera"] = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height])
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **stack)
+    return path
+
+
+def refuse(path: Path, fusion_configs: dict) -> dict:
+    """Fuses the frames `save_fused_frames` wrote with each of ``fusion_configs`` (name -> FusionConfig) and scores
+    each mesh against the sensor-depth mesh (F at 5 cm, precision, recall); weights as the `Mapper` computes them."""
+    from gpdepth3d.camera import PinholeCamera
+    from gpdepth3d.mapping.fusion import TSDFFusion
+    from gpdepth3d.metrics import mesh_metrics
+
+    data = np.load(path)
+    fx, fy, cx, cy, width, height = data["camera"]
+    camera = PinholeCamera(fx, fy, cx, cy, int(width), int(height))
+    first = next(iter(fusion_configs.values()))
+    ref = TSDFFusion(camera, replace(first, weighting="uniform", integrate_variance=False))
+    for depth, pose, rgb in zip(data["sensor_depth"], data["sensor_pose"], data["sensor_rgb"]):
+        ref.integrate(depth, pose, rgb=rgb)
+    reference = ref.extract_mesh()
+    out = {}
+    for name, cfg in fusion_configs.items():
+        volume = TSDFFusion(camera, replace(cfg, integrate_variance=False))
+        for depth, var, pose, rgb, points in zip(
+            data["depth"], data["variance"], data["pose"], data["rgb"], data["points"]
+        ):
+            weights = volume.weights_for(var, depth, points=int(points))
+            if weights is None or np.any(weights > 0):
+                volume.integrate(depth, pose, rgb=rgb, weights=weights, variance=var)
+        mesh = volume.extract_mesh(allow_empty=True)
+        out[name] = mesh_metrics(mesh, reference) if len(mesh.faces) else None
+        if out[name]:
+            print(f"  {name}: F {out[name]['fscore']:.3f} P {out[name]['precision']:.3f} R {out[name]['recall']:.3f}")
+    return out
+
+
+def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, save_frames: Path | None = None) -> dict:
+    """One Mapper pass (plus the MDE-only and reference volumes) over a loaded sequence; with ``save_frames``
+    what it fused is also written there (`save_fused_frames`)."""
     from gpdepth3d.mapping.fusion import TSDFFusion
     from gpdepth3d.mapping.mapper import Mapper, _resize_depth
     from gpdepth3d.metrics import mesh_metrics
@@ -107,10 +168,23 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
     work = mapper.work_camera
     uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
     mde_volume, ref_volume = TSDFFusion(work, uniform), TSDFFusion(work, uniform)
-    rows, results = [], []
+    rows, results, fused, sensor = [], [], [], []
 
     def record(result) -> None:
         frame = frames[result.keyframe_id]
+        if save_frames is not None:
+            work_rgb = mapper._work_rgb(frame.rgb)
+            sensor.append({"depth": _resize_depth(frame.depth, work.shape), "pose": frame.pose, "rgb": work_rgb})
+            if result.fused:
+                fused.append(
+                    {
+                        "depth": result.depth.astype(np.float32),
+                        "variance": result.variance.astype(np.float32),
+                        "pose": frame.pose,
+                        "rgb": work_rgb,
+                        "points": len(result.sparse) if config.refine else 0,
+                    }
+                )
         if result.mde.size:
             mde_volume.integrate(result.mde, frame.pose, rgb=mapper._work_rgb(frame.rgb))
         ref_volume.integrate(_resize_depth(frame.depth, work.shape), frame.pose, rgb=mapper._work_rgb(frame.rgb))
@@ -149,6 +223,8 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None) -> 
     for result in mapper.flush():
         record(result)
     reference = ref_volume.extract_mesh()
+    if save_frames is not None:
+        save_fused_frames(save_frames, fused, sensor, work)
     out = {}
     for name, volume in (("mapper", mapper.fusion), ("mde_only", mde_volume)):
         mesh = volume.extract_mesh(allow_empty=True)
@@ -220,8 +296,27 @@ def main(argv: list[str] | None = None) -> dict:
     )
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "mapping_sequences.json")
+    parser.add_argument("--save-frames", type=Path, default=None, metavar="DIR", help="write DIR/<sequence>.npz")
+    parser.add_argument(
+        "--refuse",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="no Mapper: fuse DIR/<sequence>.npz (from --save-frames) again for each --sweep setting",
+    )
+    parser.add_argument(
+        "--sweep", action="append", default=[], metavar="FIELD=V1,V2", help="FusionConfig values (with --refuse)"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="default: bench/results/mapping_sequences.json, with --refuse bench/results/mapping_fusion_sweep.json",
+    )
     args = parser.parse_args(argv)
+    results = REPO / "bench" / "results"
+    if args.out is None:
+        args.out = results / ("mapping_fusion_sweep.json" if args.refuse else "mapping_sequences.json")
 
     import torch
 
@@ -230,6 +325,8 @@ def main(argv: list[str] | None = None) -> dict:
     from gpdepth3d.mapping.mapper import MapperConfig
     from gpdepth3d.mde.tflite import FastDepthTFLite
 
+    if args.refuse is not None:
+        return refuse_main(args)
     mde = FastDepthTFLite(args.model)
     load_before = os.getloadavg()[0]
     report = {"sequences": {}, "overrides": args.set}
@@ -243,7 +340,10 @@ def main(argv: list[str] | None = None) -> dict:
         for f in frames:
             t0 = time.perf_counter()
             mde_depths.append((mde(f.rgb), time.perf_counter() - t0))
-        row = run_sequence(frames, mde_depths, config)
+        save = None if args.save_frames is None else args.save_frames / f"{seq}.npz"
+        if save is not None:
+            save.parent.mkdir(parents=True, exist_ok=True)
+        row = run_sequence(frames, mde_depths, config, save_frames=save)
         row["frames"] = len(frames)
         row["fscore_gain_over_mde_only"] = row["fscore"] - row["fscore_mde_only"]
         if args.colmap:
@@ -262,6 +362,39 @@ def main(argv: list[str] | None = None) -> dict:
         "note": "shared 2-core machine, other jobs running",
         "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]},
     }
+    atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
+    return report
+
+
+def refuse_main(args) -> dict:
+    """``--refuse``: every combination of the ``--sweep`` values (on top of the Mapper's fusion and ``--set``)."""
+    import itertools
+
+    from gpdepth3d.io import atomic_write, to_jsonable
+    from gpdepth3d.mapping.mapper import MapperConfig
+
+    base = MapperConfig()
+    for item in args.set:
+        key, value = item.split("=", 1)
+        base = _override(base, key, ast.literal_eval(value))
+    axes = []
+    for item in args.sweep:
+        key, values = item.split("=", 1)
+        axes.append([(key, ast.literal_eval(v)) for v in values.split(",")])
+    configs = {}
+    for combo in itertools.product(*axes):
+        cfg = base.fusion
+        for key, value in combo:
+            cfg = _override(cfg, key, value)
+        configs[" ".join(f"{k}={v}" for k, v in combo) or "default"] = cfg
+    report = {"sweep": args.sweep, "overrides": args.set, "sequences": {}}
+    for seq in args.sequences:
+        print(seq, flush=True)
+        metrics = refuse(args.refuse / f"{seq}.npz", configs)
+        report["sequences"][seq] = {
+            name: {"fusion": asdict(configs[name]), "metrics": m} for name, m in metrics.items()
+        }
+    report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running"}
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
 

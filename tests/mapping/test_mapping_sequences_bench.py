@@ -1,0 +1,72 @@
+"""Tests of bench/mapping_sequences.py's re-fusion of saved frames (``--save-frames``, ``--refuse``)."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpdepth3d.camera import PinholeCamera
+from gpdepth3d.mapping.mapper import MAPPER_FUSION
+
+ROOT = Path(__file__).resolve().parents[2]
+CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
+PLANE_Z = 1.511
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("mapping_sequences", ROOT / "bench" / "mapping_sequences.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _frames(relative_sigma: float) -> tuple[list, list]:
+    """Three views of a wall at PLANE_Z, fused depth exact with sigma = relative_sigma * depth, and the sensor's."""
+    fused, sensor = [], []
+    rgb = np.full(CAM.shape + (3,), 90, np.uint8)
+    for x in (-0.05, 0.0, 0.05):
+        pose = np.eye(4)
+        pose[0, 3] = x
+        depth = np.full(CAM.shape, PLANE_Z, np.float32)
+        var = np.full(CAM.shape, (relative_sigma * PLANE_Z) ** 2, np.float32)
+        fused.append({"depth": depth, "variance": var, "pose": pose, "rgb": rgb, "points": 100})
+        sensor.append({"depth": depth.astype(np.float64), "pose": pose, "rgb": rgb})
+    return fused, sensor
+
+
+def test_saved_frames_refuse_with_the_mappers_weights_and_each_setting(bench, tmp_path: Path):
+    path = bench.save_fused_frames(tmp_path / "wall.npz", *_frames(0.15), CAM)
+    loose = bench._override(MAPPER_FUSION, "weight_threshold", 0.05)
+    out = bench.refuse(path, {"default": MAPPER_FUSION, "loose": loose})
+    # sigma / depth 0.15 at relative_sigma_ref 0.05: weight 0.1 a frame, at most 0.3 after three: below 0.5
+    assert out["default"] is None
+    assert out["loose"]["fscore"] > 0.95
+    confident = bench.refuse(bench.save_fused_frames(tmp_path / "sure.npz", *_frames(0.02), CAM), {"d": MAPPER_FUSION})
+    assert confident["d"]["fscore"] > 0.95
+
+
+def test_refuse_main_writes_every_combination(bench, tmp_path: Path):
+    bench.save_fused_frames(tmp_path / "7scenes.npz", *_frames(0.15), CAM)
+    report = bench.main(
+        [
+            "--refuse",
+            str(tmp_path),
+            "--sequences",
+            "7scenes",
+            "--sweep",
+            "weight_threshold=0.05,0.5",
+            "--sweep",
+            "relative_sigma_ref=0.05,0.1",
+            "--out",
+            str(tmp_path / "sweep.json"),
+        ]
+    )
+    rows = report["sequences"]["7scenes"]
+    assert len(rows) == 4 and (tmp_path / "sweep.json").is_file()
+    assert rows["weight_threshold=0.5 relative_sigma_ref=0.05"]["metrics"] is None
+    assert rows["weight_threshold=0.05 relative_sigma_ref=0.05"]["metrics"]["fscore"] > 0.95
+    assert rows["weight_threshold=0.5 relative_sigma_ref=0.1"]["fusion"]["relative_sigma_ref"] == 0.1
