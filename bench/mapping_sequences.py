@@ -357,6 +357,7 @@ def main(argv: list[str] | None = None) -> dict:
             + (f", pycolmap points F {row['colmap']['fscore']:.3f}" if args.colmap else ""),
             flush=True,
         )
+    report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     report["machine"] = {
         "platform": platform.platform(),
         "note": "shared 2-core machine, other jobs running",

@@ -729,14 +729,8 @@ class TSDFFusion:
         `BAND_TILE` pixel tiles and the ray through each tile's centre is sampled from the
         tile's smallest valid depth minus its truncation to its largest plus its truncation
         (``trunc``: (H, W) per pixel, metres; default ``config.truncation``),
-        at steps of at most two voxels. Measured on 10 of the shared 7-Scenes frames (320x240,
-        2 cm voxels, 16 cm blocks) against every pixel's ray sampled densely through its band:
-        298 of 10706 band blocks missed (slivers at block faces; sampling every pixel's ray at
-        two-voxel steps, as before: 69), the block search ~4x faster (9 -> 2 ms a frame), the
-        same mesh over 60 frames (F at 5 cm 0.226 vs 0.228). With `BAND_CONSERVATIVE` each
-        sample also marks every block within the distance the tile's other rays can be from
-        it: 1 block missed, 12 % more blocks than the band needs, and the mesh lost F 0.02
-        (more free space carved in front of inconsistent surfaces). On the CPU a compiled loop marks the blocks in a dense grid over
+        at steps of at most two voxels; `BAND_CONSERVATIVE` also marks every block the tile's
+        other rays may reach. On the CPU a compiled loop marks the blocks in a dense grid over
         the frame's bounding box (`_band_blocks`, no sort); on CUDA torch computes the same
         samples and keeps the unique keys.
         """

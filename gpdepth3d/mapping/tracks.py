@@ -200,9 +200,9 @@ class TrackTriangulator:
     stream gets none: nothing to triangulate against). With ``lag = L`` it returns the points
     of the frame added L calls earlier (`last_key` names it; nothing while the first L frames
     come in), triangulated from views on both sides; `flush` returns the last L frames at the
-    end of a stream. Measured on the shared 7-Scenes sequence (bench/fusion.py), views on both
-    sides give every frame points (the first one too) and smaller per-frame biases than the same
-    number of earlier views alone: a pose error of one view then pulls the depth less.
+    end of a stream. Views on both sides give every frame points (the first one too) and smaller
+    per-frame biases than the same number of earlier views alone: a pose error of one view then
+    pulls the depth less (bench/fusion.py).
 
     Args:
         camera: Intrinsics of the RGB images given to `add`.
