@@ -38,7 +38,7 @@ import time
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Literal, Optional, Sequence
 
 import numpy as np
 
@@ -185,6 +185,16 @@ class ViewerFrame:
         if isinstance(T_world_camera, (str, Path)):
             T_world_camera = load_pose(T_world_camera)
         return cls(post, camera, image, gt, T_world_camera, name=Path(posterior).stem)
+
+
+def wait_until_stopped(stopped: Callable[[], bool], duration: Optional[float] = None) -> None:
+    """Blocks until ``stopped()`` is true, ``duration`` seconds passed (None: no limit) or Ctrl-C."""
+    end = math.inf if duration is None else time.monotonic() + float(duration)
+    try:
+        while not stopped() and time.monotonic() < end:
+            time.sleep(min(0.2, max(end - time.monotonic(), 0.0)))
+    except KeyboardInterrupt:
+        pass
 
 
 def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
@@ -958,12 +968,7 @@ class Viewer:
 
     def wait(self, duration: Optional[float] = None) -> None:
         """Blocks for ``duration`` seconds (None: until Ctrl-C), then returns (the server keeps running)."""
-        end = math.inf if duration is None else time.monotonic() + float(duration)
-        try:
-            while not self._stopped and time.monotonic() < end:
-                time.sleep(min(0.2, max(end - time.monotonic(), 0.0)))
-        except KeyboardInterrupt:
-            pass
+        wait_until_stopped(lambda: self._stopped, duration)
 
     def stop(self) -> None:
         """Stops the server and frees its port (idempotent)."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..errors import InvalidInputError, describe
-from .app import COLORMAPS, MISSING_COLOR, check_host, colorbar_image
+from .app import COLORMAPS, MISSING_COLOR, check_host, colorbar_image, wait_until_stopped
 
 
 def sigma_colors(sigma: np.ndarray, vmax: Optional[float] = None) -> tuple[np.ndarray, float]:
@@ -269,12 +269,7 @@ class LiveMapViewer:
     # ------------------------------------------------------------------ lifetime
     def wait(self, duration: Optional[float] = None) -> None:
         """Blocks for ``duration`` seconds (None: until Ctrl-C)."""
-        end = math.inf if duration is None else time.monotonic() + float(duration)
-        try:
-            while not self._stopped and time.monotonic() < end:
-                time.sleep(min(0.2, max(end - time.monotonic(), 0.0)))
-        except KeyboardInterrupt:
-            pass
+        wait_until_stopped(lambda: self._stopped, duration)
 
     def stop(self) -> None:
         """Stops the server and frees its port (idempotent)."""
