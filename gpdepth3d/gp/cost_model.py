@@ -107,6 +107,20 @@ def woodbury_bytes(m: int, n_out: int) -> int:
     return 8 * (3 * m * m + 12 * n_out)
 
 
+KISSGP_BYTES_PER_PIXEL = 6_000
+"""Upper bound of the KISS-GP engine's working memory per grid and output pixel (bytes): GPyTorch's
+interpolation indices, CG vectors and variance columns, from the peak resident memory of solves
+at 300x400 and 600x800 pixels on the 2-core CI machine."""
+
+KISSGP_BASE_BYTES = 1 << 30
+"""The KISS-GP engine's memory beyond its per-pixel share (torch and GPyTorch themselves), bytes."""
+
+
+def kissgp_bytes(shape: tuple[int, int], out_shape: tuple[int, int]) -> int:
+    """Bytes a KISS-GP solve on a grid of ``shape`` with outputs ``out_shape`` may need (an upper bound)."""
+    return KISSGP_BASE_BYTES + KISSGP_BYTES_PER_PIXEL * (shape[0] * shape[1] + out_shape[0] * out_shape[1])
+
+
 def memory_budget() -> int:
     """Default memory budget of one solve (bytes): three quarters of the memory available now."""
     try:

@@ -19,7 +19,8 @@ import gpytorch
 import linear_operator
 from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
 
-from ..errors import ConvergenceError, InvalidInputError
+from ..errors import ConvergenceError, InvalidInputError, ProblemTooLargeError
+from .cost_model import kissgp_bytes, memory_budget
 from .engine import Solution, SolveInfo, check_device_available, check_extra_obs
 from .model import GridProblem
 from .exact import check_problem
@@ -238,6 +239,13 @@ class KissGPEngine:
         s = float(k.outputscale)
         h, w = problem.shape
         ho, wo = problem.out_shape
+        need, budget = kissgp_bytes((h, w), (ho, wo)), memory_budget()
+        if need > budget:
+            raise ProblemTooLargeError(
+                "kissgp problem",
+                f"at most {budget / 2**30:.1f} GiB (three quarters of the free memory)",
+                f"{h}x{w} grid, {ho}x{wo} outputs: about {need / 2**30:.1f} GiB; use the fast engine",
+            )
         rows, cols = np.nonzero(problem.precision > 0)
         n = rows.shape[0]
         stats: dict = {"observed": int(n), "outputs": int(ho * wo), "device": str(self.device)}

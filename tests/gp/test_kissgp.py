@@ -27,7 +27,7 @@ import torch
 from gpdepth3d import DepthGPConfig, SparseDepth, complete
 from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.completion.complete import build_problem
-from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.errors import ProblemTooLargeError, InvalidInputError
 from gpdepth3d.gp import make_engine
 from gpdepth3d.gp.exact import ExactEngine
 from gpdepth3d.gp.kissgp import ConvergenceError, KissGPEngine, PixelGridInterpolationKernel, default_device
@@ -190,6 +190,20 @@ class TestKissGPEngine:
         assert solution.info.engine == "kissgp" and solution.info.seconds["total"] > 0
         assert stats["observed"] == 48 * 64 and 0 < stats["cg_iterations_mean"] < 1000
         assert stats["cg_residual_mean"] <= 1e-7
+
+    def test_refuses_a_problem_that_would_exhaust_memory(self, crop, monkeypatch):
+        import gpdepth3d.gp.kissgp as kissgp_module
+        from gpdepth3d.gp.cost_model import kissgp_bytes
+
+        _, mde, sparse = crop
+        problem, *_ = build_problem(mde, sparse, CONFIGS["balanced"])
+        need = kissgp_bytes(problem.shape, problem.out_shape)
+        monkeypatch.setattr(kissgp_module, "memory_budget", lambda: need - 1)
+        with pytest.raises(ProblemTooLargeError, match="kissgp problem"):
+            KissGPEngine(device="cpu").solve(problem, variance=False)
+        monkeypatch.setattr(kissgp_module, "memory_budget", lambda: need)
+        assert KissGPEngine(device="cpu").solve(problem, variance=False).mean.shape == problem.out_shape
+        assert kissgp_bytes((3000, 4000), (3000, 4000)) > 100 * 2**30  # a 3000x4000 frame is refused on any CI machine
 
     def test_convergence_error_when_cg_is_cut_short(self, crop):
         _, mde, sparse = crop
