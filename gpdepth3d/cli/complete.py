@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -229,6 +230,9 @@ def complete_command(
     with warnings.catch_warnings():  # the posterior's warnings are printed below, one line each
         warnings.simplefilter("ignore", PosteriorWarning)
         posterior = completer.complete(mde_depth, measurements, output_shape=output_size, frame=out_npz.stem)
+    known = camera or calibration_camera
+    if known is not None:  # saved with the file, so that `view` back-projects it without being told
+        posterior = replace(posterior, K=known.resized(posterior.shape[1], posterior.shape[0]).K)
     print(
         f"completed {mde_depth.shape[1]}x{mde_depth.shape[0]} with {len(posterior.sparse)} measurements "
         f"({gp.formulation}, engine {engine.name}) in {sum(posterior.timings.values()):.2f} s"
@@ -267,7 +271,7 @@ def complete_command(
                     sparse=posterior.sparse,
                 )
             if ply is not None:
-                written.append(_write_cloud(ply, posterior, image, camera or calibration_camera))
+                written.append(_write_cloud(ply, posterior, image, known))
     for w in caught:
         if issubclass(w.category, PNGRangeWarning):
             print(f"warning: {w.message}")

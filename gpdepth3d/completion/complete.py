@@ -65,6 +65,8 @@ class DepthPosterior:
         mde_slope: log_residual: the MDE's log-depth coefficient fitted to this frame
             (`gpdepth3d.gp.slope`; 1 when not fitted): below 1 the points say the MDE over-states
             the depth differences of the scene.
+        K: (3, 3) intrinsics of the output grid (pixels) when the caller knew them, else None; saved
+            with the file so that the viewer can back-project it.
     """
 
     mean: np.ndarray
@@ -79,6 +81,7 @@ class DepthPosterior:
     warnings: tuple[str, ...] = ()
     solve: SolveInfo | None = None
     mde_slope: float = 1.0
+    K: np.ndarray | None = None
 
     @property
     def n_rejected(self) -> int:
@@ -130,6 +133,7 @@ class DepthPosterior:
                 config_json=np.array(json.dumps(asdict(self.config))),
                 rejected=np.zeros(len(self.sparse), bool) if self.rejected is None else np.asarray(self.rejected, bool),
                 warnings=np.array(self.warnings, dtype=str),
+                **({} if self.K is None else {"K": np.asarray(self.K, np.float64).reshape(3, 3)}),
             )
         }
         if png:
@@ -196,6 +200,7 @@ class DepthPosterior:
                     rejected=rejected,
                     warnings=tuple(str(w) for w in d["warnings"]) if "warnings" in d.files else (),
                     mde_slope=float(d["mde_slope"]) if "mde_slope" in d.files else 1.0,
+                    K=np.asarray(d["K"], np.float64).reshape(3, 3) if "K" in d.files else None,
                 )
         except ProblemTooLargeError:
             raise

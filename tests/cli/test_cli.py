@@ -202,6 +202,35 @@ class TestErrors:
         assert "principal point" in capsys.readouterr().err
 
 
+class TestIntrinsicsTravelWithThePosterior:
+    def test_complete_saves_k_of_the_output_grid_and_view_reads_it(self, tmp_path, capsys):
+        from gpdepth3d.viewer.app import stored_intrinsics
+
+        np.save(tmp_path / "mde.npy", np.full((48, 64), 2.0))
+        np.savetxt(tmp_path / "xyz.txt", [[0.0, 0.0, 2.1], [0.5, 0.2, 2.2], [-0.4, -0.3, 1.9]])
+        code = main(
+            [
+                "complete",
+                "--mde",
+                str(tmp_path / "mde.npy"),
+                "--sparse",
+                str(tmp_path / "xyz.txt"),
+                "--sparse-points",
+                "xyz",
+                "--intrinsics",
+                "50,50,31.5,23.5",
+                "--output-size",
+                "96",
+                "128",
+                "--output",
+                str(tmp_path / "o"),
+            ]
+        )
+        assert code == 0, capsys.readouterr().err
+        K = stored_intrinsics(tmp_path / "o.npz")
+        np.testing.assert_allclose(K, [[100.0, 0.0, 63.5], [0.0, 100.0, 47.5], [0.0, 0.0, 1.0]])  # scaled to 128x96
+
+
 class TestOneLineErrors:
     @pytest.mark.parametrize(
         "argv, line",

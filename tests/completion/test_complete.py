@@ -227,6 +227,16 @@ class TestDepthPosteriorSaveLoad:
         np.testing.assert_allclose(load_depth(written[1]), post.mean, atol=0.5 / 256)
         np.testing.assert_allclose(load_depth(written[2]), post.std, atol=0.5 / 256)
         assert load_depth(written[0]).shape == (8, 10)  # the npz opens as a depth map (its mean)
+        assert back.K is None  # none was given
+
+    def test_round_trip_keeps_the_intrinsics(self, tmp_path):
+        from dataclasses import replace
+
+        mde, sparse = small_inputs()
+        K = np.array([[9.0, 0.0, 4.5], [0.0, 9.0, 3.5], [0.0, 0.0, 1.0]])
+        post = replace(complete(mde, sparse, config=RESIDUAL, engine=EXACT_ENGINE), K=K)
+        back = DepthPosterior.load(post.save(tmp_path / "post")[0], config=RESIDUAL)
+        np.testing.assert_array_equal(back.K, K)
 
     def test_round_trip_keeps_the_config_the_rejections_and_the_warnings(self, tmp_path):
         """The file carries the config that made it (not a default), the rejected points and the warnings."""
