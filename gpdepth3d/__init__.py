@@ -44,6 +44,7 @@ from .mde import RTMonoDepthONNX as RTMonoDepthONNX
 from .datasets import Frame as Frame
 from .datasets import open_dataset as open_dataset
 from .datasets.posed import PosedSequence as PosedSequence
+from .gp.engine import EngineConfig as EngineConfig
 from .gp.model import DepthGPConfig as DepthGPConfig
 from .completion.complete import complete as complete
 from .completion.complete import DepthCompleter as DepthCompleter
