@@ -101,6 +101,18 @@ def default_device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
+def _check_memory(shape: tuple[int, int], out_shape: tuple[int, int]) -> None:
+    """Refuses a solve whose working memory (`cost_model.kissgp_bytes`) would pass the memory budget."""
+    need, budget = kissgp_bytes(shape, out_shape), memory_budget()
+    if need > budget:
+        raise ProblemTooLargeError(
+            "kissgp problem",
+            f"at most {budget / 2**30:.1f} GiB (three quarters of the free memory)",
+            f"{shape[0]}x{shape[1]} grid, {out_shape[0]}x{out_shape[1]} outputs: about {need / 2**30:.1f} GiB; "
+            "use the fast engine",
+        )
+
+
 class KissGPEngine:
     """GP posterior with GPyTorch KISS-GP (the paper's method), exact on the pixel grid.
 
@@ -239,13 +251,7 @@ class KissGPEngine:
         s = float(k.outputscale)
         h, w = problem.shape
         ho, wo = problem.out_shape
-        need, budget = kissgp_bytes((h, w), (ho, wo)), memory_budget()
-        if need > budget:
-            raise ProblemTooLargeError(
-                "kissgp problem",
-                f"at most {budget / 2**30:.1f} GiB (three quarters of the free memory)",
-                f"{h}x{w} grid, {ho}x{wo} outputs: about {need / 2**30:.1f} GiB; use the fast engine",
-            )
+        _check_memory((h, w), (ho, wo))
         rows, cols = np.nonzero(problem.precision > 0)
         n = rows.shape[0]
         stats: dict = {"observed": int(n), "outputs": int(ho * wo), "device": str(self.device)}
