@@ -173,7 +173,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             is removed; nothing appears under ``path``).
     """
     path = check_output_path(path)
-    if _TEMP_NAME.match(path.name):  # already a temporary (a set's writer that itself writes atomically): fill it
+    if _ANY_TEMP.match(path.name):  # already a temporary (a set's writer that itself writes atomically): fill it
         yield path
         return
     _make_parent(path)
@@ -349,10 +349,6 @@ def _fsync_folder(folder: Path) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
-
-
-# The temporaries `atomic_path` makes: ``.<stem>.<8 random>.tmp<suffix>`` (tempfile.mkstemp).
-_TEMP_NAME = re.compile(r"^\..*\.[A-Za-z0-9_]{8}\.tmp(\.[^.]*)?$")
 
 
 class _OutputSet:
