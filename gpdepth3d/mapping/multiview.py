@@ -1,6 +1,7 @@
 """Multi-view triangulation of feature tracks: inverse depth along the reference ray, robust Gauss-Newton, honest sigma.
 
-See `triangulate_tracks`; the held-pose path (the default) runs compiled per-track loops (numba).
+See `triangulate_tracks`; the held-pose path (the default) runs compiled per-track loops (numba), the
+bundle adjustment with ``refine_poses`` `scipy.optimize.least_squares`.
 """
 
 from __future__ import annotations
@@ -10,8 +11,11 @@ from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
+from scipy import sparse
+from scipy.optimize import least_squares
 
 from ..camera import PinholeCamera, check_pose
+from ..completion.threads import single_threaded_blas
 from ..errors import InvalidInputError, ShapeError, describe
 from ..measurements import SparseDepth
 from .triangulation_config import TriangulationConfig
@@ -82,21 +86,24 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * W + b * (W @ W)
 
 
-def _log_rotation(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors (angles below pi)."""
-    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    theta = np.arccos(c)[..., None]
-    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    s = np.sin(theta)
-    return np.where(theta < 1e-8, 0.5 * v, v * theta / (2 * np.where(theta < 1e-8, 1.0, s)))
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 3, 3) left Jacobians of SO(3): exp(w + d) ~ exp(J_l(w) d) exp(w)."""
+    theta = np.linalg.norm(w, axis=-1)[..., None, None]
+    W = _skew(w)
+    small = theta < 1e-5
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1 - np.cos(th)) / th**2)
+    b = np.where(small, 1.0 / 6.0, (th - np.sin(th)) / th**3)
+    return np.eye(3) + a * W + b * (W @ W)
 
 
 class _Problem:
     """Inverse-depth bundle adjustment of one reference view against its neighbours.
 
-    Unknowns: the inverse depth rho_i of every track along its reference ray (the reference
-    keypoint is taken as exact) and a 6-D correction (rotation vector, translation) of every
-    neighbour's pose relative to the reference, with a Gaussian prior around the given pose.
+    Unknowns x = (rho, xi): the inverse depth rho_i of every track along its reference ray (the
+    reference keypoint is taken as exact) and a 6-D correction xi_j = (w_j, d_j) of every
+    neighbour's pose relative to the reference, R_j = exp(w_j) R0_j, t_j = t0_j + d_j, with a
+    Gaussian prior xi_j ~ N(0, diag(1 / prior)) around the given pose.
     A point in neighbour j: p = R_j xbar_i + rho_i t_j (homogeneous), pixel = pi(K p).
     """
 
@@ -106,6 +113,7 @@ class _Problem:
         self.mask = mask  # (N, J) observed
         self.R0, self.t0 = R0, t0  # (J, 3, 3), (J, 3): given reference -> neighbour transforms
         self.R, self.t = R0.copy(), t0.copy()
+        self.xi = np.zeros((R0.shape[0], 6))  # pose corrections behind R, t
         self.f = np.array([camera.fx, camera.fy])
         self.c = np.array([camera.cx, camera.cy])
         self.pixel_sigma = float(pixel_sigma)
@@ -136,23 +144,38 @@ class _Problem:
         valid = self.mask & (z > 1e-9) & np.all(np.isfinite(r), axis=-1)
         return p, z, np.where(valid[..., None], r, 0.0), valid
 
-    def prior_residual(self, R=None, t=None):
-        R = self.R if R is None else R
-        t = self.t if t is None else t
-        dtheta = _log_rotation(R @ np.swapaxes(self.R0, 1, 2))
-        return np.concatenate([dtheta, t - self.t0], axis=1)  # (J, 6)
+    # ---- the problem as `scipy.optimize.least_squares` sees it: x = (rho (N), xi (J * 6))
+    @property
+    def n_data(self) -> int:
+        """Reprojection residuals (2 per track and neighbour); the 6 J prior residuals follow them."""
+        return 2 * self.mask.size
 
-    def cost(self, rho, scale, R=None, t=None):
-        _, _, r, valid = self.residuals(rho, R, t)
-        s2 = np.sum(r**2, axis=-1)
-        data = np.sum(np.where(valid, scale**2 * np.log1p(s2 / scale**2), 0.0))
-        e = self.prior_residual(R, t)
-        return data + np.sum(e**2 * self.prior)
+    def pack(self, rho: np.ndarray) -> np.ndarray:
+        return np.concatenate([rho, self.xi.reshape(-1)])
 
-    def normal_equations(self, rho, weights):
-        """Gauss-Newton blocks (depth-depth, pose-depth, pose-pose, right-hand sides) with per-observation weights (N, J)."""
+    def unpack(self, x: np.ndarray) -> np.ndarray:
+        """Sets the poses from x's corrections; returns its inverse depths."""
+        n = self.xbar.shape[0]
+        xi = x[n:].reshape(-1, 6)
+        if not np.array_equal(xi, self.xi):
+            self.xi = xi.copy()
+            self.R = _rodrigues(xi[:, :3]) @ self.R0
+            self.t = self.t0 + xi[:, 3:]
+        return x[:n]
+
+    def stacked_residuals(self, x: np.ndarray) -> np.ndarray:
+        """(2 N J + 6 J,) residuals: reprojection errors / pixel_sigma (0 where not valid), then xi / prior sigma."""
+        rho = self.unpack(x)
+        r = self.residuals(rho)[2]
+        return np.concatenate([r.reshape(-1), (self.xi * np.sqrt(self.prior)).reshape(-1)])
+
+    def derivatives(self, rho):
+        """Residuals and their derivatives at the current poses, zero where not valid.
+
+        Returns:
+            r (N, J, 2), valid (N, J), d r / d rho_i (N, J, 2), d r / d xi_j (N, J, 2, 6).
+        """
         p, z, r, valid = self.residuals(rho)
-        w = np.where(valid, weights, 0.0)
         fz = self.f / self.pixel_sigma
         iz = np.where(valid, 1.0 / np.where(valid, z, 1.0), 0.0)
         # d(residual)/dp: (N, J, 2, 3)
@@ -161,54 +184,91 @@ class _Problem:
         Jp[..., 1, 1] = fz[1] * iz
         Jp[..., 0, 2] = -fz[0] * p[..., 0] * iz**2
         Jp[..., 1, 2] = -fz[1] * p[..., 1] * iz**2
-        J_rho = np.matmul(Jp, self.t[None, :, :, None])[..., 0]  # (N, J, 2)
-        Rx = self.rotated_rays()
-        J_theta = -np.matmul(Jp, _skew(Rx))
-        J_t = Jp * rho[:, None, None, None]
-        J_xi = np.concatenate([J_theta, J_t], axis=-1)  # (N, J, 2, 6)
-        wJ_rho = w[..., None] * J_rho
-        h_rr = np.sum(wJ_rho * J_rho, axis=(1, 2))
-        H_xr = np.matmul(wJ_rho[..., None, :], J_xi)[..., 0, :]  # (N, J, 6)
-        b_r = np.sum(w[..., None] * J_rho * r, axis=(1, 2))
-        n, nj = w.shape
-        Jx = J_xi.transpose(1, 0, 2, 3).reshape(nj, 2 * n, 6)  # (J, 2N, 6)
-        wx = np.repeat(w.T, 2, axis=1)[..., None]  # (J, 2N, 1), a weight per residual row
-        H_xx = np.matmul(np.swapaxes(Jx, 1, 2), wx * Jx)  # (J, 6, 6)
-        b_x = np.matmul(np.swapaxes(Jx, 1, 2), wx[..., 0, None] * r.transpose(1, 0, 2).reshape(nj, 2 * n, 1))[..., 0]
-        e = self.prior_residual()
-        H_xx = H_xx + np.eye(6)[None] * self.prior[None, :, None]
-        b_x = b_x + e * self.prior[None]
-        return r, valid, h_rr, b_r, H_xr, H_xx, b_x
+        J_rho = np.matmul(Jp, self.t[None, :, :, None])[..., 0]
+        # d(exp(w) R0 xbar)/dw = -[R xbar]_x J_l(w)
+        J_w = -np.matmul(np.matmul(Jp, _skew(self.rotated_rays())), _left_jacobian(self.xi[:, :3])[None])
+        J_d = Jp * rho[:, None, None, None]
+        return r, valid, J_rho, np.concatenate([J_w, J_d], axis=-1)
 
-    def schur(self, h_rr, H_xr, H_xx):
-        n, nj = H_xr.shape[:2]
-        A = H_xr.reshape(n, nj * 6)
-        inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
-        S = np.zeros((nj * 6, nj * 6))
-        for j in range(nj):
-            S[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = H_xx[j]
-        S -= (A * inv[:, None]).T @ A
-        return S, A, inv
+    def jacobian(self, x: np.ndarray) -> sparse.csr_array:
+        """(2 N J + 6 J, N + 6 J) sparse Jacobian of `stacked_residuals`: 7 entries a reprojection row, 1 a prior row."""
+        rho = self.unpack(x)
+        n, nj = self.mask.shape
+        _, _, J_rho, J_xi = self.derivatives(rho)
+        cols = np.empty((n, nj, 2, 7), np.int64)
+        cols[..., 0] = np.arange(n)[:, None, None]
+        cols[..., 1:] = n + 6 * np.arange(nj)[None, :, None, None] + np.arange(6)
+        data = np.concatenate(
+            [np.concatenate([J_rho[..., None], J_xi], axis=-1).reshape(-1), np.tile(np.sqrt(self.prior), nj)]
+        )
+        indices = np.concatenate([cols.reshape(-1), n + np.arange(6 * nj)])
+        indptr = np.concatenate([np.arange(0, 7 * self.n_data, 7), 7 * self.n_data + np.arange(6 * nj + 1)])
+        return sparse.csr_array((data, indices, indptr), shape=(self.n_data + 6 * nj, n + 6 * nj))
 
 
-def _cauchy_weights(r: np.ndarray, scale: float) -> np.ndarray:
-    return 1.0 / (1.0 + np.sum(r**2, axis=-1) / scale**2)
+def _cauchy_per_observation(n_data: int):
+    """`least_squares` loss: Cauchy of each observation's squared 2-D residual, linear for the prior rows.
+
+    scipy's ``loss="cauchy"`` acts on each residual alone, the prior rows included; this is its
+    rho(s) = log(1 + s) on s = (r_u^2 + r_v^2) / f_scale^2 of one observation, with the Gaussian pose
+    prior kept quadratic. rho'' is given as 0: the Gauss-Newton model weights each row by rho'
+    (reweighted least squares, which converges here; the second-order term, clipped for every
+    residual beyond f_scale, stalls the trust region).
+    """
+
+    def loss(z: np.ndarray) -> np.ndarray:
+        out = np.zeros((3, z.size))
+        s = z[:n_data].reshape(-1, 2).sum(axis=1)
+        out[0, :n_data] = np.repeat(0.5 * np.log1p(s), 2)  # the two rows share an observation's cost
+        out[1, :n_data] = np.repeat(1.0 / (1.0 + s), 2)
+        out[0, n_data:], out[1, n_data:] = z[n_data:], 1.0
+        return out
+
+    return loss
+
+
+def _bundle_adjusted(prob: _Problem, rho: np.ndarray, scale: float) -> np.ndarray:
+    """Inverse depths and poses (left in ``prob``) minimising the robust cost at Cauchy ``scale`` (units of pixel_sigma).
+
+    Trust-region reflective least squares on the analytic sparse Jacobian (LSMR steps), see
+    https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html
+    """
+    with single_threaded_blas():  # LSMR's vector products are small: BLAS threads only contend
+        res = least_squares(
+            prob.stacked_residuals,
+            prob.pack(rho),
+            jac=prob.jacobian,
+            method="trf",
+            tr_solver="lsmr",
+            x_scale="jac",
+            loss=_cauchy_per_observation(prob.n_data),
+            f_scale=scale,
+            ftol=_FTOL,
+            max_nfev=_MAX_NFEV,
+        )
+    return prob.unpack(res.x)
+
+
+_FTOL = 1e-5
+"""`least_squares` stops when a step lowers the cost by less than this fraction of it."""
+_MAX_NFEV = 50
+"""Most residual evaluations of one `least_squares` solve."""
 
 
 def _refined_depths(prob, rho, mask, xbar, obs, config: TriangulationConfig):
     """Robust refinement of the inverse depths: (rho, residuals, valid observations).
 
     A wide Cauchy scale first (the given poses can be several pixels off), then the final one;
-    observations beyond ``max_reprojection_error`` are then dropped.
+    observations beyond ``max_reprojection_error`` are then dropped and the problem solved again.
     """
     final_scale = 2.0
     if config.refine_poses:
-        for scale, iters in ((8.0, 4), (final_scale, 6)):
-            rho = _levenberg_marquardt(prob, rho, scale, iters)
+        for scale in (8.0, final_scale):
+            rho = _bundle_adjusted(prob, rho, scale)
         _, _, r, valid = prob.residuals(rho)
         err_px = np.linalg.norm(r, axis=-1) * prob.pixel_sigma
         prob.mask = mask & valid & (err_px <= config.max_reprojection_error)
-        rho = _levenberg_marquardt(prob, rho, final_scale, 3)
+        rho = _bundle_adjusted(prob, rho, final_scale)
         _, _, r, valid = prob.residuals(rho)
         return rho, r, valid
     # poses held: independent 1-D problems, one compiled loop over the tracks
@@ -247,19 +307,7 @@ def _inverse_depth_variance(
 ) -> np.ndarray:
     """(N,) variance of each track's inverse depth: pixel noise and the poses' uncertainty."""
     if config.refine_poses:
-        prob.pixel_sigma = sigma_px
-        _, valid, h_rr, _, H_xr, H_xx, _ = prob.normal_equations(rho, valid.astype(np.float64))
-        n_pts, nj = H_xr.shape[:2]
-        A = H_xr.reshape(n_pts, nj * 6)
-        inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
-        B = A * inv[:, None]
-        S, _, _ = prob.schur(h_rr, H_xr, H_xx)
-        # joint estimate: the marginal of the inverse depth (Schur complement of the poses)
-        try:
-            S_inv = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
-            S_inv = np.linalg.pinv(S)
-        var_rho = inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
+        var_rho = _joint_inverse_depth_variance(prob, rho, valid, sigma_px)
     else:
         # poses held at their given values: their whole prior uncertainty reaches the depth
         # through d rho / d xi = -H_rho_rho^-1 H_rho_xi
@@ -269,6 +317,28 @@ def _inverse_depth_variance(
         # (or the tracks) are worse than assumed, in the directions the images cannot see too
         var_rho = var_rho * max(1.0, seen / float(config.pixel_sigma)) ** 2
     return var_rho
+
+
+def _joint_inverse_depth_variance(prob: _Problem, rho: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarray:
+    """(N,) marginal variance of each inverse depth from the Gauss-Newton information J^T J at the solution.
+
+    J is `_Problem.jacobian` with unit weights on the valid observations and ``sigma_px`` pixel noise
+    (`least_squares`' own ``jac`` carries the Cauchy scaling); the poses are eliminated by their Schur
+    complement, so the uncertainty all points share reaches each depth.
+    """
+    n = rho.shape[0]
+    prob.mask, prob.pixel_sigma = valid, sigma_px
+    J = prob.jacobian(prob.pack(rho))
+    H = (J.T @ J).toarray()
+    h_rr = np.diag(H)[:n]  # the depth block is diagonal: one depth a row
+    inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
+    B = H[:n, n:] * inv[:, None]
+    S = H[n:, n:] - H[n:, :n] @ B
+    try:
+        S_inv = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        S_inv = np.linalg.pinv(S)
+    return inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
 
 
 def triangulate_tracks(
@@ -649,40 +719,3 @@ def _point_checks(Xr, r, valid, R, t, min_front):  # pragma: no cover - compiled
         parallax[i] = best
         rms[i] = np.sqrt(ss / max(count, 1))
     return n_views, parallax, front, rms
-
-
-def _levenberg_marquardt(prob: _Problem, rho: np.ndarray, scale: float, iterations: int) -> np.ndarray:
-    lam = 1e-4
-    cost = prob.cost(rho, scale)
-    nj = prob.R.shape[0]
-    for _ in range(iterations):
-        _, valid, _, _, _, _, _ = prob.normal_equations(rho, np.ones(prob.mask.shape))
-        r = prob.residuals(rho)[2]
-        w = _cauchy_weights(r, scale) * valid
-        _, _, h_rr, b_r, H_xr, H_xx, b_x = prob.normal_equations(rho, w)
-        improved = False
-        for _ in range(6):
-            hd = h_rr * (1 + lam) + 1e-12
-            Hd = H_xx + lam * np.einsum("jkk->jk", H_xx)[..., None] * np.eye(6)[None]
-            S, A, inv = prob.schur(hd, H_xr, Hd)
-            g = b_x.reshape(-1) - (A * (b_r / hd)[:, None]).sum(axis=0)
-            try:
-                dx = -np.linalg.solve(S, g)
-            except np.linalg.LinAlgError:
-                lam *= 10
-                continue
-            drho = -(b_r + A @ dx) / hd
-            dxj = dx.reshape(nj, 6)
-            R_new = _rodrigues(dxj[:, :3]) @ prob.R
-            t_new = prob.t + dxj[:, 3:]
-            rho_new = rho + drho
-            new_cost = prob.cost(rho_new, scale, R_new, t_new)
-            if np.isfinite(new_cost) and new_cost <= cost:
-                prob.R, prob.t, rho, cost = R_new, t_new, rho_new, new_cost
-                lam = max(lam / 10, 1e-8)
-                improved = True
-                break
-            lam *= 10
-        if not improved:
-            break
-    return rho
