@@ -147,8 +147,8 @@ class _Problem:
     # ---- the problem as `scipy.optimize.least_squares` sees it: x = (rho (N), xi (J * 6))
     @property
     def n_data(self) -> int:
-        """Reprojection residuals (2 per track and neighbour); the 6 J prior residuals follow them."""
-        return 2 * self.mask.size
+        """Reprojection residuals (2 per observation in ``mask``); the 6 J prior residuals follow them."""
+        return 2 * int(np.count_nonzero(self.mask))
 
     def pack(self, rho: np.ndarray) -> np.ndarray:
         return np.concatenate([rho, self.xi.reshape(-1)])
@@ -164,10 +164,13 @@ class _Problem:
         return x[:n]
 
     def stacked_residuals(self, x: np.ndarray) -> np.ndarray:
-        """(2 N J + 6 J,) residuals: reprojection errors / pixel_sigma (0 where not valid), then xi / prior sigma."""
+        """(n_data + 6 J,) residuals: the observations' reprojection errors / pixel_sigma, then xi / prior sigma.
+
+        One (u, v) pair for every observation in ``mask``, in its row-major order; 0 where not valid.
+        """
         rho = self.unpack(x)
         r = self.residuals(rho)[2]
-        return np.concatenate([r.reshape(-1), (self.xi * np.sqrt(self.prior)).reshape(-1)])
+        return np.concatenate([r[self.mask].reshape(-1), (self.xi * np.sqrt(self.prior)).reshape(-1)])
 
     def derivatives(self, rho):
         """Residuals and their derivatives at the current poses, zero where not valid.
@@ -191,16 +194,16 @@ class _Problem:
         return r, valid, J_rho, np.concatenate([J_w, J_d], axis=-1)
 
     def jacobian(self, x: np.ndarray) -> sparse.csr_array:
-        """(2 N J + 6 J, N + 6 J) sparse Jacobian of `stacked_residuals`: 7 entries a reprojection row, 1 a prior row."""
+        """(n_data + 6 J, N + 6 J) sparse Jacobian of `stacked_residuals`: 7 entries a reprojection row, 1 a prior row."""
         rho = self.unpack(x)
         n, nj = self.mask.shape
         _, _, J_rho, J_xi = self.derivatives(rho)
-        cols = np.empty((n, nj, 2, 7), np.int64)
-        cols[..., 0] = np.arange(n)[:, None, None]
-        cols[..., 1:] = n + 6 * np.arange(nj)[None, :, None, None] + np.arange(6)
-        data = np.concatenate(
-            [np.concatenate([J_rho[..., None], J_xi], axis=-1).reshape(-1), np.tile(np.sqrt(self.prior), nj)]
-        )
+        track, view = np.nonzero(self.mask)
+        cols = np.empty((track.size, 2, 7), np.int64)
+        cols[..., 0] = track[:, None]
+        cols[..., 1:] = n + 6 * view[:, None, None] + np.arange(6)
+        blocks = np.concatenate([J_rho[..., None], J_xi], axis=-1)[self.mask]  # (K, 2, 7)
+        data = np.concatenate([blocks.reshape(-1), np.tile(np.sqrt(self.prior), nj)])
         indices = np.concatenate([cols.reshape(-1), n + np.arange(6 * nj)])
         indptr = np.concatenate([np.arange(0, 7 * self.n_data, 7), 7 * self.n_data + np.arange(6 * nj + 1)])
         return sparse.csr_array((data, indices, indptr), shape=(self.n_data + 6 * nj, n + 6 * nj))
@@ -249,7 +252,7 @@ def _bundle_adjusted(prob: _Problem, rho: np.ndarray, scale: float) -> np.ndarra
     return prob.unpack(res.x)
 
 
-_FTOL = 1e-5
+_FTOL = 1e-3
 """`least_squares` stops when a step lowers the cost by less than this fraction of it."""
 _MAX_NFEV = 50
 """Most residual evaluations of one `least_squares` solve."""

@@ -235,15 +235,18 @@ class TestTriangulateTracks:
         bad = np.arange(20)
         tracks[bad, 2] += rng.choice([-1, 1], (20, 2)) * rng.uniform(15, 40, (20, 2))  # one wrong match each
         tracks[20:30, 1:] = _tracks(X[rng.permutation(200)[:10]], poses)[:, 1:]  # wrong in every view
-        mv = triangulate_tracks(tracks, poses, CAM, reference=0)
-        err = np.abs(mv.depth - X[mv.index, 2])
-        # the tracks with one wrong observation keep their point, from the other views
-        assert np.isin(bad, mv.index).sum() >= 18
-        assert np.all(err[np.isin(mv.index, bad)] < 3 * mv.sigma[np.isin(mv.index, bad)])
-        # tracks wrong in every view are dropped or honestly uncertain; no kept point is far off
-        assert np.all(err < 4 * mv.sigma)
-        # the wrong observations were rejected: at most 3 views support the first 20
-        assert np.all(mv.n_views[np.isin(mv.index, bad)] <= 3)
+        for refine in (False, True):  # poses held, and the robust bundle adjustment
+            mv = triangulate_tracks(tracks, poses, CAM, reference=0, config=TriangulationConfig(refine_poses=refine))
+            err = np.abs(mv.depth - X[mv.index, 2])
+            # the tracks with one wrong observation keep their point, from the other views
+            assert np.isin(bad, mv.index).sum() >= 18
+            assert np.all(err[np.isin(mv.index, bad)] < 3 * mv.sigma[np.isin(mv.index, bad)])
+            # tracks wrong in every view are dropped or honestly uncertain; no kept point is far off
+            assert np.all(err < 4 * mv.sigma)
+            # the wrong observations were rejected: at most 3 views support the first 20
+            assert np.all(mv.n_views[np.isin(mv.index, bad)] <= 3)
+            # the wrong matches did not drag the neighbours' poses away
+            np.testing.assert_allclose(mv.poses, np.stack(poses), atol=1e-3)
 
     def test_sigma_covers_pixel_and_pose_noise(self):
         """+-2 sigma covers ~95 % of the errors when pixels and poses carry the assumed noise."""
@@ -380,6 +383,80 @@ class TestTriangulateTracks:
         assert np.median(np.abs(mv.depth / X[mv.index, 2] - 1)) < 0.5 * np.median(
             np.abs(fixed.depth / X[fixed.index, 2] - 1)
         )
+
+    def test_refinement_beats_held_poses_and_sigma_covers_its_error(self):
+        """Neighbour poses off by their prior: the bundle adjustment's depths are closer and its sigma honest."""
+        rng = np.random.default_rng(22)
+        X = _scene(200, seed=22)
+        poses = _views()
+        clean = _tracks(X, poses)
+        cfg = TriangulationConfig(
+            pixel_sigma=0.5,
+            rotation_sigma_deg=0.2,
+            translation_sigma=0.005,
+            refine_poses=True,
+            variance_factor=False,
+            depth_sigma_floor=0.0,
+            max_relative_sigma=1.0,
+        )
+        err_refined, err_held, inside, z_scores = [], [], [], []
+        for _ in range(20):
+            noisy = [poses[0]] + [
+                T @ _posed(rng.normal(0, 0.005, 3), np.degrees(rng.normal(0, np.radians(0.2), 3))) for T in poses[1:]
+            ]
+            tracks = clean + rng.normal(0, 0.5, clean.shape)
+            tracks[:, 0] = clean[:, 0]  # the reference keypoint is the ray: exact
+            refined = triangulate_tracks(tracks, noisy, CAM, config=cfg)
+            held = triangulate_tracks(tracks, noisy, CAM, config=replace(cfg, refine_poses=False))
+            e = refined.depth - X[refined.index, 2]
+            err_refined.append(np.abs(e) / X[refined.index, 2])
+            err_held.append(np.abs(held.depth / X[held.index, 2] - 1))
+            inside.append(np.abs(e) <= 2 * refined.sigma)
+            z_scores.append(e / refined.sigma)
+            assert len(refined) >= 190
+        # the pose errors shared by all points are what the refinement removes
+        assert np.median(np.concatenate(err_refined)) < 0.65 * np.median(np.concatenate(err_held))
+        # +-2 sigma (pixel noise and the poses' posterior through the Schur complement) covers ~95 %
+        assert 0.9 <= np.mean(np.concatenate(inside)) <= 0.995
+        assert 0.75 < np.std(np.concatenate(z_scores)) < 1.3
+
+    def test_bundle_adjustment_jacobian_and_variance(self):
+        """`_Problem.jacobian` is the derivative of its residuals; the variance is the inverse of J^T J's depth block."""
+        from scipy.optimize._numdiff import approx_derivative
+
+        from gpdepth3d.mapping.multiview import _cauchy_per_observation, _joint_inverse_depth_variance, _Problem
+
+        rng = np.random.default_rng(22)
+        X = _scene(40, seed=22)
+        poses = _views()
+        tracks = _tracks(X, poses) + rng.normal(0, 0.5, (40, 4, 2))
+        T_jr = np.linalg.inv(np.stack(poses[1:])) @ poses[0]
+        xbar = np.column_stack([(tracks[:, 0, 0] - CAM.cx) / CAM.fx, (tracks[:, 0, 1] - CAM.cy) / CAM.fy, np.ones(40)])
+        mask = np.ones((40, 3), bool)
+        mask[:10, 1] = False  # not seen there: no rows
+        prob = _Problem(xbar, tracks[:, 1:], mask, T_jr[:, :3, :3], T_jr[:, :3, 3], CAM, 0.5, np.radians(0.2), 0.005)
+        x = np.r_[1 / X[:, 2] * (1 + 0.05 * rng.normal(size=40)), rng.normal(0, 0.02, 18)]
+        J = prob.jacobian(x)
+        assert J.shape == (2 * 110 + 18, 40 + 18)
+        np.testing.assert_allclose(J.toarray(), approx_derivative(prob.stacked_residuals, x), atol=1e-4 * abs(J).max())
+        # the prior rows: xi / sigma
+        np.testing.assert_allclose(prob.stacked_residuals(x)[-18:], x[40:] * np.tile(np.sqrt(prob.prior), 3))
+        # marginal variance of each inverse depth = diagonal of (J^T J)^-1 (with the pixel sigma given)
+        rho = prob.unpack(x)
+        valid = prob.residuals(rho)[3]
+        var = _joint_inverse_depth_variance(prob, rho, valid, 0.8)
+        prob.pixel_sigma = 0.8
+        J = prob.jacobian(x).toarray()
+        np.testing.assert_allclose(var, np.diag(np.linalg.inv(J.T @ J))[:40], rtol=1e-6)
+        # the loss: log(1 + s) of each observation's s = z_u + z_v, its derivative d/dz per row; linear prior rows
+        loss = _cauchy_per_observation(4)
+        z = np.array([0.3, 1.2, 4.0, 0.5, 2.0, 7.0])
+        out = loss(z)
+        np.testing.assert_allclose(out[0, :4].reshape(2, 2).sum(1), np.log1p([1.5, 4.5]))
+        dz = np.diag(np.full(6, 1e-7))
+        numeric = [(loss(z + d)[0].sum() - loss(z - d)[0].sum()) / 2e-7 for d in dz]
+        np.testing.assert_allclose(out[1], numeric, rtol=1e-6)
+        np.testing.assert_allclose(out[:, 4:], [[2.0, 7.0], [1.0, 1.0], [0.0, 0.0]])
 
     def test_checks_and_errors(self):
         X = _scene(50, seed=14)
