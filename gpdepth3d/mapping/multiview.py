@@ -353,21 +353,26 @@ def triangulate_tracks(
     config: TriangulationConfig | None = None,
     _checked: bool = False,
 ) -> MultiViewPoints:
-    """Triangulates feature tracks from all their views, refining the neighbours' poses.
+    """Triangulates feature tracks from all their views, with the neighbours' poses held or refined.
 
     Every track starts at a keypoint of the reference view. Steps: (1) a linear multi-view
     triangulation of each track's inverse depth along its reference ray (the multi-view DLT
-    in inverse-depth form, iteratively reweighted); (2) a robust (Cauchy) Gauss-Newton /
-    Levenberg-Marquardt bundle adjustment of all inverse depths jointly with a correction of
-    every neighbour's pose relative to the reference, with a Gaussian prior of
+    in inverse-depth form, iteratively reweighted); (2) a robust (Cauchy) Gauss-Newton of
+    each inverse depth with the poses held (the default: independent 1-D problems, compiled
+    loops), or with ``refine_poses`` a bundle adjustment of all inverse depths jointly with a
+    correction of every neighbour's pose relative to the reference, with a Gaussian prior of
     ``rotation_sigma_deg`` / ``translation_sigma`` around the given relative pose (the
-    translations' prior fixes the metric scale); (3) observations off by more than
-    ``max_reprojection_error`` pixels are dropped and the problem solved again; (4) the
-    depth sigma is the marginal standard deviation of the inverse depth from the inverse of
-    the Gauss-Newton information (Schur complement: pixel noise *and* the pose uncertainty
-    that all points share), with the pixel noise taken as the larger of ``pixel_sigma`` and
-    the one the residuals show, plus a relative floor ``depth_sigma_floor * depth`` in
-    quadrature (keypoint-on-edge and residual model errors; calibrated on 7-Scenes).
+    translations' prior fixes the metric scale), solved by `scipy.optimize.least_squares`
+    (trust-region reflective, analytic sparse Jacobian, a Cauchy loss per observation:
+    https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html);
+    (3) observations off by more than ``max_reprojection_error`` pixels are dropped and the
+    problem solved again; (4) the depth sigma is the marginal standard deviation of the
+    inverse depth from the inverse of the Gauss-Newton information J^T J (poses held: their
+    prior uncertainty propagated; refined: the Schur complement of the poses, so pixel noise
+    *and* the pose uncertainty that all points share), with the pixel noise taken as the
+    larger of ``pixel_sigma`` and the one the residuals show, plus a relative floor
+    ``depth_sigma_floor * depth`` in quadrature (keypoint-on-edge and residual model errors;
+    calibrated on 7-Scenes).
 
     Args:
         tracks: (N, V, 2) pixel positions (u, v) of N tracks in V views; NaN where a track is
@@ -375,9 +380,9 @@ def triangulate_tracks(
         poses: V 4x4 ``T_world_camera`` poses.
         camera: Intrinsics shared by all views.
         reference: Index of the reference view.
-        config: Options (pixel_sigma, rotation_sigma_deg, translation_sigma, min_views,
-            max_reprojection_error, min_parallax_deg, min_depth, max_depth,
-            max_relative_sigma, depth_sigma_floor).
+        config: Options (pixel_sigma, rotation_sigma_deg, translation_sigma, refine_poses,
+            variance_factor, min_views, max_reprojection_error, min_parallax_deg, min_depth,
+            max_depth, max_relative_sigma, depth_sigma_floor).
 
     Returns:
         `MultiViewPoints` of the tracks that pass: seen in >= ``min_views`` views after

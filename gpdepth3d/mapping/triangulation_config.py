@@ -37,8 +37,10 @@ class TriangulationConfig:
         translation_sigma: Prior standard deviation of each neighbour's translation relative
             to the reference (per axis), metres.
         refine_poses: Refine the neighbours' poses relative to the reference jointly with the
-            depths (bundle adjustment with the pose prior); off: poses held, their prior
-            uncertainty carried into sigma.
+            depths: a robust (Cauchy) bundle adjustment with the pose prior, solved by
+            `scipy.optimize.least_squares` (https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html),
+            sigma from its Gauss-Newton information; off: poses held, their prior uncertainty
+            carried into sigma.
         variance_factor: Scale each frame's variances by (residual noise / pixel_sigma)^2 when
             the residuals exceed the assumed pixel noise (a posteriori variance factor).
         min_views: Fewest views (reference included) that must support a multi-view point.
