@@ -12,7 +12,7 @@ Given posed RGB frames (``T_world_camera``, e.g. from a SLAM system) and intrins
   reweighted), then robust (Cauchy) Gauss-Newton; observations off by more than
   ``max_reprojection_error`` pixels are dropped and the depth re-solved. With
   ``refine_poses=True`` the neighbours' poses relative to the reference are refined jointly
-  (Levenberg-Marquardt bundle adjustment, Schur complement, Gaussian pose prior). With the
+  (a robust bundle adjustment with a Gaussian pose prior, solved by `scipy.optimize.least_squares`). With the
   poses held (the default) the tracks are independent 1-D problems, solved by compiled loops
   (numba; ~2 ms for the ~350 tracks of a 7-Scenes frame with 12 views, 12 ms as numpy arrays).
 * **Sigma**: pixel noise (the larger of ``pixel_sigma`` and the noise the residuals show) and
