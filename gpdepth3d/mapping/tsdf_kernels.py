@@ -85,10 +85,10 @@ def update_cpu(
     ``voxels`` (block_resolution, voxel_size); returns the number of voxel updates (`update_voxels`).
     """
     d, w, color, var, trunc = frame
-    attr = {name: to_torch(vbg.attribute(name)).view(-1).numpy() for name in ("tsdf", "weight")}
+    view = lambda name: to_torch(vbg.attribute(name)).view(-1).numpy()  # flat, zero-copy
     empty = np.zeros(0, np.float32)
-    col = to_torch(vbg.attribute("color")).view(-1).numpy() if color is not None else empty
-    vvox = to_torch(vbg.attribute("variance")).view(-1).numpy() if var is not None else empty
+    col = view("color") if color is not None else empty
+    vvox = view("variance") if var is not None else empty
     T_cw = np.linalg.inv(T)
     pixels = (
         np.ascontiguousarray(d, np.float32),
@@ -100,7 +100,7 @@ def update_cpu(
     intrinsics = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
     res, voxel_size = voxels
     pose = (T_cw[:3, :3].copy(), T_cw[:3, 3].copy())
-    grid = (attr["tsdf"], attr["weight"], col, vvox)
+    grid = (view("tsdf"), view("weight"), col, vvox)
     return int(update_voxels(blocks, buf, res, voxel_size, pose, intrinsics, pixels, float(scale), float(cap), grid))
 
 
