@@ -140,7 +140,7 @@ def update_voxels(
     return n
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _update_row(
     first, qx, qy, qz, ex, res, intrinsics, pixels, scale, cap, grid
 ):  # pragma: no cover - compiled; tested against the torch update
@@ -311,7 +311,7 @@ def band_blocks(depth, intrinsics, R, t, trunc, step, block_size, tile, conserva
     return _marked_blocks(grid, lo)
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _tile_rays(depth, intrinsics, R, trunc, step, block_size, tile):  # pragma: no cover - compiled
     """Per tile: its centre ray's direction (blocks per metre of depth), its band [a0, a1] (metres
     of depth) and the number of samples along it (0: no depth in the tile)."""
@@ -345,7 +345,7 @@ def _tile_rays(depth, intrinsics, R, trunc, step, block_size, tile):  # pragma: 
     return ray, band, count
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _band_bounds(ray, band, count, origin, spread):  # pragma: no cover - compiled
     """Lowest and highest block coordinates (3,) of the rays' end samples, one block of margin."""
     lo = np.full(3, np.iinfo(np.int64).max, np.int64)
@@ -366,7 +366,7 @@ def _band_bounds(ray, band, count, origin, spread):  # pragma: no cover - compil
     return lo, hi
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _mark_band(grid, lo, ray, band, count, origin, spread):  # pragma: no cover - compiled
     """Marks in ``grid`` (its cell (0, 0, 0) is block ``lo``) the blocks of every tile's band samples."""
     for ty in range(count.shape[0]):
@@ -386,7 +386,7 @@ def _mark_band(grid, lo, ray, band, count, origin, spread):  # pragma: no cover 
                             grid[i - lo[0], j - lo[1], q - lo[2]] = True
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _marked_blocks(grid, lo):  # pragma: no cover - compiled
     """(M, 3) int64 block coordinates of the marked cells of ``grid`` (cell (0, 0, 0) = block ``lo``), in order."""
     nx, ny, nz = grid.shape
