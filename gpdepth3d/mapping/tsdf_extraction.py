@@ -51,9 +51,9 @@ def _empty_mesh() -> "trimesh.Trimesh":
     return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64), process=False)
 
 
-def _vertex_colors(mesh: Any) -> np.ndarray:
-    """(N, 3) uint8 vertex colours of an Open3D mesh or point cloud attribute (stored as 0..1 floats)."""
-    return np.clip(np.rint(mesh.colors.numpy() * 255.0), 0, 255).astype(np.uint8)
+def _vertex_colors(attributes: Any) -> np.ndarray:
+    """(N, 3) uint8 colours of an Open3D mesh's ``vertex`` or a cloud's ``point`` attributes (stored 0..1)."""
+    return np.clip(np.rint(attributes.colors.numpy() * 255.0), 0, 255).astype(np.uint8)
 
 
 def grid_mesh(vbg: Any, config: "FusionConfig", allow_empty: bool) -> "trimesh.Trimesh":
