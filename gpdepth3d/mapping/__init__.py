@@ -1,9 +1,12 @@
 """From posteriors to 3D: coloured clouds, TSDF fusion, triangulation, trajectories, the `Mapper`.
 
-Modules: `cloud` (coloured clouds), `fusion` (TSDF), `trajectories` (poses, COLMAP models), the points a
-frame is refined with (`triangulation_config`, `features`, `tracks`, `multiview`, `two_view`, re-exported
-by `triangulation`; `refinding` for large camera motion; `colmap_points` for pycolmap's), and `mapper`
-(the incremental `Mapper`) with `map_points` (SLAM map points as sparse depth). The mapper's public names are re-exported here.
+Modules: `cloud` (coloured clouds), `fusion` (the TSDF volume) with `fusion_config` (its options),
+`fusion_weights` (per-pixel weights), `tsdf_kernels` (voxel update), `tsdf_blocks` (voxel blocks),
+`tsdf_extraction` (meshes, surface points) and `tsdf_io` (volume and mesh files), `trajectories`
+(poses, COLMAP models), the points a frame is refined with (`triangulation_config`, `features`,
+`tracks`, `multiview`, `two_view`, re-exported by `triangulation`; `refinding` for large camera
+motion; `colmap_points` for pycolmap's), and `mapper` (the incremental `Mapper`) with `map_points`
+(SLAM map points as sparse depth). The mapper's public names are re-exported here.
 """
 
 from .mapper import SEVEN_SCENES_RGB_K as SEVEN_SCENES_RGB_K

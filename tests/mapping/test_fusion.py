@@ -409,7 +409,7 @@ class TestExport:
             save_mesh("not a mesh", tmp_path / "m.ply")
         with pytest.raises(EmptyInputError):
             save_mesh(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "m.ply")
-        break_writes("gpdepth3d.mapping.fusion")
+        break_writes("gpdepth3d.mapping.tsdf_io")
         with pytest.raises(OSError):
             save_mesh(mesh, tmp_path / "m.glb")
         assert list(tmp_path.iterdir()) == []
@@ -720,6 +720,6 @@ class TestCompiledUpdate:
 
 
 def _keys_of(points: np.ndarray, block_size: float) -> np.ndarray:
-    from gpdepth3d.mapping.fusion import _blocks_to_keys
+    from gpdepth3d.mapping.tsdf_blocks import blocks_to_keys
 
-    return _blocks_to_keys(np.floor(points / block_size).astype(np.int64))
+    return blocks_to_keys(np.floor(points / block_size).astype(np.int64))

@@ -1,0 +1,165 @@
+"""Options of the TSDF fusion (`FusionConfig`): voxel grid, depth range, per-pixel weighting and truncation.
+
+Truncation from the variance (``truncation_sigma`` k > 0): a pixel's truncation is
+``tau = clip(k * sigma, truncation, truncation_max)``, sigma its depth standard deviation, and every
+signed distance is divided by ``tau_max = truncation_max`` (`FusionConfig.pixel_truncation`,
+`FusionConfig.tsdf_scale`). A fixed truncation far below the depth error clips an uncertain frame's
+signed distance to +-1 within a few centimetres of its surface: where frames disagree by more than
+the truncation the volume does not average them but keeps several thin surfaces and carves between
+them. With the truncation growing with sigma the signed distances of uncertain frames stay linear
+over their error band, so the zero crossing is their weighted mean (the least-squares surface of
+Curless and Levoy, https://graphics.stanford.edu/papers/volrange/), while certain pixels keep the
+sharp band. The grid itself is Open3D's
+https://www.open3d.org/docs/release/python_api/open3d.t.geometry.VoxelBlockGrid.html.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from ..errors import InvalidInputError, ShapeError, describe
+
+Weighting = Literal["uniform", "variance"]
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Options of the TSDF fusion.
+
+    Attributes:
+        voxel_size: Voxel edge length, metres.
+        truncation: Truncation distance of the signed distance, metres (>= voxel_size).
+        depth_min: Depth readings at or below this are ignored, metres.
+        depth_max: Depth readings at or above this are ignored, metres.
+        weight_cap: Largest accumulated weight of a voxel (later frames keep a share of
+            ``w / (cap + w)``; makes the map adapt).
+        weighting: "uniform" (every pixel weight 1) or "variance" (from the posterior variance,
+            `gpdepth3d.mapping.fusion_weights`).
+        sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
+            (metres) at which a pixel counts as half an observation.
+        relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
+            observation (None, default: ``sigma_ref`` in metres; the `Mapper`'s default fusion,
+            ``MAPPER_FUSION``, uses 0.05). Relative, so that a room at 1 m and a hall at 5 m meet the
+            same ``weight_threshold``.
+        max_relative_sigma: Variance weighting: pixels with sigma / depth above this count as
+            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma,
+            0.20-0.22 for the default model) and get the fallback weight instead (None: none does).
+        fallback_weight: Weight in [0, 1] of the uninformed pixels of a frame without points: such
+            a frame falls back to its MDE depth, down-weighted. A frame with points gives them
+            ``fallback_weight * exp(-points / fallback_points)`` (`fallback_for`): what its points
+            do not inform, the frames whose points do inform it fill in.
+        fallback_points: Points at which a frame's fallback weight has fallen by 1/e.
+        weight_threshold: Extraction keeps voxels with accumulated weight > this.
+        truncation_sigma: k of the truncation from the variance (see the module docstring): a
+            pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
+            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation`` (the
+            variance-dependent one did not gain on every split of the shared 7-Scenes frames).
+        truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
+            truncation); the signed distances are then stored divided by it.
+        block_resolution: Voxels per block edge of the VoxelBlockGrid.
+        block_count: Initial number of blocks of the hash map (it grows when needed).
+        integrate_color: Fuse colours as well.
+        integrate_variance: Keep a per-voxel depth variance (m^2; `gpdepth3d.mapping.fusion`);
+            `TSDFFusion.integrate` then needs a ``variance`` for every frame.
+        device: Open3D device string, "CPU:0" or "CUDA:0".
+        cpu_threads: torch threads of the voxel update on the CPU while it runs (0 = leave
+            torch's setting alone). 1 by default: the update is memory-bound, and on a busy
+            machine torch's default (one thread per core) made it 5-20x slower (measured on the
+            shared 2-core development machine: 1-9 s instead of 0.3-0.4 s a 320x240 frame).
+    """
+
+    voxel_size: float = 0.02
+    truncation: float = 0.08
+    depth_min: float = 0.1
+    depth_max: float = 5.0
+    weight_cap: float = 100.0
+    weighting: Weighting = "variance"
+    sigma_ref: float = 0.1
+    relative_sigma_ref: float | None = None
+    max_relative_sigma: float | None = 0.2
+    fallback_weight: float = 0.5
+    fallback_points: float = 10.0
+    weight_threshold: float = 0.5
+    truncation_sigma: float = 0.0
+    truncation_max: float = 0.4
+    block_resolution: int = 8
+    block_count: int = 20000
+    integrate_color: bool = True
+    integrate_variance: bool = False
+    device: str = "CPU:0"
+    cpu_threads: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("voxel_size", "truncation", "depth_max", "weight_cap", "sigma_ref", "fallback_points"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise InvalidInputError(name, "a finite value > 0", value)
+        if self.truncation < self.voxel_size:
+            raise InvalidInputError("truncation", f">= voxel_size ({self.voxel_size} m)", self.truncation)
+        if not (0 <= self.depth_min < self.depth_max):
+            raise InvalidInputError(
+                "depth_min, depth_max", "0 <= depth_min < depth_max", (self.depth_min, self.depth_max)
+            )
+        if self.weighting not in ("uniform", "variance"):
+            raise InvalidInputError("weighting", "'uniform' or 'variance'", self.weighting)
+        if not (np.isfinite(self.fallback_weight) and 0 <= self.fallback_weight <= 1):
+            raise InvalidInputError("fallback_weight", "a weight in [0, 1]", self.fallback_weight)
+        if self.relative_sigma_ref is not None and (
+            isinstance(self.relative_sigma_ref, bool)
+            or not np.isfinite(self.relative_sigma_ref)
+            or self.relative_sigma_ref <= 0
+        ):
+            raise InvalidInputError("relative_sigma_ref", "a finite value > 0 (or None)", self.relative_sigma_ref)
+        if self.max_relative_sigma is not None and (
+            isinstance(self.max_relative_sigma, bool)
+            or not np.isfinite(self.max_relative_sigma)
+            or self.max_relative_sigma <= 0
+        ):
+            raise InvalidInputError("max_relative_sigma", "a finite value > 0 (or None)", self.max_relative_sigma)
+        if not np.isfinite(self.weight_threshold) or self.weight_threshold < 0:
+            raise InvalidInputError("weight_threshold", "a finite value >= 0", self.weight_threshold)
+        if not np.isfinite(self.truncation_sigma) or self.truncation_sigma < 0:
+            raise InvalidInputError("truncation_sigma", "a finite value >= 0", self.truncation_sigma)
+        if not np.isfinite(self.truncation_max) or (
+            self.truncation_sigma > 0 and self.truncation_max < self.truncation
+        ):
+            raise InvalidInputError(
+                "truncation_max", f"a finite value >= truncation ({self.truncation} m)", self.truncation_max
+            )
+        if int(self.block_resolution) != self.block_resolution or self.block_resolution < 2:
+            raise InvalidInputError("block_resolution", "an integer >= 2", self.block_resolution)
+        if int(self.block_count) != self.block_count or self.block_count < 1:
+            raise InvalidInputError("block_count", "an integer >= 1", self.block_count)
+        if isinstance(self.cpu_threads, bool) or int(self.cpu_threads) != self.cpu_threads or self.cpu_threads < 0:
+            raise InvalidInputError("cpu_threads", "an integer >= 0", self.cpu_threads)
+
+    def fallback_for(self, points: int) -> float:
+        """Weight of the uninformed pixels of a frame with ``points`` measurements: ``fallback_weight *
+        exp(-points / fallback_points)``, 0 once that factor is below 1e-3 (a frame without points falls
+        back to its MDE; one with points leaves what they do not inform to the frames whose points do)."""
+        if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 0:
+            raise InvalidInputError("points", "a count >= 0", points)
+        share = np.exp(-int(points) / self.fallback_points)
+        return float(self.fallback_weight * share) if share > 1e-3 else 0.0  # below 1e-3: not worth a voxel update
+
+    @property
+    def tsdf_scale(self) -> float:
+        """The distance (metres) the stored signed distances are divided by: ``truncation_max``
+        with a truncation from the variance (``truncation_sigma`` > 0), else ``truncation``."""
+        return float(self.truncation_max if self.truncation_sigma > 0 else self.truncation)
+
+    def pixel_truncation(self, variance: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+        """(H, W) float32 truncation of each pixel, metres: ``clip(truncation_sigma * sigma,
+        truncation, truncation_max)`` from a variance (m^2; non-finite or negative entries get
+        ``truncation``), or ``truncation`` everywhere without one or with ``truncation_sigma`` 0."""
+        if self.truncation_sigma == 0 or variance is None:
+            return np.full(shape, self.truncation, np.float32)
+        var = np.asarray(variance, dtype=np.float64)
+        if var.shape != tuple(shape):
+            raise ShapeError("variance", f"the shape of depth {tuple(shape)}", describe(var))
+        with np.errstate(invalid="ignore"):
+            sigma = np.sqrt(np.where(np.isfinite(var) & (var >= 0), var, 0.0))
+        return np.clip(self.truncation_sigma * sigma, self.truncation, self.truncation_max).astype(np.float32)
