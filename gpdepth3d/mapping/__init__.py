@@ -6,15 +6,15 @@ by `triangulation`; `refinding` for large camera motion; `colmap_points` for pyc
 (the incremental `Mapper`) with `map_points` (SLAM map points as sparse depth). The mapper's public names are re-exported here.
 """
 
+from .frame_result import STAGES as STAGES
+from .frame_result import FrameResult as FrameResult
+from .loop_closure import PoseUpdate as PoseUpdate
+from .map_scale import fused_depth as fused_depth
+from .map_scale import map_scale as map_scale
+from .map_store import Keyframe as Keyframe
 from .mapper import SEVEN_SCENES_RGB_K as SEVEN_SCENES_RGB_K
-from .mapper import STAGES as STAGES
-from .mapper import FrameResult as FrameResult
-from .mapper import Keyframe as Keyframe
 from .mapper import Mapper as Mapper
-from .mapper import MapperConfig as MapperConfig
-from .mapper import PoseUpdate as PoseUpdate
-from .mapper import fused_depth as fused_depth
-from .mapper import map_scale as map_scale
+from .mapper_config import MapperConfig as MapperConfig
 from .map_points import MapPointStats as MapPointStats
 from .map_points import merge_sparse as merge_sparse
 from .map_points import project_map_points as project_map_points

@@ -391,7 +391,7 @@ class TestRobustness:
     def test_a_pose_the_feature_tracks_contradict_is_reported(self, shared_data):
         # own triangulation, no map points: an inverted pose in the middle of a real sequence leaves
         # (almost) none of its tracks triangulated; that frame is warned about by name, a clean run is not
-        from gpdepth3d.mapping.mapper import POSE_TRACK_SHARE
+        from gpdepth3d.mapping.frame_points import POSE_TRACK_SHARE
         from gpdepth3d.mapping.trajectories import InvertedPoseWarning, invert_pose
 
         frames = _frames(shared_data, range(0, 14))
@@ -686,7 +686,7 @@ class TestFixedLag:
         `gpdepth3d fuse` refines with the same GP unless told otherwise."""
         from gpdepth3d.cli import main
         from gpdepth3d.gp.model import DepthGPConfig
-        from gpdepth3d.mapping.mapper import MAPPER_GP
+        from gpdepth3d.mapping.mapper_config import MAPPER_GP
 
         assert MapperConfig().gp == MAPPER_GP == DepthGPConfig(calibration=CalibrationConfig(reach=None))
         seen = []
@@ -789,7 +789,7 @@ class TestMapScale:
         assert map_scale(sparse, T, cam, unsure, cam) == (0.0, 0)
 
     def test_median_helper_is_numpys_median(self):
-        from gpdepth3d.mapping.mapper import _median
+        from gpdepth3d.mapping.map_scale import _median
 
         rng = np.random.default_rng(3)
         for n in (1, 2, 5, 20, 301):
