@@ -92,7 +92,7 @@ class PendingFrame:
         except GPDepthError as exc:  # e.g. a bad sigma: the frame goes on without the map points
             self.note("map points", exc)
 
-    def check_tracks(self, seen: int, points: int) -> None:
+    def check_tracks(self, seen: int, points: int, *, stacklevel: int = 3) -> None:
         """Warns (noted and as `InvertedPoseWarning`) when ``points`` of ``seen`` tracks contradict its pose."""
         if seen < POSE_TRACK_MIN or points >= POSE_TRACK_SHARE * seen:
             return
@@ -103,7 +103,7 @@ class PendingFrame:
             f"this too"
         )
         self.notes.append(message)
-        warnings.warn(message, InvertedPoseWarning, stacklevel=3)
+        warnings.warn(message, InvertedPoseWarning, stacklevel=stacklevel)
 
 
 def select_measurements(parts: list[SparseDepth], image_size: tuple[int, int], max_points: int) -> SparseDepth:

@@ -109,13 +109,13 @@ def map_scale(
         with np.errstate(invalid="ignore"):
             ok = (d > 0) & np.isfinite(var) & (var <= (max_relative_sigma * d) ** 2)
         if np.count_nonzero(ok) >= min_points:
-            logs.append(_median(np.log(z[k, ins][ok] / d[ok])))
+            logs.append(fast_median(np.log(z[k, ins][ok] / d[ok])))
     if len(logs) < min_keyframes:
         return 0.0, 0
     return float(np.median(logs)), len(logs)
 
 
-def _median(x: np.ndarray) -> float:
+def fast_median(x: np.ndarray) -> float:
     """``np.median`` of a 1-D array without NaN (the same value, a tenth of the overhead)."""
     m = x.size // 2
     if x.size % 2:

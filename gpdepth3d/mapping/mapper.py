@@ -43,7 +43,6 @@ back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -56,18 +55,15 @@ from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
 from ..measurements import SparseDepth
 from .cloud import ColoredCloud
-from .features import detect_features
 from .frame_inputs import check_keyframe_id, check_map_points_sigma, check_mde_depth, resize_depth
 from .frame_points import PendingFrame, select_measurements
 from .frame_result import STAGES, FrameResult
 from .fusion import IntegrationStats, TSDFFusion, save_mesh
 from .loop_closure import PoseUpdate, moved_blocks, reintegrate
-from .map_points import merge_sparse
-from .map_scale import _median, fused_depth, scale_to_map
+from .map_scale import fused_depth, scale_to_map
 from .map_store import Keyframe, check_map_folder, load_keyframes, read_map_meta, save_keyframes, write_map_meta
 from .mapper_config import MapperConfig
-from .refinding import Refinder
-from .tracks import TrackTriangulator, triangulate_frames
+from .own_points import OwnPoints
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
@@ -111,10 +107,7 @@ class Mapper:
         else:
             fusion_cfg = replace(self.config.fusion, weighting="uniform", integrate_variance=False)
         self.fusion = TSDFFusion(self.work_camera, fusion_cfg)
-        self._window: deque[list] = deque(maxlen=int(self.config.window))
-        self._tracker: TrackTriangulator | None = None
-        self._refinder = Refinder(camera, self.config.refind, self.config.triangulation)
-        self._queue: deque[PendingFrame] = deque()
+        self._points = OwnPoints(camera, self.config)
         self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
         self._next_id = 0
@@ -201,42 +194,13 @@ class Mapper:
             entry.parts.append(sparse.rasterize(self.camera.shape))
         if map_points_world is not None:
             entry.add_map_points(map_points_world, map_points_sigma, self.camera)
-        ready = self._track_step(entry, rgb)
+        ready = self._points.step(entry, rgb)
         timings["points"] = time.perf_counter() - t0
         if ready is None:
             timings["total"] = time.perf_counter() - t_start
             self.timings.append(timings)
             return None
         return self._finish(ready, timings, t_start)
-
-    def _track_step(self, entry: PendingFrame, rgb: np.ndarray) -> PendingFrame | None:
-        """Queues the frame, runs one tracking step, and returns the frame whose turn it is (None while the lag fills)."""
-        kid, T = entry.kid, entry.T
-        self._queue.append(entry)
-        ready: PendingFrame | None = None
-        if self._refinds:
-            self._refinder.add(rgb, T, kid)
-        if self._lagged:
-            tracker = self._get_tracker()
-            try:
-                points = tracker.add(rgb, T, key=kid)
-                for p in self._queue:
-                    if p.kid == tracker.last_key:
-                        p.check_tracks(tracker.tracks_seen.pop(p.kid, 0), len(points))
-                        p.triangulated = self._with_refound(p, points)
-            except Exception as exc:  # noqa: BLE001 - no points from this step; the MDE still counts
-                entry.note("triangulation", exc)
-                tracker.reset()  # the tracks start again; the frames waiting get no triangulated points
-            if len(self._queue) > self.config.lag:
-                ready = self._queue.popleft()
-        else:
-            ready = self._queue.popleft()
-            if self.config.triangulate:
-                try:
-                    ready.triangulated = self._with_refound(ready, self._triangulate(rgb, T, kid))
-                except Exception as exc:  # noqa: BLE001 - no points from this frame; the MDE still counts
-                    ready.note("triangulation", exc)
-        return ready
 
     def flush(self) -> list[FrameResult]:
         """Refines and fuses the frames still waiting for later views (``config.lag``), oldest first.
@@ -247,24 +211,12 @@ class Mapper:
         Returns:
             The frames' `FrameResult` (empty when none waits).
         """
+        points, t_points = self._points.flush()
         results = []
-        points: dict = {}
-        if self._lagged and self._tracker is not None:
-            t0 = time.perf_counter()
-            try:
-                points = dict(self._tracker.flush())
-            except Exception as exc:  # noqa: BLE001 - the waiting frames get no points
-                for p in self._queue:
-                    p.note("triangulation", exc)
-            t_points = (time.perf_counter() - t0) / max(1, len(self._queue))
-        else:
-            t_points = 0.0
-        while self._queue:
+        while self._points.queue:
             t_start = time.perf_counter()
-            entry = self._queue.popleft()
-            if points.get(entry.kid) is not None:
-                entry.check_tracks(self._tracker.tracks_seen.pop(entry.kid, 0), len(points[entry.kid]))
-                entry.triangulated = self._with_refound(entry, points[entry.kid])
+            entry = self._points.queue.popleft()
+            self._points.take(entry, points.get(entry.kid))
             timings = dict.fromkeys(STAGES, 0.0)
             timings["points"] = t_points + time.perf_counter() - t_start
             results.append(self._finish(entry, timings, t_start))
@@ -273,39 +225,7 @@ class Mapper:
     @property
     def pending(self) -> tuple[int, ...]:
         """Ids of the frames added but not yet refined and fused (waiting for ``config.lag`` later views)."""
-        return tuple(p.kid for p in self._queue)
-
-    @property
-    def _refinds(self) -> bool:
-        cfg = self.config
-        return cfg.triangulate and cfg.triangulation.detector == "klt" and cfg.refind.detector != "none"
-
-    def _with_refound(self, entry: PendingFrame, points: SparseDepth) -> SparseDepth:
-        """The frame's track points, plus descriptor points when they are fewer than ``refind.below``."""
-        if not self._refinds or len(points) >= self.config.refind.below or entry.mde is None:
-            return points
-        valid = entry.mde[entry.mde > 0]
-        if not valid.size:
-            return points
-        try:
-            extra = self._refinder.points(entry.kid, _median(valid))
-        except Exception as exc:  # noqa: BLE001 - the frame keeps its track points
-            entry.note("descriptor re-finding", exc)
-            return points
-        return merge_sparse(points, extra, image_size=self.camera.shape)
-
-    @property
-    def _lagged(self) -> bool:
-        cfg = self.config
-        return cfg.triangulate and cfg.triangulation.detector == "klt" and cfg.lag > 0
-
-    def _get_tracker(self) -> TrackTriangulator:
-        if self._tracker is None:
-            lag = int(self.config.lag) if self._lagged else 0
-            self._tracker = TrackTriangulator(
-                self.camera, self.config.triangulation, window=int(self.config.window), lag=lag
-            )
-        return self._tracker
+        return tuple(p.kid for p in self._points.queue)
 
     def _finish(self, entry: PendingFrame, timings: dict, t_start: float) -> FrameResult:
         """GP and fusion of one frame whose measurements are complete; records and returns its result."""
@@ -419,7 +339,7 @@ class Mapper:
         if sparse is not None and not isinstance(sparse, SparseDepth):
             raise InvalidInputError("sparse", "a SparseDepth", type(sparse).__name__)
         kid = self._next_id if keyframe_id is None else check_keyframe_id(keyframe_id)
-        if kid in self.keyframes or any(p.kid == kid for p in self._queue):
+        if kid in self.keyframes or any(p.kid == kid for p in self._points.queue):
             raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
         return kid
 
@@ -446,25 +366,6 @@ class Mapper:
             return rgb
         return cv2.resize(rgb, (self.work_camera.width, self.work_camera.height), interpolation=cv2.INTER_AREA)
 
-    def _triangulate(self, rgb: np.ndarray, T: np.ndarray, kid: int) -> SparseDepth:
-        cfg = self.config
-        if cfg.triangulation.detector == "klt":
-            # multi-view tracks followed frame to frame (one KLT step per frame)
-            return self._get_tracker().add(rgb, T, key=kid)
-        feats = detect_features(rgb, config=cfg.triangulation)
-        partners = [item for item in self._window if np.linalg.norm(item[1][:3, 3] - T[:3, 3]) >= cfg.min_baseline]
-        self._window.append([rgb, T, feats, kid])
-        if not partners:
-            return SparseDepth.empty(self.camera.shape)
-        return triangulate_frames(
-            [p[0] for p in partners] + [rgb],
-            [p[1] for p in partners] + [T],
-            self.camera,
-            reference=-1,
-            config=cfg.triangulation,
-            features=[p[2] for p in partners] + [feats],
-        )
-
     # ------------------------------------------------------------------ loop closure
     def update_poses(self, poses: dict) -> PoseUpdate:
         """Moves keyframes to new poses (after a loop closure) and re-integrates what moved.
@@ -487,23 +388,14 @@ class Mapper:
         """
         t0 = time.perf_counter()
         new = self._checked_poses(poses)
-        waiting = {p.kid: p for p in self._queue}
-        for kid in [k for k in new if k in waiting]:  # not in the volume yet: fused later with the new pose
-            waiting[kid].T = new.pop(kid)
-        if self._tracker is not None:
-            self._tracker.update_poses({p.kid: p.T for p in self._queue})
-        self._refinder.update_poses({**{k: new[k] for k in new}, **{p.kid: p.T for p in self._queue}})
+        new = self._points.move_waiting(new)
         moved = [kid for kid, T in new.items() if not np.array_equal(T, self.keyframes[kid].T_world_camera)]
         if not moved:
             return PoseUpdate((), (), 0, time.perf_counter() - t0)
         blocks = moved_blocks(self.fusion, self.keyframes, new, moved)
         for k in moved:
             self.keyframes[k].T_world_camera = new[k]
-        for item in self._window:
-            if item[3] in new:
-                item[1] = new[item[3]]
-        if self._tracker is not None:  # the poses the next triangulations use
-            self._tracker.update_poses(new)
+        self._points.update_poses(new)
         redone = reintegrate(self.fusion, self.keyframes, blocks, moved, self._integrate)
         return PoseUpdate(tuple(moved), tuple(redone), int(blocks.size), time.perf_counter() - t0)
 
@@ -513,7 +405,7 @@ class Mapper:
             raise InvalidInputError("config.keep_keyframes", "True (update_poses needs the keyframe store)", False)
         if not isinstance(poses, dict):
             raise InvalidInputError("poses", "a dict keyframe id -> 4x4 T_world_camera", type(poses).__name__)
-        waiting = {p.kid for p in self._queue}
+        waiting = {p.kid for p in self._points.queue}
         new = {}
         for kid, T in poses.items():
             if kid not in self.keyframes and kid not in waiting:

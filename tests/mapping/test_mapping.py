@@ -789,12 +789,12 @@ class TestMapScale:
         assert map_scale(sparse, T, cam, unsure, cam) == (0.0, 0)
 
     def test_median_helper_is_numpys_median(self):
-        from gpdepth3d.mapping.map_scale import _median
+        from gpdepth3d.mapping.map_scale import fast_median
 
         rng = np.random.default_rng(3)
         for n in (1, 2, 5, 20, 301):
             x = rng.normal(size=n)
-            assert _median(x) == np.median(x)
+            assert fast_median(x) == np.median(x)
 
     def test_mapper_pulls_a_frames_points_halfway_to_the_map(self, shared_data):
         frames = _frames(shared_data, (0, 1, 2, 3, 4))
@@ -803,7 +803,7 @@ class TestMapScale:
         results = {}
         for weight in (0.0, 0.5):
             mapper = Mapper(cam, _small_config(triangulate=True, lag=0, map_scale_weight=weight))
-            mapper._triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
+            mapper._points.triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
             scaled = {
                 i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma)
                 for i, s in enumerate(sparse)
@@ -838,7 +838,7 @@ class TestMapScale:
         results = {}
         for key, kw in (("on", {}), ("off", dict(scale_variance=False)), ("strict", dict(map_scale_max_sigma=1e-6))):
             mapper = Mapper(cam, _small_config(triangulate=True, lag=0, **kw))
-            mapper._triangulate = lambda rgb, T, kid: scaled[kid]
+            mapper._points.triangulate = lambda rgb, T, kid: scaled[kid]
             for i, f in enumerate(frames):
                 results[key, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
         assert MapperConfig().scale_variance and MapperConfig().map_scale_max_sigma == 0.15
