@@ -2,8 +2,13 @@
 
 Modules: `cloud` (coloured clouds), `fusion` (TSDF), `trajectories` (poses, COLMAP models), the points a
 frame is refined with (`triangulation_config`, `features`, `tracks`, `multiview`, `two_view`, re-exported
-by `triangulation`; `refinding` for large camera motion; `colmap_points` for pycolmap's), and `mapper`
-(the incremental `Mapper`) with `map_points` (SLAM map points as sparse depth). The mapper's public names are re-exported here.
+by `triangulation`; `refinding` for large camera motion; `colmap_points` for pycolmap's), and the
+incremental `Mapper`: `mapper` (the class and its per-frame pipeline), `mapper_config` (`MapperConfig`),
+`frame_inputs` (checks of `add_frame`'s arguments), `frame_points` (a frame's measurements on their way),
+`own_points` (the points the mapper triangulates, the frames waiting for them), `map_points` (SLAM map
+points as sparse depth), `map_scale` (a frame's points against the map, `fused_depth`), `frame_result`
+(`FrameResult`), `map_store` (`Keyframe`, saved maps) and `loop_closure` (`PoseUpdate`, re-fusing moved
+keyframes). The mapper's public names are re-exported here.
 """
 
 from .frame_result import STAGES as STAGES

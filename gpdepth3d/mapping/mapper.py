@@ -12,9 +12,9 @@ Per frame: (1) the MDE depth (given, or from the front-end callable ``rgb -> dep
 (2) sparse measurements from any of: a `SparseDepth`, SLAM map points in world coordinates
 (transformed by the pose and projected, `sparse_from_map_points`), and features the library
 triangulates itself from KLT tracks through up to ``window`` earlier and ``lag`` later frames
-(`gpdepth3d.mapping.triangulation`; with ``lag`` > 0 a frame is refined and fused ``lag`` calls
+(`gpdepth3d.mapping.own_points`; with ``lag`` > 0 a frame is refined and fused ``lag`` calls
 after it was added, see `MapperConfig.lag`), their depth scale pulled towards the keyframes
-already fused (`map_scale`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
+already fused (`gpdepth3d.mapping.map_scale`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
 sequence); (4) TSDF fusion of the posterior median (`fused_depth`) with per-pixel weights from
 its variance (`gpdepth3d.mapping.fusion`).
 
@@ -32,8 +32,9 @@ points look inverted warns (`gpdepth3d.mapping.trajectories.InvertedPoseWarning`
 Back-end interface: every fused frame is kept in a keyframe store (depth, variance, pose and
 colour at the working resolution, by keyframe id). `Mapper.update_poses` applies a loop
 closure by rebuilding only the TSDF blocks the moved keyframes reached before or reach now,
-which gives exactly the volume of fusing every keyframe from scratch with the new poses.
-`Mapper.save` / `Mapper.load` write and read the map (volume and keyframe store). Poses of a
+which gives exactly the volume of fusing every keyframe from scratch with the new poses
+(`gpdepth3d.mapping.loop_closure`). `Mapper.save` / `Mapper.load` write and read the map (volume
+and keyframe store, `gpdepth3d.mapping.map_store`). Poses of a
 back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.mapping.trajectories`.
 
 `gpdepth3d.experiments.mapping_run.fuse_sequence` (and ``gpdepth3d fuse``) runs the whole pipeline on a
@@ -168,15 +169,10 @@ class Mapper:
         """
         t_start = time.perf_counter()
         timings = dict.fromkeys(STAGES, 0.0)
-        T = check_pose(T_world_camera)
         rgb = np.asarray(rgb)
-        kid = self._check_frame_args(rgb, mde_depth, sparse, keyframe_id)
-        if map_points_sigma is not None:
-            map_points_sigma = check_map_points_sigma(map_points_sigma)
-        if mde_depth is not None:
-            mde_depth = check_mde_depth(mde_depth, self.camera)
-        self._next_id = max(self._next_id, kid + 1)
-        entry = PendingFrame(kid=kid, T=T, work_rgb=self._work_rgb(rgb))
+        entry, mde_depth, map_points_sigma = self._new_frame(
+            rgb, T_world_camera, mde_depth, sparse, map_points_sigma, keyframe_id
+        )
 
         # 1. MDE of the frame given
         t0 = time.perf_counter()
@@ -329,8 +325,9 @@ class Mapper:
         empty = np.zeros((0, 0))
         return _frame_result(entry, timings, empty, empty, empty if mde is None else mde, posterior, error=message)
 
-    def _check_frame_args(self, rgb: np.ndarray, mde_depth, sparse, keyframe_id) -> int:
-        """Validates `add_frame`'s image, MDE source, measurements and id; returns the keyframe id."""
+    def _new_frame(self, rgb: np.ndarray, T_world_camera, mde_depth, sparse, map_points_sigma, keyframe_id):
+        """Validates `add_frame`'s arguments: (the frame as it waits, its MDE depth, its map points' sigma)."""
+        T = check_pose(T_world_camera)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
             raise ShapeError("rgb", "an (H, W, 3) uint8 RGB image", describe(rgb))
         self.camera.check_image(rgb, "rgb")
@@ -341,7 +338,12 @@ class Mapper:
         kid = self._next_id if keyframe_id is None else check_keyframe_id(keyframe_id)
         if kid in self.keyframes or any(p.kid == kid for p in self._points.queue):
             raise InvalidInputError("keyframe_id", "an id not in the keyframe store", kid)
-        return kid
+        if map_points_sigma is not None:
+            map_points_sigma = check_map_points_sigma(map_points_sigma)
+        if mde_depth is not None:
+            mde_depth = check_mde_depth(mde_depth, self.camera)
+        self._next_id = max(self._next_id, kid + 1)
+        return PendingFrame(kid=kid, T=T, work_rgb=self._work_rgb(rgb)), mde_depth, map_points_sigma
 
     def _integrate(
         self, depth32: np.ndarray, var32: np.ndarray, T: np.ndarray, rgb: np.ndarray, blocks=None, points: int = 0
