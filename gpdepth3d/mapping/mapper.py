@@ -295,7 +295,12 @@ class Mapper:
         return posterior, depth, variance
 
     def _fuse(
-        self, entry: PendingFrame, posterior: DepthPosterior | None, depth: np.ndarray, variance: np.ndarray, timings
+        self,
+        entry: PendingFrame,
+        posterior: DepthPosterior | None,
+        depth: np.ndarray,
+        variance: np.ndarray,
+        timings: dict,
     ) -> FrameResult:
         """The fusion step; what is fused (float32 at the working size) is what the keyframe store keeps."""
         kid, n = entry.kid, len(entry.measurements)
@@ -318,14 +323,18 @@ class Mapper:
         self.frames += 1
         return _frame_result(entry, timings, depth64, var64, entry.mde, posterior, masked=masked, fallback=fallback)
 
-    def _failed(self, entry: PendingFrame, timings: dict, stage: str, exc: BaseException, *, mde=None, posterior=None):
+    def _failed(
+        self, entry: PendingFrame, timings: dict, stage: str, exc: BaseException, *, mde=None, posterior=None
+    ) -> FrameResult:
         """Records a frame that was not fused (in `failures`, naming the frame) and returns its `FrameResult`."""
         message = entry.describe(stage, exc)
         self.failures.append(message)
         empty = np.zeros((0, 0))
         return _frame_result(entry, timings, empty, empty, empty if mde is None else mde, posterior, error=message)
 
-    def _new_frame(self, rgb: np.ndarray, T_world_camera, mde_depth, sparse, map_points_sigma, keyframe_id):
+    def _new_frame(
+        self, rgb: np.ndarray, T_world_camera, mde_depth, sparse, map_points_sigma, keyframe_id
+    ) -> tuple[PendingFrame, np.ndarray | None, np.ndarray | None]:
         """Validates `add_frame`'s arguments: (the frame as it waits, its MDE depth, its map points' sigma)."""
         T = check_pose(T_world_camera)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
