@@ -116,14 +116,9 @@ def main() -> None:
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
     from gpdepth3d.io import to_jsonable
-    from gpdepth3d.mapping.mapper import (
-        MAPPER_FUSION,
-        MAPPER_GP,
-        SEVEN_SCENES_RGB_K,
-        Mapper,
-        MapperConfig,
-        _resize_depth,
-    )
+    from gpdepth3d.mapping.frame_inputs import resize_depth
+    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, Mapper
+    from gpdepth3d.mapping.mapper_config import MAPPER_FUSION, MAPPER_GP, MapperConfig
     from gpdepth3d.metrics import mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
@@ -168,7 +163,7 @@ def main() -> None:
         frame = frames.pop(i)
         work_rgb = mapper._work_rgb(frame.rgb)
         mde_volume.integrate(result.mde, frame.pose, rgb=work_rgb)
-        gt_volume.integrate(_resize_depth(frame.depth, depth_work.shape), frame.pose, rgb=work_rgb)
+        gt_volume.integrate(resize_depth(frame.depth, depth_work.shape), frame.pose, rgb=work_rgb)
         pts, _ = frame.camera.backproject(frame.depth)
         gt_rgb = project_points(pts, work).to_depth_map()
         ok = gt_rgb > 0

@@ -74,7 +74,9 @@ def main(argv: list[str] | None = None) -> dict:
     from gpdepth3d.datasets.sevenscenes import SevenScenes
     from gpdepth3d.mapping.fusion import TSDFFusion
     from gpdepth3d.io import atomic_write
-    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, STAGES, Mapper, MapperConfig
+    from gpdepth3d.mapping.frame_result import STAGES
+    from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, Mapper
+    from gpdepth3d.mapping.mapper_config import MapperConfig
     from gpdepth3d.mde.tflite import FastDepthTFLite
 
     reader = SevenScenes(args.data)

@@ -160,7 +160,8 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
     """One Mapper pass (plus the MDE-only and reference volumes) over a loaded sequence; with ``save_frames``
     what it fused is also written there (`save_fused_frames`)."""
     from gpdepth3d.mapping.fusion import TSDFFusion
-    from gpdepth3d.mapping.mapper import Mapper, _resize_depth
+    from gpdepth3d.mapping.frame_inputs import resize_depth
+    from gpdepth3d.mapping.mapper import Mapper
     from gpdepth3d.metrics import mesh_metrics
 
     camera = frames[0].camera
@@ -174,7 +175,7 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
         frame = frames[result.keyframe_id]
         if save_frames is not None:
             work_rgb = mapper._work_rgb(frame.rgb)
-            sensor.append({"depth": _resize_depth(frame.depth, work.shape), "pose": frame.pose, "rgb": work_rgb})
+            sensor.append({"depth": resize_depth(frame.depth, work.shape), "pose": frame.pose, "rgb": work_rgb})
             if result.fused:
                 fused.append(
                     {
@@ -187,7 +188,7 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
                 )
         if result.mde.size:
             mde_volume.integrate(result.mde, frame.pose, rgb=mapper._work_rgb(frame.rgb))
-        ref_volume.integrate(_resize_depth(frame.depth, work.shape), frame.pose, rgb=mapper._work_rgb(frame.rgb))
+        ref_volume.integrate(resize_depth(frame.depth, work.shape), frame.pose, rgb=mapper._work_rgb(frame.rgb))
         inside, known = point_coverage(result, frame, camera)
         rows.append(
             {
@@ -322,7 +323,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     torch.set_num_threads(args.threads)
     from gpdepth3d.io import atomic_write, to_jsonable
-    from gpdepth3d.mapping.mapper import MapperConfig
+    from gpdepth3d.mapping.mapper_config import MapperConfig
     from gpdepth3d.mde.tflite import FastDepthTFLite
 
     if args.refuse is not None:
@@ -372,7 +373,7 @@ def refuse_main(args) -> dict:
     import itertools
 
     from gpdepth3d.io import atomic_write, to_jsonable
-    from gpdepth3d.mapping.mapper import MapperConfig
+    from gpdepth3d.mapping.mapper_config import MapperConfig
 
     base = MapperConfig()
     for item in args.set:

@@ -56,9 +56,9 @@ from .mapping.cloud import ColoredCloud as ColoredCloud
 from .mapping.fusion import FusionConfig as FusionConfig
 from .mapping.fusion import save_mesh as save_mesh
 from .mapping.fusion import TSDFFusion as TSDFFusion
-from .mapping.mapper import FrameResult as FrameResult
+from .mapping.frame_result import FrameResult as FrameResult
 from .mapping.mapper import Mapper as Mapper
-from .mapping.mapper import MapperConfig as MapperConfig
+from .mapping.mapper_config import MapperConfig as MapperConfig
 from .mapping.map_points import project_map_points as project_map_points
 from .mapping.map_points import sparse_from_map_points as sparse_from_map_points
 from .mapping.trajectories import associate_poses as associate_poses

@@ -14,7 +14,7 @@ from ..mapping.fusion import FusionConfig, save_mesh
 from ..experiments.mapping_run import fuse_sequence
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import InvalidInputError
-from ..mapping.mapper import MAPPER_GP, MapperConfig
+from ..mapping.mapper_config import MAPPER_GP, MapperConfig
 from ._options import GPPreset
 
 

@@ -90,7 +90,7 @@ def map_command(
 
     from ..experiments.mapping_run import map_sequence, map_summary, open_posed_sequence, write_map
     from ..io import check_output_folder
-    from ..mapping.mapper import MapperConfig
+    from ..mapping.mapper_config import MapperConfig
     from ..mde import load_frontend
 
     for name, value in (("--voxel-size", voxel_size), ("--depth-max", depth_max)):

@@ -28,7 +28,10 @@ from ..errors import EmptyInputError, GPDepthError, InvalidInputError
 from ..mapping.cloud import ColoredCloud
 from ..mapping.fusion import TSDFFusion, save_mesh
 from ..mapping.trajectories import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
-from ..mapping.mapper import FrameResult, Mapper, MapperConfig, MDEFrontEnd, _resize_depth
+from ..mapping.frame_inputs import resize_depth
+from ..mapping.frame_result import FrameResult
+from ..mapping.mapper import Mapper, MDEFrontEnd
+from ..mapping.mapper_config import MapperConfig
 from ..measurements import project_points
 from ..metrics import mesh_metrics
 
@@ -125,7 +128,7 @@ def fuse_sequence(
         frame_warnings.extend(result.warnings)
         masked += result.masked_pixels
         work_rgb = cv2.resize(frame.rgb, (work.width, work.height), interpolation=cv2.INTER_AREA)
-        others = [("gt", _resize_depth(frame.depth, depth_work.shape), work_rgb)]
+        others = [("gt", resize_depth(frame.depth, depth_work.shape), work_rgb)]
         if result.mde.size:
             others.insert(0, ("mde", result.mde, work_rgb))
         if result.depth.size:

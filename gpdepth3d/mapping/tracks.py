@@ -214,7 +214,7 @@ class TrackTriangulator:
         tracks_seen: frame key -> how many of its tracks were seen in another view when it was
             triangulated (the candidates; ``len`` of its points says how many became points).
             A pose that does not belong to its image leaves almost none of them (see
-            `gpdepth3d.mapping.mapper.POSE_TRACK_SHARE`).
+            `gpdepth3d.mapping.frame_points.POSE_TRACK_SHARE`).
     """
 
     def __init__(

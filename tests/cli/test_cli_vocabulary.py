@@ -19,7 +19,7 @@ from gpdepth3d.cli import main
 from gpdepth3d.cli._options import PRESETS, normalize_argv
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp.model import DepthGPConfig
-from gpdepth3d.mapping.mapper import MAPPER_GP
+from gpdepth3d.mapping.mapper_config import MAPPER_GP
 from gpdepth3d.gp.engine import EngineConfig
 
 ROOT = Path(__file__).resolve().parents[2]

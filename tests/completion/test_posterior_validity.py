@@ -19,7 +19,7 @@ from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.gp.model import ScreenConfig
 from gpdepth3d.completion.complete import PosteriorWarning
 from gpdepth3d.errors import GPDepthError, InvalidInputError
-from gpdepth3d.mapping.mapper import MAPPER_GP
+from gpdepth3d.mapping.mapper_config import MAPPER_GP
 
 EXACT = EngineConfig(name="exact")
 

@@ -31,7 +31,8 @@ def test_pycolmap_points_with_fixed_poses_agree_with_the_sensor_and_feed_the_map
     pytest.importorskip("pycolmap")
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.mapping.fusion import FusionConfig
-    from gpdepth3d.mapping.mapper import Mapper, MapperConfig
+    from gpdepth3d.mapping.mapper import Mapper
+    from gpdepth3d.mapping.mapper_config import MapperConfig
 
     rgbs, poses, depths, cam = _hololens(shared_data, range(6))
     model = read_colmap_model(triangulate_with_colmap(rgbs, poses, cam, tmp_path / "colmap", max_features=2000))

@@ -68,7 +68,7 @@ class TestWeights:
     def test_weights_for_applies_the_config_and_the_frames_points(self):
         var = np.array([[0.01, 0.36]])
         depth = np.full(var.shape, 2.0)
-        from gpdepth3d.mapping.mapper import MAPPER_FUSION
+        from gpdepth3d.mapping.mapper_config import MAPPER_FUSION
 
         cfg = FusionConfig()
         assert (cfg.max_relative_sigma, cfg.relative_sigma_ref, cfg.fallback_weight) == (0.2, None, 0.5)

@@ -391,7 +391,7 @@ class TestRobustness:
     def test_a_pose_the_feature_tracks_contradict_is_reported(self, shared_data):
         # own triangulation, no map points: an inverted pose in the middle of a real sequence leaves
         # (almost) none of its tracks triangulated; that frame is warned about by name, a clean run is not
-        from gpdepth3d.mapping.mapper import POSE_TRACK_SHARE
+        from gpdepth3d.mapping.frame_points import POSE_TRACK_SHARE
         from gpdepth3d.mapping.trajectories import InvertedPoseWarning, invert_pose
 
         frames = _frames(shared_data, range(0, 14))
@@ -686,7 +686,7 @@ class TestFixedLag:
         `gpdepth3d fuse` refines with the same GP unless told otherwise."""
         from gpdepth3d.cli import main
         from gpdepth3d.gp.model import DepthGPConfig
-        from gpdepth3d.mapping.mapper import MAPPER_GP
+        from gpdepth3d.mapping.mapper_config import MAPPER_GP
 
         assert MapperConfig().gp == MAPPER_GP == DepthGPConfig(calibration=CalibrationConfig(reach=None))
         seen = []
@@ -789,12 +789,12 @@ class TestMapScale:
         assert map_scale(sparse, T, cam, unsure, cam) == (0.0, 0)
 
     def test_median_helper_is_numpys_median(self):
-        from gpdepth3d.mapping.mapper import _median
+        from gpdepth3d.mapping.map_scale import fast_median
 
         rng = np.random.default_rng(3)
         for n in (1, 2, 5, 20, 301):
             x = rng.normal(size=n)
-            assert _median(x) == np.median(x)
+            assert fast_median(x) == np.median(x)
 
     def test_mapper_pulls_a_frames_points_halfway_to_the_map(self, shared_data):
         frames = _frames(shared_data, (0, 1, 2, 3, 4))
@@ -803,7 +803,7 @@ class TestMapScale:
         results = {}
         for weight in (0.0, 0.5):
             mapper = Mapper(cam, _small_config(triangulate=True, lag=0, map_scale_weight=weight))
-            mapper._triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
+            mapper._points.triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
             scaled = {
                 i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma)
                 for i, s in enumerate(sparse)
@@ -838,7 +838,7 @@ class TestMapScale:
         results = {}
         for key, kw in (("on", {}), ("off", dict(scale_variance=False)), ("strict", dict(map_scale_max_sigma=1e-6))):
             mapper = Mapper(cam, _small_config(triangulate=True, lag=0, **kw))
-            mapper._triangulate = lambda rgb, T, kid: scaled[kid]
+            mapper._points.triangulate = lambda rgb, T, kid: scaled[kid]
             for i, f in enumerate(frames):
                 results[key, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
         assert MapperConfig().scale_variance and MapperConfig().map_scale_max_sigma == 0.15

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.mapping.mapper import MAPPER_FUSION
+from gpdepth3d.mapping.mapper_config import MAPPER_FUSION
 
 ROOT = Path(__file__).resolve().parents[2]
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)

@@ -120,7 +120,8 @@ def test_mapper_refinds_where_tracks_fail_and_reports_frames_without_points(shar
     # descriptor points; without it some frames have (almost) none and fall back to their MDE, reported
     from scipy.ndimage import distance_transform_edt
 
-    from gpdepth3d.mapping.mapper import Mapper, MapperConfig
+    from gpdepth3d.mapping.mapper import Mapper
+    from gpdepth3d.mapping.mapper_config import MapperConfig
 
     idx = list(range(16, 30))
     rgbs, poses, depths, cam = _hololens(shared_data, idx)

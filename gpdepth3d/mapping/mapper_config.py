@@ -1,0 +1,111 @@
+"""Options of the `Mapper`: `MapperConfig` and the GP and TSDF settings it starts from."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from ..errors import InvalidInputError
+from ..gp.model import CalibrationConfig, DepthGPConfig
+from .fusion_config import FusionConfig
+from .refinding import RefindConfig
+from .triangulation_config import TriangulationConfig
+
+MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
+"""The `Mapper`'s TSDF options: variance weights relative to depth (`FusionConfig.relative_sigma_ref`)."""
+
+MAPPER_GP = DepthGPConfig(calibration=CalibrationConfig(reach=None))
+"""The `Mapper`'s GP: the default model with the variance of the stationary GP (see `MapperConfig.gp`)."""
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """Options of the `Mapper`.
+
+    Numbers behind the defaults (F at 5 cm, chosen on one half of a sequence, confirmed on the
+    other): bench/results/mapping_settings.json and bench/results/mapping_sequences.json.
+
+    Attributes:
+        gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's
+            variance, fixed hyperparameters, fast engine): the fusion weights need that variance.
+        fusion: TSDF options (`MAPPER_FUSION`: weights from the posterior variance relative to
+            depth). With ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
+        triangulation: Feature tracking and triangulation options.
+        refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
+            motion): views chosen by parallax, ORB matches under the poses' epipolar geometry
+            (`gpdepth3d.mapping.refinding`); ``RefindConfig(detector="none")`` turns it off.
+        refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
+        triangulate: Triangulate the frames' own features.
+        window: Earlier frames a frame's KLT tracks are triangulated with.
+        lag: Later frames a frame waits for before it is triangulated, refined and fused: views
+            on both sides pull its depth less with one view's pose error. `add_frame` then returns
+            the frame added ``lag`` calls earlier, `flush` the last ones; 0 fuses each frame at once.
+        fuse_depth: "median" (default) or "mean" of the posterior: the TSDF's zero crossing is where
+            the surface is as likely in front as behind, the median (log-normal:
+            ``mean / sqrt(1 + variance / mean^2)``).
+        map_scale_weight: Weight in [0, 1] of the map in the depth scale of a frame's triangulated
+            points (`map_scale`; 0 off): the points of one frame share their views' pose errors, a
+            common scale error that the keyframes already fused measure independently.
+        map_scale_keyframes: The most recent keyframes `map_scale` compares with.
+        map_scale_max_sigma: Keyframe pixels less certain than this fraction of their depth are
+            not compared by `map_scale`: below ``FusionConfig.max_relative_sigma``, so that the
+            scale comes from pixels that points informed, not from keyframes' MDE fallback.
+        scale_variance: Add the frame's remaining scale uncertainty ``w (1 - w) (log s)^2 depth^2``
+            (w the ``map_scale_weight``, log s the disagreement with the map) to the fused variance:
+            the GP treats its points' errors as independent, but they share this scale error.
+        min_baseline: Earlier frames closer than this to the camera centre are not used by the
+            descriptor detectors ("orb", "sift"), metres.
+        working_scale: Resolution of refinement and fusion relative to the RGB images.
+        max_points: Most measurements per frame given to the GP, the most certain first (smallest
+            sigma / depth): the GP solve grows with them.
+        keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
+            resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
+        fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
+            (`check_pose_orientation`); False (default): the frame is reported (``FrameResult.error``,
+            `Mapper.failures`) and not fused, since such a pose puts its depth in the wrong place.
+    """
+
+    gp: DepthGPConfig = MAPPER_GP
+    fusion: FusionConfig = MAPPER_FUSION
+    triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
+    refind: RefindConfig = field(default_factory=RefindConfig)
+    refine: bool = True
+    triangulate: bool = True
+    window: int = 8
+    lag: int = 4
+    fuse_depth: Literal["median", "mean"] = "median"
+    map_scale_weight: float = 0.65
+    map_scale_keyframes: int = 20
+    map_scale_max_sigma: float = 0.15
+    scale_variance: bool = True
+    min_baseline: float = 0.05
+    working_scale: float = 1.0
+    max_points: int = 450
+    keep_keyframes: bool = True
+    fuse_inverted_poses: bool = False
+
+    def __post_init__(self) -> None:
+        if int(self.max_points) != self.max_points or self.max_points < 1:
+            raise InvalidInputError("max_points", "an integer >= 1", self.max_points)
+        if int(self.window) != self.window or self.window < 1:
+            raise InvalidInputError("window", "an integer >= 1", self.window)
+        if isinstance(self.lag, bool) or int(self.lag) != self.lag or self.lag < 0:
+            raise InvalidInputError("lag", "an integer >= 0", self.lag)
+        if self.fuse_depth not in ("median", "mean"):
+            raise InvalidInputError("fuse_depth", "'median' or 'mean'", self.fuse_depth)
+        if not np.isfinite(self.map_scale_weight) or not 0 <= self.map_scale_weight <= 1:
+            raise InvalidInputError("map_scale_weight", "a weight in [0, 1]", self.map_scale_weight)
+        if not np.isfinite(self.map_scale_max_sigma) or self.map_scale_max_sigma <= 0:
+            raise InvalidInputError("map_scale_max_sigma", "a fraction of the depth > 0", self.map_scale_max_sigma)
+        if (
+            isinstance(self.map_scale_keyframes, bool)
+            or int(self.map_scale_keyframes) != self.map_scale_keyframes
+            or self.map_scale_keyframes < 1
+        ):
+            raise InvalidInputError("map_scale_keyframes", "an integer >= 1", self.map_scale_keyframes)
+        if not np.isfinite(self.min_baseline) or self.min_baseline < 0:
+            raise InvalidInputError("min_baseline", "a distance >= 0 (metres)", self.min_baseline)
+        if not np.isfinite(self.working_scale) or not 0 < self.working_scale <= 1:
+            raise InvalidInputError("working_scale", "a factor in (0, 1]", self.working_scale)
