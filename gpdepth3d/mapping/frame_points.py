@@ -47,6 +47,8 @@ class PendingFrame:
         measurements: What the GP gets (`select_measurements`), once chosen.
         scale: The factor its triangulated depths were divided by (`scale_to_map`).
         scale_var: Its log-scale variance left after that correction.
+        pose_doubted: Its feature tracks contradict its pose (`check_tracks` warned): the local
+            map's points, placed by that pose, are not used.
     """
 
     kid: int
@@ -62,6 +64,7 @@ class PendingFrame:
     measurements: SparseDepth | None = None
     scale: float = 1.0
     scale_var: float = 0.0
+    pose_doubted: bool = False
 
     def describe(self, stage: str, exc: BaseException) -> str:
         """``"frame <id>: <stage>: <error type>: <message>"``."""
@@ -103,6 +106,7 @@ class PendingFrame:
             f"this too"
         )
         self.notes.append(message)
+        self.pose_doubted = True
         warnings.warn(message, InvertedPoseWarning, stacklevel=stacklevel)
 
 

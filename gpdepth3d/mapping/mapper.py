@@ -60,8 +60,10 @@ from .frame_inputs import check_keyframe_id, check_map_points_sigma, check_mde_d
 from .frame_points import PendingFrame, select_measurements
 from .frame_result import STAGES, FrameResult
 from .fusion import IntegrationStats, TSDFFusion, save_mesh
+from .local_map import LocalMap
 from .loop_closure import PoseUpdate, moved_blocks, reintegrate
 from .map_scale import fused_depth, scale_to_map
+from .map_points import merge_sparse
 from .map_store import Keyframe, check_map_folder, load_keyframes, read_map_meta, save_keyframes, write_map_meta
 from .mapper_config import MapperConfig
 from .own_points import OwnPoints
@@ -109,6 +111,8 @@ class Mapper:
             fusion_cfg = replace(self.config.fusion, weighting="uniform", integrate_variance=False)
         self.fusion = TSDFFusion(self.work_camera, fusion_cfg)
         self._points = OwnPoints(camera, self.config)
+        frames = int(self.config.local_map_frames) if self.config.refine else 0
+        self._local_map = LocalMap(frames, self.config.local_map_cell) if frames else None
         self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
         self._next_id = 0
@@ -251,11 +255,13 @@ class Mapper:
         return result
 
     def _choose_measurements(self, entry: PendingFrame) -> None:
-        """Sets the frame's measurements: its own points pulled towards the map's scale, merged, the most certain."""
+        """Sets the frame's measurements: its own points pulled towards the map's scale, the local map's in
+        the gaps they leave, merged, the most certain."""
         cfg = self.config
         parts = list(entry.parts)
+        own = None
         if entry.triangulated is not None and len(entry.triangulated):
-            points, entry.scale, entry.scale_var = scale_to_map(
+            own, entry.scale, entry.scale_var = scale_to_map(
                 entry.triangulated,
                 entry.T,
                 self.camera,
@@ -265,7 +271,15 @@ class Mapper:
                 recent=int(cfg.map_scale_keyframes),
                 max_relative_sigma=float(cfg.map_scale_max_sigma),
             )
-            parts.append(points)
+            parts.append(own)
+        if self._local_map is not None:
+            inverted = entry.pose_doubted or (entry.pose_check is not None and entry.pose_check.inverted)
+            if not inverted:  # the local map's points land where the frame's pose puts them
+                parts.append(
+                    self._local_map.fill(merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera)
+                )
+            if own is not None:
+                self._local_map.add(entry.kid, own, entry.T, self.camera)
         entry.measurements = select_measurements(parts, self.camera.shape, cfg.max_points)
 
     def _refusal(self, entry: PendingFrame) -> tuple[str, BaseException] | None:
@@ -407,6 +421,8 @@ class Mapper:
         for k in moved:
             self.keyframes[k].T_world_camera = new[k]
         self._points.update_poses(new)
+        if self._local_map is not None:
+            self._local_map.update_poses(new)
         redone = reintegrate(self.fusion, self.keyframes, blocks, moved, self._integrate)
         return PoseUpdate(tuple(moved), tuple(redone), int(blocks.size), time.perf_counter() - t0)
 

@@ -16,25 +16,29 @@ from .triangulation_config import TriangulationConfig
 MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
 """The `Mapper`'s TSDF options: variance weights relative to depth (`FusionConfig.relative_sigma_ref`)."""
 
-MAPPER_GP = DepthGPConfig(calibration=CalibrationConfig(reach=None))
-"""The `Mapper`'s GP: the default model with the variance of the stationary GP (see `MapperConfig.gp`)."""
+MAPPER_GP = DepthGPConfig(lengthscale=64.0, calibration=CalibrationConfig(reach=None))
+"""The `Mapper`'s GP: the default model with the variance of the stationary GP and twice its length scale: a
+frame's own points are fewer than a LiDAR's and gather on texture, and their correction must reach the
+surfaces between them (see `MapperConfig.gp`; the choice: bench/results/mapping_selection.json)."""
 
 
 @dataclass(frozen=True)
 class MapperConfig:
     """Options of the `Mapper`.
 
-    Numbers behind the defaults (F at 5 cm, chosen on one half of a sequence, confirmed on the
-    other): bench/results/mapping_settings.json and bench/results/mapping_sequences.json.
+    Numbers behind the defaults (F at 5 cm, chosen on one sequence, confirmed on the other):
+    bench/results/mapping_selection.json, bench/results/mapping_settings.json and
+    bench/results/mapping_sequences.json.
 
     Attributes:
         gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's
-            variance, fixed hyperparameters, fast engine): the fusion weights need that variance.
+            variance, a length scale of 64 grid pixels, fixed hyperparameters, fast engine): the
+            fusion weights need that variance.
         fusion: TSDF options (`MAPPER_FUSION`: weights from the posterior variance relative to
             depth). With ``refine`` the volume also keeps a per-voxel variance (`Mapper.point_cloud`).
         triangulation: Feature tracking and triangulation options.
         refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
-            motion): views chosen by parallax, ORB matches under the poses' epipolar geometry
+            motion): views chosen by parallax, SIFT matches under the poses' epipolar geometry
             (`gpdepth3d.mapping.refinding`); ``RefindConfig(detector="none")`` turns it off.
         refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
         triangulate: Triangulate the frames' own features.
@@ -60,6 +64,10 @@ class MapperConfig:
         working_scale: Resolution of refinement and fusion relative to the RGB images.
         max_points: Most measurements per frame given to the GP, the most certain first (smallest
             sigma / depth): the GP solve grows with them.
+        local_map_frames: Earlier frames whose triangulated points fill the gaps of a frame's own
+            (`gpdepth3d.mapping.local_map`; 0 off): in grid cells without a point of its own, a frame
+            gets the most certain of the points those frames triangulated that it sees.
+        local_map_cell: Cell size of that fill, a fraction of the image width.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
             resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
         fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
@@ -83,6 +91,8 @@ class MapperConfig:
     min_baseline: float = 0.05
     working_scale: float = 1.0
     max_points: int = 450
+    local_map_frames: int = 8
+    local_map_cell: float = 0.02
     keep_keyframes: bool = True
     fuse_inverted_poses: bool = False
 
@@ -107,5 +117,13 @@ class MapperConfig:
             raise InvalidInputError("map_scale_keyframes", "an integer >= 1", self.map_scale_keyframes)
         if not np.isfinite(self.min_baseline) or self.min_baseline < 0:
             raise InvalidInputError("min_baseline", "a distance >= 0 (metres)", self.min_baseline)
+        if (
+            isinstance(self.local_map_frames, bool)
+            or int(self.local_map_frames) != self.local_map_frames
+            or (self.local_map_frames < 0)
+        ):
+            raise InvalidInputError("local_map_frames", "an integer >= 0", self.local_map_frames)
+        if not np.isfinite(self.local_map_cell) or not 0 < self.local_map_cell <= 1:
+            raise InvalidInputError("local_map_cell", "a fraction of the image width in (0, 1]", self.local_map_cell)
         if not np.isfinite(self.working_scale) or not 0 < self.working_scale <= 1:
             raise InvalidInputError("working_scale", "a factor in (0, 1]", self.working_scale)

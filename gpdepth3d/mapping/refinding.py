@@ -42,9 +42,9 @@ class RefindConfig:
         pool: Frames remembered as candidate views (earlier ones and the Mapper's later ones).
     """
 
-    detector: str = "orb"
+    detector: str = "sift"
     max_features: int = 2000
-    below: int = 100
+    below: int = 200
     views: int = 5
     min_parallax: float = 0.02
     max_parallax: float = 0.6

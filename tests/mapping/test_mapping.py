@@ -802,7 +802,7 @@ class TestMapScale:
         sparse = [_kinect_sparse(f, cam, 150, i) for i, f in enumerate(frames)]
         results = {}
         for weight in (0.0, 0.5):
-            mapper = Mapper(cam, _small_config(triangulate=True, lag=0, map_scale_weight=weight))
+            mapper = Mapper(cam, _small_config(triangulate=True, lag=0, map_scale_weight=weight, local_map_frames=0))
             mapper._points.triangulate = lambda rgb, T, kid: scaled[kid]  # the frame's "triangulated" points
             scaled = {
                 i: s if i < 4 else SparseDepth(s.u, s.v, 1.3 * s.depth, s.image_size, 1.3 * s.sigma)

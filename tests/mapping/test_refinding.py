@@ -89,13 +89,13 @@ class TestRealMotion:
             refinder.add(rgb, T, key=k)
         d = depths[ref]
         points = refinder.points(ref, float(np.median(d[d > 0])))
-        assert klt[ref] < 30 and len(points) > 100
+        assert klt[ref] < 30 and len(points) > 60
         iu, iv = np.rint(points.u).astype(int), np.rint(points.v).astype(int)
         gt = d[iv, iu]
         ok = gt > 0
         within = np.abs(points.depth[ok] - gt[ok]) <= 2 * points.sigma[ok]
-        assert ok.sum() > 80 and 0.85 <= within.mean() <= 0.98  # honest: neither too tight nor too wide
-        assert np.median(np.abs(points.depth[ok] - gt[ok]) / gt[ok]) < 0.1  # ORB keypoints, ~0.25 m baselines
+        assert ok.sum() > 50 and 0.85 <= within.mean() <= 0.98  # honest: neither too tight nor too wide
+        assert np.median(np.abs(points.depth[ok] - gt[ok]) / gt[ok]) < 0.1  # ~0.25 m baselines
         # nothing remembered under that key, or re-finding off: no points, no error
         assert len(refinder.points("unknown", 2.0)) == 0
         off = Refinder(cam, RefindConfig(detector="none"))
@@ -118,6 +118,7 @@ def test_mapper_refinds_where_tracks_fail_and_reports_frames_without_points(shar
     # the Mapper's defaults (KLT, window 8, lag 4) on the HoloLens walk, frames 16-29, with a stand-in MDE
     # (the sensor depth hole-filled, 12 % too far): with re-finding the frames whose tracks break get
     # descriptor points; without it some frames have (almost) none and fall back to their MDE, reported
+    # (the local map, which fills such frames from the earlier ones' points, is off to see re-finding alone)
     from scipy.ndimage import distance_transform_edt
 
     from gpdepth3d.mapping.mapper import Mapper
@@ -131,7 +132,7 @@ def test_mapper_refinds_where_tracks_fail_and_reports_frames_without_points(shar
         return 1.12 * depth[ri, ci]
 
     def run(refind: RefindConfig):
-        mapper = Mapper(cam, MapperConfig(working_scale=0.5, refind=refind))
+        mapper = Mapper(cam, MapperConfig(working_scale=0.5, refind=refind, local_map_frames=0))
         results = [mapper.add_frame(rgb, T, mde_depth=standin(d)) for rgb, T, d in zip(rgbs, poses, depths)]
         return [r for r in results if r is not None] + mapper.flush()
 
