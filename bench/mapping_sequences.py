@@ -7,6 +7,8 @@ Usage::
                                       [--set FIELD=VALUE ...] [--out bench/results/mapping_sequences.json]
                                       [--save-frames DIR]
     python bench/mapping_sequences.py --refuse DIR --sweep weight_threshold=0.2,0.5 [--sweep FIELD=V1,V2 ...]
+    python bench/mapping_sequences.py --select gp.lengthscale=32.0,64.0 [--select FIELD=V1,V2 ...]
+                                      [--choose-on hololens]
 
 Per sequence (``7scenes``: 60 frames 640x480; ``hololens``: 94 frames 540x360, ~30 m walk), the
 `gpdepth3d.mapping.Mapper` with the default `MapperConfig` at a 320-px working width, FastDepth as
@@ -31,6 +33,11 @@ every frame, and the sensor depth) to ``DIR/<sequence>.npz``; ``--refuse DIR`` t
 fuses those frames again for every combination of the ``--sweep`` `FusionConfig` values (weights as the
 Mapper computes them), scoring each mesh as above: a fusion setting is tried without running the Mapper again.
 Its results go to ``bench/results/mapping_fusion_sweep.json``.
+
+``--select FIELD=V1,V2`` runs the Mapper with each value of one `MapperConfig` field (the others at their
+defaults) on both sequences, takes the value of best F on ``--choose-on`` and reports its F on the other
+sequence beside the other values' (chosen on one sequence, confirmed on the other). Results go to
+``bench/results/mapping_selection.json``.
 """
 
 from __future__ import annotations
@@ -309,6 +316,10 @@ def main(argv: list[str] | None = None) -> dict:
         "--sweep", action="append", default=[], metavar="FIELD=V1,V2", help="FusionConfig values (with --refuse)"
     )
     parser.add_argument(
+        "--select", action="append", default=[], metavar="FIELD=V1,V2", help="MapperConfig values to choose from"
+    )
+    parser.add_argument("--choose-on", default="hololens", choices=sorted(LOADERS))
+    parser.add_argument(
         "--out",
         type=Path,
         default=None,
@@ -317,7 +328,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     results = REPO / "bench" / "results"
     if args.out is None:
-        args.out = results / ("mapping_fusion_sweep.json" if args.refuse else "mapping_sequences.json")
+        name = "mapping_fusion_sweep" if args.refuse else "mapping_selection" if args.select else "mapping_sequences"
+        args.out = results / f"{name}.json"
 
     import torch
 
@@ -329,6 +341,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.refuse is not None:
         return refuse_main(args)
     mde = FastDepthTFLite(args.model)
+    if args.select:
+        return select_main(args, mde)
     load_before = os.getloadavg()[0]
     report = {"sequences": {}, "overrides": args.set}
     for seq in args.sequences:
@@ -364,6 +378,35 @@ def main(argv: list[str] | None = None) -> dict:
         "note": "shared 2-core machine, other jobs running",
         "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]},
     }
+    atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
+    return report
+
+
+def select_main(args, mde) -> dict:
+    """``--select``: each value of each field on both sequences; the best on ``--choose-on``, confirmed on the other."""
+    from gpdepth3d.io import atomic_write, to_jsonable
+    from gpdepth3d.mapping.mapper_config import MapperConfig
+
+    loaded = {}
+    for seq in args.sequences:
+        frames = LOADERS[seq](args.data / seq, args.frames)
+        loaded[seq] = (frames, [(mde(f.rgb), 0.0) for f in frames])
+    report = {"choose_on": args.choose_on, "fields": {}}
+    for item in args.select:
+        key, values = item.split("=", 1)
+        rows = {}
+        for value in values.split(","):
+            rows[value] = {}
+            for seq, (frames, mde_depths) in loaded.items():
+                config = _override(
+                    MapperConfig(working_scale=WORKING_WIDTH / frames[0].camera.width), key, ast.literal_eval(value)
+                )
+                run = run_sequence(frames, mde_depths, config)
+                rows[value][seq] = {"fscore": run["fscore"], "metrics": run["metrics"]["mapper"]}
+                print(f"{key}={value} {seq}: F {run['fscore']:.3f}", flush=True)
+        chosen = max(rows, key=lambda v: rows[v][args.choose_on]["fscore"])
+        report["fields"][key] = {"values": rows, "chosen": chosen}
+    report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
 

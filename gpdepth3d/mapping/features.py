@@ -101,6 +101,9 @@ def match_features(
 ) -> np.ndarray:
     """Matches descriptors of two images with Lowe's ratio test and mutual consistency.
 
+    A match is the nearest descriptor of the other image, closer than ``ratio`` times the second
+    nearest, and nearest the other way too (https://docs.opencv.org/4.x/dc/dc3/tutorial_py_matcher.html).
+
     Args:
         a: Features of the first image.
         b: Features of the second image.
@@ -111,7 +114,6 @@ def match_features(
     Returns:
         (M, 2) int64 index pairs (index into a, index into b).
     """
-    import cv2
 
     config = config or TriangulationConfig()
     if a.detector != b.detector:
@@ -120,22 +122,44 @@ def match_features(
         raise InvalidInputError("a", "features with descriptors (detector 'orb' or 'sift')", "klt corners")
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), np.int64)
-    norm = cv2.NORM_HAMMING if a.detector == "orb" else cv2.NORM_L2
-    matcher = cv2.BFMatcher(norm)
-    knn = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
-    pairs = [
-        (m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < config.ratio * m[1].distance
-    ]
-    if not pairs:
-        return np.zeros((0, 2), np.int64)
-    pairs = np.array(pairs, dtype=np.int64)
-    # Mutual best: keep a match only if a's keypoint is b's best match too.
-    back = matcher.match(b.descriptors, a.descriptors)
-    best_back = np.full(len(b), -1, np.int64)
-    for m in back:
-        best_back[m.queryIdx] = m.trainIdx
-    pairs = pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
+    if a.detector == "orb":
+        pairs = _orb_matches(a, b, config.ratio)
+    else:
+        pairs = _mutual_ratio_matches(_descriptor_distances(a, b), config.ratio)
     if F is not None and len(pairs):
         err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
         pairs = pairs[np.isfinite(err) & (err <= config.max_epipolar_error)]
     return pairs
+
+
+def _descriptor_distances(a: Features, b: Features) -> np.ndarray:
+    """(Na, Nb) Euclidean distances of SIFT descriptors, from one matrix product (float32)."""
+    da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
+    sq = np.einsum("ij,ij->i", da, da)[:, None] + np.einsum("ij,ij->i", db, db)[None, :] - 2.0 * (da @ db.T)
+    return np.sqrt(np.maximum(sq, 0.0))
+
+
+def _orb_matches(a: Features, b: Features, ratio: float) -> np.ndarray:
+    """`_mutual_ratio_matches` for ORB's binary descriptors, by OpenCV's brute-force Hamming matcher."""
+    import cv2
+
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    knn = matcher.knnMatch(a.descriptors, b.descriptors, k=2)
+    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    pairs = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    best_back = np.full(len(b), -1, np.int64)
+    for m in matcher.match(b.descriptors, a.descriptors):
+        best_back[m.queryIdx] = m.trainIdx
+    return pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
+
+
+def _mutual_ratio_matches(dist: np.ndarray, ratio: float) -> np.ndarray:
+    """Index pairs (i, j): j nearest to i, closer than ``ratio`` times i's second nearest, and i nearest to j."""
+    nearest = np.argpartition(dist, 1, axis=1)[:, :2]
+    d2 = np.take_along_axis(dist, nearest, axis=1)
+    first = np.argmin(d2, axis=1)
+    j = nearest[np.arange(len(dist)), first]
+    best, second = d2.min(axis=1), d2.max(axis=1)
+    i = np.arange(len(dist))
+    keep = (best < ratio * second) & (np.argmin(dist, axis=0)[j] == i)
+    return np.column_stack([i[keep], j[keep]]).astype(np.int64)

@@ -720,3 +720,30 @@ class TestRealSequence:
         e, s, k = _against_kinect(frames[0], rgb_cam, sparse)
         assert np.median(e / k) < 0.08
         assert 0.85 <= np.mean(e <= 2 * s) <= 0.99
+
+
+@pytest.mark.parametrize("detector", ["sift", "orb"])
+def test_match_features_is_the_mutual_ratio_test_of_a_brute_force_matcher(detector):
+    """The matches are OpenCV's brute-force ones: nearest under the ratio test, and nearest the other way."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    if detector == "sift":
+        da = rng.integers(0, 120, (300, 128)).astype(np.float32)
+        db = np.vstack([da[:150] + rng.normal(0, 6, (150, 128)), rng.integers(0, 120, (200, 128))]).astype(np.float32)
+    else:
+        da = rng.integers(0, 256, (300, 32), dtype=np.uint8)
+        flips = rng.random((150, 32 * 8)) < 0.06
+        db = np.vstack([np.packbits(np.unpackbits(da[:150], axis=1) ^ flips, axis=1), rng.integers(0, 256, (200, 32))])
+        db = db.astype(np.uint8)
+    a = Features(rng.uniform(0, 600, (300, 2)), da, detector)
+    b = Features(rng.uniform(0, 600, (350, 2)), db, detector)
+    pairs = match_features(a, b, config=TriangulationConfig(ratio=0.8))
+    matcher = cv2.BFMatcher(cv2.NORM_L2 if detector == "sift" else cv2.NORM_HAMMING)
+    forward = {
+        m[0].queryIdx: m[0].trainIdx for m in matcher.knnMatch(da, db, k=2) if m[0].distance < 0.8 * m[1].distance
+    }
+    backward = {m.queryIdx: m.trainIdx for m in matcher.match(db, da)}
+    expected = sorted((i, j) for i, j in forward.items() if backward[j] == i)
+    assert sorted(map(tuple, pairs.tolist())) == expected
+    assert 120 <= len(expected) <= 150 and all(i == j for i, j in expected)  # the perturbed copies, found
