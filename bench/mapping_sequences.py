@@ -407,6 +407,7 @@ def select_main(args, mde) -> dict:
         chosen = max(rows, key=lambda v: rows[v][args.choose_on]["fscore"])
         report["fields"][key] = {"values": rows, "chosen": chosen}
     report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running"}
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
 

@@ -301,6 +301,45 @@ def section_mapping(fusion: dict, mapper: dict) -> str:
     return "\n\n".join(parts)
 
 
+SEQUENCE_NAMES = {"7scenes": "7-Scenes", "hololens": "HoloLens walk"}
+
+
+def readme_mapping_table(results: Path = RESULTS) -> str:
+    """The README's mapping table: F at 5 cm of `Mapper()` with its own points, MDE only, pycolmap's points."""
+    d = json.loads((results / "mapping_sequences.json").read_text(encoding="utf-8"))
+    rows = [
+        [
+            f"{SEQUENCE_NAMES.get(name, name)} ({s['frames']} frames)",
+            f"**{fmt(s['fscore'])}**",
+            fmt(s["fscore_mde_only"]),
+            fmt(s.get("colmap", {}).get("fscore")),
+            fmt(s["add_frame_ms"]["median"], 0),
+        ]
+        for name, s in d["sequences"].items()
+    ]
+    header = ["sequence", "F, `Mapper()`", "F, MDE only", "F, pycolmap's points", "`add_frame` median [ms]"]
+    return table(header, rows)
+
+
+def section_mapping_selection(d: dict) -> str:
+    """Each mapping default chosen on one sequence (best F there) and its F on the other beside the other values'."""
+    choose = d["choose_on"]
+    parts = [
+        "## Mapping defaults, chosen on one sequence, confirmed on the other",
+        run_info(d, "python bench/mapping_sequences.py --select ..."),
+        f"One `MapperConfig` field at a time, the others at their defaults; each value's F at 5 cm on both "
+        f"sequences; the value of best F on {SEQUENCE_NAMES.get(choose, choose)} is chosen (**bold**).",
+    ]
+    rows = []
+    for field, entry in d["fields"].items():
+        for value, by_seq in entry["values"].items():
+            mark = "**" if value == entry["chosen"] else ""
+            rows.append([f"`{field}`", f"{mark}{value}{mark}"] + [fmt(by_seq[seq]["fscore"]) for seq in sorted(by_seq)])
+    seqs = sorted(next(iter(next(iter(d["fields"].values()))["values"].values())))
+    parts.append(table(["field", "value", *(f"F, {SEQUENCE_NAMES.get(q, q)}" for q in seqs)], rows))
+    return "\n\n".join(parts)
+
+
 def section_mapping_sequences(d: dict) -> str:
     """The `Mapper`'s defaults on both shared posed sequences, with its own points and with pycolmap's."""
     parts = ["## Mapping two posed sequences, defaults", run_info(d, "python bench/mapping_sequences.py --colmap")]
@@ -496,6 +535,8 @@ def render(results: Path = RESULTS) -> str:
             parts.append(section_mapping(load("fusion.json"), load("mapper.json")))
             if load("mapping_sequences.json"):
                 parts.append(section_mapping_sequences(load("mapping_sequences.json")))
+            if load("mapping_selection.json"):
+                parts.append(section_mapping_selection(load("mapping_selection.json")))
     return "\n\n".join(parts) + "\n"
 
 

@@ -27,6 +27,38 @@ def test_readme_holds_the_generated_table():
     assert _report().readme_table() in (ROOT / "README.md").read_text(encoding="utf-8")
 
 
+def test_readme_holds_the_generated_mapping_table():
+    assert _report().readme_mapping_table() in (ROOT / "README.md").read_text(encoding="utf-8")
+
+
+def test_mapping_tables_follow_the_json(tmp_path):
+    """The README's mapping table and the selection section are made from their results files."""
+    report = _report()
+    results = tmp_path / "results"
+    results.mkdir()
+    d = json.loads((ROOT / "bench" / "results" / "mapping_sequences.json").read_text(encoding="utf-8"))
+    d["sequences"]["hololens"]["fscore"] = 0.987
+    (results / "mapping_sequences.json").write_text(json.dumps(d), encoding="utf-8")
+    assert "| HoloLens walk (94 frames) | **0.987** |" in report.readme_mapping_table(results)
+    selection = {
+        "choose_on": "hololens",
+        "fields": {
+            "gp.lengthscale": {
+                "values": {
+                    "32.0": {"7scenes": {"fscore": 0.402}, "hololens": {"fscore": 0.303}},
+                    "64.0": {"7scenes": {"fscore": 0.412}, "hololens": {"fscore": 0.351}},
+                },
+                "chosen": "64.0",
+            }
+        },
+    }
+    text = report.section_mapping_selection(selection)
+    assert (
+        "| `gp.lengthscale` | **64.0** | 0.412 | 0.351 |" in text
+        and "| `gp.lengthscale` | 32.0 | 0.402 | 0.303 |" in text
+    )
+
+
 def test_every_table_names_its_run():
     text = (ROOT / "docs" / "results.md").read_text(encoding="utf-8")
     sections = text.split("\n## ")[1:]
