@@ -7,7 +7,7 @@ Usage::
                                       [--set FIELD=VALUE ...] [--out bench/results/mapping_sequences.json]
                                       [--save-frames DIR]
     python bench/mapping_sequences.py --refuse DIR --sweep weight_threshold=0.2,0.5 [--sweep FIELD=V1,V2 ...]
-    python bench/mapping_sequences.py --select gp.lengthscale=32.0,64.0 [--select FIELD=V1,V2 ...]
+    python bench/mapping_sequences.py --select gp.lengthscale=32.0,64.0 [--select FIELD=V1,V2[@SEQ] ...]
                                       [--choose-on hololens]
 
 Per sequence (``7scenes``: 60 frames 640x480; ``hololens``: 94 frames 540x360, ~30 m walk), the
@@ -35,8 +35,9 @@ Mapper computes them), scoring each mesh as above: a fusion setting is tried wit
 Its results go to ``bench/results/mapping_fusion_sweep.json``.
 
 ``--select FIELD=V1,V2`` runs the Mapper with each value of one `MapperConfig` field (the others at their
-defaults) on both sequences, takes the value of best F on ``--choose-on`` and reports its F on the other
-sequence beside the other values' (chosen on one sequence, confirmed on the other). Results go to
+defaults) on both sequences, takes the value of best F on ``--choose-on`` (or on SEQ for
+``FIELD=V1,V2@SEQ``) and reports its F on the other sequence beside the other values' (chosen on one
+sequence, confirmed on the other). Results go to
 ``bench/results/mapping_selection.json``.
 """
 
@@ -394,6 +395,8 @@ def select_main(args, mde) -> dict:
     report = {"choose_on": args.choose_on, "fields": {}}
     for item in args.select:
         key, values = item.split("=", 1)
+        values, _, choose_on = values.partition("@")
+        choose_on = choose_on or args.choose_on
         rows = {}
         for value in values.split(","):
             rows[value] = {}
@@ -404,8 +407,8 @@ def select_main(args, mde) -> dict:
                 run = run_sequence(frames, mde_depths, config)
                 rows[value][seq] = {"fscore": run["fscore"], "metrics": run["metrics"]["mapper"]}
                 print(f"{key}={value} {seq}: F {run['fscore']:.3f}", flush=True)
-        chosen = max(rows, key=lambda v: rows[v][args.choose_on]["fscore"])
-        report["fields"][key] = {"values": rows, "chosen": chosen}
+        chosen = max(rows, key=lambda v: rows[v][choose_on]["fscore"])
+        report["fields"][key] = {"values": rows, "chosen": chosen, "chosen_on": choose_on}
     report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running"}
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))

@@ -323,20 +323,24 @@ def readme_mapping_table(results: Path = RESULTS) -> str:
 
 def section_mapping_selection(d: dict) -> str:
     """Each mapping default chosen on one sequence (best F there) and its F on the other beside the other values'."""
-    choose = d["choose_on"]
     parts = [
         "## Mapping defaults, chosen on one sequence, confirmed on the other",
         run_info(d, "python bench/mapping_sequences.py --select ..."),
-        f"One `MapperConfig` field at a time, the others at their defaults; each value's F at 5 cm on both "
-        f"sequences; the value of best F on {SEQUENCE_NAMES.get(choose, choose)} is chosen (**bold**).",
+        "One `MapperConfig` field at a time, the others at their defaults; each value's F at 5 cm on both "
+        "sequences; the value of best F on the sequence it is chosen on is the default (**bold**).",
     ]
     rows = []
     for field, entry in d["fields"].items():
+        on = entry.get("chosen_on", d["choose_on"])
         for value, by_seq in entry["values"].items():
             mark = "**" if value == entry["chosen"] else ""
-            rows.append([f"`{field}`", f"{mark}{value}{mark}"] + [fmt(by_seq[seq]["fscore"]) for seq in sorted(by_seq)])
+            rows.append(
+                [f"`{field}`", f"{mark}{value}{mark}", SEQUENCE_NAMES.get(on, on)]
+                + [fmt(by_seq[seq]["fscore"]) for seq in sorted(by_seq)]
+            )
     seqs = sorted(next(iter(next(iter(d["fields"].values()))["values"].values())))
-    parts.append(table(["field", "value", *(f"F, {SEQUENCE_NAMES.get(q, q)}" for q in seqs)], rows))
+    header = ["field", "value", "chosen on", *(f"F, {SEQUENCE_NAMES.get(q, q)}" for q in seqs)]
+    parts.append(table(header, rows))
     return "\n\n".join(parts)
 
 

@@ -54,8 +54,8 @@ def test_mapping_tables_follow_the_json(tmp_path):
     }
     text = report.section_mapping_selection(selection)
     assert (
-        "| `gp.lengthscale` | **64.0** | 0.412 | 0.351 |" in text
-        and "| `gp.lengthscale` | 32.0 | 0.402 | 0.303 |" in text
+        "| `gp.lengthscale` | **64.0** | HoloLens walk | 0.412 | 0.351 |" in text
+        and "| `gp.lengthscale` | 32.0 | HoloLens walk | 0.402 | 0.303 |" in text
     )
 
 
