@@ -13,8 +13,10 @@ Per frame: (1) the MDE depth (given, or from the front-end callable ``rgb -> dep
 (transformed by the pose and projected, `sparse_from_map_points`), and features the library
 triangulates itself from KLT tracks through up to ``window`` earlier and ``lag`` later frames
 (`gpdepth3d.mapping.own_points`; with ``lag`` > 0 a frame is refined and fused ``lag`` calls
-after it was added, see `MapperConfig.lag`), their depth scale pulled towards the keyframes
-already fused (`gpdepth3d.mapping.map_scale`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
+after it was added, see `MapperConfig.lag`) and, where tracks break, SIFT matches with views chosen
+by parallax (`gpdepth3d.mapping.refinding`), their depth scale pulled towards the keyframes already
+fused (`gpdepth3d.mapping.map_scale`), and the points of the last frames in the parts of the image
+the frame's own points leave empty (`gpdepth3d.mapping.local_map`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
 sequence); (4) TSDF fusion of the posterior median (`fused_depth`) with per-pixel weights from
 its variance (`gpdepth3d.mapping.fusion`).
 
