@@ -43,6 +43,7 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose
 from ..errors import EmptyInputError, InvalidInputError, ProblemTooLargeError, ShapeError, describe
 from ..extras import require
+from ..limits import memory_limit
 from .cloud import ColoredCloud
 from .fusion_config import FusionConfig
 from .fusion_weights import weights_from_variance
@@ -57,16 +58,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..completion.complete import DepthPosterior
 
 __all__ = ["FusionConfig", "IntegrationStats", "TSDFFusion", "save_mesh", "weights_from_variance"]
-
-
-def memory_limit() -> int:
-    """Bytes a TSDF volume may plan to use: half the machine's physical memory (8 GiB when unknown)."""
-    import os
-
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")) // 2
-    except (AttributeError, ValueError, OSError):
-        return 8 * 2**30
 
 
 @dataclass(frozen=True)
@@ -240,7 +231,7 @@ class TSDFFusion:
         return int(self.config.block_resolution) ** 3 * 4 * channels
 
     def _check_band_memory(self, depth: np.ndarray, trunc: np.ndarray) -> None:
-        """Refuses a frame whose truncation band would need more than `memory_limit` (blocks and search grid).
+        """Refuses a frame whose truncation band would need more than `gpdepth3d.limits.memory_limit` (blocks, search grid).
 
         Estimate: the frame's surface area (each pixel's footprint ``d^2 / (fx fy)``) in blocks,
         times the blocks the band spans along a ray, plus the dense grid `band_blocks` marks them in.
@@ -261,7 +252,7 @@ class TSDFFusion:
         if need > limit:
             raise ProblemTooLargeError(
                 f"voxel_size: expected a voxel whose blocks for one {cam.width}x{cam.height} frame fit in "
-                f"{limit / 2**30:.1f} GiB (half the machine's memory), got {self.config.voxel_size} m: about "
+                f"{limit / 2**30:.1f} GiB (`gpdepth3d.limits.memory_limit`), got {self.config.voxel_size} m: about "
                 f"{need / 2**30:.3g} GiB; use a larger voxel_size (or a smaller truncation / depth_max)"
             )
 
