@@ -307,12 +307,15 @@ SEQUENCE_NAMES = {"7scenes": "7-Scenes", "hololens": "HoloLens walk"}
 def readme_mapping_table(results: Path = RESULTS) -> str:
     """The README's mapping table: F at 5 cm of `Mapper()` with its own points, MDE only, pycolmap's points."""
     d = json.loads((results / "mapping_sequences.json").read_text(encoding="utf-8"))
+    def f3(value: Any) -> str:
+        return "–" if value is None else f"{value:.3f}"
+
     rows = [
         [
             f"{SEQUENCE_NAMES.get(name, name)} ({s['frames']} frames)",
-            f"**{fmt(s['fscore'])}**",
-            fmt(s["fscore_mde_only"]),
-            fmt(s.get("colmap", {}).get("fscore")),
+            f"**{f3(s['fscore'])}**",
+            f3(s["fscore_mde_only"]),
+            f3(s.get("colmap", {}).get("fscore")),
             fmt(s["add_frame_ms"]["median"], 0),
         ]
         for name, s in d["sequences"].items()

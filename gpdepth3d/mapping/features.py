@@ -65,7 +65,9 @@ def detect_features(rgb: np.ndarray, *, config: TriangulationConfig | None = Non
     if config.detector == "orb":
         det = cv2.ORB_create(nfeatures=int(config.max_features))
     else:
-        det = cv2.SIFT_create(nfeatures=int(config.max_features))
+        det = cv2.SIFT_create(
+            nfeatures=int(config.max_features), contrastThreshold=float(config.sift_contrast_threshold)
+        )
     kps, desc = det.detectAndCompute(gray, None)
     if desc is None or len(kps) == 0:
         dim, dtype = (32, np.uint8) if config.detector == "orb" else (128, np.float32)

@@ -20,6 +20,10 @@ class TriangulationConfig:
         max_features: Most keypoints detected per image (tracks kept alive for "klt");
             None: 800 for "klt", 3000 for "orb" / "sift" (numbers behind 800:
             bench/results/mapping_settings.json).
+        sift_contrast_threshold: "sift" keypoints' contrast threshold (OpenCV's ``contrastThreshold``,
+            https://docs.opencv.org/4.x/d7/d60/classcv_1_1SIFT.html): half OpenCV's 0.04, which keeps
+            few keypoints on the plain walls and floors of indoor scenes (the choice:
+            bench/results/mapping_selection.json).
         min_corner_distance: Smallest distance between two "klt" corners, pixels.
         klt_window: Lucas-Kanade window side, pixels.
         klt_levels: Lucas-Kanade pyramid levels above the image.
@@ -53,6 +57,7 @@ class TriangulationConfig:
 
     detector: Literal["klt", "orb", "sift"] = "klt"
     max_features: int | None = None
+    sift_contrast_threshold: float = 0.02
     min_corner_distance: float = 8.0
     klt_window: int = 11
     klt_levels: int = 3
@@ -92,6 +97,7 @@ class TriangulationConfig:
             "rotation_sigma_deg",
             "translation_sigma",
             "min_corner_distance",
+            "sift_contrast_threshold",
         ):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:

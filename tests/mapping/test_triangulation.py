@@ -747,3 +747,18 @@ def test_match_features_is_the_mutual_ratio_test_of_a_brute_force_matcher(detect
     expected = sorted((i, j) for i, j in forward.items() if backward[j] == i)
     assert sorted(map(tuple, pairs.tolist())) == expected
     assert 120 <= len(expected) <= 150 and all(i == j for i, j in expected)  # the perturbed copies, found
+
+
+def test_sift_contrast_threshold_keeps_weaker_keypoints(shared_data):
+    """Half OpenCV's contrast threshold keeps the keypoints of a plain indoor image that its default drops."""
+    import cv2
+
+    rgb = cv2.cvtColor(cv2.imread(str(shared_data / "hololens" / "images" / "00163.png")), cv2.COLOR_BGR2RGB)
+    counts = {
+        t: len(detect_features(rgb, config=TriangulationConfig(detector="sift", sift_contrast_threshold=t)))
+        for t in (0.04, 0.02, 0.01)
+    }
+    assert counts[0.04] < counts[0.02] < counts[0.01]
+    for bad in (0.0, -0.01, float("nan")):
+        with pytest.raises(InvalidInputError, match="sift_contrast_threshold"):
+            TriangulationConfig(sift_contrast_threshold=bad)
