@@ -36,8 +36,9 @@ Its results go to ``bench/results/mapping_fusion_sweep.json``.
 
 ``--select FIELD=V1,V2`` runs the Mapper with each value of one `MapperConfig` field (the others at their
 defaults) on both sequences, takes the value of best F on ``--choose-on`` (or on SEQ for
-``FIELD=V1,V2@SEQ``) and reports its F on the other sequence beside the other values' (chosen on one
-sequence, confirmed on the other). Results go to
+``FIELD=V1,V2@SEQ``) among those whose points keep an honest sigma (+-2 sigma covers 90-98 % of their
+errors on both sequences) and reports its F on the other sequence beside the other values' (chosen on
+one sequence, confirmed on the other). Results go to
 ``bench/results/mapping_selection.json``.
 """
 
@@ -383,6 +384,14 @@ def main(argv: list[str] | None = None) -> dict:
     return report
 
 
+SIGMA_COVERAGE = (0.90, 0.98)
+"""The +-2 sigma coverage of the points against the sensor depth that an honest sigma gives (``--select``)."""
+
+
+def _honest(coverage: float | None) -> bool:
+    return coverage is None or SIGMA_COVERAGE[0] <= coverage <= SIGMA_COVERAGE[1]
+
+
 def select_main(args, mde) -> dict:
     """``--select``: each value of each field on both sequences; the best on ``--choose-on``, confirmed on the other."""
     from gpdepth3d.io import atomic_write, to_jsonable
@@ -405,9 +414,14 @@ def select_main(args, mde) -> dict:
                     MapperConfig(working_scale=WORKING_WIDTH / frames[0].camera.width), key, ast.literal_eval(value)
                 )
                 run = run_sequence(frames, mde_depths, config)
-                rows[value][seq] = {"fscore": run["fscore"], "metrics": run["metrics"]["mapper"]}
+                rows[value][seq] = {
+                    "fscore": run["fscore"],
+                    "points_within_2sigma": run["points_within_2sigma"],
+                    "metrics": run["metrics"]["mapper"],
+                }
                 print(f"{key}={value} {seq}: F {run['fscore']:.3f}", flush=True)
-        chosen = max(rows, key=lambda v: rows[v][choose_on]["fscore"])
+        honest = [v for v in rows if all(_honest(r["points_within_2sigma"]) for r in rows[v].values())]
+        chosen = max(honest or rows, key=lambda v: rows[v][choose_on]["fscore"])
         report["fields"][key] = {"values": rows, "chosen": chosen, "chosen_on": choose_on}
     report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running"}

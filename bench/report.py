@@ -307,6 +307,7 @@ SEQUENCE_NAMES = {"7scenes": "7-Scenes", "hololens": "HoloLens walk"}
 def readme_mapping_table(results: Path = RESULTS) -> str:
     """The README's mapping table: F at 5 cm of `Mapper()` with its own points, MDE only, pycolmap's points."""
     d = json.loads((results / "mapping_sequences.json").read_text(encoding="utf-8"))
+
     def f3(value: Any) -> str:
         return "–" if value is None else f"{value:.3f}"
 
@@ -324,13 +325,19 @@ def readme_mapping_table(results: Path = RESULTS) -> str:
     return table(header, rows)
 
 
+def _f_and_coverage(run: dict) -> str:
+    coverage = run.get("points_within_2sigma")
+    return fmt(run["fscore"]) + ("" if coverage is None else f" ({pct(coverage)})")
+
+
 def section_mapping_selection(d: dict) -> str:
     """Each mapping default chosen on one sequence (best F there) and its F on the other beside the other values'."""
     parts = [
         "## Mapping defaults, chosen on one sequence, confirmed on the other",
         run_info(d, "python bench/mapping_sequences.py --select ..."),
         "One `MapperConfig` field at a time, the others at their defaults; each value's F at 5 cm on both "
-        "sequences; the value of best F on the sequence it is chosen on is the default (**bold**).",
+        "sequences (in brackets: the share of the points within ±2σ of the sensor depth); the default (**bold**) "
+        "is the value of best F on the sequence it is chosen on among those whose points keep ±2σ at 90–98 %.",
     ]
     rows = []
     for field, entry in d["fields"].items():
@@ -339,7 +346,7 @@ def section_mapping_selection(d: dict) -> str:
             mark = "**" if value == entry["chosen"] else ""
             rows.append(
                 [f"`{field}`", f"{mark}{value}{mark}", SEQUENCE_NAMES.get(on, on)]
-                + [fmt(by_seq[seq]["fscore"]) for seq in sorted(by_seq)]
+                + [_f_and_coverage(by_seq[seq]) for seq in sorted(by_seq)]
             )
     seqs = sorted(next(iter(next(iter(d["fields"].values()))["values"].values())))
     header = ["field", "value", "chosen on", *(f"F, {SEQUENCE_NAMES.get(q, q)}" for q in seqs)]
