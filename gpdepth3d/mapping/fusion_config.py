@@ -55,8 +55,8 @@ class FusionConfig:
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
-            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation`` (the
-            variance-dependent one did not gain on every split of the shared 7-Scenes frames).
+            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``, which
+            did as well (bench/results/mapping_settings.json).
         truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
             truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
@@ -67,8 +67,7 @@ class FusionConfig:
         device: Open3D device string, "CPU:0" or "CUDA:0".
         cpu_threads: torch threads of the voxel update on the CPU while it runs (0 = leave
             torch's setting alone). 1 by default: the update is memory-bound, and on a busy
-            machine torch's default (one thread per core) made it 5-20x slower (measured on the
-            shared 2-core development machine: 1-9 s instead of 0.3-0.4 s a 320x240 frame).
+            machine torch's default (one thread per core) makes the threads wait on each other.
     """
 
     voxel_size: float = 0.02
