@@ -337,7 +337,7 @@ def section_mapping_selection(d: dict) -> str:
         run_info(d, "python bench/mapping_sequences.py --select ..."),
         "One `MapperConfig` field at a time, the others at their defaults; each value's F at 5 cm on both "
         "sequences (in brackets: the share of the points within ±2σ of the sensor depth); the default (**bold**) "
-        "is the value of best F on the sequence it is chosen on among those whose points keep ±2σ at 90–98 %.",
+        "is the value of best F on the sequence it is chosen on among those whose points keep ±2σ at 90–98 % there.",
     ]
     rows = []
     for field, entry in d["fields"].items():
