@@ -40,8 +40,8 @@ def fuse_command(
 
     The MDE is a front-end run on every image (default FastDepth, TFLite); the sparse points are
     features the library triangulates from the posed RGB frames themselves (not the ground truth);
-    the GP is `MapperConfig`'s (the library's default model with the stationary GP's variance,
-    `MAPPER_GP`; also what --preset default means here) or --preset paper|residual, and its fields
+    the GP is `MapperConfig`'s (the library's default model with the stationary GP's variance and
+    the mapper's length scale, `MAPPER_GP`; also what --preset default means here) or --preset paper|residual, and its fields
     --gp.FIELD (e.g. --gp.calibration.reach 1.5). Writes
     ``mesh_mde``, ``mesh_gp_uniform``, ``mesh_gp_variance``, ``mesh_gt`` (``.<mesh_format>``) and
     ``metrics.json`` (accuracy/completeness/Chamfer/precision/recall against the ground-truth

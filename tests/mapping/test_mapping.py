@@ -682,13 +682,14 @@ class TestFixedLag:
         assert MapperConfig().lag == 4 and MapperConfig().window == 8 and MapperConfig().fuse_depth == "median"
 
     def test_gp_is_the_default_model_with_the_stationary_variance(self, monkeypatch, tmp_path):
-        """The fusion's cut and weights were chosen on the stationary GP's variance (MapperConfig.gp);
-        `gpdepth3d fuse` refines with the same GP unless told otherwise."""
+        """The fusion's cut and weights were chosen on the stationary GP's variance (MapperConfig.gp, with the
+        mapper's longer length scale); `gpdepth3d fuse` refines with the same GP unless told otherwise."""
         from gpdepth3d.cli import main
         from gpdepth3d.gp.model import DepthGPConfig
         from gpdepth3d.mapping.mapper_config import MAPPER_GP
 
-        assert MapperConfig().gp == MAPPER_GP == DepthGPConfig(calibration=CalibrationConfig(reach=None))
+        mapper_gp = DepthGPConfig(lengthscale=64.0, calibration=CalibrationConfig(reach=None))
+        assert MapperConfig().gp == MAPPER_GP == mapper_gp
         seen = []
 
         class Stop(Exception):
