@@ -336,8 +336,10 @@ def section_mapping_selection(d: dict) -> str:
         "## Mapping defaults, chosen on one sequence, confirmed on the other",
         run_info(d, "python bench/mapping_sequences.py --select ..."),
         "One `MapperConfig` field at a time, the others at their defaults; each value's F at 5 cm on both "
-        "sequences (in brackets: the share of the points within ±2σ of the sensor depth); the default (**bold**) "
-        "is the value of best F on the sequence it is chosen on among those whose points keep ±2σ at 90–98 % there.",
+        "sequences (in brackets: the share of the points within ±2σ of the sensor depth). The default (**bold**) is "
+        "the value of best F on the sequence it is chosen on among those whose points keep ±2σ at 90–98 % there "
+        "and whose F on the other sequence is within 0.01 of the best there; when none is, the one the other "
+        "sequence does best with (`choose` in the script).",
     ]
     rows = []
     for field, entry in d["fields"].items():

@@ -70,3 +70,16 @@ def test_refuse_main_writes_every_combination(bench, tmp_path: Path):
     assert rows["weight_threshold=0.5 relative_sigma_ref=0.05"]["metrics"] is None
     assert rows["weight_threshold=0.05 relative_sigma_ref=0.05"]["metrics"]["fscore"] > 0.95
     assert rows["weight_threshold=0.5 relative_sigma_ref=0.1"]["fusion"]["relative_sigma_ref"] == 0.1
+
+
+def test_select_chooses_on_one_sequence_with_honest_sigma_and_confirms_on_the_other(bench):
+    def row(f_hl, cover_hl, f_7s):
+        return {"hololens": {"fscore": f_hl, "points_within_2sigma": cover_hl}, "7scenes": {"fscore": f_7s}}
+
+    # 1: best on HoloLens but sigma too tight there; 2: next best, confirmed (7-Scenes within 0.01); 3: 7-Scenes' best
+    rows = {"1": row(0.40, 0.85, 0.44), "2": row(0.38, 0.91, 0.445), "3": row(0.30, 0.95, 0.45)}
+    assert bench.choose(rows, "hololens") == "2"
+    rows["2"] = row(0.38, 0.91, 0.43)  # 7-Scenes loses 0.02 with it: not confirmed, the best confirmed one wins
+    assert bench.choose(rows, "hololens") == "3"
+    rows = {"a": row(0.4, 0.95, 0.30), "b": row(0.3, 0.95, 0.35), "c": row(0.5, 0.80, 0.60)}
+    assert bench.choose(rows, "hololens") == "b"  # none confirmed: the honest one 7-Scenes does best with
