@@ -102,6 +102,27 @@ def _override(config, key: str, value):
     return replace(config, **{head: value})
 
 
+def load_sequence(data: Path, seq: str, max_frames: int | None, mde) -> tuple[list, list]:
+    """A shared sequence's frames and each frame's MDE depth with the seconds the network took."""
+    frames = LOADERS[seq](data / seq, max_frames)
+    mde_depths = []
+    for f in frames:
+        t0 = time.perf_counter()
+        mde_depths.append((mde(f.rgb), time.perf_counter() - t0))
+    return frames, mde_depths
+
+
+def mapper_config(frames: list | None = None, sets: list[str] = ()):
+    """The default `MapperConfig` (at the 320-px working width of ``frames`` when given), with ``--set`` overrides."""
+    from gpdepth3d.mapping.mapper_config import MapperConfig
+
+    config = MapperConfig() if frames is None else MapperConfig(working_scale=WORKING_WIDTH / frames[0].camera.width)
+    for item in sets:
+        key, value = item.split("=", 1)
+        config = _override(config, key, ast.literal_eval(value))
+    return config
+
+
 def point_coverage(result, frame, camera) -> tuple[int, int]:
     """(points within +-2 sigma of the sensor depth, points with a sensor depth) of one frame."""
     sp = result.sparse
@@ -341,7 +362,6 @@ def main(argv: list[str] | None = None) -> dict:
 
     torch.set_num_threads(args.threads)
     from gpdepth3d.io import atomic_write, to_jsonable
-    from gpdepth3d.mapping.mapper_config import MapperConfig
     from gpdepth3d.mde.tflite import FastDepthTFLite
 
     if args.refuse is not None:
@@ -354,15 +374,8 @@ def main(argv: list[str] | None = None) -> dict:
     load_before = os.getloadavg()[0]
     report = {"sequences": {}, "overrides": args.set}
     for seq in args.sequences:
-        frames = LOADERS[seq](args.data / seq, args.frames)
-        config = MapperConfig(working_scale=WORKING_WIDTH / frames[0].camera.width)
-        for item in args.set:
-            key, value = item.split("=", 1)
-            config = _override(config, key, ast.literal_eval(value))
-        mde_depths = []
-        for f in frames:
-            t0 = time.perf_counter()
-            mde_depths.append((mde(f.rgb), time.perf_counter() - t0))
+        frames, mde_depths = load_sequence(args.data, seq, args.frames, mde)
+        config = mapper_config(frames, args.set)
         save = None if args.save_frames is None else args.save_frames / f"{seq}.npz"
         if save is not None:
             save.parent.mkdir(parents=True, exist_ok=True)
@@ -425,12 +438,8 @@ def choose(rows: dict, choose_on: str) -> str:
 def select_main(args, mde) -> dict:
     """``--select``: each value of each field on both sequences; the best on ``--choose-on``, confirmed on the other."""
     from gpdepth3d.io import atomic_write, to_jsonable
-    from gpdepth3d.mapping.mapper_config import MapperConfig
 
-    loaded = {}
-    for seq in args.sequences:
-        frames = LOADERS[seq](args.data / seq, args.frames)
-        loaded[seq] = (frames, [(mde(f.rgb), 0.0) for f in frames])
+    loaded = {seq: load_sequence(args.data, seq, args.frames, mde) for seq in args.sequences}
     report = {"choose_on": args.choose_on, "fields": {}}
     for item in args.select:
         key, values = item.split("=", 1)
@@ -440,9 +449,7 @@ def select_main(args, mde) -> dict:
         for value in values.split(","):
             rows[value] = {}
             for seq, (frames, mde_depths) in loaded.items():
-                config = _override(
-                    MapperConfig(working_scale=WORKING_WIDTH / frames[0].camera.width), key, ast.literal_eval(value)
-                )
+                config = _override(mapper_config(frames), key, ast.literal_eval(value))
                 run = run_sequence(frames, mde_depths, config)
                 rows[value][seq] = {
                     "fscore": run["fscore"],
@@ -475,12 +482,8 @@ def refuse_main(args) -> dict:
     import itertools
 
     from gpdepth3d.io import atomic_write, to_jsonable
-    from gpdepth3d.mapping.mapper_config import MapperConfig
 
-    base = MapperConfig()
-    for item in args.set:
-        key, value = item.split("=", 1)
-        base = _override(base, key, ast.literal_eval(value))
+    base = mapper_config(sets=args.set)
     axes = []
     for item in args.sweep:
         key, values = item.split("=", 1)
