@@ -66,6 +66,11 @@ class PendingFrame:
     scale_var: float = 0.0
     pose_doubted: bool = False
 
+    @property
+    def pose_in_doubt(self) -> bool:
+        """Its tracks contradict its pose, or its map points look inverted under it."""
+        return self.pose_doubted or (self.pose_check is not None and self.pose_check.inverted)
+
     def describe(self, stage: str, exc: BaseException) -> str:
         """``"frame <id>: <stage>: <error type>: <message>"``."""
         return f"frame {self.kid}: {stage}: {type(exc).__name__}: {exc}"

@@ -275,8 +275,7 @@ class Mapper:
             )
             parts.append(own)
         if self._local_map is not None:
-            inverted = entry.pose_doubted or (entry.pose_check is not None and entry.pose_check.inverted)
-            if not inverted:  # the local map's points land where the frame's pose puts them
+            if not entry.pose_in_doubt:  # the local map's points land where the frame's pose puts them
                 parts.append(
                     self._local_map.fill(merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera)
                 )
