@@ -1,7 +1,7 @@
 """Shared pieces of the speed benchmarks on a real KITTI frame (bench/engines.py, bench/cuda.py).
 
 The frame is kitti_tiny frame 0 prepared as the paper's KITTI protocol does
-(`gpdepth3d.experiments.kitti_protocol.prepare_kitti_frame`: RT-MonoDepth-S on the full image, the GP grid at
+(`gpdepth3d.evaluation.kitti_protocol.prepare_kitti_frame`: RT-MonoDepth-S on the full image, the GP grid at
 1/3 resolution, 20 % of the grid's LiDAR pixels held out, inputs drawn from the rest). Output
 "1/3" is the GP grid itself (125 x 414), "full" the full image (375 x 1242) predicted from the
 same 1/3 grid (the protocol's full-resolution output).
@@ -33,7 +33,7 @@ def machine() -> dict:
 def kitti_setup(data: Path, mde, *, index: int = 0):
     """(KittiFrameSetup, seconds of the MDE) of kitti_tiny frame ``index`` with front-end ``mde``."""
     from gpdepth3d.datasets import open_dataset
-    from gpdepth3d.experiments.kitti_protocol import lidar_frames, prepare_kitti_frame
+    from gpdepth3d.evaluation.kitti_protocol import lidar_frames, prepare_kitti_frame
 
     frames = list(lidar_frames(open_dataset(data / "kitti_tiny")))
     name, rgb, lidar = frames[index]
@@ -44,7 +44,7 @@ def kitti_setup(data: Path, mde, *, index: int = 0):
 
 def draw(setup, density: float):
     """The uniform input of one density (seeded by the density, as every method gets the same points)."""
-    from gpdepth3d.experiments.kitti_protocol import draw_input
+    from gpdepth3d.evaluation.kitti_protocol import draw_input
 
     return draw_input("uniform", density, setup.lidar.available, rng=int(round(1e6 * density)))
 
@@ -115,7 +115,7 @@ def ip_basic_seconds(setup, sparse, full: bool, repeats: int) -> tuple[float, np
     """Best seconds of IP-Basic on the 1/3 grid (resized to full resolution when ``full``, as the protocol does)."""
     import cv2
 
-    from gpdepth3d.experiments.baselines import ip_basic
+    from gpdepth3d.evaluation.baselines import ip_basic
 
     best, out = np.inf, None
     for _ in range(repeats + 1):

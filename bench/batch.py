@@ -1,4 +1,4 @@
-"""Benchmark of `gpdepth3d.experiments.batch`: frames/s on Dask with 1 and 2 local workers against the plain loop.
+"""Benchmark of `gpdepth3d.pipelines.batch`: frames/s on Dask with 1 and 2 local workers against the plain loop.
 
 The ``kitti_tiny`` frames (7) are repeated under new frame ids to ``--frames`` frames (200 by
 default; the copies read the same files but are separate frames with their own samples and
@@ -7,7 +7,7 @@ outputs). Each frame: 1/3 resolution, ``--n-input`` LiDAR points as input (20 % 
 
 Measured:
 
-* plain loop: `gpdepth3d.experiments.batch.process_frame` called frame after frame in this process with
+* plain loop: `gpdepth3d.pipelines.batch.process_frame` called frame after frame in this process with
   one BLAS/torch thread (what each Dask worker gets), writing the same files;
 * ``run_batch`` with a LocalCluster of 1 and of 2 worker processes (one thread each);
   ``compute`` is first submission to last result, ``total`` adds the cluster start-up;
@@ -58,7 +58,7 @@ def plain_loop(frames, out: Path, config, engine, loader) -> float:
     """Seconds for the frames done one after the other in this process with one thread."""
     from threadpoolctl import threadpool_limits
 
-    from gpdepth3d.experiments.batch import warm_up, process_frame
+    from gpdepth3d.pipelines.batch import warm_up, process_frame
     from gpdepth3d.gp import make_engine
 
     # Load every native library first: threadpoolctl limits only the pools loaded when it is
@@ -97,7 +97,7 @@ def main() -> None:
 
     import distributed
 
-    from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch
+    from gpdepth3d.pipelines.batch import HoldoutInputs, dataset_frames, run_batch
     from gpdepth3d.io import write_json
     from gpdepth3d.gp.engine import EngineConfig
     from gpdepth3d.gp.model import DepthGPConfig

@@ -70,7 +70,7 @@ def _summary(means, variances, gts) -> dict:
 def kitti(data: Path, models: Path) -> dict:
     from gpdepth3d import DepthCompleter, DepthGPConfig
     from gpdepth3d.datasets import open_dataset
-    from gpdepth3d.experiments.kitti_protocol import KittiProtocolConfig, draw_input, lidar_frames, prepare_kitti_frame
+    from gpdepth3d.evaluation.kitti_protocol import KittiProtocolConfig, draw_input, lidar_frames, prepare_kitti_frame
     from gpdepth3d.mde import load_frontend
 
     mde = load_frontend("rtmonodepth", models_dir=models)

@@ -211,7 +211,7 @@ def ibims(data: Path, fastdepth, seeds: int = 3) -> dict:
 def speed(data: Path, rtmonodepth, repeats: int = 3) -> dict:
     """Seconds per frame (mean + variance, best of ``repeats`` after one warm-up) of the default model
     on kitti_tiny frame 0 at 1/3 and full resolution for each density, beside IP-Basic on the same input."""
-    from gpdepth3d.experiments.baselines import ip_basic
+    from gpdepth3d.evaluation.baselines import ip_basic
 
     frame = g.open_dataset(data / "kitti_tiny")[0]
     out = {}
@@ -274,7 +274,7 @@ def _pooled(posts_and_gt: list) -> dict:
 
 def parts(data: Path, stride: int, fastdepth, rtmonodepth) -> dict:
     """Each part of the default model switched off (or made exact) in turn; see the module docstring."""
-    from gpdepth3d.experiments.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
+    from gpdepth3d.evaluation.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
 
     cases = {}
     frames = list(g.open_dataset(data / "7scenes"))[::stride]

@@ -3,7 +3,7 @@
 Two suites, one run each:
 
 ``--suite kitti`` (the default): the default model's speed target. kitti_tiny frame 0 with RT-MonoDepth-S,
-prepared as the paper's KITTI protocol does (`gpdepth3d.experiments.kitti_protocol`: the GP grid at 1/3
+prepared as the paper's KITTI protocol does (`gpdepth3d.evaluation.kitti_protocol`: the GP grid at 1/3
 resolution, 125 x 414; 20 % of the LiDAR held out; uniform inputs from the rest), at the
 paper's eight densities (1/64 ... all of the LiDAR) and two outputs: the 1/3 grid and the full
 image (375 x 1242, predicted from the 1/3 grid). Per cell, mean + variance through
@@ -36,7 +36,7 @@ Inputs of that suite (real sensor data, simulated MDE):
   engine takes its dense route over the points).
 
 The MDE input is SIMULATED from the data (no network here;
-`gpdepth3d.experiments.synthetic.simulate_mde`): the depth with holes filled by the nearest valid
+`gpdepth3d.datasets.synthetic.simulate_mde`): the depth with holes filled by the nearest valid
 value, Gaussian-smoothed (sigma 4 px), scaled by 1.05 and with 3 % multiplicative noise. The model is the paper's balanced set-up for KITTI and the residual set-up for 7-Scenes
 unless named otherwise. Engines: ``fast`` (its automatic route, the row says which: the sparse
 grid precision; with nu = 0.5 Woodbury over few points or the Neumann series of an
@@ -85,7 +85,7 @@ def _rss_mb() -> float:
 
 def load_frame(data: Path, size: str):
     """(mde (H, W) metres, SparseDepth, DepthGPConfig) of one benchmark input."""
-    from gpdepth3d.experiments.synthetic import MDESimulation, simulate_mde
+    from gpdepth3d.datasets.synthetic import MDESimulation, simulate_mde
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import load_depth
     from gpdepth3d.measurements import SparseDepth, downsample_depth
@@ -237,7 +237,7 @@ def engines_main(args) -> None:
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
         "note": "the 2-core machine was shared with other jobs; load_average_1min per row",
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "mde": "simulated from the sensor depth by gpdepth3d.experiments.synthetic.simulate_mde (nearest fill, Gaussian sigma 4 px, x1.05, 3 % noise)",
+        "mde": "simulated from the sensor depth by gpdepth3d.datasets.synthetic.simulate_mde (nearest fill, Gaussian sigma 4 px, x1.05, 3 % noise)",
         "rows": rows,
         "speedup_fast_vs_kissgp": speedups,
     }

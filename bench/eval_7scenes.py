@@ -14,7 +14,7 @@ import platform
 import time
 from pathlib import Path
 
-from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation
+from gpdepth3d.evaluation.evaluation import markdown_table, run_evaluation
 from gpdepth3d.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,6 +1,6 @@
 """Do hyperparameters fitted per frame beat the fixed ones on real data? (7-Scenes, FastDepth.)
 
-Runs the evaluation (`gpdepth3d.experiments.evaluation.run_evaluation`) at 320x240 with 200 points, uniform and
+Runs the evaluation (`gpdepth3d.evaluation.evaluation.run_evaluation`) at 320x240 with 200 points, uniform and
 in the lower half-band, for the paper's balanced GP with its fixed values (``gp_balanced``) and
 fitted per frame by maximum marginal likelihood (``gp_balanced_fit``: ``DepthGPConfig.paper(fit=True)``),
 the residual GP fixed / fitted, and the default model fixed / fitted (``gp_default_fit``:
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gpdepth3d.experiments.evaluation import markdown_table, run_evaluation
+from gpdepth3d.evaluation.evaluation import markdown_table, run_evaluation
 from gpdepth3d.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,6 +1,6 @@
 """The paper's KITTI experiment on kitti_tiny (and kitti_object) with RT-MonoDepth-S: table and plot.
 
-Protocol and methods: `gpdepth3d.experiments.kitti_protocol` (1/3 resolution with closest-point
+Protocol and methods: `gpdepth3d.evaluation.kitti_protocol` (1/3 resolution with closest-point
 downsampling, 20 % of the LiDAR held out as ground truth before the inputs are drawn, the eight
 uniform densities and the horizontal / vertical band protocols; MDE alone, IP-Basic, the paper
 preset and `DepthGPConfig()`; scored at 1/3 and at full resolution). Writes
@@ -23,10 +23,10 @@ from dataclasses import asdict
 from pathlib import Path
 
 from gpdepth3d.datasets import open_dataset
-from gpdepth3d.experiments.evaluation import write_csv
+from gpdepth3d.evaluation.evaluation import write_csv
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import atomic_write, write_json
-from gpdepth3d.experiments.kitti_protocol import (
+from gpdepth3d.evaluation.kitti_protocol import (
     PAPER_KITTI_RMSE_MM,
     KittiMethods,
     KittiProtocolConfig,

@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     from gpdepth3d.completion.complete import DepthCompleter
     from gpdepth3d.completion.lattice import lattice_stride
     from gpdepth3d.datasets import open_dataset
-    from gpdepth3d.experiments.kitti_protocol import (
+    from gpdepth3d.evaluation.kitti_protocol import (
         PAPER_DENSITIES,
         KittiProtocolConfig,
         lidar_frames,

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> dict:
     rng = np.random.default_rng(0)
 
     if args.data is None:
-        from gpdepth3d.experiments.synthetic import make_scene
+        from gpdepth3d.datasets.synthetic import make_scene
 
         frame = make_scene(0, kind="room")
         gt, mde = frame.depth_gt, frame.mde
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         gt = load_depth(args.data / "frame-000000.depth.png", png_scale=1e-3, invalid_value=65535)
         gt = g.downsample_depth(gt, 4)  # 160 x 120, closest depth per block
-        from gpdepth3d.experiments.synthetic import MDESimulation, simulate_mde
+        from gpdepth3d.datasets.synthetic import MDESimulation, simulate_mde
 
         # holes at the median depth, blurred (sigma 3 px), x1.2, 3 % white relative noise
         sim = MDESimulation(scale=1.2, blur_sigma=3.0 / gt.shape[1], field_amplitude=0.0, noise=0.03)

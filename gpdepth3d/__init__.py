@@ -8,8 +8,9 @@ modules that need them import them when used.
 
 Layers (each folder one layer; imports point down only, checked by tests/test_layers.py):
 foundations (`errors`, `camera`, `measurements`, `sampling`, `metrics`, `io`) < `mde`, `datasets`
-< `gp` (needs only `errors`) < `completion` < `mapping` < `experiments` < `cli`, `viewer`.
-The public API below is re-exported explicitly from the modules that define it.
+< `gp` (needs only `errors`) < `completion` < `mapping` < `pipelines` (what a user runs) < `evaluation`
+(the paper's protocols) < `cli`, `viewer`. The public API below is re-exported explicitly from the
+modules that define it; nothing here comes from `evaluation`.
 """
 
 from .errors import CalibrationError as CalibrationError
@@ -77,8 +78,18 @@ from .mapping.trajectories import Trajectory as Trajectory
 from .mapping.trajectories import write_tum_trajectory as write_tum_trajectory
 from .mapping.triangulation import triangulate_frames as triangulate_frames
 from .mapping.triangulation import TriangulationConfig as TriangulationConfig
-from .experiments.baselines import ip_basic as ip_basic
-from .experiments.mapping_run import map_sequence as map_sequence
-from .experiments.mapping_run import open_posed_sequence as open_posed_sequence
+from .pipelines.mapping_run import map_sequence as map_sequence
+from .pipelines.mapping_run import open_posed_sequence as open_posed_sequence
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """`gpdepth3d.ip_basic`, deprecated for one release: the baseline lives in `gpdepth3d.evaluation.baselines`."""
+    if name == "ip_basic":
+        from ._deprecation import warn_moved
+        from .evaluation.baselines import ip_basic  # the deprecated name's one way in (tests/test_layers.py)
+
+        warn_moved("gpdepth3d.ip_basic", "gpdepth3d.evaluation.baselines.ip_basic", stacklevel=3)
+        return ip_basic
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -574,7 +574,7 @@ def output_set(base: str | Path, *, members: Sequence[str] = ()) -> Iterator[Non
     """Makes every file written in the block in ``base``'s folder appear together, or none of them.
 
     Each `atomic_path` / `atomic_write` inside the block (any function that writes through them,
-    such as `DepthPosterior.save` or `gpdepth3d.experiments.previews.write_previews`) writes a
+    such as `DepthPosterior.save` or `gpdepth3d.pipelines.previews.write_previews`) writes a
     temporary file beside its target; when the block succeeds they are renamed into place under
     an exclusive lock on the folder, after a small journal listing the renames is made durable.
     A kill during the renames is rolled forward by the next writer (or `clean_output_set`); a

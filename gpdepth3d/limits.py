@@ -7,7 +7,7 @@ the size and the limit, before the arrays are allocated, instead of exhausting t
 The limit of one call (`memory_limit`) is the smallest of `DEFAULT_MAX_MEMORY_MB` (or the
 environment variable ``GPDEPTH3D_MAX_MEMORY_MB``), three quarters of the memory available now, and
 the room left under the process's address-space limit (``ulimit -v``, ``RLIMIT_AS``). The
-per-pixel costs of a completion are measured by ``bench/limits.py``.
+per-pixel costs of a completion are measured (see docs/results.md).
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.camera import PinholeCamera
-from gpdepth3d.experiments.synthetic import SyntheticFrame, make_scene
+from gpdepth3d.datasets.synthetic import SyntheticFrame, make_scene
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

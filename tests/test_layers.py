@@ -4,7 +4,9 @@ Every module under gpdepth3d/ is parsed with `ast` (nothing is imported): every 
 statement counts, at module level, inside functions and under ``if TYPE_CHECKING``, relative or
 absolute. Layer ranks (docs/architecture.md, "Layers"): errors 0; camera, measurements, sampling, metrics,
 io, depthmap 1; mde, datasets 2; gp 3 (and gp may import only errors); completion 4; mapping 5;
-experiments 6; cli, viewer 7; the package's own ``__init__`` (the public re-exports) 8.
+pipelines 6 (what a user runs); evaluation 7 (the paper's protocols; the deprecated `experiments`
+shims beside it); cli, viewer 8; the package's own ``__init__`` (the public re-exports) 9.
+Of the top, only ``cli.eval`` imports the protocols.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ PACKAGE = "gpdepth3d"
 
 RANKS: dict[str, int] = {
     "errors": 0,
+    "_deprecation": 0,
     "camera": 1,
     "measurements": 1,
     "sampling": 1,
@@ -33,11 +36,13 @@ RANKS: dict[str, int] = {
     "gp": 3,
     "completion": 4,
     "mapping": 5,
-    "experiments": 6,
-    "cli": 7,
-    "viewer": 7,
+    "pipelines": 6,
+    "evaluation": 7,
+    "experiments": 7,
+    "cli": 8,
+    "viewer": 8,
 }
-ROOT_RANK = 8
+ROOT_RANK = 9
 GP_MAY_IMPORT = {"errors", "gp"}
 
 
@@ -162,13 +167,37 @@ def test_no_import_cycle():
     assert find_cycle(import_graph(PACKAGE_DIR)) is None
 
 
+# the one import of the protocols from the package's root: the deprecated `gpdepth3d.ip_basic`
+ROOT_DEPRECATED_PROTOCOL_IMPORTS = {"gpdepth3d.evaluation.baselines"}
+
+
+def test_product_imports_no_protocol():
+    """`cli` (but `eval`), `viewer` and `pipelines` import nothing of `evaluation`; the root only its deprecated name."""
+    graph = import_graph(PACKAGE_DIR)
+    for module, targets in graph.items():
+        if module.startswith(("gpdepth3d.evaluation", "gpdepth3d.experiments")) or module == "gpdepth3d.cli.eval":
+            continue
+        into = {t for t, _ in targets if t == "gpdepth3d.evaluation" or t.startswith("gpdepth3d.evaluation.")}
+        allowed = ROOT_DEPRECATED_PROTOCOL_IMPORTS if module == PACKAGE else set()
+        assert into <= allowed, f"{module} imports protocol code {sorted(into - allowed)}"
+    root_lines = [line for t, line in graph[PACKAGE] if t in ROOT_DEPRECATED_PROTOCOL_IMPORTS]
+    root_text = (PACKAGE_DIR / "__init__.py").read_text(encoding="utf-8").splitlines()
+    assert all(root_text[line - 1].startswith("        ") for line in root_lines), "only inside __getattr__"
+
+
+def test_nothing_imports_the_deprecated_experiments():
+    for module, targets in import_graph(PACKAGE_DIR).items():
+        if not module.startswith("gpdepth3d.experiments"):
+            assert not [t for t, _ in targets if t.startswith("gpdepth3d.experiments")], module
+
+
 def test_the_graph_sees_known_edges():
     """The parser finds module-level, function-level, relative and `from . import` edges of the real tree."""
     graph = {m: {t for t, _ in ts} for m, ts in import_graph(PACKAGE_DIR).items()}
     assert "gpdepth3d.gp.model" in graph["gpdepth3d.completion.complete"]  # module level, relative
     assert "gpdepth3d.completion.fit" in graph["gpdepth3d.completion.complete"]  # inside a method
     assert "gpdepth3d.mde" in graph["gpdepth3d.cli.fuse"]  # inside a function (load_frontend)
-    assert {"gpdepth3d.datasets", "gpdepth3d.completion.complete"} <= graph["gpdepth3d.experiments.batch"]
+    assert {"gpdepth3d.datasets", "gpdepth3d.completion.complete"} <= graph["gpdepth3d.pipelines.batch"]
     assert (
         "gpdepth3d.errors" in graph["gpdepth3d.gp.fit"]
         and "gpdepth3d.completion.problem" not in graph["gpdepth3d.gp.fit"]
@@ -250,3 +279,14 @@ def test_fake_tree_module_outside_the_layers(tmp_path):
     with pytest.raises(KeyError, match="helpers belongs to no layer"):
         for module in module_names(_tree(tmp_path, files)):
             layer(module)
+
+
+def test_library_names_no_bench_file():
+    """A wheel ships no `bench/`: the library points at docs/results.md for measured numbers, never at a script."""
+    named = [
+        f"{path.relative_to(PACKAGE_DIR)}:{i}"
+        for path in sorted(PACKAGE_DIR.rglob("*.py"))
+        for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        if "bench/" in line
+    ]
+    assert named == []

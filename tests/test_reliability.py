@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 import gpdepth3d as g
-import gpdepth3d.experiments.batch
+import gpdepth3d.pipelines.batch
 import gpdepth3d.datasets
 import gpdepth3d.viewer
 from gpdepth3d import cli
@@ -252,10 +252,10 @@ API_CASES = [
     ("load posterior of mixed shapes", lambda t: DepthPosterior.load(_mixed_posterior(t)), DataFormatError, "2-D grid"),
     ("view host 999.1.1.1", lambda t: g.viewer.check_host("999.1.1.1"), InvalidInputError, "host"),
     ("view host 0.0.0.0", lambda t: g.viewer.check_host("0.0.0.0"), InvalidInputError, "allow_remote"),
-    ("batch address", lambda t: g.experiments.batch.check_address("not-an-address"), InvalidInputError, "address"),
+    ("batch address", lambda t: g.pipelines.batch.check_address("not-an-address"), InvalidInputError, "address"),
     (
         "batch address no port",
-        lambda t: g.experiments.batch.check_address("tcp://127.0.0.1"),
+        lambda t: g.pipelines.batch.check_address("tcp://127.0.0.1"),
         InvalidInputError,
         "address",
     ),
@@ -349,7 +349,7 @@ API_CASES = [
     ("npy header claims 200000^2", lambda t: gio.load_depth(_forged_npy(t)), DataFormatError, "header claims"),
     (
         "batch output under a file",
-        lambda t: g.experiments.batch.make_output_dir(_write(t, "f", b"") / "out"),
+        lambda t: g.pipelines.batch.make_output_dir(_write(t, "f", b"") / "out"),
         OutputError,
         "file",
     ),

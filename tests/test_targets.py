@@ -202,7 +202,7 @@ def test_ibims_hall_raises_s_and_stays_near_calibrated(shared_data, fastdepth):
 
 def test_kitti_tiny_never_worse_than_the_mde_and_calibrated(shared_data):
     pytest.importorskip("onnxruntime")
-    from gpdepth3d.experiments.kitti_protocol import KittiProtocolConfig, lidar_frames, run_kitti_frame
+    from gpdepth3d.evaluation.kitti_protocol import KittiProtocolConfig, lidar_frames, run_kitti_frame
     from gpdepth3d.mde import load_frontend
 
     models = shared_data.parent / "models"

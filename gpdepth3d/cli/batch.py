@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from ..experiments.batch import REPORT_NAME, FramesFailedError, HoldoutInputs, check_address, dataset_frames, run_batch
+from ..pipelines.batch import REPORT_NAME, FramesFailedError, HoldoutInputs, check_address, dataset_frames, run_batch
 from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import check_output_folder

@@ -136,7 +136,7 @@ def complete_command(
         from ..measurements import _as_shape
 
         _as_shape(lidar_image_size, "--lidar-image-size")
-    from ..experiments.previews import preview_paths, write_previews
+    from ..pipelines.previews import preview_paths, write_previews
 
     out_npz = output_npz(output, Path(rgb) if rgb is not None else Path(mde))
     base = out_npz.with_suffix("")

@@ -14,7 +14,7 @@ def demo_command(*, output: Path = Path("gpdepth3d_demo"), seed: int = 0) -> Non
         output: Folder for the outputs.
         seed: Seed of the synthetic scene.
     """
-    from ..experiments.demo import run_demo
+    from ..pipelines.demo import run_demo
 
     check_output_folder(output, "--output")
     for line in run_demo(output, seed=seed):

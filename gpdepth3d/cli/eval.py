@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from ..errors import InvalidInputError
-from ..experiments.evaluation import DEFAULT_METHODS, markdown_table, run_evaluation
+from ..evaluation.evaluation import DEFAULT_METHODS, markdown_table, run_evaluation
 from ..io import check_output_folder, write_together
 
 

@@ -11,7 +11,7 @@ from typing import Any, Literal
 
 from ..io import write_json, write_together
 from ..mapping.fusion import FusionConfig, save_mesh
-from ..experiments.mapping_run import fuse_sequence
+from ..pipelines.mapping_run import fuse_sequence
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import InvalidInputError
 from ..mapping.mapper_config import MAPPER_GP, MapperConfig

@@ -88,7 +88,7 @@ def map_command(
     """
     from dataclasses import replace
 
-    from ..experiments.mapping_run import map_sequence, map_summary, open_posed_sequence, write_map
+    from ..pipelines.mapping_run import map_sequence, map_summary, open_posed_sequence, write_map
     from ..io import check_output_folder
     from ..mapping.mapper_config import MapperConfig
     from ..mde import load_frontend

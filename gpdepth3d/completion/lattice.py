@@ -58,7 +58,7 @@ def lattice_stride(
     With the sub-lattice detail (nu = 0.5 and an output at least as fine as the grid, ``output_shape`` None:
     the grid): 2 up to ``detail_share`` of the pixels observed, ``dense_stride`` above; without it 2 up to
     ``sparse_share`` and 1 above; grids under ``min_side`` pixels and length scales under k / 2 x
-    ``min_lengthscale`` take a finer stride. The rule's measured effect: bench/results/lattice.json.
+    ``min_lengthscale`` take a finer stride. The rule's measured effect: see docs/results.md.
     """
     rule = config.lattice
     k = stride

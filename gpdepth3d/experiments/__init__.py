@@ -1,9 +1,11 @@
-"""The paper's protocols and the library's own experiments, as functions that return data.
+"""Deprecated: `gpdepth3d.experiments` split in two (kept for one release).
 
-Modules: `evaluation` (methods x protocols x densities on a dataset, `run_evaluation`),
-`kitti_protocol` (the paper's KITTI tables), `batch` (dataset-scale runs on Dask),
-`baselines` (IP-Basic), `synthetic` (ray-cast scenes with simulated LiDAR and MDE; `simulate_mde`,
-the one MDE stand-in), `frames` (one frame's inputs on a GP grid: `mde_to_grid`, `holdout_lidar`),
-`scoring` (`metric_row`, the one metric row) and `demo`.
-Nothing below this layer imports it.
+The product's runners moved to `gpdepth3d.pipelines` (`mapping_run`, `batch`, `previews`, `demo`,
+`frames`, `scoring`), the paper's protocols to `gpdepth3d.evaluation` (`evaluation`,
+`kitti_protocol`, `baselines`) and the synthetic scenes to `gpdepth3d.datasets.synthetic`. Each old
+module path still imports, as the new module itself, with a DeprecationWarning naming the new place.
 """
+
+from .._deprecation import warn_moved
+
+warn_moved("gpdepth3d.experiments", "gpdepth3d.pipelines and gpdepth3d.evaluation")

@@ -1,7 +1,7 @@
 """The ``fast`` engine's cost model: seconds, bytes and rounding error of each route, from which it picks one.
 
 Its constants were fitted to single-thread float64 timings on the project's 2-core x86-64 CI machine;
-``python bench/engines.py`` measures the routes they rank (bench/results/engines*.json, docs/engines.md).
+the routes they rank are measured in docs/engines.md and docs/results.md.
 """
 
 from __future__ import annotations

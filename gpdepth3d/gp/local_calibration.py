@@ -13,7 +13,7 @@ w_0 the weight of ``prior_points`` pseudo-points at q = 1: far from the points f
 a sigma of its own (triangulated SLAM points) enters with q_i at least its noise share (the part of its
 predictive variance its stated noise makes): with independent errors of the stated size E[z_i^2] is at
 least that share, so a z^2 far below it says the error is shared with the neighbours, not that the pixels
-between them are certain. The effect is measured in bench/calibration.py.
+between them are certain. The effect is measured (see docs/results.md).
 """
 
 from __future__ import annotations

@@ -284,7 +284,7 @@ class DepthGPConfig:
     def residual(cls, **overrides) -> "DepthGPConfig":
         """The residual formulation set for sparse points (hundreds): l = 30 px, s = 0.2 x the median depth.
 
-        Its calibration is measured in bench/eval_7scenes.py.
+        Its calibration is measured on 7-Scenes (see docs/results.md).
         """
         base = cls(
             formulation="residual",

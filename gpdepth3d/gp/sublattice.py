@@ -24,7 +24,7 @@ tapered local process for the rest; Sang & Huang 2012):
 The window is the taper (C_e's correlation along a row or column of cells beyond it is dropped). Its cost
 grows with its points (n^3 per cell) and the output pixels per cell, so `gpdepth3d.completion` krigs at the
 GP grid's own pixels and resizes the result to a finer output. The effect on accuracy and time is measured
-in bench/lattice.py (bench/results/lattice.json).
+(see docs/results.md).
 
 Coordinates are GP-grid pixels (pixel centres at integers), the lattice nodes at k j + (k - 1) / 2.
 """
@@ -44,7 +44,7 @@ from .model import LatticeConfig
 def window_reach(stride: int) -> int:
     """Pixels of the GP grid around a lattice cell of stride k whose points krige its detail (the taper): k // 2 + 1.
 
-    A 6 x 6-pixel window for stride 2 and 10 x 10 for stride 4 (their effect: bench/results/lattice.json).
+    A 6 x 6-pixel window for stride 2 and 10 x 10 for stride 4 (their effect: see docs/results.md).
     """
     return int(stride) // 2 + 1
 

@@ -56,7 +56,7 @@ class FusionConfig:
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
             is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``, which
-            did as well (bench/results/mapping_settings.json).
+            did as well (see docs/results.md).
         truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
             truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.

@@ -39,7 +39,7 @@ which gives exactly the volume of fusing every keyframe from scratch with the ne
 and keyframe store, `gpdepth3d.mapping.map_store`). Poses of a
 back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.mapping.trajectories`.
 
-`gpdepth3d.experiments.mapping_run.fuse_sequence` (and ``gpdepth3d fuse``) runs the whole pipeline on a
+`gpdepth3d.pipelines.mapping_run.fuse_sequence` (and ``gpdepth3d fuse``) runs the whole pipeline on a
 7-Scenes-style sequence and compares the meshes from MDE-only, GP-refined and ground-truth depth.
 """
 

@@ -202,7 +202,7 @@ class TrackTriangulator:
     come in), triangulated from views on both sides; `flush` returns the last L frames at the
     end of a stream. Views on both sides give every frame points (the first one too) and smaller
     per-frame biases than the same number of earlier views alone: a pose error of one view then
-    pulls the depth less (bench/fusion.py).
+    pulls the depth less (see docs/results.md).
 
     Args:
         camera: Intrinsics of the RGB images given to `add`.

@@ -23,7 +23,7 @@ Given posed RGB frames (``T_world_camera``, e.g. from a SLAM system) and intrins
   widen every sigma of that frame); a relative floor ``depth_sigma_floor`` is added in quadrature.
 
 Accuracy on the shared sequences (points per frame, +-2 sigma coverage against the sensor depth):
-bench/results/mapping_sequences.json; what limits it is the given poses (the residuals show them
+see docs/results.md; what limits it is the given poses (the residuals show them
 a few pixels off), so the pose uncertainty goes into sigma rather than into a per-frame pose
 refinement (``refine_poses``, off by default: it made the depth worse).
 

@@ -65,7 +65,7 @@ class FastDepthTFLite:
     Args:
         model_path: The ``.tflite`` file (for example ``../shared/models/fast_depth_224.tflite``).
         num_threads: CPU threads for the interpreter (None = every core this process may use;
-            the runtime's own default is one thread; ``bench/mapper.py`` times the front-end).
+            the runtime's own default is one thread; its timing: docs/results.md).
         output_scale: Metres per output unit; None takes it from the model's quantisation.
 
     Raises:

@@ -3,7 +3,7 @@
 `LiveMapViewer` starts a viser server and draws, before any frame is mapped, the whole camera path
 and the first camera (with its image) so that the page has a picture at once; then, as the
 `gpdepth3d.mapping.Mapper` fuses frames (`LiveMapViewer.update`, the ``on_frame`` callback of
-`gpdepth3d.experiments.mapping_run.map_sequence`), each frame's camera frustum and, at most every
+`gpdepth3d.pipelines.mapping_run.map_sequence`), each frame's camera frustum and, at most every
 ``refresh_s`` seconds, the map's surface points coloured by their fused sigma (viridis; the colour bar
 and its range in the panel). `LiveMapViewer.finish` draws the final points and mesh. ``gpdepth3d map
 --view`` uses it.
@@ -214,7 +214,7 @@ class LiveMapViewer:
         ``errors`` and the page misses that update.
 
         Args:
-            event: A `gpdepth3d.experiments.mapping_run.FrameEvent`: the mapper (its `point_cloud` is
+            event: A `gpdepth3d.pipelines.mapping_run.FrameEvent`: the mapper (its `point_cloud` is
                 drawn), the frame added (its camera is drawn; its index among ``poses`` is found by its
                 pose) and the `FrameResult` fused in that call, if any.
         """

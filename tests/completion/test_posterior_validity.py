@@ -42,7 +42,7 @@ def _assert_valid(post, *, positive: bool = True) -> None:
 def kitti_disparity(shared_data):
     """kitti_tiny frame 0 at 1/3: RT-MonoDepth-S's disparity (1 / depth) passed as depth, and its LiDAR."""
     pytest.importorskip("onnxruntime")
-    from gpdepth3d.experiments.frames import mde_to_grid
+    from gpdepth3d.pipelines.frames import mde_to_grid
     from gpdepth3d.mde import load_frontend
 
     models = shared_data.parent / "models"

@@ -26,7 +26,7 @@ def kitti(shared_data):
     """(KittiFrameSetup, {density: SparseDepth}) of kitti_tiny frame 0."""
     pytest.importorskip("onnxruntime")
     from gpdepth3d.datasets import open_dataset
-    from gpdepth3d.experiments.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
+    from gpdepth3d.evaluation.kitti_protocol import draw_input, lidar_frames, prepare_kitti_frame
     from gpdepth3d.mde import RTMonoDepthONNX
 
     models = shared_data.parent / "models"

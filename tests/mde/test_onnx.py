@@ -279,7 +279,7 @@ class TestEvalAndBatchWithNetwork:
         assert (tmp_path / "results.json").is_file()
 
     def test_batch_loader_runs_the_network(self, shared_data, models_dir):
-        from gpdepth3d.experiments.batch import FrameSpec, HoldoutInputs
+        from gpdepth3d.pipelines.batch import FrameSpec, HoldoutInputs
 
         loader = HoldoutInputs(mde="rtmonodepth", models_dir=str(models_dir), n_input=100)
         spec = FrameSpec("f0", str(shared_data / "kitti_tiny"), "0000000000", "kitti_tiny")

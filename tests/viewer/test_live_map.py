@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.experiments.mapping_run import FrameEvent, map_sequence, open_posed_sequence
+from gpdepth3d.pipelines.mapping_run import FrameEvent, map_sequence, open_posed_sequence
 from gpdepth3d.mapping.fusion import FusionConfig
 from gpdepth3d.mapping.mapper_config import MapperConfig
 from gpdepth3d.viewer import MISSING_COLOR

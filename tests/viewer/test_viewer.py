@@ -24,7 +24,7 @@ from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError,
 from gpdepth3d.gp.model import DepthGPConfig
 from gpdepth3d.io import load_pose, load_poses
 from gpdepth3d.metrics import depth_metrics
-from gpdepth3d.experiments.synthetic import make_scene
+from gpdepth3d.datasets.synthetic import make_scene
 from gpdepth3d.viewer import (
     COLORMAPS,
     MISSING_COLOR,

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.experiments.mapping_run: a user's posed sequence opened, mapped, written and reloaded."""
+"""Tests of gpdepth3d.pipelines.mapping_run: a user's posed sequence opened, mapped, written and reloaded."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from gpdepth3d.camera import check_pose
 from gpdepth3d.errors import DataFormatError, InvalidInputError, OutputError, ShapeError
-from gpdepth3d.experiments.mapping_run import map_sequence, open_posed_sequence, write_map
+from gpdepth3d.pipelines.mapping_run import map_sequence, open_posed_sequence, write_map
 from gpdepth3d.mapping.cloud import ColoredCloud
 from gpdepth3d.mapping.mapper import Mapper
 from gpdepth3d.mapping.trajectories import Trajectory, write_tum_trajectory

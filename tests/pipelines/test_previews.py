@@ -1,4 +1,4 @@
-"""Colourised previews of a posterior (`gpdepth3d.experiments.previews`): files, colour bars, errors."""
+"""Colourised previews of a posterior (`gpdepth3d.pipelines.previews`): files, colour bars, errors."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError, OutputError, ShapeError
-from gpdepth3d.experiments.previews import PREVIEW_SUFFIXES, preview_paths, write_previews
+from gpdepth3d.pipelines.previews import PREVIEW_SUFFIXES, preview_paths, write_previews
 
 
 def _maps(h=30, w=40):

@@ -10,7 +10,7 @@ import pytest
 from gpdepth3d.errors import EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.gp.model import DepthGPConfig
-from gpdepth3d.experiments.kitti_protocol import (
+from gpdepth3d.evaluation.kitti_protocol import (
     KITTI_PROTOCOLS,
     PAPER_KITTI_RMSE_MM,
     KittiMethods,

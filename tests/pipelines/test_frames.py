@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError, ShapeError
-from gpdepth3d.experiments.frames import holdout_lidar, mde_to_grid
-from gpdepth3d.experiments.scoring import CALIBRATION_NAMES, metric_row
+from gpdepth3d.pipelines.frames import holdout_lidar, mde_to_grid
+from gpdepth3d.pipelines.scoring import CALIBRATION_NAMES, metric_row
 from gpdepth3d.metrics import METRIC_NAMES, calibration_metrics, depth_metrics
 
 

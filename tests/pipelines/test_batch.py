@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.experiments.batch: frame specs, holdout inputs, resumable runs, failures, kill and resume.
+"""Tests of gpdepth3d.pipelines.batch: frame specs, holdout inputs, resumable runs, failures, kill and resume.
 
 The data is a tiny KITTI-like folder written per test session (45 x 150 frames, 1/3 resolution
 = 15 x 50 GP grid, 40 input points), so every frame takes milliseconds and the Dask tests are
@@ -23,7 +23,7 @@ import pytest
 from gpdepth3d import DepthGPConfig, complete
 from gpdepth3d.gp.model import FLAT_KEYS
 from gpdepth3d.gp.engine import EngineConfig
-from gpdepth3d.experiments.batch import (
+from gpdepth3d.pipelines.batch import (
     LOCK_NAME,
     REPORT_NAME,
     SETTINGS_NAME,
@@ -335,7 +335,7 @@ class TestRunBatchInProcess:
             run_batch(
                 frames, tmp_path, config=CONFIG, engine=ENGINE.replace(lattice_stride=2), loader=LOADER, workers=0
             )
-        assert fingerprint(process_frame) == "gpdepth3d.experiments.batch.process_frame"
+        assert fingerprint(process_frame) == "gpdepth3d.pipelines.batch.process_frame"
 
     def test_a_folder_with_the_older_flat_settings_resumes(self, tiny_kitti, tmp_path):
         frames = dataset_frames(tiny_kitti, limit=1)
@@ -486,7 +486,7 @@ KILL_SCRIPT = textwrap.dedent(
 
     from gpdepth3d import DepthGPConfig
     from gpdepth3d.gp.engine import EngineConfig
-    from gpdepth3d.experiments.batch import HoldoutInputs, dataset_frames, run_batch
+    from gpdepth3d.pipelines.batch import HoldoutInputs, dataset_frames, run_batch
 
 
     @dataclass(frozen=True)
@@ -614,7 +614,7 @@ class TestChecks:
         "good", ["tcp://10.0.0.5:8786", "127.0.0.1:8786", "tls://sched.example.org:1", "tcp://[::1]:8786"]
     )
     def test_addresses_accepted(self, good):
-        from gpdepth3d.experiments.batch import check_address
+        from gpdepth3d.pipelines.batch import check_address
 
         assert check_address(f" {good} ") == good
 
@@ -622,13 +622,13 @@ class TestChecks:
         "bad", ["not-an-address", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://h:1", "", 8786]
     )
     def test_addresses_refused(self, bad):
-        from gpdepth3d.experiments.batch import check_address
+        from gpdepth3d.pipelines.batch import check_address
 
         with pytest.raises(InvalidInputError, match="address"):
             check_address(bad)
 
     def test_make_output_dir_and_frame_done(self, tmp_path):
-        from gpdepth3d.experiments.batch import frame_done, make_output_dir
+        from gpdepth3d.pipelines.batch import frame_done, make_output_dir
         from gpdepth3d.errors import OutputError
 
         out = make_output_dir(tmp_path / "a" / "b")

@@ -1,4 +1,4 @@
-"""Tests of the built-in synthetic scene generator (gpdepth3d.experiments.synthetic)."""
+"""Tests of the built-in synthetic scene generator (gpdepth3d.datasets.synthetic)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from gpdepth3d.camera import check_pose, transform_points
 from gpdepth3d.errors import EmptyInputError, InvalidInputError, ShapeError
 from gpdepth3d.measurements import LidarCalibration, project_points
-from gpdepth3d.experiments.synthetic import (
+from gpdepth3d.datasets.synthetic import (
     HDL64_ELEVATIONS_DEG,
     LidarModel,
     MDESimulation,
@@ -288,7 +288,7 @@ class TestSceneGeometry:
         np.testing.assert_array_equal(n1, n2)
 
     def test_box_hit_from_outside_and_inside(self):
-        from gpdepth3d.experiments.synthetic import _box
+        from gpdepth3d.datasets.synthetic import _box
 
         box = _box((0.0, 0.0, 0.0), (2.0, 2.0, 2.0), (1, 1, 1), "plain", yaw=0.0)
         t, n = box.intersect(np.array([[-5.0, 0.0, 0.0], [0.0, 0.0, 0.0], [-5.0, 3.0, 0.0]]), np.eye(3)[[0, 1, 0]])
@@ -298,7 +298,7 @@ class TestSceneGeometry:
         np.testing.assert_allclose(n[1], [0, -1, 0])  # exit face, normal facing the origin
 
     def test_turned_box(self):
-        from gpdepth3d.experiments.synthetic import _box
+        from gpdepth3d.datasets.synthetic import _box
 
         box = _box((0.0, 0.0, 0.0), (2.0, 2.0, 2.0), (1, 1, 1), "plain", yaw=np.pi / 4)
         t, _ = box.intersect(np.array([[-5.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.experiments.evaluation: methods, protocols, tables, files, and an end-to-end run."""
+"""Tests of gpdepth3d.evaluation.evaluation: methods, protocols, tables, files, and an end-to-end run."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 from gpdepth3d.datasets import Frame
 from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.experiments.evaluation import (
+from gpdepth3d.evaluation.evaluation import (
     METHODS,
     MethodSuite,
     draw_sparse,
@@ -217,7 +217,7 @@ class TestRunEvaluation:
     """The library's whole run (the CLI's `eval_command` only splits its comma lists and prints)."""
 
     def test_bad_arguments_before_any_work(self, tmp_path):
-        from gpdepth3d.experiments.evaluation import run_evaluation
+        from gpdepth3d.evaluation.evaluation import run_evaluation
 
         missing = tmp_path / "no_such_dataset"  # the arguments are checked before the dataset is opened
         for kwargs, name in (
@@ -238,7 +238,7 @@ class TestQualitativeChoice:
     def test_the_default_model_at_its_highest_level_first(self):
         from types import SimpleNamespace
 
-        from gpdepth3d.experiments.evaluation import qualitative_choice
+        from gpdepth3d.evaluation.evaluation import qualitative_choice
 
         var, none = SimpleNamespace(variance=np.ones(1)), SimpleNamespace(variance=None)
         outputs = {

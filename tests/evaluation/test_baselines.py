@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpdepth3d.experiments.baselines import ip_basic
+from gpdepth3d.evaluation.baselines import ip_basic
 from gpdepth3d.errors import InvalidDepthError, InvalidInputError, ShapeError
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.sampling import sample_uniform

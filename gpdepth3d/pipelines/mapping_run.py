@@ -1,0 +1,624 @@
+"""Whole-sequence mapping: a user's posed sequence mapped by the `Mapper`, and the 7-Scenes experiment.
+
+`open_posed_sequence` reads a user's sequence (images, poses in any format of
+`gpdepth3d.mapping.trajectories`, intrinsics, optional sensor depth); `map_sequence` runs the
+`gpdepth3d.mapping.Mapper` over it with the library's defaults (FastDepth or any front-end, its own
+triangulated points, map points of a COLMAP model when the poses come from one) and, with sensor
+depth, scores the mesh against the mesh fused from that depth (`mesh_metrics`, F-score at 5 cm);
+`write_map` writes the mesh, the cloud with per-point sigma, the reloadable map and the metrics as
+one set (``gpdepth3d map``).
+
+`fuse_sequence` runs the `Mapper` on a 7-Scenes-style sequence and fuses the MDE-only, GP-refined
+(uniform and variance weights) and ground-truth depth into TSDF meshes, compared with `mesh_metrics`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+
+from ..camera import PinholeCamera
+from ..datasets.base import Frame
+from ..datasets.posed import IMAGE_SUFFIXES, FileSpec, PosedSequence, list_files
+from ..errors import EmptyInputError, GPDepthError, InvalidInputError
+from ..mapping.cloud import ColoredCloud
+from ..mapping.fusion import TSDFFusion, save_mesh
+from ..mapping.trajectories import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
+from ..mapping.frame_inputs import resize_depth
+from ..mapping.frame_result import FrameResult
+from ..mapping.mapper import Mapper, MDEFrontEnd
+from ..mapping.mapper_config import MapperConfig
+from ..measurements import project_points
+from ..metrics import mesh_metrics
+
+
+Variant = Literal["mde", "gp_uniform", "gp_variance", "gt"]
+
+
+def fuse_sequence(
+    data: str | Path,
+    *,
+    mde: MDEFrontEnd,
+    rgb_K: np.ndarray | None = None,
+    config: MapperConfig | None = None,
+    max_frames: int | None = None,
+    threshold: float = 0.05,
+    metric_samples: int = 50_000,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Fuses a 7-Scenes-style sequence four ways and compares each mesh with the ground-truth one.
+
+    Variants: ``mde`` (MDE depth, uniform weights), ``gp_uniform`` and ``gp_variance`` (GP
+    posterior mean refined with the library's own triangulated features, fused with uniform or
+    variance weights; one GP solve per frame feeds both), ``gt`` (the Kinect depth as the reader
+    gives it, registered to the colour camera, the reference).
+
+    Args:
+        data: Sequence folder (see `gpdepth3d.datasets.sevenscenes.SevenScenes`).
+        mde: Front-end ``rgb -> depth`` in metres.
+        rgb_K: 3x3 intrinsics of the colour camera the Mapper uses (default: the frames' camera,
+            the colour camera the reader registers the Kinect depth to, `SEVEN_SCENES_RGB_K`).
+        config: Mapper options (``fusion.weighting`` is overridden per variant).
+        max_frames: Use only the first frames.
+        threshold: Precision / recall distance, metres.
+        metric_samples: Surface samples per mesh for the metrics.
+        progress: Show a progress bar.
+
+    The frames go through `map_sequence` (the runner of ``gpdepth3d map``); the comparison volumes
+    are fused from its `FrameEvent` records. Bad data never ends the run: a frame that cannot be read or fused is named in
+    ``frame_errors`` and the next one goes on; a mesh without triangles (too few frames for
+    ``weight_threshold``) is listed in ``empty_meshes`` and gets no metrics (None).
+
+    Returns:
+        ``meshes`` (variant -> trimesh, possibly without faces), ``metrics`` (variant ->
+        `mesh_metrics` against ``gt``, or None for an empty mesh), ``timing`` (mean seconds
+        per frame per stage; `Mapper` stages plus "fuse_uniform") and ``timing_median``,
+        ``frames``, ``frames_fused``, ``frame_errors``, ``frame_warnings``, ``masked_pixels``
+        (GP depths <= 0 or not finite masked before fusion), ``empty_meshes``, ``sparse_points``
+        (mean measurements per frame) and ``depth_median_abs_error`` (per-frame median
+        |depth - ground truth| in metres, averaged over frames, for "mde" and "gp"; the Kinect
+        depth as the reader registers it, lifted and re-projected to the working resolution) and
+        ``sparse_bias_per_frame`` (per frame with measurements: median signed relative error
+        of the measurements against the Kinect depth).
+    """
+    import cv2
+
+    from ..datasets.sevenscenes import SevenScenes
+
+    config = config or MapperConfig(working_scale=0.5)
+    reader = SevenScenes(data)
+    n = len(reader) if max_frames is None else min(len(reader), int(max_frames))
+    if n < 1:
+        raise EmptyInputError("data", "a sequence with frames", "none")
+    first = reader[0]
+    rgb_cam = (
+        first.camera
+        if rgb_K is None
+        else PinholeCamera.from_K(np.asarray(rgb_K), first.camera.width, first.camera.height)
+    )
+    depth_cam = first.camera
+    times: list[dict] = []
+    npoints: list[int] = []
+    depth_err: dict[str, list[float]] = {"mde": [], "gp": []}
+    sparse_err: list[float] = []
+    volume_errors: list[str] = []
+    frame_warnings: list[str] = []
+    extra: dict[str, TSDFFusion] = {}
+    masked = 0
+
+    def evaluate(event: FrameEvent) -> None:
+        """Records one fused (or failed) frame and fuses the comparison variants of it."""
+        nonlocal masked
+        times.append(dict(event.timings))
+        result, frame, work = event.result, event.result_frame, event.mapper.work_camera
+        if result is None or frame is None:
+            return
+        depth_work = depth_cam.resized(work.width, work.height)
+        if not extra:
+            extra.update(
+                mde=TSDFFusion(work, replace(config.fusion, weighting="uniform")),
+                gp_uniform=TSDFFusion(work, replace(config.fusion, weighting="uniform")),
+                gt=TSDFFusion(depth_work, replace(config.fusion, weighting="uniform")),
+            )
+        i = result.keyframe_id
+        frame_warnings.extend(result.warnings)
+        masked += result.masked_pixels
+        work_rgb = cv2.resize(frame.rgb, (work.width, work.height), interpolation=cv2.INTER_AREA)
+        others = [("gt", resize_depth(frame.depth, depth_work.shape), work_rgb)]
+        if result.mde.size:
+            others.insert(0, ("mde", result.mde, work_rgb))
+        if result.depth.size:
+            others.insert(0, ("gp_uniform", result.depth, work_rgb))
+        for name, depth, colour in others:
+            t0 = time.perf_counter()
+            try:
+                if depth.size:
+                    extra[name].integrate(depth, frame.pose, rgb=colour)
+            except GPDepthError as exc:
+                volume_errors.append(f"frame {i}: {name} volume: {type(exc).__name__}: {exc}")
+            if name == "gp_uniform":
+                times[-1]["fuse_uniform"] = time.perf_counter() - t0
+        if not result.depth.size:
+            return
+        # Ground truth at the working resolution: lift with the frame's camera, project (z-buffer).
+        pts, _ = frame.camera.backproject(frame.depth)
+        gt_rgb = project_points(pts, work).to_depth_map()
+        ok = gt_rgb > 0
+        if len(result.sparse):
+            # signed relative error of the measurements against the Kinect depth (the frame's camera)
+            lifted = rgb_cam.backproject_pixels(result.sparse.uv, result.sparse.depth)
+            uv, z = depth_cam.project(lifted)
+            inside = depth_cam.in_image(uv)
+            iu = np.rint(uv[inside]).astype(np.int64)
+            kinect = frame.depth[iu[:, 1], iu[:, 0]]
+            good = kinect > 0
+            if good.any():
+                sparse_err.append(float(np.median((z[inside][good] - kinect[good]) / kinect[good])))
+        if ok.any():
+            depth_err["mde"].append(float(np.median(np.abs(result.mde[ok] - gt_rgb[ok]))))
+            depth_err["gp"].append(float(np.median(np.abs(result.depth[ok] - gt_rgb[ok]))))
+        npoints.append(len(result.sparse))
+
+    mapped = map_sequence(
+        reader,
+        mde=mde,
+        config=replace(config, fusion=replace(config.fusion, weighting="variance")),
+        working_width=None,
+        camera=rgb_cam,
+        max_frames=n,
+        evaluate=False,
+        progress=progress,
+        on_frame=evaluate,
+    )
+    mapper = mapped.mapper
+    volumes = {
+        "mde": extra.get("mde"),
+        "gp_uniform": extra.get("gp_uniform"),
+        "gp_variance": mapper.fusion,
+        "gt": extra.get("gt"),
+    }
+    meshes = {}
+    for name, volume in volumes.items():
+        meshes[name] = (
+            volume.extract_mesh(allow_empty=True) if volume is not None and volume.frames_integrated else None
+        )
+    empty = sorted(k for k, m in meshes.items() if m is None or len(m.faces) == 0)
+    metrics: dict[str, Any] = {}
+    for k, m in meshes.items():
+        if k == "gt":
+            continue
+        metrics[k] = (
+            None
+            if k in empty or "gt" in empty
+            else mesh_metrics(m, meshes["gt"], threshold=threshold, samples=metric_samples)
+        )
+    keys = sorted({k for t in times for k in t})
+    timing = {k: float(np.mean([t[k] for t in times if k in t])) for k in keys}
+    # the names the fusion benchmark reads (docs/results.md)
+    timing.update(
+        {"triangulate": timing.get("points", 0.0), "refine": timing.get("gp", 0.0), "fuse": timing.get("fusion", 0.0)}
+    )
+    return {
+        "meshes": meshes,
+        "metrics": metrics,
+        "timing": timing,
+        "timing_median": {k: float(np.median([t[k] for t in times if k in t])) for k in keys},
+        "frames": n,
+        "frames_fused": mapped.frames_fused,
+        "frame_errors": mapped.frame_errors + volume_errors,
+        "frame_warnings": frame_warnings,
+        "masked_pixels": masked,
+        "empty_meshes": empty,
+        "sparse_points": float(np.mean(npoints)) if npoints else 0.0,
+        "depth_median_abs_error": {k: float(np.mean(v)) if v else float("nan") for k, v in depth_err.items()},
+        "sparse_bias_per_frame": sparse_err,
+    }
+
+
+# ---------------------------------------------------------------------- a user's own sequence
+DEFAULT_WORKING_WIDTH = 320
+"""Width (pixels) the Mapper refines and fuses at by default: the resolution its defaults were chosen at
+(320x240 for 640x480 images); wider images are scaled down to it, narrower ones kept."""
+
+
+@dataclass(frozen=True)
+class PosedInputs:
+    """A user's sequence as `open_posed_sequence` read it.
+
+    Attributes:
+        sequence: The frames (rgb, camera, pose, optional depth).
+        pose_format: The pose format read (one of `POSE_FORMATS`).
+        map_points: Per frame, the world points of a COLMAP model its image observes ((K, 3),
+            metres), or None when the poses are not a COLMAP model.
+    """
+
+    sequence: PosedSequence
+    pose_format: str
+    map_points: list | None = None
+
+
+def open_posed_sequence(
+    images: FileSpec,
+    poses: str | Path,
+    intrinsics: str | Path | None = None,
+    *,
+    pose_format: str = "auto",
+    association: str = "auto",
+    max_time_difference: float = 0.02,
+    depth: FileSpec | None = None,
+    depth_scale: float = 1e-3,
+    depth_invalid: int | None = None,
+    depth_intrinsics: str | Path | None = None,
+) -> PosedInputs:
+    """Reads a posed sequence: images, their poses (any format), intrinsics and optional depth.
+
+    Args:
+        images: Image folder (its ``*.color.*`` files if any), glob pattern or list of files.
+        poses: Pose file or folder (`gpdepth3d.mapping.trajectories.read_trajectory`).
+        intrinsics: K file or ``"fx,fy,cx,cy"``; optional only with a COLMAP model (its camera).
+        pose_format: One of `POSE_FORMATS` or "auto".
+        association: How poses find their images (`associate_poses`): auto, name, timestamp, order.
+        max_time_difference: Largest image-pose time difference for timestamp association, seconds.
+        depth: Sensor depth files for evaluation (folder, glob or list).
+        depth_scale: Metres per 16-bit PNG unit.
+        depth_invalid: PNG value of invalid pixels besides 0.
+        depth_intrinsics: K of the depth camera when it is not the colour camera.
+
+    Raises:
+        DataFormatError / ShapeError / CalibrationError / InvalidInputError: as the readers do,
+            naming the file or argument.
+    """
+    files = list_files(images, IMAGE_SUFFIXES, "color", "images")
+    if pose_format == "auto":
+        pose_format = detect_pose_format(poses)
+    if pose_format not in POSE_FORMATS:
+        raise InvalidInputError("pose_format", f"'auto' or one of {', '.join(POSE_FORMATS)}", pose_format)
+    names = [f.name for f in files]
+    map_points = None
+    camera = intrinsics
+    if pose_format == "colmap":
+        model = read_colmap_model(poses, ignore_distortion=True)
+        trajectory = model.trajectory()
+        ids = sorted(model.images)
+        by_pose = dict(zip(trajectory.names, ids))
+        matched = associate_poses(trajectory, names, by="name" if association == "auto" else association)
+        if association in ("auto", "name"):
+            keys = _colmap_keys(list(trajectory.names), names)
+            map_points = [model.map_points(by_pose[k]) for k in keys]
+        if camera is None:
+            cameras = {model.images[i].camera_id for i in ids}
+            if len(cameras) != 1:
+                raise InvalidInputError("intrinsics", "a K file or fx,fy,cx,cy (the model has several cameras)", None)
+            camera = model.cameras[cameras.pop()]
+    else:
+        if camera is None:
+            raise InvalidInputError("intrinsics", "a K file or fx,fy,cx,cy", None)
+        trajectory = read_trajectory(poses, pose_format)
+        matched = associate_poses(trajectory, names, by=association, max_difference=max_time_difference)
+    sequence = PosedSequence(
+        files,
+        matched,
+        camera,
+        depth=depth,
+        depth_scale=depth_scale,
+        depth_invalid=depth_invalid,
+        depth_intrinsics=depth_intrinsics,
+    )
+    return PosedInputs(sequence, pose_format, map_points)
+
+
+def _colmap_keys(model_names: list[str], image_names: list[str]) -> list[str]:
+    """The model's image name of each image (whole name, else the name up to the first dot)."""
+    whole = {Path(n).name: n for n in model_names}
+    short = {Path(n).name.split(".", 1)[0]: n for n in model_names}
+    if all(n in whole for n in image_names):
+        return [whole[n] for n in image_names]
+    return [short[n.split(".", 1)[0]] for n in image_names]
+
+
+@dataclass
+class MapResult:
+    """What `map_sequence` made.
+
+    Attributes:
+        mapper: The `Mapper` holding the map (volume and keyframes).
+        mesh: The map's mesh (trimesh, world frame, metres; may have no faces).
+        cloud: The map's surface points with per-point fused variance (`ColoredCloud`).
+        frames: Frames given (after stride and limit).
+        frames_fused: Frames that reached the volume.
+        frame_errors: One line per frame that was not fused (unreadable file, failed stage), naming it.
+        frames_without_points: Names of frames fused without any sparse point (MDE and GP prior only).
+        sparse_points: Median sparse points per fused frame.
+        metrics: With sensor depth: ``map`` and ``mde`` (the MDE alone, uniform weights) scored by
+            `mesh_metrics` against the mesh fused from the sensor depth, or None when a mesh is empty;
+            None without depth.
+        timing: Median seconds per `Mapper.add_frame` call by stage, and ``wall`` (the whole run).
+    """
+
+    mapper: Mapper
+    mesh: Any
+    cloud: ColoredCloud
+    frames: int
+    frames_fused: int
+    frame_errors: list
+    frames_without_points: list
+    sparse_points: float
+    metrics: dict | None
+    timing: dict
+
+
+@dataclass(frozen=True)
+class FrameEvent:
+    """What `map_sequence` tells its ``on_frame`` callback after each `Mapper` call.
+
+    Attributes:
+        mapper: The `Mapper`.
+        added: The frame added in this call (None for the last frames, finished by `Mapper.flush`).
+        result: The `FrameResult` of the frame refined and fused in this call, or None (frames wait
+            ``MapperConfig.lag`` calls for later views).
+        result_frame: The frame ``result`` belongs to, or None.
+        timings: Seconds per stage of this call (`FrameResult.timings`).
+    """
+
+    mapper: Mapper
+    added: Frame | None
+    result: FrameResult | None
+    result_frame: Frame | None
+    timings: dict
+
+
+FrameCallback = Callable[[FrameEvent], None]
+
+
+def map_sequence(
+    inputs: PosedInputs | Any,
+    *,
+    mde: MDEFrontEnd,
+    config: MapperConfig | None = None,
+    working_width: int | None = DEFAULT_WORKING_WIDTH,
+    camera: PinholeCamera | None = None,
+    stride: int = 1,
+    max_frames: int | None = None,
+    evaluate: bool = True,
+    threshold: float = 0.05,
+    metric_samples: int = 50_000,
+    progress: bool = False,
+    on_frame: FrameCallback | None = None,
+) -> MapResult:
+    """Maps a posed sequence with the `Mapper` and, when it has depth, scores the mesh against it.
+
+    Args:
+        inputs: The sequence (`open_posed_sequence`), a `PosedSequence`, or any dataset reader whose
+            frames carry a pose (``len``, ``reader[i]`` -> `Frame`, ``names``).
+        mde: Front-end ``rgb -> depth`` in metres.
+        config: Mapper options (default `MapperConfig()`).
+        working_width: Width of refinement and fusion, pixels: ``config.working_scale`` becomes
+            ``working_width / image width`` (at most 1); None keeps ``config.working_scale``.
+        camera: Intrinsics the Mapper uses (default: the sequence's camera).
+        stride: Use every ``stride``-th frame.
+        max_frames: Use at most this many frames (after the stride).
+        evaluate: With sensor depth in the frames, score the map (and the MDE alone, uniform
+            weights) against the mesh fused from that depth (`mesh_metrics`).
+        threshold: F-score distance, metres.
+        metric_samples: Surface samples per mesh for the metrics.
+        progress: Show a progress bar (tqdm) on stderr.
+        on_frame: Called after each `Mapper` call with a `FrameEvent` (the live viewer, the
+            7-Scenes experiment's comparison volumes).
+
+    Bad data never ends the run: a frame that cannot be read or fused is named in
+    ``frame_errors`` and the next one goes on.
+
+    Raises:
+        InvalidInputError: bad ``stride``, ``max_frames``, ``working_width``, ``threshold`` or
+            ``metric_samples``. EmptyInputError: an empty sequence, or no frame could be fused.
+    """
+    from tqdm.auto import tqdm
+
+    inputs = inputs if isinstance(inputs, PosedInputs) else PosedInputs(inputs, "given")
+    sequence = inputs.sequence
+    for name, value, low in (("stride", stride, 1), ("metric_samples", metric_samples, 1)) + (
+        (("working_width", working_width, 2),) if working_width is not None else ()
+    ):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise InvalidInputError(name, f"an integer >= {low}", value)
+    if max_frames is not None and (
+        isinstance(max_frames, bool) or not isinstance(max_frames, (int, np.integer)) or max_frames < 1
+    ):
+        raise InvalidInputError("max_frames", "an integer >= 1 (or None for all)", max_frames)
+    if not (isinstance(threshold, (int, float)) and np.isfinite(threshold) and threshold > 0):
+        raise InvalidInputError("threshold", "a distance > 0 (metres)", threshold)
+    if len(sequence) == 0:
+        raise EmptyInputError("inputs", "a sequence with frames", "none")
+    indices = list(range(0, len(sequence), int(stride)))[:max_frames]
+    camera = camera or getattr(sequence, "camera", None) or sequence[indices[0]].camera
+    config = config or MapperConfig()
+    if working_width is not None:
+        config = replace(config, working_scale=min(1.0, int(working_width) / camera.width))
+    t_start = time.perf_counter()
+    mapper = Mapper(camera, config, mde=mde)
+    work = mapper.work_camera
+    uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
+    volumes: dict[str, TSDFFusion] = {}  # the sensor depth's and the MDE's, made with the first frame with depth
+    frame_errors: list[str] = []
+    without_points: list[str] = []
+    points: list[int] = []
+    fused = 0
+    waiting: dict[int, Frame] = {}
+
+    def record(result: FrameResult) -> Frame:
+        nonlocal fused
+        frame = waiting.pop(result.keyframe_id)
+        if result.error is not None:
+            frame_errors.append(f"image {frame.name}: {result.error}")
+        if result.fused:
+            fused += 1
+            points.append(len(result.sparse))
+            if len(result.sparse) == 0:
+                without_points.append(frame.name)
+        if "mde" in volumes and result.mde.size:
+            _integrate(volumes["mde"], result.mde, frame, work, frame_errors, "MDE-only volume")
+        return frame
+
+    bar = tqdm(indices, desc="map", unit="frame", disable=not progress, leave=False)
+    for i in bar:
+        try:
+            frame = sequence[i]
+            extra = {}
+            if inputs.map_points is not None and len(inputs.map_points[i]):
+                extra["map_points_world"] = inputs.map_points[i]
+            waiting[i] = frame
+            result = mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i, **extra)
+        except GPDepthError as exc:  # an unreadable frame or a bad pose: named, the run goes on
+            waiting.pop(i, None)
+            frame_errors.append(f"image {sequence.names[i]}: {type(exc).__name__}: {exc}")
+            continue
+        if evaluate and frame.depth is not None:
+            if not volumes:
+                volumes.update(reference=TSDFFusion(work, uniform), mde=TSDFFusion(work, uniform))
+            pts, _ = frame.camera.backproject(frame.depth)
+            _integrate(
+                volumes["reference"],
+                project_points(pts, work).to_depth_map(),
+                frame,
+                work,
+                frame_errors,
+                "sensor-depth volume",
+            )
+        result_frame = record(result) if result is not None else None
+        if on_frame is not None:
+            on_frame(FrameEvent(mapper, frame, result, result_frame, dict(mapper.timings[-1])))
+    for result in mapper.flush():
+        result_frame = record(result)
+        if on_frame is not None:
+            on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
+    bar.close()
+    if fused == 0:
+        raise EmptyInputError(
+            "images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3])
+        )
+    mesh, cloud = _map_surface(mapper)
+    metrics = None
+    if volumes and volumes["reference"].frames_integrated:
+        ref_mesh = volumes["reference"].extract_mesh(allow_empty=True)
+        mde_mesh = volumes["mde"].extract_mesh(allow_empty=True) if volumes["mde"].frames_integrated else None
+        metrics = {}
+        for name, m in (("map", mesh), ("mde", mde_mesh)):
+            ok = m is not None and len(m.faces) and len(ref_mesh.faces)
+            metrics[name] = mesh_metrics(m, ref_mesh, threshold=threshold, samples=metric_samples) if ok else None
+    stages = sorted({k for t in mapper.timings for k in t})
+    timing = {k: float(np.median([t[k] for t in mapper.timings if k in t])) for k in stages}
+    timing["wall"] = time.perf_counter() - t_start
+    return MapResult(
+        mapper=mapper,
+        mesh=mesh,
+        cloud=cloud,
+        frames=len(indices),
+        frames_fused=fused,
+        frame_errors=frame_errors,
+        frames_without_points=without_points,
+        sparse_points=float(np.median(points)) if points else 0.0,
+        metrics=metrics,
+        timing=timing,
+    )
+
+
+def _map_surface(mapper: Mapper) -> tuple[Any, ColoredCloud]:
+    """The map's mesh and cloud; both empty when no pixel reached the volume (every frame cut away)."""
+    import trimesh
+
+    try:
+        return mapper.mesh(), mapper.point_cloud()
+    except EmptyInputError:
+        empty = ColoredCloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0), np.zeros(0))
+        return trimesh.Trimesh(), empty
+
+
+def _integrate(
+    volume: TSDFFusion, depth: np.ndarray, frame: Frame, work: PinholeCamera, errors: list, what: str
+) -> None:
+    """Fuses one comparison depth (uniform weights) with the frame's colour; a failure is recorded, not raised."""
+    import cv2
+
+    try:
+        rgb = cv2.resize(frame.rgb, (work.width, work.height), interpolation=cv2.INTER_AREA)
+        volume.integrate(depth, frame.pose, rgb=rgb)
+    except GPDepthError as exc:
+        errors.append(f"image {frame.name}: {what}: {type(exc).__name__}: {exc}")
+
+
+MAP_FILES = ("mesh", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json")
+"""What `write_map` writes into its folder (``mesh`` with the mesh format's ending): the mesh, the cloud,
+the files of `Mapper.save` (what `Mapper.load` reads back from that folder) and the metrics."""
+
+
+def write_map(
+    result: MapResult, output: str | Path, *, mesh_format: str = "ply", summary: dict | None = None
+) -> list[Path]:
+    """Writes the mesh, the cloud with per-point sigma, the map and the metrics into ``output``, as one set.
+
+    The files (`MAP_FILES`) appear together or not at all (`gpdepth3d.io.atomic_write_set`); the
+    folder reloads with `Mapper.load`. An empty mesh or cloud is not written (named in the metrics).
+
+    Args:
+        result: `map_sequence`'s result.
+        output: Output folder.
+        mesh_format: "ply", "glb" or "obj".
+        summary: The JSON written as ``metrics.json`` (default: `map_summary` of ``result``).
+
+    Returns:
+        The paths written.
+    """
+    import shutil
+    import tempfile
+
+    from ..io import atomic_write_set, write_json
+
+    if mesh_format not in ("ply", "glb", "obj"):
+        raise InvalidInputError("mesh_format", "ply, glb or obj", mesh_format)
+    out = Path(output)
+    summary = summary if summary is not None else map_summary(result)
+    writers: dict[str, Callable[[Path], Any]] = {}
+    if len(result.mesh.faces):
+        writers[f"mesh.{mesh_format}"] = lambda p: save_mesh(result.mesh, p)
+    if len(result.cloud):
+        writers["cloud.ply"] = result.cloud.save_ply
+    with tempfile.TemporaryDirectory(prefix="gpdepth3d-map-") as tmp:
+        result.mapper.save(tmp)
+        saved = sorted(p.name for p in Path(tmp).iterdir() if p.is_file())
+        for name in saved:
+            writers[name] = lambda p, src=Path(tmp) / name: shutil.copyfile(src, p)
+        writers["metrics.json"] = lambda p: write_json(p, summary)
+        members = list(dict.fromkeys([f"mesh.{f}" for f in ("ply", "glb", "obj")] + list(MAP_FILES[1:]) + saved))
+        return atomic_write_set(out / "map", writers, members=members)
+
+
+def map_summary(result: MapResult) -> dict[str, Any]:
+    """The JSON record of a run: frames, errors, points, metrics, timings and the Mapper's settings."""
+    from dataclasses import asdict
+
+    return {
+        "frames": result.frames,
+        "frames_fused": result.frames_fused,
+        "frame_errors": result.frame_errors,
+        "frames_without_points": result.frames_without_points,
+        "sparse_points_per_frame_median": result.sparse_points,
+        "metrics": result.metrics,
+        "mesh_faces": int(len(result.mesh.faces)),
+        "cloud_points": int(len(result.cloud)),
+        "timing_median_s_per_frame": {k: v for k, v in result.timing.items() if k != "wall"},
+        "wall_s": result.timing.get("wall"),
+        "camera": [
+            result.mapper.camera.fx,
+            result.mapper.camera.fy,
+            result.mapper.camera.cx,
+            result.mapper.camera.cy,
+            result.mapper.camera.width,
+            result.mapper.camera.height,
+        ],
+        "working_size": [result.mapper.work_camera.width, result.mapper.work_camera.height],
+        "config": asdict(result.mapper.config),
+    }

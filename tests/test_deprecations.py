@@ -1,0 +1,76 @@
+"""Moved public names keep working for one release, with a DeprecationWarning naming the new place."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import pytest
+
+import gpdepth3d
+
+MOVED_MODULES = {
+    "gpdepth3d.experiments.mapping_run": "gpdepth3d.pipelines.mapping_run",
+    "gpdepth3d.experiments.batch": "gpdepth3d.pipelines.batch",
+    "gpdepth3d.experiments.previews": "gpdepth3d.pipelines.previews",
+    "gpdepth3d.experiments.demo": "gpdepth3d.pipelines.demo",
+    "gpdepth3d.experiments.frames": "gpdepth3d.pipelines.frames",
+    "gpdepth3d.experiments.scoring": "gpdepth3d.pipelines.scoring",
+    "gpdepth3d.experiments.evaluation": "gpdepth3d.evaluation.evaluation",
+    "gpdepth3d.experiments.kitti_protocol": "gpdepth3d.evaluation.kitti_protocol",
+    "gpdepth3d.experiments.baselines": "gpdepth3d.evaluation.baselines",
+    "gpdepth3d.experiments.synthetic": "gpdepth3d.datasets.synthetic",
+}
+
+
+def _fresh_import(name: str):
+    """Import ``name`` as a first import would (the shim warns when it runs, not when it is cached)."""
+    for key in [k for k in sys.modules if k == name or k.startswith("gpdepth3d.experiments")]:
+        del sys.modules[key]
+    return importlib.import_module(name)
+
+
+@pytest.mark.filterwarnings("ignore:gpdepth3d.experiments is deprecated")
+@pytest.mark.parametrize("old, new", sorted(MOVED_MODULES.items()))
+def test_old_module_path_is_the_new_module(old, new):
+    with pytest.warns(DeprecationWarning, match=new.replace(".", r"\.")) as record:
+        shim = _fresh_import(old)
+    assert shim is importlib.import_module(new)
+    assert any(old in str(w.message) for w in record)
+
+
+def test_old_from_import_reaches_the_same_objects():
+    _fresh_import("gpdepth3d.experiments")
+    with pytest.warns(DeprecationWarning) as record:
+        from gpdepth3d.experiments.mapping_run import map_sequence
+        from gpdepth3d.experiments.synthetic import make_scene
+    assert {w.filename for w in record} == {__file__}, "each warning points at the line that imports"
+    from gpdepth3d.datasets.synthetic import make_scene as new_make_scene
+    from gpdepth3d.pipelines.mapping_run import map_sequence as new_map_sequence
+
+    assert map_sequence is new_map_sequence and make_scene is new_make_scene
+
+
+def test_old_package_warns():
+    with pytest.warns(DeprecationWarning, match=r"gpdepth3d\.pipelines and gpdepth3d\.evaluation"):
+        _fresh_import("gpdepth3d.experiments")
+
+
+def test_root_ip_basic_is_deprecated():
+    from gpdepth3d.evaluation.baselines import ip_basic
+
+    with pytest.warns(DeprecationWarning, match=r"gpdepth3d\.evaluation\.baselines\.ip_basic"):
+        assert gpdepth3d.ip_basic is ip_basic
+    with pytest.raises(AttributeError, match="no_such_name"):
+        gpdepth3d.no_such_name  # noqa: B018
+
+
+def test_importing_the_package_warns_nothing():
+    """Only the old paths warn: the package and its new modules import without a DeprecationWarning."""
+    import subprocess
+
+    code = (
+        "import warnings; warnings.simplefilter('error'); "
+        "import gpdepth3d, gpdepth3d.pipelines.batch, gpdepth3d.evaluation.evaluation"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
