@@ -290,7 +290,7 @@ def colmap_run(frames: list, mde_depths: list, config, relative_sigma: float) ->
     import tempfile
 
     from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
-    from gpdepth3d.mapping.trajectories import read_colmap_model
+    from gpdepth3d.io.poses import read_colmap_model
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:

@@ -18,7 +18,7 @@ import numpy as np
 import gpdepth3d as g
 from gpdepth3d.io import load_rgb
 from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
-from gpdepth3d.mapping.trajectories import read_colmap_model, read_flat_poses
+from gpdepth3d.io.poses import read_colmap_model, read_flat_poses
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -20,6 +20,7 @@ MOVED_MODULES = {
     "gpdepth3d.experiments.kitti_protocol": "gpdepth3d.evaluation.kitti_protocol",
     "gpdepth3d.experiments.baselines": "gpdepth3d.evaluation.baselines",
     "gpdepth3d.experiments.synthetic": "gpdepth3d.datasets.synthetic",
+    "gpdepth3d.mapping.trajectories": "gpdepth3d.io.poses",
 }
 
 

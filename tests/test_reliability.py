@@ -551,8 +551,8 @@ class TestFailedWrites:
         def denied(*a, **k):
             raise PermissionError(errno.EACCES, "Permission denied")
 
-        monkeypatch.setattr(gio.tempfile, "mkstemp", denied)
-        monkeypatch.setattr(gio.tempfile, "mkdtemp", denied)
+        monkeypatch.setattr(gio.durable.tempfile, "mkstemp", denied)
+        monkeypatch.setattr(gio.durable.tempfile, "mkdtemp", denied)
         with pytest.raises(OutputError, match="permission denied"):
             gio.save_npz(tmp_path / "x.npz", a=np.ones(3))
         with pytest.raises(OutputError, match="permission denied"):
@@ -1093,8 +1093,8 @@ def _fork_save_killed_at(post: DepthPosterior, base: Path, step: int) -> bool:
                 (os, "link"),
                 (os, "unlink"),
                 (shutil, "rmtree"),
-                (gio.tempfile, "mkdtemp"),
-                (gio.tempfile, "mkstemp"),
+                (gio.durable.tempfile, "mkdtemp"),
+                (gio.durable.tempfile, "mkstemp"),
             ):
                 setattr(mod, name, dying(getattr(mod, name)))
             post.save(base, png=True)

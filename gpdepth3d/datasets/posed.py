@@ -2,7 +2,7 @@
 
 The poses come already matched to the images (``T_world_camera``, one per image in order): the
 pose formats and their association to images live one layer up, in
-`gpdepth3d.mapping.trajectories` (`read_trajectory`, `associate_poses`). Intrinsics come from a
+`gpdepth3d.io.poses` (`read_trajectory`, `associate_poses`). Intrinsics come from a
 K file or four numbers (`read_intrinsics`). Depth, when given, is sensor depth for evaluation:
 16-bit PNGs with their scale (metres per unit) and invalid value, or .npy / .npz in metres; it
 may come from a second camera sharing the pose (``depth_camera``), and is then registered to
@@ -161,7 +161,7 @@ class PosedSequence(DatasetReader):
         images: Colour images: a folder (its ``*.color.*`` files if any, else every image), a
             glob pattern or a list of files; sorted by name, that is the sequence order.
         poses: (N, 4, 4) ``T_world_camera`` of the N images, in their order
-            (`gpdepth3d.mapping.trajectories.associate_poses` matches a trajectory to them).
+            (`gpdepth3d.io.poses.associate_poses` matches a trajectory to them).
         intrinsics: K file, ``"fx,fy,cx,cy"``, four numbers or a 3x3 K of the colour camera
             (`read_intrinsics`); or a `PinholeCamera`.
         depth: Sensor depth for evaluation, like ``images`` (a folder's ``*.depth.*`` files if

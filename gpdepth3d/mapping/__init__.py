@@ -1,9 +1,8 @@
-"""From posteriors to 3D: coloured clouds, TSDF fusion, triangulation, trajectories, the `Mapper`.
+"""From posteriors to 3D: coloured clouds, TSDF fusion, triangulation, the `Mapper`.
 
 Modules: `cloud` (coloured clouds), `fusion` (the TSDF volume) with `fusion_config` (its options),
 `fusion_weights` (per-pixel weights), `tsdf_kernels` (voxel update), `tsdf_blocks` (voxel blocks),
-`tsdf_extraction` (meshes, surface points) and `tsdf_io` (volume and mesh files), `trajectories`
-(poses, COLMAP models), the points a frame is refined with (`triangulation_config`, `features`,
+`tsdf_extraction` (meshes, surface points) and `tsdf_io` (volume and mesh files), the points a frame is refined with (`triangulation_config`, `features`,
 `tracks`, `multiview`, `two_view`, re-exported by `triangulation`; `refinding` for large camera
 motion; `local_map` for the earlier frames' points; `colmap_points` for pycolmap's), and the
 incremental `Mapper`: `mapper` (the class and its per-frame pipeline), `mapper_config` (`MapperConfig`),

@@ -4,7 +4,7 @@
 feature extraction, sequential matching and point triangulation on a model whose cameras sit at
 the given ``T_world_camera`` poses (COLMAP's ``point_triangulator``: poses and intrinsics are not
 refined), and writes the sparse model there. Read it with
-`gpdepth3d.mapping.trajectories.read_colmap_model` and give its points to `Mapper.add_frame` as
+`gpdepth3d.io.poses.read_colmap_model` and give its points to `Mapper.add_frame` as
 SLAM map points. See https://colmap.github.io/pycolmap/index.html.
 """
 
@@ -17,7 +17,7 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose
 from ..errors import InvalidInputError
-from .trajectories import invert_pose
+from ..io.poses import invert_pose
 
 
 def _write_images(rgbs: Sequence[np.ndarray], camera: PinholeCamera, folder: Path) -> list[str]:
@@ -76,7 +76,7 @@ def triangulate_with_colmap(
         threads: CPU threads pycolmap may use.
 
     Returns:
-        The model folder (``workdir/sparse``), for `gpdepth3d.mapping.trajectories.read_colmap_model`.
+        The model folder (``workdir/sparse``), for `gpdepth3d.io.poses.read_colmap_model`.
     """
     import pycolmap
 

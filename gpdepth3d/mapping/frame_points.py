@@ -17,7 +17,7 @@ from ..camera import PinholeCamera
 from ..errors import GPDepthError
 from ..measurements import SparseDepth
 from .map_points import MapPointStats, merge_sparse, project_map_points
-from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation
+from ..io.poses import InvertedPoseWarning, PoseCheck, check_pose_orientation
 
 POSE_TRACK_MIN = 50
 """Feature tracks a frame needs before its pose is checked against them (fewer: too little texture to tell)."""

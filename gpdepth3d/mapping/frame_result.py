@@ -9,7 +9,7 @@ import numpy as np
 from ..completion.complete import DepthPosterior
 from ..measurements import SparseDepth
 from .map_points import MapPointStats
-from .trajectories import PoseCheck
+from ..io.poses import PoseCheck
 
 STAGES = ("mde", "points", "gp", "fusion")
 """The timed stages of `Mapper.add_frame` (keys of `FrameResult.timings`, plus "total")."""

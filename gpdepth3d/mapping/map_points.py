@@ -9,7 +9,7 @@ import numpy as np
 from ..camera import PinholeCamera, check_pose, transform_points
 from ..errors import ShapeError, describe
 from ..measurements import SparseDepth, project_points
-from .trajectories import invert_pose
+from ..io.poses import invert_pose
 
 
 @dataclass(frozen=True)

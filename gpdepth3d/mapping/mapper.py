@@ -29,7 +29,7 @@ not finite is masked and counted before fusion; a stage that fails (the MDE fron
 the fusion of a frame with nothing in range) is recorded on the `FrameResult` and in
 `Mapper.failures`, naming the frame, and the sequence goes on. Map points outside the image,
 behind the camera or not finite are counted (`MapPointStats`), and a pose under which the map
-points look inverted warns (`gpdepth3d.mapping.trajectories.InvertedPoseWarning`).
+points look inverted warns (`gpdepth3d.io.poses.InvertedPoseWarning`).
 
 Back-end interface: every fused frame is kept in a keyframe store (depth, variance, pose and
 colour at the working resolution, by keyframe id). `Mapper.update_poses` applies a loop
@@ -37,7 +37,7 @@ closure by rebuilding only the TSDF blocks the moved keyframes reached before or
 which gives exactly the volume of fusing every keyframe from scratch with the new poses
 (`gpdepth3d.mapping.loop_closure`). `Mapper.save` / `Mapper.load` write and read the map (volume
 and keyframe store, `gpdepth3d.mapping.map_store`). Poses of a
-back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.mapping.trajectories`.
+back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.io.poses`.
 
 `gpdepth3d.pipelines.mapping_run.fuse_sequence` (and ``gpdepth3d fuse``) runs the whole pipeline on a
 7-Scenes-style sequence and compares the meshes from MDE-only, GP-refined and ground-truth depth.

@@ -1,7 +1,7 @@
 """Whole-sequence mapping: a user's posed sequence mapped by the `Mapper`, and the 7-Scenes experiment.
 
 `open_posed_sequence` reads a user's sequence (images, poses in any format of
-`gpdepth3d.mapping.trajectories`, intrinsics, optional sensor depth); `map_sequence` runs the
+`gpdepth3d.io.poses`, intrinsics, optional sensor depth); `map_sequence` runs the
 `gpdepth3d.mapping.Mapper` over it with the library's defaults (FastDepth or any front-end, its own
 triangulated points, map points of a COLMAP model when the poses come from one) and, with sensor
 depth, scores the mesh against the mesh fused from that depth (`mesh_metrics`, F-score at 5 cm);
@@ -27,7 +27,7 @@ from ..datasets.posed import IMAGE_SUFFIXES, FileSpec, PosedSequence, list_files
 from ..errors import EmptyInputError, GPDepthError, InvalidInputError
 from ..mapping.cloud import ColoredCloud
 from ..mapping.fusion import TSDFFusion, save_mesh
-from ..mapping.trajectories import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
+from ..io.poses import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
 from ..mapping.frame_inputs import resize_depth
 from ..mapping.frame_result import FrameResult
 from ..mapping.mapper import Mapper, MDEFrontEnd
@@ -258,7 +258,7 @@ def open_posed_sequence(
 
     Args:
         images: Image folder (its ``*.color.*`` files if any), glob pattern or list of files.
-        poses: Pose file or folder (`gpdepth3d.mapping.trajectories.read_trajectory`).
+        poses: Pose file or folder (`gpdepth3d.io.poses.read_trajectory`).
         intrinsics: K file or ``"fx,fy,cx,cy"``; optional only with a COLMAP model (its camera).
         pose_format: One of `POSE_FORMATS` or "auto".
         association: How poses find their images (`associate_poses`): auto, name, timestamp, order.

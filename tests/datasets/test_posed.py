@@ -12,7 +12,7 @@ from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.datasets import SevenScenes
 from gpdepth3d.datasets.posed import PosedSequence, list_files, match_depth, read_intrinsics
 from gpdepth3d.errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError
-from gpdepth3d.mapping.trajectories import associate_poses, read_trajectory
+from gpdepth3d.io.poses import associate_poses, read_trajectory
 
 
 def _write_sequence(folder: Path, n: int = 3, size=(40, 30)) -> np.ndarray:

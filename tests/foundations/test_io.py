@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d import io as gio
-from gpdepth3d.errors import DataFormatError, InvalidDepthError, ShapeError
+from gpdepth3d.errors import DataFormatError, InvalidDepthError, InvalidInputError, OutputError, ShapeError
 from gpdepth3d.io import (
     KITTI_PNG_SCALE,
     atomic_path,
@@ -93,7 +93,7 @@ class TestSaveNpz:
             f.write(b"PK\x03\x04 partial zip")
             raise OSError("disk full")
 
-        monkeypatch.setattr(gio.np, "savez_compressed", broken)
+        monkeypatch.setattr(gio.durable.np, "savez_compressed", broken)
         with pytest.raises(OSError):
             save_npz(tmp_path / "x.npz", depth=np.ones(3))
         assert listing(tmp_path) == []
@@ -312,12 +312,12 @@ class TestOutputSets:
             p.write_text("half")
             raise OSError(28, "No space left on device")
 
-        with pytest.raises(gio.OutputError, match="disk full"):
+        with pytest.raises(OutputError, match="disk full"):
             gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: p.write_text("v2"), "s.csv": fails})
         assert self.read(tmp_path) == ["v1:s.txt", "v1:s.csv"]
-        with pytest.raises(gio.OutputError, match="no file"):  # a writer that writes nothing
+        with pytest.raises(OutputError, match="no file"):  # a writer that writes nothing
             gio.atomic_write_set(tmp_path / "s", {"s.txt": lambda p: None, "s.csv": lambda p: None})
-        with pytest.raises(gio.OutputError, match="plain file name"):
+        with pytest.raises(OutputError, match="plain file name"):
             gio.atomic_write_set(tmp_path / "s", {"../s.txt": lambda p: None})
         assert sorted(p.name for p in tmp_path.iterdir()) == ["s.csv", "s.txt"]
 
@@ -355,10 +355,10 @@ class TestOutputSets:
                 raise KeyboardInterrupt
             return real(src, dst)
 
-        monkeypatch.setattr(gio.os, "replace", killed_after_one)
+        monkeypatch.setattr(gio.durable.os, "replace", killed_after_one)
         with pytest.raises(KeyboardInterrupt):
             gio.atomic_write_set(tmp_path / "s", self.writers("v2"))
-        monkeypatch.setattr(gio.os, "replace", real)
+        monkeypatch.setattr(gio.durable.os, "replace", real)
         assert self.read(tmp_path) == ["v2:s.txt", "v1:s.csv"]  # the journal and a temporary stay
         gio.atomic_write_set(tmp_path / "t", self.writers("w", ("t.txt",)))  # another set: not touched
         assert self.read(tmp_path) == ["v2:s.txt", "v1:s.csv"]
@@ -394,12 +394,12 @@ class TestOutputSets:
                 raise KeyboardInterrupt
             return real(src, dst)
 
-        monkeypatch.setattr(gio.os, "replace", interrupted)
+        monkeypatch.setattr(gio.durable.os, "replace", interrupted)
         with pytest.raises(KeyboardInterrupt):
             with gio.write_together():
                 for n in ("a.csv", "b.json"):
                     gio.atomic_write(tmp_path / n, lambda p, n=n: p.write_text(f"new:{n}"))
-        monkeypatch.setattr(gio.os, "replace", real)
+        monkeypatch.setattr(gio.durable.os, "replace", real)
         assert [(tmp_path / n).read_text() for n in ("a.csv", "b.json")] == ["new:a.csv", "old:b.json"]
         with gio.write_together():  # the next run writing there finishes the interrupted commit first
             gio.atomic_write(tmp_path / "c.txt", lambda p: p.write_text("c"))
@@ -472,7 +472,7 @@ def _commit_then_die(folder):
         if calls["n"] == 1:
             os._exit(9)
 
-    gio.os.replace = die
+    gio.durable.os.replace = die
     gio.atomic_write_set(folder / "s", {n: (lambda p, n=n: p.write_text(f"v2:{n}")) for n in ("s.txt", "s.csv")})
 
 
@@ -487,17 +487,17 @@ class TestOutputChecks:
             (tmp_path / "f" / "x", "not a folder"),
             (3, "file path"),
         ):
-            with pytest.raises(gio.OutputError, match=text):
+            with pytest.raises(OutputError, match=text):
                 gio.check_output_path(bad)
 
     def test_check_output_folder(self, tmp_path, monkeypatch):
         assert gio.check_output_folder(tmp_path / "a" / "b") == tmp_path / "a" / "b"
         (tmp_path / "f").write_text("")
         for bad, text in (("", "name"), (tmp_path / "f", "in the way"), (tmp_path / "f" / "x", "not a folder")):
-            with pytest.raises(gio.OutputError, match=text):
+            with pytest.raises(OutputError, match=text):
                 gio.check_output_folder(bad)
         monkeypatch.setattr(os, "access", lambda *a, **k: False)
-        with pytest.raises(gio.OutputError, match="not writable"):
+        with pytest.raises(OutputError, match="not writable"):
             gio.check_output_folder(tmp_path / "a")
 
     def test_write_problem_names_the_cause(self):
@@ -521,7 +521,7 @@ class TestDepthPngValues:
 
     @pytest.mark.parametrize("bad", [0, -1, float("nan"), float("inf"), "1", None, True])
     def test_check_png_scale(self, bad):
-        with pytest.raises(gio.InvalidInputError, match="png_scale"):
+        with pytest.raises(InvalidInputError, match="png_scale"):
             gio.check_png_scale(bad)
         assert gio.check_png_scale(np.float32(0.5)) == 0.5
 

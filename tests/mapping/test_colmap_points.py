@@ -10,7 +10,7 @@ import pytest
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
-from gpdepth3d.mapping.trajectories import read_colmap_model
+from gpdepth3d.io.poses import read_colmap_model
 
 
 def _hololens(root: Path, indices):

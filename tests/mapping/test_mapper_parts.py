@@ -28,7 +28,7 @@ from gpdepth3d.mapping.map_store import (
 from gpdepth3d.mapping.mapper_config import MapperConfig
 from gpdepth3d.mapping.own_points import OwnPoints
 from gpdepth3d.mapping.refinding import RefindConfig
-from gpdepth3d.mapping.trajectories import InvertedPoseWarning
+from gpdepth3d.io.poses import InvertedPoseWarning
 from gpdepth3d.mapping.triangulation_config import TriangulationConfig
 from gpdepth3d.measurements import SparseDepth
 

@@ -358,7 +358,7 @@ class TestRobustness:
         assert len(mapper.mesh().faces) > 100
 
     def test_inverted_pose_and_points_outside_are_reported(self, shared_data):
-        from gpdepth3d.mapping.trajectories import InvertedPoseWarning, invert_pose
+        from gpdepth3d.io.poses import InvertedPoseWarning, invert_pose
 
         f = _frames(shared_data, (0,))[0]
         world = _world_points(f, 200, 1)
@@ -392,7 +392,7 @@ class TestRobustness:
         # own triangulation, no map points: an inverted pose in the middle of a real sequence leaves
         # (almost) none of its tracks triangulated; that frame is warned about by name, a clean run is not
         from gpdepth3d.mapping.frame_points import POSE_TRACK_SHARE
-        from gpdepth3d.mapping.trajectories import InvertedPoseWarning, invert_pose
+        from gpdepth3d.io.poses import InvertedPoseWarning, invert_pose
 
         frames = _frames(shared_data, range(0, 14))
         config = MapperConfig(working_scale=0.25)  # the tracker's defaults: window 8, lag 4

@@ -14,7 +14,7 @@ from gpdepth3d.errors import DataFormatError, InvalidInputError, OutputError, Sh
 from gpdepth3d.pipelines.mapping_run import map_sequence, open_posed_sequence, write_map
 from gpdepth3d.mapping.cloud import ColoredCloud
 from gpdepth3d.mapping.mapper import Mapper
-from gpdepth3d.mapping.trajectories import Trajectory, write_tum_trajectory
+from gpdepth3d.io.poses import Trajectory, write_tum_trajectory
 
 
 @pytest.fixture()
@@ -134,7 +134,7 @@ class TestColmapInputs:
     def test_model_gives_poses_camera_and_map_points(self, seven: Path, tmp_path: Path):
         import pycolmap
 
-        from gpdepth3d.mapping.trajectories import invert_pose, read_trajectory
+        from gpdepth3d.io.poses import invert_pose, read_trajectory
 
         poses = read_trajectory(seven / "traj.txt").poses
         names = sorted(p.name for p in (seven / "rgb").iterdir())

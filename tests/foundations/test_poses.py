@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.trajectories: pose helpers, TUM / ORB-SLAM3 / KITTI / COLMAP readers, the inverted-pose check."""
+"""Tests of gpdepth3d.io.poses: pose helpers, TUM / ORB-SLAM3 / KITTI / COLMAP readers, the inverted-pose check."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError
-from gpdepth3d.mapping.trajectories import (
+from gpdepth3d.io.poses import (
     InvertedPoseWarning,
     associate_poses,
     detect_pose_format,
