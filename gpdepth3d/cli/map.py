@@ -9,9 +9,11 @@ from pathlib import Path
 from typing import Any, Literal, Optional
 
 from ..errors import InvalidInputError
+from ..io.poses import ASSOCIATIONS, POSE_FORMATS
 
-PoseFormat = Literal["auto", "tum", "kitti", "rows", "files", "colmap"]
-Association = Literal["auto", "name", "timestamp", "order"]
+# the choices come from the one format table (gpdepth3d.io.poses): a new format is a new choice
+PoseFormat = Literal[("auto", *POSE_FORMATS)]  # type: ignore[valid-type]
+Association = Literal[ASSOCIATIONS]  # type: ignore[valid-type]
 
 
 def map_command(

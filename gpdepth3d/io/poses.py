@@ -8,14 +8,16 @@ OpenCV camera frame: x right, y down, z forward), whatever the file stores. Form
   world) and ORB-SLAM3's ``KeyFrameTrajectory.txt`` / ``CameraTrajectory.txt`` (the same format)
   (`read_tum_trajectory`; every quaternion must be of unit length and every timestamp unique;
   written back with evo, `write_tum_trajectory`);
-* ``kitti``: KITTI odometry poses, one row-major 3x4 camera-to-world matrix per line, read with
-  evo (`read_kitti_poses`);
+* ``kitti``: KITTI odometry poses, one row-major 3x4 camera-to-world matrix per line
+  (`read_kitti_poses`; `load_poses` gives them as a list);
 * ``rows``: one flattened row-major 4x4 camera-to-world matrix per line (`read_flat_poses`);
 * ``files``: a folder of per-image text files holding a 4x4 camera-to-world matrix each, as
   7-Scenes' ``frame-XXXXXX.pose.txt`` (`read_pose_files`; the poses carry the files' names);
 * ``colmap``: COLMAP models (``cameras``, ``images``, ``points3D``, binary or text) read with
   pycolmap (`read_colmap_model`): COLMAP stores ``cam_from_world`` (world to camera); it is
   inverted here.
+
+A single pose in a file of its own (4x4, or 3x4 as 12 numbers) is read by `load_pose`.
 
 `associate_poses` gives each image of a sequence its pose: by name (per-image files, COLMAP),
 by timestamp (TUM, image files named by their time) or by order.
@@ -354,15 +356,17 @@ def write_tum_trajectory(path: str | Path, trajectory: Trajectory) -> Path:
 
 
 def read_kitti_poses(path: str | Path) -> Trajectory:
-    """Reads KITTI odometry poses (one row-major 3x4 camera-to-world matrix per line) with evo."""
-    from evo.tools import file_interface
+    """Reads KITTI odometry poses: one row-major 3x4 camera-to-world matrix (12 numbers) per line.
 
+    Line k (comments and blank lines skipped) is the pose of the k-th image.
+
+    Raises:
+        DataFormatError: if the file is missing, a line is not 12 finite numbers or not a rigid
+            transform (naming the line).
+    """
     path = _check_file(path)
-    try:
-        traj = file_interface.read_kitti_poses_file(str(path))
-    except Exception as exc:  # noqa: BLE001 - evo raises its own and numpy errors on bad files
-        raise DataFormatError(path, f"not a KITTI pose file: {exc}") from None
-    return Trajectory(np.array(traj.poses_se3))
+    table, lines = _numeric_rows(path, (12,), "KITTI 3x4 pose per line")
+    return Trajectory(_poses_from_rows(path, table, lines))
 
 
 def _poses_from_rows(path: Path, table: np.ndarray, lines: np.ndarray) -> np.ndarray:
@@ -750,15 +754,8 @@ def load_pose(path: str | Path) -> np.ndarray:
 
 
 def load_poses(path: str | Path) -> list[np.ndarray]:
-    """Reads one pose per line (12 numbers, row-major 3x4, KITTI odometry style) as 4x4 matrices."""
-    path = _as_path(path)
-    if not path.is_file():
-        raise DataFormatError(path, "pose file not found")
-    try:
-        table = np.loadtxt(path, ndmin=2)
-    except ValueError as exc:
-        raise DataFormatError(path, f"expected lines of 12 numbers: {exc}") from None
-    if table.shape[1] != 12:
-        raise DataFormatError(path, f"expected 12 numbers per line (3x4 pose), got {table.shape[1]}")
-    bottom = np.tile([0.0, 0.0, 0.0, 1.0], (table.shape[0], 1))
-    return [check_pose(T.reshape(4, 4), f"{path} line {i + 1}") for i, T in enumerate(np.hstack([table, bottom]))]
+    """Reads one pose per line (12 numbers, row-major 3x4, KITTI odometry style) as 4x4 matrices.
+
+    The KITTI reader, `read_kitti_poses`, as a list (the viewer's form).
+    """
+    return list(read_kitti_poses(path).poses)

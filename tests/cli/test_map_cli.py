@@ -200,3 +200,18 @@ def test_view_and_fuse_print_f(shared_data, models_dir, tmp_path, capsys):
     )
     assert code == 0, err
     assert re.search(r"F-score at 5 cm against the ground-truth mesh: mde \d\.\d{3}", out)
+
+
+def test_pose_choices_come_from_the_one_format_table(capsys):
+    """`map --pose-format` offers exactly `auto` and the formats `gpdepth3d.io.poses` reads."""
+    import typing
+
+    from gpdepth3d.cli.map import Association, PoseFormat
+    from gpdepth3d.io.poses import ASSOCIATIONS, POSE_FORMATS
+
+    assert typing.get_args(PoseFormat) == ("auto", *POSE_FORMATS)
+    assert typing.get_args(Association) == ASSOCIATIONS
+    with pytest.raises(SystemExit):
+        main(["map", "--help"])
+    help_text = capsys.readouterr().out
+    assert all(name in help_text for name in POSE_FORMATS)
