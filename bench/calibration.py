@@ -122,7 +122,7 @@ def seven_scenes_triangulated(data: Path, models: Path, step: int = 3) -> dict:
     frame from the 8 posed frames before it and the 4 after (the Mapper's window and lag), scored on every
     Kinect pixel at 320 x 240."""
     import gpdepth3d as g
-    from gpdepth3d.mapping.triangulation import triangulate_frames
+    from gpdepth3d.mapping.points.triangulation import triangulate_frames
     from gpdepth3d.mde import load_frontend
 
     fastdepth = load_frontend("fastdepth", models_dir=models)

@@ -16,7 +16,7 @@ Pipeline per frame (`gpdepth3d.mapping.Mapper`, refinement and fusion at 320 x 2
 truncation 8 cm, depth_max 5 m):
 
 * MDE: FastDepth (int8 TFLite, real network) on the RGB image.
-* Sparse points: the Mapper's own triangulation (`gpdepth3d.mapping.triangulation`): with the default
+* Sparse points: the Mapper's own triangulation (`gpdepth3d.mapping.points.triangulation`): with the default
   ``detector="klt"`` a `TrackTriangulator` follows corners frame to frame and triangulates each
   track from every view it was seen in among the ``--window`` frames before and the ``--lag``
   frames after the frame (the Mapper's fixed lag), with the sequence's poses (no ground truth);
@@ -112,7 +112,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     from gpdepth3d.camera import PinholeCamera
     from gpdepth3d.datasets.sevenscenes import SevenScenes
-    from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion
+    from gpdepth3d.mapping.tsdf.fusion import FusionConfig, TSDFFusion
     from gpdepth3d.gp.model import DepthGPConfig
     from gpdepth3d.io import atomic_write
     from gpdepth3d.io import to_jsonable
@@ -122,7 +122,7 @@ def main() -> None:
     from gpdepth3d.metrics import mesh_metrics
     from gpdepth3d.measurements import project_points
     from gpdepth3d.mde.tflite import FastDepthTFLite
-    from gpdepth3d.mapping.triangulation import TriangulationConfig, triangulate_frames
+    from gpdepth3d.mapping.points.triangulation import TriangulationConfig, triangulate_frames
 
     import ast
 

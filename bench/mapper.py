@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     from gpdepth3d.camera import PinholeCamera
     from gpdepth3d.datasets.sevenscenes import SevenScenes
-    from gpdepth3d.mapping.fusion import TSDFFusion
+    from gpdepth3d.mapping.tsdf.fusion import TSDFFusion
     from gpdepth3d.io import atomic_write
     from gpdepth3d.mapping.frame_result import STAGES
     from gpdepth3d.mapping.mapper import SEVEN_SCENES_RGB_K, Mapper

@@ -17,7 +17,7 @@ the MDE, the library's own triangulated points (no sensor depth used), and in th
 
 * ``mde_only``: the MDE depth of every frame fused with uniform weights (``MapperConfig(refine=False)``);
 * ``reference``: the sensor depth fused with uniform weights (the mesh every other one is scored against);
-* with ``--colmap``: a second Mapper fed pycolmap's points (`gpdepth3d.mapping.colmap_points`; features,
+* with ``--colmap``: a second Mapper fed pycolmap's points (`gpdepth3d.mapping.points.colmap_points`; features,
   matching and triangulation with the sequence's poses held fixed) as SLAM map points, no own points,
   each with a depth sigma of ``--colmap-sigma`` times its distance.
 
@@ -161,7 +161,7 @@ def refuse(path: Path, fusion_configs: dict) -> dict:
     """Fuses the frames `save_fused_frames` wrote with each of ``fusion_configs`` (name -> FusionConfig) and scores
     each mesh against the sensor-depth mesh (F at 5 cm, precision, recall); weights as the `Mapper` computes them."""
     from gpdepth3d.camera import PinholeCamera
-    from gpdepth3d.mapping.fusion import TSDFFusion
+    from gpdepth3d.mapping.tsdf.fusion import TSDFFusion
     from gpdepth3d.metrics import mesh_metrics
 
     data = np.load(path)
@@ -191,7 +191,7 @@ def refuse(path: Path, fusion_configs: dict) -> dict:
 def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, save_frames: Path | None = None) -> dict:
     """One Mapper pass (plus the MDE-only and reference volumes) over a loaded sequence; with ``save_frames``
     what it fused is also written there (`save_fused_frames`)."""
-    from gpdepth3d.mapping.fusion import TSDFFusion
+    from gpdepth3d.mapping.tsdf.fusion import TSDFFusion
     from gpdepth3d.mapping.frame_inputs import resize_depth
     from gpdepth3d.mapping.mapper import Mapper
     from gpdepth3d.metrics import mesh_metrics
@@ -289,7 +289,7 @@ def colmap_run(frames: list, mde_depths: list, config, relative_sigma: float) ->
     """pycolmap's points (poses held fixed) as the Mapper's map points, each frame given those it observes."""
     import tempfile
 
-    from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
+    from gpdepth3d.mapping.points.colmap_points import triangulate_with_colmap
     from gpdepth3d.io.poses import read_colmap_model
 
     t0 = time.perf_counter()

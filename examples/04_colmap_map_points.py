@@ -17,7 +17,7 @@ import numpy as np
 
 import gpdepth3d as g
 from gpdepth3d.io import load_rgb
-from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
+from gpdepth3d.mapping.points.colmap_points import triangulate_with_colmap
 from gpdepth3d.io.poses import read_colmap_model, read_flat_poses
 
 

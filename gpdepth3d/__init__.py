@@ -13,6 +13,7 @@ foundations (`errors`, `camera`, `measurements`, `sampling`, `metrics`, `io`) < 
 modules that define it; nothing here comes from `evaluation`.
 """
 
+from ._deprecation import install as _install_moved_modules
 from .errors import CalibrationError as CalibrationError
 from .errors import ConnectionFailedError as ConnectionFailedError
 from .errors import ConvergenceError as ConvergenceError
@@ -54,14 +55,14 @@ from .completion.complete import PosteriorWarning as PosteriorWarning
 from .mapping.cloud import backproject_depth as backproject_depth
 from .mapping.cloud import backproject_posterior as backproject_posterior
 from .mapping.cloud import ColoredCloud as ColoredCloud
-from .mapping.fusion import FusionConfig as FusionConfig
-from .mapping.fusion import save_mesh as save_mesh
-from .mapping.fusion import TSDFFusion as TSDFFusion
+from .mapping.tsdf.fusion import FusionConfig as FusionConfig
+from .mapping.tsdf.fusion import save_mesh as save_mesh
+from .mapping.tsdf.fusion import TSDFFusion as TSDFFusion
 from .mapping.frame_result import FrameResult as FrameResult
 from .mapping.mapper import Mapper as Mapper
 from .mapping.mapper_config import MapperConfig as MapperConfig
-from .mapping.map_points import project_map_points as project_map_points
-from .mapping.map_points import sparse_from_map_points as sparse_from_map_points
+from .mapping.points.map_points import project_map_points as project_map_points
+from .mapping.points.map_points import sparse_from_map_points as sparse_from_map_points
 from .io.poses import associate_poses as associate_poses
 from .io.poses import check_pose_orientation as check_pose_orientation
 from .io.poses import invert_pose as invert_pose
@@ -76,12 +77,14 @@ from .io.poses import read_tum_trajectory as read_tum_trajectory
 from .io.poses import tq_from_pose as tq_from_pose
 from .io.poses import Trajectory as Trajectory
 from .io.poses import write_tum_trajectory as write_tum_trajectory
-from .mapping.triangulation import triangulate_frames as triangulate_frames
-from .mapping.triangulation import TriangulationConfig as TriangulationConfig
+from .mapping.points.triangulation import triangulate_frames as triangulate_frames
+from .mapping.points.triangulation import TriangulationConfig as TriangulationConfig
 from .pipelines.mapping_run import map_sequence as map_sequence
 from .pipelines.mapping_run import open_posed_sequence as open_posed_sequence
 
 __version__ = "0.1.0"
+
+_install_moved_modules()  # the old module paths of this release's moves (gpdepth3d._deprecation.MOVED_MODULES)
 
 
 def __getattr__(name: str):

@@ -21,12 +21,21 @@ MOVED_MODULES = {
     "gpdepth3d.experiments.baselines": "gpdepth3d.evaluation.baselines",
     "gpdepth3d.experiments.synthetic": "gpdepth3d.datasets.synthetic",
     "gpdepth3d.mapping.trajectories": "gpdepth3d.io.poses",
+    "gpdepth3d.mapping.fusion": "gpdepth3d.mapping.tsdf.fusion",
+    "gpdepth3d.mapping.fusion_config": "gpdepth3d.mapping.tsdf.fusion_config",
+    "gpdepth3d.mapping.fusion_weights": "gpdepth3d.mapping.tsdf.fusion_weights",
+    "gpdepth3d.mapping.triangulation": "gpdepth3d.mapping.points.triangulation",
+    "gpdepth3d.mapping.triangulation_config": "gpdepth3d.mapping.points.triangulation_config",
+    "gpdepth3d.mapping.refinding": "gpdepth3d.mapping.points.refinding",
+    "gpdepth3d.mapping.local_map": "gpdepth3d.mapping.points.local_map",
+    "gpdepth3d.mapping.colmap_points": "gpdepth3d.mapping.points.colmap_points",
+    "gpdepth3d.mapping.map_points": "gpdepth3d.mapping.points.map_points",
 }
 
 
 def _fresh_import(name: str):
     """Import ``name`` as a first import would (the shim warns when it runs, not when it is cached)."""
-    for key in [k for k in sys.modules if k == name or k.startswith("gpdepth3d.experiments")]:
+    for key in [k for k in sys.modules if k == name or k.startswith("gpdepth3d.experiments") or k in MOVED_MODULES]:
         del sys.modules[key]
     return importlib.import_module(name)
 
@@ -36,7 +45,9 @@ def _fresh_import(name: str):
 def test_old_module_path_is_the_new_module(old, new):
     with pytest.warns(DeprecationWarning, match=new.replace(".", r"\.")) as record:
         shim = _fresh_import(old)
-    assert shim is importlib.import_module(new)
+    module = importlib.import_module(new)
+    assert shim is module and sys.modules[old] is module
+    assert module.__spec__.name == new, "the moved module keeps its own spec"
     assert any(old in str(w.message) for w in record)
 
 
@@ -75,3 +86,21 @@ def test_importing_the_package_warns_nothing():
         "import gpdepth3d, gpdepth3d.pipelines.batch, gpdepth3d.evaluation.evaluation"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_the_table_is_the_package_s():
+    """The test's table is the package's own, every new path imports, and no file stays at an old path."""
+    from pathlib import Path
+
+    from gpdepth3d._deprecation import MOVED_MODULES as TABLE
+
+    assert TABLE == MOVED_MODULES
+    root = Path(gpdepth3d.__file__).parent.parent
+    for old, new in TABLE.items():
+        assert not (root / (old.replace(".", "/") + ".py")).exists(), old
+        importlib.import_module(new)
+
+
+def test_unknown_old_path_still_fails():
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("gpdepth3d.mapping.no_such_module")

@@ -126,7 +126,7 @@ def test_seven_scenes_triangulated_points_are_calibrated_densely(shared_data, fa
     smooth field (z^2 floored at the stated noise's share, `gpdepth3d.gp.local_calibration`). Measured: +-2
     sigma 93.2 % (per frame 88-98 %); 82.7 % (per frame 54-92 %) before the floor; 94.4 % without the
     calibration; RMSE 345 mm against FastDepth scaled by the points 456 mm."""
-    from gpdepth3d.mapping.triangulation import triangulate_frames
+    from gpdepth3d.mapping.points.triangulation import triangulate_frames
 
     if not (shared_data / "7scenes").is_dir():
         pytest.skip("7scenes not found")

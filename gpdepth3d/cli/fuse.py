@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ..io import write_json, write_together
-from ..mapping.fusion import FusionConfig, save_mesh
+from ..mapping.tsdf.fusion import FusionConfig, save_mesh
 from ..pipelines.mapping_run import fuse_sequence
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import InvalidInputError

@@ -16,7 +16,7 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..errors import GPDepthError
 from ..measurements import SparseDepth
-from .map_points import MapPointStats, merge_sparse, project_map_points
+from .points.map_points import MapPointStats, merge_sparse, project_map_points
 from ..io.poses import InvertedPoseWarning, PoseCheck, check_pose_orientation
 
 POSE_TRACK_MIN = 50

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..completion.complete import DepthPosterior
 from ..measurements import SparseDepth
-from .map_points import MapPointStats
+from .points.map_points import MapPointStats
 from ..io.poses import PoseCheck
 
 STAGES = ("mde", "points", "gp", "fusion")

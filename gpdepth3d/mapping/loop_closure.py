@@ -13,7 +13,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .fusion import IntegrationStats, TSDFFusion
+from .tsdf.fusion import IntegrationStats, TSDFFusion
 from .map_store import Keyframe
 
 

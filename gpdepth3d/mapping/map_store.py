@@ -19,10 +19,10 @@ from ..camera import PinholeCamera
 from ..errors import DataFormatError
 from ..gp.model import DepthGPConfig
 from ..io import save_npz, write_json
-from .fusion_config import FusionConfig
+from .tsdf.fusion_config import FusionConfig
 from .mapper_config import MapperConfig
-from .refinding import RefindConfig
-from .triangulation_config import TriangulationConfig
+from .points.refinding import RefindConfig
+from .points.triangulation_config import TriangulationConfig
 
 MAP_FILES = ("mapper.json", "keyframes.npz", "volume.npz")
 """The files of a saved map's folder that `Mapper.load` needs (``volume.json`` goes with ``volume.npz``)."""

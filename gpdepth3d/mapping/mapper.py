@@ -14,11 +14,11 @@ Per frame: (1) the MDE depth (given, or from the front-end callable ``rgb -> dep
 triangulates itself from KLT tracks through up to ``window`` earlier and ``lag`` later frames
 (`gpdepth3d.mapping.own_points`; with ``lag`` > 0 a frame is refined and fused ``lag`` calls
 after it was added, see `MapperConfig.lag`) and, where tracks break, SIFT matches with views chosen
-by parallax (`gpdepth3d.mapping.refinding`), their depth scale pulled towards the keyframes already
+by parallax (`gpdepth3d.mapping.points.refinding`), their depth scale pulled towards the keyframes already
 fused (`gpdepth3d.mapping.map_scale`), and the points of the last frames in the parts of the image
-the frame's own points leave empty (`gpdepth3d.mapping.local_map`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
+the frame's own points leave empty (`gpdepth3d.mapping.points.local_map`); (3) the GP posterior (`DepthCompleter`, one kept for the whole
 sequence); (4) TSDF fusion of the posterior median (`fused_depth`) with per-pixel weights from
-its variance (`gpdepth3d.mapping.fusion`).
+its variance (`gpdepth3d.mapping.tsdf.fusion`).
 
 Resolution: ``camera`` describes the RGB images given to `Mapper.add_frame`; features are
 detected at that resolution, while refinement and fusion run at ``working_scale`` times it
@@ -61,11 +61,11 @@ from .cloud import ColoredCloud
 from .frame_inputs import check_keyframe_id, check_map_points_sigma, check_mde_depth, resize_depth
 from .frame_points import PendingFrame, select_measurements
 from .frame_result import STAGES, FrameResult
-from .fusion import IntegrationStats, TSDFFusion, save_mesh
-from .local_map import LocalMap
+from .tsdf.fusion import IntegrationStats, TSDFFusion, save_mesh
+from .points.local_map import LocalMap
 from .loop_closure import PoseUpdate, moved_blocks, reintegrate
 from .map_scale import fused_depth, scale_to_map
-from .map_points import merge_sparse
+from .points.map_points import merge_sparse
 from .map_store import Keyframe, check_map_folder, load_keyframes, read_map_meta, save_keyframes, write_map_meta
 from .mapper_config import MapperConfig
 from .own_points import OwnPoints
@@ -400,7 +400,7 @@ class Mapper:
         one are zeroed and rebuilt from every stored keyframe that reaches them, in the order
         the keyframes were fused; all other blocks are left alone. The volume is then the one
         fusing all keyframes from scratch with the new poses gives (voxel for voxel; see
-        `gpdepth3d.mapping.fusion`).
+        `gpdepth3d.mapping.tsdf.fusion`).
 
         Args:
             poses: keyframe id -> new 4x4 ``T_world_camera``.

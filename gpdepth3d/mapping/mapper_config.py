@@ -9,9 +9,9 @@ import numpy as np
 
 from ..errors import InvalidInputError
 from ..gp.model import CalibrationConfig, DepthGPConfig
-from .fusion_config import FusionConfig
-from .refinding import RefindConfig
-from .triangulation_config import TriangulationConfig
+from .tsdf.fusion_config import FusionConfig
+from .points.refinding import RefindConfig
+from .points.triangulation_config import TriangulationConfig
 
 MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
 """The `Mapper`'s TSDF options: variance weights relative to depth (`FusionConfig.relative_sigma_ref`)."""
@@ -38,7 +38,7 @@ class MapperConfig:
         triangulation: Feature tracking and triangulation options.
         refind: Descriptor re-finding for frames whose KLT tracks gave few points (large camera
             motion): views chosen by parallax, SIFT matches under the poses' epipolar geometry
-            (`gpdepth3d.mapping.refinding`); ``RefindConfig(detector="none")`` turns it off.
+            (`gpdepth3d.mapping.points.refinding`); ``RefindConfig(detector="none")`` turns it off.
         refine: False fuses the (resized) MDE depth itself, with uniform weights (a baseline).
         triangulate: Triangulate the frames' own features.
         window: Earlier frames a frame's KLT tracks are triangulated with.
@@ -64,7 +64,7 @@ class MapperConfig:
         max_points: Most measurements per frame given to the GP, the most certain first (smallest
             sigma / depth): the GP solve grows with them.
         local_map_frames: Earlier frames whose triangulated points fill the gaps of a frame's own
-            (`gpdepth3d.mapping.local_map`; 0 off): in grid cells without a point of its own, a frame
+            (`gpdepth3d.mapping.points.local_map`; 0 off): in grid cells without a point of its own, a frame
             gets the most certain of the points those frames triangulated that it sees.
         local_map_cell: Cell size of that fill, a fraction of the image width.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working

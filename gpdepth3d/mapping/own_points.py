@@ -4,7 +4,7 @@ With the KLT detector a frame's features are followed through ``MapperConfig.win
 ``lag`` later frames (`TrackTriangulator`), so a frame waits ``lag`` calls before it is refined and
 fused; descriptor detectors ("orb", "sift") triangulate each frame at once with a window of earlier
 frames (`triangulate_frames`). A frame whose tracks gave few points gets descriptor matches
-re-found in views chosen by parallax (`gpdepth3d.mapping.refinding`).
+re-found in views chosen by parallax (`gpdepth3d.mapping.points.refinding`).
 """
 
 from __future__ import annotations
@@ -16,13 +16,13 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..measurements import SparseDepth
-from .features import detect_features
+from .points.features import detect_features
 from .frame_points import PendingFrame
-from .map_points import merge_sparse
+from .points.map_points import merge_sparse
 from .map_scale import fast_median
 from .mapper_config import MapperConfig
-from .refinding import Refinder
-from .tracks import TrackTriangulator, triangulate_frames
+from .points.refinding import Refinder
+from .points.tracks import TrackTriangulator, triangulate_frames
 
 
 class OwnPoints:

@@ -26,7 +26,7 @@ from ..datasets.base import Frame
 from ..datasets.posed import IMAGE_SUFFIXES, FileSpec, PosedSequence, list_files
 from ..errors import EmptyInputError, GPDepthError, InvalidInputError
 from ..mapping.cloud import ColoredCloud
-from ..mapping.fusion import TSDFFusion, save_mesh
+from ..mapping.tsdf.fusion import TSDFFusion, save_mesh
 from ..io.poses import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
 from ..mapping.frame_inputs import resize_depth
 from ..mapping.frame_result import FrameResult

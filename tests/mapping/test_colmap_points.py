@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.colmap_points: pycolmap's points with the poses held fixed, read back and mapped."""
+"""Tests of gpdepth3d.mapping.points.colmap_points: pycolmap's points with the poses held fixed, read back and mapped."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.mapping.colmap_points import triangulate_with_colmap
+from gpdepth3d.mapping.points.colmap_points import triangulate_with_colmap
 from gpdepth3d.io.poses import read_colmap_model
 
 
@@ -30,7 +30,7 @@ def _hololens(root: Path, indices):
 def test_pycolmap_points_with_fixed_poses_agree_with_the_sensor_and_feed_the_mapper(shared_data, tmp_path):
     pytest.importorskip("pycolmap")
     from gpdepth3d.gp.model import DepthGPConfig
-    from gpdepth3d.mapping.fusion import FusionConfig
+    from gpdepth3d.mapping.tsdf.fusion import FusionConfig
     from gpdepth3d.mapping.mapper import Mapper
     from gpdepth3d.mapping.mapper_config import MapperConfig
 

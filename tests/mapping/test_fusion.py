@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.fusion: per-pixel weighted TSDF integration, extraction, export, errors."""
+"""Tests of gpdepth3d.mapping.tsdf.fusion: per-pixel weighted TSDF integration, extraction, export, errors."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from gpdepth3d.errors import (
     ProblemTooLargeError,
     ShapeError,
 )
-from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
+from gpdepth3d.mapping.tsdf.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
 PLANE_Z = 1.511  # not on a voxel boundary
@@ -409,7 +409,7 @@ class TestExport:
             save_mesh("not a mesh", tmp_path / "m.ply")
         with pytest.raises(EmptyInputError):
             save_mesh(trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int)), tmp_path / "m.ply")
-        break_writes("gpdepth3d.mapping.tsdf_io")
+        break_writes("gpdepth3d.mapping.tsdf.storage")
         with pytest.raises(OSError):
             save_mesh(mesh, tmp_path / "m.glb")
         assert list(tmp_path.iterdir()) == []
@@ -485,7 +485,7 @@ class TestMemoryGuard:
         import resource
         import time
 
-        import gpdepth3d.mapping.fusion as fusion_module
+        import gpdepth3d.mapping.tsdf.fusion as fusion_module
 
         monkeypatch.setattr(fusion_module, "memory_limit", lambda: 2**30)  # a 1 GiB machine
         fusion = TSDFFusion(CAM, FusionConfig(voxel_size=voxel, truncation=0.06, block_count=64))
@@ -498,7 +498,7 @@ class TestMemoryGuard:
         assert fusion.frames_integrated == 0
 
     def test_sizes_that_fit_pass_and_a_huge_initial_grid_is_refused(self, monkeypatch):
-        import gpdepth3d.mapping.fusion as fusion_module
+        import gpdepth3d.mapping.tsdf.fusion as fusion_module
 
         monkeypatch.setattr(fusion_module, "memory_limit", lambda: 2**30)
         fusion = TSDFFusion(CAM, FusionConfig(voxel_size=0.01, truncation=0.04))
@@ -720,6 +720,6 @@ class TestCompiledUpdate:
 
 
 def _keys_of(points: np.ndarray, block_size: float) -> np.ndarray:
-    from gpdepth3d.mapping.tsdf_blocks import blocks_to_keys
+    from gpdepth3d.mapping.tsdf.blocks import blocks_to_keys
 
     return blocks_to_keys(np.floor(points / block_size).astype(np.int64))

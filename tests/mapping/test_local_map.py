@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.mapping.local_map import LocalMap, fill_cells
+from gpdepth3d.mapping.points.local_map import LocalMap, fill_cells
 from gpdepth3d.mapping.mapper import MapperConfig
 from gpdepth3d.measurements import SparseDepth
 

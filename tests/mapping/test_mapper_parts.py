@@ -13,7 +13,7 @@ from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import DataFormatError, InvalidInputError, ShapeError
 from gpdepth3d.mapping.frame_inputs import check_keyframe_id, check_map_points_sigma, check_mde_depth, resize_depth
 from gpdepth3d.mapping.frame_points import POSE_TRACK_MIN, PendingFrame, select_measurements
-from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion
+from gpdepth3d.mapping.tsdf.fusion import FusionConfig, TSDFFusion
 from gpdepth3d.mapping.loop_closure import moved_blocks, reintegrate
 from gpdepth3d.mapping.map_scale import scale_to_map
 from gpdepth3d.mapping.map_store import (
@@ -27,9 +27,9 @@ from gpdepth3d.mapping.map_store import (
 )
 from gpdepth3d.mapping.mapper_config import MapperConfig
 from gpdepth3d.mapping.own_points import OwnPoints
-from gpdepth3d.mapping.refinding import RefindConfig
+from gpdepth3d.mapping.points.refinding import RefindConfig
 from gpdepth3d.io.poses import InvertedPoseWarning
-from gpdepth3d.mapping.triangulation_config import TriangulationConfig
+from gpdepth3d.mapping.points.triangulation_config import TriangulationConfig
 from gpdepth3d.measurements import SparseDepth
 
 CAM = PinholeCamera(60.0, 60.0, 31.5, 23.5, 64, 48)

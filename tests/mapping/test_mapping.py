@@ -13,13 +13,13 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, DataFormatError, EmptyInputError, InvalidInputError, ShapeError
-from gpdepth3d.mapping.fusion import FusionConfig
+from gpdepth3d.mapping.tsdf.fusion import FusionConfig
 from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.gp.model import CalibrationConfig, DepthGPConfig
 from gpdepth3d.mapping import Mapper, MapperConfig, merge_sparse, project_map_points, sparse_from_map_points
 from gpdepth3d.cli.fuse import fuse_command
 from gpdepth3d.measurements import SparseDepth
-from gpdepth3d.mapping.triangulation import TriangulationConfig
+from gpdepth3d.mapping.points.triangulation import TriangulationConfig
 from gpdepth3d.metrics import mesh_metrics
 
 CAM = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.refinding: views chosen by parallax, descriptor points across large motion."""
+"""Tests of gpdepth3d.mapping.points.refinding: views chosen by parallax, descriptor points across large motion."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.mapping.refinding import RefindConfig, Refinder, select_views
-from gpdepth3d.mapping.triangulation import TrackTriangulator
+from gpdepth3d.mapping.points.refinding import RefindConfig, Refinder, select_views
+from gpdepth3d.mapping.points.triangulation import TrackTriangulator
 
 
 def _at(x: float, yaw_deg: float = 0.0) -> np.ndarray:

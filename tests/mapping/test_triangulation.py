@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.triangulation: geometry, checks, uncertainty propagation, real 7-Scenes frames."""
+"""Tests of gpdepth3d.mapping.points.triangulation: geometry, checks, uncertainty propagation, real 7-Scenes frames."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import CalibrationError, InvalidInputError, ShapeError
-from gpdepth3d.mapping.triangulation import (
+from gpdepth3d.mapping.points.triangulation import (
     Features,
     MultiViewPoints,
     TrackTriangulator,
@@ -299,7 +299,7 @@ class TestTriangulateTracks:
 
     def test_held_pose_kernels_match_the_dense_normal_equations(self):
         """The compiled held-pose path (refinement, variance, checks) agrees with `_Problem`'s numpy algebra."""
-        from gpdepth3d.mapping.multiview import (
+        from gpdepth3d.mapping.points.multiview import (
             _held_pose_depths,
             _held_pose_variance,
             _linear_inverse_depth,
@@ -424,7 +424,7 @@ class TestTriangulateTracks:
         """`_Problem.jacobian` is the derivative of its residuals; the variance is the inverse of J^T J's depth block."""
         from scipy.optimize._numdiff import approx_derivative
 
-        from gpdepth3d.mapping.multiview import _cauchy_per_observation, _joint_inverse_depth_variance, _Problem
+        from gpdepth3d.mapping.points.multiview import _cauchy_per_observation, _joint_inverse_depth_variance, _Problem
 
         rng = np.random.default_rng(22)
         X = _scene(40, seed=22)

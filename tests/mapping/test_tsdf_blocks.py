@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.tsdf_blocks (block keys, grid, look-up, torch views) and tsdf_io's volume files."""
+"""Tests of gpdepth3d.mapping.tsdf.blocks (block keys, grid, look-up, torch views) and tsdf_io's volume files."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from gpdepth3d.camera import PinholeCamera
 from gpdepth3d.errors import DataFormatError
-from gpdepth3d.mapping.fusion import FusionConfig, TSDFFusion
-from gpdepth3d.mapping.tsdf_blocks import (
+from gpdepth3d.mapping.tsdf.fusion import FusionConfig, TSDFFusion
+from gpdepth3d.mapping.tsdf.blocks import (
     KEY_BIAS,
     blocks_to_keys,
     find_blocks,
@@ -21,7 +21,7 @@ from gpdepth3d.mapping.tsdf_blocks import (
     to_torch,
     torch_device,
 )
-from gpdepth3d.mapping.tsdf_io import read_volume, write_volume
+from gpdepth3d.mapping.tsdf.storage import read_volume, write_volume
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
 

@@ -10,7 +10,7 @@ import pytest
 
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.pipelines.mapping_run import FrameEvent, map_sequence, open_posed_sequence
-from gpdepth3d.mapping.fusion import FusionConfig
+from gpdepth3d.mapping.tsdf.fusion import FusionConfig
 from gpdepth3d.mapping.mapper_config import MapperConfig
 from gpdepth3d.viewer import MISSING_COLOR
 from gpdepth3d.viewer.live_map import LiveMapViewer, sigma_colors

@@ -14,10 +14,10 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import least_squares
 
-from ..camera import PinholeCamera, check_pose
-from ..completion.threads import single_threaded_blas
-from ..errors import InvalidInputError, ShapeError, describe
-from ..measurements import SparseDepth
+from ...camera import PinholeCamera, check_pose
+from ...completion.threads import single_threaded_blas
+from ...errors import InvalidInputError, ShapeError, describe
+from ...measurements import SparseDepth
 from .triangulation_config import TriangulationConfig
 
 

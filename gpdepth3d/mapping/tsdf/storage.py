@@ -13,10 +13,10 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from ..camera import PinholeCamera
-from ..errors import DataFormatError, EmptyInputError, InvalidInputError
-from ..extras import require
-from ..io import atomic_path, write_json
+from ...camera import PinholeCamera
+from ...errors import DataFormatError, EmptyInputError, InvalidInputError
+from ...extras import require
+from ...io import atomic_path, write_json
 from .fusion_config import FusionConfig
 
 MESH_FORMATS = (".ply", ".glb", ".obj")

@@ -1,9 +1,9 @@
 """The TSDF volume (`TSDFFusion`): posed depth frames fused with per-pixel weights into an Open3D `VoxelBlockGrid`.
 
 Open3D's stock ``VoxelBlockGrid.integrate`` gives every pixel the weight 1. Here each pixel
-carries its own weight (`gpdepth3d.mapping.fusion_weights`) and, with a variance, its own
-truncation (`gpdepth3d.mapping.fusion_config`); the projective voxel update of KinectFusion
-(Newcombe et al. 2011) with those weights is `gpdepth3d.mapping.tsdf_kernels`, compiled on the
+carries its own weight (`gpdepth3d.mapping.tsdf.fusion_weights`) and, with a variance, its own
+truncation (`gpdepth3d.mapping.tsdf.fusion_config`); the projective voxel update of KinectFusion
+(Newcombe et al. 2011) with those weights is `gpdepth3d.mapping.tsdf.kernels`, compiled on the
 CPU and in torch on zero-copy DLPack views of the grid's buffers on CUDA (``FusionConfig.device``).
 The blocks to allocate are found by sampling every valid pixel's ray through the truncation band
 (Open3D's ``compute_unique_block_coordinates`` samples the band too sparsely for truncations of
@@ -27,8 +27,8 @@ blocks therefore reproduces, voxel for voxel (bit for bit on one device), the vo
 integrating the same frames from scratch gives; `gpdepth3d.mapping.Mapper.update_poses` uses
 this after a loop closure.
 
-Extraction (meshes, surface points, voxels) is `gpdepth3d.mapping.tsdf_extraction`; the files
-(`TSDFFusion.save`, `save_mesh`) are `gpdepth3d.mapping.tsdf_io`.
+Extraction (meshes, surface points, voxels) is `gpdepth3d.mapping.tsdf.extraction`; the files
+(`TSDFFusion.save`, `save_mesh`) are `gpdepth3d.mapping.tsdf.storage`.
 """
 
 from __future__ import annotations
@@ -40,22 +40,22 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..errors import EmptyInputError, InvalidInputError, ProblemTooLargeError, ShapeError, describe
-from ..extras import require
-from ..limits import memory_limit
-from .cloud import ColoredCloud
+from ...camera import PinholeCamera, check_pose
+from ...errors import EmptyInputError, InvalidInputError, ProblemTooLargeError, ShapeError, describe
+from ...extras import require
+from ...limits import memory_limit
+from ..cloud import ColoredCloud
 from .fusion_config import FusionConfig
 from .fusion_weights import weights_from_variance
-from .tsdf_blocks import find_blocks, grid_attributes, keys_to_blocks, new_grid, to_torch, torch_device
-from .tsdf_extraction import MeshChunks, grid_mesh, observed_voxels, surface_cloud
-from .tsdf_io import read_volume, save_mesh, write_volume
-from .tsdf_kernels import band_keys_cpu, band_keys_torch, masked_frame, update_cpu, update_torch
+from .blocks import find_blocks, grid_attributes, keys_to_blocks, new_grid, to_torch, torch_device
+from .extraction import MeshChunks, grid_mesh, observed_voxels, surface_cloud
+from .storage import read_volume, save_mesh, write_volume
+from .kernels import band_keys_cpu, band_keys_torch, masked_frame, update_cpu, update_torch
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
 
-    from ..completion.complete import DepthPosterior
+    from ...completion.complete import DepthPosterior
 
 __all__ = ["FusionConfig", "IntegrationStats", "TSDFFusion", "save_mesh", "weights_from_variance"]
 
@@ -305,7 +305,7 @@ class TSDFFusion:
         T: np.ndarray,
         trunc: np.ndarray | None = None,
     ) -> int:
-        """The voxel update of one frame over the blocks ``keys`` (`gpdepth3d.mapping.tsdf_kernels`).
+        """The voxel update of one frame over the blocks ``keys`` (`gpdepth3d.mapping.tsdf.kernels`).
 
         On the CPU a compiled loop (`update_cpu`, numba) visits every voxel of the blocks once;
         on CUDA the same update runs as torch tensor operations (`_update_torch`).

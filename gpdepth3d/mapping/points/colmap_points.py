@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..errors import InvalidInputError
-from ..io.poses import invert_pose
+from ...camera import PinholeCamera, check_pose
+from ...errors import InvalidInputError
+from ...io.poses import invert_pose
 
 
 def _write_images(rgbs: Sequence[np.ndarray], camera: PinholeCamera, folder: Path) -> list[str]:

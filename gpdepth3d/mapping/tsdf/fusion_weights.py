@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InvalidInputError, ShapeError, describe
+from ...errors import InvalidInputError, ShapeError, describe
 
 
 def weights_from_variance(

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..errors import InvalidInputError, ShapeError, describe
+from ...camera import PinholeCamera, check_pose
+from ...errors import InvalidInputError, ShapeError, describe
 from .triangulation_config import TriangulationConfig
 
 

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..extras import require
+from ...extras import require
 
 if TYPE_CHECKING:  # pragma: no cover
     from .fusion_config import FusionConfig

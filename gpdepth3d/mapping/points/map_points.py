@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose, transform_points
-from ..errors import ShapeError, describe
-from ..measurements import SparseDepth, project_points
-from ..io.poses import invert_pose
+from ...camera import PinholeCamera, check_pose, transform_points
+from ...errors import ShapeError, describe
+from ...measurements import SparseDepth, project_points
+from ...io.poses import invert_pose
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..errors import InvalidInputError, ShapeError, describe
+from ...errors import InvalidInputError, ShapeError, describe
 
 Weighting = Literal["uniform", "variance"]
 
@@ -37,7 +37,7 @@ class FusionConfig:
         weight_cap: Largest accumulated weight of a voxel (later frames keep a share of
             ``w / (cap + w)``; makes the map adapt).
         weighting: "uniform" (every pixel weight 1) or "variance" (from the posterior variance,
-            `gpdepth3d.mapping.fusion_weights`).
+            `gpdepth3d.mapping.tsdf.fusion_weights`).
         sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
             (metres) at which a pixel counts as half an observation.
         relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
@@ -62,7 +62,7 @@ class FusionConfig:
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
         block_count: Initial number of blocks of the hash map (it grows when needed).
         integrate_color: Fuse colours as well.
-        integrate_variance: Keep a per-voxel depth variance (m^2; `gpdepth3d.mapping.fusion`);
+        integrate_variance: Keep a per-voxel depth variance (m^2; `gpdepth3d.mapping.tsdf.fusion`);
             `TSDFFusion.integrate` then needs a ``variance`` for every frame.
         device: Open3D device string, "CPU:0" or "CUDA:0".
         cpu_threads: torch threads of the voxel update on the CPU while it runs (0 = leave

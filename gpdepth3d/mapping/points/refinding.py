@@ -1,6 +1,6 @@
 """Points across large camera motion: views chosen by parallax, features re-found by their descriptors.
 
-Frame-to-frame KLT tracks (`gpdepth3d.mapping.triangulation.TrackTriangulator`) break when the
+Frame-to-frame KLT tracks (`gpdepth3d.mapping.points.triangulation.TrackTriangulator`) break when the
 camera moves far between frames (a walk sampled every few frames). `Refinder` keeps the recent
 posed frames; for a frame whose tracks gave few points it picks the views whose baseline over the
 frame's depth lies in a useful range (`select_views`), matches ORB or SIFT descriptors
@@ -16,9 +16,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..camera import PinholeCamera
-from ..errors import InvalidInputError
-from ..measurements import SparseDepth
+from ...camera import PinholeCamera
+from ...errors import InvalidInputError
+from ...measurements import SparseDepth
 from .features import Features, _gray, detect_features
 from .tracks import triangulate_frames
 from .triangulation_config import TriangulationConfig

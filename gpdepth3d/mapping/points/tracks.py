@@ -7,9 +7,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..errors import InvalidInputError, ShapeError, describe
-from ..measurements import SparseDepth
+from ...camera import PinholeCamera, check_pose
+from ...errors import InvalidInputError, ShapeError, describe
+from ...measurements import SparseDepth
 from .features import Features, _gray, detect_features, fundamental_from_poses, match_features
 from .multiview import MultiViewPoints, triangulate_tracks
 from .triangulation_config import TriangulationConfig

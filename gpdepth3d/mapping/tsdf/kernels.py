@@ -23,8 +23,8 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from ..camera import PinholeCamera
-from .tsdf_blocks import KEY_BIAS, KEY_SPAN, blocks_to_keys, to_torch
+from ...camera import PinholeCamera
+from .blocks import KEY_BIAS, KEY_SPAN, blocks_to_keys, to_torch
 
 
 # ---------------------------------------------------------------------- the frame's pixels

@@ -16,9 +16,9 @@ from collections import OrderedDict
 
 import numpy as np
 
-from ..camera import PinholeCamera, transform_points
-from ..errors import InvalidInputError
-from ..measurements import SparseDepth
+from ...camera import PinholeCamera, transform_points
+from ...errors import InvalidInputError
+from ...measurements import SparseDepth
 from .map_points import project_map_points
 
 

@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..errors import EmptyInputError
-from ..extras import require
-from .cloud import ColoredCloud
-from .tsdf_blocks import blocks_to_keys, find_blocks, grid_attributes, keys_to_blocks, new_grid, to_torch, torch_device
+from ...errors import EmptyInputError
+from ...extras import require
+from ..cloud import ColoredCloud
+from .blocks import blocks_to_keys, find_blocks, grid_attributes, keys_to_blocks, new_grid, to_torch, torch_device
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh

@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..errors import ShapeError, describe
+from ...camera import PinholeCamera, check_pose
+from ...errors import ShapeError, describe
 from .features import Features, detect_features, fundamental_from_poses, match_features
 from .tracks import build_tracks
 from .triangulation_config import TriangulationConfig

@@ -7,7 +7,7 @@ from typing import Literal
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from ...errors import InvalidInputError
 
 
 @dataclass(frozen=True)
