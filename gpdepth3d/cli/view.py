@@ -12,7 +12,9 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..camera import read_intrinsics
 from ..io import load_pose, load_poses
-from ..viewer.app import ColorBy, Layout, ViewerConfig, ViewerFrame, check_host, port_taken, show, stored_intrinsics
+from ..viewer.app import show
+from ..viewer.scene_data import ColorBy, Layout, ViewerConfig, ViewerFrame, stored_intrinsics
+from ..viewer.serving import check_host, port_taken
 
 
 def view_command(

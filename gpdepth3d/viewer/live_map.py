@@ -20,7 +20,8 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..errors import InvalidInputError, describe
-from .app import COLORMAPS, MISSING_COLOR, check_host, colorbar_image, wait_until_stopped
+from .colors import COLORMAPS, MISSING_COLOR, colorbar_image
+from .serving import check_host, wait_until_stopped
 
 
 def sigma_colors(sigma: np.ndarray, vmax: Optional[float] = None) -> tuple[np.ndarray, float]:

@@ -204,7 +204,7 @@ class TestErrors:
 
 class TestIntrinsicsTravelWithThePosterior:
     def test_complete_saves_k_of_the_output_grid_and_view_reads_it(self, tmp_path, capsys):
-        from gpdepth3d.viewer.app import stored_intrinsics
+        from gpdepth3d.viewer.scene_data import stored_intrinsics
 
         np.save(tmp_path / "mde.npy", np.full((48, 64), 2.0))
         np.savetxt(tmp_path / "xyz.txt", [[0.0, 0.0, 2.1], [0.5, 0.2, 2.2], [-0.4, -0.3, 1.9]])

@@ -526,7 +526,7 @@ class TestViewCommand:
 
     def test_intrinsics_from_numbers_calibration_or_the_posterior_file(self, tmp_path, room, capsys, monkeypatch):
         import gpdepth3d.cli.view as view
-        from gpdepth3d.viewer.app import stored_intrinsics
+        from gpdepth3d.viewer.scene_data import stored_intrinsics
 
         cameras = []
         original = view.ViewerFrame.from_files
