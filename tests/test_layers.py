@@ -290,3 +290,50 @@ def test_library_names_no_bench_file():
         if "bench/" in line
     ]
     assert named == []
+
+
+# ------------------------------------------------------------------------------------ docs/architecture.md
+ARCHITECTURE = PACKAGE_DIR.parent / "docs" / "architecture.md"
+
+
+def _tree_entries(package_dir: Path) -> dict[str, int]:
+    """``gpdepth3d/sub/`` for each package, ``gpdepth3d/sub/mod.py`` for each module -> its layer rank."""
+    entries = {}
+    for module, path in module_names(package_dir).items():
+        rel = path.relative_to(package_dir.parent).as_posix()
+        name = rel[: -len("__init__.py")] if path.name == "__init__.py" else rel
+        entries[name] = layer(module)[1]
+    return entries
+
+
+def _documented_entries(text: str) -> dict[str, int]:
+    """The (path, rank) rows of the layout table between its start and end markers."""
+    start, end = text.index("<!-- layout table: start -->"), text.index("<!-- layout table: end -->")
+    rows = {}
+    for line in text[start:end].splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) >= 3 and cells[0].startswith("`gpdepth3d/"):
+            assert cells[0].strip("`") not in rows, f"listed twice: {cells[0]}"
+            rows[cells[0].strip("`")] = int(cells[1])
+    return rows
+
+
+def test_architecture_table_is_the_tree():
+    """docs/architecture.md lists every package and module with its layer, and nothing that does not exist."""
+    tree = _tree_entries(PACKAGE_DIR)
+    documented = _documented_entries(ARCHITECTURE.read_text(encoding="utf-8"))
+    assert sorted(set(tree) - set(documented)) == [], "modules missing from docs/architecture.md"
+    assert sorted(set(documented) - set(tree)) == [], "docs/architecture.md lists what does not exist"
+    assert {k: v for k, v in documented.items() if tree[k] != v} == {}, "ranks differ from tests/test_layers.py"
+
+
+def test_architecture_table_check_sees_a_stale_row(tmp_path):
+    """The check fails on a fake tree with a module more, or a row for a module that is gone."""
+    pkg = _tree(tmp_path, CLEAN)
+    entries = _tree_entries(pkg)
+    assert entries["gpdepth3d/"] == ROOT_RANK and entries["gpdepth3d/mapping/cloud.py"] == RANKS["mapping"]
+    table = "\n".join(f"| `{k}` | {v} | x |" for k, v in entries.items())
+    text = f"<!-- layout table: start -->\n{table}\n<!-- layout table: end -->"
+    assert _documented_entries(text) == entries
+    stale = text.replace("| `gpdepth3d/camera.py` | 1 | x |", "| `gpdepth3d/kamera.py` | 1 | x |")
+    assert set(_documented_entries(stale)) ^ set(entries) == {"gpdepth3d/camera.py", "gpdepth3d/kamera.py"}

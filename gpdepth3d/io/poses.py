@@ -1,4 +1,4 @@
-"""Trajectories and sparse maps of SLAM / SfM back-ends, in gpdepth3d's conventions.
+"""Poses: every pose format the library reads (one reader each, `POSE_FORMATS`), trajectories and COLMAP models.
 
 Every pose here is ``T_world_camera`` (4x4, maps camera coordinates to world coordinates; the
 OpenCV camera frame: x right, y down, z forward), whatever the file stores. Formats
