@@ -45,7 +45,8 @@ from ..errors import EmptyInputError, InvalidInputError, describe
 
 if TYPE_CHECKING:  # pragma: no cover
     pass
-from .colors import COLORMAPS, _colorize, _percentile, _fmt_m, colorbar_image
+from .colors import COLORMAPS, _colorize, _percentile, _fmt_m, colorbar_image, MISSING_COLOR
+from .files import load_geometry
 from .scene_data import (
     ViewerConfig,
     ViewerFrame,
@@ -55,7 +56,6 @@ from .scene_data import (
     _SLOTS,
     COLOR_MODES,
     LAYOUTS,
-    load_mesh,
     _resize,
 )
 from .serving import check_host, wait_until_stopped
@@ -263,9 +263,12 @@ class Viewer:
             import trimesh  # slow to import: only when there are meshes
         for i, mesh in enumerate(meshes):
             if isinstance(mesh, (str, Path)):
-                mesh = load_mesh(mesh)
-            if not isinstance(mesh, trimesh.Trimesh):
-                raise InvalidInputError(f"meshes[{i}]", "a trimesh.Trimesh or a mesh file path", type(mesh).__name__)
+                loaded.extend(load_geometry(mesh))  # a mesh, a point cloud or a map folder
+                continue
+            if not isinstance(mesh, (trimesh.Trimesh, trimesh.PointCloud)):
+                raise InvalidInputError(
+                    f"meshes[{i}]", "a trimesh.Trimesh or PointCloud, or a mesh, cloud or map path", type(mesh).__name__
+                )
             loaded.append(mesh)
         gp = self._layers["gp"].points
         ref = gp if len(gp) else np.concatenate([self._layers[k].points for k in LAYER_LABELS])
@@ -351,11 +354,12 @@ class Viewer:
         if loaded:
             self.groups["meshes"] = scene.add_frame("/meshes", show_axes=False, position=self._group_position("meshes"))
             for i, mesh in enumerate(loaded):
-                self.meshes.append(scene.add_mesh_trimesh(f"/meshes/{i:03d}", mesh))
+                self.meshes.append(self._add_geometry(f"/meshes/{i:03d}", mesh))
+            clouds = sum(not hasattr(m, "faces") for m in loaded)
             self._labels.append(
                 scene.add_label(
                     "/meshes/label",
-                    "Fused mesh",
+                    "Fused mesh" if not clouds else "Point cloud" if clouds == len(loaded) else "Mesh and cloud",
                     position=centre + up * 0.6 * height,
                     anchor="bottom-center",
                     visible=side,
@@ -375,6 +379,21 @@ class Viewer:
         position = look_at - forward * distance + up * 0.3 * distance
         self.server.initial_camera.position = tuple(float(x) for x in position)
         self.server.initial_camera.up = tuple(float(x) for x in up)
+
+    def _add_geometry(self, name: str, item: Any) -> Any:
+        """Draws a mesh, or a point cloud in its own colours (grey without) at the layers' point size."""
+        if hasattr(item, "faces"):
+            return self.server.scene.add_mesh_trimesh(name, item)
+        colors = np.asarray(item.colors)[:, :3] if len(getattr(item, "colors", ())) else None
+        return self.server.scene.add_point_cloud(
+            name,
+            np.asarray(item.vertices, dtype=np.float32),
+            colors if colors is not None else tuple(int(c) for c in MISSING_COLOR),
+            point_size=self._point_size,
+            point_shape="square",
+            precision="float32",
+            point_shading="flat",
+        )
 
     def _group_position(self, group: str, layout: Optional[str] = None) -> tuple[float, float, float]:
         shift = self._slot(group) * self._spacing if (layout or self.config.layout) == "side-by-side" else 0.0
@@ -671,7 +690,8 @@ def show(
 
     Args:
         frames: A `ViewerFrame` or a sequence of them (posed with ``T_world_camera``).
-        meshes: Fused meshes (`trimesh.Trimesh` or PLY/GLB/OBJ paths), in the world frame.
+        meshes: Fused meshes and point clouds (`trimesh.Trimesh`, `trimesh.PointCloud`, or paths of a mesh,
+            a point-cloud PLY or a map folder: `gpdepth3d.viewer.files.load_geometry`), in the world frame.
         config: Layout, colouring, point budget; default `ViewerConfig()`.
         host: Interface to listen on (127.0.0.1: this machine only; 0.0.0.0: the network, which
             needs ``allow_remote``). Checked at once (`check_host`): an address this machine does

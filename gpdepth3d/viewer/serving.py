@@ -83,3 +83,12 @@ def port_taken(host: str, port: int) -> bool:
         except OSError:
             return True
     return False
+
+
+def check_duration(duration: Optional[float], argument: str = "duration") -> Optional[float]:
+    """A wait in seconds: None (until Ctrl-C) or a number >= 0; `InvalidInputError` naming ``argument`` otherwise."""
+    if duration is not None and (
+        isinstance(duration, bool) or not isinstance(duration, (int, float)) or math.isnan(duration) or duration < 0
+    ):
+        raise InvalidInputError(argument, f"seconds >= 0 (or no {argument}: until Ctrl-C)", duration)
+    return duration

@@ -525,18 +525,18 @@ class TestViewCommand:
         assert port_is_free(port)
 
     def test_intrinsics_from_numbers_calibration_or_the_posterior_file(self, tmp_path, room, capsys, monkeypatch):
-        import gpdepth3d.cli.view as view
+        from gpdepth3d.viewer.scene_data import ViewerFrame as SceneFrame
         from gpdepth3d.viewer.scene_data import stored_intrinsics
 
         cameras = []
-        original = view.ViewerFrame.from_files
+        original = SceneFrame.from_files
 
         def record(path, **kwargs):
             frame = original(path, **kwargs)
             cameras.append(frame.camera)
             return frame
 
-        monkeypatch.setattr(view.ViewerFrame, "from_files", record)
+        monkeypatch.setattr(SceneFrame, "from_files", record)
         make_posterior(room).save(tmp_path / "post.npz")
         view_command(posterior=(tmp_path / "post.npz",), intrinsics="300,301,31.5,23.5", port=0, duration=0)
         assert (cameras[-1].fx, cameras[-1].fy, cameras[-1].cx, cameras[-1].cy) == (300, 301, 31.5, 23.5)
