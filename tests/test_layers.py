@@ -196,7 +196,7 @@ def test_the_graph_sees_known_edges():
     graph = {m: {t for t, _ in ts} for m, ts in import_graph(PACKAGE_DIR).items()}
     assert "gpdepth3d.gp.model" in graph["gpdepth3d.completion.complete"]  # module level, relative
     assert "gpdepth3d.completion.fit" in graph["gpdepth3d.completion.complete"]  # inside a method
-    assert "gpdepth3d.mde" in graph["gpdepth3d.cli.fuse"]  # inside a function (load_frontend)
+    assert "gpdepth3d.mde" in graph["gpdepth3d.pipelines.fuse_run"]  # inside a function (load_frontend)
     assert {"gpdepth3d.datasets", "gpdepth3d.completion.complete"} <= graph["gpdepth3d.pipelines.batch"]
     assert (
         "gpdepth3d.errors" in graph["gpdepth3d.gp.fit"]

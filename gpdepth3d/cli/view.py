@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-from ..viewer.files import open_view
+from ..viewer.launch import open_view
 from ..viewer.scene_data import ColorBy, Layout, ViewerConfig
 from ..viewer.serving import check_duration
 

@@ -1,6 +1,7 @@
 """The browser viewer (viser): `scene_data` (frames, options, point layers), `colors` (colour maps),
 `app` (the `Viewer`: scene and GUI; `show`), `serving` (hosts, ports), `files` (any file the library
-writes, opened for `gpdepth3d view`) and `live_map` (a map growing while ``gpdepth3d map`` runs)."""
+writes, read for the scene), `launch` (`gpdepth3d view`'s work) and `live_map` (a map growing while
+``gpdepth3d map`` runs)."""
 
 from .app import Viewer as Viewer
 from .app import show as show
