@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.mapping.tsdf.blocks (block keys, grid, look-up, torch views) and tsdf_io's volume files."""
+"""Tests of gpdepth3d.mapping.tsdf.blocks (block keys, grid, look-up, torch views) and tsdf.storage's volume files."""
 
 from __future__ import annotations
 

@@ -474,7 +474,7 @@ class TSDFFusion:
     def extract_mesh_incremental(self, *, allow_empty: bool = False) -> "trimesh.Trimesh":
         """The same surface as `extract_mesh`, re-extracting only the chunks changed since the last call.
 
-        The volume is cut into cubic chunks of `CHUNK_BLOCKS` blocks (`tsdf_extraction.MeshChunks`);
+        The volume is cut into cubic chunks of `CHUNK_BLOCKS` blocks (`extraction.MeshChunks`);
         the first call meshes the whole volume. The result is the surface `extract_mesh` gives
         (the same triangles), as a triangle soup: vertices are not shared between triangles.
 
