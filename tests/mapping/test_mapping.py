@@ -699,7 +699,7 @@ class TestFixedLag:
             seen.append(gp)
             raise Stop
 
-        monkeypatch.setattr("gpdepth3d.cli.fuse.MapperConfig", capture)
+        monkeypatch.setattr("gpdepth3d.pipelines.fuse_run.MapperConfig", capture)
         monkeypatch.setattr("gpdepth3d.mde.load_frontend", lambda *a, **k: None)
         for argv, expected in (([], None), (["--gp.calibration.reach", "1.5"], 1.5)):
             main(["fuse", "--data", str(tmp_path), "--output", str(tmp_path / "out"), *argv])  # stops at the config
