@@ -62,7 +62,7 @@ def to_fixed(a: np.ndarray) -> np.ndarray:
 
 def from_fixed(q: np.ndarray) -> np.ndarray:
     """The float32 values of a `to_fixed` array."""
-    return np.asarray(q, dtype=np.float32) / np.float32(FIXED_STEPS)
+    return np.multiply(q, np.float32(1.0 / FIXED_STEPS), dtype=np.float32)
 
 
 def read_npz_members(path: str | Path, names: list[str]) -> dict[str, np.ndarray]:

@@ -530,7 +530,11 @@ class Mapper:
             recover_map_folder(folder)
         folder = check_map_folder(folder)
         camera, config, meta = read_map_meta(folder / "mapper.json", config)
-        mapper = cls(camera, config, mde=mde, completer=completer)
+        # the saved volume replaces the new mapper's: give that one no room to allocate
+        mapper = cls(
+            camera, replace(config, fusion=replace(config.fusion, block_count=1)), mde=mde, completer=completer
+        )
+        mapper.config = config
         fusion = TSDFFusion.load(folder / "volume.npz")
         if fusion.camera != mapper.work_camera:
             raise DataFormatError(

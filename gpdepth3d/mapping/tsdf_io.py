@@ -26,7 +26,7 @@ from ..camera import PinholeCamera
 from ..errors import DataFormatError, EmptyInputError, InvalidInputError
 from ..extras import require
 from ..io import atomic_path, npz_writer, output_set, write_json
-from .compact_arrays import from_fixed, read_npz_members, sigma_of, to_fixed, to_half, variance_of
+from .compact_arrays import FIXED_STEPS, read_npz_members, sigma_of, to_fixed, to_half
 from .fusion_config import FusionConfig
 from .tsdf_extraction import canonical_mesh
 from .tsdf_blocks import blocks_to_keys, grid_attributes, keys_to_blocks, new_grid, to_torch, torch_device
@@ -114,8 +114,6 @@ def read_volume(path: str | Path) -> tuple[PinholeCamera, FusionConfig, Any, dic
 
 def grid_from_arrays(path: Path, config: FusionConfig) -> Any:
     """An Open3D grid on ``config.device`` holding the blocks of a volume ``.npz`` in the block format."""
-    import torch
-
     o3c = require("open3d.core")
     res = int(config.block_resolution)
     names = grid_attributes(config)
@@ -131,19 +129,27 @@ def grid_from_arrays(path: Path, config: FusionConfig) -> Any:
         return grid
     buf, _ = grid.hashmap().activate(o3c.Tensor(keys_to_blocks(blocks_to_keys(blocks)), device=device))
     tdev = torch_device(device)
-    dst = torch.as_tensor(buf.cpu().numpy().astype(np.int64).reshape(-1), device=tdev)
+    dst_np = buf.cpu().numpy().astype(np.int64).reshape(-1)
+    order = np.argsort(dst_np, kind="stable")
+    in_order = tdev == "cpu" and np.array_equal(dst_np[order], np.arange(m))  # a fresh grid fills slots 0..m-1
     for name, a in stored.items():
         channels = 3 if name == "color" else 1
         if a.shape != (m, res, res, res) + ((3,) if channels == 3 else ()):
             raise ValueError(f"{name}: shape {a.shape} is not that of {m} blocks of {res}^3 voxels")
+        a = a[order] if in_order else a  # the stored blocks in the order of their buffer slots
+        # Open3D's CPU tensors share their memory with .numpy(): decoded straight into the grid
+        out = grid.attribute(name).numpy()[:m].reshape(a.shape) if in_order else np.empty(a.shape, np.float32)
         if name == "tsdf":
-            values = from_fixed(a)
+            np.multiply(a, np.float32(1.0 / FIXED_STEPS), out=out)  # from_fixed, decoded in place
         elif name == "variance":
-            values = variance_of(a)
+            np.square(a, out=out, dtype=np.float32)  # variance_of
         else:
-            values = a.astype(np.float32)
-        target = to_torch(grid.attribute(name))
-        target[dst] = torch.as_tensor(values.reshape(m, res, res, res, channels), device=tdev)
+            out[...] = a
+        if not in_order:
+            import torch
+
+            values = torch.as_tensor(out.reshape(m, res, res, res, channels), device=tdev)
+            to_torch(grid.attribute(name))[torch.as_tensor(dst_np, device=tdev)] = values
     return grid
 
 
