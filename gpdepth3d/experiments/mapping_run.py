@@ -579,7 +579,8 @@ def write_map(
         OutputError: a file cannot be written (full disk, file-size limit, ...); the files there
             before are kept.
     """
-    from ..io import check_output_folder, clean_output_set, output_set, write_json
+    from ..errors import OutputError
+    from ..io import check_output_folder, clean_output_set, output_set, write_json, write_problem
 
     if mesh_format not in ("ply", "glb", "obj"):
         raise InvalidInputError("mesh_format", "ply, glb or obj", mesh_format)
@@ -589,14 +590,17 @@ def write_map(
     if out.is_dir():
         clean_output_set(out / "map", members)
     written = []
-    with output_set(out / "map", members=members):
-        if len(result.mesh.faces):
-            written.append(save_mesh(result.mesh, out / f"mesh.{mesh_format}"))
-        if len(result.cloud):
-            written.append(result.cloud.save_ply(out / "cloud.ply"))
-        result.mapper.save(out)
-        written += [out / n for n in ("keyframes.npz", "mapper.json", "volume.json", "volume.npz")]
-        written.append(write_json(out / "metrics.json", summary))
+    try:
+        with output_set(out / "map", members=members):
+            if len(result.mesh.faces):
+                written.append(save_mesh(result.mesh, out / f"mesh.{mesh_format}"))
+            if len(result.cloud):
+                written.append(result.cloud.save_ply(out / "cloud.ply"))
+            result.mapper.save(out)
+            written += [out / n for n in ("keyframes.npz", "mapper.json", "volume.json", "volume.npz")]
+            written.append(write_json(out / "metrics.json", summary))
+    except OSError as exc:  # a writer's own failure (its files are discarded with the set)
+        raise OutputError(out, write_problem(exc)) from None
     return [Path(p) for p in written]
 
 
