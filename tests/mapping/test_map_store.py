@@ -176,6 +176,8 @@ class TestSaveAsOneSet:
         old.save(folder)
         (folder / ".volume.AbCdEfGh.tmp.npz").write_bytes(b"half a volume")  # a dead writer's (unlocked) temporary
         (folder / ".keyframes.12345678.tmp.npz").write_bytes(b"")
+        assert recover_map_folder(folder) == 2 and recover_map_folder(folder) == 0
+        (folder / ".mapper.87654321.tmp.json").write_text("{")
         loaded = Mapper.load(folder)
         assert sorted(os.listdir(folder)) == MAP_NAMES
         np.testing.assert_array_equal(loaded.keyframes[1].rgb, old.keyframes[1].rgb)
