@@ -599,6 +599,8 @@ def write_map(
             result.mapper.save(out)
             written += [out / n for n in ("keyframes.npz", "mapper.json", "volume.json", "volume.npz")]
             written.append(write_json(out / "metrics.json", summary))
+    except OutputError:
+        raise
     except OSError as exc:  # a writer's own failure (its files are discarded with the set)
         raise OutputError(out, write_problem(exc)) from None
     return [Path(p) for p in written]
