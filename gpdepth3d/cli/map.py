@@ -171,7 +171,8 @@ def map_command(
         )
     print(
         f"mapped {result.frames_fused} of {result.frames} frames in {result.timing['wall']:.1f} s "
-        f"(median {result.sparse_points:.0f} points a frame); wrote {len(written)} files to {Path(output).resolve()}"
+        f"(median {result.sparse_points:.0f} points a frame); wrote {len(written)} files "
+        f"({sum(p.stat().st_size for p in written) / 1e6:.1f} MB) to {Path(output).resolve()}"
     )
     for path in written:
         print(f"wrote {path}")

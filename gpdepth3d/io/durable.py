@@ -42,6 +42,7 @@ _WRITE_PROBLEMS = {
     errno.ENOTDIR: "a file is in the way of a folder of the path",
     errno.EEXIST: "a file is in the way of a folder of the path",
     errno.ENAMETOOLONG: "file name too long",
+    errno.EFBIG: "file too large: the file size limit (ulimit -f) was reached",
 }
 
 # Deferred renames of `write_together` (per thread / task).

@@ -56,6 +56,7 @@ from ..camera import PinholeCamera, check_pose
 from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
+from ..io import output_set
 from ..measurements import SparseDepth
 from .cloud import ColoredCloud
 from .frame_inputs import check_keyframe_id, check_map_points_sigma, check_mde_depth, resize_depth
@@ -66,7 +67,17 @@ from .points.local_map import LocalMap
 from .loop_closure import PoseUpdate, moved_blocks, reintegrate
 from .map_scale import fused_depth, scale_to_map
 from .points.map_points import merge_sparse
-from .map_store import Keyframe, check_map_folder, load_keyframes, read_map_meta, save_keyframes, write_map_meta
+from .map_store import (
+    MAP_FILES,
+    MAP_SET,
+    Keyframe,
+    check_map_folder,
+    load_keyframes,
+    read_map_meta,
+    recover_map_folder,
+    save_keyframes,
+    write_map_meta,
+)
 from .mapper_config import MapperConfig
 from .own_points import OwnPoints
 
@@ -476,17 +487,18 @@ class Mapper:
     # ------------------------------------------------------------------ persistence
     def save(self, folder: str | Path) -> Path:
         """Writes the map to a folder: the TSDF volume (``volume.npz`` + ``volume.json``), the
-        keyframe store (``keyframes.npz``) and the mapper's settings (``mapper.json``), each
-        file atomically (`gpdepth3d.mapping.map_store`). Frames still waiting for later views
+        keyframe store (``keyframes.npz``) and the mapper's settings (``mapper.json``), as one
+        output set (`gpdepth3d.mapping.map_store`). Frames still waiting for later views
         (`pending`) are not in the map yet: call `flush` first to include them.
 
         Returns:
             The folder.
         """
         folder = Path(folder)
-        save_keyframes(folder / "keyframes.npz", self.keyframes, self.work_camera.shape)
-        self.fusion.save(folder / "volume.npz")
-        write_map_meta(folder / "mapper.json", self.camera, self.config, frames=self.frames, next_id=self._next_id)
+        with output_set(folder / MAP_SET, members=[*MAP_FILES, "volume.json"]):
+            save_keyframes(folder / "keyframes.npz", self.keyframes, self.work_camera.shape)
+            self.fusion.save(folder / "volume.npz")
+            write_map_meta(folder / "mapper.json", self.camera, self.config, frames=self.frames, next_id=self._next_id)
         return folder
 
     @classmethod
@@ -500,6 +512,9 @@ class Mapper:
     ) -> "Mapper":
         """Reads a map written by `save`; the returned `Mapper` goes on fusing and updating poses.
 
+        A save that a kill interrupted is first finished (its commit had begun) or its
+        temporaries removed (the map before it stays), `map_store.recover_map_folder`.
+
         Args:
             folder: The folder `save` wrote.
             config: Options (default: the saved ones; the fusion settings always come from the
@@ -508,11 +523,18 @@ class Mapper:
             completer: `DepthCompleter` for later frames.
 
         Raises:
-            DataFormatError: if a file is missing or not what `save` writes.
+            DataFormatError: if a file is missing or not what `save` writes, or an interrupted
+                save cannot be finished.
         """
+        if Path(folder).is_dir():
+            recover_map_folder(folder)
         folder = check_map_folder(folder)
         camera, config, meta = read_map_meta(folder / "mapper.json", config)
-        mapper = cls(camera, config, mde=mde, completer=completer)
+        # the saved volume replaces the new mapper's: give that one no room to allocate
+        mapper = cls(
+            camera, replace(config, fusion=replace(config.fusion, block_count=1)), mde=mde, completer=completer
+        )
+        mapper.config = config
         fusion = TSDFFusion.load(folder / "volume.npz")
         if fusion.camera != mapper.work_camera:
             raise DataFormatError(

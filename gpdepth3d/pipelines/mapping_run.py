@@ -560,8 +560,11 @@ def write_map(
 ) -> list[Path]:
     """Writes the mesh, the cloud with per-point sigma, the map and the metrics into ``output``, as one set.
 
-    The files (`MAP_FILES`) appear together or not at all (`gpdepth3d.io.atomic_write_set`); the
-    folder reloads with `Mapper.load`. An empty mesh or cloud is not written (named in the metrics).
+    The files (`MAP_FILES`) appear together or not at all (`gpdepth3d.io.output_set`): each is
+    written to a temporary file in ``output`` itself and renamed into place in one journalled
+    commit, so nothing is staged elsewhere; what an earlier run killed there left is finished or
+    removed first. The folder reloads with `Mapper.load`. An empty mesh or cloud is not written
+    (named in the metrics).
 
     Args:
         result: `map_sequence`'s result.
@@ -571,29 +574,36 @@ def write_map(
 
     Returns:
         The paths written.
-    """
-    import shutil
-    import tempfile
 
-    from ..io import atomic_write_set, write_json
+    Raises:
+        OutputError: a file cannot be written (full disk, file-size limit, ...); the files there
+            before are kept.
+    """
+    from ..errors import OutputError
+    from ..io import check_output_folder, clean_output_set, output_set, write_json, write_problem
 
     if mesh_format not in ("ply", "glb", "obj"):
         raise InvalidInputError("mesh_format", "ply, glb or obj", mesh_format)
-    out = Path(output)
+    out = check_output_folder(output, "output")
     summary = summary if summary is not None else map_summary(result)
-    writers: dict[str, Callable[[Path], Any]] = {}
-    if len(result.mesh.faces):
-        writers[f"mesh.{mesh_format}"] = lambda p: save_mesh(result.mesh, p)
-    if len(result.cloud):
-        writers["cloud.ply"] = result.cloud.save_ply
-    with tempfile.TemporaryDirectory(prefix="gpdepth3d-map-") as tmp:
-        result.mapper.save(tmp)
-        saved = sorted(p.name for p in Path(tmp).iterdir() if p.is_file())
-        for name in saved:
-            writers[name] = lambda p, src=Path(tmp) / name: shutil.copyfile(src, p)
-        writers["metrics.json"] = lambda p: write_json(p, summary)
-        members = list(dict.fromkeys([f"mesh.{f}" for f in ("ply", "glb", "obj")] + list(MAP_FILES[1:]) + saved))
-        return atomic_write_set(out / "map", writers, members=members)
+    members = list(dict.fromkeys([f"mesh.{f}" for f in ("ply", "glb", "obj")] + list(MAP_FILES[1:])))
+    if out.is_dir():
+        clean_output_set(out / "map", members)
+    written = []
+    try:
+        with output_set(out / "map", members=members):
+            if len(result.mesh.faces):
+                written.append(save_mesh(result.mesh, out / f"mesh.{mesh_format}"))
+            if len(result.cloud):
+                written.append(result.cloud.save_ply(out / "cloud.ply"))
+            result.mapper.save(out)
+            written += [out / n for n in ("keyframes.npz", "mapper.json", "volume.json", "volume.npz")]
+            written.append(write_json(out / "metrics.json", summary))
+    except OutputError:
+        raise
+    except OSError as exc:  # a writer's own failure (its files are discarded with the set)
+        raise OutputError(out, write_problem(exc)) from None
+    return [Path(p) for p in written]
 
 
 def map_summary(result: MapResult) -> dict[str, Any]:

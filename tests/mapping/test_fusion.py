@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from gpdepth3d.errors import (
     ShapeError,
 )
 from gpdepth3d.mapping.tsdf.fusion import FusionConfig, TSDFFusion, save_mesh, weights_from_variance
+from gpdepth3d.mapping.tsdf.blocks import blocks_to_keys
 
 CAM = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)
 PLANE_Z = 1.511  # not on a voxel boundary
@@ -571,8 +573,23 @@ class TestPersistence:
         loaded = TSDFFusion.load(path)
         assert loaded.config == fusion.config and loaded.camera == fusion.camera and loaded.frames_integrated == 1
         a, b = _sorted_voxels(fusion), _sorted_voxels(loaded)
-        for k in a:
-            np.testing.assert_array_equal(a[k], b[k])
+        np.testing.assert_array_equal(a["coords"], b["coords"])  # the same observed voxels
+        np.testing.assert_allclose(b["tsdf"], a["tsdf"], rtol=0, atol=1.01 / 32767)  # fixed point
+        np.testing.assert_allclose(b["weight"], a["weight"], rtol=2.0**-11)  # half precision
+        np.testing.assert_allclose(b["variance"], a["variance"], rtol=2.0**-10)  # a half-precision sigma
+        np.testing.assert_allclose(b["color"], a["color"], rtol=0, atol=0.5 / 255)  # 8 bits
+        meta = json.loads(path.with_suffix(".json").read_text())
+        assert meta["format"] == "gpdepth3d-blocks-1" and meta["blocks"] == fusion.vbg.hashmap().size()
+        with np.load(path) as d:  # only the allocated blocks, sorted by key
+            keys = blocks_to_keys(d["blocks"])
+            assert d["blocks"].shape == (fusion.vbg.hashmap().size(), 3) and np.all(np.diff(keys) > 0)
+        with np.load(path) as d, np.load(loaded.save(tmp_path / "again" / "volume.npz")) as e:
+            assert d.files == e.files and all(np.array_equal(d[k], e[k]) for k in d.files)  # saved again: the same
+        from scipy.spatial import cKDTree
+
+        before, after = fusion.extract_mesh(), loaded.extract_mesh()
+        assert len(after.faces) == len(before.faces)
+        assert cKDTree(before.vertices).query(after.vertices)[0].max() < 1e-5  # metres
         # the loaded volume keeps integrating
         loaded.integrate(_plane(), _shift(0.05), variance=np.full(CAM.shape, 0.01))
         assert len(loaded.extract_mesh().faces) > 100

@@ -431,6 +431,29 @@ class TestRobustness:
             project_map_points(pts, np.eye(4), CAM, sigma=np.ones(4))
 
 
+def _assert_stored_voxels_close(a: dict, b: dict, refused: bool = False) -> None:
+    """The voxels ``b`` of a saved and loaded volume are those of ``a`` within what the saved forms keep
+    (`gpdepth3d.mapping.compact_arrays`); ``refused``: ``b`` was partly re-fused from stored keyframes."""
+    assert a.keys() == b.keys()
+    if refused:  # a band edge may move by a voxel where a depth moved by its rounding
+        ka, kb = (np.ascontiguousarray(np.rint(x["coords"] * 1000).astype(np.int64)) for x in (a, b))
+        common, ia, ib = np.intersect1d(ka.view("V24").ravel(), kb.view("V24").ravel(), return_indices=True)
+        assert common.size >= 0.999 * max(len(ka), len(kb))
+        a, b = {k: v[ia] for k, v in a.items()}, {k: v[ib] for k, v in b.items()}
+    np.testing.assert_array_equal(a["coords"], b["coords"])
+    # a depth's rounding (<= 2^-11 of it: ~1 mm at 2 m) moves a signed distance by up to ~1 mm / truncation
+    atol = {"tsdf": 0.02, "color": 2 / 255} if refused else {"tsdf": 1.01 / 32767, "color": 0.5 / 255}
+    rtol = 5e-3 if refused else 1e-3
+    for k in a:
+        if k == "coords":
+            continue
+        close = np.isclose(b[k], a[k], rtol=rtol, atol=atol.get(k, 0.0)) | (np.isnan(a[k]) & np.isnan(b[k]))
+        if refused:  # voxels at a band edge gain or lose a frame; the rest agree
+            assert close.mean() >= 0.99, (k, close.mean())
+        else:
+            assert close.all(), (k, np.flatnonzero(~close)[:5])
+
+
 class TestLoopClosure:
     def _run(self, frames, poses, config, sparse):
         mapper = Mapper(frames[0].camera, config)
@@ -482,9 +505,7 @@ class TestLoopClosure:
             "volume.npz",
         ]
         loaded = Mapper.load(tmp_path / "map")
-        c = _sorted_voxels(loaded.fusion)
-        for k in a:
-            np.testing.assert_array_equal(a[k], c[k], err_msg=k)
+        _assert_stored_voxels_close(a, _sorted_voxels(loaded.fusion))
         assert sorted(loaded.keyframes) == sorted(mapper.keyframes)
         assert loaded.config.gp == mapper.config.gp
         # a map saved before the calibration had a reach: loaded without it, as it was made
@@ -495,8 +516,8 @@ class TestLoopClosure:
         np.testing.assert_allclose(loaded.keyframes[3].T_world_camera, moved, atol=1e-12)  # snapped by check_pose
         loaded.update_poses({3: poses[3]})
         mapper.update_poses({3: poses[3]})
-        for k, v in _sorted_voxels(loaded.fusion).items():
-            np.testing.assert_array_equal(v, _sorted_voxels(mapper.fusion)[k], err_msg=k)
+        # re-fused from the stored keyframes (half-precision depths): the same voxels, values within the storage's error
+        _assert_stored_voxels_close(_sorted_voxels(mapper.fusion), _sorted_voxels(loaded.fusion), refused=True)
         r = loaded.add_frame(frames[0].rgb, poses[0], mde_depth=_standin_mde(frames[0].depth), sparse=sparse[0])
         assert r.fused and r.keyframe_id == 5
         with pytest.raises(InvalidInputError):

@@ -1,5 +1,9 @@
 """What comes out of a TSDF volume: its surface as a mesh (whole, or chunk by chunk), surface points, voxels.
 
+Open3D's extraction runs over a hash map with threads, so the order of its vertices, faces and
+points changes from run to run; `canonical_mesh` and the sorted points of `surface_cloud` give
+one order for one surface (files written from them repeat byte for byte).
+
 Extraction keeps voxels whose accumulated weight exceeds ``weight_threshold`` (Open3D's test is
 strict) and runs Open3D's marching cubes and surface-point search
 (https://www.open3d.org/docs/release/python_api/open3d.t.geometry.VoxelBlockGrid.html). Meshes
@@ -169,16 +173,55 @@ def _triangles_by_chunk(mesh: Any, voxel_size: float, res: int, C: int) -> tuple
     return tri, col, blocks_to_keys(np.floor_divide(np.floor_divide(owner_voxel, res), C))
 
 
+def canonical_mesh(mesh: "trimesh.Trimesh") -> "trimesh.Trimesh":
+    """The same surface in one canonical form, whatever the order Open3D produced it in.
+
+    Vertices equal in position and colour are merged (a triangle soup shares its vertices), and
+    sorted lexicographically by (x, y, z, colour); each face starts at the rotation of its
+    vertex indices that is smallest (winding kept), and faces are sorted lexicographically.
+    """
+    import trimesh
+
+    vertices = np.asarray(mesh.vertices, dtype=np.float64) + 0.0  # -0.0 and 0.0 alike
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    colors = np.asarray(mesh.visual.vertex_colors, np.uint8) if mesh.visual.kind == "vertex" else None
+    rows = vertices if colors is None else np.concatenate([vertices, colors.astype(np.float64)], axis=1)
+    order = np.lexsort(rows.T[::-1])
+    ranked = rows[order]
+    new = np.r_[True, np.any(ranked[1:] != ranked[:-1], axis=1)] if len(rows) else np.zeros(0, bool)
+    inverse = np.empty(len(rows), np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    unique = ranked[new]
+    faces = inverse[faces]
+    best = faces
+    for shift in (1, 2):
+        rolled = np.roll(faces, -shift, axis=1)
+        best = np.where(_lex_less(rolled, best)[:, None], rolled, best)
+    best = best[np.lexsort(best.T[::-1])]
+    out_colors = None if colors is None else unique[:, 3:].astype(np.uint8)
+    return trimesh.Trimesh(unique[:, :3], best, vertex_colors=out_colors, process=False)
+
+
+def _lex_less(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(m,) whether each row of the (m, 3) ``a`` comes lexicographically before that of ``b``."""
+    a0, a1, a2 = a.T
+    b0, b1, b2 = b.T
+    return (a0 < b0) | ((a0 == b0) & ((a1 < b1) | ((a1 == b1) & (a2 < b2))))
+
+
 def surface_cloud(vbg: Any, config: "FusionConfig", device: Any, allow_empty: bool) -> ColoredCloud:
-    """Surface points of ``vbg`` with their nearest voxel's values (`TSDFFusion.extract_point_cloud`)."""
+    """Surface points of ``vbg`` with their nearest voxel's values (`TSDFFusion.extract_point_cloud`),
+    sorted lexicographically by position (then colour)."""
     pcd = vbg.extract_point_cloud(float(config.weight_threshold)).cpu()
     if "positions" not in pcd.point or pcd.point.positions.shape[0] == 0:
         if allow_empty:
             return ColoredCloud(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0), np.zeros(0))
         raise _no_surface(config, "no points")
-    pts = pcd.point.positions.numpy().astype(np.float64)
+    pts = pcd.point.positions.numpy().astype(np.float64) + 0.0
     n = pts.shape[0]
     colors = _vertex_colors(pcd.point) if "colors" in pcd.point else np.full((n, 3), 128, np.uint8)
+    order = np.lexsort(np.concatenate([pts, colors], axis=1).T[::-1])  # one order for one surface
+    pts, colors = pts[order], colors[order]
     flat = nearest_voxels(vbg, pts, config, device)
     weight = vbg.attribute("weight").cpu().numpy().reshape(-1)[flat].astype(np.float64)
     conf = np.clip(weight / config.weight_cap, 0.0, 1.0)
