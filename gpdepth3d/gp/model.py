@@ -16,6 +16,9 @@ from typing import Literal
 import numpy as np
 
 from ..errors import InvalidInputError
+from .kernels import Kernel, check_nu
+from .kernels import matern_1d as matern_1d
+from .kernels import separable_correlation as separable_correlation
 
 Formulation = Literal["log_residual", "balanced", "residual"]
 
@@ -247,9 +250,7 @@ class DepthGPConfig:
                 raise InvalidInputError(name, f"a {kind.__name__}", type(value).__name__)
         if not isinstance(self.formulation, str) or self.formulation not in ("log_residual", "balanced", "residual"):
             raise InvalidInputError("formulation", "'log_residual', 'balanced' or 'residual'", self.formulation)
-        if not _is_real(self.nu) or self.nu not in (0.5, 1.5, 2.5):
-            raise InvalidInputError("nu", "0.5, 1.5 or 2.5", f"{type(self.nu).__name__} {self.nu!r}")
-        object.__setattr__(self, "nu", float(self.nu))
+        object.__setattr__(self, "nu", check_nu(self.nu))
         for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget"):
             object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name]))
         if self.formulation == "log_residual":  # log-depth scales: exp() of their squares must stay finite
@@ -401,48 +402,6 @@ def _integer(name: str, value, low: int, high: int | None = None, expected: str 
 def _is_real(value) -> bool:
     """True for a real number (int or float, numpy scalars included), False for bool, str, None."""
     return not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, float, np.integer, np.floating))
-
-
-def matern_1d(distance: np.ndarray, nu: float, lengthscale: float) -> np.ndarray:
-    """One-dimensional Matern correlation M_nu(|d| / l) (1 at d = 0)."""
-    r = np.abs(np.asarray(distance, dtype=np.float64)) / lengthscale
-    if nu == 0.5:
-        return np.exp(-r)
-    if nu == 1.5:
-        a = np.sqrt(3.0) * r
-        return (1.0 + a) * np.exp(-a)
-    if nu == 2.5:
-        a = np.sqrt(5.0) * r
-        return (1.0 + a + a * a / 3.0) * np.exp(-a)
-    raise InvalidInputError("nu", "0.5, 1.5 or 2.5", nu)
-
-
-def separable_correlation(dr: np.ndarray, dc: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
-    """Separable Matern correlation M_nu(|dr| / l) M_nu(|dc| / l) of row and column offsets (any matching shapes)."""
-    if nu == 0.5:  # the separable exponential is one exponential of the L1 distance
-        return np.exp(-(np.abs(dr) + np.abs(dc)) / lengthscale)
-    return matern_1d(dr, nu, lengthscale) * matern_1d(dc, nu, lengthscale)
-
-
-@dataclass(frozen=True)
-class Kernel:
-    """Separable Matern kernel s^2 * M(du / l) * M(dv / l) in physical units (metres, pixels)."""
-
-    nu: float
-    lengthscale: float
-    outputscale: float  # s, metres
-
-    def factor(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """1-D correlation matrix between coordinate vectors a (n,) and b (m,)."""
-        return matern_1d(np.subtract.outer(np.asarray(a, float), np.asarray(b, float)), self.nu, self.lengthscale)
-
-    def matrix(self, rows_a, cols_a, rows_b, cols_b) -> np.ndarray:
-        """Dense kernel matrix between point sets given by their (row, col) coordinates."""
-        if self.nu == 0.5:  # exp(-|du| / l) exp(-|dv| / l) as one exponential
-            du = np.abs(np.subtract.outer(np.asarray(rows_a, float), np.asarray(rows_b, float)))
-            du += np.abs(np.subtract.outer(np.asarray(cols_a, float), np.asarray(cols_b, float)))
-            return self.outputscale**2 * np.exp(du * (-1.0 / self.lengthscale))
-        return self.outputscale**2 * self.factor(rows_a, rows_b) * self.factor(cols_a, cols_b)
 
 
 @dataclass(frozen=True)
