@@ -20,7 +20,30 @@ from ..errors import InvalidInputError, ShapeError, describe
 if TYPE_CHECKING:  # the model imports nothing from here; the annotation only
     from .model import GridProblem
 
-ENGINE_NAMES = ("exact", "kissgp", "fast")
+
+@dataclass(frozen=True)
+class EngineEntry:
+    """How `gpdepth3d.gp.make_engine` builds one engine (its module is imported only then).
+
+    Attributes:
+        module: The module of `gpdepth3d.gp` that holds the engine's class.
+        class_name: The class, whose constructor takes the keywords of ``fields``.
+        fields: Constructor keyword -> the `EngineConfig` field that sets it.
+    """
+
+    module: str
+    class_name: str
+    fields: dict[str, str]
+
+
+_FAST_FIELDS = ("device", "backend", "route", "threads", "max_dense_points", "max_memory_mb", "lattice")
+ENGINES: dict[str, EngineEntry] = {
+    "exact": EngineEntry("exact", "ExactEngine", {"max_points": "max_exact_points"}),
+    "kissgp": EngineEntry("kissgp", "KissGPEngine", {"device": "device"}),
+    "fast": EngineEntry("fast", "FastEngine", {f: f for f in _FAST_FIELDS}),
+}
+"""The engines `EngineConfig.name` chooses from; a new engine is one entry (and its name in `EngineName`)."""
+ENGINE_NAMES = tuple(ENGINES)
 EngineName = Literal["exact", "kissgp", "fast"]
 FAST_BACKENDS = ("auto", "compiled", "torch")
 FAST_ROUTES = ("auto", "grid", "woodbury", "neumann", "dense")
