@@ -166,7 +166,7 @@ def test_the_graph_sees_known_edges():
     """The parser finds module-level, function-level, relative and `from . import` edges of the real tree."""
     graph = {m: {t for t, _ in ts} for m, ts in import_graph(PACKAGE_DIR).items()}
     assert "gpdepth3d.gp.model" in graph["gpdepth3d.completion.complete"]  # module level, relative
-    assert "gpdepth3d.completion.fit" in graph["gpdepth3d.completion.complete"]  # inside a method
+    assert "gpdepth3d.completion.marginal_fit" in graph["gpdepth3d.completion.formulations"]  # inside a method
     assert "gpdepth3d.mde" in graph["gpdepth3d.cli.fuse"]  # inside a function (load_frontend)
     assert {"gpdepth3d.datasets", "gpdepth3d.completion.complete"} <= graph["gpdepth3d.experiments.batch"]
     assert (

@@ -11,8 +11,8 @@ and the default model's stages run by `log_residual` (docs/model.md): `log_frame
 from .complete import DepthCompleter as DepthCompleter
 from .complete import DepthPosterior as DepthPosterior
 from .complete import PosteriorWarning as PosteriorWarning
-from .fit import fit_hyperparameters as fit_hyperparameters
-from .fit import log_marginal_likelihood as log_marginal_likelihood
+from .marginal_fit import fit_hyperparameters as fit_hyperparameters
+from .marginal_fit import log_marginal_likelihood as log_marginal_likelihood
 from .problem import build_problem as build_problem
 from .problem import check_mde_depth as check_mde_depth
 from .problem import check_output_shape as check_output_shape

@@ -11,7 +11,7 @@ from ..gp.model import DepthGPConfig
 from ..measurements import SparseDepth
 from .log_frame import LogFrame
 from .screen import Screened
-from .slope import Sloped
+from .mde_slope import Sloped
 
 
 class PosteriorWarning(UserWarning):

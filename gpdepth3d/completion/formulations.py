@@ -126,7 +126,7 @@ class Gaussian(Formulation):
         if not completer.config.fit:
             return completer.config
         from ..gp.fast import FastEngine
-        from .fit import fit_hyperparameters
+        from .marginal_fit import fit_hyperparameters
 
         if completer._fit_engine is None:
             engine = completer.engine

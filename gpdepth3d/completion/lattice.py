@@ -10,7 +10,7 @@ from ..gp.kernels import is_exponential
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
 from .log_frame import LogFrame
 from .screen import Screened
-from .slope import Sloped
+from .mde_slope import Sloped
 
 
 @dataclass(frozen=True)

@@ -211,7 +211,7 @@ class DepthGPConfig:
         align: residual: fit the MDE to the points before it is the prior mean: "none", "scale" (robust
             median ratio) or "scale_shift" (robust affine).
         fit: Fit the scales to each frame: balanced / residual by the exact marginal likelihood
-            (`gpdepth3d.completion.fit`), log_residual l, s and tau on the frame's points (`gpdepth3d.gp.fit`).
+            (`gpdepth3d.completion.marginal_fit`), log_residual l, s and tau on the frame's points (`gpdepth3d.gp.fit`).
         nugget: log_residual: standard deviation tau of the white part of the MDE's log error.
         screen: log_residual: the fit and outlier screen (`ScreenConfig`).
         slope: log_residual: the slope fit (`SlopeConfig`).

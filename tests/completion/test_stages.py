@@ -16,7 +16,7 @@ from gpdepth3d.completion.log_frame import log_frame
 from gpdepth3d.completion.log_residual import log_residual_posterior
 from gpdepth3d.completion.problem import _frame_inputs
 from gpdepth3d.completion.screen import follow_slope, screen
-from gpdepth3d.completion.slope import fit_slope, refit_slope
+from gpdepth3d.completion.mde_slope import fit_slope, refit_slope
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
 from gpdepth3d.gp.model import (
