@@ -2,8 +2,8 @@
 
 Every module under gpdepth3d/ is parsed with `ast` (nothing is imported): every import
 statement counts, at module level, inside functions and under ``if TYPE_CHECKING``, relative or
-absolute. Layer ranks (docs/architecture.md, "Layers"): errors 0; camera, measurements, sampling, metrics,
-io, depthmap 1; mde, datasets 2; gp 3 (and gp may import only errors); completion 4; mapping 5;
+absolute. Layer ranks (docs/architecture.md, "Layers"): errors, checks 0; camera, measurements, sampling, metrics,
+io, depthmap 1; mde, datasets 2; gp 3 (and gp may import only errors and checks); completion 4; mapping 5;
 experiments 6; cli, viewer 7; the package's own ``__init__`` (the public re-exports) 8.
 """
 
@@ -20,6 +20,7 @@ PACKAGE = "gpdepth3d"
 
 RANKS: dict[str, int] = {
     "errors": 0,
+    "checks": 0,
     "camera": 1,
     "measurements": 1,
     "sampling": 1,
@@ -38,7 +39,7 @@ RANKS: dict[str, int] = {
     "viewer": 7,
 }
 ROOT_RANK = 8
-GP_MAY_IMPORT = {"errors", "gp"}
+GP_MAY_IMPORT = {"errors", "checks", "gp"}
 
 
 def module_names(package_dir: Path) -> dict[str, Path]:
@@ -108,7 +109,7 @@ def layer(module: str) -> tuple[str, int]:
 
 
 def layer_violations(graph: dict[str, list[tuple[str, int]]]) -> list[str]:
-    """Every import from a lower layer to a higher one (and from gp to anything but errors)."""
+    """Every import from a lower layer to a higher one (and from gp to anything but errors and checks)."""
     bad = []
     for module, targets in graph.items():
         name, rank = layer(module)
@@ -117,7 +118,7 @@ def layer_violations(graph: dict[str, list[tuple[str, int]]]) -> list[str]:
             if trank > rank:
                 bad.append(f"{module}:{line} imports {target} (layer {tname}, rank {trank} > {name}'s {rank})")
             elif name == "gp" and tname not in GP_MAY_IMPORT:
-                bad.append(f"{module}:{line} imports {target}: gp may import only errors")
+                bad.append(f"{module}:{line} imports {target}: gp may import only errors and checks")
     return bad
 
 
