@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import DataFormatError, GPDepthError, InvalidInputError, ProblemTooLargeError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
-from ..gp.model import COMPUTE_KEYS, FLAT_KEYS, DepthGPConfig
+from ..gp.model import DepthGPConfig
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
 from .diagnostics import PosteriorWarning as PosteriorWarning
@@ -179,7 +179,7 @@ class DepthPosterior:
                     stored = json.loads(str(d["config_json"]))
                     if not isinstance(stored, dict):
                         raise ValueError(f"config_json: expected a JSON object, got a JSON {type(stored).__name__}")
-                    known = {f.name for f in fields(DepthGPConfig)} | set(FLAT_KEYS) | set(COMPUTE_KEYS)
+                    known = {f.name for f in fields(DepthGPConfig)}
                     config = DepthGPConfig.from_dict({k: v for k, v in stored.items() if k in known})
                 rejected = d["rejected"].astype(bool) if "rejected" in d.files else None
                 if rejected is not None and rejected.shape != (len(sparse),):
