@@ -30,6 +30,8 @@ from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
 from .diagnostics import PosteriorWarning as PosteriorWarning
 from .formulations import formulation_of
+from .problem import build_problem as build_problem
+from .problem import check_mde_depth as check_mde_depth
 
 
 @dataclass(frozen=True)

@@ -289,10 +289,7 @@ class DepthGPConfig:
 
     @classmethod
     def residual(cls, **overrides) -> "DepthGPConfig":
-        """The residual formulation set for sparse points (hundreds): l = 30 px, s = 0.2 x the median depth.
-
-        Its calibration is measured in bench/eval_7scenes.py.
-        """
+        """The residual formulation set for sparse points (hundreds): l = 30 px, s = 0.2 x the median depth."""
         base = cls(
             formulation="residual",
             lengthscale=30.0,

@@ -42,12 +42,11 @@ class FusionConfig:
         sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
             (metres) at which a pixel counts as half an observation.
         relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
-            observation (None, default: ``sigma_ref`` in metres; the `Mapper`'s default fusion,
-            ``MAPPER_FUSION``, uses 0.05). Relative, so that a room at 1 m and a hall at 5 m meet the
-            same ``weight_threshold``.
+            observation (None: ``sigma_ref`` in metres). Relative, so that a room at 1 m and a hall at
+            5 m meet the same ``weight_threshold``.
         max_relative_sigma: Variance weighting: pixels with sigma / depth above this count as
-            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma,
-            0.20-0.22 for the default model) and get the fallback weight instead (None: none does).
+            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma) and get
+            the fallback weight instead (None: none does).
         fallback_weight: Weight in [0, 1] of the uninformed pixels of a frame without points: such
             a frame falls back to its MDE depth, down-weighted. A frame with points gives them
             ``fallback_weight * exp(-points / fallback_points)`` (`fallback_for`): what its points
@@ -56,8 +55,7 @@ class FusionConfig:
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
-            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``, which
-            did as well (bench/results/mapping_settings.json).
+            is given to `TSDFFusion.integrate`; 0 keeps the fixed ``truncation``.
         truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
             truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
@@ -67,7 +65,7 @@ class FusionConfig:
             `TSDFFusion.integrate` then needs a ``variance`` for every frame.
         device: Open3D device string, "CPU:0" or "CUDA:0".
         cpu_threads: torch threads of the voxel update on the CPU while it runs (0 = leave
-            torch's setting alone). 1 by default: the update is memory-bound, and on a busy
+            torch's setting alone). The update is memory-bound: on a busy
             machine torch's default (one thread per core) makes the threads wait on each other.
     """
 

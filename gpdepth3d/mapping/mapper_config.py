@@ -18,16 +18,12 @@ MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
 MAPPER_GP = DepthGPConfig(lengthscale=64.0, calibration=CalibrationConfig(reach=None))
 """The `Mapper`'s GP: the default model with the variance of the stationary GP and twice its length scale: a
 frame's own points are fewer than a LiDAR's and gather on texture, and their correction must reach the
-surfaces between them (see `MapperConfig.gp`; the choice: bench/results/mapping_selection.json)."""
+surfaces between them (see `MapperConfig.gp`)."""
 
 
 @dataclass(frozen=True)
 class MapperConfig:
-    """Options of the `Mapper`.
-
-    Numbers behind the defaults (F at 5 cm, chosen on one sequence, confirmed on the other):
-    bench/results/mapping_selection.json, bench/results/mapping_settings.json and
-    bench/results/mapping_sequences.json.
+    """Options of the `Mapper` (the measurements behind the defaults: docs/results.md).
 
     Attributes:
         gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's

@@ -18,12 +18,10 @@ class TriangulationConfig:
         detector: "klt" (Shi-Tomasi corners followed by pyramidal Lucas-Kanade: sub-pixel
             tracks, the default), "orb" or "sift" (descriptor matching, OpenCV).
         max_features: Most keypoints detected per image (tracks kept alive for "klt");
-            None: 800 for "klt", 3000 for "orb" / "sift" (numbers behind 800:
-            bench/results/mapping_settings.json).
+            None: 800 for "klt", 3000 for "orb" / "sift".
         sift_contrast_threshold: "sift" keypoints' contrast threshold (OpenCV's ``contrastThreshold``,
-            https://docs.opencv.org/4.x/d7/d60/classcv_1_1SIFT.html): half OpenCV's 0.04, which keeps
-            few keypoints on the plain walls and floors of indoor scenes (the choice:
-            bench/results/mapping_selection.json).
+            https://docs.opencv.org/4.x/d7/d60/classcv_1_1SIFT.html); lower keeps more keypoints on
+            low-contrast surfaces (plain walls and floors).
         min_corner_distance: Smallest distance between two "klt" corners, pixels.
         klt_window: Lucas-Kanade window side, pixels.
         klt_levels: Lucas-Kanade pyramid levels above the image.
