@@ -23,6 +23,7 @@ from gpdepth3d.checks import (
     is_real,
 )
 from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.experiments.kitti_protocol import KittiProtocolConfig
 from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.model import (
     AssemblyConfig,
@@ -36,6 +37,7 @@ from gpdepth3d.mapping.fusion_config import FusionConfig
 from gpdepth3d.mapping.mapper_config import MapperConfig
 from gpdepth3d.mapping.refinding import RefindConfig
 from gpdepth3d.mapping.triangulation_config import TriangulationConfig
+from gpdepth3d.viewer.app import ViewerConfig
 
 CONFIGS = [
     DepthGPConfig,
@@ -49,6 +51,8 @@ CONFIGS = [
     MapperConfig,
     TriangulationConfig,
     RefindConfig,
+    ViewerConfig,
+    KittiProtocolConfig,
 ]
 
 # (config, field, a value that must be refused); every kind of mistake on every config
@@ -109,6 +113,13 @@ REFUSED = [
     (RefindConfig, "views", False),
     (RefindConfig, "max_angle_deg", 180.0),
     (RefindConfig, "detector", "klt"),
+    (ViewerConfig, "max_points", 1e5),
+    (ViewerConfig, "layout", "grid"),
+    (ViewerConfig, "point_size", 0.0),
+    (KittiProtocolConfig, "factor", 3.0),
+    (KittiProtocolConfig, "holdout", 1.0),
+    (KittiProtocolConfig, "densities", (0.5, 0.0)),
+    (KittiProtocolConfig, "full_resolution", 1),
 ]
 
 
