@@ -78,8 +78,12 @@ def check_real(
     if ok and not ((value > low if low_open else value >= low) and (value < high if high_open else value <= high)):
         ok = False
     if not ok:
-        bounded = not (math.isinf(low) and math.isinf(high))
-        expected = "a finite number" + (" " + _interval(low, high, low_open, high_open) if bounded else "")
+        if math.isinf(low) and math.isinf(high):
+            expected = "a finite number"
+        elif math.isinf(low) or math.isinf(high):
+            expected = f"a finite number {_interval(low, high, low_open, high_open)}"
+        else:  # an interval is finite
+            expected = f"a number {_interval(low, high, low_open, high_open)}"
         expected += (f" ({unit})" if unit else "") + (", or None" if optional else "")
         raise InvalidInputError(name, expected, describe(value))
     return float(value)
