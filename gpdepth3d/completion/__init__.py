@@ -1,8 +1,9 @@
 """Depth completion: build a frame's GP problem, solve it, the posterior (layer above `gpdepth3d.gp`).
 
 Modules: `problem` (validated inputs -> `GridProblem`), `complete` (`complete()`,
-`DepthCompleter`, `DepthPosterior`), `fit` (a Gaussian formulation's hyperparameters fitted to a frame),
-and the default model's stages run by `log_residual` (docs/model.md): `log_frame`, `slope`, `screen`,
+`DepthCompleter`, `DepthPosterior`), `formulations` (one strategy class per formulation), `marginal_fit` (a
+Gaussian formulation's hyperparameters fitted to a frame), and the default model's stages run by
+`log_residual` (docs/model.md): `log_frame`, `mde_slope`, `screen`,
 `lattice`, `solve`, `detail`, `assemble`, `calibrate`, with `diagnostics` (its warnings). The function
 `complete` is re-exported by `gpdepth3d` itself, not here: in this package the name
 ``complete`` is the module.
