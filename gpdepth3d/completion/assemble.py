@@ -25,7 +25,7 @@ from ..gp.model import DepthGPConfig
 from .lattice import Lattice
 from .log_frame import LogFrame
 from .screen import Screened
-from .slope import Sloped
+from .mde_slope import Sloped
 from .solve import FieldPosterior
 
 

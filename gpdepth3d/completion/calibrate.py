@@ -12,7 +12,7 @@ from ..gp.points import loo_zscores
 from .assemble import DepthMoments
 from .log_frame import LogFrame
 from .screen import Screened
-from .slope import Sloped
+from .mde_slope import Sloped
 from .threads import single_threaded_blas
 
 

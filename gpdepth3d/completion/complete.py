@@ -17,24 +17,21 @@ from __future__ import annotations
 
 import contextlib
 import json
-import time
-import warnings
 import zipfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
-from ..depthmap import resize_map
 from ..errors import DataFormatError, GPDepthError, InvalidInputError, ProblemTooLargeError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
-from ..gp.model import COMPUTE_KEYS, FLAT_KEYS, DepthGPConfig
+from ..gp.model import DepthGPConfig
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
-from .diagnostics import gaussian_warnings
-from .log_frame import log_frame
-from .log_residual import log_residual_posterior
-from .problem import _frame_inputs, build_problem, check_mde_depth
+from .diagnostics import PosteriorWarning as PosteriorWarning
+from .formulations import formulation_of
+from .problem import build_problem as build_problem
+from .problem import check_mde_depth as check_mde_depth
 
 
 @dataclass(frozen=True)
@@ -184,7 +181,7 @@ class DepthPosterior:
                     stored = json.loads(str(d["config_json"]))
                     if not isinstance(stored, dict):
                         raise ValueError(f"config_json: expected a JSON object, got a JSON {type(stored).__name__}")
-                    known = {f.name for f in fields(DepthGPConfig)} | set(FLAT_KEYS) | set(COMPUTE_KEYS)
+                    known = {f.name for f in fields(DepthGPConfig)}
                     config = DepthGPConfig.from_dict({k: v for k, v in stored.items() if k in known})
                 rejected = d["rejected"].astype(bool) if "rejected" in d.files else None
                 if rejected is not None and rejected.shape != (len(sparse),):
@@ -217,10 +214,6 @@ class DepthPosterior:
             raise DataFormatError(path, f"not a gpdepth3d posterior file: {exc}") from None
 
 
-class PosteriorWarning(UserWarning):
-    """The input of a frame cannot support a confident posterior (see `DepthPosterior.warnings`)."""
-
-
 class DepthCompleter:
     """Completes depth frame after frame with one configuration.
 
@@ -249,20 +242,6 @@ class DepthCompleter:
         self._fit_engine = None
         self._point_fit = None
 
-    def _frame_config(self, mde_depth: np.ndarray, sparse: SparseDepth) -> DepthGPConfig:
-        """The configuration of this frame: ``config``, or fitted to the frame when ``config.fit``."""
-        if not self.config.fit:
-            return self.config
-        from ..gp.fast import FastEngine
-        from .fit import fit_hyperparameters
-
-        if self._fit_engine is None:
-            self._fit_engine = self.engine if isinstance(self.engine, FastEngine) else FastEngine()
-        start = (self.fitted or self.config).replace(fit=False)
-        fitted = fit_hyperparameters(mde_depth, sparse, start, engine=self._fit_engine)
-        self.fitted = fitted
-        return fitted.replace(fit=True)
-
     def complete(
         self,
         mde_depth: np.ndarray,
@@ -281,75 +260,8 @@ class DepthCompleter:
             variance: Compute the marginal variance (else it is NaN, and faster).
             frame: Name of the frame, used in the posterior's warnings.
         """
-        if self.config.formulation == "log_residual":
-            return self._complete_log_residual(mde_depth, sparse, output_shape, variance, frame)
-        t0 = time.perf_counter()
-        config = self._frame_config(mde_depth, sparse)
-        tf = time.perf_counter()
-        problem, grid_sparse, scale, alignment = build_problem(mde_depth, sparse, config, output_shape)
-        t1 = time.perf_counter()
-        solution = self.engine.solve(problem, variance=variance)
-        mean, var = solution.mean, solution.variance
-        t2 = time.perf_counter()
-        if var is None:
-            var = np.full(mean.shape, np.nan)
-        mde, valid = check_mde_depth(mde_depth)
-        mde_out = self._mde_out(mde, valid, problem.out_shape)
-        messages = gaussian_warnings(mean, mde, valid, grid_sparse, f"frame {frame}: " if frame is not None else "")
-        for message in messages:
-            warnings.warn(message, PosteriorWarning, stacklevel=2)
-        return DepthPosterior(
-            mean=mean,
-            variance=var,
-            mde=mde_out,
-            sparse=grid_sparse,
-            config=config,
-            depth_scale=scale,
-            alignment=alignment,
-            timings={"fit": tf - t0, "setup": t1 - tf, "solve": t2 - t1},
-            warnings=messages,
-            solve=solution.info,
-        )
-
-    def _complete_log_residual(self, mde_depth, sparse, output_shape, variance, frame) -> DepthPosterior:
-        t0 = time.perf_counter()
-        mde, valid, grid_sparse, out_shape = _frame_inputs(mde_depth, sparse, output_shape)
-        inputs = log_frame(mde, valid, grid_sparse, out_shape, self.config)
-        t1 = time.perf_counter()
-        result = log_residual_posterior(
-            self.engine,
-            inputs,
-            self.config,
-            variance=variance,
-            name=f"frame {frame}: " if frame is not None else "",
-            previous=self._point_fit if self.fitted is not None else None,
-            stride=self.engine_config.lattice_stride,
-        )
-        for message in result.warnings:
-            warnings.warn(message, PosteriorWarning, stacklevel=3)
-        self.fitted, self._point_fit = result.config, result.fit
-        return DepthPosterior(
-            mean=result.mean,
-            variance=result.variance,
-            mde=self._mde_out(mde, valid, out_shape),
-            sparse=grid_sparse,
-            config=result.config,
-            depth_scale=float(np.median(mde[valid])) if valid.any() else float(np.median(grid_sparse.depth)),
-            alignment=result.alignment,
-            timings={"setup": t1 - t0, **result.timings},
-            rejected=result.rejected,
-            warnings=result.warnings,
-            solve=result.info,
-            mde_slope=result.slope,
-        )
-
-    @staticmethod
-    def _mde_out(mde: np.ndarray, valid: np.ndarray, out_shape: tuple[int, int]) -> np.ndarray:
-        """The input MDE on the output grid (0 where it had no value)."""
-        mde_out = resize_map(mde, out_shape)
-        if tuple(out_shape) != mde.shape:
-            mde_out = np.where(resize_map(valid.astype(np.float64), out_shape) > 0.999, mde_out, 0.0)
-        return mde_out
+        strategy = formulation_of(self.config)  # `gpdepth3d.completion.formulations`
+        return DepthPosterior(**strategy.posterior(self, mde_depth, sparse, output_shape, variance, frame))
 
     __call__ = complete
 

@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..gp.kernels import is_exponential
 from ..gp.model import DepthGPConfig
 from ..gp.sublattice import sublattice_kriging
 from .lattice import Lattice
@@ -21,7 +22,7 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     """
     h, w = frame.shape
     ho, wo = frame.out_shape
-    if lattice.stride == 1 or config.nu != 0.5 or not lattice.rows.size or ho < h or wo < w:
+    if lattice.stride == 1 or not is_exponential(config.nu) or not lattice.rows.size or ho < h or wo < w:
         return field
     fields = np.stack((field.mean, *field.extra))
     at = _at_points(fields, lattice.rows, lattice.cols, (h, w))

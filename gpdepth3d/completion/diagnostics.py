@@ -11,7 +11,12 @@ from ..gp.model import DepthGPConfig
 from ..measurements import SparseDepth
 from .log_frame import LogFrame
 from .screen import Screened
-from .slope import Sloped
+from .mde_slope import Sloped
+
+
+class PosteriorWarning(UserWarning):
+    """The input of a frame cannot support a confident posterior (see `DepthPosterior.warnings`)."""
+
 
 SCALE_WARN_FACTOR = 2.0
 """The MDE's scale disagrees with the points beyond this factor (either way)."""

@@ -6,10 +6,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..gp.kernels import is_exponential
 from ..gp.model import DepthGPConfig, GridProblem, Kernel, output_coordinates, separable_correlation
 from .log_frame import LogFrame
 from .screen import Screened
-from .slope import Sloped
+from .mde_slope import Sloped
 
 
 @dataclass(frozen=True)
@@ -63,7 +64,7 @@ def lattice_stride(
     rule = config.lattice
     k = stride
     if k is None:
-        detail = config.nu == 0.5 and (output_shape is None or (output_shape[0] >= h and output_shape[1] >= w))
+        detail = is_exponential(config.nu) and (output_shape is None or (output_shape[0] >= h and output_shape[1] >= w))
         if min(h, w) < rule.min_side:
             k = 1
         elif n_points <= (rule.detail_share if detail else rule.sparse_share) * h * w:

@@ -23,7 +23,7 @@ from .diagnostics import log_residual_warnings
 from .lattice import build_lattice
 from .log_frame import LogFrame
 from .screen import follow_slope, screen
-from .slope import fit_slope, refit_slope
+from .mde_slope import fit_slope, refit_slope
 from .solve import solve_field
 
 

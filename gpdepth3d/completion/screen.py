@@ -10,7 +10,7 @@ from ..gp.fit import PointFit
 from ..gp.model import DepthGPConfig
 from ..gp.points import screen_points
 from .log_frame import LogFrame
-from .slope import Sloped
+from .mde_slope import Sloped
 from .threads import single_threaded_blas
 
 

@@ -14,12 +14,12 @@ computed against the same ground truth. Methods (`METHODS`):
   paper worked at 1/3 KITTI resolution) with the output at full evaluation resolution.
 * ``gp_balanced_fit``: the same with ``config.fit``: length scale, output scale and sigma_DL
   fitted per frame by maximising the exact marginal likelihood of all its observations
-  (`gpdepth3d.completion.fit.fit_hyperparameters`, starting from the paper's values).
+  (`gpdepth3d.completion.marginal_fit.fit_hyperparameters`, starting from the paper's values).
 * ``gp_residual``: the residual GP (`DepthGPConfig.residual`): scale-aligned MDE as prior mean,
   the GP models its additive error.
 * ``gp_residual_fit``: the residual GP with its length scale, output scale and measurement
   noise (which absorbs the MDE's white error) fitted per frame by maximising the exact marginal
-  likelihood (`gpdepth3d.completion.fit.fit_hyperparameters`, the library's one fitter).
+  likelihood (`gpdepth3d.completion.marginal_fit.fit_hyperparameters`, the library's one fitter).
 * ``gp_relative``: beyond both: the residual GP on the *ratio* depth / MDE (a multiplicative
   MDE error, whose size grows with depth as a monocular network's does), plus a white-noise
   MDE component (pixel-level error the smooth field cannot explain). See `relative_residual`.
@@ -52,7 +52,7 @@ from ..pipelines.previews import plot_qualitative
 from ..pipelines.scoring import metric_row
 from ..datasets.synthetic import MDESimulation, simulate_mde
 from ..completion.complete import DepthCompleter
-from ..completion.fit import fit_hyperparameters
+from ..completion.marginal_fit import fit_hyperparameters
 from ..datasets import Frame, open_dataset
 from ..depthmap import fill_nearest, resize_map
 from ..errors import EmptyInputError, InvalidInputError, ProblemTooLargeError

@@ -48,6 +48,7 @@ from ..pipelines.frames import holdout_lidar as holdout_lidar
 from ..pipelines.frames import mde_to_grid
 from ..pipelines.scoring import metric_row
 from ..depthmap import resize_map
+from ..checks import Bool, Int, Real, Reals, check_fields
 from ..errors import EmptyInputError, InvalidInputError, ShapeError, describe
 from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
@@ -98,12 +99,9 @@ class KittiProtocolConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.factor, bool) or int(self.factor) != self.factor or self.factor < 1:
-            raise InvalidInputError("factor", "an integer >= 1", self.factor)
-        if not (np.isfinite(self.holdout) and 0 < self.holdout < 1):
-            raise InvalidInputError("holdout", "a share in (0, 1)", self.holdout)
-        if not self.densities or not all(np.isfinite(d) and 0 < d <= 1 for d in self.densities):
-            raise InvalidInputError("densities", "shares in (0, 1]", self.densities)
+        rules = {"factor": Int(1), "holdout": Real(0.0, 1.0, low_open=True, high_open=True, unit="a share")}
+        rules.update(densities=Reals(Real(0.0, 1.0, low_open=True, unit="a share")), full_resolution=Bool(), seed=Int())
+        check_fields(self, rules)
         for name, allowed in (("protocols", KITTI_PROTOCOLS), ("methods", METHODS)):
             values = getattr(self, name)
             if not values or any(v not in allowed for v in values):

@@ -18,6 +18,8 @@ limits; docs/engines.md). They differ only in how they compute it:
 
 from __future__ import annotations
 
+import importlib
+
 from .engine import Engine as Engine
 from .engine import EngineConfig as EngineConfig
 from .engine import RoutedEngine as RoutedEngine
@@ -30,10 +32,11 @@ from .model import LatticeConfig as LatticeConfig
 from .model import ScreenConfig as ScreenConfig
 from .model import SlopeConfig as SlopeConfig
 from .model import GridProblem as GridProblem
+from .kernels import MaternKernel as MaternKernel
 from .model import Kernel as Kernel
 from .model import matern_1d as matern_1d
 from ..errors import InvalidInputError
-from .engine import check_engine_options
+from .engine import ENGINES, check_engine_options
 
 
 def make_engine(options: EngineConfig | None = None) -> Engine:
@@ -43,7 +46,8 @@ def make_engine(options: EngineConfig | None = None) -> Engine:
         options: The engine and its options; None: the defaults (the ``fast`` engine).
 
     Returns:
-        An ``ExactEngine``, ``KissGPEngine`` or ``FastEngine``.
+        The engine of ``options.name`` in `gpdepth3d.gp.engine.ENGINES` (``ExactEngine``, ``KissGPEngine`` or
+        ``FastEngine``).
 
     Raises:
         InvalidInputError: ``options`` of another type, an ``options.options`` key the engine does not
@@ -53,30 +57,7 @@ def make_engine(options: EngineConfig | None = None) -> Engine:
         options = EngineConfig()
     elif not isinstance(options, EngineConfig):
         raise InvalidInputError("options", "an EngineConfig or None", type(options).__name__)
-    name = options.name
-    if name == "exact":
-        from .exact import ExactEngine
-
-        extra = check_engine_options(ExactEngine, options.options, ("max_points",))
-        return ExactEngine(max_points=options.max_exact_points, **extra)
-    if name == "kissgp":
-        from .kissgp import KissGPEngine
-
-        extra = check_engine_options(KissGPEngine, options.options, ("device",))
-        return KissGPEngine(device=options.device, **extra)
-    if name == "fast":
-        from .fast import FastEngine
-
-        fields = ("device", "backend", "route", "threads", "max_dense_points", "max_memory_mb", "lattice")
-        extra = check_engine_options(FastEngine, options.options, fields)
-        return FastEngine(
-            device=options.device,
-            backend=options.backend,
-            route=options.route,
-            threads=options.threads,
-            max_dense_points=options.max_dense_points,
-            max_memory_mb=options.max_memory_mb,
-            lattice=options.lattice,
-            **extra,
-        )
-    raise InvalidInputError("engine", "'exact', 'kissgp' or 'fast'", name)
+    entry = ENGINES[options.name]  # EngineConfig admits only its names
+    kind = getattr(importlib.import_module(f"{__name__}.{entry.module}"), entry.class_name)
+    extra = check_engine_options(kind, options.options, tuple(entry.fields))
+    return kind(**{keyword: getattr(options, name) for keyword, name in entry.fields.items()}, **extra)

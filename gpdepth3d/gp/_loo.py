@@ -26,23 +26,17 @@ import numba as nb
 import numpy as np
 
 from ._cholesky import cholesky_in_place
+from .kernels import Kernel, unit_separable_correlation
 
 _FLAGS = dict(nogil=True, cache=True)
 
 
 @nb.njit(**_FLAGS)
-def _corr(dr: float, dc: float, inv_l: float, nu: float, er, ec) -> float:
-    """Separable Matern correlation M(|dr| / l) M(|dc| / l); tables er / ec (nu = 0.5, integer offsets) when given."""
+def _corr(dr: float, dc: float, inv_l: float, code: int, er, ec) -> float:
+    """Separable Matern correlation M(|dr| / l) M(|dc| / l); tables er / ec (exponential kernel, integer offsets) when given."""
     if er.size:
         return er[int(abs(dr))] * ec[int(abs(dc))]
-    a, b = abs(dr) * inv_l, abs(dc) * inv_l
-    if nu == 0.5:
-        return math.exp(-(a + b))
-    if nu == 1.5:
-        a, b = math.sqrt(3.0) * a, math.sqrt(3.0) * b
-        return (1.0 + a) * (1.0 + b) * math.exp(-(a + b))
-    a, b = math.sqrt(5.0) * a, math.sqrt(5.0) * b
-    return (1.0 + a + a * a / 3.0) * (1.0 + b + b * b / 3.0) * math.exp(-(a + b))
+    return unit_separable_correlation(abs(dr) * inv_l, abs(dc) * inv_l, code)
 
 
 #: Targets per parallel chunk; fewer targets than this run on the calling thread (waking the
@@ -55,7 +49,7 @@ LANES = 8
 
 
 @nb.njit(**_FLAGS)
-def _loo_range(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec):
+def _loo_range(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, code, er, ec):
     """z[q] for the targets lo <= q < hi (see `loo_predict`)."""
     k = nn.shape[1]
     if er.size:
@@ -66,7 +60,7 @@ def _loo_range(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, 
     kx = np.empty(k)
     ij = np.empty((2, k), dtype=np.int64)
     for q in range(lo, hi):
-        _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z, share)
+        _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, code, er, ec, A, y, kx, ij, z, share)
 
 
 @nb.njit(**_FLAGS)
@@ -154,7 +148,7 @@ def _loo_lanes(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, 
 
 
 @nb.njit(parallel=True, **_FLAGS)
-def _loo_parallel(z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec):
+def _loo_parallel(z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, code, er, ec):
     t = nn.shape[0]
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
         _loo_range(
@@ -172,14 +166,14 @@ def _loo_parallel(z, share, rows, cols, r, noise, stated, targets, nn, s2, tau2,
             s2,
             tau2,
             inv_l,
-            nu,
+            code,
             er,
             ec,
         )
 
 
 @nb.njit(**_FLAGS)
-def _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, er, ec, A, y, kx, ij, z, share):
+def _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, code, er, ec, A, y, kx, ij, z, share):
     """z[q] of target q (see `loo_predict`), in the work arrays A (k, k), y (k,), kx (k,), ij (2, k) int."""
     k = nn.shape[1]
     i = targets[q]
@@ -197,10 +191,10 @@ def _loo_one(q, rows, cols, r, noise, stated, targets, nn, s2, tau2, inv_l, nu, 
     else:
         for a in range(k):
             ja = nn[q, a]
-            y[a] = s2 * _corr(rows[i] - rows[ja], cols[i] - cols[ja], inv_l, nu, er, ec)
+            y[a] = s2 * _corr(rows[i] - rows[ja], cols[i] - cols[ja], inv_l, code, er, ec)
             for b in range(a):
                 jb = nn[q, b]
-                A[a, b] = s2 * _corr(rows[ja] - rows[jb], cols[ja] - cols[jb], inv_l, nu, er, ec)
+                A[a, b] = s2 * _corr(rows[ja] - rows[jb], cols[ja] - cols[jb], inv_l, code, er, ec)
             A[a, a] = s2 + tau2 + noise[ja]
             kx[a] = y[a]
     if not cholesky_in_place(A, k):  # A = L L^T in the lower triangle
@@ -408,11 +402,12 @@ def loo_predict(
     cols = np.ascontiguousarray(cols, dtype=np.float64)
     none = np.zeros(0)
     er = ec = none
-    if nu == 0.5 and rows.size and np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols)):
+    kernel = Kernel(nu, float(lengthscale), float(outputscale))
+    if kernel.exponential and rows.size and np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols)):
         span_r, span_c = float(np.ptp(rows)), float(np.ptp(cols))
         if span_r + span_c <= 1e6:  # tables e^{-d / l} over every offset that occurs
-            er = np.exp(-np.arange(int(span_r) + 1) / float(lengthscale))
-            ec = np.exp(-np.arange(int(span_c) + 1) / float(lengthscale))
+            er = kernel.lag_correlation(int(span_r) + 1)
+            ec = kernel.lag_correlation(int(span_c) + 1)
     noise = np.ascontiguousarray(noise, dtype=np.float64)
     part = noise if stated is None else np.ascontiguousarray(stated, dtype=np.float64)
     args = (
@@ -426,7 +421,7 @@ def loo_predict(
         float(outputscale) ** 2,
         float(nugget) ** 2,
         1.0 / float(lengthscale),
-        float(nu),
+        kernel.code,
         er,
         ec,
     )

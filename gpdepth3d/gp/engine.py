@@ -15,12 +15,36 @@ from typing import TYPE_CHECKING, Any, Iterator, Literal, Protocol, runtime_chec
 
 import numpy as np
 
+from ..checks import Choice, Int, check_fields, positive
 from ..errors import InvalidInputError, ShapeError, describe
 
 if TYPE_CHECKING:  # the model imports nothing from here; the annotation only
     from .model import GridProblem
 
-ENGINE_NAMES = ("exact", "kissgp", "fast")
+
+@dataclass(frozen=True)
+class EngineEntry:
+    """How `gpdepth3d.gp.make_engine` builds one engine (its module is imported only then).
+
+    Attributes:
+        module: The module of `gpdepth3d.gp` that holds the engine's class.
+        class_name: The class, whose constructor takes the keywords of ``fields``.
+        fields: Constructor keyword -> the `EngineConfig` field that sets it.
+    """
+
+    module: str
+    class_name: str
+    fields: dict[str, str]
+
+
+_FAST_FIELDS = ("device", "backend", "route", "threads", "max_dense_points", "max_memory_mb", "lattice")
+ENGINES: dict[str, EngineEntry] = {
+    "exact": EngineEntry("exact", "ExactEngine", {"max_points": "max_exact_points"}),
+    "kissgp": EngineEntry("kissgp", "KissGPEngine", {"device": "device"}),
+    "fast": EngineEntry("fast", "FastEngine", {f: f for f in _FAST_FIELDS}),
+}
+"""The engines `EngineConfig.name` chooses from; a new engine is one entry (and its name in `EngineName`)."""
+ENGINE_NAMES = tuple(ENGINES)
 EngineName = Literal["exact", "kissgp", "fast"]
 FAST_BACKENDS = ("auto", "compiled", "torch")
 FAST_ROUTES = ("auto", "grid", "woodbury", "neumann", "dense")
@@ -130,40 +154,28 @@ class EngineConfig:
     options: dict = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or self.name not in ENGINE_NAMES:
-            raise InvalidInputError("name", f"one of {ENGINE_NAMES}", describe(self.name))
         object.__setattr__(self, "device", device_name(self.device))  # a torch.device as its name
-        if self.backend not in FAST_BACKENDS:
-            raise InvalidInputError("backend", f"one of {FAST_BACKENDS}", self.backend)
-        if self.route not in FAST_ROUTES:
-            raise InvalidInputError("route", f"one of {FAST_ROUTES}", self.route)
-        if self.lattice not in ("observed", "full"):
-            raise InvalidInputError("lattice", "'observed' or 'full'", self.lattice)
+        check_fields(self, _RULES)
         if not isinstance(self.options, dict) or not all(isinstance(k, str) for k in self.options):
             raise InvalidInputError("options", "a dict of keyword arguments", describe(self.options))
-        for name, low, optional in (
-            ("max_exact_points", 1, False),
-            ("threads", 1, True),
-            ("max_dense_points", 0, False),
-        ):
-            v = getattr(self, name)
-            if (v is not None or not optional) and not _is_int(v, low):
-                raise InvalidInputError(name, ("None or " if optional else "") + f"an integer >= {low}", describe(v))
-        v = self.max_memory_mb
-        if v is not None and (
-            isinstance(v, (bool, np.bool_))
-            or not isinstance(v, (int, float, np.integer, np.floating))
-            or not np.isfinite(v)
-            or not v > 0
-        ):
-            raise InvalidInputError("max_memory_mb", "None or a finite number > 0", describe(v))
-        k = self.lattice_stride
-        if k is not None and not (_is_int(k, 1) and k <= 16):
-            raise InvalidInputError("lattice_stride", "an integer 1-16, or None (automatic)", describe(k))
 
     def replace(self, **changes) -> "EngineConfig":
         """A copy with some fields changed."""
         return replace(self, **changes)
+
+
+_RULES = {
+    "name": Choice(ENGINE_NAMES),
+    "backend": Choice(FAST_BACKENDS),
+    "route": Choice(FAST_ROUTES),
+    "lattice": Choice(("observed", "full")),
+    "threads": Int(1, optional=True),
+    "max_dense_points": Int(0),
+    "max_memory_mb": positive("MiB", optional=True),
+    "max_exact_points": Int(1),
+    "lattice_stride": Int(1, 16, optional=True),
+}
+"""`EngineConfig`'s fields and their rules (`gpdepth3d.checks`)."""
 
 
 def _is_int(v, low: int) -> bool:

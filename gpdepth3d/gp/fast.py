@@ -221,7 +221,7 @@ class FastEngine:
             The errors of `gpdepth3d.gp.routes.choose_route`.
         """
         route = self.route
-        if route == "neumann" and lml and problem.kernel.nu == 0.5:
+        if route == "neumann" and lml and problem.kernel.exponential:
             route = "grid"  # the series gives no log-determinant
         sub = self._lattice_problem(problem) if route in ("auto", "grid") or lml else problem
         query = RouteQuery(

@@ -2,7 +2,7 @@
 
 * Gaussian formulations: `maximise_log_marginal_likelihood` searches the logarithms of a
   `DepthGPConfig`'s free fields with SciPy's L-BFGS-B, given the log marginal likelihood as a function
-  of the config (`gpdepth3d.completion.fit` builds it from a frame); `paired_log_likelihood` is the
+  of the config (`gpdepth3d.completion.marginal_fit` builds it from a frame); `paired_log_likelihood` is the
   exact factor two observations on one pixel add once the engine has combined them.
 * The default model: `fit_log_residual` profiles s and the global log scale b out in closed form
   (b by generalised least squares with a flat prior) over a small grid of (l, tau / s) on the frame's

@@ -22,33 +22,11 @@ from __future__ import annotations
 from functools import lru_cache
 
 import numpy as np
-import scipy.linalg
-import scipy.special
 import scipy.sparse as sp
 
 from ..errors import InvalidInputError
-
-
-def state_dim(nu: float) -> int:
-    """Number of states per coordinate of the Matern-nu SDE (nu = 0.5, 1.5, 2.5 -> 1, 2, 3)."""
-    if nu not in (0.5, 1.5, 2.5):
-        raise InvalidInputError("nu", "0.5, 1.5 or 2.5", nu)
-    return int(nu + 0.5)
-
-
-@lru_cache(maxsize=8)
-def _unit_sde(d: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Feedback F (d, d), stationary covariance P (d, d) and noise covariance G (d, d) of the SDE
-    with lam = 1 (unit variance of the first state)."""
-    coeffs = [scipy.special.comb(d, k) for k in range(d)]  # (s + 1)^d, low order first
-    F = np.zeros((d, d))
-    F[np.arange(d - 1), np.arange(1, d)] = 1.0
-    F[d - 1, :] = -np.asarray(coeffs)
-    Lq = np.zeros((d, d))
-    Lq[d - 1, d - 1] = 1.0
-    P = scipy.linalg.solve_continuous_lyapunov(F, -Lq)
-    c = P[0, 0]
-    return F, 0.5 * (P + P.T) / c, Lq / c
+from .kernels import state_dim as state_dim
+from .kernels import unit_sde as _unit_sde
 
 
 # Gauss-Legendre rule of the process-noise integral (integrand: exponentials times polynomials of

@@ -10,12 +10,16 @@ are written down in docs/model.md.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
 
-from ..errors import InvalidInputError
+from ..checks import Bool, Choice, Int, Real, Reals, check_fields
+from ..errors import InvalidInputError, describe
+from .kernels import Kernel, check_nu
+from .kernels import matern_1d as matern_1d
+from .kernels import separable_correlation as separable_correlation
 
 Formulation = Literal["log_residual", "balanced", "residual"]
 
@@ -46,15 +50,18 @@ class ScreenConfig:
     raise_outputscale: bool = True
 
     def __post_init__(self) -> None:
-        for name, low in (("neighbours", 1), ("iterations", 1), ("max_points", 3)):
-            object.__setattr__(self, name, _integer(name, getattr(self, name), low))
-        _optional(self, "outlier_threshold")
-        _boolean("raise_outputscale", self.raise_outputscale)
-        for name in ("fit_lengthscales", "fit_nuggets"):
-            values = getattr(self, name)
-            if isinstance(values, (str, bytes)) or not hasattr(values, "__len__") or not len(values):
-                raise InvalidInputError(name, "a non-empty tuple of numbers > 0", repr(values))
-            object.__setattr__(self, name, tuple(_in_range(name, v, 1e-6, 1e6, "> 0") for v in values))
+        check_fields(
+            self,
+            {
+                "neighbours": Int(1),
+                "iterations": Int(1),
+                "max_points": Int(3),
+                "fit_lengthscales": Reals(Real(1e-6, 1e6, unit="GP-grid pixels")),
+                "fit_nuggets": Reals(Real(1e-6, 1e6, unit="shares (tau / s)^2")),
+                "outlier_threshold": _ranged("outlier_threshold", optional=True),
+                "raise_outputscale": Bool(),
+            },
+        )
 
 
 @dataclass(frozen=True)
@@ -77,11 +84,16 @@ class SlopeConfig:
     min_points: int = 3
 
     def __post_init__(self) -> None:
-        _optional(self, "prior_sigma")
-        object.__setattr__(self, "max_points", _integer("max_points", self.max_points, 2))
-        object.__setattr__(self, "iterations", _integer("iterations", self.iterations, 1))
-        object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 3))
-        object.__setattr__(self, "huber", _in_range("huber", self.huber, 0.1, 100.0, "standard deviations"))
+        check_fields(
+            self,
+            {
+                "prior_sigma": _ranged("prior_sigma", optional=True),
+                "max_points": Int(2),
+                "huber": Real(0.1, 100.0, unit="standard deviations"),
+                "iterations": Int(1),
+                "min_points": Int(3),
+            },
+        )
 
 
 @dataclass(frozen=True)
@@ -109,14 +121,17 @@ class LatticeConfig:
     max_window_points: int = 36
 
     def __post_init__(self) -> None:
-        for name in ("sparse_share", "detail_share"):
-            object.__setattr__(self, name, _in_range(name, getattr(self, name), 0.0, 1.0, "a share of the pixels"))
-        object.__setattr__(self, "dense_stride", _integer("dense_stride", self.dense_stride, 1, 16))
-        object.__setattr__(
-            self, "min_lengthscale", _in_range("min_lengthscale", self.min_lengthscale, 0.0, 1e6, "pixels")
+        check_fields(
+            self,
+            {
+                "sparse_share": Real(0.0, 1.0, unit="a share of the pixels"),
+                "detail_share": Real(0.0, 1.0, unit="a share of the pixels"),
+                "dense_stride": Int(1, 16),
+                "min_lengthscale": Real(0.0, 1e6, unit="pixels"),
+                "min_side": Int(2),
+                "max_window_points": Int(1, 400),
+            },
         )
-        object.__setattr__(self, "min_side", _integer("min_side", self.min_side, 2))
-        object.__setattr__(self, "max_window_points", _integer("max_window_points", self.max_window_points, 1, 400))
 
 
 @dataclass(frozen=True)
@@ -142,13 +157,14 @@ class AssemblyConfig:
     scale_var_share: float = 0.05
 
     def __post_init__(self) -> None:
-        _optional(self, "depth_lengthscale")
-        object.__setattr__(self, "edge_sigma", _in_range("edge_sigma", self.edge_sigma, *RANGES["edge_sigma"]))
-        object.__setattr__(
-            self, "weight_floor", _in_range("weight_floor", self.weight_floor, 1e-12, 1.0, "a weight sum")
-        )
-        object.__setattr__(
-            self, "scale_var_share", _in_range("scale_var_share", self.scale_var_share, 0.0, 1.0, "a share of tau^2")
+        check_fields(
+            self,
+            {
+                "depth_lengthscale": _ranged("depth_lengthscale", optional=True),
+                "edge_sigma": _ranged("edge_sigma"),
+                "weight_floor": Real(1e-12, 1.0, unit="a weight sum"),
+                "scale_var_share": Real(0.0, 1.0, unit="a share of tau^2"),
+            },
         )
 
 
@@ -170,10 +186,15 @@ class CalibrationConfig:
     min_points: int = 10
 
     def __post_init__(self) -> None:
-        _optional(self, "reach")
-        object.__setattr__(self, "prior_points", _in_range("prior_points", self.prior_points, 1e-3, 1e3, "points"))
-        object.__setattr__(self, "zscore_cap", _in_range("zscore_cap", self.zscore_cap, 1.0, 1e4, "a squared z-score"))
-        object.__setattr__(self, "min_points", _integer("min_points", self.min_points, 1))
+        check_fields(
+            self,
+            {
+                "reach": _ranged("reach", optional=True),
+                "prior_points": Real(1e-3, 1e3, unit="points"),
+                "zscore_cap": Real(1.0, 1e4, unit="a squared z-score"),
+                "min_points": Int(1),
+            },
+        )
 
 
 _NESTED = {
@@ -208,7 +229,7 @@ class DepthGPConfig:
         align: residual: fit the MDE to the points before it is the prior mean: "none", "scale" (robust
             median ratio) or "scale_shift" (robust affine).
         fit: Fit the scales to each frame: balanced / residual by the exact marginal likelihood
-            (`gpdepth3d.completion.fit`), log_residual l, s and tau on the frame's points (`gpdepth3d.gp.fit`).
+            (`gpdepth3d.completion.marginal_fit`), log_residual l, s and tau on the frame's points (`gpdepth3d.gp.fit`).
         nugget: log_residual: standard deviation tau of the white part of the MDE's log error.
         screen: log_residual: the fit and outlier screen (`ScreenConfig`).
         slope: log_residual: the slope fit (`SlopeConfig`).
@@ -237,27 +258,13 @@ class DepthGPConfig:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
-        for name, kind in _NESTED.items():  # a nested config read back from JSON comes as a dict
-            value = getattr(self, name)
-            if isinstance(value, dict):
-                known = {f.name for f in fields(kind)}
-                value = kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items() if k in known})
-                object.__setattr__(self, name, value)
-            if not isinstance(value, kind):
-                raise InvalidInputError(name, f"a {kind.__name__}", type(value).__name__)
-        if not isinstance(self.formulation, str) or self.formulation not in ("log_residual", "balanced", "residual"):
-            raise InvalidInputError("formulation", "'log_residual', 'balanced' or 'residual'", self.formulation)
-        if not _is_real(self.nu) or self.nu not in (0.5, 1.5, 2.5):
-            raise InvalidInputError("nu", "0.5, 1.5 or 2.5", f"{type(self.nu).__name__} {self.nu!r}")
-        object.__setattr__(self, "nu", float(self.nu))
-        for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget"):
-            object.__setattr__(self, name, _in_range(name, getattr(self, name), *RANGES[name]))
+        check_fields(self, {name: _nested(kind) for name, kind in _NESTED.items()})
+        rules = {name: _ranged(name) for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget")}
+        rules.update(formulation=Choice(("log_residual", "balanced", "residual")), nu=lambda _, v: check_nu(v))
+        rules.update(units=Choice(("relative", "metres")), align=Choice(("none", "scale", "scale_shift")), fit=Bool())
+        check_fields(self, rules)
         if self.formulation == "log_residual":  # log-depth scales: exp() of their squares must stay finite
-            _in_range("outputscale", self.outputscale, *RANGES["log_outputscale"])
-        for name, allowed in (("units", ("relative", "metres")), ("align", ("none", "scale", "scale_shift"))):
-            if not isinstance(getattr(self, name), str) or getattr(self, name) not in allowed:
-                raise InvalidInputError(name, " or ".join(repr(a) for a in allowed), getattr(self, name))
-        _boolean("fit", self.fit)
+            _ranged("log_outputscale")("outputscale", self.outputscale)
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
@@ -282,10 +289,7 @@ class DepthGPConfig:
 
     @classmethod
     def residual(cls, **overrides) -> "DepthGPConfig":
-        """The residual formulation set for sparse points (hundreds): l = 30 px, s = 0.2 x the median depth.
-
-        Its calibration is measured on 7-Scenes (see docs/results.md).
-        """
+        """The residual formulation set for sparse points (hundreds): l = 30 px, s = 0.2 x the median depth."""
         base = cls(
             formulation="residual",
             lengthscale=30.0,
@@ -314,40 +318,15 @@ class DepthGPConfig:
     def from_dict(cls, data: dict) -> "DepthGPConfig":
         """The config a dict holds (``dataclasses.asdict`` of one, e.g. a posterior file's ``config_json``).
 
-        Also reads the flat layout of older files: each key of `FLAT_KEYS` moves to its nested config (a value
-        the nested dict holds wins) and the compute options (`COMPUTE_KEYS`) are dropped (`EngineConfig`'s now).
-
         Raises:
             InvalidInputError: ``data`` not a dict, or a key that is no field (argument ``config``).
         """
         if not isinstance(data, dict):
             raise InvalidInputError("config", "a dict of DepthGPConfig fields", type(data).__name__)
-        out = {k: v for k, v in data.items() if k not in COMPUTE_KEYS}
-        for old, (section, name) in FLAT_KEYS.items():
-            if old in out:
-                value = out.pop(old)
-                nested = out.get(section, {})
-                nested = dict(nested if isinstance(nested, dict) else asdict(nested))
-                nested.setdefault(name, value)
-                out[section] = nested
-        unknown = sorted(set(out) - {f.name for f in fields(cls)})
+        unknown = sorted(set(data) - {f.name for f in fields(cls)})
         if unknown:
             raise InvalidInputError("config", "DepthGPConfig fields", f"unknown keys {unknown}")
-        return cls(**out)
-
-
-FLAT_KEYS: dict[str, tuple[str, str]] = {
-    "outlier_threshold": ("screen", "outlier_threshold"),
-    "raise_outputscale": ("screen", "raise_outputscale"),
-    "mde_slope_sigma": ("slope", "prior_sigma"),
-    "depth_lengthscale": ("assembly", "depth_lengthscale"),
-    "edge_sigma": ("assembly", "edge_sigma"),
-    "local_calibration": ("calibration", "reach"),
-}
-"""Flat keys of older stored configs -> (nested config, its field) (`DepthGPConfig.from_dict`)."""
-
-COMPUTE_KEYS = ("engine", "max_exact_points", "lattice_stride")
-"""Keys of older stored configs that are compute options, `gpdepth3d.gp.EngineConfig`'s (dropped on reading)."""
+        return cls(**data)
 
 
 RANGES: dict[str, tuple[float, float, str]] = {
@@ -368,81 +347,24 @@ posterior finite in float64: a log-depth scale above 3 (a factor of 20 at one si
 of the log-normal mean beyond any depth, a reach or slope sigma of 1e-300 divides by zero."""
 
 
-def _in_range(name: str, value, low: float, high: float, unit: str, *, none: bool = False) -> float:
-    """``value`` as a float when it is a real number in [low, high], else `InvalidInputError` naming ``name``."""
-    if not _is_real(value) or not np.isfinite(value) or not low <= value <= high:
-        expected = f"a number in [{low:g}, {high:g}] ({unit})" + (", or None" if none else "")
-        raise InvalidInputError(name, expected, f"{type(value).__name__} {value!r}")
-    return float(value)
+def _ranged(name: str, *, optional: bool = False) -> Real:
+    """The rule of the hyperparameter ``name``: a number in its `RANGES` interval (``optional``: or None)."""
+    low, high, unit = RANGES[name]
+    return Real(low, high, unit=unit, optional=optional)
 
 
-def _optional(config, name: str) -> None:
-    """Checks the optional number ``config.<name>`` against `RANGES` (None passes) and stores it as a float."""
-    value = getattr(config, name)
-    if value is not None:
-        object.__setattr__(config, name, _in_range(name, value, *RANGES[name], none=True))
+def _nested(kind: type):
+    """The rule of a nested stage config: an instance of ``kind``, or the dict of one read back from JSON."""
 
+    def rule(name: str, value):
+        if isinstance(value, dict):
+            known = {f.name for f in fields(kind)}
+            value = kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items() if k in known})
+        if not isinstance(value, kind):
+            raise InvalidInputError(name, f"a {kind.__name__}", describe(value))
+        return value
 
-def _boolean(name: str, value) -> None:
-    """`InvalidInputError` naming ``name`` unless ``value`` is True or False."""
-    if not isinstance(value, (bool, np.bool_)):
-        raise InvalidInputError(name, "True or False", value)
-
-
-def _integer(name: str, value, low: int, high: int | None = None, expected: str | None = None) -> int:
-    """``value`` as an int when it is an integer in [low, high], else `InvalidInputError` naming ``name``."""
-    ok = not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, np.integer))
-    if not ok or value < low or (high is not None and value > high):
-        what = expected or (f"an integer >= {low}" if high is None else f"an integer {low}-{high}")
-        raise InvalidInputError(name, what, f"{type(value).__name__} {value!r}")
-    return int(value)
-
-
-def _is_real(value) -> bool:
-    """True for a real number (int or float, numpy scalars included), False for bool, str, None."""
-    return not isinstance(value, (bool, np.bool_)) and isinstance(value, (int, float, np.integer, np.floating))
-
-
-def matern_1d(distance: np.ndarray, nu: float, lengthscale: float) -> np.ndarray:
-    """One-dimensional Matern correlation M_nu(|d| / l) (1 at d = 0)."""
-    r = np.abs(np.asarray(distance, dtype=np.float64)) / lengthscale
-    if nu == 0.5:
-        return np.exp(-r)
-    if nu == 1.5:
-        a = np.sqrt(3.0) * r
-        return (1.0 + a) * np.exp(-a)
-    if nu == 2.5:
-        a = np.sqrt(5.0) * r
-        return (1.0 + a + a * a / 3.0) * np.exp(-a)
-    raise InvalidInputError("nu", "0.5, 1.5 or 2.5", nu)
-
-
-def separable_correlation(dr: np.ndarray, dc: np.ndarray, lengthscale: float, nu: float) -> np.ndarray:
-    """Separable Matern correlation M_nu(|dr| / l) M_nu(|dc| / l) of row and column offsets (any matching shapes)."""
-    if nu == 0.5:  # the separable exponential is one exponential of the L1 distance
-        return np.exp(-(np.abs(dr) + np.abs(dc)) / lengthscale)
-    return matern_1d(dr, nu, lengthscale) * matern_1d(dc, nu, lengthscale)
-
-
-@dataclass(frozen=True)
-class Kernel:
-    """Separable Matern kernel s^2 * M(du / l) * M(dv / l) in physical units (metres, pixels)."""
-
-    nu: float
-    lengthscale: float
-    outputscale: float  # s, metres
-
-    def factor(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """1-D correlation matrix between coordinate vectors a (n,) and b (m,)."""
-        return matern_1d(np.subtract.outer(np.asarray(a, float), np.asarray(b, float)), self.nu, self.lengthscale)
-
-    def matrix(self, rows_a, cols_a, rows_b, cols_b) -> np.ndarray:
-        """Dense kernel matrix between point sets given by their (row, col) coordinates."""
-        if self.nu == 0.5:  # exp(-|du| / l) exp(-|dv| / l) as one exponential
-            du = np.abs(np.subtract.outer(np.asarray(rows_a, float), np.asarray(rows_b, float)))
-            du += np.abs(np.subtract.outer(np.asarray(cols_a, float), np.asarray(cols_b, float)))
-            return self.outputscale**2 * np.exp(du * (-1.0 / self.lengthscale))
-        return self.outputscale**2 * self.factor(rows_a, rows_b) * self.factor(cols_a, cols_b)
+    return rule
 
 
 @dataclass(frozen=True)

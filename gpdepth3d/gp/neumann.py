@@ -189,8 +189,8 @@ class NeumannPosterior:
 
     def __init__(self, problem: GridProblem, workspace: dict | None = None):
         k = problem.kernel
-        if k.nu != 0.5:
-            raise ValueError("internal error: the Neumann route needs nu = 0.5")
+        if not k.exponential:
+            raise ValueError("internal error: the Neumann route needs the exponential kernel (nu = 0.5)")
         self.problem = problem
         h, w = problem.shape
         dv, ov = _tridiagonal(h, float(k.lengthscale))

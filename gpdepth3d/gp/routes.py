@@ -126,9 +126,14 @@ def _memory(needed: int, budget: int) -> Refusal | None:
 
 @runtime_checkable
 class Route(Protocol):
-    """A way to compute the exact posterior: whether it fits a problem, and what it costs there."""
+    """A way to compute the exact posterior: whether it fits a problem, and what it costs there.
+
+    Capability flags state what a route needs of the kernel (`gpdepth3d.gp.kernels.MaternKernel`):
+    ``needs_exponential``, the exponential kernel's first-order Markov form (nu = 1/2).
+    """
 
     name: str
+    needs_exponential: bool
 
     def fits(self, query: RouteQuery) -> Refusal | None:
         """None when the route can take the problem, else why not."""
@@ -147,6 +152,7 @@ class GridRoute:
     """Sparse precision over the pixel lattice, multifrontal Cholesky and selected inverse (any nu)."""
 
     name = "grid"
+    needs_exponential = False
 
     def fits(self, q: RouteQuery) -> Refusal | None:
         k = q.lattice.kernel
@@ -178,6 +184,7 @@ class DenseRoute:
     """Dense algebra over the observed pixels (`gpdepth3d.gp.exact.dense_posterior`; any nu, few points)."""
 
     name = "dense"
+    needs_exponential = False
 
     def fits(self, q: RouteQuery) -> Refusal | None:
         m = q.observed
@@ -197,19 +204,27 @@ class DenseRoute:
         return ("woodbury", "grid") if q.backend == "torch" or q.near_noiseless else ("woodbury",)
 
 
+def _kernel_refusal(route: Route, kernel) -> Refusal | None:
+    """Why ``route`` cannot take ``kernel`` by its capability flags, or None."""
+    if route.needs_exponential and not kernel.exponential:
+        return Refusal(
+            "applicability",
+            "it needs nu = 0.5",
+            f"'auto', 'grid' or 'dense' for nu = {kernel.nu} ('{route.name}' needs nu = 0.5)",
+        )
+    return None
+
+
 class WoodburyRoute:
     """nu = 0.5: Woodbury over the observed pixels with recursive filtering (`gpdepth3d.gp.woodbury`)."""
 
     name = "woodbury"
+    needs_exponential = True  # capability flag: its recursive filter is the exponential kernel's Markov chain
 
     def fits(self, q: RouteQuery) -> Refusal | None:
-        nu = q.problem.kernel.nu
-        if nu != 0.5:
-            return Refusal(
-                "applicability",
-                "it needs nu = 0.5",
-                f"'auto', 'grid' or 'dense' for nu = {nu} ('woodbury' needs nu = 0.5)",
-            )
+        refusal = _kernel_refusal(self, q.problem.kernel)
+        if refusal is not None:
+            return refusal
         if not q.forced and q.backend != "compiled":
             return Refusal("limit", "auto takes it with the compiled back-end only")
         if not q.forced and q.observed and q.near_noiseless:
@@ -232,15 +247,13 @@ class NeumannRoute:
     """
 
     name = "neumann"
+    needs_exponential = True  # capability flag: its diagonal dominance is the exponential kernel's precision
 
     def _cheap_refusal(self, q: RouteQuery) -> Refusal | None:
-        nu, (h, w) = q.problem.kernel.nu, q.lattice.shape
-        if nu != 0.5:
-            return Refusal(
-                "applicability",
-                "it needs nu = 0.5",
-                f"'auto', 'grid' or 'dense' for nu = {nu} ('neumann' needs nu = 0.5)",
-            )
+        h, w = q.lattice.shape
+        refusal = _kernel_refusal(self, q.problem.kernel)
+        if refusal is not None:
+            return refusal
         if not q.problem.output_is_input:
             return Refusal(
                 "applicability",

@@ -38,6 +38,7 @@ from numba import get_num_threads, njit, prange
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_in_place
+from .kernels import smoothness_code, unit_correlation
 from .model import LatticeConfig
 
 
@@ -49,23 +50,32 @@ def window_reach(stride: int) -> int:
     return int(stride) // 2 + 1
 
 
+_EXPONENTIAL = smoothness_code(0.5)  # the bridge below is the exponential kernel's Markov conditioning
+
+
+@njit(cache=True, nogil=True)
+def _rho(r):  # pragma: no cover - compiled
+    """The exponential kernel's correlation at the scaled distance r = |d| / l (`gpdepth3d.gp.kernels`)."""
+    return unit_correlation(r, _EXPONENTIAL)
+
+
 @njit(cache=True, nogil=True)
 def _bridge(x, y, k, n_nodes, inv_l):  # pragma: no cover - compiled
     """1-D residual covariance E(x, y) of the unit exponential field given nodes k j + (k - 1) / 2, j < n_nodes."""
     off = 0.5 * (k - 1)
     jx = min(max(math.floor((x - off) / k), -1), n_nodes - 1)
     jy = min(max(math.floor((y - off) / k), -1), n_nodes - 1)
-    rho = math.exp(-abs(x - y) * inv_l)
+    rho = _rho(abs(x - y) * inv_l)
     if jx != jy:
         return 0.0
     if jx < 0 or jx == n_nodes - 1:  # outside the first or last node: one node conditions
         a = off if jx < 0 else off + k * (n_nodes - 1)
-        return rho - math.exp(-abs(x - a) * inv_l) * math.exp(-abs(y - a) * inv_l)
+        return rho - _rho(abs(x - a) * inv_l) * _rho(abs(y - a) * inv_l)
     a = off + k * jx
     b = a + k
-    rab = math.exp(-k * inv_l)
-    rax, rbx = math.exp(-abs(x - a) * inv_l), math.exp(-abs(x - b) * inv_l)
-    ray, rby = math.exp(-abs(y - a) * inv_l), math.exp(-abs(y - b) * inv_l)
+    rab = _rho(k * inv_l)
+    rax, rbx = _rho(abs(x - a) * inv_l), _rho(abs(x - b) * inv_l)
+    ray, rby = _rho(abs(y - a) * inv_l), _rho(abs(y - b) * inv_l)
     explained = (rax * ray + rbx * rby - rab * (rax * rby + rbx * ray)) / (1.0 - rab * rab)
     return rho - explained
 
@@ -80,7 +90,7 @@ def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - c
         for d in range(-reach, reach + 1):
             y = float(centres[i] + d)
             E[i, d + reach] = _bridge(targets[i], y, k, n_nodes, inv_l)
-            R[i, d + reach] = math.exp(-abs(targets[i] - y) * inv_l)
+            R[i, d + reach] = _rho(abs(targets[i] - y) * inv_l)
     return E, R
 
 

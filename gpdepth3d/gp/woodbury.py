@@ -223,8 +223,8 @@ class WoodburyPosterior:
 
     def __init__(self, problem: GridProblem, workspace: dict | None = None):
         k = problem.kernel
-        if k.nu != 0.5:
-            raise ValueError("internal error: the Woodbury route needs nu = 0.5")
+        if not k.exponential:
+            raise ValueError("internal error: the Woodbury route needs the exponential kernel (nu = 0.5)")
         self.problem = problem
         self._store = workspace
         prec = np.asarray(problem.precision, dtype=np.float64)
@@ -241,8 +241,8 @@ class WoodburyPosterior:
         if not self.m:
             return
         h, w = problem.shape
-        er = np.exp(-self.inv_l * np.arange(h))
-        ec = np.exp(-self.inv_l * np.arange(w))
+        er = k.lag_correlation(h)
+        ec = k.lag_correlation(w)
         with numeric_section():
             self.A = _correlations(rows, cols, er, ec, 1.0 / (prec[rows, cols] * self.s2))
             self.L, info = scipy.linalg.lapack.dpotrf(self.A, lower=1, clean=0)

@@ -15,9 +15,9 @@ STAGES = ("mde", "points", "gp", "fusion")
 """The timed stages of `Mapper.add_frame` (keys of `FrameResult.timings`, plus "total")."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FrameResult:
-    """What `Mapper.add_frame` did with one frame.
+    """What `Mapper.add_frame` did with one frame (built by keyword only).
 
     Attributes:
         depth: (h, w) depth that was fused (posterior mean, or the MDE when not refining),

@@ -149,8 +149,7 @@ def read_map_meta(path: str | Path, config: MapperConfig | None = None) -> tuple
 def config_from_dict(saved: dict) -> MapperConfig:
     """A `MapperConfig` from its ``asdict`` form (as ``mapper.json`` holds it; older maps' missing fields default)."""
     return MapperConfig(
-        # maps saved before the local calibration of the variance existed had none
-        gp=DepthGPConfig.from_dict({"local_calibration": None, **saved["gp"]}),
+        gp=DepthGPConfig.from_dict(saved["gp"]),
         fusion=FusionConfig(**saved["fusion"]),
         triangulation=TriangulationConfig(**_tuples(saved["triangulation"])),
         refind=RefindConfig(**saved.get("refind", {})),

@@ -552,21 +552,21 @@ def _frame_result(
 ) -> FrameResult:
     """The `FrameResult` of a frame: fused (``error`` None) or not (``error`` names the frame and stage)."""
     return FrameResult(
-        depth,
-        variance,
-        mde,
-        entry.measurements,
-        posterior,
-        timings,
-        entry.kid,
-        error is None,
-        error,
-        tuple(entry.notes),
-        masked,
-        entry.map_stats,
-        entry.pose_check,
-        entry.scale,
-        fallback,
+        depth=depth,
+        variance=variance,
+        mde=mde,
+        sparse=entry.measurements,
+        posterior=posterior,
+        timings=timings,
+        keyframe_id=entry.kid,
+        fused=error is None,
+        error=error,
+        warnings=tuple(entry.notes),
+        masked_pixels=masked,
+        map_points=entry.map_stats,
+        pose_check=entry.pose_check,
+        map_scale=entry.scale,
+        fallback_weight=fallback,
     )
 
 

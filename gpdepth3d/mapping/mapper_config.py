@@ -5,9 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-import numpy as np
 
-from ..errors import InvalidInputError
+from ..checks import Bool, Choice, Instance, Int, Real, check_fields, non_negative, positive
 from ..gp.model import CalibrationConfig, DepthGPConfig
 from .tsdf.fusion_config import FusionConfig
 from .points.refinding import RefindConfig
@@ -19,15 +18,12 @@ MAPPER_FUSION = FusionConfig(relative_sigma_ref=0.05)
 MAPPER_GP = DepthGPConfig(lengthscale=64.0, calibration=CalibrationConfig(reach=None))
 """The `Mapper`'s GP: the default model with the variance of the stationary GP and twice its length scale: a
 frame's own points are fewer than a LiDAR's and gather on texture, and their correction must reach the
-surfaces between them (see `MapperConfig.gp`; the choice: see docs/results.md)."""
+surfaces between them (see `MapperConfig.gp`)."""
 
 
 @dataclass(frozen=True)
 class MapperConfig:
-    """Options of the `Mapper`.
-
-    Numbers behind the defaults (F at 5 cm, chosen on one sequence, confirmed on the other):
-    see docs/results.md.
+    """Options of the `Mapper` (the measurements behind the defaults: docs/results.md).
 
     Attributes:
         gp: GP model of the refinement (`MAPPER_GP`: the default model with the stationary GP's
@@ -96,33 +92,14 @@ class MapperConfig:
     fuse_inverted_poses: bool = False
 
     def __post_init__(self) -> None:
-        if int(self.max_points) != self.max_points or self.max_points < 1:
-            raise InvalidInputError("max_points", "an integer >= 1", self.max_points)
-        if int(self.window) != self.window or self.window < 1:
-            raise InvalidInputError("window", "an integer >= 1", self.window)
-        if isinstance(self.lag, bool) or int(self.lag) != self.lag or self.lag < 0:
-            raise InvalidInputError("lag", "an integer >= 0", self.lag)
-        if self.fuse_depth not in ("median", "mean"):
-            raise InvalidInputError("fuse_depth", "'median' or 'mean'", self.fuse_depth)
-        if not np.isfinite(self.map_scale_weight) or not 0 <= self.map_scale_weight <= 1:
-            raise InvalidInputError("map_scale_weight", "a weight in [0, 1]", self.map_scale_weight)
-        if not np.isfinite(self.map_scale_max_sigma) or self.map_scale_max_sigma <= 0:
-            raise InvalidInputError("map_scale_max_sigma", "a fraction of the depth > 0", self.map_scale_max_sigma)
-        if (
-            isinstance(self.map_scale_keyframes, bool)
-            or int(self.map_scale_keyframes) != self.map_scale_keyframes
-            or self.map_scale_keyframes < 1
-        ):
-            raise InvalidInputError("map_scale_keyframes", "an integer >= 1", self.map_scale_keyframes)
-        if not np.isfinite(self.min_baseline) or self.min_baseline < 0:
-            raise InvalidInputError("min_baseline", "a distance >= 0 (metres)", self.min_baseline)
-        if (
-            isinstance(self.local_map_frames, bool)
-            or int(self.local_map_frames) != self.local_map_frames
-            or (self.local_map_frames < 0)
-        ):
-            raise InvalidInputError("local_map_frames", "an integer >= 0", self.local_map_frames)
-        if not np.isfinite(self.local_map_cell) or not 0 < self.local_map_cell <= 1:
-            raise InvalidInputError("local_map_cell", "a fraction of the image width in (0, 1]", self.local_map_cell)
-        if not np.isfinite(self.working_scale) or not 0 < self.working_scale <= 1:
-            raise InvalidInputError("working_scale", "a factor in (0, 1]", self.working_scale)
+        rules = {"gp": Instance(DepthGPConfig), "fusion": Instance(FusionConfig), "refind": Instance(RefindConfig)}
+        rules.update(triangulation=Instance(TriangulationConfig), fuse_depth=Choice(("median", "mean")))
+        rules.update(max_points=Int(1), window=Int(1), lag=Int(0), map_scale_keyframes=Int(1), local_map_frames=Int(0))
+        rules.update(map_scale_weight=Real(0.0, 1.0, unit="a weight"), map_scale_max_sigma=positive("of the depth"))
+        rules.update(
+            min_baseline=non_negative("metres"), local_map_cell=Real(0.0, 1.0, low_open=True, unit="of the width")
+        )
+        rules.update(working_scale=Real(0.0, 1.0, low_open=True, unit="a factor"))
+        flags = ("refine", "triangulate", "scale_variance", "keep_keyframes", "fuse_inverted_poses")
+        rules.update({name: Bool() for name in flags})
+        check_fields(self, rules)

@@ -612,7 +612,7 @@ def check_settings(
     settings = {"config": dataclasses.asdict(config), "lattice_stride": stride, "loader": fingerprint(loader)}
     if path.is_file():
         try:
-            old = _stored_settings(json.loads(path.read_text()))
+            old = json.loads(path.read_text())
         except (ValueError, GPDepthError):
             old = None
         if old != to_jsonable(settings):
@@ -623,18 +623,6 @@ def check_settings(
             )
         return
     write_json(path, settings)
-
-
-def _stored_settings(old):
-    """Settings read back from ``batch_settings.json``; a folder's older flat config is read as its
-    nested equivalent (`DepthGPConfig.from_dict`), its lattice stride taken from that config."""
-    import dataclasses
-
-    if not isinstance(old, dict) or not isinstance(old.get("config"), dict) or "lattice_stride" in old:
-        return old
-    stride = old["config"].get("lattice_stride")
-    config = dataclasses.asdict(DepthGPConfig.from_dict(old["config"]))
-    return to_jsonable({"config": config, "lattice_stride": stride, "loader": old.get("loader")})
 
 
 def remove_stale_temp_files(output_dir: str | Path) -> int:

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..camera import PinholeCamera, check_pose
 from ..io import load_pose
+from ..checks import Choice, Int, check_fields, positive
 from ..errors import DataFormatError, EmptyInputError, InvalidInputError, ShapeError, describe
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -57,16 +58,9 @@ class ViewerConfig:
     title: str = "gpdepth3d"
 
     def __post_init__(self) -> None:
-        if self.layout not in LAYOUTS:
-            raise InvalidInputError("layout", f"one of {LAYOUTS}", self.layout)
-        if self.color_by not in COLOR_MODES:
-            raise InvalidInputError("color_by", f"one of {COLOR_MODES}", self.color_by)
-        if int(self.max_points) != self.max_points or self.max_points < 1:
-            raise InvalidInputError("max_points", "an integer >= 1", self.max_points)
-        for name in ("point_size", "frustum_scale"):
-            value = getattr(self, name)
-            if value is not None and not (np.isfinite(value) and value > 0):
-                raise InvalidInputError(name, "None or a finite size > 0 (metres)", value)
+        rules = {"layout": Choice(LAYOUTS), "color_by": Choice(COLOR_MODES), "max_points": Int(1)}
+        rules.update(point_size=positive("metres", optional=True), frustum_scale=positive("metres", optional=True))
+        check_fields(self, rules)
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,7 @@ class TestCompleteCommand:
 
     def test_fitted_hyperparameters_from_the_command_line(self, shared_data, tmp_path, capsys):
         from gpdepth3d.completion.complete import DepthCompleter
-        from gpdepth3d.completion.fit import log_marginal_likelihood
+        from gpdepth3d.completion.marginal_fit import log_marginal_likelihood
         from gpdepth3d.gp.model import DepthGPConfig
         from gpdepth3d.io import load_sparse
 

@@ -16,11 +16,10 @@ from gpdepth3d.completion.log_frame import log_frame
 from gpdepth3d.completion.log_residual import log_residual_posterior
 from gpdepth3d.completion.problem import _frame_inputs
 from gpdepth3d.completion.screen import follow_slope, screen
-from gpdepth3d.completion.slope import fit_slope, refit_slope
+from gpdepth3d.completion.mde_slope import fit_slope, refit_slope
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
 from gpdepth3d.gp.model import (
-    FLAT_KEYS,
     AssemblyConfig,
     CalibrationConfig,
     DepthGPConfig,
@@ -136,44 +135,28 @@ class TestNestedConfigs:
         with pytest.raises(InvalidInputError, match="unknown keys"):
             base.replace(assembly={"no_such_field": 1.0})
 
-    def test_from_dict_reads_the_flat_layout(self):
-        """Each flat key of an older file lands in its nested config; compute options are dropped."""
-        old = {
-            "formulation": "log_residual",
-            "nugget": 0.03,
-            "engine": "exact",
-            "max_exact_points": 77,
-            "lattice_stride": 2,
-            "outlier_threshold": 2.5,
-            "raise_outputscale": False,
-            "mde_slope_sigma": 0.25,
-            "depth_lengthscale": None,
-            "edge_sigma": 0.5,
-            "local_calibration": 3.0,
-        }
-        config = DepthGPConfig.from_dict(old)
-        assert config == DepthGPConfig(
+    def test_from_dict_reads_what_asdict_writes(self):
+        """A stored config (``asdict``, through JSON) reads back as the same model; anything else is refused."""
+        config = DepthGPConfig(
             nugget=0.03,
             screen=ScreenConfig(outlier_threshold=2.5, raise_outputscale=False),
             slope=SlopeConfig(prior_sigma=0.25),
             assembly=AssemblyConfig(depth_lengthscale=None, edge_sigma=0.5),
             calibration=CalibrationConfig(reach=3.0),
         )
-        # a value the nested dict holds wins over a flat key (a newer file read with a default for an old key)
-        both = DepthGPConfig.from_dict({"local_calibration": None, "calibration": {"reach": 2.0, "min_points": 5}})
-        assert both.calibration == CalibrationConfig(reach=2.0, min_points=5)
-        assert DepthGPConfig.from_dict({"local_calibration": None, "calibration": {"min_points": 5}}).calibration == (
-            CalibrationConfig(reach=None, min_points=5)
-        )
-        with pytest.raises(InvalidInputError, match="unknown keys"):
-            DepthGPConfig.from_dict({"no_such_field": 1})
+        assert DepthGPConfig.from_dict(json.loads(json.dumps(asdict(config)))) == config
+        partial = DepthGPConfig.from_dict({"calibration": {"min_points": 5}})
+        assert partial.calibration == CalibrationConfig(min_points=5)
+        for unknown in ({"no_such_field": 1}, {"local_calibration": None}, {"engine": "exact"}):
+            with pytest.raises(InvalidInputError, match="unknown keys"):
+                DepthGPConfig.from_dict(unknown)
         with pytest.raises(InvalidInputError, match="config"):
             DepthGPConfig.from_dict([("nugget", 0.03)])
         with pytest.raises(InvalidInputError, match="reach"):
-            DepthGPConfig.from_dict({"local_calibration": -1.0})
+            DepthGPConfig.from_dict({"calibration": {"reach": -1.0}})
 
-    def test_a_posterior_saved_with_a_flat_config_loads(self, tmp_path):
-        """A file whose config_json has the older flat layout (no nested configs) loads as the same model."""
+    def test_a_saved_posterior_loads_with_its_config(self, tmp_path):
+        """A file this version writes loads as the same model (its nested config included)."""
         _, mde, sp = _scene()
         config = DepthGPConfig(
             nugget=0.03, screen=ScreenConfig(outlier_threshold=3.0), calibration=CalibrationConfig(reach=2.0)
@@ -182,16 +165,7 @@ class TestNestedConfigs:
             warnings.simplefilter("ignore", PosteriorWarning)
             post = g.complete(mde, sp, config=config)
         path = post.save(tmp_path / "p")[0]
-        assert DepthPosterior.load(path).config == post.config
-        data = dict(np.load(path))
-        stored = json.loads(str(data["config_json"]))
-        flat = {k: v for k, v in stored.items() if not isinstance(v, dict)}
-        flat.update(engine="fast", max_exact_points=6000, lattice_stride=None)
-        for old, (section, name) in FLAT_KEYS.items():
-            flat[old] = stored[section][name]
-        data["config_json"] = np.array(json.dumps(flat))
-        np.savez(tmp_path / "old.npz", **data)
-        assert DepthPosterior.load(tmp_path / "old.npz").config == post.config
+        assert DepthPosterior.load(path).config == post.config == config
 
     def test_the_options_reach_their_stage(self):
         _, mde, sp = _scene(n=300, seed=2)

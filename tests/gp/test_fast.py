@@ -529,7 +529,7 @@ class TestConditioningHelpers:
     def test_fit_treats_a_refused_kernel_as_infeasible(self):
         """fit_hyperparameters meets IllConditionedError (nu = 2.5, l = 30, every pixel observed, no dense route):
         the objective treats it as infeasible instead of letting it escape."""
-        from gpdepth3d.completion.fit import fit_hyperparameters
+        from gpdepth3d.completion.marginal_fit import fit_hyperparameters
 
         rng = np.random.default_rng(9)
         mde = 3.0 + np.cumsum(rng.normal(0, 0.02, (16, 20)), axis=1)

@@ -1,4 +1,4 @@
-"""Tests of hyperparameter fitting: gpdepth3d.completion.fit on data sampled from the model, gpdepth3d.gp.fit alone."""
+"""Tests of hyperparameter fitting: gpdepth3d.completion.marginal_fit on data sampled from the model, gpdepth3d.gp.fit alone."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from gpdepth3d.completion.complete import build_problem
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.completion.fit import fit_hyperparameters, log_marginal_likelihood
+from gpdepth3d.completion.marginal_fit import fit_hyperparameters, log_marginal_likelihood
 from gpdepth3d.gp.model import DepthGPConfig, matern_1d
 from gpdepth3d.measurements import SparseDepth
 
@@ -115,7 +115,7 @@ class TestFitHyperparameters:
 class TestFitOption:
     def test_config_fit_fits_each_frame_warm_started(self, monkeypatch):
         from gpdepth3d.completion.complete import DepthCompleter
-        import gpdepth3d.completion.fit as fitmod
+        import gpdepth3d.completion.marginal_fit as fitmod
 
         rng = np.random.default_rng(5)
         start = DepthGPConfig.paper(

@@ -508,11 +508,6 @@ class TestLoopClosure:
         _assert_stored_voxels_close(a, _sorted_voxels(loaded.fusion))
         assert sorted(loaded.keyframes) == sorted(mapper.keyframes)
         assert loaded.config.gp == mapper.config.gp
-        # a map saved before the calibration had a reach: loaded without it, as it was made
-        meta = json.loads((tmp_path / "map" / "mapper.json").read_text())
-        meta["config"]["gp"]["calibration"].pop("reach")
-        (tmp_path / "map" / "mapper.json").write_text(json.dumps(meta))
-        assert Mapper.load(tmp_path / "map").config.gp.calibration.reach is None
         np.testing.assert_allclose(loaded.keyframes[3].T_world_camera, moved, atol=1e-12)  # snapped by check_pose
         loaded.update_poses({3: poses[3]})
         mapper.update_poses({3: poses[3]})

@@ -21,7 +21,6 @@ import numpy as np
 import pytest
 
 from gpdepth3d import DepthGPConfig, complete
-from gpdepth3d.gp.model import FLAT_KEYS
 from gpdepth3d.gp.engine import EngineConfig
 from gpdepth3d.pipelines.batch import (
     LOCK_NAME,
@@ -336,22 +335,6 @@ class TestRunBatchInProcess:
                 frames, tmp_path, config=CONFIG, engine=ENGINE.replace(lattice_stride=2), loader=LOADER, workers=0
             )
         assert fingerprint(process_frame) == "gpdepth3d.pipelines.batch.process_frame"
-
-    def test_a_folder_with_the_older_flat_settings_resumes(self, tiny_kitti, tmp_path):
-        frames = dataset_frames(tiny_kitti, limit=1)
-        run_batch(frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=False)
-        settings = json.loads((tmp_path / SETTINGS_NAME).read_text())
-        flat = {k: v for k, v in settings["config"].items() if not isinstance(v, dict)}
-        for old, (section, name) in FLAT_KEYS.items():
-            flat[old] = settings["config"][section][name]
-        flat["lattice_stride"] = settings.pop("lattice_stride")
-        (tmp_path / SETTINGS_NAME).write_text(json.dumps({**settings, "config": flat}))
-        again = run_batch(frames, tmp_path, config=CONFIG, engine=ENGINE, loader=LOADER, workers=0, progress=False)
-        assert again.n_skipped == 1
-        with pytest.raises(InvalidInputError, match="new output_dir"):
-            run_batch(
-                frames, tmp_path, config=CONFIG.replace(screen={"outlier_threshold": 2.0}), loader=LOADER, workers=0
-            )
 
     def test_a_second_run_on_a_locked_folder_is_refused(self, tiny_kitti, tmp_path):
         fcntl = pytest.importorskip("fcntl")

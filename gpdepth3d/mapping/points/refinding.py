@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ...camera import PinholeCamera
+from ...checks import Choice, Int, Real, check_fields
 from ...errors import InvalidInputError
 from ...measurements import SparseDepth
 from .features import Features, _gray, detect_features
@@ -53,20 +54,16 @@ class RefindConfig:
     pool: int = 20
 
     def __post_init__(self) -> None:
-        if self.detector not in ("orb", "sift", "none"):
-            raise InvalidInputError("detector", "'orb', 'sift' or 'none'", self.detector)
-        for name, low in (("max_features", 8), ("below", 0), ("views", 1), ("pool", 2)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < low:
-                raise InvalidInputError(name, f"an integer >= {low}", value)
+        rules = {"detector": Choice(("orb", "sift", "none")), "max_features": Int(8), "below": Int(0)}
+        rules.update(views=Int(1), pool=Int(2), min_parallax=Real(), target_parallax=Real(), max_parallax=Real())
+        rules.update(max_angle_deg=Real(0.0, 180.0, low_open=True, high_open=True, unit="degrees"))
+        check_fields(self, rules)
         if not 0 < self.min_parallax <= self.target_parallax <= self.max_parallax:
             raise InvalidInputError(
                 "min_parallax, target_parallax, max_parallax",
                 "0 < min <= target <= max",
                 (self.min_parallax, self.target_parallax, self.max_parallax),
             )
-        if not 0 < self.max_angle_deg < 180:
-            raise InvalidInputError("max_angle_deg", "an angle in (0, 180) degrees", self.max_angle_deg)
 
 
 def select_views(

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
 
+from ...checks import Bool, Int, Real, check_choice, check_fields, non_negative, positive
 from ...errors import InvalidInputError
 
 
@@ -18,12 +18,10 @@ class TriangulationConfig:
         detector: "klt" (Shi-Tomasi corners followed by pyramidal Lucas-Kanade: sub-pixel
             tracks, the default), "orb" or "sift" (descriptor matching, OpenCV).
         max_features: Most keypoints detected per image (tracks kept alive for "klt");
-            None: 800 for "klt", 3000 for "orb" / "sift" (numbers behind 800:
-            see docs/results.md).
+            None: 800 for "klt", 3000 for "orb" / "sift".
         sift_contrast_threshold: "sift" keypoints' contrast threshold (OpenCV's ``contrastThreshold``,
-            https://docs.opencv.org/4.x/d7/d60/classcv_1_1SIFT.html): half OpenCV's 0.04, which keeps
-            few keypoints on the plain walls and floors of indoor scenes (the choice:
-            see docs/results.md).
+            https://docs.opencv.org/4.x/d7/d60/classcv_1_1SIFT.html); lower keeps more keypoints on
+            low-contrast surfaces (plain walls and floors).
         min_corner_distance: Smallest distance between two "klt" corners, pixels.
         klt_window: Lucas-Kanade window side, pixels.
         klt_levels: Lucas-Kanade pyramid levels above the image.
@@ -78,35 +76,16 @@ class TriangulationConfig:
     max_relative_sigma: float = 0.3
 
     def __post_init__(self) -> None:
-        if self.detector not in ("klt", "orb", "sift"):
-            raise InvalidInputError("detector", "'klt', 'orb' or 'sift'", self.detector)
+        object.__setattr__(self, "detector", check_choice("detector", self.detector, ("klt", "orb", "sift")))
         if self.max_features is None:
             object.__setattr__(self, "max_features", 800 if self.detector == "klt" else 3000)
-        for name, low in (("max_features", 8), ("klt_window", 5), ("klt_levels", 0), ("min_views", 2)):
-            value = getattr(self, name)
-            if int(value) != value or value < low:
-                raise InvalidInputError(name, f"an integer >= {low}", value)
-        if not 0 < self.ratio <= 1:
-            raise InvalidInputError("ratio", "a value in (0, 1]", self.ratio)
-        for name in (
-            "max_epipolar_error",
-            "max_reprojection_error",
-            "pixel_sigma",
-            "max_depth",
-            "max_relative_sigma",
-            "rotation_sigma_deg",
-            "translation_sigma",
-            "min_corner_distance",
-            "sift_contrast_threshold",
-        ):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise InvalidInputError(name, "a finite value > 0", value)
-        for name in ("klt_fb_error", "depth_sigma_floor"):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value < 0:
-                raise InvalidInputError(name, "a finite value >= 0", value)
-        if not 0 <= self.min_parallax_deg < 90:
-            raise InvalidInputError("min_parallax_deg", "an angle in [0, 90) degrees", self.min_parallax_deg)
+        rules = {"max_features": Int(8), "klt_window": Int(5), "klt_levels": Int(0), "min_views": Int(2)}
+        rules.update(ratio=Real(0.0, 1.0, low_open=True), min_parallax_deg=Real(0.0, 90.0, high_open=True, unit="deg"))
+        positives = ("max_epipolar_error", "max_reprojection_error", "pixel_sigma", "max_depth", "max_relative_sigma")
+        positives += ("rotation_sigma_deg", "translation_sigma", "min_corner_distance", "sift_contrast_threshold")
+        rules.update({name: positive() for name in positives})
+        rules.update(klt_fb_error=non_negative(), depth_sigma_floor=non_negative(), min_depth=non_negative("m"))
+        rules.update(refine_poses=Bool(), variance_factor=Bool())
+        check_fields(self, rules)
         if not 0 <= self.min_depth < self.max_depth:
             raise InvalidInputError("min_depth", f"0 <= min_depth < max_depth ({self.max_depth})", self.min_depth)

@@ -20,6 +20,7 @@ from typing import Literal
 
 import numpy as np
 
+from ...checks import Bool, Choice, Int, Real, check_fields, non_negative, positive
 from ...errors import InvalidInputError, ShapeError, describe
 
 Weighting = Literal["uniform", "variance"]
@@ -41,12 +42,11 @@ class FusionConfig:
         sigma_ref: Variance weighting without ``relative_sigma_ref``: depth standard deviation
             (metres) at which a pixel counts as half an observation.
         relative_sigma_ref: Variance weighting: sigma / depth at which a pixel counts as half an
-            observation (None, default: ``sigma_ref`` in metres; the `Mapper`'s default fusion,
-            ``MAPPER_FUSION``, uses 0.05). Relative, so that a room at 1 m and a hall at 5 m meet the
-            same ``weight_threshold``.
+            observation (None: ``sigma_ref`` in metres). Relative, so that a room at 1 m and a hall at
+            5 m meet the same ``weight_threshold``.
         max_relative_sigma: Variance weighting: pixels with sigma / depth above this count as
-            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma,
-            0.20-0.22 for the default model) and get the fallback weight instead (None: none does).
+            uninformed (no point near them: the MDE's shape alone, with the GP prior's sigma) and get
+            the fallback weight instead (None: none does).
         fallback_weight: Weight in [0, 1] of the uninformed pixels of a frame without points: such
             a frame falls back to its MDE depth, down-weighted. A frame with points gives them
             ``fallback_weight * exp(-points / fallback_points)`` (`fallback_for`): what its points
@@ -55,8 +55,7 @@ class FusionConfig:
         weight_threshold: Extraction keeps voxels with accumulated weight > this.
         truncation_sigma: k of the truncation from the variance (see the module docstring): a
             pixel's truncation is ``clip(k * sigma, truncation, truncation_max)`` when a variance
-            is given to `TSDFFusion.integrate`; 0 (default) keeps the fixed ``truncation``, which
-            did as well (see docs/results.md).
+            is given to `TSDFFusion.integrate`; 0 keeps the fixed ``truncation``.
         truncation_max: Largest truncation with ``truncation_sigma`` > 0, metres (then >=
             truncation); the signed distances are then stored divided by it.
         block_resolution: Voxels per block edge of the VoxelBlockGrid.
@@ -66,7 +65,7 @@ class FusionConfig:
             `TSDFFusion.integrate` then needs a ``variance`` for every frame.
         device: Open3D device string, "CPU:0" or "CUDA:0".
         cpu_threads: torch threads of the voxel update on the CPU while it runs (0 = leave
-            torch's setting alone). 1 by default: the update is memory-bound, and on a busy
+            torch's setting alone). The update is memory-bound: on a busy
             machine torch's default (one thread per core) makes the threads wait on each other.
     """
 
@@ -92,48 +91,20 @@ class FusionConfig:
     cpu_threads: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("voxel_size", "truncation", "depth_max", "weight_cap", "sigma_ref", "fallback_points"):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise InvalidInputError(name, "a finite value > 0", value)
-        if self.truncation < self.voxel_size:
-            raise InvalidInputError("truncation", f">= voxel_size ({self.voxel_size} m)", self.truncation)
-        if not (0 <= self.depth_min < self.depth_max):
+        rules = {name: positive() for name in ("voxel_size", "depth_max", "weight_cap", "sigma_ref", "fallback_points")}
+        rules.update(truncation=Real(self.voxel_size, unit="metres, >= voxel_size"), depth_min=non_negative("m"))
+        rules.update(relative_sigma_ref=positive(optional=True), max_relative_sigma=positive(optional=True))
+        rules.update(weighting=Choice(("uniform", "variance")), fallback_weight=Real(0.0, 1.0, unit="a weight"))
+        rules.update(weight_threshold=non_negative(), truncation_sigma=non_negative(), truncation_max=Real())
+        rules.update(block_resolution=Int(2), block_count=Int(1), cpu_threads=Int(0))
+        rules.update(integrate_color=Bool(), integrate_variance=Bool())
+        check_fields(self, rules)
+        if not self.depth_min < self.depth_max:
             raise InvalidInputError(
                 "depth_min, depth_max", "0 <= depth_min < depth_max", (self.depth_min, self.depth_max)
             )
-        if self.weighting not in ("uniform", "variance"):
-            raise InvalidInputError("weighting", "'uniform' or 'variance'", self.weighting)
-        if not (np.isfinite(self.fallback_weight) and 0 <= self.fallback_weight <= 1):
-            raise InvalidInputError("fallback_weight", "a weight in [0, 1]", self.fallback_weight)
-        if self.relative_sigma_ref is not None and (
-            isinstance(self.relative_sigma_ref, bool)
-            or not np.isfinite(self.relative_sigma_ref)
-            or self.relative_sigma_ref <= 0
-        ):
-            raise InvalidInputError("relative_sigma_ref", "a finite value > 0 (or None)", self.relative_sigma_ref)
-        if self.max_relative_sigma is not None and (
-            isinstance(self.max_relative_sigma, bool)
-            or not np.isfinite(self.max_relative_sigma)
-            or self.max_relative_sigma <= 0
-        ):
-            raise InvalidInputError("max_relative_sigma", "a finite value > 0 (or None)", self.max_relative_sigma)
-        if not np.isfinite(self.weight_threshold) or self.weight_threshold < 0:
-            raise InvalidInputError("weight_threshold", "a finite value >= 0", self.weight_threshold)
-        if not np.isfinite(self.truncation_sigma) or self.truncation_sigma < 0:
-            raise InvalidInputError("truncation_sigma", "a finite value >= 0", self.truncation_sigma)
-        if not np.isfinite(self.truncation_max) or (
-            self.truncation_sigma > 0 and self.truncation_max < self.truncation
-        ):
-            raise InvalidInputError(
-                "truncation_max", f"a finite value >= truncation ({self.truncation} m)", self.truncation_max
-            )
-        if int(self.block_resolution) != self.block_resolution or self.block_resolution < 2:
-            raise InvalidInputError("block_resolution", "an integer >= 2", self.block_resolution)
-        if int(self.block_count) != self.block_count or self.block_count < 1:
-            raise InvalidInputError("block_count", "an integer >= 1", self.block_count)
-        if isinstance(self.cpu_threads, bool) or int(self.cpu_threads) != self.cpu_threads or self.cpu_threads < 0:
-            raise InvalidInputError("cpu_threads", "an integer >= 0", self.cpu_threads)
+        if self.truncation_sigma > 0 and self.truncation_max < self.truncation:
+            raise InvalidInputError("truncation_max", f">= truncation ({self.truncation} m)", self.truncation_max)
 
     def fallback_for(self, points: int) -> float:
         """Weight of the uninformed pixels of a frame with ``points`` measurements: ``fallback_weight *
