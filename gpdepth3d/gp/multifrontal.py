@@ -627,7 +627,6 @@ def _selinv_bins(bin_ptr, bin_order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, 
                     ro_out, ro_pos, ro_wgt, out)
 
 
-_CONTROLLER = None
 _POOL_LOCK = threading.Lock()
 _RUN_LOCK = threading.Lock()
 
@@ -641,12 +640,9 @@ def numeric_section():
     which its workqueue threading layer requires. BLAS runs single-threaded inside (one BLAS
     call per numba thread).
     """
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        from threadpoolctl import ThreadpoolController
+    from .blas_threads import single_threaded_blas
 
-        _CONTROLLER = ThreadpoolController()
-    with _RUN_LOCK, _CONTROLLER.limit(limits=1, user_api="blas"):
+    with _RUN_LOCK, single_threaded_blas():
         yield
 
 
