@@ -22,6 +22,7 @@ import warnings
 import zipfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -341,6 +342,42 @@ class DepthCompleter:
             warnings=result.warnings,
             solve=result.info,
             mde_slope=result.slope,
+        )
+
+    def map(
+        self,
+        frames: Iterable[tuple[np.ndarray, SparseDepth]],
+        *,
+        workers: int | None = 1,
+        output_shape: tuple[int, int] | None = None,
+        variance: bool = True,
+    ) -> Iterator[DepthPosterior]:
+        """Completes a sequence of frames, yielding their posteriors in order; ``workers`` frames at a time.
+
+        With ``workers`` > 1 (None: one per core) each worker thread completes whole frames with its own
+        completer of this configuration (`gpdepth3d.completion.parallel`): the cores are used across frames
+        where a frame alone cannot use them. Each posterior is the one `complete` gives. With ``config.fit``
+        a frame starts from the previous frame's fit, so the frames run one after another (as ``workers=1``).
+
+        Args:
+            frames: (mde_depth, sparse) pairs, read as the workers need them.
+            workers: Frames completed at the same time (>= 1; None: the cores this process may use).
+            output_shape, variance: As in `complete`, for every frame.
+
+        Raises:
+            InvalidInputError: ``workers`` is not an integer >= 1 or None.
+        """
+        from .parallel import check_workers, map_frames
+
+        workers = check_workers(workers)
+        if workers == 1 or self.config.fit:
+            return (self.complete(d, s, output_shape=output_shape, variance=variance) for d, s in frames)
+        return map_frames(
+            lambda: DepthCompleter(self.config, engine=self.engine_config),
+            frames,
+            workers,
+            output_shape=output_shape,
+            variance=variance,
         )
 
     @staticmethod
