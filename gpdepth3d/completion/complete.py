@@ -68,6 +68,8 @@ class DepthPosterior:
             the depth differences of the scene.
         K: (3, 3) intrinsics of the output grid (pixels) when the caller knew them, else None; saved
             with the file so that the viewer can back-project it.
+        stages: The default model's seconds per stage inside ``timings["solve"]`` ("lattice", "engine": the
+            engine's call, "detail", "assemble", "calibrate"); empty for the other formulations and from a file.
     """
 
     mean: np.ndarray
@@ -83,6 +85,7 @@ class DepthPosterior:
     solve: SolveInfo | None = None
     mde_slope: float = 1.0
     K: np.ndarray | None = None
+    stages: dict = field(default_factory=dict)
 
     @property
     def n_rejected(self) -> int:
@@ -342,6 +345,7 @@ class DepthCompleter:
             warnings=result.warnings,
             solve=result.info,
             mde_slope=result.slope,
+            stages=result.stages,
         )
 
     def map(
