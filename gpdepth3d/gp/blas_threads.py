@@ -1,44 +1,25 @@
 """One BLAS thread inside a block: the small dense algebra of a frame's points and of one numba thread's fronts.
 
 BLAS threads only contend on these small products (and, inside numba's parallel regions, oversubscribe the
-cores). threadpoolctl finds the loaded BLAS libraries once (a scan of the process's libraries takes ms); each
-block then reads and sets their thread counts directly, and a block inside another one, where BLAS already
-runs on one thread, costs two reads.
+cores). threadpoolctl finds the loaded BLAS libraries once per process (a scan of the process's libraries takes
+ms); the stages and the engine share that one controller.
 """
 
 from __future__ import annotations
 
-import contextlib
 import threading
-from typing import Iterator
 
-_LIBRARIES: list | None = None
+_CONTROLLER = None
 _LOCK = threading.Lock()
 
 
-def _blas_libraries() -> list:
-    """threadpoolctl's controllers of the BLAS libraries loaded now (found once per process)."""
-    global _LIBRARIES
-    if _LIBRARIES is None:
+def single_threaded_blas():
+    """A context in which every loaded BLAS library runs on one thread; the counts before it are restored after."""
+    global _CONTROLLER
+    if _CONTROLLER is None:
         with _LOCK:
-            if _LIBRARIES is None:
+            if _CONTROLLER is None:
                 from threadpoolctl import ThreadpoolController
 
-                _LIBRARIES = [lib for lib in ThreadpoolController().lib_controllers if lib.user_api == "blas"]
-    return _LIBRARIES
-
-
-@contextlib.contextmanager
-def single_threaded_blas() -> Iterator[None]:
-    """A block in which every loaded BLAS library runs on one thread; the counts before it are restored after."""
-    changed = []
-    for lib in _blas_libraries():
-        threads = lib.get_num_threads()
-        if threads != 1:
-            lib.set_num_threads(1)
-            changed.append((lib, threads))
-    try:
-        yield
-    finally:
-        for lib, threads in changed:
-            lib.set_num_threads(threads)
+                _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=1, user_api="blas")
