@@ -517,7 +517,8 @@ def section_speed(d: dict) -> str:
     if cold:
         parts.append(
             f"`gpdepth3d demo` with an empty numba cache: {fmt(cold['first_run_s'])} s ({fmt(cold['first_run_cpu_s'])} "
-            f"s of CPU); the next run, loading the compiled kernels: {fmt(cold['second_run_s'])} s "
+            f"s of CPU in the command's process; a second process compiles kernels ahead on another core, "
+            f"`gpdepth3d.gp.compile_ahead`); the next run, loading the compiled kernels: {fmt(cold['second_run_s'])} s "
             f"({fmt(cold['second_run_cpu_s'])} s of CPU)."
         )
     return "\n\n".join(parts)
