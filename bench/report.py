@@ -480,6 +480,50 @@ def section_cuda(d: dict) -> str:
     )
 
 
+def section_speed(d: dict) -> str:
+    """The default model's warm frame on KITTI, stage by stage, beside IP-Basic (bench/speed.py)."""
+    stages = ("setup", "fit", "lattice", "engine", "detail", "assemble", "calibrate")
+    cuda = any("cuda" in r for r in d.get("rows", []))
+    rows = []
+    for r in d.get("rows", []):
+        cpu = r["cpu"]
+        cells = [f"{r['grid']}, {r['density']}", fmt(r["points"]), cpu.get("route", ""), fmt(cpu["median_ms"])]
+        cells += [fmt(cpu["stages_median_ms"].get(k)) for k in stages] + [fmt(r.get("ip_basic_ms"))]
+        if cuda:
+            cells += [fmt(r["cuda"]["median_ms"]) if "cuda" in r else "–"]
+        rows.append(cells)
+    header = ["grid, LiDAR", "points", "route", "total [ms]", *(f"{k} [ms]" for k in stages), "IP-Basic [ms]"]
+    m = d.get("machine", {})
+    parts = [
+        "## Speed of a warm frame (the default model, KITTI)",
+        f"*`python bench/speed.py`; run {d.get('date', 'not recorded')}; machine: {m.get('cpu', '?')}, "
+        f"{m.get('cpus', '?')} CPUs, numba {m.get('numba_threads', '?')} threads; load average (1 min) "
+        f"{fmt(d.get('load_average_before', [None])[0], 2)} before, {fmt(d.get('load_average_after', [None])[0], 2)}"
+        f" after; GPU: {d.get('gpu') or 'none'}.*",
+        "Median of the calls after two warm-up calls, mean + variance; *fit* is the slope and the outlier screen, "
+        "*engine* the engine's solve. A shared machine's load inflates every time: compare within one table.",
+        table(header + (["CUDA total [ms]"] if cuda else []), rows),
+    ]
+    seq = d.get("sequence")
+    if seq:
+        parts.append(
+            f"A sequence ({seq['frames']} kitti_tiny frames at 1/3, all LiDAR) through `DepthCompleter.map`: "
+            f"{fmt(seq['serial_ms_per_frame'])} ms per frame with one worker, {fmt(seq['parallel_ms_per_frame'])} ms "
+            f"with {seq['workers']} (again: {fmt(seq['serial_again_ms_per_frame'])} / "
+            f"{fmt(seq['parallel_again_ms_per_frame'])}); largest difference of the posteriors "
+            f"{fmt(seq['max_abs_difference'])}."
+        )
+    cold = d.get("cold_start")
+    if cold:
+        parts.append(
+            f"`gpdepth3d demo` with an empty numba cache: {fmt(cold['first_run_s'])} s ({fmt(cold['first_run_cpu_s'])} "
+            f"s of CPU in the command's process; a second process compiles kernels ahead on another core, "
+            f"`gpdepth3d.gp.compile_ahead`); the next run, loading the compiled kernels: {fmt(cold['second_run_s'])} s "
+            f"({fmt(cold['second_run_cpu_s'])} s of CPU)."
+        )
+    return "\n\n".join(parts)
+
+
 def section_viewer(d: dict) -> str:
     med = d.get("median", {})
     return "\n\n".join(
@@ -511,6 +555,7 @@ SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
         "engines_kitti.json",
         lambda d: section_engines_kitti(d, "Speed on KITTI (the shared CPU)", "python bench/engines.py"),
     ),
+    ("speed.json", section_speed),
     ("cuda.json", section_cuda),
     (
         "engines.json",

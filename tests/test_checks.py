@@ -23,7 +23,7 @@ from gpdepth3d.checks import (
     is_real,
 )
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.experiments.kitti_protocol import KittiProtocolConfig
+from gpdepth3d.evaluation.kitti_protocol import KittiProtocolConfig
 from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.model import (
     AssemblyConfig,
@@ -33,10 +33,10 @@ from gpdepth3d.gp.model import (
     ScreenConfig,
     SlopeConfig,
 )
-from gpdepth3d.mapping.fusion_config import FusionConfig
+from gpdepth3d.mapping.tsdf.fusion_config import FusionConfig
 from gpdepth3d.mapping.mapper_config import MapperConfig
-from gpdepth3d.mapping.refinding import RefindConfig
-from gpdepth3d.mapping.triangulation_config import TriangulationConfig
+from gpdepth3d.mapping.points.refinding import RefindConfig
+from gpdepth3d.mapping.points.triangulation_config import TriangulationConfig
 from gpdepth3d.viewer.app import ViewerConfig
 
 CONFIGS = [

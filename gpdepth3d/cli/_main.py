@@ -142,7 +142,13 @@ def _compile_notice(argv: list[str]):
         return contextlib.nullcontext()
     from ..gp.compile_notice import on_first_compile
 
-    return on_first_compile(lambda _name: print(COMPILE_NOTICE, flush=True))
+    def cold(_name: str) -> None:  # a cold cache: the kernels this command reaches later, compiled on another core
+        from ..gp.compile_ahead import compile_ahead
+
+        print(COMPILE_NOTICE, flush=True)
+        compile_ahead(("neumann", "detail") if argv[0] == "demo" else ("detail",))
+
+    return on_first_compile(cold)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from ..errors import InvalidInputError
 from ..gp.model import DepthGPConfig
@@ -114,9 +114,10 @@ def _assemble(
     want_var,
     mean,
     var,
+    lo,
+    hi,
 ):  # pragma: no cover - compiled
-    n = log_out.size
-    for i in range(n):
+    for i in range(lo, hi):
         rho = 1.0
         if depth_aware and abs(w1[i]) >= floor:
             rho = math.exp(-abs(a) * abs(x_out[i] - wx[i] / w1[i]) * inv_lz)
@@ -141,6 +142,18 @@ def _assemble(
             var[i] = math.expm1(v) * m * m
 
 
+#: Output pixels per parallel chunk of `_assemble_parallel`; smaller outputs run on the calling thread.
+CHUNK = 65536
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _assemble_parallel(*args):  # pragma: no cover - compiled
+    """`_assemble` over chunks of `CHUNK` pixels in parallel (each pixel's arithmetic is the serial one)."""
+    n = args[0].size
+    for c in prange((n + CHUNK - 1) // CHUNK):
+        _assemble(*args, c * CHUNK, min(n, (c + 1) * CHUNK))
+
+
 def assemble(
     log_out, g_mean, g_var, w1, wx, x_out, *, b, s2, tau2, var_b, var_a, a, lz, floor, scale_term, slope_term, variance
 ):
@@ -156,7 +169,8 @@ def assemble(
     depth_aware = lz is not None
     mean = np.empty(log_out.size)
     var = np.empty(log_out.size) if variance else zeros
-    _assemble(
+    kernel = _assemble_parallel if log_out.size > CHUNK else _assemble
+    kernel(
         flat(log_out),
         flat(g_mean),
         flat(g_var) if variance else zeros,
@@ -177,5 +191,6 @@ def assemble(
         bool(variance),
         mean,
         var,
+        *((0, log_out.size) if kernel is _assemble else ()),
     )
     return mean.reshape(shape), (var.reshape(shape) if variance else np.full(shape, np.nan))

@@ -20,6 +20,7 @@ import json
 import zipfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -64,6 +65,8 @@ class DepthPosterior:
             the depth differences of the scene.
         K: (3, 3) intrinsics of the output grid (pixels) when the caller knew them, else None; saved
             with the file so that the viewer can back-project it.
+        stages: The default model's seconds per stage inside ``timings["solve"]`` ("lattice", "engine": the
+            engine's call, "detail", "assemble", "calibrate"); empty for the other formulations and from a file.
     """
 
     mean: np.ndarray
@@ -79,6 +82,7 @@ class DepthPosterior:
     solve: SolveInfo | None = None
     mde_slope: float = 1.0
     K: np.ndarray | None = None
+    stages: dict = field(default_factory=dict)
 
     @property
     def n_rejected(self) -> int:
@@ -262,6 +266,42 @@ class DepthCompleter:
         """
         strategy = formulation_of(self.config)  # `gpdepth3d.completion.formulations`
         return DepthPosterior(**strategy.posterior(self, mde_depth, sparse, output_shape, variance, frame))
+
+    def map(
+        self,
+        frames: Iterable[tuple[np.ndarray, SparseDepth]],
+        *,
+        workers: int | None = 1,
+        output_shape: tuple[int, int] | None = None,
+        variance: bool = True,
+    ) -> Iterator[DepthPosterior]:
+        """Completes a sequence of frames, yielding their posteriors in order; ``workers`` frames at a time.
+
+        With ``workers`` > 1 (None: one per core) each worker thread completes whole frames with its own
+        completer of this configuration (`gpdepth3d.completion.parallel`): the cores are used across frames
+        where a frame alone cannot use them. Each posterior is the one `complete` gives. With ``config.fit``
+        a frame starts from the previous frame's fit, so the frames run one after another (as ``workers=1``).
+
+        Args:
+            frames: (mde_depth, sparse) pairs, read as the workers need them.
+            workers: Frames completed at the same time (>= 1; None: the cores this process may use).
+            output_shape, variance: As in `complete`, for every frame.
+
+        Raises:
+            InvalidInputError: ``workers`` is not an integer >= 1 or None.
+        """
+        from .parallel import check_workers, map_frames
+
+        workers = check_workers(workers)
+        if workers == 1 or self.config.fit:
+            return (self.complete(d, s, output_shape=output_shape, variance=variance) for d, s in frames)
+        return map_frames(
+            lambda: DepthCompleter(self.config, engine=self.engine_config),
+            frames,
+            workers,
+            output_shape=output_shape,
+            variance=variance,
+        )
 
     __call__ = complete
 

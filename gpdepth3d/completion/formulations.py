@@ -85,6 +85,7 @@ class LogResidual(Formulation):
             warnings=result.warnings,
             solve=result.info,
             mde_slope=result.slope,
+            stages=result.stages,
         )
 
 

@@ -40,6 +40,8 @@ class LogResidualPosterior:
         warnings: What the input cannot support, one sentence each.
         alignment: exp(b) as the MDE's scale.
         timings: Seconds of "fit" (slope and screen) and "solve" (the other stages).
+        stages: Seconds of the stages inside "solve": "lattice", "engine" (the engine's call), "detail",
+            "assemble", "calibrate".
         info: The engine's facts of the call.
         slope: The MDE's fitted log-depth slope a.
     """
@@ -54,6 +56,7 @@ class LogResidualPosterior:
     timings: dict
     info: SolveInfo
     slope: float
+    stages: dict
 
 
 def log_residual_posterior(
@@ -75,10 +78,16 @@ def log_residual_posterior(
     screened = follow_slope(screened, first, sloped, config)
     t1 = time.perf_counter()
     lattice = build_lattice(frame, sloped, screened, config, stride)
-    field = add_detail(solve_field(engine, lattice), lattice, frame, config)
+    ta = time.perf_counter()
+    field = solve_field(engine, lattice)
+    tb = time.perf_counter()
+    field = add_detail(field, lattice, frame, config)
+    tc = time.perf_counter()
     moments = assemble_depth(frame, sloped, screened, lattice, field, config)
+    td = time.perf_counter()
     var = calibrate(moments, frame, sloped, screened, config).variance if variance else np.full(frame.out_shape, np.nan)
     t2 = time.perf_counter()
+    stages = {"lattice": ta - t1, "engine": tb - ta, "detail": tc - tb, "assemble": td - tc, "calibrate": t2 - td}
     fit = screened.fit
     return LogResidualPosterior(
         mean=moments.mean,
@@ -89,6 +98,7 @@ def log_residual_posterior(
         warnings=log_residual_warnings(frame, sloped, screened, config, name),
         alignment=AlignmentResult(float(np.exp(fit.log_scale)), 0.0, int(np.count_nonzero(screened.keep))),
         timings={"fit": t1 - t0, "solve": t2 - t1},
+        stages=stages,
         info=field.info,
         slope=sloped.a,
     )

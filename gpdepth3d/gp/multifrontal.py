@@ -8,7 +8,7 @@ Recursions and layout: docs/engines.md#the-multifrontal-factorisation-in-detail.
 from __future__ import annotations
 
 import threading
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import numba as nb
@@ -627,7 +627,6 @@ def _selinv_bins(bin_ptr, bin_order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, 
                     ro_out, ro_pos, ro_wgt, out)
 
 
-_CONTROLLER = None
 _POOL_LOCK = threading.Lock()
 _RUN_LOCK = threading.Lock()
 
@@ -638,16 +637,25 @@ def numeric_section():
 
     Each phase already uses every numba thread, so concurrent callers (threads of a Dask worker,
     a viewer's server) lose nothing by waiting; it also keeps numba's parallel regions un-nested,
-    which its workqueue threading layer requires. BLAS runs single-threaded inside (one BLAS
-    call per numba thread).
+    which its workqueue threading layer requires. A thread that runs its parallel regions on one
+    numba thread (``numba.set_num_threads(1)``: `gpdepth3d.completion.DepthCompleter.map`'s
+    workers, one frame each) does not wait when the threading layer is thread-safe (omp, tbb).
+    BLAS runs single-threaded inside (one BLAS call per numba thread).
     """
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        from threadpoolctl import ThreadpoolController
+    from .blas_threads import single_threaded_blas
 
-        _CONTROLLER = ThreadpoolController()
-    with _RUN_LOCK, _CONTROLLER.limit(limits=1, user_api="blas"):
+    with _RUN_LOCK if _exclusive() else nullcontext(), single_threaded_blas():
         yield
+
+
+def _exclusive() -> bool:
+    """True when this thread's numeric phase must not overlap another's (see `numeric_section`)."""
+    if nb.get_num_threads() > 1:
+        return True
+    try:
+        return nb.threading_layer() == "workqueue"
+    except ValueError:  # no parallel region has run yet: the layer is chosen by the first one
+        return True
 
 
 def _post_order(kids: list, roots: list, n: int) -> np.ndarray:

@@ -97,19 +97,40 @@ def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - c
 @njit(cache=True, nogil=True, parallel=True)
 def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r,
            pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
-    """Per lattice cell: one factorisation of its window's points (at most max_points), then every output pixel in it."""
+    """`_krige_row` for the rows of cells ``cell_rows``, in parallel."""
+    for ii in prange(cell_rows.shape[0]):  # rows of cells in parallel, each with its own buffers
+        _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index,
+                   pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
+
+
+@njit(cache=True, nogil=True)
+def _krige_serial(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index,
+                  pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+    """`_krige` on the calling thread (few points: waking the worker threads costs more than their work)."""
+    for ii in range(cell_rows.shape[0]):
+        _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index,
+                   pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
+
+
+#: Fewer points than this are kriged on the calling thread (`_krige_serial`).
+SERIAL_POINTS = 1024
+
+
+@njit(cache=True, nogil=True)
+def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
+               resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+    """The cells of row ci: per cell one factorisation of its window's points (at most max_points), then every
+    output pixel in it."""
     h, w = index.shape
     m = resid.shape[1]
     side = k + 2 * reach
     size = side * side
     span = Rr_p.shape[0] // 2
-    for ii in prange(cell_rows.shape[0]):  # rows of cells in parallel, each with its own buffers
-        ci = cell_rows[ii]
-        if row_start[ci] == row_start[ci + 1]:
-            continue
+    if row_start[ci] < row_start[ci + 1]:
         ids = np.empty(size, np.int64)
         dist = np.empty(size, np.int64)
-        order = np.empty(size, np.int64)
+        count = np.empty(4 * side + 2, np.int64)
+        picked = np.empty(size, np.int64)
         A = np.empty((size, size))
         y = np.empty((size, m))
         c = np.empty(size)
@@ -127,17 +148,17 @@ def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p
             if n == 0:
                 continue
             if n > max_points:  # the max_points nearest the cell's centre (L1; ties: the earlier in the window)
-                for a in range(n):
+                count[:] = 0
+                for a in range(n):  # a counting sort by (distance, window order); twice the L1 distance < 4 side
                     dist[a] = abs(2 * pt_r[ids[a]] - (2 * k * ci + k - 1)) + abs(2 * pt_c[ids[a]] - (2 * k * cj + k - 1))
-                    order[a] = a
-                for a in range(max_points):  # partial selection by (distance, window order)
-                    best = a
-                    for b in range(a + 1, n):
-                        if dist[b] < dist[best] or (dist[b] == dist[best] and order[b] < order[best]):
-                            best = b
-                    dist[a], dist[best] = dist[best], dist[a]
-                    order[a], order[best] = order[best], order[a]
-                    ids[a], ids[best] = ids[best], ids[a]
+                    count[dist[a] + 1] += 1
+                for d in range(1, count.size):
+                    count[d] += count[d - 1]
+                for a in range(n):
+                    picked[count[dist[a]]] = ids[a]
+                    count[dist[a]] += 1
+                for a in range(max_points):
+                    ids[a] = picked[a]
                 n = max_points
             for a in range(n):
                 pa = ids[a]
@@ -264,8 +285,9 @@ def sublattice_kriging(
     if n:
         # prange hands each thread one contiguous share of the rows of cells; the points often fill only part of
         # the image (the LiDAR its lower two thirds), so each share takes every t-th row, not one block of rows
-        threads = get_num_threads()
+        threads = get_num_threads() if n >= SERIAL_POINTS else 1
         cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
-        _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index,
+        kernel = _krige if threads > 1 else _krige_serial
+        kernel(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index,
                rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points), corr, vred)
     return (corr[0] if one else corr), vred
