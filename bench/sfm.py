@@ -164,7 +164,6 @@ def sigma_study(runs: dict[str, dict], lines: dict[str, str]) -> dict:
     def cat(name, key):
         return np.concatenate([o[key] for o in obs[name]])
 
-    fit = obs[FIT_ON]
     fitted = fit_sigma_rule(
         rel_errors(FIT_ON, "fitted_scale"),
         reprojection_error=cat(FIT_ON, "reprojection_error"),
@@ -190,7 +189,10 @@ def sigma_study(runs: dict[str, dict], lines: dict[str, str]) -> dict:
                 angle_deg=cat(name, "angle_deg"),
                 focal=focal[name],
             )
-            row[rule_name] = {"coverage_2sigma": sigma_coverage(e_fit, width), "median_sigma_rel": float(np.median(width))}
+            row[rule_name] = {
+                "coverage_2sigma": sigma_coverage(e_fit, width),
+                "median_sigma_rel": float(np.median(width)),
+            }
         # as mapped: the network's scale, and the default rule widened by the scale's uncertainty
         e_run = rel_errors(name, "run_scale")
         base = PointSigmaRule().sigma(

@@ -106,7 +106,9 @@ class TestSigmaRule:
     def test_geometry_widens_small_angles_and_large_errors(self):
         rule = PointSigmaRule(relative=0.01, geometric=1.0)
         d = np.ones(3)
-        s = rule.sigma(d, reprojection_error=np.array([1.0, 1.0, 4.0]), angle_deg=np.array([10.0, 1.0, 10.0]), focal=500)
+        s = rule.sigma(
+            d, reprojection_error=np.array([1.0, 1.0, 4.0]), angle_deg=np.array([10.0, 1.0, 10.0]), focal=500
+        )
         assert s[1] > s[0] and s[2] > s[0] and np.all(s > 0.01)
         expected = np.sqrt(0.01**2 + (1.0 / (500 * np.sin(np.radians(10.0)))) ** 2)
         assert s[0] == pytest.approx(expected)
