@@ -34,6 +34,7 @@ RANKS: dict[str, int] = {
     "completion": 4,
     "mapping": 5,
     "experiments": 6,
+    "pipelines": 6,
     "cli": 7,
     "viewer": 7,
 }
