@@ -181,7 +181,12 @@ def sigma_study(runs: dict[str, dict], lines: dict[str, str]) -> dict:
         if not obs[name]:
             continue
         e_fit = rel_errors(name, "fitted_scale")
-        row = {"observations": int(e_fit.size), "median_abs_rel_error": float(np.median(np.abs(e_fit)))}
+        row = {
+            "observations": int(e_fit.size),
+            "median_abs_rel_error": float(np.median(np.abs(e_fit))),
+            # the network's scale against the one that fits the sensor, per piece (largest first)
+            "scale_error": [o["run_scale"] / o["fitted_scale"] - 1.0 for o in obs[name]],
+        }
         for rule_name, rule in rules.items():
             width = rule.sigma(
                 np.ones_like(e_fit),

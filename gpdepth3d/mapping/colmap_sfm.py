@@ -43,14 +43,14 @@ class SfMConfig:
         seed: pycolmap's random seed (runs are repeatable with the same seed and threads).
     """
 
-    max_features: int = 2048
-    peak_threshold: float = 0.004
+    max_features: int = 4096
+    peak_threshold: float = 0.002
     overlap: int = 8
-    init_min_num_inliers: int = 50
+    init_min_num_inliers: int = 30
     init_min_tri_angle: float = 4.0
-    abs_pose_min_num_inliers: int = 15
+    abs_pose_min_num_inliers: int = 10
     abs_pose_min_inlier_ratio: float = 0.15
-    min_tri_angle: float = 1.0
+    min_tri_angle: float = 0.5
     two_view_tracks: bool = True
     min_model_size: int = 3
     threads: int = 2

@@ -82,8 +82,8 @@ class PointSigmaRule:
         min_error_px: Smallest reprojection error used, pixels.
     """
 
-    relative: float = 0.02
-    geometric: float = 0.0
+    relative: float = 0.03
+    geometric: float = 4.0
     min_error_px: float = 0.5
 
     def __post_init__(self) -> None:
