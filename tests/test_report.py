@@ -123,5 +123,7 @@ def test_sfm_section_follows_the_json():
         },
     }
     text = _report().section_sfm({"runs": {"hololens": run}, "sigma": sigma})
-    assert "| HoloLens walk | 88 / 94 (1) | 32 | 0.4047 ± 0.0105 (MAD 12.7%) | 0.123 | 0.111 | 300 / 150 | 160 |" in text
+    assert (
+        "| HoloLens walk | 88 / 94 (1) | 32 | 0.4047 ± 0.0105 (MAD 12.7%) | 0.123 | 0.111 | 300 / 150 | 160 |" in text
+    )
     assert "| HoloLens walk | 100 | 2.0% | 95.1% (σ 4.9%) |" in text and "HoloLens walk -18.0%" in text
