@@ -109,6 +109,8 @@ def map_command(
     base = MapperConfig()
     config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
     if poses is None:
+        if view:
+            raise InvalidInputError("--view", "--poses (the live view draws the camera path first)", "no --poses")
         return _map_unposed(locals())
     inputs = open_posed_sequence(
         str(images),

@@ -140,6 +140,9 @@ def map_pieces(
     Returns:
         `PiecesResult`; a piece that cannot be mapped (no ratio for its scale, no frame fused) carries
         its error, the others go on.
+
+    Raises:
+        EmptyInputError: no piece could be mapped (naming why).
     """
     from ..errors import GPDepthError
 
@@ -173,6 +176,9 @@ def map_pieces(
             out.append(PieceResult(piece_names, scale, None, f"{type(exc).__name__}: {exc}"))
             continue
         out.append(PieceResult(piece_names, scale, result))
+    if not any(p.result is not None for p in out):
+        why = "; ".join(p.error for p in out if p.error) or "no piece observes these images"
+        raise EmptyInputError("images", "a piece of the reconstruction that can be mapped", why)
     wall = time.perf_counter() - t0
     return PiecesResult(out, len(files), registered, timing={"scale": t_scale, "map": wall - t_scale, "wall": wall})
 

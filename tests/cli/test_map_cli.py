@@ -135,6 +135,8 @@ class TestErrors:
         ]
         bad_tum = tmp_path / "traj.txt"
         bad_tum.write_text("0.0 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 2\n")
+        xyz = tmp_path / "points.txt"
+        xyz.write_text("0 0 1\n1 0 2\n")
         cases = [
             (["--poses", str(tmp_path / "missing.txt")], "missing.txt: trajectory file not found"),
             (
@@ -147,6 +149,9 @@ class TestErrors:
             (["--poses", str(holo / "poses_images.txt"), "--depth", str(tmp_path)], "depth: no files"),
             (["--poses", str(holo / "poses_images.txt"), "--stride", "0"], "stride: expected an integer >= 1"),
             (["--poses", str(holo / "poses_images.txt"), "--voxel-size", "0"], "--voxel-size"),
+            (["--view"], "--view: expected --poses"),
+            (["--points", str(xyz)], "points: expected a COLMAP model when no poses are given"),
+            (["--poses", str(holo / "poses_images.txt"), "--points", str(tmp_path / "none.npz")], "none.npz"),
         ]
         for extra, message in cases:
             code, out, err = _run(base + extra, capsys)
