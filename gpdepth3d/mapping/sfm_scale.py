@@ -5,6 +5,12 @@ but wrong by a few to tens of percent per frame and per region. Each point an im
 ratio ``network depth / model depth`` at its pixel; `metric_scale` takes the median of all of them, and
 its uncertainty from a bootstrap over frames (the network's error is shared by the points of one frame,
 so frames, not points, are the independent draws), with the spread of the ratios (MAD) beside it.
+
+A network learns sizes in its training camera: shown an image whose field of view is narrower, it sees
+things larger and puts them nearer. `focal_ratio` is that factor, from the focal lengths over the image
+size of both cameras (the front-ends resize the whole image to their input without keeping the aspect
+ratio, so each axis counts); the network's depth times it is the depth the training camera would have
+been told (the canonical-camera correction of Metric3D, Yin et al. 2023).
 """
 
 from __future__ import annotations
@@ -44,6 +50,26 @@ class MetricScale:
     def relative_sigma(self) -> float:
         """``sigma / scale``: the share every metric distance of the map is uncertain by."""
         return self.sigma / self.scale
+
+
+def focal_ratio(camera: PinholeCamera, training: tuple[float, float, int, int]) -> float:
+    """How much narrower ``camera``'s view is than the network's training camera: the factor on its depth.
+
+    Args:
+        camera: The images' intrinsics.
+        training: ``(fx, fy, width, height)`` of the camera the network was trained with (pixels).
+
+    Returns:
+        ``sqrt((fx / width) / (fx_t / width_t) * (fy / height) / (fy_t / height_t))``; 1 for the same view.
+
+    Raises:
+        InvalidInputError: training intrinsics that are not four positive numbers.
+    """
+    t = np.asarray(training, dtype=np.float64)
+    if t.shape != (4,) or not np.all(np.isfinite(t)) or np.any(t <= 0):
+        raise InvalidInputError("training", "(fx, fy, width, height) > 0 of the network's training camera", training)
+    fx_t, fy_t, w_t, h_t = t
+    return float(np.sqrt((camera.fx / camera.width) / (fx_t / w_t) * (camera.fy / camera.height) / (fy_t / h_t)))
 
 
 def depth_ratios(

@@ -27,7 +27,7 @@ from ..mapping.colmap_sfm import SfMConfig, reconstruct_sequence
 from ..mapping.given_points import GivenPoints, PointSigmaRule, read_given_points
 from ..mapping.mapper import MDEFrontEnd
 from ..mapping.mapper_config import MapperConfig
-from ..mapping.sfm_scale import MetricScale, depth_ratios, metric_scale
+from ..mapping.sfm_scale import MetricScale, depth_ratios, focal_ratio, metric_scale
 from ..mapping.trajectories import invert_pose
 
 
@@ -74,11 +74,14 @@ def _piece_frames(piece: GivenPoints, names: list[str]) -> list[tuple[int, int]]
 
 
 def _scale_of(piece: GivenPoints, frames, files: list[Path], camera: PinholeCamera, mde: MDEFrontEnd) -> MetricScale:
+    """The piece's metres per unit from the network's depth at its points (its training camera's view corrected)."""
+    training = getattr(mde, "training_intrinsics", None)
+    factor = 1.0 if training is None else focal_ratio(camera, training)
     ratios = []
     for i, image_id in frames:
         points = piece.points[piece.observed_by(image_id)]
         if len(points):
-            depth = np.asarray(mde(load_rgb(files[i])), dtype=np.float64)
+            depth = factor * np.asarray(mde(load_rgb(files[i])), dtype=np.float64)
             ratios.append(depth_ratios(points, piece.model.images[image_id].T_world_camera, camera, depth))
     return metric_scale(ratios)
 
@@ -129,7 +132,8 @@ def map_pieces(
         pieces: COLMAP models (`read_given_points`), largest first.
         files: The sequence's image files (matched to the models' images by file name), in order.
         camera: The images' intrinsics.
-        mde: Front-end ``rgb -> depth`` in metres.
+        mde: Front-end ``rgb -> depth`` in metres; when it has ``training_intrinsics`` (fx, fy, width,
+            height of its training camera), its depth is corrected by `focal_ratio` for the scale.
         config: Mapper options.
         sigma_rule: Depth sigma of the points (default `PointSigmaRule()`), widened by the scale's
             relative uncertainty times the distance.

@@ -47,3 +47,17 @@ def test_metric_scale_errors():
         metric_scale([np.zeros(3), np.array([np.nan])])
     with pytest.raises(InvalidInputError):
         metric_scale([np.ones(3)], draws=2)
+
+
+def test_focal_ratio_of_a_narrower_view():
+    from gpdepth3d.mapping.sfm_scale import focal_ratio
+
+    training = (500.0, 500.0, 640, 480)
+    assert focal_ratio(PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480), training) == pytest.approx(1.0)
+    # the same view at half the size, then a view zoomed 1.2x on both axes
+    assert focal_ratio(PinholeCamera(250.0, 250.0, 159.5, 119.5, 320, 240), training) == pytest.approx(1.0)
+    assert focal_ratio(PinholeCamera(600.0, 600.0, 319.5, 239.5, 640, 480), training) == pytest.approx(1.2)
+    # one axis only: the geometric mean
+    assert focal_ratio(PinholeCamera(720.0, 500.0, 319.5, 239.5, 640, 480), training) == pytest.approx(np.sqrt(1.44))
+    with pytest.raises(InvalidInputError):
+        focal_ratio(PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480), (500.0, 0.0, 640, 480))
