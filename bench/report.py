@@ -513,6 +513,8 @@ def section_sfm(d: dict) -> str:
         first = r["pieces"][0] if r["pieces"] else {}
         scale = first.get("scale") or {}
         frames = max(r["frames"], 1)
+        scored = [(p["frames_fused"], p["fscore"]) for p in r["pieces"] if p.get("fscore") is not None]
+        weighted = sum(n * f for n, f in scored) / sum(n for n, _ in scored) if scored else None
         rows.append(
             [
                 SEQUENCE_NAMES.get(name, name),
@@ -520,6 +522,7 @@ def section_sfm(d: dict) -> str:
                 f"{first.get('frames', 0)}",
                 f"{fmt(scale.get('scale'), 4)} ± {fmt(scale.get('sigma'), 4)} (MAD {pct(scale.get('mad'))})",
                 fmt(r.get("fscore_map")),
+                fmt(weighted),
                 fmt(r.get("fscore_mde_only")),
                 f"{fmt(r['process_wall_s'], 0)} / {fmt(r['process_cpu_s'], 0)}",
                 f"{fmt(r['process_cpu_s'] * 100 / frames, 0)}",
@@ -532,7 +535,7 @@ def section_sfm(d: dict) -> str:
         "`gpdepth3d map` without `--poses` as docs/mapping.md writes it: registered images (pieces), the largest "
         "piece's frames and metric scale (metres per SfM unit, ± its bootstrap sigma over frames; MAD: spread of the "
         "per-point ratios), F at 5 cm of the largest piece's map and of the MDE alone against the mesh fused from the "
-        "sensor depth with the same poses, wall and CPU seconds of the whole process (SfM, scale, mapping, scoring) "
+        "sensor depth with the same poses (all pieces: each piece's F weighted by its frames), wall and CPU seconds of the whole process (SfM, scale, mapping, scoring) "
         "and CPU seconds per 100 frames, load average before–after.",
         table(
             [
@@ -541,6 +544,7 @@ def section_sfm(d: dict) -> str:
                 "largest piece",
                 "scale",
                 "F map",
+                "F, all pieces",
                 "F MDE only",
                 "wall / CPU [s]",
                 "CPU per 100 frames [s]",

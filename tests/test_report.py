@@ -99,7 +99,15 @@ def test_sfm_section_follows_the_json():
     run = {
         "frames": 94,
         "registered": 88,
-        "pieces": [{"frames": 32, "scale": {"scale": 0.4047, "sigma": 0.0105, "mad": 0.127}}],
+        "pieces": [
+            {
+                "frames": 32,
+                "frames_fused": 32,
+                "fscore": 0.123,
+                "scale": {"scale": 0.4047, "sigma": 0.0105, "mad": 0.127},
+            },
+            {"frames": 8, "frames_fused": 8, "fscore": 0.623, "scale": {"scale": 0.4, "sigma": 0.01, "mad": 0.1}},
+        ],
         "fscore_map": 0.123,
         "fscore_mde_only": 0.111,
         "process_wall_s": 300.0,
@@ -124,6 +132,7 @@ def test_sfm_section_follows_the_json():
     }
     text = _report().section_sfm({"runs": {"hololens": run}, "sigma": sigma})
     assert (
-        "| HoloLens walk | 88 / 94 (1) | 32 | 0.4047 ± 0.0105 (MAD 12.7%) | 0.123 | 0.111 | 300 / 150 | 160 |" in text
+        "| HoloLens walk | 88 / 94 (2) | 32 | 0.4047 ± 0.0105 (MAD 12.7%) | 0.123 | 0.223 | 0.111 | 300 / 150 | 160 |"
+        in text
     )
     assert "| HoloLens walk | 100 | 2.0% | 95.1% (σ 4.9%) |" in text and "HoloLens walk -18.0%" in text
