@@ -171,7 +171,7 @@ def sigma_study(runs: dict[str, dict], lines: dict[str, str]) -> dict:
         focal=focal[FIT_ON],
     )
     rules = {
-        "flat 2 %": PointSigmaRule(relative=0.02),
+        "flat 2 %": PointSigmaRule(relative=0.02, geometric=0.0),
         "reprojection and angle only": PointSigmaRule(relative=1e-6, geometric=1.0),
         "fitted": fitted,
         "default": PointSigmaRule(),
@@ -219,13 +219,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "sfm.json")
     parser.add_argument("--sequences", nargs="*", default=None, help="folder names under ../shared/data")
+    parser.add_argument(
+        "--sigma-only", action="store_true", help="keep the runs of --out, measure the sigma again on their models"
+    )
     args = parser.parse_args()
     sys.path.insert(0, str(REPO))
     from gpdepth3d.io import write_json
 
     lines = {k: v for k, v in recipes().items() if args.sequences is None or k in args.sequences}
-    runs = {}
+    runs = json.loads(args.out.read_text())["runs"] if args.sigma_only else {}
     for name, line in lines.items():
+        if args.sigma_only:
+            continue
         runs[name] = r = run(line)
         scale = r["pieces"][0]["scale"] if r["pieces"] else None
         print(
@@ -240,9 +245,11 @@ def main() -> None:
         for name, row in study["sequences"].items():
             cov = ", ".join(f"{k} {v['coverage_2sigma']:.1%}" for k, v in row.items() if isinstance(v, dict))
             print(f"{name:9s} ±2σ coverage: {cov}")
+    previous = json.loads(args.out.read_text()) if args.sigma_only else {}
     write_json(
         args.out,
         {
+            **previous,
             "runs": runs,
             "sigma": study,
             "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
