@@ -250,6 +250,7 @@ def main() -> None:
         args.out,
         {
             **previous,
+            "date": previous.get("date") or time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "runs": runs,
             "sigma": study,
             "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
