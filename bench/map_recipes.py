@@ -32,10 +32,12 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def recipes() -> dict[str, str]:
-    """The docs' ``gpdepth3d map`` lines on the shared data, by sequence folder name."""
+    """The docs' posed ``gpdepth3d map`` lines on the shared data, by sequence folder name (bench/sfm.py: unposed)."""
     text = (REPO / "docs" / "mapping.md").read_text(encoding="utf-8")
     lines = [
-        line.strip() for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M) if "../shared/data" in line
+        line.strip()
+        for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M)
+        if "../shared/data" in line and "--poses" in line
     ]
     return {re.search(r"\.\./shared/data/(\w+)", line).group(1): line for line in lines}
 

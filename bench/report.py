@@ -546,6 +546,95 @@ def section_batch(d: dict) -> str:
     return section_rows("Datasets on Dask", "python bench/batch.py", d, note)
 
 
+SEQUENCE_NAMES = {"7scenes": "7-Scenes", "hololens": "HoloLens walk"}
+
+
+def section_sfm(d: dict) -> str:
+    """`gpdepth3d map` without poses (pycolmap SfM) and the sigma of pycolmap's points (bench/sfm.py)."""
+    runs = d.get("runs", {})
+    rows = []
+    for name, r in runs.items():
+        first = r["pieces"][0] if r["pieces"] else {}
+        scale = first.get("scale") or {}
+        frames = max(r["frames"], 1)
+        scored = [(p["frames_fused"], p["fscore"]) for p in r["pieces"] if p.get("fscore") is not None]
+        weighted = sum(n * f for n, f in scored) / sum(n for n, _ in scored) if scored else None
+        rows.append(
+            [
+                SEQUENCE_NAMES.get(name, name),
+                f"{r['registered']} / {r['frames']} ({len(r['pieces'])})",
+                f"{first.get('frames', 0)}",
+                f"{fmt(scale.get('scale'), 4)} ± {fmt(scale.get('sigma'), 4)} (MAD {pct(scale.get('mad'))})",
+                fmt(r.get("fscore_map")),
+                fmt(weighted),
+                fmt(r.get("fscore_mde_only")),
+                f"{fmt(r['process_wall_s'], 0)} / {fmt(r['process_cpu_s'], 0)}",
+                f"{fmt(r['process_cpu_s'] * 100 / frames, 0)}",
+                f"{fmt(r['loadavg_before'][0], 1)}–{fmt(r['loadavg_after'][0], 1)}",
+            ]
+        )
+    parts = [
+        "## A map from images alone (pycolmap SfM on the CPU)",
+        run_info(d, "python bench/sfm.py"),
+        "`gpdepth3d map` without `--poses` as docs/mapping.md writes it: registered images (pieces), the largest "
+        "piece's frames and metric scale (metres per SfM unit, ± its bootstrap sigma over frames; MAD: spread of the "
+        "per-point ratios), F at 5 cm of the largest piece's map and of the MDE alone against the mesh fused from the "
+        "sensor depth with the same poses (all pieces: each piece's F weighted by its frames), wall and CPU seconds of the whole process (SfM, scale, mapping, scoring) "
+        "and CPU seconds per 100 frames, load average before–after.",
+        table(
+            [
+                "sequence",
+                "registered (pieces)",
+                "largest piece",
+                "scale",
+                "F map",
+                "F, all pieces",
+                "F MDE only",
+                "wall / CPU [s]",
+                "CPU per 100 frames [s]",
+                "load",
+            ],
+            rows,
+        ),
+    ]
+    sigma = d.get("sigma")
+    if sigma:
+        rules = list(sigma["rules"])
+        header = ["sequence", "observations", "median abs. rel. error"] + [f"±2σ: {k}" for k in rules]
+        srows = []
+        for name, row in sigma["sequences"].items():
+            srows.append(
+                [SEQUENCE_NAMES.get(name, name), str(row["observations"]), pct(row["median_abs_rel_error"])]
+                + [f"{pct(row[k]['coverage_2sigma'])} (σ {pct(row[k]['median_sigma_rel'])})" for k in rules]
+            )
+        described = "; ".join(
+            f"{k}: relative {fmt(v['relative'], 4)}, geometric {fmt(v['geometric'], 2)}"
+            for k, v in sigma["rules"].items()
+        )
+        mapped = ", ".join(
+            f"{SEQUENCE_NAMES.get(n, n)} {pct(r['as mapped']['coverage_2sigma'])} "
+            f"(median error {pct(r['as mapped']['median_abs_rel_error'])})"
+            for n, r in sigma["sequences"].items()
+        )
+        errors = ", ".join(
+            f"{SEQUENCE_NAMES.get(n, n)} {'+' if r['scale_error'][0] >= 0 else ''}{pct(r['scale_error'][0])}"
+            for n, r in sigma["sequences"].items()
+            if r.get("scale_error")
+        )
+        parts += [
+            f"The network's scale against the one factor that fits the sensor depth (largest piece): {errors}.",
+            "### The depth sigma of pycolmap's points",
+            "Every (point, image) observation of the SfM models above against the sensor depth at its pixel, each "
+            "model scaled by the one factor that fits the sensor best (a metric SLAM's points). Share of "
+            f"observations within ±2σ (and the median σ over the distance) per rule ({described}); the fitted rule "
+            f"is fitted on {SEQUENCE_NAMES.get(sigma['fitted_on'], sigma['fitted_on'])} and checked on the other "
+            "sequence (`PointSigmaRule`, docs/mapping.md).",
+            table(header, srows),
+            f"As mapped (the network's scale, the default rule widened by the scale's sigma): ±2σ covers {mapped}.",
+        ]
+    return "\n\n".join(parts)
+
+
 SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
     ("eval_7scenes.json", section_eval_7scenes),
     ("default_model.json", section_default_model),
@@ -571,6 +660,7 @@ SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
     ("fit_7scenes.json", lambda d: section_rows("Fitted hyperparameters, 7-Scenes", "python bench/fit.py", d)),
     ("batch.json", section_batch),
     ("viewer_startup.json", section_viewer),
+    ("sfm.json", section_sfm),
 ]
 """One section per results file, in page order; mapping (fusion.json + mapper.json) comes after them."""
 

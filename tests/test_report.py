@@ -92,3 +92,47 @@ def test_no_development_history_in_the_docs():
         if path.is_file():
             text = path.read_text(encoding="utf-8")
             assert not re.search(r"\b[Ss]essions? \d+|\bsession-\d+", text), path.name
+
+
+def test_sfm_section_follows_the_json():
+    """The images-alone table and the sigma coverage come from bench/results/sfm.json's fields."""
+    run = {
+        "frames": 94,
+        "registered": 88,
+        "pieces": [
+            {
+                "frames": 32,
+                "frames_fused": 32,
+                "fscore": 0.123,
+                "scale": {"scale": 0.4047, "sigma": 0.0105, "mad": 0.127},
+            },
+            {"frames": 8, "frames_fused": 8, "fscore": 0.623, "scale": {"scale": 0.4, "sigma": 0.01, "mad": 0.1}},
+        ],
+        "fscore_map": 0.123,
+        "fscore_mde_only": 0.111,
+        "process_wall_s": 300.0,
+        "process_cpu_s": 150.0,
+        "loadavg_before": [2.0, 1.0, 1.0],
+        "loadavg_after": [3.0, 1.0, 1.0],
+    }
+    rule = {"relative": 0.03, "geometric": 4.0, "min_error_px": 0.5}
+    cov = {"coverage_2sigma": 0.951, "median_sigma_rel": 0.049}
+    sigma = {
+        "fitted_on": "7scenes",
+        "rules": {"fitted": rule},
+        "sequences": {
+            "hololens": {
+                "observations": 100,
+                "median_abs_rel_error": 0.02,
+                "scale_error": [-0.18],
+                "fitted": cov,
+                "as mapped": {"coverage_2sigma": 0.5, "median_abs_rel_error": 0.18},
+            }
+        },
+    }
+    text = _report().section_sfm({"runs": {"hololens": run}, "sigma": sigma})
+    assert (
+        "| HoloLens walk | 88 / 94 (2) | 32 | 0.4047 ± 0.0105 (MAD 12.7%) | 0.123 | 0.223 | 0.111 | 300 / 150 | 160 |"
+        in text
+    )
+    assert "| HoloLens walk | 100 | 2.0% | 95.1% (σ 4.9%) |" in text and "HoloLens walk -18.0%" in text

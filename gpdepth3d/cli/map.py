@@ -19,7 +19,8 @@ Association = Literal[ASSOCIATIONS]  # type: ignore[valid-type]
 def map_command(
     images: Path,
     *,
-    poses: Path,
+    poses: Optional[Path] = None,
+    points: Optional[Path] = None,
     intrinsics: Optional[str] = None,
     pose_format: PoseFormat = "auto",
     association: Association = "auto",
@@ -44,7 +45,7 @@ def map_command(
     port: int = 8080,
     view_duration: Optional[float] = None,
 ) -> dict[str, Any]:
-    """Map a posed image sequence: mesh, coloured cloud with per-point sigma, reloadable map, metrics.
+    """Map an image sequence, posed or not: mesh, coloured cloud with per-point sigma, reloadable map, metrics.
 
     Each image's depth comes from a monocular network (--mde), refined by a GP with points the
     library triangulates from the posed images themselves (and a COLMAP model's points when the poses
@@ -52,13 +53,19 @@ def map_command(
     all together or nothing: ``mesh.<format>``, ``cloud.ply`` (x y z, colour, confidence, sigma,
     variance), ``mapper.json`` + ``keyframes.npz`` + ``volume.npz`` (``Mapper.load(output)`` goes on
     from them) and ``metrics.json`` (with --depth: F-score at --threshold against the mesh fused from
-    that depth, and the MDE alone's). See docs/mapping.md.
+    that depth, and the MDE alone's). Without --poses, pycolmap's structure from motion poses the images
+    (or --points gives a COLMAP model's poses), the metric scale comes from the network's depth at the SfM
+    points, and each piece the images fall into is mapped on its own (``output/piece<k>``; the SfM models
+    in ``output/sparse``). See docs/mapping.md.
 
     Args:
         images: Image folder (its *.color.* files if any, else every .png/.jpg), or a quoted glob pattern.
         poses: Camera-to-world poses: a TUM trajectory (timestamp tx ty tz qx qy qz qw), KITTI rows (3x4),
             rows of a flattened 4x4 (one per image), a folder of per-image 4x4 files (*.pose.txt), or a
-            COLMAP model folder.
+            COLMAP model folder. Without it: pycolmap SfM on the images (or the --points COLMAP model's poses).
+        points: Given world points: a COLMAP model folder (or a folder of numbered models: pieces), or a
+            points file in the poses' frame, metres: PLY (x y z, optional sigma), NPZ (xyz, optional sigma)
+            or text (x y z [sigma] a line). Their depth sigma is calibrated (docs/mapping.md).
         intrinsics: Colour camera: a K file (3x3) or fx,fy,cx,cy in pixels (optional with a COLMAP model).
         pose_format: The pose format (default: recognised from the file).
         association: How poses find their images: by name (pose files, COLMAP), by timestamp (TUM, images
@@ -101,6 +108,12 @@ def map_command(
     if view_duration is not None and not (math.isfinite(view_duration) and view_duration >= 0):
         raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
     check_output_folder(Path(output), "--output")
+    base = MapperConfig()
+    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
+    if poses is None:
+        if view:
+            raise InvalidInputError("--view", "--poses (the live view draws the camera path first)", "no --poses")
+        return _map_unposed(locals())
     inputs = open_posed_sequence(
         str(images),
         poses,
@@ -113,8 +126,11 @@ def map_command(
         depth_invalid=depth_invalid,
         depth_intrinsics=depth_intrinsics,
     )
-    base = MapperConfig()
-    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
+    if points is not None:
+        from ..mapping.points.given_points import read_given_points
+        from ..pipelines.sfm import points_for_frames
+
+        inputs = points_for_frames(inputs, read_given_points(points))
     seq = inputs.sequence
     print(
         f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
@@ -152,6 +168,7 @@ def map_command(
     summary["inputs"] = {
         "images": str(images),
         "poses": str(poses),
+        "points": None if points is None else str(points),
         "pose_format": inputs.pose_format,
         "intrinsics": intrinsics,
         "depth": None if depth is None else str(depth),
@@ -186,6 +203,50 @@ def map_command(
         )
         live.wait(view_duration)
         live.stop()
+    return summary
+
+
+def _map_unposed(args: dict) -> dict[str, Any]:
+    """``map`` without --poses: SfM (or the --points COLMAP model), metric scale from the network, one map per piece."""
+    import tempfile
+
+    from ..mde import load_frontend
+    from ..pipelines.sfm import map_unposed, pieces_summary, write_pieces
+
+    a = args
+    depth_kw = {"depth_scale": a["depth_scale"], "depth_invalid": a["depth_invalid"]}
+    depth_kw["depth_intrinsics"] = a["depth_intrinsics"]
+    map_kw = {"working_width": a["working_width"], "threshold": a["threshold"], "metric_samples": a["metric_samples"]}
+    print(f"map: no poses: {'the COLMAP model ' + str(a['points']) if a['points'] else 'pycolmap SfM on the images'}")
+    with tempfile.TemporaryDirectory(prefix="gpdepth3d-sfm-") as tmp, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = map_unposed(
+            str(a["images"]),
+            a["intrinsics"],
+            mde=load_frontend(a["mde"], models_dir=a["models_dir"]),
+            points=a["points"],
+            workdir=tmp,
+            stride=a["stride"],
+            max_frames=a["frames"],
+            config=a["config"],
+            depth=None if a["depth"] is None else str(a["depth"]),
+            depth_kw=depth_kw,
+            map_kw=map_kw,
+        )
+        inputs = {k: None if a[k] is None else str(a[k]) for k in ("images", "points", "intrinsics", "depth", "mde")}
+        written = write_pieces(result, a["output"], summary={"inputs": inputs}, mesh_format=a["mesh_format"])
+    _report_warnings(caught)
+    summary = pieces_summary(result)
+    print(f"registered {result.registered} of {result.frames} images in {len(result.pieces)} piece(s)")
+    for k, piece in enumerate(result.pieces):
+        s = piece.scale
+        scale = "" if s is None else f", scale {s.scale:.4f} ± {s.sigma:.4f} m per unit ({s.points} points)"
+        print(f"piece {k}: {len(piece.names)} frames{scale}" + (f": not mapped: {piece.error}" if piece.error else ""))
+        if piece.result is not None and piece.result.metrics is not None:
+            print(f"piece {k}: " + _fscore_line(piece.result.metrics, a["threshold"]))
+    print(f"wrote {len(written)} files to {Path(a['output']).resolve()} in {result.timing['wall']:.1f} s")
+    for path in written:
+        print(f"wrote {path}")
     return summary
 
 

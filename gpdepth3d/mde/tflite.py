@@ -74,6 +74,10 @@ class FastDepthTFLite:
         ImportError: naming the ``tflite`` extra when ai-edge-litert is not installed.
     """
 
+    training_intrinsics = (518.86, 519.47, 640, 480)
+    """``(fx, fy, width, height)`` of the camera FastDepth was trained with (NYU-Depth-V2's Kinect colour camera),
+    for `gpdepth3d.mapping.points.sfm_scale.focal_ratio`."""
+
     def __init__(self, model_path: str | Path, *, num_threads: int | None = None, output_scale: float | None = None):
         self.model_path = Path(model_path)
         if not self.model_path.is_file():

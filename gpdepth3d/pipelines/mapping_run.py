@@ -234,11 +234,14 @@ class PosedInputs:
         pose_format: The pose format read (one of `POSE_FORMATS`).
         map_points: Per frame, the world points of a COLMAP model its image observes ((K, 3),
             metres), or None when the poses are not a COLMAP model.
+        map_points_sigma: Per frame, the depth sigma of its map points ((K,) metres), or None (the
+            GP's measurement sigma).
     """
 
     sequence: PosedSequence
     pose_format: str
     map_points: list | None = None
+    map_points_sigma: list | None = None
 
 
 def open_posed_sequence(
@@ -470,6 +473,8 @@ def map_sequence(
             extra = {}
             if inputs.map_points is not None and len(inputs.map_points[i]):
                 extra["map_points_world"] = inputs.map_points[i]
+                if inputs.map_points_sigma is not None:
+                    extra["map_points_sigma"] = inputs.map_points_sigma[i]
             waiting[i] = frame
             result = mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i, **extra)
         except GPDepthError as exc:  # an unreadable frame or a bad pose: named, the run goes on

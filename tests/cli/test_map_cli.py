@@ -27,6 +27,14 @@ RECIPES = {
     "--depth-intrinsics ../shared/data/7scenes/camera-intrinsics.txt --output gpdepth3d_out/map_7scenes",
 }
 FRAMES = {"hololens": 94, "7scenes": 60}
+UNPOSED = (
+    "gpdepth3d map --images ../shared/data/7scenes --frames 20 --intrinsics 525,525,320,240 "
+    "--depth ../shared/data/7scenes --depth-invalid 65535 "
+    "--depth-intrinsics ../shared/data/7scenes/camera-intrinsics.txt --output gpdepth3d_out/sfm_7scenes20",
+    "gpdepth3d map --images ../shared/data/7scenes --frames 20 --points gpdepth3d_out/sfm_7scenes20/sparse "
+    "--intrinsics 525,525,320,240 --output gpdepth3d_out/points_7scenes20",
+)
+"""The README's lines without poses: pycolmap SfM on 20 frames, then its model again through --points."""
 MAP_FILES = ("mesh.ply", "cloud.ply", "mapper.json", "keyframes.npz", "volume.npz", "volume.json", "metrics.json")
 
 
@@ -41,7 +49,7 @@ def test_docs_give_the_recipes_as_tested():
         assert recipe in lines
     for line in _lines(ROOT / "README.md"):  # the README's map lines on the shared data are these too
         if "../shared/data" in line:
-            assert line.split("  #")[0].strip() in RECIPES.values(), line
+            assert line.split("  #")[0].strip() in (*RECIPES.values(), *UNPOSED), line
 
 
 @pytest.fixture()
@@ -88,6 +96,23 @@ def test_recipe_runs_as_written(name, at_root, capsys):
     print(f"{name}: F map {f_map:.3f}, MDE alone {f_mde:.3f}, {summary['wall_s']:.0f} s")
 
 
+@pytest.mark.slow
+def test_unposed_recipes_run_as_written(at_root, capsys):
+    """SfM poses 20 frames (all registered, one piece, a scale with its sigma); --points maps its model again."""
+    pytest.importorskip("pycolmap")
+    for line in UNPOSED:
+        argv = shlex.split(line)[1:]
+        out_dir = ROOT / argv[argv.index("--output") + 1]
+        assert main(argv) == 0, capsys.readouterr().err[-3000:]
+        out = capsys.readouterr().out
+        summary = json.loads((out_dir / "metrics.json").read_text())
+        assert "registered 20 of 20 images in 1 piece(s)" in out
+        piece = summary["pieces"]["pieces"][0]
+        assert summary["frames_fused"] == 20 and piece["scale"]["sigma"] > 0
+        assert (out_dir / "mesh.ply").is_file()
+    assert summary["inputs"]["points"].endswith("sparse")
+
+
 def _run(argv, capsys) -> tuple[int, str, str]:
     code = main(argv)
     out = capsys.readouterr()
@@ -110,6 +135,8 @@ class TestErrors:
         ]
         bad_tum = tmp_path / "traj.txt"
         bad_tum.write_text("0.0 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 2\n")
+        xyz = tmp_path / "points.txt"
+        xyz.write_text("0 0 1\n1 0 2\n")
         cases = [
             (["--poses", str(tmp_path / "missing.txt")], "missing.txt: trajectory file not found"),
             (
@@ -122,6 +149,9 @@ class TestErrors:
             (["--poses", str(holo / "poses_images.txt"), "--depth", str(tmp_path)], "depth: no files"),
             (["--poses", str(holo / "poses_images.txt"), "--stride", "0"], "stride: expected an integer >= 1"),
             (["--poses", str(holo / "poses_images.txt"), "--voxel-size", "0"], "--voxel-size"),
+            (["--view"], "--view: expected --poses"),
+            (["--points", str(xyz)], "points: expected a COLMAP model when no poses are given"),
+            (["--poses", str(holo / "poses_images.txt"), "--points", str(tmp_path / "none.npz")], "none.npz"),
         ]
         for extra, message in cases:
             code, out, err = _run(base + extra, capsys)

@@ -1,0 +1,177 @@
+"""Structure from motion on an image sequence with pycolmap: poses and points up to scale, in one or more pieces.
+
+`reconstruct_sequence` runs pycolmap's SIFT extraction, sequential matching and incremental mapping on
+the images of a sequence whose intrinsics are known (COLMAP camera model PINHOLE, held fixed). The
+settings of `SfMConfig` are chosen for hand-held indoor walks with little texture: more, weaker SIFT
+keypoints, a smaller triangulation angle and fewer inliers to start a model or register an image than
+COLMAP's defaults (which are tuned for photo collections with wide baselines). Where the images do
+not chain (a blank wall, a fast turn) pycolmap starts a new model; every model is one piece, with its
+own frame and scale. See https://colmap.github.io/pycolmap/index.html.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...camera import PinholeCamera
+from ...errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class SfMConfig:
+    """Settings of `reconstruct_sequence` (pycolmap's extraction, sequential matching and incremental mapping).
+
+    Attributes:
+        max_features: SIFT keypoints per image at most.
+        peak_threshold: SIFT's contrast threshold (COLMAP's default 0.0067; lower finds keypoints on
+            weak texture).
+        overlap: Each image is matched with this many following images (sequential matching).
+        init_min_num_inliers: Inlier matches a pair needs to start a model (COLMAP: 100).
+        init_min_tri_angle: Median triangulation angle a starting pair needs, degrees (COLMAP: 16; the
+            frames of a walk are close together).
+        abs_pose_min_num_inliers: 2-D / 3-D inliers an image needs to be registered (COLMAP: 30).
+        abs_pose_min_inlier_ratio: Their share of the image's matches (COLMAP: 0.25).
+        min_tri_angle: Smallest angle between two rays of a point kept, degrees (COLMAP: 1.5).
+        two_view_tracks: Triangulate points seen in two images only (COLMAP ignores them; in a walk
+            they are what registers the next image).
+        min_model_size: Registered images a piece needs to be kept.
+        threads: CPU threads pycolmap may use.
+        seed: pycolmap's random seed (runs are repeatable with the same seed and threads).
+    """
+
+    max_features: int = 4096
+    peak_threshold: float = 0.002
+    overlap: int = 8
+    init_min_num_inliers: int = 30
+    init_min_tri_angle: float = 4.0
+    abs_pose_min_num_inliers: int = 10
+    abs_pose_min_inlier_ratio: float = 0.15
+    min_tri_angle: float = 0.5
+    two_view_tracks: bool = True
+    min_model_size: int = 3
+    threads: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, low in (
+            ("max_features", 64),
+            ("overlap", 1),
+            ("init_min_num_inliers", 8),
+            ("abs_pose_min_num_inliers", 6),
+            ("min_model_size", 2),
+            ("threads", 1),
+            ("seed", 0),
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InvalidInputError(name, f"an integer >= {low}", value)
+        for name in ("peak_threshold", "init_min_tri_angle", "min_tri_angle"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise InvalidInputError(name, "a finite value > 0", value)
+        if not 0 <= self.abs_pose_min_inlier_ratio < 1:
+            raise InvalidInputError("abs_pose_min_inlier_ratio", "a share in [0, 1)", self.abs_pose_min_inlier_ratio)
+
+
+def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig) -> None:
+    """SIFT keypoints of every image into ``database`` (one PINHOLE camera, fixed), then sequential matches."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"  # COLMAP puts the first pixel's centre at 0.5
+    reader.camera_params = f"{camera.fx},{camera.fy},{camera.cx + 0.5},{camera.cy + 0.5}"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = config.threads
+    extraction.sift.max_num_features = config.max_features
+    extraction.sift.peak_threshold = config.peak_threshold
+    pycolmap.extract_features(
+        database,
+        images[0].parent,
+        image_names=[p.name for p in images],
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = config.overlap
+    pairing.num_threads = config.threads
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = config.threads
+    pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+
+
+def _mapping_options(config: SfMConfig):
+    """pycolmap's incremental mapping options: intrinsics fixed, thresholds of `SfMConfig`."""
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = config.threads
+    options.random_seed = config.seed
+    options.min_model_size = config.min_model_size
+    options.ba_refine_focal_length = False
+    options.ba_refine_principal_point = False
+    options.ba_refine_extra_params = False
+    options.mapper.init_min_num_inliers = config.init_min_num_inliers
+    options.mapper.init_min_tri_angle = config.init_min_tri_angle
+    options.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
+    options.mapper.abs_pose_min_inlier_ratio = config.abs_pose_min_inlier_ratio
+    options.mapper.abs_pose_refine_focal_length = False
+    options.mapper.abs_pose_refine_extra_params = False
+    options.mapper.filter_min_tri_angle = config.min_tri_angle
+    options.triangulation.min_angle = config.min_tri_angle
+    options.triangulation.ignore_two_view_tracks = not config.two_view_tracks
+    return options
+
+
+def reconstruct_sequence(
+    images: Sequence[str | Path], camera: PinholeCamera, workdir: str | Path, *, config: SfMConfig | None = None
+) -> list[Path]:
+    """Runs pycolmap's SfM on an image sequence with known intrinsics; returns the model folders, largest first.
+
+    Args:
+        images: Image files of ``camera``'s size, in temporal order, in one folder.
+        camera: Pinhole intrinsics shared by the images (held fixed).
+        workdir: Folder for ``database.db`` and the models (``sparse/0``, ``sparse/1``, ...); an
+            earlier run there is replaced.
+        config: `SfMConfig` (default: settings for indoor walks).
+
+    Returns:
+        One folder per piece (`gpdepth3d.mapping.trajectories.read_colmap_model` reads it), the piece
+        with the most registered images first; empty when no pair of images started a model.
+
+    Raises:
+        InvalidInputError: fewer than two images, or images from several folders.
+    """
+    import shutil
+
+    import pycolmap
+
+    config = config or SfMConfig()
+    images = [Path(p) for p in images]
+    if len(images) < 2:
+        raise InvalidInputError("images", "two or more image files", len(images))
+    if len({p.parent.resolve() for p in images}) != 1:
+        raise InvalidInputError("images", "files of one folder", sorted({str(p.parent) for p in images}))
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    database, sparse, raw = workdir / "database.db", workdir / "sparse", workdir / "incremental"
+    database.unlink(missing_ok=True)
+    for folder in (sparse, raw):
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir()
+    _extract_and_match(images, camera, database, config)
+    models = pycolmap.incremental_mapping(database, images[0].parent, raw, options=_mapping_options(config))
+    shutil.rmtree(raw, ignore_errors=True)
+    order = sorted(models, key=lambda k: (-models[k].num_reg_images(), k))
+    folders = []
+    for rank, key in enumerate(order):
+        folder = sparse / str(rank)
+        folder.mkdir()
+        models[key].write(folder)
+        folders.append(folder)
+    return folders

@@ -1,0 +1,50 @@
+"""pycolmap structure from motion on a sequence: settings, and a short real sequence registered in one piece."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.mapping.points.colmap_sfm import SfMConfig, reconstruct_sequence
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [("max_features", 10), ("overlap", 0), ("threads", True), ("peak_threshold", 0.0), ("min_tri_angle", -1.0)]
+    + [("abs_pose_min_inlier_ratio", 1.0), ("init_min_num_inliers", 2.5)],
+)
+def test_config_refuses_bad_values(field, value):
+    with pytest.raises(InvalidInputError, match=field):
+        SfMConfig(**{field: value})
+
+
+def test_needs_two_images_of_one_folder(tmp_path):
+    from gpdepth3d.camera import PinholeCamera
+
+    camera = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    with pytest.raises(InvalidInputError, match="images"):
+        reconstruct_sequence([tmp_path / "a.png"], camera, tmp_path / "w")
+    with pytest.raises(InvalidInputError, match="images"):
+        reconstruct_sequence([tmp_path / "a" / "x.png", tmp_path / "b" / "y.png"], camera, tmp_path / "w")
+
+
+@pytest.mark.slow
+def test_seven_scenes_frames_register_in_one_piece(shared_data, tmp_path):
+    """Eight 7-Scenes frames: every one registered, camera centres spaced like the true ones (up to scale)."""
+    pytest.importorskip("pycolmap")
+    from gpdepth3d.datasets.posed import IMAGE_SUFFIXES, list_files, read_intrinsics
+    from gpdepth3d.io.poses import read_colmap_model
+
+    files = list_files(shared_data / "7scenes", IMAGE_SUFFIXES, "color", "images")[:8]
+    camera = read_intrinsics("525,525,320,240", 640, 480)
+    (folder,) = reconstruct_sequence(files, camera, tmp_path / "sfm")
+    model = read_colmap_model(folder)
+    assert sorted(image.name for image in model.images.values()) == [f.name for f in files]
+    assert len(model.points) > 500 and np.median(model.errors) < 1.5
+    by_name = {image.name: image.T_world_camera[:3, 3] for image in model.images.values()}
+    sfm = np.array([by_name[f.name] for f in files])
+    true = np.array([np.loadtxt(str(f).replace(".color.jpg", ".pose.txt"))[:3, 3] for f in files])
+    step_sfm, step_true = np.diff(sfm, axis=0), np.diff(true, axis=0)
+    ratio = np.linalg.norm(step_true, axis=1) / np.linalg.norm(step_sfm, axis=1)
+    assert np.std(ratio) / np.mean(ratio) < 0.25  # one scale fits every step
