@@ -8,7 +8,7 @@ text file of lines ``x y z [sigma]`` (metres).
 `PointSigmaRule` gives the depth sigma of such a point seen from a camera. Neither a stated sigma nor
 COLMAP's reprojection error is honest about the depth of a point against the true surface (pose error,
 matches on edges, the sensor's own registration); the rule widens them by factors fitted so that
-``±2 sigma`` covers 95 % of the points against sensor depth (`fit_sigma_rule`, ``bench/sfm.py``;
+``±2 sigma`` covers 95 % of the points against sensor depth (`fit_sigma_rule`;
 docs/mapping.md gives the rule and its coverage on the shared sequences).
 """
 
