@@ -1576,3 +1576,16 @@ def test_cli_ply_refused_before_work(cli_inputs, tmp_path, capsys, extra, text):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and text in err[0]
     assert visible_files(tmp_path) == []
+
+
+def test_memory_guard_holds_without_an_output_size(monkeypatch):
+    """The MDE's own size goes through the guard too: a large MDE with no output size is refused, not allocated."""
+    monkeypatch.setenv("GPDEPTH3D_MAX_MEMORY_MB", "1")
+    with pytest.raises(ProblemTooLargeError, match="GPDEPTH3D_MAX_MEMORY_MB"):
+        check_output_shape(None, (300, 400))
+    mde, sparse = small_problem(h=200, w=200)
+    with pytest.raises(ProblemTooLargeError):
+        complete(mde, sparse, config=EXACT)
+    monkeypatch.delenv("GPDEPTH3D_MAX_MEMORY_MB")
+    with pytest.raises(ProblemTooLargeError, match="above the memory limit of 4.00 GiB"):
+        check_output_shape(None, (3000, 4000))  # the documented 4 GiB default; a 3000x4000 MDE needs more
