@@ -41,6 +41,7 @@ def map_command(
     host: str = "127.0.0.1",
     port: int = 8080,
     view_duration: Optional[float] = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Map a posed image sequence: mesh, coloured cloud with per-point sigma, reloadable map, metrics.
 
@@ -82,6 +83,9 @@ def map_command(
         host: Interface of the viewer (127.0.0.1: this machine only).
         port: Port of the viewer (the next free one when taken).
         view_duration: With --view, keep the page open this many seconds after mapping (default: until Ctrl-C).
+        force: Map on when most frames fail the pose check (their feature tracks do not triangulate with
+            their poses: inverted poses, w-first quaternions, another frame's poses); by default map stops
+            there with one line naming the likely cause. A camera that only rotates fails it too.
 
     Returns:
         The summary written to ``metrics.json``.
@@ -140,6 +144,7 @@ def map_command(
                 metric_samples=metric_samples,
                 progress=sys.stderr.isatty(),
                 on_frame=None if live is None else live.update,
+                force=force,
             )
         except BaseException:
             if live is not None:

@@ -24,7 +24,7 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..datasets.base import Frame
 from ..datasets.posed import IMAGE_SUFFIXES, FileSpec, PosedSequence, list_files
-from ..errors import EmptyInputError, GPDepthError, InvalidInputError
+from ..errors import CalibrationError, EmptyInputError, GPDepthError, InvalidInputError
 from ..mapping.cloud import ColoredCloud
 from ..mapping.fusion import TSDFFusion, save_mesh
 from ..mapping.trajectories import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
@@ -388,6 +388,7 @@ def map_sequence(
     metric_samples: int = 50_000,
     progress: bool = False,
     on_frame: FrameCallback | None = None,
+    force: bool = False,
 ) -> MapResult:
     """Maps a posed sequence with the `Mapper` and, when it has depth, scores the mesh against it.
 
@@ -408,6 +409,8 @@ def map_sequence(
         progress: Show a progress bar (tqdm) on stderr.
         on_frame: Called after each `Mapper` call with a `FrameEvent` (the live viewer, the
             7-Scenes experiment's comparison volumes).
+        force: Map on when most frames fail the pose check (`check_poses_agree`), e.g. a camera
+            that only rotates; by default the run stops there.
 
     Bad data never ends the run: a frame that cannot be read or fused is named in
     ``frame_errors`` and the next one goes on.
@@ -415,6 +418,7 @@ def map_sequence(
     Raises:
         InvalidInputError: bad ``stride``, ``max_frames``, ``working_width``, ``threshold`` or
             ``metric_samples``. EmptyInputError: an empty sequence, or no frame could be fused.
+        CalibrationError: most frames fail the pose check (unless ``force``), naming the likely cause.
     """
     from tqdm.auto import tqdm
 
@@ -448,10 +452,14 @@ def map_sequence(
     points: list[int] = []
     fused = 0
     waiting: dict[int, Frame] = {}
+    checked: list[bool] = []  # per frame returned: its pose failed the pose check
 
     def record(result: FrameResult) -> Frame:
         nonlocal fused
         frame = waiting.pop(result.keyframe_id)
+        checked.append(bool(getattr(result, "pose_in_doubt", False)))
+        if not force:
+            check_poses_agree(checked, inputs.pose_format, final=False)
         if result.error is not None:
             frame_errors.append(f"image {frame.name}: {result.error}")
         if result.fused:
@@ -496,6 +504,8 @@ def map_sequence(
         if on_frame is not None:
             on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
     bar.close()
+    if not force:
+        check_poses_agree(checked, inputs.pose_format, final=True)
     if fused == 0:
         raise EmptyInputError(
             "images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3])
@@ -523,6 +533,48 @@ def map_sequence(
         sparse_points=float(np.median(points)) if points else 0.0,
         metrics=metrics,
         timing=timing,
+    )
+
+
+POSE_CHECK_SHARE = 0.5
+"""`map_sequence` stops when more than this share of its frames fail the pose check."""
+
+POSE_CHECK_MIN_FRAMES = 3
+"""... and at least this many do (a short run with one doubtful frame goes on, with its warning)."""
+
+POSE_CHECK_EARLY = 8
+"""Frames returned after which the check may stop a run before its end (no time spent on a hopeless run)."""
+
+
+def check_poses_agree(failed: list[bool], pose_format: str = "", *, final: bool = True) -> None:
+    """Refuses a run where most frames fail the pose check: the poses do not belong to the images as given.
+
+    A frame fails when its feature tracks do not triangulate with its pose and its neighbours'
+    (or its map points look inverted under it). One such frame is a fast turn; most of them are
+    poses inverted (``T_camera_world`` given for ``T_world_camera``), TUM quaternions written
+    w-first, or poses associated with other frames' images.
+
+    Args:
+        failed: Per frame checked so far, whether it failed.
+        pose_format: The poses' format (the message names the likely cause for it).
+        final: All frames are in; else judged only after `POSE_CHECK_EARLY` frames.
+
+    Raises:
+        CalibrationError: more than `POSE_CHECK_SHARE` of the frames (and at least
+            `POSE_CHECK_MIN_FRAMES`) failed.
+    """
+    n, bad = len(failed), int(sum(failed))
+    if (not final and n < POSE_CHECK_EARLY) or bad < POSE_CHECK_MIN_FRAMES or bad <= POSE_CHECK_SHARE * n:
+        return
+    causes = ["inverted poses (T_camera_world given as T_world_camera)"]
+    if pose_format in ("tum", "auto", ""):
+        causes.append("quaternions written w-first (TUM is tx ty tz qx qy qz qw)")
+    causes.append("another frame's poses (check the image-to-pose association)")
+    raise CalibrationError(
+        "poses",
+        "camera-to-world poses of these images (most frames' feature tracks triangulate with their pose)",
+        f"{bad} of {n} frames failing the pose check: likely {', or '.join(causes)}; "
+        "force=True (map --force) maps them anyway",
     )
 
 

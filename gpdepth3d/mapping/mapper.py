@@ -545,6 +545,7 @@ def _frame_result(
         entry.pose_check,
         entry.scale,
         fallback,
+        pose_in_doubt=entry.pose_in_doubt,
     )
 
 

@@ -130,6 +130,35 @@ class TestMapSequence:
                 map_sequence(inputs, mde=fastdepth, **bad)
 
 
+class TestPoseCheckStopsTheRun:
+    def test_rule(self):
+        from gpdepth3d.errors import CalibrationError
+        from gpdepth3d.experiments.mapping_run import check_poses_agree
+
+        check_poses_agree([True, True, False, False])  # half: a run with fast turns goes on
+        check_poses_agree([True, True] + [False] * 6, final=True)
+        check_poses_agree([True] * 5, final=False)  # too early to judge
+        with pytest.raises(CalibrationError, match="3 of 4 frames failing the pose check: likely inverted"):
+            check_poses_agree([True, True, True, False], "kitti")
+        with pytest.raises(CalibrationError, match="w-first") as info:
+            check_poses_agree([True] * 8, "tum", final=False)
+        assert "map --force" in str(info.value) and "\n" not in str(info.value)
+
+    @pytest.mark.slow
+    def test_inverted_poses_stop_the_run_unless_forced(self, seven: Path, fastdepth):
+        from gpdepth3d.errors import CalibrationError
+        from gpdepth3d.mapping.trajectories import invert_pose, read_trajectory
+
+        traj = read_trajectory(seven / "traj.txt")
+        inverted = Trajectory(np.stack([invert_pose(T) for T in traj.poses]), traj.timestamps)
+        write_tum_trajectory(seven / "inverted.txt", inverted)
+        inputs = open_posed_sequence(seven / "rgb", seven / "inverted.txt", "525,525,320,240")
+        with pytest.raises(CalibrationError, match="failing the pose check: likely inverted poses"):
+            map_sequence(inputs, mde=fastdepth, working_width=160)
+        result = map_sequence(inputs, mde=fastdepth, working_width=160, force=True)
+        assert result.frames_fused == 8
+
+
 class TestColmapInputs:
     def test_model_gives_poses_camera_and_map_points(self, seven: Path, tmp_path: Path):
         import pycolmap
