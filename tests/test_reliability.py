@@ -1589,3 +1589,46 @@ def test_memory_guard_holds_without_an_output_size(monkeypatch):
     monkeypatch.delenv("GPDEPTH3D_MAX_MEMORY_MB")
     with pytest.raises(ProblemTooLargeError, match="above the memory limit of 4.00 GiB"):
         check_output_shape(None, (3000, 4000))  # the documented 4 GiB default; a 3000x4000 MDE needs more
+
+
+def test_view_of_a_posterior_with_a_corrupt_member_is_one_line(tmp_path, capsys):
+    """A posterior whose stored K fails its CRC: the viewer's intrinsics lookup leaves it to the loader's typed error."""
+    import zipfile
+    from dataclasses import replace
+
+    mde, sparse = small_problem()
+    post = replace(complete(mde, sparse, config=EXACT), K=np.array([[10.0, 0, 8], [0, 10, 6], [0, 0, 1]]))
+    path = post.save(tmp_path / "p.npz")[0]
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("K.npy")
+        at = info.header_offset + 30 + len(info.filename) + len(info.extra) + info.compress_size - 4
+    data = bytearray(path.read_bytes())
+    data[at] ^= 0xFF
+    path.write_bytes(bytes(data))
+    assert cli.main(["view", "--posterior", str(path), "--duration", "0"]) == 1
+    err = capsys.readouterr().err
+    assert "DataFormatError" not in err and "unexpected" not in err and "Bad CRC-32" in err
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: PinholeCamera(1e5, 1e5, 5e4, 5e4, 100_000, 100_000).pixel_grid(), "pixel grid"),
+        (lambda: PinholeCamera(1e9, 1e9, 5e8, 5e8, 10**9, 10**9).pixel_grid(), "pixel grid"),
+    ],
+)
+def test_sizes_beyond_memory_are_typed(call, match):
+    with pytest.raises(ProblemTooLargeError, match=match):
+        call()
+
+
+def test_huge_resize_and_keyframe_id_are_typed():
+    from gpdepth3d.datasets.base import Frame
+    from gpdepth3d.mapping.frame_inputs import check_keyframe_id
+
+    frame = Frame("a", np.zeros((48, 64, 3), np.uint8), PinholeCamera(50, 50, 32, 24, 64, 48))
+    with pytest.raises(ProblemTooLargeError, match="more than 1e308 bytes"):
+        frame.resized(1e300)
+    with pytest.raises(InvalidInputError, match="int64"):
+        check_keyframe_id(2**70)
+    assert check_keyframe_id(2**62) == 2**62

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import zipfile
 import threading
 import time
 from dataclasses import dataclass
@@ -208,8 +209,8 @@ def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
     with z:
         try:
             return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
-        except (OSError, ValueError):
-            return None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            return None  # a corrupt member: loading the posterior itself reports it
 
 
 def default_camera(width: int, height: int, *, hfov_deg: float = 60.0) -> PinholeCamera:
