@@ -692,7 +692,7 @@ def _import_dask():
     except ImportError:
         raise ImportError(
             "gpdepth3d batch runs on Dask: install it with `pip install 'gpdepth3d[batch]'` "
-            "(or `pip install distributed`), or pass workers=0 to run in this process"
+            "(or `pip install distributed`), or run it in this process: workers=0 (on the command line: --workers 0)"
         ) from None
     return distributed
 

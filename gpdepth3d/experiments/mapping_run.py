@@ -15,7 +15,7 @@ one set (``gpdepth3d map``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -234,11 +234,13 @@ class PosedInputs:
         pose_format: The pose format read (one of `POSE_FORMATS`).
         map_points: Per frame, the world points of a COLMAP model its image observes ((K, 3),
             metres), or None when the poses are not a COLMAP model.
+        given: The files and options it was opened from, as given (recorded in ``metrics.json``).
     """
 
     sequence: PosedSequence
     pose_format: str
     map_points: list | None = None
+    given: dict = field(default_factory=dict)
 
 
 def open_posed_sequence(
@@ -646,6 +648,89 @@ def write_map(
         writers["metrics.json"] = lambda p: write_json(p, summary)
         members = list(dict.fromkeys([f"mesh.{f}" for f in ("ply", "glb", "obj")] + list(MAP_FILES[1:]) + saved))
         return atomic_write_set(out / "map", writers, members=members)
+
+
+def open_map_inputs(
+    images: str | Path,
+    poses: str | Path,
+    intrinsics: str | None = None,
+    *,
+    output: str | Path,
+    depth: str | Path | None = None,
+    **options: Any,
+) -> PosedInputs:
+    """The inputs of ``gpdepth3d map`` opened and checked before any work, the output folder included.
+
+    Args:
+        images, poses, intrinsics, depth: As `open_posed_sequence` (paths or glob patterns).
+        output: The output folder (checked writable now).
+        **options: The other keywords of `open_posed_sequence` (pose_format, association, ...).
+
+    Raises:
+        OutputError: an output folder that cannot be written. See `open_posed_sequence`.
+    """
+    from ..io import check_output_folder
+
+    check_output_folder(Path(output), "--output")
+    depth = None if depth is None else str(depth)
+    inputs = open_posed_sequence(str(images), poses, intrinsics, depth=depth, **options)
+    given = {"images": str(images), "poses": str(poses), "intrinsics": intrinsics, "depth": depth}
+    return replace(inputs, given={**given, "depth_scale": options.get("depth_scale", 0.001)})
+
+
+def map_files(
+    inputs: PosedInputs,
+    output: str | Path,
+    *,
+    mde: str | MDEFrontEnd = "fastdepth",
+    models_dir: str | Path | None = None,
+    voxel_size: float = 0.02,
+    depth_max: float = 5.0,
+    mesh_format: str = "ply",
+    frames: int | None = None,
+    **options: Any,
+) -> tuple[MapResult, dict[str, Any], list[Path]]:
+    """Maps an opened sequence and writes the map's files (``gpdepth3d map`` between parsing and printing).
+
+    Args:
+        inputs: The sequence (`open_map_inputs`).
+        output: The output folder (`write_map`).
+        mde: A front-end name or model file (`gpdepth3d.mde.load_frontend`), or a front-end.
+        models_dir: Folder of the named front-ends' models.
+        voxel_size: TSDF voxel size, metres. depth_max: Depths beyond it are not fused, metres.
+        mesh_format: "ply", "glb" or "obj".
+        frames: At most this many frames (after the stride).
+        **options: The other keywords of `map_sequence` (stride, working_width, threshold, force, ...).
+
+    Returns:
+        (the `MapResult`, the summary written to ``metrics.json``, the files written).
+
+    Raises:
+        InvalidInputError: a bad voxel size or depth limit (named by their options). See `map_sequence`.
+    """
+    for name, value in (("--voxel-size", voxel_size), ("--depth-max", depth_max)):
+        if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+            raise InvalidInputError(name, "a distance > 0 (metres)", value)
+    base = MapperConfig()
+    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
+    if isinstance(mde, (str, Path)):
+        from ..mde import load_frontend
+
+        network = load_frontend(mde, models_dir=models_dir, argument="--mde")
+    else:
+        network = mde
+    result = map_sequence(inputs, mde=network, config=config, max_frames=frames, **options)
+    summary = map_summary(result)
+    summary["inputs"] = {
+        **inputs.given,
+        "pose_format": inputs.pose_format,
+        "mde": str(mde),
+        "stride": options.get("stride", 1),
+        "frames": frames,
+        "working_width": options.get("working_width", DEFAULT_WORKING_WIDTH),
+    }
+    written = write_map(result, output, mesh_format=mesh_format, summary=summary)
+    return result, summary, written
 
 
 def map_summary(result: MapResult) -> dict[str, Any]:
