@@ -1632,3 +1632,52 @@ def test_huge_resize_and_keyframe_id_are_typed():
     with pytest.raises(InvalidInputError, match="int64"):
         check_keyframe_id(2**70)
     assert check_keyframe_id(2**62) == 2**62
+
+
+# ------------------------------------------------------------------------------------------ messages
+@pytest.mark.parametrize(
+    "argv, hint",
+    [
+        (["complete", "--mde", "x.npy", "--outptu", "o"], "(did you mean --output?)"),
+        (["map", "--images", "a", "--poses", "b", "--voxel-szie", "0.1"], "(did you mean --voxel-size?)"),
+        (["complete", "--mde", "a.npy", "--output", "o", "--gp.lenghtscale", "2"], "(did you mean --gp.lengthscale?)"),
+    ],
+)
+def test_cli_typos_get_a_suggestion(argv, hint, capsys):
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert hint in err and len(err.strip().splitlines()) == 1
+
+
+def test_missing_extras_are_named_by_the_code_that_needs_them():
+    from gpdepth3d.extras import missing_dependency
+
+    def raised_in(path: str) -> BaseException:
+        scope: dict = {}
+        exec(compile("def f():\n    raise ModuleNotFoundError('No module', name='torch')\n", path, "exec"), scope)
+        try:
+            scope["f"]()
+        except ModuleNotFoundError as exc:
+            return exc
+
+    assert 'pip install "gpdepth3d[kissgp]"' in str(missing_dependency(raised_in("/x/gpdepth3d/gp/kissgp.py")))
+    assert 'pip install "gpdepth3d[mapping]"' in str(missing_dependency(raised_in("/x/gpdepth3d/mapping/fusion.py")))
+
+
+def test_batch_without_dask_names_the_option(monkeypatch):
+    from gpdepth3d.experiments.batch import _import_dask
+
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(ImportError, match="--workers 0"):
+        _import_dask()
+
+
+def test_map_has_the_option_its_host_error_names():
+    import inspect
+
+    from gpdepth3d.cli.map import map_command
+    from gpdepth3d.viewer.app import check_host
+
+    with pytest.raises(InvalidInputError, match="--allow-remote"):
+        check_host("0.0.0.0")
+    assert "allow_remote" in inspect.signature(map_command).parameters
