@@ -1681,3 +1681,25 @@ def test_map_has_the_option_its_host_error_names():
     with pytest.raises(InvalidInputError, match="--allow-remote"):
         check_host("0.0.0.0")
     assert "allow_remote" in inspect.signature(map_command).parameters
+
+
+def test_warnings_are_grouped_plain_and_name_the_image(capsys):
+    import warnings
+
+    from gpdepth3d.cli._main import quiet_third_party, report_warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet_third_party()  # numba's TBB notice stays out even under "always"
+        warnings.warn_explicit(
+            "\x1b[1mThe TBB threading layer requires TBB version 2021 update 6 or later\x1b[0m",
+            UserWarning,
+            "/site-packages/numba/np/ufunc/parallel.py",
+            1,
+            module="numba.np.ufunc.parallel",
+        )
+        for k in (3, 4, 19):
+            warnings.warn(f"frame {k}: only {k} usable points: \x1b[31mthe MDE\x1b[0m", UserWarning)
+    report_warnings(caught, {3: "img_a", 4: "img_b", 19: "img_c"})
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["gpdepth3d: warning: image img_a: only 3 usable points: the MDE (and 2 more like it)"]

@@ -5,6 +5,8 @@ A user's own sequence (any layout and pose format) is mapped by ``gpdepth3d map`
 
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Literal
@@ -71,6 +73,7 @@ def fuse_command(
     """
     from ..io import check_output_folder
     from ..mde import load_frontend
+    from ._main import quiet_third_party, report_warnings
 
     if isinstance(metric_samples, bool) or not isinstance(metric_samples, int) or metric_samples < 1:
         raise InvalidInputError("--metric-samples", "an integer >= 1", metric_samples)
@@ -82,9 +85,19 @@ def fuse_command(
     config = MapperConfig(fusion=fusion, working_scale=working_scale, gp=gp)
     K = COLOUR_INTRINSICS.copy()
     K[0, 0] = K[1, 1] = rgb_focal
-    result = fuse_sequence(
-        data, mde=network, rgb_K=K, config=config, max_frames=frames, threshold=threshold, metric_samples=metric_samples
-    )
+    with warnings.catch_warnings(record=True) as caught:  # one line per kind of warning, with its count
+        warnings.simplefilter("always")
+        quiet_third_party()
+        result = fuse_sequence(
+            data,
+            mde=network,
+            rgb_K=K,
+            config=config,
+            max_frames=frames,
+            threshold=threshold,
+            metric_samples=metric_samples,
+        )
+    report_warnings(caught)
     out = Path(output)
     written = []
     with write_together():  # the meshes and metrics.json appear together, or none of them

@@ -94,6 +94,7 @@ def map_command(
         The summary written to ``metrics.json``.
     """
     from ..experiments.mapping_run import map_files, open_map_inputs
+    from ._main import quiet_third_party, report_warnings
 
     if view_duration is not None and not (math.isfinite(view_duration) and view_duration >= 0):
         raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
@@ -119,6 +120,7 @@ def map_command(
     live = _start_viewer(seq, host, port, allow_remote) if view else None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        quiet_third_party()
         try:
             result, summary, written = map_files(
                 inputs,
@@ -141,7 +143,7 @@ def map_command(
             if live is not None:
                 live.stop()
             raise
-    _report_warnings(caught)
+    report_warnings(caught, dict(enumerate(seq.names)))
     _print_result(result, written, output, threshold)
     if live is not None:
         live.finish(result)
@@ -192,18 +194,3 @@ def _fscore_line(metrics: dict, threshold: float) -> str:
         )
 
     return f"F-score at {threshold * 100:g} cm against the sensor depth: map {f(metrics['map'])}; MDE alone {f(metrics['mde'])}"
-
-
-def _report_warnings(caught: list) -> None:
-    """Prints each distinct warning once, with how often it came (per-frame warnings would flood the terminal)."""
-    import re
-
-    counts: dict[str, int] = {}
-    first: dict[str, str] = {}
-    for w in caught:
-        key = f"{w.category.__name__}:{re.sub(r'[-+]?[0-9][0-9.,]*', '#', str(w.message))}"
-        counts[key] = counts.get(key, 0) + 1
-        first.setdefault(key, str(w.message))
-    for key, n in counts.items():
-        more = f" (and {n - 1} more like it)" if n > 1 else ""
-        print(f"gpdepth3d: warning: {first[key]}{more}", file=sys.stderr)
