@@ -237,7 +237,7 @@ class TestOneLineErrors:
         [
             (
                 ["complete", "--mdee", "x"],
-                "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (see gpdepth3d complete --help)",
+                "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (did you mean --mde?) (see gpdepth3d complete --help)",
             ),
             (["batch"], "gpdepth3d batch: missing --data, --output (see gpdepth3d batch --help)"),
             (
