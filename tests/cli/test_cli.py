@@ -339,6 +339,7 @@ class TestOneLineErrors:
 
 
 class TestDemoCommand:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_demo_runs_from_the_installed_entry_point(self, tmp_path):
         proc = subprocess.run(
             [sys.executable, "-m", "gpdepth3d.cli", "demo", "--output", str(tmp_path / "demo")],

@@ -427,6 +427,7 @@ class DiesOn(HoldoutInputs):
 
 
 class TestRunBatchDask:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_cluster_at_an_address_isolates_failing_frames_and_lost_workers(self, tmp_path):
         distributed = pytest.importorskip("distributed")
         import dask
@@ -523,6 +524,7 @@ def _starts(log: Path) -> dict[str, int]:
 
 
 class TestKillAndResume:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_killed_run_resumes_with_every_frame_exactly_once(self, tiny_kitti, tmp_path):
         pytest.importorskip("distributed")
         script = tmp_path / "run_batch_script.py"

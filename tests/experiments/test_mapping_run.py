@@ -83,6 +83,7 @@ class TestOpen:
 
 
 class TestMapSequence:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_map_write_reload(self, seven: Path, fastdepth, tmp_path: Path, monkeypatch):
         (seven / "rgb" / "1000.100000.jpg").write_bytes(b"broken")  # frame 3: not a readable JPEG
         result = map_sequence(_open(seven), mde=fastdepth)
