@@ -388,6 +388,7 @@ class TestRobustness:
         assert (res.map_points.outside, res.map_points.behind, res.map_points.nonfinite) == (1, 1, 1)
         assert not res.pose_check.inverted
 
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_a_pose_the_feature_tracks_contradict_is_reported(self, shared_data):
         # own triangulation, no map points: an inverted pose in the middle of a real sequence leaves
         # (almost) none of its tracks triangulated; that frame is warned about by name, a clean run is not
