@@ -912,6 +912,7 @@ class TestUncertainPixels:
         T[0, 3] = 0.1
         assert mapper.update_poses({7: T}).moved == (7,)  # re-integrating it fuses nothing, raises nothing
 
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_cut_pixels_are_the_inaccurate_ones_on_7scenes(self, shared_data):
         """With FastDepth and the Mapper's own points (defaults, 320 x 240), the pixels the cut leaves
         out are the MDE's shape alone: farther from the Kinect depth than the pixels it fuses (60
