@@ -73,7 +73,7 @@ def fuse_command(
     """
     from ..io import check_output_folder
     from ..mde import load_frontend
-    from ._main import quiet_third_party, report_warnings
+    from ._warnings import quiet_third_party, report_warnings
 
     if isinstance(metric_samples, bool) or not isinstance(metric_samples, int) or metric_samples < 1:
         raise InvalidInputError("--metric-samples", "an integer >= 1", metric_samples)

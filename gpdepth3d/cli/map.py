@@ -94,7 +94,7 @@ def map_command(
         The summary written to ``metrics.json``.
     """
     from ..experiments.mapping_run import map_files, open_map_inputs
-    from ._main import quiet_third_party, report_warnings
+    from ._warnings import quiet_third_party, report_warnings
 
     if view_duration is not None and not (math.isfinite(view_duration) and view_duration >= 0):
         raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
