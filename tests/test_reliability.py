@@ -58,6 +58,24 @@ EXACT = DepthGPConfig.residual()
 EXACT_ENGINE = EngineConfig(name="exact")
 
 
+RECORD_ENV = "GPDEPTH3D_RELIABILITY_OUT"
+"""Set to a JSON path (`python bench/reliability.py` does), each sweep adds its outcome counts to that file: the
+table of docs/reliability.md is generated from it (`python bench/report.py`), never typed."""
+
+
+def record(row: str, key: str, n: int = 1) -> None:
+    """Adds ``n`` to the count ``key`` of ``row`` in the file named by `RECORD_ENV` (nothing when unset)."""
+    import json
+
+    path = os.environ.get(RECORD_ENV)
+    if not path:
+        return
+    data = json.loads(Path(path).read_text()) if Path(path).is_file() else {}
+    counts = data.setdefault(row, {})
+    counts[key] = counts.get(key, 0) + n
+    Path(path).write_text(json.dumps(data, indent=1, sort_keys=True))
+
+
 def small_problem(seed: int = 0, h: int = 12, w: int = 16, scale: float = 1.0):
     rng = np.random.default_rng(seed)
     mde = scale * (2.0 + rng.random((h, w)))
@@ -452,6 +470,7 @@ def test_api_case_raises_typed_error(case, tmp_path):
     name, call, error, text = case
     with pytest.raises(error) as info:
         call(tmp_path)
+    record("api_cases", type(info.value).__name__)
     assert isinstance(info.value, GPDepthError)
     assert text in str(info.value)
     assert "\n" not in str(info.value)
@@ -831,6 +850,7 @@ def test_cli_case_one_line_exit_1(case, cli_inputs, tmp_path, capsys):
     assert "unexpected" not in lines[0] and "Traceback" not in err
     assert text in lines[0], lines[0]
     assert visible_files(tmp_path) in ([], ["d.npz"])  # nothing written
+    record("cli_cases", "exit 1, one line, nothing written")
 
 
 def test_png_saturates_at_its_range_and_npz_keeps_true_values(tmp_path):
@@ -1050,6 +1070,8 @@ def test_property_typed_error_or_exact_posterior():
     counts: dict[str, int] = {}
     check()
     print(f"property sweep: {counts}")  # shown with pytest -s
+    for key, n in counts.items():
+        record("property_sweep", key, n)
     assert counts.get("posterior", 0) > 0
 
 
@@ -1409,6 +1431,9 @@ def test_cli_sweep(tmp_path):
         [p for p in (tmp_path / "out").rglob("*") if p.name.startswith(".")] if (tmp_path / "out").exists() else []
     )
     print(f"CLI sweep: {sum(counts.values())} command lines: {counts}; leftover temporaries {len(leftovers)}")
+    for key, n in counts.items():
+        record("cli_sweep", key, n)
+    record("cli_sweep", "leftover temporaries", len(leftovers))
     assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
     assert leftovers == []
 
@@ -1686,7 +1711,7 @@ def test_map_has_the_option_its_host_error_names():
 def test_warnings_are_grouped_plain_and_name_the_image(capsys):
     import warnings
 
-    from gpdepth3d.cli._main import quiet_third_party, report_warnings
+    from gpdepth3d.cli._warnings import quiet_third_party, report_warnings
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -1703,3 +1728,19 @@ def test_warnings_are_grouped_plain_and_name_the_image(capsys):
     report_warnings(caught, {3: "img_a", 4: "img_b", 19: "img_c"})
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["gpdepth3d: warning: image img_a: only 3 usable points: the MDE (and 2 more like it)"]
+
+
+def test_eval_device_reaches_the_default_model():
+    """`eval --device cuda` is not ignored by the default GP: it runs there, or says the device is missing."""
+    torch = pytest.importorskip("torch")
+
+    from gpdepth3d.experiments.evaluation import MethodSuite
+
+    mde, sparse = small_problem()
+    suite = MethodSuite(device="cuda")
+    if torch.cuda.is_available():
+        assert suite.run("gp_default", mde, sparse).mean.shape == mde.shape
+    else:
+        with pytest.raises(InvalidInputError, match="no CUDA GPU"):
+            suite.run("gp_default", mde, sparse)
+    assert MethodSuite().run("gp_default", mde, sparse).mean.shape == mde.shape
