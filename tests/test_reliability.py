@@ -1744,3 +1744,22 @@ def test_eval_device_reaches_the_default_model():
         with pytest.raises(InvalidInputError, match="no CUDA GPU"):
             suite.run("gp_default", mde, sparse)
     assert MethodSuite().run("gp_default", mde, sparse).mean.shape == mde.shape
+
+
+def test_jpeg_with_random_scan_bytes_is_refused(tmp_path):
+    """OpenCV decodes random entropy-coded data without a word (a wrong image); the reader refuses it."""
+    rng = np.random.default_rng(0)
+    for progressive in (0, 1):
+        ok, enc = cv2.imencode(
+            ".jpg", rng.integers(0, 255, (120, 160, 3), dtype=np.uint8), [cv2.IMWRITE_JPEG_PROGRESSIVE, progressive]
+        )
+        (tmp_path / f"ok{progressive}.jpg").write_bytes(enc.tobytes())
+        assert gio.load_rgb(tmp_path / f"ok{progressive}.jpg").shape == (120, 160, 3)
+    data = bytearray((tmp_path / "ok0.jpg").read_bytes())  # baseline: OpenCV decodes its random scan
+    sos = data.find(b"\xff\xda")
+    start = sos + 2 + int.from_bytes(data[sos + 2 : sos + 4], "big")
+    data[start:-2] = rng.integers(0, 256, len(data) - 2 - start, dtype=np.uint8).tobytes()
+    (tmp_path / "random.jpg").write_bytes(bytes(data))
+    assert cv2.imread(str(tmp_path / "random.jpg")) is not None  # what the library used to return
+    with pytest.raises(DataFormatError, match="corrupt JPEG data"):
+        gio.load_rgb(tmp_path / "random.jpg")
