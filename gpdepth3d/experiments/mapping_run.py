@@ -173,6 +173,7 @@ def fuse_sequence(
         evaluate=False,
         progress=progress,
         on_frame=evaluate,
+        force=True,  # the dataset's own (ground-truth) poses
     )
     mapper = mapped.mapper
     volumes = {
@@ -541,8 +542,9 @@ def map_sequence(
 POSE_CHECK_SHARE = 0.5
 """`map_sequence` stops when more than this share of its frames fail the pose check."""
 
-POSE_CHECK_MIN_FRAMES = 3
-"""... and at least this many do (a short run with one doubtful frame goes on, with its warning)."""
+POSE_CHECK_MIN_FRAMES = 5
+"""... and at least this many do: the first frames of a walk often fail it (a short baseline), so a short run goes
+on with its warnings."""
 
 POSE_CHECK_EARLY = 8
 """Frames returned after which the check may stop a run before its end (no time spent on a hopeless run)."""

@@ -139,8 +139,9 @@ class TestPoseCheckStopsTheRun:
         check_poses_agree([True, True, False, False])  # half: a run with fast turns goes on
         check_poses_agree([True, True] + [False] * 6, final=True)
         check_poses_agree([True] * 5, final=False)  # too early to judge
-        with pytest.raises(CalibrationError, match="3 of 4 frames failing the pose check: likely inverted"):
-            check_poses_agree([True, True, True, False], "kitti")
+        check_poses_agree([True, True, True, False])  # a short run: its first frames often fail (short baseline)
+        with pytest.raises(CalibrationError, match="5 of 6 frames failing the pose check: likely inverted"):
+            check_poses_agree([True] * 5 + [False], "kitti")
         with pytest.raises(CalibrationError, match="w-first") as info:
             check_poses_agree([True] * 8, "tum", final=False)
         assert "map --force" in str(info.value) and "\n" not in str(info.value)
