@@ -32,14 +32,18 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def recipes() -> dict[str, str]:
-    """The docs' posed ``gpdepth3d map`` lines on the shared data, by sequence folder name (bench/sfm.py: unposed)."""
-    text = (REPO / "docs" / "mapping.md").read_text(encoding="utf-8")
+    """The README's and docs/mapping.md's posed ``gpdepth3d map`` lines on the shared data, by sequence folder name
+    (bench/sfm.py runs the unposed ones)."""
+    text = "\n".join((REPO / name).read_text(encoding="utf-8") for name in ("README.md", "docs/mapping.md"))
     lines = [
         line.strip()
         for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M)
         if "../shared/data" in line and "--poses" in line
     ]
-    return {re.search(r"\.\./shared/data/(\w+)", line).group(1): line for line in lines}
+    found: dict[str, str] = {}
+    for line in lines:  # the README's line of a sequence first: its numbers are the README's
+        found.setdefault(re.search(r"\.\./shared/data/(\w+)", line).group(1), line)
+    return found
 
 
 def run(line: str) -> dict:
@@ -94,9 +98,19 @@ def main() -> None:
             f"(load {r['loadavg_before'][0]:.1f})",
             flush=True,
         )
+    import gpdepth3d
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
     write_json(
         args.out,
         {
+            "version": gpdepth3d.__version__,
+            "commit": commit.stdout.strip() or None,
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "load_average_1min": {
+                "before": min(r["loadavg_before"][0] for r in rows.values()),
+                "after": max(r["loadavg_after"][0] for r in rows.values()),
+            },
             "sequences": rows,
             "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         },

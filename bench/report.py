@@ -305,24 +305,87 @@ SEQUENCE_NAMES = {"7scenes": "7-Scenes", "hololens": "HoloLens walk"}
 
 
 def readme_mapping_table(results: Path = RESULTS) -> str:
-    """The README's mapping table: F at 5 cm of `Mapper()` with its own points, MDE only, pycolmap's points."""
-    d = json.loads((results / "mapping_sequences.json").read_text(encoding="utf-8"))
+    """The README's mapping table: what the README's own ``gpdepth3d map`` lines printed (`bench/map_recipes.py`).
+
+    Each row is one command of the README run as written, on the version it records: the F-score at
+    5 cm of the map and of the MDE alone against the mesh fused from the sensor depth, as ``map`` prints them.
+    """
+    d = json.loads((results / "map_recipes.json").read_text(encoding="utf-8"))
+    readme = README.read_text(encoding="utf-8")
 
     def f3(value: Any) -> str:
         return "–" if value is None else f"{value:.3f}"
 
     rows = [
         [
-            f"{SEQUENCE_NAMES.get(name, name)} ({s['frames']} frames)",
-            f"**{f3(s['fscore'])}**",
+            f"{SEQUENCE_NAMES.get(name, name)} ({s['frames_fused']} of {s['frames']} frames)",
+            f"**{f3(s['fscore_map'])}**",
             f3(s["fscore_mde_only"]),
-            f3(s.get("colmap", {}).get("fscore")),
-            fmt(s["add_frame_ms"]["median"], 0),
+            fmt(s["mapping_wall_s"], 0),
         ]
         for name, s in d["sequences"].items()
+        if s["command"] in readme  # the README's own lines, as written
     ]
-    header = ["sequence", "F, `Mapper()`", "F, MDE only", "F, pycolmap's points", "`add_frame` median [ms]"]
-    return table(header, rows)
+    header = ["`gpdepth3d map` on", "F, map", "F, MDE alone", "mapping [s]"]
+    version = d.get("version", "not recorded")
+    return (
+        table(header, rows)
+        + "\n\n"
+        + run_info(d, "python bench/map_recipes.py").replace("; machine:", f"; gpdepth3d {version}; machine:")
+    )
+
+
+def _breakdown(counts: dict, skip: tuple[str, ...] = ()) -> str:
+    items = sorted(((k, n) for k, n in counts.items() if k not in skip and n), key=lambda kv: (-kv[1], kv[0]))
+    return ", ".join(f"{n} `{k}`" if k[0].isupper() else f"{n} {k}" for k, n in items)
+
+
+def reliability_table(results: Path = RESULTS) -> str:
+    """The fuzz table of docs/reliability.md: the outcome counts of the sweeps' last run (`bench/reliability.py`)."""
+    d = json.loads((results / "reliability.json").read_text(encoding="utf-8"))
+    sweeps = d["sweeps"]
+    rows = []
+    api = sweeps.get("api_cases", {})
+    if api:
+        rows.append(
+            ["API cases of bad input (`API_CASES`)", str(sum(api.values())), f"typed errors: {_breakdown(api)}"]
+        )
+    cases = sweeps.get("cli_cases", {})
+    if cases:
+        rows.append(["CLI cases of bad input (`CLI_CASES`)", str(sum(cases.values())), _breakdown(cases)])
+    sweep = sweeps.get("cli_sweep")
+    if sweep:
+        n = sum(v for k, v in sweep.items() if k != "leftover temporaries")
+        rows.append(["CLI sweep, garbage in every option of every command", str(n), _breakdown(sweep)])
+    prop = sweeps.get("property_sweep", {})
+    if prop:
+        text = f"{prop.get('posterior', 0)} posteriors equal to the exact engine's; typed errors: "
+        rows.append(
+            [
+                f"property sweep against the `exact` engine ({d.get('examples')} examples)",
+                str(sum(prop.values())),
+                text + (_breakdown(prop, ("posterior",)) or "none"),
+            ]
+        )
+    return table(["what", "cases", "outcome"], rows) + "\n\n" + run_info(d, "python bench/reliability.py")
+
+
+RELIABILITY = Path(__file__).resolve().parents[1] / "docs" / "reliability.md"
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+README_BLOCKS = {"results": readme_table, "mapping": readme_mapping_table}
+"""The README's generated blocks (between ``<!-- bench/report.py: NAME -->`` and ``<!-- end -->``)."""
+
+
+def render_readme(text: str, results: Path = RESULTS, blocks: dict | None = None) -> str:
+    """The README ``text`` (or another page's) with every generated block replaced by its table from ``results``."""
+    for name, make in (README_BLOCKS if blocks is None else blocks).items():
+        start, end = f"<!-- bench/report.py: {name} -->", "<!-- end -->"
+        if start not in text:
+            raise SystemExit(f"no {start} block to fill")
+        head, rest = text.split(start, 1)
+        text = head + start + "\n" + make(results) + "\n" + end + rest.split(end, 1)[1]
+    return text
 
 
 def _f_and_coverage(run: dict) -> str:
@@ -697,12 +760,18 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     text = render()
     if args.check:
-        same = OUTPUT.is_file() and OUTPUT.read_text(encoding="utf-8") == text
+        readme = README.read_text(encoding="utf-8")
+        page = RELIABILITY.read_text(encoding="utf-8")
+        same = OUTPUT.is_file() and OUTPUT.read_text(encoding="utf-8") == text and render_readme(readme) == readme
+        same = same and render_readme(page, blocks={"reliability": reliability_table}) == page
         print("docs/results.md is up to date" if same else "docs/results.md differs: run python bench/report.py")
         return 0 if same else 1
     OUTPUT.parent.mkdir(parents=True, exist_ok=True)
     OUTPUT.write_text(text, encoding="utf-8")
-    print(f"wrote {OUTPUT}")
+    README.write_text(render_readme(README.read_text(encoding="utf-8")), encoding="utf-8")
+    page = RELIABILITY.read_text(encoding="utf-8")
+    RELIABILITY.write_text(render_readme(page, blocks={"reliability": reliability_table}), encoding="utf-8")
+    print(f"wrote {OUTPUT} and the generated tables of {README} and {RELIABILITY}")
     return 0
 
 

@@ -124,7 +124,14 @@ class PinholeCamera:
 
     # ------------------------------------------------------------------ geometry
     def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel-centre coordinates (u, v), each of shape (height, width)."""
+        """Pixel-centre coordinates (u, v), each of shape (height, width).
+
+        Raises:
+            ProblemTooLargeError: a grid beyond the memory limit (`gpdepth3d.limits`), before allocating it.
+        """
+        from .limits import check_array_size
+
+        check_array_size(f"the pixel grid of a {self.width}x{self.height} camera", (4, self.height, self.width))
         v, u = np.mgrid[0 : self.height, 0 : self.width]
         return u.astype(np.float64), v.astype(np.float64)
 

@@ -117,3 +117,11 @@ def describe(x: Any) -> str:
     if shape is not None:
         return f"array of shape {tuple(shape)} and dtype {dtype}"
     return f"{type(x).__name__} {x!r}"[:200]
+
+
+def did_you_mean(word: str, choices: Any) -> str:
+    """``" (did you mean X?)"`` for the choice closest to a mistyped ``word``, or ``""`` when none is close."""
+    import difflib
+
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""

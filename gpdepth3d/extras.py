@@ -64,13 +64,34 @@ def missing_dependency(exc: BaseException, module: str | None = None) -> Missing
             )
     name = (getattr(exc, "name", None) or module or "").split(".")[0]
     if isinstance(exc, ModuleNotFoundError) and name in EXTRAS:
-        extras = EXTRAS[name]
+        extras = _needed_first(EXTRAS[name], exc)
         return MissingDependencyError(
             name,
             f"not installed; it comes with the {' or '.join(f'[{e}]' for e in extras)} extra "
             f'(pip install "gpdepth3d[{extras[0]}]")',
         )
     return None
+
+
+PACKAGE_EXTRAS: dict[str, str] = {"gp": "kissgp", "mapping": "mapping", "viewer": "viewer", "experiments": "batch"}
+"""Sub-package of gpdepth3d -> the extra its optional imports come with (a module of several extras is
+named by the one the failing code needs: torch for the ``kissgp`` engine is ``[kissgp]``, not ``[mapping]``)."""
+
+
+def _needed_first(extras: tuple[str, ...], exc: BaseException) -> tuple[str, ...]:
+    """``extras`` with the one of the sub-package whose import failed first (from the traceback), if any."""
+    import os
+
+    tb = exc.__traceback__
+    while tb is not None:
+        parts = os.path.normpath(tb.tb_frame.f_code.co_filename).split(os.sep)
+        if "gpdepth3d" in parts[:-1]:
+            sub = parts[len(parts) - 1 - parts[::-1].index("gpdepth3d") + 1]
+            extra = PACKAGE_EXTRAS.get(sub)
+            if extra in extras:
+                return (extra,) + tuple(e for e in extras if e != extra)
+        tb = tb.tb_next
+    return extras
 
 
 def require(module: str) -> ModuleType:

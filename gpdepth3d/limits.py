@@ -33,6 +33,10 @@ ENV_VAR = "GPDEPTH3D_MAX_MEMORY_MB"
 
 
 def _gib(n: float) -> str:
+    try:
+        n = float(n)
+    except OverflowError:  # an integer beyond any float: a size no machine has
+        return "more than 1e308 bytes"
     return f"{n / 2**30:.2f} GiB" if n >= 2**28 else f"{n / 2**20:.0f} MiB"
 
 

@@ -27,9 +27,30 @@ def test_command_one_installs_what_every_line_needs():
     assert 'extra="${1:-all}"' in script and "libusb-1.0-0" in script and '-e ".[$extra]"' in script
 
 
-def test_readme_has_one_quick_start_block():
+def test_readme_has_the_quick_start_and_the_own_arrays_blocks():
     blocks = _python_blocks((ROOT / "README.md").read_text(encoding="utf-8"))
-    assert len(blocks) == 1 and "g.complete(" in blocks[0]
+    assert len(blocks) == 2 and "g.complete(" in blocks[0]
+    assert "g.SparseDepth(" in blocks[1] and "image_size=" in blocks[1] and "backproject_posterior" in blocks[1]
+
+
+def test_own_arrays_recipe_runs_as_written(shared_data, monkeypatch):
+    """SparseDepth from your own arrays (image_size: the MDE map's height, width) and a camera from a KITTI calib."""
+    if shared_data.resolve() != (ROOT.parent / "shared" / "data").resolve():
+        pytest.skip("the recipe reads ../shared/data from the repository root")
+    block = _python_blocks((ROOT / "README.md").read_text(encoding="utf-8"))[1]
+    monkeypatch.chdir(ROOT)
+    scope: dict = {}
+    exec(compile(block, "README.md own arrays", "exec"), scope)  # noqa: S102 - the README's own code
+    post, camera = scope["post"], scope["camera"]
+    assert post.shape == scope["rgb"].shape[:2] and len(post.sparse) == 3
+    assert camera.fx == pytest.approx(707.0493) and (ROOT / "gpdepth3d_out" / "own_arrays.ply").is_file()
+
+
+def test_core_install_names_what_needs_tflite():
+    """The README's core paragraph says which commands and recipes need the [tflite] extra (FastDepth)."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    core = text[text.index("`pip install -e .` alone") :].split("\n\n")[0]
+    assert "[tflite]" in core and "--mde fastdepth" in core and "eval" in core
 
 
 @pytest.mark.slow

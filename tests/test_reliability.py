@@ -58,6 +58,24 @@ EXACT = DepthGPConfig.residual()
 EXACT_ENGINE = EngineConfig(name="exact")
 
 
+RECORD_ENV = "GPDEPTH3D_RELIABILITY_OUT"
+"""Set to a JSON path (`python bench/reliability.py` does), each sweep adds its outcome counts to that file: the
+table of docs/reliability.md is generated from it (`python bench/report.py`), never typed."""
+
+
+def record(row: str, key: str, n: int = 1) -> None:
+    """Adds ``n`` to the count ``key`` of ``row`` in the file named by `RECORD_ENV` (nothing when unset)."""
+    import json
+
+    path = os.environ.get(RECORD_ENV)
+    if not path:
+        return
+    data = json.loads(Path(path).read_text()) if Path(path).is_file() else {}
+    counts = data.setdefault(row, {})
+    counts[key] = counts.get(key, 0) + n
+    Path(path).write_text(json.dumps(data, indent=1, sort_keys=True))
+
+
 def small_problem(seed: int = 0, h: int = 12, w: int = 16, scale: float = 1.0):
     rng = np.random.default_rng(seed)
     mde = scale * (2.0 + rng.random((h, w)))
@@ -452,6 +470,7 @@ def test_api_case_raises_typed_error(case, tmp_path):
     name, call, error, text = case
     with pytest.raises(error) as info:
         call(tmp_path)
+    record("api_cases", type(info.value).__name__)
     assert isinstance(info.value, GPDepthError)
     assert text in str(info.value)
     assert "\n" not in str(info.value)
@@ -831,6 +850,7 @@ def test_cli_case_one_line_exit_1(case, cli_inputs, tmp_path, capsys):
     assert "unexpected" not in lines[0] and "Traceback" not in err
     assert text in lines[0], lines[0]
     assert visible_files(tmp_path) in ([], ["d.npz"])  # nothing written
+    record("cli_cases", "exit 1, one line, nothing written")
 
 
 def test_png_saturates_at_its_range_and_npz_keeps_true_values(tmp_path):
@@ -1050,6 +1070,8 @@ def test_property_typed_error_or_exact_posterior():
     counts: dict[str, int] = {}
     check()
     print(f"property sweep: {counts}")  # shown with pytest -s
+    for key, n in counts.items():
+        record("property_sweep", key, n)
     assert counts.get("posterior", 0) > 0
 
 
@@ -1409,6 +1431,9 @@ def test_cli_sweep(tmp_path):
         [p for p in (tmp_path / "out").rglob("*") if p.name.startswith(".")] if (tmp_path / "out").exists() else []
     )
     print(f"CLI sweep: {sum(counts.values())} command lines: {counts}; leftover temporaries {len(leftovers)}")
+    for key, n in counts.items():
+        record("cli_sweep", key, n)
+    record("cli_sweep", "leftover temporaries", len(leftovers))
     assert counts["unexpected"] == counts["several lines"] == counts["other exit"] == 0
     assert leftovers == []
 
@@ -1576,3 +1601,165 @@ def test_cli_ply_refused_before_work(cli_inputs, tmp_path, capsys, extra, text):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and text in err[0]
     assert visible_files(tmp_path) == []
+
+
+def test_memory_guard_holds_without_an_output_size(monkeypatch):
+    """The MDE's own size goes through the guard too: a large MDE with no output size is refused, not allocated."""
+    monkeypatch.setenv("GPDEPTH3D_MAX_MEMORY_MB", "1")
+    with pytest.raises(ProblemTooLargeError, match="GPDEPTH3D_MAX_MEMORY_MB"):
+        check_output_shape(None, (300, 400))
+    mde, sparse = small_problem(h=200, w=200)
+    with pytest.raises(ProblemTooLargeError):
+        complete(mde, sparse, config=EXACT)
+    monkeypatch.delenv("GPDEPTH3D_MAX_MEMORY_MB")
+    with pytest.raises(ProblemTooLargeError, match="above the memory limit of 4.00 GiB"):
+        check_output_shape(None, (3000, 4000))  # the documented 4 GiB default; a 3000x4000 MDE needs more
+
+
+def test_view_of_a_posterior_with_a_corrupt_member_is_one_line(tmp_path, capsys):
+    """A posterior whose stored K fails its CRC: the viewer's intrinsics lookup leaves it to the loader's typed error."""
+    import zipfile
+    from dataclasses import replace
+
+    mde, sparse = small_problem()
+    post = replace(complete(mde, sparse, config=EXACT), K=np.array([[10.0, 0, 8], [0, 10, 6], [0, 0, 1]]))
+    path = post.save(tmp_path / "p.npz")[0]
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo("K.npy")
+        at = info.header_offset + 30 + len(info.filename) + len(info.extra) + info.compress_size - 4
+    data = bytearray(path.read_bytes())
+    data[at] ^= 0xFF
+    path.write_bytes(bytes(data))
+    assert cli.main(["view", "--posterior", str(path), "--duration", "0"]) == 1
+    err = capsys.readouterr().err
+    assert "DataFormatError" not in err and "unexpected" not in err and "Bad CRC-32" in err
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: PinholeCamera(1e5, 1e5, 5e4, 5e4, 100_000, 100_000).pixel_grid(), "pixel grid"),
+        (lambda: PinholeCamera(1e9, 1e9, 5e8, 5e8, 10**9, 10**9).pixel_grid(), "pixel grid"),
+    ],
+)
+def test_sizes_beyond_memory_are_typed(call, match):
+    with pytest.raises(ProblemTooLargeError, match=match):
+        call()
+
+
+def test_huge_resize_and_keyframe_id_are_typed():
+    from gpdepth3d.datasets.base import Frame
+    from gpdepth3d.mapping.frame_inputs import check_keyframe_id
+
+    frame = Frame("a", np.zeros((48, 64, 3), np.uint8), PinholeCamera(50, 50, 32, 24, 64, 48))
+    with pytest.raises(ProblemTooLargeError, match="more than 1e308 bytes"):
+        frame.resized(1e300)
+    with pytest.raises(InvalidInputError, match="int64"):
+        check_keyframe_id(2**70)
+    assert check_keyframe_id(2**62) == 2**62
+
+
+# ------------------------------------------------------------------------------------------ messages
+@pytest.mark.parametrize(
+    "argv, hint",
+    [
+        (["complete", "--mde", "x.npy", "--outptu", "o"], "(did you mean --output?)"),
+        (["map", "--images", "a", "--poses", "b", "--voxel-szie", "0.1"], "(did you mean --voxel-size?)"),
+        (["complete", "--mde", "a.npy", "--output", "o", "--gp.lenghtscale", "2"], "(did you mean --gp.lengthscale?)"),
+    ],
+)
+def test_cli_typos_get_a_suggestion(argv, hint, capsys):
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err
+    assert hint in err and len(err.strip().splitlines()) == 1
+
+
+def test_missing_extras_are_named_by_the_code_that_needs_them():
+    from gpdepth3d.extras import missing_dependency
+
+    def raised_in(path: str) -> BaseException:
+        scope: dict = {}
+        exec(compile("def f():\n    raise ModuleNotFoundError('No module', name='torch')\n", path, "exec"), scope)
+        try:
+            scope["f"]()
+        except ModuleNotFoundError as exc:
+            return exc
+
+    assert 'pip install "gpdepth3d[kissgp]"' in str(missing_dependency(raised_in("/x/gpdepth3d/gp/kissgp.py")))
+    assert 'pip install "gpdepth3d[mapping]"' in str(missing_dependency(raised_in("/x/gpdepth3d/mapping/fusion.py")))
+
+
+def test_batch_without_dask_names_the_option(monkeypatch):
+    from gpdepth3d.pipelines.batch import _import_dask
+
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(ImportError, match="--workers 0"):
+        _import_dask()
+
+
+def test_map_has_the_option_its_host_error_names():
+    import inspect
+
+    from gpdepth3d.cli.map import map_command
+    from gpdepth3d.viewer.app import check_host
+
+    with pytest.raises(InvalidInputError, match="--allow-remote"):
+        check_host("0.0.0.0")
+    assert "allow_remote" in inspect.signature(map_command).parameters
+
+
+def test_warnings_are_grouped_plain_and_name_the_image(capsys):
+    import warnings
+
+    from gpdepth3d.cli._warnings import quiet_third_party, report_warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet_third_party()  # numba's TBB notice stays out even under "always"
+        warnings.warn_explicit(
+            "\x1b[1mThe TBB threading layer requires TBB version 2021 update 6 or later\x1b[0m",
+            UserWarning,
+            "/site-packages/numba/np/ufunc/parallel.py",
+            1,
+            module="numba.np.ufunc.parallel",
+        )
+        for k in (3, 4, 19):
+            warnings.warn(f"frame {k}: only {k} usable points: \x1b[31mthe MDE\x1b[0m", UserWarning)
+    report_warnings(caught, {3: "img_a", 4: "img_b", 19: "img_c"})
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["gpdepth3d: warning: image img_a: only 3 usable points: the MDE (and 2 more like it)"]
+
+
+def test_eval_device_reaches_the_default_model():
+    """`eval --device cuda` is not ignored by the default GP: it runs there, or says the device is missing."""
+    torch = pytest.importorskip("torch")
+
+    from gpdepth3d.evaluation.evaluation import MethodSuite
+
+    mde, sparse = small_problem()
+    suite = MethodSuite(device="cuda")
+    if torch.cuda.is_available():
+        assert suite.run("gp_default", mde, sparse).mean.shape == mde.shape
+    else:
+        with pytest.raises(InvalidInputError, match="no CUDA GPU"):
+            suite.run("gp_default", mde, sparse)
+    assert MethodSuite().run("gp_default", mde, sparse).mean.shape == mde.shape
+
+
+def test_jpeg_with_random_scan_bytes_is_refused(tmp_path):
+    """OpenCV decodes random entropy-coded data without a word (a wrong image); the reader refuses it."""
+    rng = np.random.default_rng(0)
+    for progressive in (0, 1):
+        ok, enc = cv2.imencode(
+            ".jpg", rng.integers(0, 255, (120, 160, 3), dtype=np.uint8), [cv2.IMWRITE_JPEG_PROGRESSIVE, progressive]
+        )
+        (tmp_path / f"ok{progressive}.jpg").write_bytes(enc.tobytes())
+        assert gio.load_rgb(tmp_path / f"ok{progressive}.jpg").shape == (120, 160, 3)
+    data = bytearray((tmp_path / "ok0.jpg").read_bytes())  # baseline: OpenCV decodes its random scan
+    sos = data.find(b"\xff\xda")
+    start = sos + 2 + int.from_bytes(data[sos + 2 : sos + 4], "big")
+    data[start:-2] = rng.integers(0, 256, len(data) - 2 - start, dtype=np.uint8).tobytes()
+    (tmp_path / "random.jpg").write_bytes(bytes(data))
+    assert cv2.imread(str(tmp_path / "random.jpg")) is not None  # what the library used to return
+    with pytest.raises(DataFormatError, match="corrupt JPEG data"):
+        gio.load_rgb(tmp_path / "random.jpg")

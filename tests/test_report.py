@@ -31,15 +31,41 @@ def test_readme_holds_the_generated_mapping_table():
     assert _report().readme_mapping_table() in (ROOT / "README.md").read_text(encoding="utf-8")
 
 
+def test_readme_numbers_are_the_generated_blocks():
+    """`python bench/report.py` rewrites the README's tables; the README holds what it would write."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert _report().render_readme(readme) == readme, "README.md is out of date: run python bench/report.py"
+
+
+def test_reliability_counts_are_generated_from_the_sweeps_run():
+    """docs/reliability.md's sweep table is what `bench/report.py` writes from bench/results/reliability.json."""
+    report = _report()
+    page = (ROOT / "docs" / "reliability.md").read_text(encoding="utf-8")
+    assert report.render_readme(page, blocks={"reliability": report.reliability_table}) == page
+    d = json.loads((ROOT / "bench" / "results" / "reliability.json").read_text(encoding="utf-8"))
+    assert f"| {sum(d['sweeps']['api_cases'].values())} | typed errors:" in page
+
+
+def test_readme_mapping_numbers_come_from_its_own_commands_on_this_version():
+    import gpdepth3d
+
+    d = json.loads((ROOT / "bench" / "results" / "map_recipes.json").read_text(encoding="utf-8"))
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    ran = [s["command"] for s in d["sequences"].values() if s["command"] in readme]
+    assert ran and all(line in readme for line in re.findall(r"^gpdepth3d map [^\n]*", readme, flags=re.M))
+    assert set(re.findall(r"^gpdepth3d map [^\n]*", readme, flags=re.M)) <= set(ran)
+    assert d.get("version") == gpdepth3d.__version__, "bench/results/map_recipes.json ran another version"
+
+
 def test_mapping_tables_follow_the_json(tmp_path):
     """The README's mapping table and the selection section are made from their results files."""
     report = _report()
     results = tmp_path / "results"
     results.mkdir()
-    d = json.loads((ROOT / "bench" / "results" / "mapping_sequences.json").read_text(encoding="utf-8"))
-    d["sequences"]["hololens"]["fscore"] = 0.987
-    (results / "mapping_sequences.json").write_text(json.dumps(d), encoding="utf-8")
-    assert "| HoloLens walk (94 frames) | **0.987** |" in report.readme_mapping_table(results)
+    d = json.loads((ROOT / "bench" / "results" / "map_recipes.json").read_text(encoding="utf-8"))
+    d["sequences"]["hololens"]["fscore_map"] = 0.987
+    (results / "map_recipes.json").write_text(json.dumps(d), encoding="utf-8")
+    assert "| **0.987** |" in report.readme_mapping_table(results)
     selection = {
         "choose_on": "hololens",
         "fields": {

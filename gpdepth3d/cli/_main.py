@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import sys
 import warnings
 
 import tyro
 
-from ..errors import GPDepthError
+from ..errors import GPDepthError, did_you_mean
 from ..extras import missing_dependency
+from ._warnings import _one_line_warning, quiet_third_party
 
 
 def _commands() -> dict:
@@ -51,6 +51,34 @@ def _flags(argument) -> str:
     return "/".join(names) if names else str(getattr(lowered, "metavar", None) or "an argument")
 
 
+def known_flags(command: str | None) -> list[str]:
+    """Every option of a subcommand as spelt on the command line (``--output``, ``--gp.fit``), for suggestions."""
+    import dataclasses
+    import inspect
+
+    from ..gp.engine import EngineConfig
+    from ._options import PRESETS
+
+    function = _commands().get(command or "")
+    if function is None:
+        return [f"{name}" for name in _commands()]
+    flags = []
+    for name in inspect.signature(function).parameters:
+        if name == "gp":
+            flags.append("--preset")
+            for f in dataclasses.fields(PRESETS["default"]):
+                value = getattr(PRESETS["default"], f.name)
+                inner = (
+                    [f"{f.name}.{g.name}" for g in dataclasses.fields(value)] if dataclasses.is_dataclass(value) else []
+                )
+                flags += [f"--gp.{n.replace('_', '-')}" for n in [f.name, *inner]]
+        elif name == "engine":
+            flags += [f"--engine.{f.name.replace('_', '-')}" for f in dataclasses.fields(EngineConfig)]
+        else:
+            flags.append("--" + name.replace("_", "-"))
+    return flags
+
+
 def describe_parse_error(event, command: str | None = None) -> str:
     """One line for a tyro parse-failure event (its structured fields, no rendered text), naming the option.
 
@@ -66,8 +94,10 @@ def describe_parse_error(event, command: str | None = None) -> str:
         text = f"{prog}: missing {', '.join(_flags(a.arg) for a in event.missing_arguments)}"
         if event.unrecognized_tokens:
             text += f"; unrecognised {' '.join(event.unrecognized_tokens)}"
+            text += did_you_mean(event.unrecognized_tokens[0].split("=")[0], known_flags(command))
     elif kind == "UnrecognizedArgs":
         text = f"{prog}: unrecognised {' '.join(event.tokens)}"
+        text += did_you_mean(event.tokens[0].split("=")[0], known_flags(command)) if event.tokens else ""
     elif kind == "InvalidChoice":
         text = f"{_flags(event.argument)}: expected one of {', '.join(event.choices)}, got {event.value}"
     elif kind == "BadValue":
@@ -111,20 +141,6 @@ def _generic_parse_error(command: str | None) -> str:
     return f"{where}: invalid command line (see {where} --help)"
 
 
-_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
-
-
-def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    text = " ".join(_ANSI.sub("", str(message)).split())  # third-party colour codes and line breaks out
-    print(f"gpdepth3d: warning: {text}", file=file or sys.stderr)
-
-
-QUIET_WARNINGS: tuple[tuple[str, str], ...] = (
-    ("numba", r"(?s).*TBB threading layer"),  # numba falls back to another threading layer by itself
-)
-"""(module, message regex) of third-party warnings the command line does not show: nothing for a user to do."""
-
-
 COMPILE_NOTICE = "compiling kernels (once, ~1 min) ..."
 """Printed before numba first compiles one of the fast engine's kernels (a cold cache), never on warm runs."""
 
@@ -161,8 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     show_warning = warnings.showwarning
     warnings.showwarning = _one_line_warning
     filters = list(warnings.filters)
-    for module, message in QUIET_WARNINGS:
-        warnings.filterwarnings("ignore", message=message, module=module)
+    quiet_third_party()
     try:
         from ._options import normalize_argv
 

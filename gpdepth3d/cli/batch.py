@@ -5,7 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from ..pipelines.batch import REPORT_NAME, FramesFailedError, HoldoutInputs, check_address, dataset_frames, run_batch
+from ..pipelines.batch import (
+    REPORT_NAME,
+    SETTINGS_NAME,
+    FramesFailedError,
+    HoldoutInputs,
+    check_address,
+    dataset_frames,
+    run_batch,
+)
 from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import check_output_folder
@@ -100,7 +108,12 @@ def batch_command(
     if report.aggregate:
         print("  (units: rmse, mae mm; irmse, imae 1/km; rel, delta1, coverage_2sigma fractions; nll nats per pixel)")
     each = "<frame>.npz and its previews" if preview else "<frame>.npz"
-    print(f"wrote {report.n_computed} frame(s) ({each}) and {Path(output) / REPORT_NAME} (in {Path(output).resolve()})")
+    settings = Path(output) / SETTINGS_NAME
+    also = f", {settings}" if settings.is_file() else ""
+    print(
+        f"wrote {report.n_computed} frame(s) ({each}){also} and {Path(output) / REPORT_NAME} "
+        f"(in {Path(output).resolve()})"
+    )
     if report.failures:
         raise FramesFailedError(
             f"{len(report.failures)} of {report.n_frames} frames failed (first: {report.failures[0].frame_id}: "

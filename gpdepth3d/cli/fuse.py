@@ -5,6 +5,7 @@ A user's own sequence (any layout and pose format) is mapped by ``gpdepth3d map`
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -12,6 +13,7 @@ from ..mapping.mapper_config import MAPPER_GP
 from ..mapping.tsdf.fusion import FusionConfig
 from ..pipelines.fuse_run import run_fuse
 from ._options import GPPreset
+from ._warnings import quiet_third_party, report_warnings
 
 
 def fuse_command(
@@ -61,9 +63,13 @@ def fuse_command(
         The metrics dictionary written to ``metrics.json``.
     """
     fusion = FusionConfig(voxel_size=voxel_size, truncation=truncation, depth_max=depth_max, sigma_ref=sigma_ref)
-    outcome = run_fuse(data, output, mde=mde, models_dir=models_dir, gp=gp, frames=frames, fusion=fusion,
-                       working_scale=working_scale, rgb_focal=rgb_focal, mesh_format=mesh_format, threshold=threshold,
-                       metric_samples=metric_samples)  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:  # one line per kind of warning, with its count
+        warnings.simplefilter("always")
+        quiet_third_party()
+        outcome = run_fuse(data, output, mde=mde, models_dir=models_dir, gp=gp, frames=frames, fusion=fusion,
+                           working_scale=working_scale, rgb_focal=rgb_focal, mesh_format=mesh_format,
+                           threshold=threshold, metric_samples=metric_samples)  # fmt: skip
+    report_warnings(caught)
     for line in outcome.report(threshold):
         print(line)
     return outcome.summary

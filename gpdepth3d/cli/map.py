@@ -44,6 +44,8 @@ def map_command(
     host: str = "127.0.0.1",
     port: int = 8080,
     view_duration: Optional[float] = None,
+    allow_remote: bool = False,
+    force: bool = False,
 ) -> dict[str, Any]:
     """Map an image sequence, posed or not: mesh, coloured cloud with per-point sigma, reloadable map, metrics.
 
@@ -91,94 +93,93 @@ def map_command(
         host: Interface of the viewer (127.0.0.1: this machine only).
         port: Port of the viewer (the next free one when taken).
         view_duration: With --view, keep the page open this many seconds after mapping (default: until Ctrl-C).
+        allow_remote: With --view, allow a --host other than this machine (the map is then served to every
+            machine that can reach this one).
+        force: Map on when most frames fail the pose check (their feature tracks do not triangulate with
+            their poses: inverted poses, w-first quaternions, another frame's poses); by default map stops
+            there with one line naming the likely cause. A camera that only rotates fails it too.
 
     Returns:
         The summary written to ``metrics.json``.
     """
-    from dataclasses import replace
+    from ..pipelines.mapping_run import map_files, open_map_inputs
+    from ._warnings import quiet_third_party, report_warnings
 
-    from ..pipelines.mapping_run import map_sequence, map_summary, open_posed_sequence, write_map
-    from ..io import check_output_folder
-    from ..mapping.mapper_config import MapperConfig
-    from ..mde import load_frontend
-
-    for name, value in (("--voxel-size", voxel_size), ("--depth-max", depth_max)):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-            raise InvalidInputError(name, "a distance > 0 (metres)", value)
     if view_duration is not None and not (math.isfinite(view_duration) and view_duration >= 0):
         raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
-    check_output_folder(Path(output), "--output")
-    base = MapperConfig()
-    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
     if poses is None:
         if view:
             raise InvalidInputError("--view", "--poses (the live view draws the camera path first)", "no --poses")
         return _map_unposed(locals())
-    inputs = open_posed_sequence(
-        str(images),
+    inputs = open_map_inputs(
+        images,
         poses,
         intrinsics,
+        output=output,
         pose_format=pose_format,
         association=association,
         max_time_difference=max_time_difference,
-        depth=None if depth is None else str(depth),
+        depth=depth,
         depth_scale=depth_scale,
         depth_invalid=depth_invalid,
         depth_intrinsics=depth_intrinsics,
+        points=points,
     )
-    if points is not None:
-        from ..mapping.points.given_points import read_given_points
-        from ..pipelines.sfm import points_for_frames
-
-        inputs = points_for_frames(inputs, read_given_points(points))
     seq = inputs.sequence
     print(
         f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
         + (", with depth" if seq.depth_files is not None else ""),
         flush=True,
     )
-    live = None
-    if view:
-        from ..viewer.live_map import LiveMapViewer
-
-        live = LiveMapViewer(seq.camera, seq.poses, first_rgb=seq.frame(0).rgb, host=host, port=port)
-        print(f"viewer running at {live.url} (the map appears as it grows)", flush=True)
+    live = _start_viewer(seq, host, port, allow_remote) if view else None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        quiet_third_party()
         try:
-            network = load_frontend(mde, models_dir=models_dir)
-            result = map_sequence(
+            result, summary, written = map_files(
                 inputs,
-                mde=network,
-                config=config,
+                output,
+                mde=mde,
+                models_dir=models_dir,
                 working_width=working_width,
                 stride=stride,
-                max_frames=frames,
+                frames=frames,
+                voxel_size=voxel_size,
+                depth_max=depth_max,
                 threshold=threshold,
                 metric_samples=metric_samples,
+                mesh_format=mesh_format,
                 progress=sys.stderr.isatty(),
                 on_frame=None if live is None else live.update,
+                force=force,
             )
         except BaseException:
             if live is not None:
                 live.stop()
             raise
-    _report_warnings(caught)
-    summary = map_summary(result)
-    summary["inputs"] = {
-        "images": str(images),
-        "poses": str(poses),
-        "points": None if points is None else str(points),
-        "pose_format": inputs.pose_format,
-        "intrinsics": intrinsics,
-        "depth": None if depth is None else str(depth),
-        "depth_scale": depth_scale,
-        "mde": str(mde),
-        "stride": stride,
-        "frames": frames,
-        "working_width": working_width,
-    }
-    written = write_map(result, output, mesh_format=mesh_format, summary=summary)
+    report_warnings(caught, dict(enumerate(seq.names)))
+    _print_result(result, written, output, threshold)
+    if live is not None:
+        live.finish(result)
+        print(f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})")
+        live.wait(view_duration)
+        live.stop()
+    return summary
+
+
+def _start_viewer(seq, host: str, port: int, allow_remote: bool):
+    """The live map viewer of ``--view``: the cameras now, the map as it grows."""
+    from ..viewer.live_map import LiveMapViewer
+
+    live = LiveMapViewer(
+        seq.camera, seq.poses, first_rgb=seq.frame(0).rgb, host=host, port=port, allow_remote=allow_remote
+    )
+    print(f"viewer running at {live.url} (the map appears as it grows)", flush=True)
+    return live
+
+
+def _print_result(result, written: list, output: Path, threshold: float) -> None:
+    """The frames skipped, fused without points and mapped, the files written and the F-score line."""
     for message in result.frame_errors:
         print(f"skipped {message}")
     if result.frames_without_points:
@@ -195,47 +196,47 @@ def map_command(
         print(f"wrote {path}")
     if result.metrics is not None:
         print(_fscore_line(result.metrics, threshold))
-    if live is not None:
-        live.finish(result)
-        print(
-            f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})",
-            flush=True,
-        )
-        live.wait(view_duration)
-        live.stop()
-    return summary
 
 
 def _map_unposed(args: dict) -> dict[str, Any]:
     """``map`` without --poses: SfM (or the --points COLMAP model), metric scale from the network, one map per piece."""
     import tempfile
 
+    from dataclasses import replace
+
+    from ..io import check_output_folder
+    from ..mapping.mapper_config import MapperConfig
     from ..mde import load_frontend
     from ..pipelines.sfm import map_unposed, pieces_summary, write_pieces
+    from ._warnings import quiet_third_party, report_warnings
 
     a = args
+    check_output_folder(Path(a["output"]), "--output")
+    base = MapperConfig()
+    config = replace(base, fusion=replace(base.fusion, voxel_size=a["voxel_size"], depth_max=a["depth_max"]))
     depth_kw = {"depth_scale": a["depth_scale"], "depth_invalid": a["depth_invalid"]}
     depth_kw["depth_intrinsics"] = a["depth_intrinsics"]
     map_kw = {"working_width": a["working_width"], "threshold": a["threshold"], "metric_samples": a["metric_samples"]}
     print(f"map: no poses: {'the COLMAP model ' + str(a['points']) if a['points'] else 'pycolmap SfM on the images'}")
     with tempfile.TemporaryDirectory(prefix="gpdepth3d-sfm-") as tmp, warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
+        quiet_third_party()
         result = map_unposed(
             str(a["images"]),
             a["intrinsics"],
-            mde=load_frontend(a["mde"], models_dir=a["models_dir"]),
+            mde=load_frontend(a["mde"], models_dir=a["models_dir"], argument="--mde"),
             points=a["points"],
             workdir=tmp,
             stride=a["stride"],
             max_frames=a["frames"],
-            config=a["config"],
+            config=config,
             depth=None if a["depth"] is None else str(a["depth"]),
             depth_kw=depth_kw,
             map_kw=map_kw,
         )
         inputs = {k: None if a[k] is None else str(a[k]) for k in ("images", "points", "intrinsics", "depth", "mde")}
         written = write_pieces(result, a["output"], summary={"inputs": inputs}, mesh_format=a["mesh_format"])
-    _report_warnings(caught)
+    report_warnings(caught)
     summary = pieces_summary(result)
     print(f"registered {result.registered} of {result.frames} images in {len(result.pieces)} piece(s)")
     for k, piece in enumerate(result.pieces):
@@ -261,18 +262,3 @@ def _fscore_line(metrics: dict, threshold: float) -> str:
         )
 
     return f"F-score at {threshold * 100:g} cm against the sensor depth: map {f(metrics['map'])}; MDE alone {f(metrics['mde'])}"
-
-
-def _report_warnings(caught: list) -> None:
-    """Prints each distinct warning once, with how often it came (per-frame warnings would flood the terminal)."""
-    import re
-
-    counts: dict[str, int] = {}
-    first: dict[str, str] = {}
-    for w in caught:
-        key = f"{w.category.__name__}:{re.sub(r'[-+]?[0-9][0-9.,]*', '#', str(w.message))}"
-        counts[key] = counts.get(key, 0) + 1
-        first.setdefault(key, str(w.message))
-    for key, n in counts.items():
-        more = f" (and {n - 1} more like it)" if n > 1 else ""
-        print(f"gpdepth3d: warning: {first[key]}{more}", file=sys.stderr)

@@ -21,13 +21,17 @@ def check_output_shape(output_shape, input_shape: tuple[int, int]) -> tuple[int,
     """Validates ``output_shape``: None (the input shape) or two integers (Ho, Wo) >= 1.
 
     Each side may be at most `MAX_UPSAMPLING` times the input's and the output at most
-    `MAX_OUTPUT_PIXELS` pixels.
+    `MAX_OUTPUT_PIXELS` pixels; every size, the default one included, goes through the memory
+    guard (`gpdepth3d.limits.check_completion_size`).
 
     Raises:
         ShapeError: for anything else (a string, NaN, floats, 1 or 3 sizes, zero, too large).
+        ProblemTooLargeError: a completion beyond `gpdepth3d.limits.memory_limit`.
     """
-    if output_shape is None:
-        return (int(input_shape[0]), int(input_shape[1]))
+    if output_shape is None:  # the MDE's own size: still within the memory limit
+        h, w = int(input_shape[0]), int(input_shape[1])
+        check_completion_size((h, w), (h, w))
+        return (h, w)
     expected = "None or (Ho, Wo): two integers >= 1"
     if isinstance(output_shape, (str, bytes)) or not hasattr(output_shape, "__len__") or len(output_shape) != 2:
         raise ShapeError("output_shape", expected, describe(output_shape))

@@ -207,7 +207,10 @@ class MethodSuite:
         if name == "ip_basic":
             return MethodOutput(ip_basic(sparse, shape), None, time.perf_counter() - t0)
         if name in ("gp_default", "gp_default_fit"):  # the library's default model, warm-started along the sequence
-            completer = self._completers.setdefault(name, DepthCompleter(DepthGPConfig(fit=name == "gp_default_fit")))
+            if name not in self._completers:  # the device (--device cuda) reaches the default model too
+                engine = EngineConfig() if self.device is None else EngineConfig(device=self.device)
+                self._completers[name] = DepthCompleter(DepthGPConfig(fit=name == "gp_default_fit"), engine=engine)
+            completer = self._completers[name]
             post = completer.complete(mde, sparse)
             return MethodOutput(post.mean, post.variance, time.perf_counter() - t0, f"{post.n_rejected} rejected")
         if name == "gp_residual":

@@ -105,3 +105,47 @@ def _check_jpeg_complete(path: Path) -> None:
         raise DataFormatError(path, "not a JPEG file (no FFD8 start marker)")
     if not tail.endswith(b"\xff\xd9"):
         raise DataFormatError(path, f"truncated JPEG ({size} bytes, no FFD9 end marker)")
+    bad = _jpeg_marker_problem(path.read_bytes())
+    if bad is not None:
+        raise DataFormatError(path, f"corrupt JPEG data ({bad}): OpenCV would decode it silently into a wrong image")
+
+
+def _jpeg_marker_problem(data: bytes) -> str | None:
+    """The first marker no JPEG may hold (a reserved code, a segment past the end), or None.
+
+    The file is walked segment by segment; in the entropy-coded data after each start of scan an
+    FF byte is always followed by 00 (stuffing) or a restart marker D0-D7, else it starts the next
+    marker. Random bytes in a scan soon give an FF followed by a reserved code (02-BF).
+    """
+    at, n = 2, len(data)
+    while at < n:
+        if data[at] != 0xFF:
+            return f"byte {at}: expected a marker"
+        while at + 1 < n and data[at + 1] == 0xFF:  # fill bytes before a marker
+            at += 1
+        if at + 1 >= n:
+            return None
+        code = data[at + 1]
+        if code == 0xD9:  # end of image
+            return None
+        if 0x02 <= code <= 0xBF:
+            return f"byte {at}: reserved marker FF{code:02X}"
+        if 0xD0 <= code <= 0xD7 or code == 0x01:  # no length
+            at += 2
+            continue
+        if at + 4 > n:
+            return f"byte {at}: marker FF{code:02X} cut short"
+        end = at + 2 + int.from_bytes(data[at + 2 : at + 4], "big")
+        if end > n:
+            return f"byte {at}: segment FF{code:02X} runs past the end of the file"
+        at = end
+        if code == 0xDA:  # start of scan: skip its entropy-coded data to the next marker
+            while True:
+                at = data.find(b"\xff", at)
+                if at < 0 or at + 1 >= n:
+                    return None
+                if data[at + 1] == 0x00 or 0xD0 <= data[at + 1] <= 0xD7:
+                    at += 2
+                    continue
+                break
+    return None

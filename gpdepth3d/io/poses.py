@@ -539,7 +539,8 @@ def read_colmap_model(path: str | Path, *, ignore_distortion: bool = False) -> C
         `ColmapModel` with ``T_world_camera`` poses and the 3-D points as map points.
 
     Raises:
-        DataFormatError: if the folder is missing or pycolmap cannot read it.
+        DataFormatError: if the folder is missing or pycolmap cannot read it, or an image's
+            quaternion is not of unit length within `QUATERNION_TOLERANCE` (naming the image).
         CalibrationError: for a camera model with distortion (without ``ignore_distortion``).
     """
     import pycolmap
@@ -547,6 +548,7 @@ def read_colmap_model(path: str | Path, *, ignore_distortion: bool = False) -> C
     path = Path(path)
     if not path.is_dir():
         raise DataFormatError(path, "COLMAP model folder not found")
+    _check_colmap_quaternions(path)  # pycolmap turns a zero quaternion into the identity rotation
     try:
         rec = pycolmap.Reconstruction(str(path))
     except Exception as exc:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError on bad models
@@ -582,6 +584,51 @@ def read_colmap_model(path: str | Path, *, ignore_distortion: bool = False) -> C
         errors=np.array([p.error for p in pts], dtype=np.float64),
         track_lengths=np.array([p.track.length() for p in pts], dtype=np.int64),
     )
+
+
+def _colmap_quaternions(path: Path) -> list[tuple[str, np.ndarray]]:
+    """(image name, its quaternion qw qx qy qz as stored) of a model's ``images.txt`` or ``images.bin``."""
+    import struct
+
+    text, binary = path / "images.txt", path / "images.bin"
+    found = []
+    if text.is_file():
+        lines = [ln for ln in text.read_text(errors="replace").splitlines() if ln.strip() and not ln.startswith("#")]
+        for line in lines[::2]:  # each image: its pose line, then its points line
+            fields = line.split()
+            if len(fields) >= 10:
+                try:
+                    found.append((fields[9], np.array(fields[1:5], dtype=np.float64)))
+                except ValueError:
+                    pass  # pycolmap names what it cannot parse
+        return found
+    if binary.is_file():
+        data = binary.read_bytes()
+        try:
+            (n,), at = struct.unpack_from("<Q", data, 0), 8
+            for _ in range(n):
+                q = np.array(struct.unpack_from("<4d", data, at + 4))
+                at += 4 + 56 + 4
+                end = data.index(b"\0", at)
+                name = data[at:end].decode("utf-8", "replace")
+                (points,) = struct.unpack_from("<Q", data, end + 1)
+                at = end + 1 + 8 + 24 * points
+                found.append((name, q))
+        except (struct.error, ValueError):
+            pass  # a cut file: pycolmap names it
+    return found
+
+
+def _check_colmap_quaternions(path: Path) -> None:
+    """Refuses a model image whose stored quaternion is not of unit length (all zeros: no rotation at all)."""
+    for name, q in _colmap_quaternions(path):
+        norm = float(np.linalg.norm(q))
+        if not np.isfinite(norm) or abs(norm - 1.0) > QUATERNION_TOLERANCE:
+            raise DataFormatError(
+                path,
+                f"image {name}: quaternion {' '.join(f'{x:g}' for x in q)} of norm {norm:.6g}, expected unit "
+                f"length (within {QUATERNION_TOLERANCE}): its rotation is unknown",
+            )
 
 
 # ---------------------------------------------------------------------- any format, and images

@@ -24,8 +24,10 @@ def check_keyframe_id(value: Any) -> int:
     """A keyframe id as an int; a bool, a string, NaN or a fraction raise `InvalidInputError`."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise InvalidInputError("keyframe_id", "an integer", value)
-    if not np.isfinite(value) or int(value) != value:
-        raise InvalidInputError("keyframe_id", "an integer", value)
+    if isinstance(value, int) and not -(2**63) <= value < 2**63:  # beyond int64 (numpy cannot hold it)
+        raise InvalidInputError("keyframe_id", "an integer within int64 (|id| < 2**63)", value)
+    if not np.isfinite(value) or int(value) != value or not -(2**63) <= int(value) < 2**63:
+        raise InvalidInputError("keyframe_id", "an integer within int64 (|id| < 2**63)", value)
     return int(value)
 
 

@@ -45,6 +45,8 @@ class FrameResult:
         fallback_weight: Fusion weight of its pixels no point informs (the MDE alone;
             `FusionConfig.fallback_for`): the configured fallback for a frame without points, near 0
             for one with many; 1 without refinement (uniform weights).
+        pose_in_doubt: Its pose failed the pose check: its feature tracks do not triangulate with
+            it, or its map points look inverted under it (`PendingFrame.pose_in_doubt`).
     """
 
     depth: np.ndarray
@@ -62,3 +64,4 @@ class FrameResult:
     pose_check: PoseCheck | None = None
     map_scale: float = 1.0
     fallback_weight: float = 0.0
+    pose_in_doubt: bool = False

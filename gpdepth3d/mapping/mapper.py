@@ -567,6 +567,7 @@ def _frame_result(
         pose_check=entry.pose_check,
         map_scale=entry.scale,
         fallback_weight=fallback,
+        pose_in_doubt=entry.pose_in_doubt,
     )
 
 

@@ -17,7 +17,7 @@ from .base import check_rgb as check_rgb
 from .base import default_models_dir as default_models_dir
 from .onnx import ONNXDepthModel as ONNXDepthModel
 from .onnx import RTMonoDepthONNX as RTMonoDepthONNX
-from ..errors import DataFormatError, InvalidInputError
+from ..errors import DataFormatError, InvalidInputError, did_you_mean
 
 FRONTENDS: dict[str, str] = {
     "fastdepth": "FastDepth (NYU, indoor), int8 TFLite fast_depth_224.tflite: metres",
@@ -35,7 +35,11 @@ FRONTEND_FILES: dict[str, str] = {
 
 
 def load_frontend(
-    name_or_path: "str | Path", *, models_dir: "str | Path | None" = None, num_threads: "int | None" = None
+    name_or_path: "str | Path",
+    *,
+    models_dir: "str | Path | None" = None,
+    num_threads: "int | None" = None,
+    argument: str = "name_or_path",
 ):
     """A monocular front-end by preset name or model file.
 
@@ -47,6 +51,7 @@ def load_frontend(
             metres (build `ONNXDepthModel` yourself for disparity outputs).
         models_dir: Folder of the named models (default `default_models_dir`).
         num_threads: CPU threads of the runtime (None = its default).
+        argument: The name errors give the front-end by (``"--mde"`` on the command line).
 
     Returns:
         A callable ``rgb (H, W, 3) uint8 -> depth (H, W)`` (metres; relative for "rtmonodepth-mono").
@@ -68,7 +73,9 @@ def load_frontend(
         path = Path(key)
         if path.suffix.lower() not in (".tflite", ".onnx"):
             raise InvalidInputError(
-                "name_or_path", f"a front-end name from {sorted(FRONTENDS)} or a .tflite/.onnx file", str(name_or_path)
+                argument,
+                f"a front-end name from {sorted(FRONTENDS)} or a .tflite/.onnx file",
+                f"{name_or_path}{did_you_mean(key.lower(), sorted(FRONTENDS))}",
             )
         if not path.is_file():
             raise DataFormatError(path, "model file not found")

@@ -58,6 +58,7 @@ from typing import Any, Callable, Iterator, Literal, Optional, Sequence
 import numpy as np
 
 from ..errors import ConnectionFailedError, GPDepthError, InvalidInputError, OutputError, describe
+from ..limits import check_memory
 from ..gp.engine import EngineConfig
 from ..gp.model import DepthGPConfig
 from ..io import clean_output_folder, to_jsonable, write_json, write_problem
@@ -110,6 +111,11 @@ def check_frame_id(frame_id: str) -> str:
     return frame_id
 
 
+SPEC_BYTES = 2048
+"""Memory one frame of a batch holds while the batch runs (its spec, its id, its row of the report), bytes:
+a ``repeat`` beyond the memory limit is refused before any frame is made."""
+
+
 def dataset_frames(
     root: str | Path, kind: str | None = None, *, repeat: int = 1, limit: int | None = None
 ) -> list[FrameSpec]:
@@ -125,22 +131,31 @@ def dataset_frames(
 
     Returns:
         The specs, in dataset order (repeats of the whole dataset one after the other).
+
+    Raises:
+        InvalidInputError: a bad ``repeat`` or ``limit``. ProblemTooLargeError: more frames than the
+            memory limit holds (`SPEC_BYTES` each), before any is made.
     """
     from ..datasets import detect_format, open_dataset
 
-    if int(repeat) != repeat or repeat < 1:
-        raise InvalidInputError("repeat", "an integer >= 1", repeat)
-    if limit is not None and (int(limit) != limit or limit < 0):
-        raise InvalidInputError("limit", "None or an integer >= 0", limit)
+    for name, value, low in (("repeat", repeat, 1), ("limit", limit, 0)):
+        number = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+        ok = number and math.isfinite(value) and int(value) == value and value >= low
+        if not (ok or (name == "limit" and value is None)):
+            raise InvalidInputError(name, f"an integer >= {low}" + (" (or None)" if name == "limit" else ""), value)
     kind = kind or detect_format(root)
     reader = open_dataset(root, kind)
     root_s = str(Path(root).resolve())
+    total = int(repeat) * len(reader.names) if limit is None else min(int(limit), int(repeat) * len(reader.names))
+    check_memory(f"a batch of {total} frames (--repeat {repeat})", total * SPEC_BYTES)
     specs = []
     for r in range(int(repeat)):
         for name in reader.names:
+            if len(specs) == total:  # a limit stops the repeats: only the frames kept are made
+                return specs
             frame_id = name if r == 0 else f"{name}-r{r:04d}"
             specs.append(FrameSpec(check_frame_id(frame_id), root_s, name, kind))
-    return specs if limit is None else specs[: int(limit)]
+    return specs
 
 
 def _check_frames(frames: Sequence[FrameSpec]) -> list[FrameSpec]:
@@ -415,14 +430,21 @@ def process_frame(
         posterior = _completer(config, engine).complete(
             inputs.mde, inputs.sparse, variance=variance or task == "eval", frame=spec.frame_id
         )
-        if previews:  # before the posterior: the frame's last file marks it done
-            write_previews(
-                Path(output_dir) / spec.frame_id,
-                posterior.mean,
-                np.sqrt(np.maximum(posterior.variance, 0)),
-                mde=inputs.mde if np.shape(inputs.mde) == posterior.mean.shape else None,
-            )
-        posterior.save(paths["posterior"], png=png)
+        written = []
+        try:
+            if previews:  # before the posterior: the frame's last file marks it done
+                written = write_previews(
+                    Path(output_dir) / spec.frame_id,
+                    posterior.mean,
+                    np.sqrt(np.maximum(posterior.variance, 0)),
+                    mde=inputs.mde if np.shape(inputs.mde) == posterior.mean.shape else None,
+                )
+            posterior.save(paths["posterior"], png=png)
+        except BaseException:  # a frame without its posterior keeps none of its files (a full disk)
+            for path in written:
+                with contextlib.suppress(OSError):
+                    Path(path).unlink()
+            raise
         metrics = None
         if task == "eval":
             metrics = evaluate_posterior(posterior.mean, posterior.variance, inputs.gt)
@@ -574,14 +596,30 @@ def _exclusive(output_dir: Path) -> Iterator[None]:
     with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if os.fstat(fh.fileno()).st_ino != os.stat(output_dir / LOCK_NAME).st_ino:
+                raise OSError("the lock file was removed by the run that held it")  # that run was just ending
         except OSError:
             raise InvalidInputError(
                 "output_dir", "a folder no other batch run is writing to", f"{output_dir} is locked by another run"
             ) from None
         try:
             yield
-        finally:
+        finally:  # no lock file stays behind: it is removed while still held
+            with contextlib.suppress(OSError):
+                os.unlink(output_dir / LOCK_NAME)
             fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@contextlib.contextmanager
+def _settings_kept_with_outputs(output_dir: Path, frames, task: str, png: bool, previews: bool) -> Iterator[None]:
+    """Removes a ``batch_settings.json`` this run wrote when it ends (or fails) without one frame's outputs."""
+    fresh = not (output_dir / SETTINGS_NAME).exists()
+    try:
+        yield
+    finally:
+        if fresh and not any(frame_done(output_dir, f.frame_id, task, png=png, previews=previews) for f in frames):
+            with contextlib.suppress(OSError):
+                (output_dir / SETTINGS_NAME).unlink()
 
 
 def fingerprint(obj: Any) -> str:
@@ -642,7 +680,7 @@ def _import_dask():
     except ImportError:
         raise ImportError(
             "gpdepth3d batch runs on Dask: install it with `pip install 'gpdepth3d[batch]'` "
-            "(or `pip install distributed`), or pass workers=0 to run in this process"
+            "(or `pip install distributed`), or run it in this process: workers=0 (on the command line: --workers 0)"
         ) from None
     return distributed
 
@@ -806,7 +844,7 @@ def run_batch(
         raise InvalidInputError("loader", "a callable loader(spec) -> FrameInputs", type(loader).__name__)
     output_dir = make_output_dir(output_dir)
 
-    with _exclusive(output_dir):
+    with _exclusive(output_dir), _settings_kept_with_outputs(output_dir, frames, task, png, previews):
         check_settings(output_dir, config, loader, engine)
         removed = remove_stale_temp_files(output_dir)
         previews = bool(previews) and (variance or task == "eval")

@@ -15,7 +15,7 @@ one set (``gpdepth3d map``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Literal
 
@@ -24,7 +24,8 @@ import numpy as np
 from ..camera import PinholeCamera
 from ..datasets.base import Frame
 from ..datasets.posed import IMAGE_SUFFIXES, FileSpec, PosedSequence, list_files
-from ..errors import EmptyInputError, GPDepthError, InvalidInputError
+from ..errors import CalibrationError, EmptyInputError, GPDepthError, InvalidInputError
+from ..mapping.points.given_points import GivenPoints, PointSigmaRule
 from ..mapping.cloud import ColoredCloud
 from ..mapping.tsdf.fusion import TSDFFusion, save_mesh
 from ..io.poses import POSE_FORMATS, associate_poses, detect_pose_format, read_colmap_model, read_trajectory
@@ -173,6 +174,7 @@ def fuse_sequence(
         evaluate=False,
         progress=progress,
         on_frame=evaluate,
+        force=True,  # the dataset's own (ground-truth) poses
     )
     mapper = mapped.mapper
     volumes = {
@@ -236,12 +238,14 @@ class PosedInputs:
             metres), or None when the poses are not a COLMAP model.
         map_points_sigma: Per frame, the depth sigma of its map points ((K,) metres), or None (the
             GP's measurement sigma).
+        given: The files and options it was opened from, as given (recorded in ``metrics.json``).
     """
 
     sequence: PosedSequence
     pose_format: str
     map_points: list | None = None
     map_points_sigma: list | None = None
+    given: dict = field(default_factory=dict)
 
 
 def open_posed_sequence(
@@ -391,6 +395,7 @@ def map_sequence(
     metric_samples: int = 50_000,
     progress: bool = False,
     on_frame: FrameCallback | None = None,
+    force: bool = False,
 ) -> MapResult:
     """Maps a posed sequence with the `Mapper` and, when it has depth, scores the mesh against it.
 
@@ -411,6 +416,8 @@ def map_sequence(
         progress: Show a progress bar (tqdm) on stderr.
         on_frame: Called after each `Mapper` call with a `FrameEvent` (the live viewer, the
             7-Scenes experiment's comparison volumes).
+        force: Map on when most frames fail the pose check (`check_poses_agree`), e.g. a camera
+            that only rotates; by default the run stops there.
 
     Bad data never ends the run: a frame that cannot be read or fused is named in
     ``frame_errors`` and the next one goes on.
@@ -418,6 +425,7 @@ def map_sequence(
     Raises:
         InvalidInputError: bad ``stride``, ``max_frames``, ``working_width``, ``threshold`` or
             ``metric_samples``. EmptyInputError: an empty sequence, or no frame could be fused.
+        CalibrationError: most frames fail the pose check (unless ``force``), naming the likely cause.
     """
     from tqdm.auto import tqdm
 
@@ -451,10 +459,14 @@ def map_sequence(
     points: list[int] = []
     fused = 0
     waiting: dict[int, Frame] = {}
+    checked: list[bool] = []  # per frame returned: its pose failed the pose check
 
     def record(result: FrameResult) -> Frame:
         nonlocal fused
         frame = waiting.pop(result.keyframe_id)
+        checked.append(bool(getattr(result, "pose_in_doubt", False)))
+        if not force:
+            check_poses_agree(checked, inputs.pose_format, final=False)
         if result.error is not None:
             frame_errors.append(f"image {frame.name}: {result.error}")
         if result.fused:
@@ -501,6 +513,8 @@ def map_sequence(
         if on_frame is not None:
             on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
     bar.close()
+    if not force:
+        check_poses_agree(checked, inputs.pose_format, final=True)
     if fused == 0:
         raise EmptyInputError(
             "images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3])
@@ -528,6 +542,49 @@ def map_sequence(
         sparse_points=float(np.median(points)) if points else 0.0,
         metrics=metrics,
         timing=timing,
+    )
+
+
+POSE_CHECK_SHARE = 0.5
+"""`map_sequence` stops when more than this share of its frames fail the pose check."""
+
+POSE_CHECK_MIN_FRAMES = 5
+"""... and at least this many do: the first frames of a walk often fail it (a short baseline), so a short run goes
+on with its warnings."""
+
+POSE_CHECK_EARLY = 8
+"""Frames returned after which the check may stop a run before its end (no time spent on a hopeless run)."""
+
+
+def check_poses_agree(failed: list[bool], pose_format: str = "", *, final: bool = True) -> None:
+    """Refuses a run where most frames fail the pose check: the poses do not belong to the images as given.
+
+    A frame fails when its feature tracks do not triangulate with its pose and its neighbours'
+    (or its map points look inverted under it). One such frame is a fast turn; most of them are
+    poses inverted (``T_camera_world`` given for ``T_world_camera``), TUM quaternions written
+    w-first, or poses associated with other frames' images.
+
+    Args:
+        failed: Per frame checked so far, whether it failed.
+        pose_format: The poses' format (the message names the likely cause for it).
+        final: All frames are in; else judged only after `POSE_CHECK_EARLY` frames.
+
+    Raises:
+        CalibrationError: more than `POSE_CHECK_SHARE` of the frames (and at least
+            `POSE_CHECK_MIN_FRAMES`) failed.
+    """
+    n, bad = len(failed), int(sum(failed))
+    if (not final and n < POSE_CHECK_EARLY) or bad < POSE_CHECK_MIN_FRAMES or bad <= POSE_CHECK_SHARE * n:
+        return
+    causes = ["inverted poses (T_camera_world given as T_world_camera)"]
+    if pose_format in ("tum", "auto", ""):
+        causes.append("quaternions written w-first (TUM is tx ty tz qx qy qz qw)")
+    causes.append("another frame's poses (check the image-to-pose association)")
+    raise CalibrationError(
+        "poses",
+        "camera-to-world poses of these images (most frames' feature tracks triangulate with their pose)",
+        f"{bad} of {n} frames failing the pose check: likely {', or '.join(causes)}; "
+        "force=True (map --force) maps them anyway",
     )
 
 
@@ -611,6 +668,97 @@ def write_map(
     return [Path(p) for p in written]
 
 
+def open_map_inputs(
+    images: str | Path,
+    poses: str | Path,
+    intrinsics: str | None = None,
+    *,
+    output: str | Path,
+    depth: str | Path | None = None,
+    points: str | Path | None = None,
+    **options: Any,
+) -> PosedInputs:
+    """The inputs of ``gpdepth3d map`` opened and checked before any work, the output folder included.
+
+    Args:
+        images, poses, intrinsics, depth: As `open_posed_sequence` (paths or glob patterns).
+        output: The output folder (checked writable now).
+        points: Given world points for the frames (`gpdepth3d.mapping.points.given_points.read_given_points`:
+            a COLMAP model, or PLY / NPZ / text points in the poses' frame), with their calibrated sigma.
+        **options: The other keywords of `open_posed_sequence` (pose_format, association, ...).
+
+    Raises:
+        OutputError: an output folder that cannot be written. See `open_posed_sequence`.
+    """
+    from ..io import check_output_folder
+
+    check_output_folder(Path(output), "--output")
+    depth = None if depth is None else str(depth)
+    inputs = open_posed_sequence(str(images), poses, intrinsics, depth=depth, **options)
+    if points is not None:
+        from ..mapping.points.given_points import read_given_points
+
+        inputs = points_for_frames(inputs, read_given_points(points))
+    given = {"images": str(images), "poses": str(poses), "points": None if points is None else str(points)}
+    given.update(intrinsics=intrinsics, depth=depth)
+    return replace(inputs, given={**given, "depth_scale": options.get("depth_scale", 0.001)})
+
+
+def map_files(
+    inputs: PosedInputs,
+    output: str | Path,
+    *,
+    mde: str | MDEFrontEnd = "fastdepth",
+    models_dir: str | Path | None = None,
+    voxel_size: float = 0.02,
+    depth_max: float = 5.0,
+    mesh_format: str = "ply",
+    frames: int | None = None,
+    **options: Any,
+) -> tuple[MapResult, dict[str, Any], list[Path]]:
+    """Maps an opened sequence and writes the map's files (``gpdepth3d map`` between parsing and printing).
+
+    Args:
+        inputs: The sequence (`open_map_inputs`).
+        output: The output folder (`write_map`).
+        mde: A front-end name or model file (`gpdepth3d.mde.load_frontend`), or a front-end.
+        models_dir: Folder of the named front-ends' models.
+        voxel_size: TSDF voxel size, metres. depth_max: Depths beyond it are not fused, metres.
+        mesh_format: "ply", "glb" or "obj".
+        frames: At most this many frames (after the stride).
+        **options: The other keywords of `map_sequence` (stride, working_width, threshold, force, ...).
+
+    Returns:
+        (the `MapResult`, the summary written to ``metrics.json``, the files written).
+
+    Raises:
+        InvalidInputError: a bad voxel size or depth limit (named by their options). See `map_sequence`.
+    """
+    for name, value in (("--voxel-size", voxel_size), ("--depth-max", depth_max)):
+        if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+            raise InvalidInputError(name, "a distance > 0 (metres)", value)
+    base = MapperConfig()
+    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
+    if isinstance(mde, (str, Path)):
+        from ..mde import load_frontend
+
+        network = load_frontend(mde, models_dir=models_dir, argument="--mde")
+    else:
+        network = mde
+    result = map_sequence(inputs, mde=network, config=config, max_frames=frames, **options)
+    summary = map_summary(result)
+    summary["inputs"] = {
+        **inputs.given,
+        "pose_format": inputs.pose_format,
+        "mde": str(mde),
+        "stride": options.get("stride", 1),
+        "frames": frames,
+        "working_width": options.get("working_width", DEFAULT_WORKING_WIDTH),
+    }
+    written = write_map(result, output, mesh_format=mesh_format, summary=summary)
+    return result, summary, written
+
+
 def map_summary(result: MapResult) -> dict[str, Any]:
     """The JSON record of a run: frames, errors, points, metrics, timings and the Mapper's settings."""
     from dataclasses import asdict
@@ -637,3 +785,60 @@ def map_summary(result: MapResult) -> dict[str, Any]:
         "working_size": [result.mapper.work_camera.width, result.mapper.work_camera.height],
         "config": asdict(result.mapper.config),
     }
+
+
+def piece_frames(piece: GivenPoints, names: list[str]) -> list[tuple[int, int]]:
+    """(index into ``names``, model image id) of the images the piece registered, in sequence order."""
+    by_name = {Path(image.name).name: image_id for image_id, image in piece.model.images.items()}
+    return [(i, by_name[n]) for i, n in enumerate(names) if n in by_name]
+
+
+def points_for_frames(
+    inputs: PosedInputs, pieces: list[GivenPoints], *, sigma_rule: PointSigmaRule | None = None
+) -> PosedInputs:
+    """A posed sequence with given world points for each frame, with the calibrated sigma of ``sigma_rule``.
+
+    The points are in the poses' world frame and metric (a COLMAP model triangulated with these poses,
+    a SLAM's map). A COLMAP model says which image observes which point (matched by file name; every
+    piece counts); for a points file each frame gets the points it sees (`visible_points`).
+
+    Args:
+        inputs: The posed sequence (`open_posed_sequence`).
+        pieces: `read_given_points`' pieces.
+        sigma_rule: The depth sigma of the points (default `PointSigmaRule()`).
+    """
+    from dataclasses import replace
+
+    from ..mapping.points.given_points import visible_points
+
+    rule = sigma_rule or PointSigmaRule()
+    seq = inputs.sequence
+    names = [f.name for f in seq.image_files]
+    observed: list[list[tuple[GivenPoints, np.ndarray]]] = [[] for _ in names]
+    for piece in pieces:
+        if piece.model is not None:
+            for i, image_id in piece_frames(piece, names):
+                observed[i].append((piece, piece.observed_by(image_id)))
+        else:
+            for i in range(len(names)):
+                observed[i].append((piece, visible_points(piece.points, seq.poses[i], seq.camera)))
+    points, sigmas = [], []
+    for i, parts in enumerate(observed):
+        c = seq.poses[i][:3, 3]
+        p_all, s_all = [np.zeros((0, 3))], [np.zeros(0)]
+        for piece, rows in parts:
+            p = piece.points[rows]
+            pick = lambda a: None if a is None else a[rows]  # noqa: E731 - the piece's per-point arrays
+            s_all.append(
+                rule.sigma(
+                    np.linalg.norm(p - c, axis=1),
+                    stated=pick(piece.sigma),
+                    reprojection_error=pick(piece.reprojection_error),
+                    angle_deg=pick(piece.angle_deg),
+                    focal=seq.camera.fx,
+                )
+            )
+            p_all.append(p)
+        points.append(np.concatenate(p_all))
+        sigmas.append(np.concatenate(s_all))
+    return replace(inputs, map_points=points, map_points_sigma=sigmas)

@@ -21,14 +21,14 @@ import numpy as np
 from ..camera import PinholeCamera, transform_points
 from ..datasets.posed import IMAGE_SUFFIXES, FileSpec, PosedSequence, list_files, read_intrinsics
 from ..errors import EmptyInputError
-from .mapping_run import MapResult, PosedInputs, map_sequence
+from .mapping_run import MapResult, PosedInputs, map_sequence, piece_frames
 from ..io import load_rgb
 from ..mapping.points.colmap_sfm import SfMConfig, reconstruct_sequence
 from ..mapping.points.given_points import GivenPoints, PointSigmaRule, read_given_points
 from ..mapping.mapper import MDEFrontEnd
 from ..mapping.mapper_config import MapperConfig
 from ..mapping.points.sfm_scale import MetricScale, depth_ratios, focal_ratio, metric_scale
-from ..mapping.trajectories import invert_pose
+from ..io.poses import invert_pose
 
 
 @dataclass
@@ -65,12 +65,6 @@ class PiecesResult:
     registered: int
     models: list[Path] = field(default_factory=list)
     timing: dict = field(default_factory=dict)
-
-
-def _piece_frames(piece: GivenPoints, names: list[str]) -> list[tuple[int, int]]:
-    """(index into ``names``, model image id) of the images the piece registered, in sequence order."""
-    by_name = {Path(image.name).name: image_id for image_id, image in piece.model.images.items()}
-    return [(i, by_name[n]) for i, n in enumerate(names) if n in by_name]
 
 
 def _scale_of(piece: GivenPoints, frames, files: list[Path], camera: PinholeCamera, mde: MDEFrontEnd) -> MetricScale:
@@ -158,7 +152,7 @@ def map_pieces(
         depth_kw["depth"] = [str(p) for p in _matched_depth(files, depth)]
     out, registered, t_scale = [], 0, 0.0
     for piece in pieces:
-        frames = _piece_frames(piece, names)
+        frames = piece_frames(piece, names)
         registered += len(frames)
         piece_names = [names[i] for i, _ in frames]
         if len(frames) < 1:
@@ -237,57 +231,6 @@ def map_images(
     result.models = models
     result.timing = {"sfm": t_sfm, **result.timing, "wall": time.perf_counter() - t0}
     return result
-
-
-def points_for_frames(
-    inputs: PosedInputs, pieces: list[GivenPoints], *, sigma_rule: PointSigmaRule | None = None
-) -> PosedInputs:
-    """A posed sequence with given world points for each frame, with the calibrated sigma of ``sigma_rule``.
-
-    The points are in the poses' world frame and metric (a COLMAP model triangulated with these poses,
-    a SLAM's map). A COLMAP model says which image observes which point (matched by file name; every
-    piece counts); for a points file each frame gets the points it sees (`visible_points`).
-
-    Args:
-        inputs: The posed sequence (`open_posed_sequence`).
-        pieces: `read_given_points`' pieces.
-        sigma_rule: The depth sigma of the points (default `PointSigmaRule()`).
-    """
-    from dataclasses import replace
-
-    from ..mapping.points.given_points import visible_points
-
-    rule = sigma_rule or PointSigmaRule()
-    seq = inputs.sequence
-    names = [f.name for f in seq.image_files]
-    observed: list[list[tuple[GivenPoints, np.ndarray]]] = [[] for _ in names]
-    for piece in pieces:
-        if piece.model is not None:
-            for i, image_id in _piece_frames(piece, names):
-                observed[i].append((piece, piece.observed_by(image_id)))
-        else:
-            for i in range(len(names)):
-                observed[i].append((piece, visible_points(piece.points, seq.poses[i], seq.camera)))
-    points, sigmas = [], []
-    for i, parts in enumerate(observed):
-        c = seq.poses[i][:3, 3]
-        p_all, s_all = [np.zeros((0, 3))], [np.zeros(0)]
-        for piece, rows in parts:
-            p = piece.points[rows]
-            pick = lambda a: None if a is None else a[rows]  # noqa: E731 - the piece's per-point arrays
-            s_all.append(
-                rule.sigma(
-                    np.linalg.norm(p - c, axis=1),
-                    stated=pick(piece.sigma),
-                    reprojection_error=pick(piece.reprojection_error),
-                    angle_deg=pick(piece.angle_deg),
-                    focal=seq.camera.fx,
-                )
-            )
-            p_all.append(p)
-        points.append(np.concatenate(p_all))
-        sigmas.append(np.concatenate(s_all))
-    return replace(inputs, map_points=points, map_points_sigma=sigmas)
 
 
 def write_pieces(

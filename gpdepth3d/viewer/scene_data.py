@@ -4,6 +4,7 @@ point layers built from them (back-projected MDE-only and GP-refined clouds, mea
 from __future__ import annotations
 
 import math
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, Optional
@@ -163,8 +164,8 @@ def stored_intrinsics(posterior: Path) -> Optional[np.ndarray]:
     with z:
         try:
             return np.asarray(z["K"], dtype=np.float64).reshape(3, 3) if "K" in z.files else None
-        except (OSError, ValueError):
-            return None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile):
+            return None  # a corrupt member: loading the posterior itself reports it
 
 
 def default_camera(width: int, height: int, *, hfov_deg: float = 60.0) -> PinholeCamera:

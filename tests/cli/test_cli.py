@@ -237,7 +237,7 @@ class TestOneLineErrors:
         [
             (
                 ["complete", "--mdee", "x"],
-                "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (see gpdepth3d complete --help)",
+                "gpdepth3d complete: missing --mde, --output; unrecognised --mdee x (did you mean --mde?) (see gpdepth3d complete --help)",
             ),
             (["batch"], "gpdepth3d batch: missing --data, --output (see gpdepth3d batch --help)"),
             (
@@ -339,6 +339,7 @@ class TestOneLineErrors:
 
 
 class TestDemoCommand:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_demo_runs_from_the_installed_entry_point(self, tmp_path):
         proc = subprocess.run(
             [sys.executable, "-m", "gpdepth3d.cli", "demo", "--output", str(tmp_path / "demo")],

@@ -194,6 +194,7 @@ class TestFrontEndOnTheCommandLine:
 
 
 class TestCompileNotice:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_printed_on_a_cold_cache_and_not_on_a_warm_one(self, tmp_path):
         """Two `complete` runs with an empty numba cache folder: the first compiles and says so, the second not."""
         np.save(tmp_path / "mde.npy", np.full((24, 32), 2.0))

@@ -196,6 +196,28 @@ class TestColmap:
         with pytest.raises(InvalidInputError):
             model.image_by_name("nope.png")
 
+    @pytest.mark.parametrize("binary", [True, False])
+    def test_a_zero_quaternion_is_refused_naming_the_image(self, tmp_path: Path, binary: bool):
+        import struct
+
+        points = np.array([[0.0, 0.0, 2.0]] * 3) + np.arange(3)[:, None] * 0.1
+        poses = np.stack([np.eye(4), np.eye(4)])
+        poses[1, 0, 3] = 0.1
+        _write_colmap(tmp_path / "m", poses, points, binary=binary)
+        read_colmap_model(tmp_path / "m")  # unit quaternions: read
+        if binary:
+            data = bytearray((tmp_path / "m" / "images.bin").read_bytes())
+            data[12 : 12 + 32] = struct.pack("<4d", 0.0, 0.0, 0.0, 0.0)  # the first image's qw qx qy qz
+            (tmp_path / "m" / "images.bin").write_bytes(bytes(data))
+        else:
+            text = (tmp_path / "m" / "images.txt").read_text().splitlines()
+            rows = [i for i, ln in enumerate(text) if ln and not ln.startswith("#")][::2]
+            f = text[rows[0]].split()
+            text[rows[0]] = " ".join(f[:1] + ["0", "0", "0", "0"] + f[5:])
+            (tmp_path / "m" / "images.txt").write_text("\n".join(text) + "\n")
+        with pytest.raises(DataFormatError, match=r"image frame\d\.png: quaternion 0 0 0 0 of norm 0"):
+            read_colmap_model(tmp_path / "m")
+
     def test_distortion_and_errors(self, tmp_path: Path):
         points = np.array([[0.0, 0.0, 2.0]] * 3) + np.arange(3)[:, None] * 0.1
         _write_colmap(tmp_path / "radial", np.eye(4)[None], points, model="SIMPLE_RADIAL")

@@ -50,6 +50,7 @@ def _run(folder: Path) -> str:
     return proc.stdout.strip()
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 def test_once_on_a_cold_cache_never_on_a_warm_one(tmp_path):
     (tmp_path / "notice_kernels.py").write_text(KERNELS)
     assert _run(tmp_path) == "['notice_kernels.twice']"  # two kernels compiled, one call, the first one's name

@@ -50,6 +50,7 @@ def _close(a, b, rtol):
     np.testing.assert_allclose(a.variance, b.variance, rtol=rtol)
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 @pytest.mark.parametrize("full", [False, True])
 def test_sparse_points_fast_engine_equals_exact(kitti, full):
     """1/64 of the LiDAR (~200 points): Woodbury with the scale term's second right-hand side vs dense algebra."""

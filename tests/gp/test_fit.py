@@ -87,6 +87,7 @@ class TestFitHyperparameters:
         assert fitted.sigma_meas == start.sigma_meas and fitted.formulation == "balanced"
         assert log_marginal_likelihood(mde, sparse, fitted) > log_marginal_likelihood(mde, sparse, start) + 10
 
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_residual_fit_improves_lml(self):
         rng = np.random.default_rng(3)
         err = sample_field(rng, 6.0, 0.8, mean=0.0)
@@ -113,6 +114,7 @@ class TestFitHyperparameters:
 
 
 class TestFitOption:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_config_fit_fits_each_frame_warm_started(self, monkeypatch):
         from gpdepth3d.completion.complete import DepthCompleter
         import gpdepth3d.completion.marginal_fit as fitmod

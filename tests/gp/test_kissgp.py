@@ -127,6 +127,7 @@ class TestPixelGridInterpolationKernel:
             PixelGridInterpolationKernel(gpytorch.kernels.MaternKernel(nu=0.5), (0, 6))
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 class TestKissGPEngine:
     @pytest.mark.parametrize("formulation", ["balanced", "residual"])
     def test_matches_exact_on_real_crop(self, crop, formulation):
@@ -272,6 +273,7 @@ class TestKissGPEngine:
             assert np.percentile(relative_error(v, ve), 95) <= 1e-3 and relative_error(v, ve).max() <= 1e-2
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 class TestUpsampled:
     """2x output: off-grid pixels get KISS-GP's cubic interpolation of the grid (the paper's M > N).
 

@@ -160,6 +160,7 @@ class TestBackends:
         np.testing.assert_allclose(m1, m0, atol=1e-9)
         np.testing.assert_allclose(v1, v0, rtol=1e-9)
 
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_vanishing_couplings_are_exact(self):
         # l = 0.04 px: neighbour correlation e^-25, couplings across fronts far below 1e-100
         # (flushed to zero to avoid subnormal arithmetic); the posterior must still be exact.

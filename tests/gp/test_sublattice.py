@@ -88,6 +88,7 @@ def test_several_right_hand_sides_share_the_weights():
         np.testing.assert_array_equal(vred, v1)
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 def test_every_row_of_cells_is_done_whatever_the_thread_count():
     """The rows of cells are dealt to the threads round-robin; 1, 2 or 3 threads give the same answer."""
     numba = pytest.importorskip("numba")

@@ -76,3 +76,13 @@ def test_too_few_frames_are_refused(tmp_path):
     cam = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)
     with pytest.raises(InvalidInputError, match="rgbs, poses"):
         triangulate_with_colmap([np.zeros((60, 80, 3), np.uint8)], [np.eye(4)], cam, tmp_path)
+
+
+def test_pycolmap_info_log_is_held_back_while_triangulating():
+    pycolmap = pytest.importorskip("pycolmap")
+    from gpdepth3d.mapping.points.colmap_points import _pycolmap_quiet
+
+    before = pycolmap.logging.minloglevel
+    with _pycolmap_quiet(pycolmap):
+        assert pycolmap.logging.minloglevel >= 1  # warnings and errors only
+    assert pycolmap.logging.minloglevel == before

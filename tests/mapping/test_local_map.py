@@ -74,6 +74,7 @@ def test_mapper_config_checks_the_local_map_options(field):
         MapperConfig(**field)
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 def test_the_mapper_fills_frames_from_the_local_map_on_a_real_walk(shared_data):
     """HoloLens walk, frames 16-29 (the tracks break): with the local map every frame from the second on
     has at least as many measurements as without it, some many more; the added ones are within +-2 sigma

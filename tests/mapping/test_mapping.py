@@ -388,6 +388,7 @@ class TestRobustness:
         assert (res.map_points.outside, res.map_points.behind, res.map_points.nonfinite) == (1, 1, 1)
         assert not res.pose_check.inverted
 
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_a_pose_the_feature_tracks_contradict_is_reported(self, shared_data):
         # own triangulation, no map points: an inverted pose in the middle of a real sequence leaves
         # (almost) none of its tracks triangulated; that frame is warned about by name, a clean run is not
@@ -927,6 +928,7 @@ class TestUncertainPixels:
         T[0, 3] = 0.1
         assert mapper.update_poses({7: T}).moved == (7,)  # re-integrating it fuses nothing, raises nothing
 
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_cut_pixels_are_the_inaccurate_ones_on_7scenes(self, shared_data):
         """With FastDepth and the Mapper's own points (defaults, 320 x 240), the pixels the cut leaves
         out are the MDE's shape alone: farther from the Kinect depth than the pixels it fuses (60

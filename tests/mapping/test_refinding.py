@@ -114,6 +114,7 @@ class TestRealMotion:
         np.testing.assert_array_equal(refinder._frames[1][1], moved)
 
 
+@pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
 def test_mapper_refinds_where_tracks_fail_and_reports_frames_without_points(shared_data):
     # the Mapper's defaults (KLT, window 8, lag 4) on the HoloLens walk, frames 16-29, with a stand-in MDE
     # (the sensor depth hole-filled, 12 % too far): with re-finding the frames whose tracks break get

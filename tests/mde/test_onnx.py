@@ -251,7 +251,8 @@ class TestCompleteCommand:
             ]
         )
         assert code == 1
-        assert "name_or_path" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert "--mde:" in err and "name_or_path" not in err  # the option the user typed, not the argument
 
 
 class TestEvalAndBatchWithNetwork:

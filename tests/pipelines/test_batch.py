@@ -44,7 +44,7 @@ from gpdepth3d.pipelines.batch import (
 )
 from gpdepth3d.cli.batch import batch_command
 from gpdepth3d.completion.complete import DepthPosterior
-from gpdepth3d.errors import DataFormatError, EmptyInputError, InvalidInputError
+from gpdepth3d.errors import DataFormatError, EmptyInputError, InvalidInputError, ProblemTooLargeError
 from gpdepth3d.io import load_depth
 from gpdepth3d.measurements import SparseDepth
 from gpdepth3d.metrics import depth_metrics
@@ -410,6 +410,7 @@ class DiesOn(HoldoutInputs):
 
 
 class TestRunBatchDask:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_cluster_at_an_address_isolates_failing_frames_and_lost_workers(self, tmp_path):
         distributed = pytest.importorskip("distributed")
         import dask
@@ -506,6 +507,7 @@ def _starts(log: Path) -> dict[str, int]:
 
 
 class TestKillAndResume:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_killed_run_resumes_with_every_frame_exactly_once(self, tiny_kitti, tmp_path):
         pytest.importorskip("distributed")
         script = tmp_path / "run_batch_script.py"
@@ -687,3 +689,35 @@ class TestPreviews:
             preview=False,
         )
         assert not list((tmp_path / "off").glob("*.png")) and len(list((tmp_path / "off").glob("*.npz"))) == 1
+
+
+class TestNoLeftovers:
+    def test_a_failed_batch_leaves_no_settings_or_lock_file(self, tmp_path):
+        data = write_kitti_like(tmp_path / "data", ["a"])
+        (data / "velodyne_02" / "a.npz").write_bytes(b"not a zip")
+        out = tmp_path / "out"
+        report = run_batch(dataset_frames(data), out, workers=0, progress=False)
+        assert report.failures and not report.n_computed
+        assert sorted(p.name for p in out.iterdir()) == [REPORT_NAME]  # the report says what failed; nothing else
+
+    def test_a_done_batch_keeps_its_settings_lists_them_and_drops_the_lock(self, tiny_kitti, tmp_path, capsys):
+        out = tmp_path / "out"
+        batch_command(data=tiny_kitti, output=out, workers=0, frames=1, preview=False, progress=False)
+        names = sorted(p.name for p in out.iterdir())
+        assert SETTINGS_NAME in names and LOCK_NAME not in names
+        assert f"{out / SETTINGS_NAME}" in capsys.readouterr().out
+
+    def test_a_frame_whose_posterior_fails_keeps_no_previews(self, tiny_kitti, tmp_path, monkeypatch):
+        def full(self, *args, **kwargs):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(DepthPosterior, "save", full)
+        out = tmp_path / "out"
+        report = run_batch(dataset_frames(tiny_kitti, limit=1), out, workers=0, previews=True, progress=False)
+        assert report.failures and "No space left" in report.failures[0].error
+        assert not [p.name for p in out.iterdir() if "preview" in p.name]
+
+    def test_a_huge_repeat_is_refused_before_any_frame_and_a_limit_makes_only_its_frames(self, tiny_kitti):
+        with pytest.raises(ProblemTooLargeError, match="--repeat 1000000000"):
+            dataset_frames(tiny_kitti, repeat=10**9)
+        assert [s.frame_id for s in dataset_frames(tiny_kitti, repeat=10**9, limit=1)] == ["0000000000"]

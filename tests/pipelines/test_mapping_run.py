@@ -83,6 +83,7 @@ class TestOpen:
 
 
 class TestMapSequence:
+    @pytest.mark.slow  # several seconds (CPU) on 2 cores: run by .ci/run (-m slow)
     def test_map_write_reload(self, seven: Path, fastdepth, tmp_path: Path, monkeypatch):
         (seven / "rgb" / "1000.100000.jpg").write_bytes(b"broken")  # frame 3: not a readable JPEG
         result = map_sequence(_open(seven), mde=fastdepth)
@@ -128,6 +129,36 @@ class TestMapSequence:
         for bad in ({"stride": 0}, {"max_frames": 0}, {"working_width": 1.5}, {"threshold": -1.0}):
             with pytest.raises(InvalidInputError, match=next(iter(bad))):
                 map_sequence(inputs, mde=fastdepth, **bad)
+
+
+class TestPoseCheckStopsTheRun:
+    def test_rule(self):
+        from gpdepth3d.errors import CalibrationError
+        from gpdepth3d.pipelines.mapping_run import check_poses_agree
+
+        check_poses_agree([True, True, False, False])  # half: a run with fast turns goes on
+        check_poses_agree([True, True] + [False] * 6, final=True)
+        check_poses_agree([True] * 5, final=False)  # too early to judge
+        check_poses_agree([True, True, True, False])  # a short run: its first frames often fail (short baseline)
+        with pytest.raises(CalibrationError, match="5 of 6 frames failing the pose check: likely inverted"):
+            check_poses_agree([True] * 5 + [False], "kitti")
+        with pytest.raises(CalibrationError, match="w-first") as info:
+            check_poses_agree([True] * 8, "tum", final=False)
+        assert "map --force" in str(info.value) and "\n" not in str(info.value)
+
+    @pytest.mark.slow
+    def test_inverted_poses_stop_the_run_unless_forced(self, seven: Path, fastdepth):
+        from gpdepth3d.errors import CalibrationError
+        from gpdepth3d.io.poses import invert_pose, read_trajectory
+
+        traj = read_trajectory(seven / "traj.txt")
+        inverted = Trajectory(np.stack([invert_pose(T) for T in traj.poses]), traj.timestamps)
+        write_tum_trajectory(seven / "inverted.txt", inverted)
+        inputs = open_posed_sequence(seven / "rgb", seven / "inverted.txt", "525,525,320,240")
+        with pytest.raises(CalibrationError, match="failing the pose check: likely inverted poses"):
+            map_sequence(inputs, mde=fastdepth, working_width=160)
+        result = map_sequence(inputs, mde=fastdepth, working_width=160, force=True)
+        assert result.frames_fused == 8
 
 
 class TestColmapInputs:

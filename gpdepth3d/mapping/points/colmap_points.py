@@ -87,6 +87,31 @@ def triangulate_with_colmap(
     image_dir, database, model = workdir / "images", workdir / "database.db", workdir / "sparse"
     names = _write_images(rgbs, camera, image_dir)
     database.unlink(missing_ok=True)
+    with _pycolmap_quiet(pycolmap):
+        return _triangulate(pycolmap, database, image_dir, model, names, poses, camera, threads, max_features, overlap)
+
+
+def _pycolmap_quiet(pycolmap):
+    """COLMAP's INFO log (hundreds of lines a run) held back; its warnings and errors still print."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def quiet():
+        logging = getattr(pycolmap, "logging", None)
+        before = getattr(logging, "minloglevel", None)
+        if before is not None:
+            logging.minloglevel = max(int(before), 1)  # 0 INFO, 1 WARNING
+        try:
+            yield
+        finally:
+            if before is not None:
+                logging.minloglevel = before
+
+    return quiet()
+
+
+def _triangulate(pycolmap, database, image_dir, model, names, poses, camera, threads, max_features, overlap) -> Path:
+    """Features, sequential matches and points triangulated with the poses held fixed (`triangulate_with_colmap`)."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"  # COLMAP puts the first pixel's centre at 0.5
     reader.camera_params = f"{camera.fx},{camera.fy},{camera.cx + 0.5},{camera.cy + 0.5}"
