@@ -17,6 +17,7 @@ from ..camera import PinholeCamera
 from ..errors import GPDepthError
 from ..measurements import SparseDepth
 from .map_points import MapPointStats, merge_sparse, project_map_points
+from .mde_check import HeldOutCheck
 from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation
 
 POSE_TRACK_MIN = 50
@@ -49,6 +50,7 @@ class PendingFrame:
         scale_var: Its log-scale variance left after that correction.
         pose_doubted: Its feature tracks contradict its pose (`check_tracks` warned): the local
             map's points, placed by that pose, are not used.
+        held_out: The held-out comparison of its GP with its rescaled MDE (`mde_check`), once run.
     """
 
     kid: int
@@ -65,6 +67,12 @@ class PendingFrame:
     scale: float = 1.0
     scale_var: float = 0.0
     pose_doubted: bool = False
+    held_out: HeldOutCheck | None = None
+
+    @property
+    def mde_fallback(self) -> bool:
+        """It is fused as its rescaled MDE: its points' GP predicted held-out points no better."""
+        return self.held_out is not None and not self.held_out.gp_better
 
     @property
     def pose_in_doubt(self) -> bool:

@@ -9,6 +9,7 @@ import numpy as np
 from ..completion.complete import DepthPosterior
 from ..measurements import SparseDepth
 from .map_points import MapPointStats
+from .mde_check import HeldOutCheck
 from .trajectories import PoseCheck
 
 STAGES = ("mde", "points", "gp", "fusion")
@@ -45,6 +46,10 @@ class FrameResult:
         fallback_weight: Fusion weight of its pixels no point informs (the MDE alone;
             `FusionConfig.fallback_for`): the configured fallback for a frame without points, near 0
             for one with many; 1 without refinement (uniform weights).
+        mde_fallback: The frame was fused as its MDE rescaled by one median, with that MDE's
+            variance, because its points' GP predicted held-out points no better
+            (`gpdepth3d.mapping.mde_check`; ``MapperConfig.held_out``); a warning says so.
+        held_out: That held-out comparison, or None when it did not run.
     """
 
     depth: np.ndarray
@@ -62,3 +67,5 @@ class FrameResult:
     pose_check: PoseCheck | None = None
     map_scale: float = 1.0
     fallback_weight: float = 0.0
+    mde_fallback: bool = False
+    held_out: HeldOutCheck | None = None

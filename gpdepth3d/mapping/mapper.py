@@ -46,6 +46,7 @@ back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -68,6 +69,7 @@ from .map_scale import fused_depth, scale_to_map
 from .map_points import merge_sparse
 from .map_store import Keyframe, check_map_folder, load_keyframes, read_map_meta, save_keyframes, write_map_meta
 from .mapper_config import MapperConfig
+from .mde_check import HeldOutCheck, held_out_check, mde_fallback
 from .own_points import OwnPoints
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
@@ -303,11 +305,36 @@ class Mapper:
             return None, entry.mde, np.full(work_shape, np.nan)
         # the frame's name goes into the posterior's warnings (a duck-typed completer may not take it)
         named = {"frame": str(entry.kid)} if isinstance(self.completer, DepthCompleter) else {}
+        if self.config.held_out > 0 and len(entry.measurements):
+            entry.held_out = self._held_out_check(entry, work_shape)
+            if entry.mde_fallback:
+                entry.notes.append(entry.held_out.describe(entry.kid))
+                depth, variance = mde_fallback(entry.mde, entry.held_out)
+                return None, depth, variance
         posterior = self.completer.complete(entry.mde, entry.measurements, output_shape=work_shape, **named)
         depth, variance = fused_depth(posterior, self.config.fuse_depth), posterior.variance
         if self.config.scale_variance and entry.scale_var > 0:
             variance = variance + entry.scale_var * np.square(depth)
         return posterior, depth, variance
+
+    def _held_out_check(self, entry: PendingFrame, work_shape: tuple[int, int]) -> HeldOutCheck:
+        """The frame's GP on most of its points against its rescaled MDE at the others (`held_out_check`)."""
+
+        def refine(kept: SparseDepth) -> np.ndarray:
+            with warnings.catch_warnings():  # the full posterior's warnings are the frame's
+                warnings.simplefilter("ignore")
+                posterior = self.completer.complete(entry.mde, kept, output_shape=work_shape)
+            return fused_depth(posterior, self.config.fuse_depth)
+
+        cfg = self.config
+        return held_out_check(
+            refine,
+            entry.mde,
+            entry.measurements,
+            fraction=float(cfg.held_out),
+            min_held_out=int(cfg.min_held_out),
+            seed=entry.kid,
+        )
 
     def _fuse(
         self,
@@ -319,22 +346,26 @@ class Mapper:
     ) -> FrameResult:
         """The fusion step; what is fused (float32 at the working size) is what the keyframe store keeps."""
         kid, n = entry.kid, len(entry.measurements)
+        # a frame fused as its rescaled MDE is weighted as one without points (its variance is the MDE's)
+        weighted_points = n if self.config.refine and not entry.mde_fallback else 0
         depth32, var32, masked = _masked(entry, depth, variance)
         depth64, var64 = depth32.astype(np.float64), var32.astype(np.float64)
         try:
-            stats = self._integrate(depth32, var32, entry.T, entry.work_rgb, points=n if self.config.refine else 0)
+            stats = self._integrate(depth32, var32, entry.T, entry.work_rgb, points=weighted_points)
         except Exception as exc:  # noqa: BLE001 - e.g. nothing in range; recorded, the run goes on
             result = self._failed(entry, timings, "fusion", exc, mde=entry.mde, posterior=posterior)
             return replace(result, depth=depth64, variance=var64, masked_pixels=masked)
-        fallback = self.fusion.config.fallback_for(n) if self.config.refine else 1.0
+        fallback = self.fusion.config.fallback_for(weighted_points) if self.config.refine else 1.0
         if stats.pixels == 0:
             entry.notes.append(f"frame {kid}: no pixel informed by points and no fallback weight left: nothing fused")
-        elif self.config.refine and n == 0:
+        elif self.config.refine and n == 0 and not entry.mde_fallback:
             entry.notes.append(
                 f"frame {kid}: no points: fused as the MDE with its prior variance, weight {fallback:.2f}"
             )
         if self.config.keep_keyframes:
-            self.keyframes[kid] = Keyframe(kid, entry.T, depth32, var32, entry.work_rgb, stats.block_keys, n)
+            self.keyframes[kid] = Keyframe(
+                kid, entry.T, depth32, var32, entry.work_rgb, stats.block_keys, weighted_points
+            )
         self.frames += 1
         return _frame_result(entry, timings, depth64, var64, entry.mde, posterior, masked=masked, fallback=fallback)
 

@@ -70,6 +70,12 @@ class MapperConfig:
         local_map_cell: Cell size of that fill, a fraction of the image width.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
             resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
+        held_out: Share of a frame's points held out to test its refinement (`gpdepth3d.mapping.mde_check`;
+            0 off): the GP on the other points must predict them better than the MDE rescaled by one
+            median, else the frame is fused as that rescaled MDE with its variance, weighted as a frame
+            without points (``FrameResult.mde_fallback``). The map is then never worse than the MDE's.
+            The test costs one more GP solve a frame.
+        min_held_out: Fewest held-out points the test needs; a frame with fewer is not tested.
         fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
             (`check_pose_orientation`); False (default): the frame is reported (``FrameResult.error``,
             `Mapper.failures`) and not fused, since such a pose puts its depth in the wrong place.
@@ -94,6 +100,8 @@ class MapperConfig:
     local_map_frames: int = 8
     local_map_cell: float = 0.02
     keep_keyframes: bool = True
+    held_out: float = 0.2
+    min_held_out: int = 10
     fuse_inverted_poses: bool = False
 
     def __post_init__(self) -> None:
@@ -125,5 +133,9 @@ class MapperConfig:
             raise InvalidInputError("local_map_frames", "an integer >= 0", self.local_map_frames)
         if not np.isfinite(self.local_map_cell) or not 0 < self.local_map_cell <= 1:
             raise InvalidInputError("local_map_cell", "a fraction of the image width in (0, 1]", self.local_map_cell)
+        if not np.isfinite(self.held_out) or not 0 <= self.held_out < 1:
+            raise InvalidInputError("held_out", "a share of the points in [0, 1)", self.held_out)
+        if isinstance(self.min_held_out, bool) or int(self.min_held_out) != self.min_held_out or self.min_held_out < 1:
+            raise InvalidInputError("min_held_out", "an integer >= 1", self.min_held_out)
         if not np.isfinite(self.working_scale) or not 0 < self.working_scale <= 1:
             raise InvalidInputError("working_scale", "a factor in (0, 1]", self.working_scale)
