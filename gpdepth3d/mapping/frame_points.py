@@ -109,7 +109,10 @@ class PendingFrame:
             self.note("map points", exc)
 
     def check_tracks(self, seen: int, points: int, *, stacklevel: int = 3) -> None:
-        """Warns (noted and as `InvertedPoseWarning`) when ``points`` of ``seen`` tracks contradict its pose."""
+        """Warns (noted and as `InvertedPoseWarning`) when only ``points`` of ``seen`` tracks agree with its pose.
+
+        ``points``: the tracks its pose and its neighbours' agree with (`MultiViewPoints.agreeing`).
+        """
         if seen < POSE_TRACK_MIN or points >= POSE_TRACK_SHARE * seen:
             return
         message = (

@@ -71,6 +71,7 @@ from .map_store import Keyframe, check_map_folder, load_keyframes, read_map_meta
 from .mapper_config import MapperConfig
 from .mde_check import HeldOutCheck, held_out_check, mde_fallback
 from .own_points import OwnPoints
+from .point_calibration import SigmaCalibration, paired_z_scores
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
@@ -117,6 +118,8 @@ class Mapper:
         self._points = OwnPoints(camera, self.config)
         frames = int(self.config.local_map_frames) if self.config.refine else 0
         self._local_map = LocalMap(frames, self.config.local_map_cell) if frames else None
+        calibrate = self._local_map is not None and self.config.sigma_calibration_frames > 0
+        self._calibration = SigmaCalibration(self.config.sigma_calibration_frames) if calibrate else None
         self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
         self._next_id = 0
@@ -275,15 +278,29 @@ class Mapper:
                 recent=int(cfg.map_scale_keyframes),
                 max_relative_sigma=float(cfg.map_scale_max_sigma),
             )
+            own_index = len(parts)
             parts.append(own)
         if self._local_map is not None:
             if not entry.pose_in_doubt:  # the local map's points land where the frame's pose puts them
-                parts.append(
-                    self._local_map.fill(merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera)
+                seen = self._local_map.seen(entry.T, self.camera)
+                if own is not None and self._calibration is not None:
+                    cell = self._local_map.cell * self.camera.width
+                    self._calibration.add(paired_z_scores(own, seen, cell))
+                fill = self._local_map.fill(
+                    merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera, seen
                 )
-            if own is not None:
+                parts.append(self._calibrated(fill))
+            if own is not None:  # remembered with the triangulation's sigma: the z-scores compare those
                 self._local_map.add(entry.kid, own, entry.T, self.camera)
+        if own is not None:
+            parts[own_index] = self._calibrated(own)
         entry.measurements = select_measurements(parts, self.camera.shape, cfg.max_points)
+
+    def _calibrated(self, points: SparseDepth) -> SparseDepth:
+        """The Mapper's own points with their sigma times the running factor (`SigmaCalibration`)."""
+        if self._calibration is None or self._calibration.factor == 1.0:
+            return points
+        return points.with_sigma(points.sigma * self._calibration.factor)
 
     def _refusal(self, entry: PendingFrame) -> tuple[str, BaseException] | None:
         """Why the frame is not refined (stage, error): an earlier stage failed or its pose looks inverted."""

@@ -70,6 +70,11 @@ class MapperConfig:
         local_map_cell: Cell size of that fill, a fraction of the image width.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
             resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
+        sigma_calibration_frames: Frames whose overlap with the local map calibrates the sigma of the
+            Mapper's own points (`gpdepth3d.mapping.point_calibration`; 0 off, and off without the local
+            map): where a frame's points and the local map's meet, their differences over their sigmas
+            must spread as z-scores do; a wider spread (poses worse than the triangulation's prior)
+            widens every own point's sigma by it.
         held_out: Share of a frame's points held out to test its refinement (`gpdepth3d.mapping.mde_check`;
             0 off): the GP on the other points must predict them better than the MDE rescaled by one
             median, else the frame is fused as that rescaled MDE with its variance, weighted as a frame
@@ -100,6 +105,7 @@ class MapperConfig:
     local_map_frames: int = 8
     local_map_cell: float = 0.02
     keep_keyframes: bool = True
+    sigma_calibration_frames: int = 10
     held_out: float = 0.2
     min_held_out: int = 10
     fuse_inverted_poses: bool = False
@@ -133,6 +139,12 @@ class MapperConfig:
             raise InvalidInputError("local_map_frames", "an integer >= 0", self.local_map_frames)
         if not np.isfinite(self.local_map_cell) or not 0 < self.local_map_cell <= 1:
             raise InvalidInputError("local_map_cell", "a fraction of the image width in (0, 1]", self.local_map_cell)
+        if (
+            isinstance(self.sigma_calibration_frames, bool)
+            or int(self.sigma_calibration_frames) != self.sigma_calibration_frames
+            or self.sigma_calibration_frames < 0
+        ):
+            raise InvalidInputError("sigma_calibration_frames", "an integer >= 0", self.sigma_calibration_frames)
         if not np.isfinite(self.held_out) or not 0 <= self.held_out < 1:
             raise InvalidInputError("held_out", "a share of the points in [0, 1)", self.held_out)
         if isinstance(self.min_held_out, bool) or int(self.min_held_out) != self.min_held_out or self.min_held_out < 1:

@@ -37,14 +37,16 @@ class TriangulationConfig:
         pixel_sigma: Standard deviation of a keypoint position (u and v), pixels; the noise
             the residuals show is used when larger.
         rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to
-            the reference (per axis), degrees.
+            the reference (per axis), degrees: loose (1 degree), since the tracks fix the rotations
+            well and a SLAM or VIO back-end's poses are off by a fraction of a degree to a few degrees
+            (the choice: bench/results/mapping_sequences.json, exact and perturbed poses).
         translation_sigma: Prior standard deviation of each neighbour's translation relative
-            to the reference (per axis), metres.
+            to the reference (per axis), metres: what holds the metric scale (2 cm).
         refine_poses: Refine the neighbours' poses relative to the reference jointly with the
-            depths: a robust (Cauchy) bundle adjustment with the pose prior, solved by
-            `scipy.optimize.least_squares` (https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html),
-            sigma from its Gauss-Newton information; off: poses held, their prior uncertainty
-            carried into sigma.
+            depths (the default): a robust (Cauchy) bundle adjustment with the pose prior, an
+            iteratively reweighted Levenberg-Marquardt on the Schur complement of the depths, sigma
+            from its Gauss-Newton information; off: poses held, their prior uncertainty carried
+            into sigma (for exact poses only).
         variance_factor: Scale each frame's variances by (residual noise / pixel_sigma)^2 when
             the residuals exceed the assumed pixel noise (a posteriori variance factor).
         min_views: Fewest views (reference included) that must support a multi-view point.
@@ -67,9 +69,9 @@ class TriangulationConfig:
     max_reprojection_error: float = 3.0
     min_parallax_deg: float = 0.5
     pixel_sigma: float = 0.5
-    rotation_sigma_deg: float = 0.1
-    translation_sigma: float = 0.005
-    refine_poses: bool = False
+    rotation_sigma_deg: float = 1.0
+    translation_sigma: float = 0.02
+    refine_poses: bool = True
     variance_factor: bool = True
     min_views: int = 2
     depth_sigma_floor: float = 0.04
