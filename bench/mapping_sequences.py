@@ -313,6 +313,7 @@ def run_sequence(
         "frames_pose_warned": int(sum(r["pose_warning"] for r in rows)),
         "frames_mde_fallback": int(sum(r["mde_fallback"] for r in rows)),
         "frame_errors": [r["error"] for r in rows if r["error"]],
+        "mde_ms": {"median": float(np.median([1000 * t for _, t in mde_depths]))},
         "add_frame_ms": {
             "median": float(np.median(add_ms)),
             "mean": float(np.mean(add_ms)),
