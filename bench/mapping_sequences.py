@@ -271,7 +271,7 @@ def run_sequence(
                 "error": result.error,
                 "fallback_weight": result.fallback_weight,
                 "map_scale": result.map_scale,
-                "pose_warning": any("feature tracks triangulate" in w for w in result.warnings),
+                "pose_warning": any("feature tracks agree" in w for w in result.warnings),
                 "mde_fallback": bool(getattr(result, "mde_fallback", False)),
             }
         )

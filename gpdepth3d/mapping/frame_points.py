@@ -23,11 +23,11 @@ from .trajectories import InvertedPoseWarning, PoseCheck, check_pose_orientation
 POSE_TRACK_MIN = 50
 """Feature tracks a frame needs before its pose is checked against them (fewer: too little texture to tell)."""
 POSE_TRACK_SHARE = 0.1
-"""A frame whose own triangulation keeps fewer than this share of its tracks (seen in another view) gets a
-warning that its pose may not belong to its image. On the 60 shared 7-Scenes frames (the tracker's defaults,
-window 8, lag 4) the share is 0.21-0.98 (below 0.3 only in the blurred frames 24-38); with the pose of frame 12
-or 40 inverted, moved by 0.3 m or turned by 0.2 rad, that frame's share is 0.00-0.04 (and 0.02-0.05 in the
-frames 36-41 around frame 40, whose windows hold it: they are warned about too)."""
+"""A frame whose tracks (seen in another view) agree with its pose and its neighbours' in fewer than this share
+(`gpdepth3d.mapping.multiview.MultiViewPoints.agreeing`: within the reprojection gate after the bundle
+adjustment, in front of the cameras) gets a warning that its pose may not belong to its image: an inverted pose
+or another frame's leaves almost none, a pose off by a few centimetres and degrees most (the shares on the shared
+sequences: tests/mapping/test_mapping.py)."""
 
 
 @dataclass
@@ -116,10 +116,8 @@ class PendingFrame:
         if seen < POSE_TRACK_MIN or points >= POSE_TRACK_SHARE * seen:
             return
         message = (
-            f"frame {self.kid}: only {points} of {seen} feature tracks triangulate with this pose and its "
-            f"neighbours' (a pose that belongs to its image: 21-98 % on 7-Scenes): check that the poses are "
-            f"T_world_camera of these images (not inverted, not another frame's); a camera that only rotated does "
-            f"this too"
+            f"frame {self.kid}: only {points} of {seen} feature tracks agree with this pose and its neighbours': "
+            f"check that the poses are T_world_camera of these images (not inverted, not another frame's)"
         )
         self.notes.append(message)
         self.pose_doubted = True

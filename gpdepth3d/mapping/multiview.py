@@ -7,7 +7,7 @@ bundle adjustment (``refine_poses``, the default) a Levenberg-Marquardt on the S
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
@@ -492,27 +492,52 @@ def triangulate_tracks(
     xbar = np.column_stack(
         [(uv_ref[:, 0] - camera.cx) / camera.fx, (uv_ref[:, 1] - camera.cy) / camera.fy, np.ones(len(keep))]
     )
+    held = replace(config, refine_poses=False)
+    prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, held)
+    seen, sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), held)
+    if config.refine_poses and valid.sum() < config.refine_below * max(1, mask.sum()):
+        # the tracks contradict the given poses: refine them (a bundle adjustment with the looser prior);
+        # the noise the residuals showed against the given poses (``seen``) still widens sigma
+        # (``variance_factor``): the refined poses fit the tracks, not necessarily the scene's depth
+        prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, config)
+        sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)[1]
+    else:
+        config = held
+    var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
+    return _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+
+
+def _solved(xbar, obs, mask, T_jr, camera, config: TriangulationConfig):
+    """The inverse depths from the linear start and the robust refinement: (problem, rho, residuals, valid).
+
+    With ``refine_poses`` the neighbours' poses are refined under the prior ``refine_rotation_sigma_deg`` /
+    ``refine_translation_sigma``; else they are held, with the prior ``rotation_sigma_deg`` / ``translation_sigma``.
+    """
+    refine = config.refine_poses
     prob = _Problem(
         xbar,
         obs,
-        mask,
+        mask.copy(),
         T_jr[:, :3, :3],
         T_jr[:, :3, 3],
         camera,
         config.pixel_sigma,
-        np.radians(config.rotation_sigma_deg),
-        config.translation_sigma,
+        np.radians(config.refine_rotation_sigma_deg if refine else config.rotation_sigma_deg),
+        config.refine_translation_sigma if refine else config.translation_sigma,
     )
+    mask = mask.copy()
     rho = _linear_inverse_depth(xbar, obs, mask, prob.R, prob.t, prob.f, prob.c)
     rho_ok = np.isfinite(rho) & (rho > 0)
-    rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
-    mask &= rho_ok[:, None]
+    if refine and rho_ok.any():
+        # poses off by a few degrees put many linear depths behind a view; the bundle adjustment corrects
+        # the poses, so such tracks start from the others' median depth rather than being dropped
+        rho = np.where(rho_ok, rho, np.median(rho[rho_ok]))
+    else:
+        rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
+        mask &= rho_ok[:, None]
     prob.mask = mask
     rho, r, valid = _refined_depths(prob, rho, mask, xbar, obs, config)
-
-    seen, sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)
-    var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
-    return _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+    return prob, rho, r, valid
 
 
 def _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config) -> MultiViewPoints:

@@ -37,16 +37,19 @@ class TriangulationConfig:
         pixel_sigma: Standard deviation of a keypoint position (u and v), pixels; the noise
             the residuals show is used when larger.
         rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to
-            the reference (per axis), degrees: loose (1 degree), since the tracks fix the rotations
-            well and a SLAM or VIO back-end's poses are off by a fraction of a degree to a few degrees
-            (the choice: bench/results/mapping_sequences.json, exact and perturbed poses).
-        translation_sigma: Prior standard deviation of each neighbour's translation relative
-            to the reference (per axis), metres: what holds the metric scale (2 cm).
-        refine_poses: Refine the neighbours' poses relative to the reference jointly with the
-            depths (the default): a robust (Cauchy) bundle adjustment with the pose prior, an
-            iteratively reweighted Levenberg-Marquardt on the Schur complement of the depths, sigma
-            from its Gauss-Newton information; off: poses held, their prior uncertainty carried
-            into sigma (for exact poses only).
+            the reference (per axis), degrees, for poses held: poses that agree with their tracks.
+        translation_sigma: The same for the translation, metres.
+        refine_poses: Where the tracks contradict the given poses (fewer than ``refine_below`` of the
+            observations within ``max_reprojection_error`` with the poses held), refine the neighbours'
+            poses relative to the reference jointly with the depths: a robust (Cauchy) bundle adjustment
+            under the prior ``refine_rotation_sigma_deg`` / ``refine_translation_sigma``, an iteratively
+            reweighted Levenberg-Marquardt on the Schur complement of the depths, sigma from its
+            Gauss-Newton information. False: poses always held, their prior carried into sigma.
+        refine_below: The share of the observations agreeing with the held poses below which they are refined.
+        refine_rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to the
+            reference when refined, degrees: loose, as the tracks fix the rotations well and a SLAM or VIO
+            back-end's poses are off by a fraction of a degree to a few degrees.
+        refine_translation_sigma: The same for the translation, metres: what holds the metric scale.
         variance_factor: Scale each frame's variances by (residual noise / pixel_sigma)^2 when
             the residuals exceed the assumed pixel noise (a posteriori variance factor).
         min_views: Fewest views (reference included) that must support a multi-view point.
@@ -69,9 +72,12 @@ class TriangulationConfig:
     max_reprojection_error: float = 3.0
     min_parallax_deg: float = 0.5
     pixel_sigma: float = 0.5
-    rotation_sigma_deg: float = 1.0
-    translation_sigma: float = 0.02
+    rotation_sigma_deg: float = 0.1
+    translation_sigma: float = 0.005
     refine_poses: bool = True
+    refine_below: float = 0.3
+    refine_rotation_sigma_deg: float = 1.0
+    refine_translation_sigma: float = 0.02
     variance_factor: bool = True
     min_views: int = 2
     depth_sigma_floor: float = 0.04
@@ -88,6 +94,8 @@ class TriangulationConfig:
             value = getattr(self, name)
             if int(value) != value or value < low:
                 raise InvalidInputError(name, f"an integer >= {low}", value)
+        if not 0 <= self.refine_below <= 1:
+            raise InvalidInputError("refine_below", "a share in [0, 1]", self.refine_below)
         if not 0 < self.ratio <= 1:
             raise InvalidInputError("ratio", "a value in (0, 1]", self.ratio)
         for name in (
@@ -98,6 +106,8 @@ class TriangulationConfig:
             "max_relative_sigma",
             "rotation_sigma_deg",
             "translation_sigma",
+            "refine_rotation_sigma_deg",
+            "refine_translation_sigma",
             "min_corner_distance",
             "sift_contrast_threshold",
         ):
