@@ -369,10 +369,11 @@ class TestTriangulateTracks:
         tracks = _tracks(X, poses)
         off = [poses[0]] + [T @ _posed([0.0, 0.0, 0.0], (0.3, -0.3, 0.2)) for T in poses[1:]]
         cfg = TriangulationConfig(
-            refine_poses=True, rotation_sigma_deg=1.0, translation_sigma=0.01, max_relative_sigma=1.0
+            refine_below=1.0, refine_rotation_sigma_deg=1.0, refine_translation_sigma=0.01, max_relative_sigma=1.0
         )
         mv = triangulate_tracks(tracks, off, CAM, reference=0, config=cfg)
-        fixed = triangulate_tracks(tracks, off, CAM, reference=0, config=TriangulationConfig(max_relative_sigma=1.0))
+        held = TriangulationConfig(refine_poses=False, max_relative_sigma=1.0)
+        fixed = triangulate_tracks(tracks, off, CAM, reference=0, config=held)
 
         def angle(A, B):
             c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2
@@ -395,6 +396,9 @@ class TestTriangulateTracks:
             rotation_sigma_deg=0.2,
             translation_sigma=0.005,
             refine_poses=True,
+            refine_below=1.0,  # refined always: the tracks agree with these poses within the gate
+            refine_rotation_sigma_deg=0.2,
+            refine_translation_sigma=0.005,
             variance_factor=False,
             depth_sigma_floor=0.0,
             max_relative_sigma=1.0,
