@@ -5,7 +5,7 @@ Usage::
     python bench/mapping_sequences.py [--data ../shared/data] [--model ../shared/models/fast_depth_224.tflite]
                                       [--sequences 7scenes hololens] [--frames N] [--colmap]
                                       [--set FIELD=VALUE ...] [--out bench/results/mapping_sequences.json]
-                                      [--save-frames DIR]
+                                      [--save-frames DIR] [--perturb CM,DEG ...] [--seed S]
     python bench/mapping_sequences.py --refuse DIR --sweep weight_threshold=0.2,0.5 [--sweep FIELD=V1,V2 ...]
     python bench/mapping_sequences.py --select gp.lengthscale=32.0,64.0 [--select FIELD=V1,V2[@SEQ] ...]
                                       [--choose-on hololens]
@@ -24,6 +24,9 @@ the MDE, the library's own triangulated points (no sensor depth used), and in th
 Measured: `gpdepth3d.metrics.mesh_metrics` at 5 cm (50k samples), the points per frame, the +-2 sigma
 coverage of the points against the sensor depth, frames fused with points / without, and the
 milliseconds of ``Mapper.add_frame`` (its own stages plus the MDE run on the frame it adds).
+``--perturb CM,DEG`` (repeatable) maps each sequence again with every pose given to the Mapper and to the
+MDE-only volume moved by CM centimetres and turned by DEG degrees, in random directions, independently per frame
+(`perturb_poses`, seeded by ``--seed``): a SLAM back-end's poses; the reference volume keeps the sensor's poses.
 ``--set`` overrides a MapperConfig field (``window=8``) or a nested one (``fusion.sigma_ref=0.1``,
 ``triangulation.max_features=800``) for experiments; the JSON records the config used. Timings
 are wall-clock on a shared 2-core machine: compare within one run. Results go to
