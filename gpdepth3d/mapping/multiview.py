@@ -495,16 +495,28 @@ def triangulate_tracks(
     held = replace(config, refine_poses=False)
     prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, held)
     seen, sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), held)
+    held_agreeing = int(np.sum(valid.sum(axis=1) >= config.min_views - 1))
+    contradicted = False
     if config.refine_poses and valid.sum() < config.refine_below * max(1, mask.sum()):
         # the tracks contradict the given poses: refine them (a bundle adjustment with the looser prior);
         # the noise the residuals showed against the given poses (``seen``) still widens sigma
         # (``variance_factor``): the refined poses fit the tracks, not necessarily the scene's depth
         prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, config)
         sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)[1]
+        # corrections far beyond the prior: the given poses do not belong to these images
+        z = np.sqrt(np.mean(prob.xi**2 * prob.prior, axis=1))
+        contradicted = bool(z.size and np.max(z) > _CONTRADICTED)
     else:
         config = held
     var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
-    return _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+    out = _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+    return replace(out, agreeing=held_agreeing) if contradicted else out
+
+
+_CONTRADICTED = 4.0
+"""A neighbour's pose correction whose RMS over its 6 components exceeds this many prior sigmas says the given
+poses do not belong to the images (inverted, another frame's): the tracks then count as agreeing only as far
+as they do with the poses held (`MultiViewPoints.agreeing`)."""
 
 
 def _solved(xbar, obs, mask, T_jr, camera, config: TriangulationConfig):
