@@ -432,7 +432,7 @@ class TestRobustness:
             message = [w for w in bad[7].warnings if "feature tracks agree" in w]
             assert len(message) == 1
             agree, seen = (int(x) for x in re.match(r"frame 7: only (\d+) of (\d+) ", message[0]).groups())
-            assert seen >= 50 and agree < POSE_TRACK_SHARE * seen and len(bad[7].sparse) <= agree, name
+            assert seen >= 50 and agree < POSE_TRACK_SHARE * seen, name
 
     def test_project_map_points_counts(self):
         pts = CAM.backproject_pixels(np.array([[10.0, 10.0], [10.0, 10.0], [50.0, 20.0]]), np.array([2.0, 3.0, 2.5]))
