@@ -39,7 +39,7 @@ def test_mapping_tables_follow_the_json(tmp_path):
     d = json.loads((ROOT / "bench" / "results" / "mapping_sequences.json").read_text(encoding="utf-8"))
     d["sequences"]["hololens"]["fscore"] = 0.987
     (results / "mapping_sequences.json").write_text(json.dumps(d), encoding="utf-8")
-    assert "| HoloLens walk (94 frames) | **0.987** |" in report.readme_mapping_table(results)
+    assert "| HoloLens walk (94 frames) | exact | **0.987** |" in report.readme_mapping_table(results)
     selection = {
         "choose_on": "hololens",
         "fields": {
