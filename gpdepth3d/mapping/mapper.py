@@ -593,6 +593,8 @@ def _frame_result(
         entry.pose_check,
         entry.scale,
         fallback,
+        mde_fallback=entry.mde_fallback,
+        held_out=entry.held_out,
     )
 
 

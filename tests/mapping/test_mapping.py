@@ -324,14 +324,27 @@ class TestRobustness:
 
     def test_negative_and_nan_mean_masked_and_counted(self, shared_data):
         f = _frames(shared_data, (0,))[0]
-        mapper = Mapper(f.camera, _small_config(), completer=_NegativeCompleter())
+        mapper = Mapper(f.camera, _small_config(held_out=0.0), completer=_NegativeCompleter())
         res = mapper.add_frame(
             f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 100, 0)
         )
-        assert res.fused and res.masked_pixels == 7
+        assert res.fused and res.masked_pixels == 7 and not res.mde_fallback and res.held_out is None
         assert res.depth[0, 0] == 0 and res.depth[5, 5] == 0 and np.all(np.isfinite(res.depth))
         assert any("7 pixels" in w for w in res.warnings)
         assert mapper.keyframes[0].depth[0, 0] == 0
+
+    def test_a_refinement_worse_than_the_rescaled_mde_falls_back_to_it(self, shared_data):
+        # the broken posterior (negative and NaN means) predicts the held-out points worse than the MDE
+        # rescaled by one median: the frame is fused as that MDE, with its variance, and says so
+        f = _frames(shared_data, (0,))[0]
+        mapper = Mapper(f.camera, _small_config(), completer=_NegativeCompleter())
+        mde = _standin_mde(f.depth)
+        res = mapper.add_frame(f.rgb, f.pose, mde_depth=mde, sparse=_kinect_sparse(f, f.camera, 100, 0))
+        assert res.fused and res.mde_fallback and res.held_out.held_out == 20 and res.posterior is None
+        assert res.masked_pixels == 0 and np.all(res.variance >= 0)
+        np.testing.assert_allclose(res.depth[res.mde > 0], (res.mde * res.held_out.mde_scale)[res.mde > 0], rtol=1e-5)
+        assert any("held-out points worse than the MDE" in w for w in res.warnings)
+        assert res.fallback_weight == mapper.fusion.config.fallback_for(0)
 
     def test_bad_frames_are_recorded_and_the_sequence_goes_on(self, shared_data):
         frames = _frames(shared_data, (0, 1, 2, 3))
@@ -746,7 +759,8 @@ class TestFusedDepth:
 
         f = _frames(shared_data, (0,))[0]
         for estimate in ("median", "mean"):
-            mapper = Mapper(f.camera, _small_config(fuse_depth=estimate))
+            # held_out off: the stand-in MDE is the Kinect depth blurred, rescaled it can beat the GP
+            mapper = Mapper(f.camera, _small_config(fuse_depth=estimate, held_out=0.0))
             res = mapper.add_frame(
                 f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 60, 0)
             )
@@ -852,7 +866,8 @@ class TestMapScale:
         }
         results = {}
         for key, kw in (("on", {}), ("off", dict(scale_variance=False)), ("strict", dict(map_scale_max_sigma=1e-6))):
-            mapper = Mapper(cam, _small_config(triangulate=True, lag=0, **kw))
+            # held_out off: the stand-in MDE is the Kinect depth blurred, rescaled it can beat the GP
+            mapper = Mapper(cam, _small_config(triangulate=True, lag=0, held_out=0.0, **kw))
             mapper._points.triangulate = lambda rgb, T, kid: scaled[kid]
             for i, f in enumerate(frames):
                 results[key, i] = mapper.add_frame(f.rgb, f.pose, mde_depth=_standin_mde(f.depth))
