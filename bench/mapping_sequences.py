@@ -5,7 +5,7 @@ Usage::
     python bench/mapping_sequences.py [--data ../shared/data] [--model ../shared/models/fast_depth_224.tflite]
                                       [--sequences 7scenes hololens] [--frames N] [--colmap]
                                       [--set FIELD=VALUE ...] [--out bench/results/mapping_sequences.json]
-                                      [--save-frames DIR]
+                                      [--save-frames DIR] [--perturb CM,DEG ...] [--seed S]
     python bench/mapping_sequences.py --refuse DIR --sweep weight_threshold=0.2,0.5 [--sweep FIELD=V1,V2 ...]
     python bench/mapping_sequences.py --select gp.lengthscale=32.0,64.0 [--select FIELD=V1,V2[@SEQ] ...]
                                       [--choose-on hololens]
@@ -24,6 +24,9 @@ the MDE, the library's own triangulated points (no sensor depth used), and in th
 Measured: `gpdepth3d.metrics.mesh_metrics` at 5 cm (50k samples), the points per frame, the +-2 sigma
 coverage of the points against the sensor depth, frames fused with points / without, and the
 milliseconds of ``Mapper.add_frame`` (its own stages plus the MDE run on the frame it adds).
+``--perturb CM,DEG`` (repeatable) maps each sequence again with every pose given to the Mapper and to the
+MDE-only volume moved by CM centimetres and turned by DEG degrees, in random directions, independently per frame
+(`perturb_poses`, seeded by ``--seed``): a SLAM back-end's poses; the reference volume keeps the sensor's poses.
 ``--set`` overrides a MapperConfig field (``window=8``) or a nested one (``fusion.sigma_ref=0.1``,
 ``triangulation.max_features=800``) for experiments; the JSON records the config used. Timings
 are wall-clock on a shared 2-core machine: compare within one run. Results go to
@@ -92,6 +95,39 @@ def load_7scenes(root: Path, max_frames: int | None = None) -> list:
 
 
 LOADERS = {"7scenes": load_7scenes, "hololens": load_hololens}
+
+
+def perturb_poses(poses: list, cm: float, deg: float, seed: int = 0) -> list:
+    """Each ``T_world_camera`` with its own independent error: as a SLAM back-end's poses are off from the truth.
+
+    Frame k's camera is turned by exactly ``deg`` degrees about a random axis and moved by exactly ``cm``
+    centimetres in a random direction (both uniform on the sphere, in the camera's frame):
+    ``T' = T @ [exp(w) | d]``. Seeded (``numpy.random.default_rng(seed)``), so a run is repeatable.
+
+    Args:
+        poses: 4x4 ``T_world_camera`` poses.
+        cm: Translation error of every frame, centimetres (>= 0).
+        deg: Rotation error of every frame, degrees (>= 0).
+        seed: Seed of the random directions.
+
+    Returns:
+        The perturbed poses (new arrays), in order.
+    """
+    import cv2
+
+    if not (np.isfinite(cm) and np.isfinite(deg) and cm >= 0 and deg >= 0):
+        raise ValueError(f"perturbation: cm and deg must be finite and >= 0, got {cm}, {deg}")
+    rng = np.random.default_rng(seed)
+    out = []
+    for T in poses:
+        axis, direction = rng.normal(size=3), rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        direction /= np.linalg.norm(direction)
+        delta = np.eye(4)
+        delta[:3, :3] = cv2.Rodrigues(axis * np.radians(deg))[0]
+        delta[:3, 3] = direction * cm / 100.0
+        out.append(np.asarray(T, dtype=np.float64) @ delta)
+    return out
 
 
 def _override(config, key: str, value):
@@ -188,15 +224,21 @@ def refuse(path: Path, fusion_configs: dict) -> dict:
     return out
 
 
-def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, save_frames: Path | None = None) -> dict:
+def run_sequence(
+    frames: list, mde_depths: list, config, *, map_points=None, save_frames: Path | None = None, poses=None
+) -> dict:
     """One Mapper pass (plus the MDE-only and reference volumes) over a loaded sequence; with ``save_frames``
-    what it fused is also written there (`save_fused_frames`)."""
+    what it fused is also written there (`save_fused_frames`).
+
+    ``poses`` (default: the frames' own) are the poses the Mapper and the MDE-only volume are given (e.g.
+    `perturb_poses`); the reference volume always fuses the sensor depth with the frames' own poses."""
     from gpdepth3d.mapping.tsdf.fusion import TSDFFusion
     from gpdepth3d.mapping.frame_inputs import resize_depth
     from gpdepth3d.mapping.mapper import Mapper
     from gpdepth3d.metrics import mesh_metrics
 
     camera = frames[0].camera
+    given = [f.pose for f in frames] if poses is None else list(poses)
     mapper = Mapper(camera, config)
     work = mapper.work_camera
     uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
@@ -213,13 +255,13 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
                     {
                         "depth": result.depth.astype(np.float32),
                         "variance": result.variance.astype(np.float32),
-                        "pose": frame.pose,
+                        "pose": given[result.keyframe_id],
                         "rgb": work_rgb,
                         "points": len(result.sparse) if config.refine else 0,
                     }
                 )
         if result.mde.size:
-            mde_volume.integrate(result.mde, frame.pose, rgb=mapper._work_rgb(frame.rgb))
+            mde_volume.integrate(result.mde, given[result.keyframe_id], rgb=mapper._work_rgb(frame.rgb))
         ref_volume.integrate(resize_depth(frame.depth, work.shape), frame.pose, rgb=mapper._work_rgb(frame.rgb))
         inside, known = point_coverage(result, frame, camera)
         rows.append(
@@ -232,6 +274,8 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
                 "error": result.error,
                 "fallback_weight": result.fallback_weight,
                 "map_scale": result.map_scale,
+                "pose_warning": any("feature tracks agree" in w for w in result.warnings),
+                "mde_fallback": bool(getattr(result, "mde_fallback", False)),
             }
         )
         results.append(result)
@@ -243,12 +287,7 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
         if sigma is not None and not len(sigma):
             sigma = None
         result = mapper.add_frame(
-            frame.rgb,
-            frame.pose,
-            mde_depth=mde_depths[i][0],
-            keyframe_id=i,
-            map_points_world=pts,
-            map_points_sigma=sigma,
+            frame.rgb, given[i], mde_depth=mde_depths[i][0], keyframe_id=i, map_points_world=pts, map_points_sigma=sigma
         )
         add_ms.append(1000 * (time.perf_counter() - t0 + mde_depths[i][1]))
         if result is not None:
@@ -274,7 +313,10 @@ def run_sequence(frames: list, mde_depths: list, config, *, map_points=None, sav
         "points_within_2sigma": inside / known if known else None,
         "points_with_sensor_depth": known,
         "frames_fused": int(sum(r["fused"] for r in rows)),
+        "frames_pose_warned": int(sum(r["pose_warning"] for r in rows)),
+        "frames_mde_fallback": int(sum(r["mde_fallback"] for r in rows)),
         "frame_errors": [r["error"] for r in rows if r["error"]],
+        "mde_ms": {"median": float(np.median([1000 * t for _, t in mde_depths]))},
         "add_frame_ms": {
             "median": float(np.median(add_ms)),
             "mean": float(np.mean(add_ms)),
@@ -328,6 +370,14 @@ def main(argv: list[str] | None = None) -> dict:
         "--colmap-sigma", type=float, default=0.03, help="their depth sigma, a fraction of the distance"
     )
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    parser.add_argument(
+        "--perturb",
+        action="append",
+        default=[],
+        metavar="CM,DEG",
+        help="also map with every pose perturbed by CM centimetres and DEG degrees (perturb_poses; repeatable)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of --perturb")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--save-frames", type=Path, default=None, metavar="DIR", help="write DIR/<sequence>.npz")
     parser.add_argument(
@@ -372,7 +422,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.select:
         return select_main(args, mde)
     load_before = os.getloadavg()[0]
-    report = {"sequences": {}, "overrides": args.set}
+    report = {"sequences": {}, "overrides": args.set, "perturb": args.perturb, "seed": args.seed}
     for seq in args.sequences:
         frames, mde_depths = load_sequence(args.data, seq, args.frames, mde)
         config = mapper_config(frames, args.set)
@@ -386,13 +436,16 @@ def main(argv: list[str] | None = None) -> dict:
             row["colmap"] = colmap_run(frames, mde_depths, replace(config, triangulate=False), args.colmap_sigma)
         row["config"] = asdict(config)
         report["sequences"][seq] = row
-        print(
-            f"{seq}: F {row['fscore']:.3f} (MDE only {row['fscore_mde_only']:.3f}), points/frame "
-            f"{row['points_per_frame_median']:.0f}, <20 points in {row['frames_with_under_20_points']} frames, "
-            f"+-2 sigma {row['points_within_2sigma']}, add_frame median {row['add_frame_ms']['median']:.0f} ms"
-            + (f", pycolmap points F {row['colmap']['fscore']:.3f}" if args.colmap else ""),
-            flush=True,
-        )
+        _print_row(seq, row)
+        row["perturbed"] = {}
+        for item in args.perturb:
+            cm, deg = (float(v) for v in item.split(","))
+            poses = perturb_poses([f.pose for f in frames], cm, deg, seed=args.seed)
+            sub = run_sequence(frames, mde_depths, config, poses=poses)
+            sub.pop("per_frame")
+            sub.update(cm=cm, deg=deg, seed=args.seed, frames=len(frames))
+            row["perturbed"][item] = sub
+            _print_row(f"{seq} poses perturbed by {cm:g} cm, {deg:g} deg", sub)
     report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     report["machine"] = {
         "platform": platform.platform(),
@@ -401,6 +454,17 @@ def main(argv: list[str] | None = None) -> dict:
     }
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
+
+
+def _print_row(name: str, row: dict) -> None:
+    print(
+        f"{name}: F {row['fscore']:.3f} (MDE only {row['fscore_mde_only']:.3f}), points/frame "
+        f"{row['points_per_frame_median']:.0f}, <20 points in {row['frames_with_under_20_points']} frames, "
+        f"+-2 sigma {row['points_within_2sigma']}, pose warnings {row['frames_pose_warned']}, MDE fallbacks "
+        f"{row['frames_mde_fallback']}, add_frame median {row['add_frame_ms']['median']:.0f} ms"
+        + (f", pycolmap points F {row['colmap']['fscore']:.3f}" if "colmap" in row else ""),
+        flush=True,
+    )
 
 
 SIGMA_COVERAGE = (0.90, 0.98)

@@ -18,15 +18,16 @@ from ..errors import GPDepthError
 from ..measurements import SparseDepth
 from .points.map_points import MapPointStats, merge_sparse, project_map_points
 from ..io.poses import InvertedPoseWarning, PoseCheck, check_pose_orientation
+from .mde_check import HeldOutCheck
 
 POSE_TRACK_MIN = 50
 """Feature tracks a frame needs before its pose is checked against them (fewer: too little texture to tell)."""
 POSE_TRACK_SHARE = 0.1
-"""A frame whose own triangulation keeps fewer than this share of its tracks (seen in another view) gets a
-warning that its pose may not belong to its image. On the 60 shared 7-Scenes frames (the tracker's defaults,
-window 8, lag 4) the share is 0.21-0.98 (below 0.3 only in the blurred frames 24-38); with the pose of frame 12
-or 40 inverted, moved by 0.3 m or turned by 0.2 rad, that frame's share is 0.00-0.04 (and 0.02-0.05 in the
-frames 36-41 around frame 40, whose windows hold it: they are warned about too)."""
+"""A frame whose tracks (seen in another view) agree with its pose and its neighbours' in fewer than this share
+(`gpdepth3d.mapping.multiview.MultiViewPoints.agreeing`: within the reprojection gate after the bundle
+adjustment, in front of the cameras) gets a warning that its pose may not belong to its image: an inverted pose
+or another frame's leaves almost none, a pose off by a few centimetres and degrees most (the shares on the shared
+sequences: tests/mapping/test_mapping.py)."""
 
 
 @dataclass
@@ -49,6 +50,7 @@ class PendingFrame:
         scale_var: Its log-scale variance left after that correction.
         pose_doubted: Its feature tracks contradict its pose (`check_tracks` warned): the local
             map's points, placed by that pose, are not used.
+        held_out: The held-out comparison of its GP with its rescaled MDE (`mde_check`), once run.
     """
 
     kid: int
@@ -65,6 +67,12 @@ class PendingFrame:
     scale: float = 1.0
     scale_var: float = 0.0
     pose_doubted: bool = False
+    held_out: HeldOutCheck | None = None
+
+    @property
+    def mde_fallback(self) -> bool:
+        """It is fused as its rescaled MDE: its points' GP predicted held-out points no better."""
+        return self.held_out is not None and not self.held_out.gp_better
 
     @property
     def pose_in_doubt(self) -> bool:
@@ -101,14 +109,15 @@ class PendingFrame:
             self.note("map points", exc)
 
     def check_tracks(self, seen: int, points: int, *, stacklevel: int = 3) -> None:
-        """Warns (noted and as `InvertedPoseWarning`) when ``points`` of ``seen`` tracks contradict its pose."""
+        """Warns (noted and as `InvertedPoseWarning`) when only ``points`` of ``seen`` tracks agree with its pose.
+
+        ``points``: the tracks its pose and its neighbours' agree with (`MultiViewPoints.agreeing`).
+        """
         if seen < POSE_TRACK_MIN or points >= POSE_TRACK_SHARE * seen:
             return
         message = (
-            f"frame {self.kid}: only {points} of {seen} feature tracks triangulate with this pose and its "
-            f"neighbours' (a pose that belongs to its image: 21-98 % on 7-Scenes): check that the poses are "
-            f"T_world_camera of these images (not inverted, not another frame's); a camera that only rotated does "
-            f"this too"
+            f"frame {self.kid}: only {points} of {seen} feature tracks agree with this pose and its neighbours': "
+            f"check that the poses are T_world_camera of these images (not inverted, not another frame's)"
         )
         self.notes.append(message)
         self.pose_doubted = True

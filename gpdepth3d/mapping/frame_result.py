@@ -10,6 +10,7 @@ from ..completion.complete import DepthPosterior
 from ..measurements import SparseDepth
 from .points.map_points import MapPointStats
 from ..io.poses import PoseCheck
+from .mde_check import HeldOutCheck
 
 STAGES = ("mde", "points", "gp", "fusion")
 """The timed stages of `Mapper.add_frame` (keys of `FrameResult.timings`, plus "total")."""
@@ -47,6 +48,10 @@ class FrameResult:
             for one with many; 1 without refinement (uniform weights).
         pose_in_doubt: Its pose failed the pose check: its feature tracks do not triangulate with
             it, or its map points look inverted under it (`PendingFrame.pose_in_doubt`).
+        mde_fallback: The frame was fused as its MDE rescaled by one median, with that MDE's
+            variance, because its points' GP predicted held-out points no better
+            (`gpdepth3d.mapping.mde_check`; ``MapperConfig.held_out``); a warning says so.
+        held_out: That held-out comparison, or None when it did not run.
     """
 
     depth: np.ndarray
@@ -65,3 +70,5 @@ class FrameResult:
     map_scale: float = 1.0
     fallback_weight: float = 0.0
     pose_in_doubt: bool = False
+    mde_fallback: bool = False
+    held_out: HeldOutCheck | None = None

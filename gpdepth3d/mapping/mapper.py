@@ -46,6 +46,7 @@ back-end's trajectory file (TUM, ORB-SLAM3, KITTI, COLMAP) come from `gpdepth3d.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -79,7 +80,9 @@ from .map_store import (
     write_map_meta,
 )
 from .mapper_config import MapperConfig
+from .mde_check import HeldOutCheck, held_out_check, mde_fallback
 from .own_points import OwnPoints
+from .point_calibration import SigmaCalibration, paired_z_scores
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
@@ -126,6 +129,8 @@ class Mapper:
         self._points = OwnPoints(camera, self.config)
         frames = int(self.config.local_map_frames) if self.config.refine else 0
         self._local_map = LocalMap(frames, self.config.local_map_cell) if frames else None
+        calibrate = self._local_map is not None and self.config.sigma_calibration_frames > 0
+        self._calibration = SigmaCalibration(self.config.sigma_calibration_frames) if calibrate else None
         self.keyframes: dict[int, Keyframe] = {}
         self.frames = 0
         self._next_id = 0
@@ -284,15 +289,29 @@ class Mapper:
                 recent=int(cfg.map_scale_keyframes),
                 max_relative_sigma=float(cfg.map_scale_max_sigma),
             )
+            own_index = len(parts)
             parts.append(own)
         if self._local_map is not None:
             if not entry.pose_in_doubt:  # the local map's points land where the frame's pose puts them
-                parts.append(
-                    self._local_map.fill(merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera)
+                seen = self._local_map.seen(entry.T, self.camera)
+                if own is not None and self._calibration is not None:
+                    cell = self._local_map.cell * self.camera.width
+                    self._calibration.add(paired_z_scores(own, seen, cell))
+                fill = self._local_map.fill(
+                    merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera, seen
                 )
-            if own is not None:
+                parts.append(self._calibrated(fill))
+            if own is not None:  # remembered with the triangulation's sigma: the z-scores compare those
                 self._local_map.add(entry.kid, own, entry.T, self.camera)
+        if own is not None:
+            parts[own_index] = self._calibrated(own)
         entry.measurements = select_measurements(parts, self.camera.shape, cfg.max_points)
+
+    def _calibrated(self, points: SparseDepth) -> SparseDepth:
+        """The Mapper's own points with their sigma times the running factor (`SigmaCalibration`)."""
+        if self._calibration is None or self._calibration.factor == 1.0:
+            return points
+        return points.with_sigma(points.sigma * self._calibration.factor)
 
     def _refusal(self, entry: PendingFrame) -> tuple[str, BaseException] | None:
         """Why the frame is not refined (stage, error): an earlier stage failed or its pose looks inverted."""
@@ -314,11 +333,36 @@ class Mapper:
             return None, entry.mde, np.full(work_shape, np.nan)
         # the frame's name goes into the posterior's warnings (a duck-typed completer may not take it)
         named = {"frame": str(entry.kid)} if isinstance(self.completer, DepthCompleter) else {}
+        if self.config.held_out > 0 and len(entry.measurements):
+            entry.held_out = self._held_out_check(entry, work_shape)
+            if entry.mde_fallback:
+                entry.notes.append(entry.held_out.describe(entry.kid))
+                depth, variance = mde_fallback(entry.mde, entry.held_out)
+                return None, depth, variance
         posterior = self.completer.complete(entry.mde, entry.measurements, output_shape=work_shape, **named)
         depth, variance = fused_depth(posterior, self.config.fuse_depth), posterior.variance
         if self.config.scale_variance and entry.scale_var > 0:
             variance = variance + entry.scale_var * np.square(depth)
         return posterior, depth, variance
+
+    def _held_out_check(self, entry: PendingFrame, work_shape: tuple[int, int]) -> HeldOutCheck:
+        """The frame's GP on most of its points against its rescaled MDE at the others (`held_out_check`)."""
+
+        def refine(kept: SparseDepth) -> np.ndarray:
+            with warnings.catch_warnings():  # the full posterior's warnings are the frame's
+                warnings.simplefilter("ignore")
+                posterior = self.completer.complete(entry.mde, kept, output_shape=work_shape)
+            return fused_depth(posterior, self.config.fuse_depth)
+
+        cfg = self.config
+        return held_out_check(
+            refine,
+            entry.mde,
+            entry.measurements,
+            fraction=float(cfg.held_out),
+            min_held_out=int(cfg.min_held_out),
+            seed=entry.kid,
+        )
 
     def _fuse(
         self,
@@ -330,22 +374,26 @@ class Mapper:
     ) -> FrameResult:
         """The fusion step; what is fused (float32 at the working size) is what the keyframe store keeps."""
         kid, n = entry.kid, len(entry.measurements)
+        # a frame fused as its rescaled MDE is weighted as one without points (its variance is the MDE's)
+        weighted_points = n if self.config.refine and not entry.mde_fallback else 0
         depth32, var32, masked = _masked(entry, depth, variance)
         depth64, var64 = depth32.astype(np.float64), var32.astype(np.float64)
         try:
-            stats = self._integrate(depth32, var32, entry.T, entry.work_rgb, points=n if self.config.refine else 0)
+            stats = self._integrate(depth32, var32, entry.T, entry.work_rgb, points=weighted_points)
         except Exception as exc:  # noqa: BLE001 - e.g. nothing in range; recorded, the run goes on
             result = self._failed(entry, timings, "fusion", exc, mde=entry.mde, posterior=posterior)
             return replace(result, depth=depth64, variance=var64, masked_pixels=masked)
-        fallback = self.fusion.config.fallback_for(n) if self.config.refine else 1.0
+        fallback = self.fusion.config.fallback_for(weighted_points) if self.config.refine else 1.0
         if stats.pixels == 0:
             entry.notes.append(f"frame {kid}: no pixel informed by points and no fallback weight left: nothing fused")
-        elif self.config.refine and n == 0:
+        elif self.config.refine and n == 0 and not entry.mde_fallback:
             entry.notes.append(
                 f"frame {kid}: no points: fused as the MDE with its prior variance, weight {fallback:.2f}"
             )
         if self.config.keep_keyframes:
-            self.keyframes[kid] = Keyframe(kid, entry.T, depth32, var32, entry.work_rgb, stats.block_keys, n)
+            self.keyframes[kid] = Keyframe(
+                kid, entry.T, depth32, var32, entry.work_rgb, stats.block_keys, weighted_points
+            )
         self.frames += 1
         return _frame_result(entry, timings, depth64, var64, entry.mde, posterior, masked=masked, fallback=fallback)
 
@@ -568,6 +616,8 @@ def _frame_result(
         map_scale=entry.scale,
         fallback_weight=fallback,
         pose_in_doubt=entry.pose_in_doubt,
+        mde_fallback=entry.mde_fallback,
+        held_out=entry.held_out,
     )
 
 

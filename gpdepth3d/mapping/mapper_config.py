@@ -65,6 +65,17 @@ class MapperConfig:
         local_map_cell: Cell size of that fill, a fraction of the image width.
         keep_keyframes: Keep every fused frame's depth, variance, pose and colour at the working
             resolution (about 0.6 MB a frame at 320x240), for `update_poses` and `save`.
+        sigma_calibration_frames: Frames whose overlap with the local map calibrates the sigma of the
+            Mapper's own points (`gpdepth3d.mapping.point_calibration`; 0 off, and off without the local
+            map): where a frame's points and the local map's meet, their differences over their sigmas
+            must spread as z-scores do; a wider spread (poses worse than the triangulation's prior)
+            widens every own point's sigma by it.
+        held_out: Share of a frame's points held out to test its refinement (`gpdepth3d.mapping.mde_check`;
+            0 off): the GP on the other points must predict them better than the MDE rescaled by one
+            median, else the frame is fused as that rescaled MDE with its variance, weighted as a frame
+            without points (``FrameResult.mde_fallback``). The map is then never worse than the MDE's.
+            The test costs one more GP solve a frame.
+        min_held_out: Fewest held-out points the test needs; a frame with fewer is not tested.
         fuse_inverted_poses: Fuse a frame whose given map points look inverted under its pose
             (`check_pose_orientation`); False (default): the frame is reported (``FrameResult.error``,
             `Mapper.failures`) and not fused, since such a pose puts its depth in the wrong place.
@@ -89,6 +100,9 @@ class MapperConfig:
     local_map_frames: int = 8
     local_map_cell: float = 0.02
     keep_keyframes: bool = True
+    sigma_calibration_frames: int = 10
+    held_out: float = 0.2
+    min_held_out: int = 10
     fuse_inverted_poses: bool = False
 
     def __post_init__(self) -> None:
@@ -100,6 +114,8 @@ class MapperConfig:
             min_baseline=non_negative("metres"), local_map_cell=Real(0.0, 1.0, low_open=True, unit="of the width")
         )
         rules.update(working_scale=Real(0.0, 1.0, low_open=True, unit="a factor"))
+        rules.update(sigma_calibration_frames=Int(0), min_held_out=Int(1))
+        rules.update(held_out=Real(0.0, 1.0, high_open=True, unit="a share of the points"))
         flags = ("refine", "triangulate", "scale_variance", "keep_keyframes", "fuse_inverted_poses")
         rules.update({name: Bool() for name in flags})
         check_fields(self, rules)

@@ -67,7 +67,7 @@ class OwnPoints:
                 points = tracker.add(rgb, T, key=kid)
                 for p in self.queue:
                     if p.kid == tracker.last_key:
-                        p.check_tracks(tracker.tracks_seen.pop(p.kid, 0), len(points))
+                        p.check_tracks(tracker.tracks_seen.pop(p.kid, 0), tracker.tracks_agreeing.pop(p.kid, 0))
                         p.triangulated = self._with_refound(p, points)
             except Exception as exc:  # noqa: BLE001 - no points from this step; the MDE still counts
                 entry.note("triangulation", exc)
@@ -99,7 +99,10 @@ class OwnPoints:
     def take(self, entry: PendingFrame, points: SparseDepth | None) -> None:
         """Gives a frame its points from `flush` (checked against its tracks, re-found ones added)."""
         if points is not None:
-            entry.check_tracks(self._tracker.tracks_seen.pop(entry.kid, 0), len(points), stacklevel=4)
+            tracker = self._tracker
+            entry.check_tracks(
+                tracker.tracks_seen.pop(entry.kid, 0), tracker.tracks_agreeing.pop(entry.kid, 0), stacklevel=4
+            )
             entry.triangulated = self._with_refound(entry, points)
 
     def triangulate(self, rgb: np.ndarray, T: np.ndarray, kid: int) -> SparseDepth:

@@ -83,3 +83,27 @@ def test_select_chooses_on_one_sequence_with_honest_sigma_and_confirms_on_the_ot
     assert bench.choose(rows, "hololens") == "3"
     rows = {"a": row(0.4, 0.95, 0.30), "b": row(0.3, 0.95, 0.35), "c": row(0.5, 0.80, 0.60)}
     assert bench.choose(rows, "hololens") == "b"  # none confirmed: the honest one 7-Scenes does best with
+
+
+def test_perturb_poses_moves_and_turns_every_frame_by_the_amount_given_seeded(bench):
+    poses = []
+    for k in range(5):
+        T = np.eye(4)
+        T[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        T[:3, 3] = [k, 0.5, 2.0]
+        poses.append(T)
+    out = bench.perturb_poses(poses, 2.0, 1.5, seed=4)
+    axes = []
+    for T, P in zip(poses, out):
+        delta = np.linalg.inv(T) @ P
+        assert np.linalg.norm(delta[:3, 3]) == pytest.approx(0.02)
+        angle = np.degrees(np.arccos((np.trace(delta[:3, :3]) - 1) / 2))
+        assert angle == pytest.approx(1.5)
+        assert np.allclose(P[:3, :3] @ P[:3, :3].T, np.eye(3))
+        axes.append(delta[:3, 3])
+    assert not np.allclose(axes[0], axes[1])  # independent per frame
+    again = bench.perturb_poses(poses, 2.0, 1.5, seed=4)
+    assert all(np.array_equal(a, b) for a, b in zip(out, again))
+    assert all(np.allclose(a, b) for a, b in zip(bench.perturb_poses(poses, 0.0, 0.0), poses))
+    with pytest.raises(ValueError, match="perturbation"):
+        bench.perturb_poses(poses, -1.0, 0.0)

@@ -369,10 +369,11 @@ class TestTriangulateTracks:
         tracks = _tracks(X, poses)
         off = [poses[0]] + [T @ _posed([0.0, 0.0, 0.0], (0.3, -0.3, 0.2)) for T in poses[1:]]
         cfg = TriangulationConfig(
-            refine_poses=True, rotation_sigma_deg=1.0, translation_sigma=0.01, max_relative_sigma=1.0
+            refine_below=1.0, refine_rotation_sigma_deg=1.0, refine_translation_sigma=0.01, max_relative_sigma=1.0
         )
         mv = triangulate_tracks(tracks, off, CAM, reference=0, config=cfg)
-        fixed = triangulate_tracks(tracks, off, CAM, reference=0, config=TriangulationConfig(max_relative_sigma=1.0))
+        held = TriangulationConfig(refine_poses=False, max_relative_sigma=1.0)
+        fixed = triangulate_tracks(tracks, off, CAM, reference=0, config=held)
 
         def angle(A, B):
             c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2
@@ -395,6 +396,9 @@ class TestTriangulateTracks:
             rotation_sigma_deg=0.2,
             translation_sigma=0.005,
             refine_poses=True,
+            refine_below=1.0,  # refined always: the tracks agree with these poses within the gate
+            refine_rotation_sigma_deg=0.2,
+            refine_translation_sigma=0.005,
             variance_factor=False,
             depth_sigma_floor=0.0,
             max_relative_sigma=1.0,
@@ -424,7 +428,7 @@ class TestTriangulateTracks:
         """`_Problem.jacobian` is the derivative of its residuals; the variance is the inverse of J^T J's depth block."""
         from scipy.optimize._numdiff import approx_derivative
 
-        from gpdepth3d.mapping.points.multiview import _cauchy_per_observation, _joint_inverse_depth_variance, _Problem
+        from gpdepth3d.mapping.points.multiview import _joint_inverse_depth_variance, _Problem
 
         rng = np.random.default_rng(22)
         X = _scene(40, seed=22)
@@ -448,15 +452,23 @@ class TestTriangulateTracks:
         prob.pixel_sigma = 0.8
         J = prob.jacobian(x).toarray()
         np.testing.assert_allclose(var, np.diag(np.linalg.inv(J.T @ J))[:40], rtol=1e-6)
-        # the loss: log(1 + s) of each observation's s = z_u + z_v, its derivative d/dz per row; linear prior rows
-        loss = _cauchy_per_observation(4)
-        z = np.array([0.3, 1.2, 4.0, 0.5, 2.0, 7.0])
-        out = loss(z)
-        np.testing.assert_allclose(out[0, :4].reshape(2, 2).sum(1), np.log1p([1.5, 4.5]))
-        dz = np.diag(np.full(6, 1e-7))
-        numeric = [(loss(z + d)[0].sum() - loss(z - d)[0].sum()) / 2e-7 for d in dz]
-        np.testing.assert_allclose(out[1], numeric, rtol=1e-6)
-        np.testing.assert_allclose(out[:, 4:], [[2.0, 7.0], [1.0, 1.0], [0.0, 0.0]])
+        # the bundle adjustment lowers the robust cost to a stationary point of its reweighted normal equations
+        from gpdepth3d.mapping.points.multiview import _bundle_adjusted, _normal_equations, _robust_cost
+
+        prob.pixel_sigma, prob.mask = 0.5, mask
+        start = _robust_cost(prob, rho, 2.0)
+        rho2 = _bundle_adjusted(prob, rho.copy(), 2.0)
+        assert _robust_cost(prob, rho2, 2.0) < 0.5 * start
+        r = prob.residuals(rho2)[2]
+        w = np.where(mask, 1.0 / (1.0 + np.sum(r * r, axis=-1) / 4.0), 0.0)
+        h, g_r, _, H_xx, g_x, _, _ = _normal_equations(prob, rho2, w)
+        assert np.max(np.abs(g_r) / np.sqrt(h)) < 0.2 and np.max(np.abs(g_x) / np.sqrt(np.diag(H_xx))) < 0.2
+        # the normal equations are J^T W J and J^T W r of the stacked system
+        Js = prob.jacobian(prob.pack(rho2)).toarray()
+        rs = prob.stacked_residuals(prob.pack(rho2))
+        wrow = np.r_[np.repeat(w[mask], 2), np.ones(18)]
+        np.testing.assert_allclose(g_r, (Js.T @ (wrow * rs))[:40], atol=1e-8 * np.abs(g_r).max())
+        np.testing.assert_allclose(H_xx, (Js.T @ (wrow[:, None] * Js))[40:, 40:], rtol=1e-8, atol=1e-6)
 
     def test_checks_and_errors(self):
         X = _scene(50, seed=14)

@@ -22,7 +22,7 @@ from ...measurements import SparseDepth
 from .map_points import project_map_points
 
 
-def _cells(sparse: SparseDepth, cell: float) -> np.ndarray:
+def cell_ids(sparse: SparseDepth, cell: float) -> np.ndarray:
     """Cell index (row-major, on a grid of ``cell``-pixel squares) of each measurement."""
     width = int(np.ceil(sparse.image_size[1] / cell))
     return (np.floor(sparse.v / cell) * width + np.floor(sparse.u / cell)).astype(np.int64)
@@ -46,8 +46,8 @@ def fill_cells(own: SparseDepth, others: SparseDepth, cell: float) -> SparseDept
         raise InvalidInputError("cell", "a cell size > 0 (pixels)", cell)
     if not len(others):
         return others
-    taken = np.unique(_cells(own, cell)) if len(own) else np.zeros(0, np.int64)
-    ids = _cells(others, cell)
+    taken = np.unique(cell_ids(own, cell)) if len(own) else np.zeros(0, np.int64)
+    ids = cell_ids(others, cell)
     free = ~np.isin(ids, taken)
     order = np.lexsort((others.sigma / others.depth, ids))  # per cell, the most certain first
     order = order[free[order]]
@@ -91,11 +91,19 @@ class LocalMap:
                 xyz, sigma, _ = self._points[key]
                 self._points[key] = (xyz, sigma, np.asarray(T, np.float64))
 
-    def fill(self, own: SparseDepth, T_world_camera: np.ndarray, camera: PinholeCamera) -> SparseDepth:
-        """The remembered points seen by a camera, in the grid cells that ``own`` leaves empty (`fill_cells`)."""
+    def seen(self, T_world_camera: np.ndarray, camera: PinholeCamera) -> SparseDepth:
+        """Every remembered point a camera sees, as its sparse depth (the sigma they were triangulated with)."""
         if not self._points:
             return SparseDepth.empty(camera.shape)
         world = np.concatenate([transform_points(T, xyz) for xyz, _, T in self._points.values()])
         sigma = np.concatenate([s for _, s, _ in self._points.values()])
-        seen, _ = project_map_points(world, T_world_camera, camera, sigma=sigma)
+        return project_map_points(world, T_world_camera, camera, sigma=sigma)[0]
+
+    def fill(
+        self, own: SparseDepth, T_world_camera: np.ndarray, camera: PinholeCamera, seen: SparseDepth | None = None
+    ) -> SparseDepth:
+        """The remembered points seen by a camera, in the grid cells that ``own`` leaves empty (`fill_cells`).
+
+        ``seen``: `seen`'s result for this camera when the caller has it."""
+        seen = self.seen(T_world_camera, camera) if seen is None else seen
         return fill_cells(own, seen, self.cell * camera.width)

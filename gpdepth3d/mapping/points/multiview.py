@@ -1,18 +1,17 @@
 """Multi-view triangulation of feature tracks: inverse depth along the reference ray, robust Gauss-Newton, honest sigma.
 
 See `triangulate_tracks`; the held-pose path (the default) runs compiled per-track loops (numba), the
-bundle adjustment with ``refine_poses`` `scipy.optimize.least_squares`.
+bundle adjustment (``refine_poses``, the default) a Levenberg-Marquardt on the Schur complement of the depths.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba as nb
 import numpy as np
 from scipy import sparse
-from scipy.optimize import least_squares
 
 from ...camera import PinholeCamera, check_pose
 from ...completion.threads import single_threaded_blas
@@ -41,6 +40,9 @@ class MultiViewPoints:
             kept as given; views without enough tracks keep their given pose).
         pixel_sigma: Reprojection noise estimated from the residuals (pixels, >= the configured
             ``pixel_sigma``); used in ``sigma``.
+        agreeing: Tracks the poses agree with: in front of their views and seen within
+            ``max_reprojection_error`` in ``min_views`` of them, whether or not they pass the parallax,
+            depth and sigma checks (a pose that does not belong to its image leaves few).
     """
 
     index: np.ndarray
@@ -53,6 +55,7 @@ class MultiViewPoints:
     parallax_deg: np.ndarray
     poses: np.ndarray
     pixel_sigma: float
+    agreeing: int = 0
 
     def __len__(self) -> int:
         return int(self.depth.shape[0])
@@ -144,7 +147,8 @@ class _Problem:
         valid = self.mask & (z > 1e-9) & np.all(np.isfinite(r), axis=-1)
         return p, z, np.where(valid[..., None], r, 0.0), valid
 
-    # ---- the problem as `scipy.optimize.least_squares` sees it: x = (rho (N), xi (J * 6))
+    # ---- the problem as one stacked least-squares system, x = (rho (N), xi (J * 6)): the reference the
+    # normal equations (`_normal_equations`) are checked against
     @property
     def n_data(self) -> int:
         """Reprojection residuals (2 per observation in ``mask``); the 6 J prior residuals follow them."""
@@ -209,53 +213,104 @@ class _Problem:
         return sparse.csr_array((data, indices, indptr), shape=(self.n_data + 6 * nj, n + 6 * nj))
 
 
-def _cauchy_per_observation(n_data: int):
-    """`least_squares` loss: Cauchy of each observation's squared 2-D residual, linear for the prior rows.
+def _normal_equations(prob: _Problem, rho: np.ndarray, w: np.ndarray):
+    """Weighted Gauss-Newton normal equations of the inverse depths (diagonal block) and poses (k = 6 a neighbour).
 
-    scipy's ``loss="cauchy"`` acts on each residual alone, the prior rows included; this is its
-    rho(s) = log(1 + s) on s = (r_u^2 + r_v^2) / f_scale^2 of one observation, with the Gaussian pose
-    prior kept quadratic. rho'' is given as 0: the Gauss-Newton model weights each row by rho'
-    (reweighted least squares, which converges here; the second-order term, clipped for every
-    residual beyond f_scale, stalls the trust region).
+    Args:
+        prob: The problem at its current poses.
+        rho: (N,) inverse depths.
+        w: (N, J) weight of each observation (0: not used).
+
+    Returns:
+        h (N,) the depth block's diagonal, g_r (N,) its gradient, B (N, k J) the depth-pose block,
+        H_xx (k J, k J) the pose block with the prior, g_x (k J,) its gradient (prior included), and
+        the robust cost's data residuals r (N, J, 2) and valid (N, J).
     """
+    r, valid, J_rho, J_xi = prob.derivatives(rho)
+    prior, k = prob.prior, 6
+    n, nj = valid.shape
+    w = np.where(valid, w, 0.0)
+    wj = w[..., None] * J_rho  # (N, J, 2)
+    h = np.einsum("njc,njc->n", wj, J_rho)
+    g_r = np.einsum("njc,njc->n", wj, r)
+    B = np.einsum("njc,njck->njk", wj, J_xi).reshape(n, k * nj)
+    wx = w[..., None, None] * J_xi  # (N, J, 2, k)
+    blocks = np.einsum("njck,njcl->jkl", wx, J_xi)
+    H_xx = np.zeros((k * nj, k * nj))
+    for j in range(nj):
+        H_xx[k * j : k * j + k, k * j : k * j + k] = blocks[j] + np.diag(prior)
+    g_x = (np.einsum("njck,njc->jk", wx, r) + prob.xi * prior).reshape(-1)
+    return h, g_r, B, H_xx, g_x, r, valid
 
-    def loss(z: np.ndarray) -> np.ndarray:
-        out = np.zeros((3, z.size))
-        s = z[:n_data].reshape(-1, 2).sum(axis=1)
-        out[0, :n_data] = np.repeat(0.5 * np.log1p(s), 2)  # the two rows share an observation's cost
-        out[1, :n_data] = np.repeat(1.0 / (1.0 + s), 2)
-        out[0, n_data:], out[1, n_data:] = z[n_data:], 1.0
-        return out
 
-    return loss
+def _robust_cost(prob: _Problem, rho: np.ndarray, scale: float, R=None, t=None, xi=None) -> float:
+    """Cauchy cost of the observations in ``mask`` (units of pixel_sigma) plus the Gaussian pose prior."""
+    _, _, r, valid = prob.residuals(rho, R, t)
+    s = np.where(valid & prob.mask, np.sum(r * r, axis=-1), 0.0)
+    xi = prob.xi if xi is None else xi
+    return float(scale**2 * np.sum(np.log1p(s / scale**2)) + np.sum(xi * xi * prob.prior))
+
+
+def _schur_solve(h, g_r, B, H_xx, g_x, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt step (d rho, d xi): the depths eliminated by their Schur complement (6 J unknowns left)."""
+    hd = h * (1.0 + damping)
+    inv = np.where(hd > 0, 1.0 / np.where(hd > 0, hd, 1.0), 0.0)
+    Bi = B * inv[:, None]
+    S = H_xx + damping * np.diag(np.diag(H_xx)) - B.T @ Bi
+    rhs = -g_x + Bi.T @ g_r
+    try:
+        dx = np.linalg.solve(S, rhs)
+    except np.linalg.LinAlgError:
+        dx = np.linalg.lstsq(S, rhs, rcond=None)[0]
+    return -(g_r + B @ dx) * inv, dx
+
+
+_GN_STEPS = 12
+"""Most Levenberg-Marquardt steps of one bundle adjustment (`_bundle_adjusted`)."""
+_FTOL = 1e-3
+"""A bundle adjustment stops when a step lowers the cost by less than this fraction of it."""
 
 
 def _bundle_adjusted(prob: _Problem, rho: np.ndarray, scale: float) -> np.ndarray:
     """Inverse depths and poses (left in ``prob``) minimising the robust cost at Cauchy ``scale`` (units of pixel_sigma).
 
-    Trust-region reflective least squares on the analytic sparse Jacobian (LSMR steps), see
-    https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html
+    Iteratively reweighted Levenberg-Marquardt: each step weights every observation by its Cauchy
+    weight 1 / (1 + |r|^2 / scale^2) and solves the normal equations with the inverse depths
+    eliminated (Schur complement: a 6 J system, J neighbours), the bundle adjustment's usual
+    structure (Triggs et al., https://doi.org/10.1007/3-540-44480-7_21). A step that does not
+    lower the cost is retried with more damping; it stops when a step gains less than `_FTOL`.
     """
-    with single_threaded_blas():  # LSMR's vector products are small: BLAS threads only contend
-        res = least_squares(
-            prob.stacked_residuals,
-            prob.pack(rho),
-            jac=prob.jacobian,
-            method="trf",
-            tr_solver="lsmr",
-            x_scale="jac",
-            loss=_cauchy_per_observation(prob.n_data),
-            f_scale=scale,
-            ftol=_FTOL,
-            max_nfev=_MAX_NFEV,
-        )
-    return prob.unpack(res.x)
+    with single_threaded_blas():  # small products: BLAS threads only contend
+        return _levenberg_marquardt(prob, rho, scale)
 
 
-_FTOL = 1e-3
-"""`least_squares` stops when a step lowers the cost by less than this fraction of it."""
-_MAX_NFEV = 50
-"""Most residual evaluations of one `least_squares` solve."""
+def _levenberg_marquardt(prob: _Problem, rho: np.ndarray, scale: float) -> np.ndarray:
+    """`_bundle_adjusted`'s iterations."""
+    damping = 1e-3
+    cost = _robust_cost(prob, rho, scale)
+    for _ in range(_GN_STEPS):
+        _, _, r, valid = prob.residuals(rho)
+        w = 1.0 / (1.0 + np.sum(r * r, axis=-1) / scale**2)
+        h, g_r, B, H_xx, g_x, _, _ = _normal_equations(prob, rho, np.where(prob.mask, w, 0.0))
+        improved = False
+        for _ in range(4):
+            d_rho, dx = _schur_solve(h, g_r, B, H_xx, g_x, damping)
+            xi = prob.xi + dx.reshape(-1, 6)
+            R, t = _rodrigues(xi[:, :3]) @ prob.R0, prob.t0 + xi[:, 3:]
+            rho_new = np.where(rho + d_rho > 0.1 * rho, rho + d_rho, 0.5 * rho)
+            new_cost = _robust_cost(prob, rho_new, scale, R, t, xi)
+            if new_cost < cost:
+                improved = True
+                break
+            damping *= 10.0
+        if not improved:
+            break
+        gain = (cost - new_cost) / max(cost, 1e-300)
+        prob.xi, prob.R, prob.t = xi, R, t
+        rho, cost, damping = rho_new, new_cost, max(damping / 10.0, 1e-7)
+        if gain < _FTOL:
+            break
+    return rho
 
 
 def _refined_depths(prob, rho, mask, xbar, obs, config: TriangulationConfig):
@@ -325,23 +380,26 @@ def _inverse_depth_variance(
 def _joint_inverse_depth_variance(prob: _Problem, rho: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarray:
     """(N,) marginal variance of each inverse depth from the Gauss-Newton information J^T J at the solution.
 
-    J is `_Problem.jacobian` with unit weights on the valid observations and ``sigma_px`` pixel noise
-    (`least_squares`' own ``jac`` carries the Cauchy scaling); the poses are eliminated by their Schur
-    complement, so the uncertainty all points share reaches each depth.
+    Unit weights on the valid observations and ``sigma_px`` pixel noise; the poses are eliminated by
+    their Schur complement, so the uncertainty all points share (the prior's) reaches each depth:
+    var = 1 / h + b^T S^-1 b / h^2.
     """
-    n = rho.shape[0]
     prob.mask, prob.pixel_sigma = valid, sigma_px
-    J = prob.jacobian(prob.pack(rho))
-    H = (J.T @ J).toarray()
-    h_rr = np.diag(H)[:n]  # the depth block is diagonal: one depth a row
-    inv = np.where(h_rr > 0, 1.0 / np.where(h_rr > 0, h_rr, 1.0), 0.0)
-    B = H[:n, n:] * inv[:, None]
-    S = H[n:, n:] - H[n:, :n] @ B
+    with single_threaded_blas():
+        return _schur_variance(prob, rho, valid)
+
+
+def _schur_variance(prob: _Problem, rho: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`_joint_inverse_depth_variance`'s algebra."""
+    h, _, B, H_xx, _, _, _ = _normal_equations(prob, rho, valid.astype(np.float64))
+    inv = np.where(h > 0, 1.0 / np.where(h > 0, h, 1.0), 0.0)
+    Bi = B * inv[:, None]
+    S = H_xx - B.T @ Bi
     try:
         S_inv = np.linalg.inv(S)
     except np.linalg.LinAlgError:
         S_inv = np.linalg.pinv(S)
-    return inv + np.einsum("nk,kl,nl->n", B, S_inv, B)
+    return inv + np.einsum("nk,kl,nl->n", Bi, S_inv, Bi)
 
 
 def triangulate_tracks(
@@ -362,9 +420,8 @@ def triangulate_tracks(
     loops), or with ``refine_poses`` a bundle adjustment of all inverse depths jointly with a
     correction of every neighbour's pose relative to the reference, with a Gaussian prior of
     ``rotation_sigma_deg`` / ``translation_sigma`` around the given relative pose (the
-    translations' prior fixes the metric scale), solved by `scipy.optimize.least_squares`
-    (trust-region reflective, analytic sparse Jacobian, a Cauchy loss per observation:
-    https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html);
+    translations' prior fixes the metric scale), solved by an iteratively reweighted (Cauchy)
+    Levenberg-Marquardt with the depths eliminated by their Schur complement (`_bundle_adjusted`);
     (3) observations off by more than ``max_reprojection_error`` pixels are dropped and the
     problem solved again; (4) the depth sigma is the marginal standard deviation of the
     inverse depth from the inverse of the Gauss-Newton information J^T J (poses held: their
@@ -435,27 +492,64 @@ def triangulate_tracks(
     xbar = np.column_stack(
         [(uv_ref[:, 0] - camera.cx) / camera.fx, (uv_ref[:, 1] - camera.cy) / camera.fy, np.ones(len(keep))]
     )
+    held = replace(config, refine_poses=False)
+    prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, held)
+    seen, sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), held)
+    held_agreeing = int(np.sum(valid.sum(axis=1) >= config.min_views - 1))
+    contradicted = False
+    if config.refine_poses and valid.sum() < config.refine_below * max(1, mask.sum()):
+        # the tracks contradict the given poses: refine them (a bundle adjustment with the looser prior);
+        # the noise the residuals showed against the given poses (``seen``) still widens sigma
+        # (``variance_factor``): the refined poses fit the tracks, not necessarily the scene's depth
+        prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, config)
+        sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)[1]
+        # corrections far beyond the prior: the given poses do not belong to these images
+        z = np.sqrt(np.mean(prob.xi**2 * prob.prior, axis=1))
+        contradicted = bool(z.size and np.max(z) > _CONTRADICTED)
+    else:
+        config = held
+    var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
+    out = _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+    return replace(out, agreeing=held_agreeing) if contradicted else out
+
+
+_CONTRADICTED = 4.0
+"""A neighbour's pose correction whose RMS over its 6 components exceeds this many prior sigmas says the given
+poses do not belong to the images (inverted, another frame's): the tracks then count as agreeing only as far
+as they do with the poses held (`MultiViewPoints.agreeing`)."""
+
+
+def _solved(xbar, obs, mask, T_jr, camera, config: TriangulationConfig):
+    """The inverse depths from the linear start and the robust refinement: (problem, rho, residuals, valid).
+
+    With ``refine_poses`` the neighbours' poses are refined under the prior ``refine_rotation_sigma_deg`` /
+    ``refine_translation_sigma``; else they are held, with the prior ``rotation_sigma_deg`` / ``translation_sigma``.
+    """
+    refine = config.refine_poses
     prob = _Problem(
         xbar,
         obs,
-        mask,
+        mask.copy(),
         T_jr[:, :3, :3],
         T_jr[:, :3, 3],
         camera,
         config.pixel_sigma,
-        np.radians(config.rotation_sigma_deg),
-        config.translation_sigma,
+        np.radians(config.refine_rotation_sigma_deg if refine else config.rotation_sigma_deg),
+        config.refine_translation_sigma if refine else config.translation_sigma,
     )
+    mask = mask.copy()
     rho = _linear_inverse_depth(xbar, obs, mask, prob.R, prob.t, prob.f, prob.c)
     rho_ok = np.isfinite(rho) & (rho > 0)
-    rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
-    mask &= rho_ok[:, None]
+    if refine and rho_ok.any():
+        # poses off by a few degrees put many linear depths behind a view; the bundle adjustment corrects
+        # the poses, so such tracks start from the others' median depth rather than being dropped
+        rho = np.where(rho_ok, rho, np.median(rho[rho_ok]))
+    else:
+        rho = np.where(rho_ok, rho, 1.0 / np.sqrt(config.min_depth * config.max_depth))
+        mask &= rho_ok[:, None]
     prob.mask = mask
     rho, r, valid = _refined_depths(prob, rho, mask, xbar, obs, config)
-
-    seen, sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)
-    var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
-    return _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+    return prob, rho, r, valid
 
 
 def _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config) -> MultiViewPoints:
@@ -467,9 +561,9 @@ def _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, re
     # geometry checks
     Xr = xbar * depth[:, None]
     n_views, parallax, front, rms = _point_checks(Xr, r, valid, prob.R, prob.t, 0.5 * config.min_depth)
+    agree = (n_views >= config.min_views) & np.isfinite(depth) & front
     good = (
-        (n_views >= config.min_views)
-        & np.isfinite(depth)
+        agree
         & (depth >= config.min_depth)
         & (depth <= config.max_depth)
         & front
@@ -495,6 +589,7 @@ def _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, re
         parallax_deg=parallax[sel],
         poses=refined,
         pixel_sigma=sigma_px,
+        agreeing=int(agree.sum()),
     )
 
 

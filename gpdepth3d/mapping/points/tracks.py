@@ -215,6 +215,8 @@ class TrackTriangulator:
             triangulated (the candidates; ``len`` of its points says how many became points).
             A pose that does not belong to its image leaves almost none of them (see
             `gpdepth3d.mapping.frame_points.POSE_TRACK_SHARE`).
+        tracks_agreeing: frame key -> how many of those its pose and its neighbours' agree with
+            (`MultiViewPoints.agreeing`: within the reprojection gate, in front), points or not.
     """
 
     def __init__(
@@ -233,6 +235,7 @@ class TrackTriangulator:
         self.last: MultiViewPoints | None = None
         self.last_key: object = None
         self.tracks_seen: dict = {}
+        self.tracks_agreeing: dict = {}
         self.reset()
 
     def reset(self) -> None:
@@ -245,6 +248,7 @@ class TrackTriangulator:
         self.last = None
         self.last_key = None
         self.tracks_seen = {}  # key -> tracks of that frame seen in another view, when it was triangulated
+        self.tracks_agreeing = {}  # key -> of those, the ones its pose agrees with
 
     @property
     def n_tracks(self) -> int:
@@ -328,8 +332,10 @@ class TrackTriangulator:
         tracks = self._tracks
         self.last, self.last_key = None, self._keys[col]
         self.tracks_seen[self.last_key] = 0
-        if len(self.tracks_seen) > 4 * (self.window + self.lag + 1):  # keys nobody asked for
-            self.tracks_seen.pop(next(iter(self.tracks_seen)))
+        self.tracks_agreeing[self.last_key] = 0
+        for kept in (self.tracks_seen, self.tracks_agreeing):
+            if len(kept) > 4 * (self.window + self.lag + 1):  # keys nobody asked for
+                kept.pop(next(iter(kept)))
         if tracks.shape[0] == 0 or tracks.shape[1] < 2:
             return SparseDepth.empty(self.camera.shape)
         finite = np.isfinite(tracks[..., 0])
@@ -342,6 +348,7 @@ class TrackTriangulator:
         )
         # point rows refer to the tracks given; map back to all tracks
         self.last = replace(mv, index=np.nonzero(seen)[0][mv.index])
+        self.tracks_agreeing[self.last_key] = mv.agreeing
         return mv.to_sparse(self.camera.shape)
 
     def _prune(self) -> None:

@@ -9,23 +9,24 @@ Given posed RGB frames (``T_world_camera``, e.g. from a SLAM system) and intrins
   other frame (ratio test, mutual best, loose epipolar gate around the given poses).
 * **Multi-view triangulation** (`triangulate_tracks`): each track's inverse depth along its
   reference ray from all its views: a linear multi-view DLT in inverse-depth form (iteratively
-  reweighted), then robust (Cauchy) Gauss-Newton; observations off by more than
-  ``max_reprojection_error`` pixels are dropped and the depth re-solved. With
-  ``refine_poses=True`` the neighbours' poses relative to the reference are refined jointly
-  (a robust bundle adjustment with a Gaussian pose prior, solved by `scipy.optimize.least_squares`). With the
-  poses held (the default) the tracks are independent 1-D problems, solved by compiled loops
-  (numba; ~2 ms for the ~350 tracks of a 7-Scenes frame with 12 views, 12 ms as numpy arrays).
+  reweighted), then a robust (Cauchy) bundle adjustment of the depths jointly with every
+  neighbour's pose relative to the reference, around the given poses with a Gaussian prior
+  (``refine_poses``, the default: a Levenberg-Marquardt with the depths eliminated by their Schur
+  complement); observations off by more than ``max_reprojection_error`` pixels are dropped and the
+  problem solved again. The tracks fix the relative rotations well and the prior (``rotation_sigma_deg``,
+  ``translation_sigma``: loose enough for a SLAM or VIO back-end's poses) holds the metric scale.
+  With ``refine_poses=False`` the poses are held and the tracks are independent 1-D problems
+  (compiled loops, numba), which suits exact poses only.
 * **Sigma**: pixel noise (the larger of ``pixel_sigma`` and the noise the residuals show) and
-  the poses' uncertainty (``rotation_sigma_deg``, ``translation_sigma`` per axis, relative to
-  the reference) propagated to the inverse depth through the Gauss-Newton information; with
-  ``variance_factor`` the whole variance is scaled by (residual noise / ``pixel_sigma``)^2 when
-  the residuals are larger than the assumed pixel noise (inconsistent poses in a frame then
-  widen every sigma of that frame); a relative floor ``depth_sigma_floor`` is added in quadrature.
+  the poses' uncertainty propagated to the inverse depth through the Gauss-Newton information
+  (refined poses: the Schur complement, so the uncertainty all points share reaches each depth;
+  held poses: the prior); with ``variance_factor`` the whole variance is scaled by
+  (residual noise / ``pixel_sigma``)^2 when the residuals are larger than the assumed pixel noise;
+  a relative floor ``depth_sigma_floor`` is added in quadrature. The `Mapper` then calibrates the
+  sigma of its points against the local map's (`gpdepth3d.mapping.point_calibration`).
 
-Accuracy on the shared sequences (points per frame, +-2 sigma coverage against the sensor depth):
-see docs/results.md; what limits it is the given poses (the residuals show them
-a few pixels off), so the pose uncertainty goes into sigma rather than into a per-frame pose
-refinement (``refine_poses``, off by default: it made the depth worse).
+Accuracy on the shared sequences, with exact and perturbed poses (points per frame, +-2 sigma
+coverage against the sensor depth): see docs/results.md.
 
 Modules: `triangulation_config` (options), `features` (detection, matching), `tracks` (KLT and
 descriptor tracks, the streaming `TrackTriangulator`), `multiview` (`triangulate_tracks`),

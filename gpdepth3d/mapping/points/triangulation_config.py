@@ -35,14 +35,19 @@ class TriangulationConfig:
         pixel_sigma: Standard deviation of a keypoint position (u and v), pixels; the noise
             the residuals show is used when larger.
         rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to
-            the reference (per axis), degrees.
-        translation_sigma: Prior standard deviation of each neighbour's translation relative
-            to the reference (per axis), metres.
-        refine_poses: Refine the neighbours' poses relative to the reference jointly with the
-            depths: a robust (Cauchy) bundle adjustment with the pose prior, solved by
-            `scipy.optimize.least_squares` (https://docs.scipy.org/doc/scipy/reference/generated/scipy.optimize.least_squares.html),
-            sigma from its Gauss-Newton information; off: poses held, their prior uncertainty
-            carried into sigma.
+            the reference (per axis), degrees, for poses held: poses that agree with their tracks.
+        translation_sigma: The same for the translation, metres.
+        refine_poses: Where the tracks contradict the given poses (fewer than ``refine_below`` of the
+            observations within ``max_reprojection_error`` with the poses held), refine the neighbours'
+            poses relative to the reference jointly with the depths: a robust (Cauchy) bundle adjustment
+            under the prior ``refine_rotation_sigma_deg`` / ``refine_translation_sigma``, an iteratively
+            reweighted Levenberg-Marquardt on the Schur complement of the depths, sigma from its
+            Gauss-Newton information. False: poses always held, their prior carried into sigma.
+        refine_below: The share of the observations agreeing with the held poses below which they are refined.
+        refine_rotation_sigma_deg: Prior standard deviation of each neighbour's rotation relative to the
+            reference when refined, degrees: loose, as the tracks fix the rotations well and a SLAM or VIO
+            back-end's poses are off by a fraction of a degree to a few degrees.
+        refine_translation_sigma: The same for the translation, metres: what holds the metric scale.
         variance_factor: Scale each frame's variances by (residual noise / pixel_sigma)^2 when
             the residuals exceed the assumed pixel noise (a posteriori variance factor).
         min_views: Fewest views (reference included) that must support a multi-view point.
@@ -67,7 +72,10 @@ class TriangulationConfig:
     pixel_sigma: float = 0.5
     rotation_sigma_deg: float = 0.1
     translation_sigma: float = 0.005
-    refine_poses: bool = False
+    refine_poses: bool = True
+    refine_below: float = 0.3
+    refine_rotation_sigma_deg: float = 1.0
+    refine_translation_sigma: float = 0.02
     variance_factor: bool = True
     min_views: int = 2
     depth_sigma_floor: float = 0.04
@@ -83,9 +91,10 @@ class TriangulationConfig:
         rules.update(ratio=Real(0.0, 1.0, low_open=True), min_parallax_deg=Real(0.0, 90.0, high_open=True, unit="deg"))
         positives = ("max_epipolar_error", "max_reprojection_error", "pixel_sigma", "max_depth", "max_relative_sigma")
         positives += ("rotation_sigma_deg", "translation_sigma", "min_corner_distance", "sift_contrast_threshold")
+        positives += ("refine_rotation_sigma_deg", "refine_translation_sigma")
         rules.update({name: positive() for name in positives})
         rules.update(klt_fb_error=non_negative(), depth_sigma_floor=non_negative(), min_depth=non_negative("m"))
-        rules.update(refine_poses=Bool(), variance_factor=Bool())
+        rules.update(refine_below=Real(0.0, 1.0, unit="a share"), refine_poses=Bool(), variance_factor=Bool())
         check_fields(self, rules)
         if not 0 <= self.min_depth < self.max_depth:
             raise InvalidInputError("min_depth", f"0 <= min_depth < max_depth ({self.max_depth})", self.min_depth)

@@ -1,0 +1,83 @@
+"""The points' sigma checked against each other: a running variance factor from overlapping points.
+
+A frame's own points and the local map's points (triangulated by the last frames, placed in this
+frame by their poses and its pose) often measure the same surface. Their difference over the sigma
+both claim is a z-score that needs no ground truth: when the poses are worse than the triangulation's
+pose prior says (a SLAM back-end's drift, a VIO's jitter), the z-scores spread wider than 1.
+`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is
+multiplied by: their robust spread (1.4826 times the median absolute z), never below 1, so that exact
+poses keep the triangulation's sigma and poorer poses widen it by what the points themselves show.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from ..errors import InvalidInputError
+from ..measurements import SparseDepth
+from .points.local_map import cell_ids
+from .mde_check import MAD_TO_SIGMA
+
+
+def paired_z_scores(own: SparseDepth, others: SparseDepth, cell: float) -> np.ndarray:
+    """z-scores of ``own`` against ``others`` in the ``cell``-pixel cells that hold both.
+
+    In each such cell the most certain point of each (smallest sigma / depth) is paired:
+    ``z = (d_own - d_other) / sqrt(sigma_own^2 + sigma_other^2)``.
+
+    Args:
+        own: A frame's own measurements.
+        others: Other measurements of the same image (e.g. the local map's).
+        cell: Cell size, pixels (> 0).
+
+    Returns:
+        (M,) z-scores, one per shared cell (empty when none is shared).
+    """
+    if not np.isfinite(cell) or cell <= 0:
+        raise InvalidInputError("cell", "a cell size > 0 (pixels)", cell)
+    if not len(own) or not len(others):
+        return np.zeros(0)
+    best = []
+    for sp in (own, others):
+        ids = cell_ids(sp, cell)
+        order = np.lexsort((sp.sigma / sp.depth, ids))
+        first = np.ones(order.size, bool)
+        first[1:] = ids[order][1:] != ids[order][:-1]
+        best.append((ids[order][first], order[first]))
+    common, ia, ib = np.intersect1d(best[0][0], best[1][0], return_indices=True)
+    a, b = best[0][1][ia], best[1][1][ib]
+    scale = np.hypot(own.sigma[a], others.sigma[b])
+    ok = np.isfinite(scale) & (scale > 0)
+    return (own.depth[a][ok] - others.depth[b][ok]) / scale[ok]
+
+
+class SigmaCalibration:
+    """The z-scores of the last ``frames`` frames and the sigma factor they call for.
+
+    Args:
+        frames: Frames whose z-scores are kept (oldest dropped first).
+        min_pairs: Fewest z-scores kept before the factor departs from 1.
+    """
+
+    def __init__(self, frames: int, min_pairs: int = 30):
+        if isinstance(frames, bool) or int(frames) != frames or frames < 1:
+            raise InvalidInputError("frames", "an integer >= 1", frames)
+        if isinstance(min_pairs, bool) or int(min_pairs) != min_pairs or min_pairs < 1:
+            raise InvalidInputError("min_pairs", "an integer >= 1", min_pairs)
+        self.min_pairs = int(min_pairs)
+        self._z: deque[np.ndarray] = deque(maxlen=int(frames))
+
+    def add(self, z: np.ndarray) -> None:
+        """Remembers one frame's z-scores (`paired_z_scores`); non-finite ones are dropped."""
+        z = np.asarray(z, dtype=np.float64).ravel()
+        self._z.append(z[np.isfinite(z)])
+
+    @property
+    def factor(self) -> float:
+        """The factor the points' sigma is multiplied by: the z-scores' robust spread, at least 1."""
+        z = np.concatenate(list(self._z)) if self._z else np.zeros(0)
+        if z.size < self.min_pairs:
+            return 1.0
+        return max(1.0, MAD_TO_SIGMA * float(np.median(np.abs(z))))
