@@ -32,18 +32,28 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def recipes() -> dict[str, str]:
-    """The README's and docs/mapping.md's posed ``gpdepth3d map`` lines on the shared data, by sequence folder name
-    (bench/sfm.py runs the unposed ones)."""
-    text = "\n".join((REPO / name).read_text(encoding="utf-8") for name in ("README.md", "docs/mapping.md"))
-    lines = [
-        line.strip()
-        for line in re.findall(r"^gpdepth3d map [^\n]*", text, flags=re.M)
-        if "../shared/data" in line and "--poses" in line
-    ]
+    """Every README ``gpdepth3d map`` line, in order (a later line may read an earlier one's output), then
+    docs/mapping.md's posed lines on the shared data, by the name of their output folder."""
+    lines = re.findall(r"^gpdepth3d map [^\n]*", (REPO / "README.md").read_text(encoding="utf-8"), flags=re.M)
+    docs = re.findall(r"^gpdepth3d map [^\n]*", (REPO / "docs" / "mapping.md").read_text(encoding="utf-8"), flags=re.M)
+    lines += [line for line in docs if "--poses" in line]
     found: dict[str, str] = {}
-    for line in lines:  # the README's line of a sequence first: its numbers are the README's
-        found.setdefault(re.search(r"\.\./shared/data/(\w+)", line).group(1), line)
+    for line in (line.strip() for line in lines if "../shared/data" in line):
+        found.setdefault(Path(shlex.split(line)[shlex.split(line).index("--output") + 1]).name, line)
     return found
+
+
+SEQUENCES = {"7scenes": "7-Scenes", "hololens": "HoloLens walk"}
+
+
+def label(line: str) -> str:
+    """What a ``map`` line maps, for the table: the sequence and where its poses come from."""
+    sequence = re.search(r"\.\./shared/data/(\w+)", line).group(1)
+    if "--poses" in line:
+        poses = "poses given"
+    else:
+        poses = "the SfM model's poses and points" if "--points" in line else "pycolmap SfM"
+    return f"{SEQUENCES.get(sequence, sequence)}, {poses}"
 
 
 def run(line: str) -> dict:
@@ -65,6 +75,7 @@ def run(line: str) -> dict:
     metrics = summary["metrics"] or {}
     return {
         "command": line,
+        "label": label(line),
         "process_wall_s": wall,
         "mapping_wall_s": summary["wall_s"],
         "frames": summary["frames"],

@@ -326,7 +326,7 @@ def readme_mapping_table(results: Path = RESULTS) -> str:
 
     rows = [
         [
-            f"{SEQUENCE_NAMES.get(name, name)} ({s['frames_fused']} of {s['frames']} frames)",
+            f"{s.get('label', SEQUENCE_NAMES.get(name, name))} ({s['frames_fused']} of {s['frames']} frames)",
             f"**{f3(s['fscore_map'])}**",
             f3(s["fscore_mde_only"]),
             fmt(s["mapping_wall_s"], 0),

@@ -11,7 +11,7 @@ middle keyframe carries a drifted pose (10 degrees, 20 cm off); the map is fused
 re-integrates only the TSDF blocks that keyframe reached (``mesh_after.ply``). Both meshes are
 compared with the mesh fused from the Kinect depth (``mesh_reference.ply``), and the corrected
 volume with fusing every keyframe from scratch with the corrected poses (it must be identical).
-The map (volume and keyframe store) is saved to ``map/`` and loaded back.
+The map (volume and keyframe store) is saved to ``map/`` and loaded back (within its stored precision).
 """
 
 from __future__ import annotations
@@ -109,8 +109,11 @@ def main(argv: list[str] | None = None) -> dict:
     mapper.save(args.output / "map")
     loaded = g.Mapper.load(args.output / "map")
     reloaded = _voxels(loaded.fusion)
-    same_after_load = all(np.array_equal(a[k], reloaded[k]) for k in a)
-    print(f"saved the map to {args.output / 'map'}; loaded back identical: {same_after_load}")
+    # a saved map stores the volume compactly (16-bit distances, half-precision weights, 8-bit colours)
+    same_after_load = np.array_equal(a["coords"], reloaded["coords"]) and all(
+        np.allclose(a[k], reloaded[k], rtol=2.0**-10, atol=0.5 / 255) for k in a if k != "coords"
+    )
+    print(f"saved the map to {args.output / 'map'}; loaded back within its stored precision: {same_after_load}")
     return {
         "fscore_before": m_before["fscore"],
         "fscore_after": m_after["fscore"],

@@ -111,20 +111,10 @@ def map_command(
         if view:
             raise InvalidInputError("--view", "--poses (the live view draws the camera path first)", "no --poses")
         return _map_unposed(locals())
-    inputs = open_map_inputs(
-        images,
-        poses,
-        intrinsics,
-        output=output,
-        pose_format=pose_format,
-        association=association,
-        max_time_difference=max_time_difference,
-        depth=depth,
-        depth_scale=depth_scale,
-        depth_invalid=depth_invalid,
-        depth_intrinsics=depth_intrinsics,
-        points=points,
-    )
+    inputs = open_map_inputs(images, poses, intrinsics, output=output, pose_format=pose_format,
+                             association=association, max_time_difference=max_time_difference, depth=depth,
+                             depth_scale=depth_scale, depth_invalid=depth_invalid,
+                             depth_intrinsics=depth_intrinsics, points=points)  # fmt: skip
     seq = inputs.sequence
     print(
         f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
@@ -136,23 +126,12 @@ def map_command(
         warnings.simplefilter("always")
         quiet_third_party()
         try:
-            result, summary, written = map_files(
-                inputs,
-                output,
-                mde=mde,
-                models_dir=models_dir,
-                working_width=working_width,
-                stride=stride,
-                frames=frames,
-                voxel_size=voxel_size,
-                depth_max=depth_max,
-                threshold=threshold,
-                metric_samples=metric_samples,
-                mesh_format=mesh_format,
-                progress=sys.stderr.isatty(),
-                on_frame=None if live is None else live.update,
-                force=force,
-            )
+            result, summary, written = map_files(inputs, output, mde=mde, models_dir=models_dir,
+                                                 working_width=working_width, stride=stride, frames=frames,
+                                                 voxel_size=voxel_size, depth_max=depth_max, threshold=threshold,
+                                                 metric_samples=metric_samples, mesh_format=mesh_format,
+                                                 progress=sys.stderr.isatty(), force=force,
+                                                 on_frame=None if live is None else live.update)  # fmt: skip
         except BaseException:
             if live is not None:
                 live.stop()

@@ -131,6 +131,8 @@ class TestMapFolders:
         items = load_map(tmp_path / "saved")
         assert file_kind(tmp_path / "saved") == "map"
         assert len(items) == 2 and len(items[0].faces) == len(mesh.faces)
-        np.testing.assert_allclose(np.sort(items[1].vertices, axis=0), np.sort(points.points, axis=0), atol=1e-6)
+        np.testing.assert_allclose(
+            np.sort(items[1].vertices, axis=0), np.sort(points.points, axis=0), atol=1e-4
+        )  # stored volume: 16-bit distances
         with show([], meshes=[tmp_path / "saved"], port=0) as v:
             assert len(v.meshes) == 2 and len(v.meshes[1].points) == len(points)

@@ -256,7 +256,7 @@ def _checked(path: Path, xyz, sigma) -> GivenPoints:
 def _read_file(path: Path) -> GivenPoints:
     suffix = path.suffix.lower()
     if suffix == ".npz":
-        from ..io import load_npz_arrays
+        from ...io import load_npz_arrays
 
         import zipfile
 
