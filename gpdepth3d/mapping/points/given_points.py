@@ -268,7 +268,7 @@ def _read_file(path: Path) -> GivenPoints:
         arrays = load_npz_arrays(path, names, "world points")
         return _checked(path, arrays["xyz"], arrays.get("sigma"))
     if suffix == ".ply":
-        from ..extras import require
+        from ...extras import require
 
         o3d = require("open3d")
         cloud = o3d.t.io.read_point_cloud(str(path))
