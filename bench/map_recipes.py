@@ -103,9 +103,11 @@ def main() -> None:
     for name, line in recipes().items():
         rows[name] = run(line)
         r = rows[name]
+        scores = "no sensor depth" if r["fscore_map"] is None else f"F map {r['fscore_map']:.3f}"
+        if r["fscore_mde_only"] is not None:
+            scores += f", MDE alone {r['fscore_mde_only']:.3f}"
         print(
-            f"{name:9s} {r['frames_fused']:3d}/{r['frames']:3d} fused, F map {r['fscore_map']:.3f}, "
-            f"MDE alone {r['fscore_mde_only']:.3f}, {r['process_wall_s']:.0f} s "
+            f"{name:9s} {r['frames_fused']:3d}/{r['frames']:3d} fused, {scores}, {r['process_wall_s']:.0f} s "
             f"(load {r['loadavg_before'][0]:.1f})",
             flush=True,
         )
