@@ -42,7 +42,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Literal, Sequence
+from typing import Any, Callable, Iterable, Literal, Sequence
 
 import numpy as np
 
@@ -649,6 +649,58 @@ def run_evaluation(
         The summary rows (one per protocol, level and method).
     """
     data = Path(data)
+    protocols, method_list, level_values = _check_eval_args(protocols, methods, levels, stride, frames, mde)
+    dataset = open_dataset(data)
+    indices = list(range(0, len(dataset), stride))[: frames if frames is not None else None]
+    front, degraded = _front_end(mde, data, model, seed)
+    first: dict = {}
+
+    def keep_first(setup: EvalSetup, outputs: dict) -> None:
+        if first or not qualitative:
+            return
+        key = qualitative_choice(outputs)
+        if key is not None:
+            out, sparse = outputs[key]
+            first.update(setup=setup, out=out, sparse=sparse, key=key)
+
+    levels = {p: level_values for p in protocols} if level_values else None
+    rows = evaluate(
+        _EvalFrames(dataset, indices, degraded),
+        front,
+        protocols=protocols,
+        levels=levels,
+        methods=method_list,
+        suite=MethodSuite(device=device),
+        resolution=resolution,
+        seed=seed,
+        progress=progress,
+        on_frame=keep_first,
+    )
+    summary = summarize(rows)
+    output = Path(output)
+    info = {
+        "data": str(data),
+        "dataset": type(dataset).__name__,
+        "mde": mde,
+        "resolution": resolution,
+        "frames": [dataset.names[i] for i in indices],
+        "seed": seed,
+    }
+    _write_results(rows, summary, output, info, protocols)
+    if first:
+        _plot_first(first, output)
+    return summary
+
+
+def _check_eval_args(
+    protocols: Sequence[str] | str,
+    methods: Sequence[str] | str,
+    levels: Sequence[float] | None,
+    stride: int,
+    frames: int | None,
+    mde: str,
+) -> tuple[list[str], list[str], list[float]]:
+    """Checks `run_evaluation`'s choices: (protocols, methods, levels) as lists."""
     protocols = list(protocols) if not isinstance(protocols, str) else [protocols]
     for p in protocols:
         if p not in PROTOCOLS:
@@ -666,9 +718,11 @@ def run_evaluation(
         raise InvalidInputError("frames", "a number of frames >= 1", frames)
     if mde not in FRONTEND_NAMES:
         raise InvalidInputError("mde", " or ".join(repr(n) for n in FRONTEND_NAMES), mde)
-    dataset = open_dataset(data)
-    indices = list(range(0, len(dataset), stride))[: frames if frames is not None else None]
+    return protocols, method_list, level_values
 
+
+def _front_end(mde: str, data: Path, model: str | Path | None, seed: int) -> tuple[Any, Any]:
+    """The monocular front-end named ``mde`` and, for "gt-degraded", the same object (else None)."""
     degraded = None
     if mde in ("fastdepth", "rtmonodepth", "rtmonodepth-mono"):
         from ..mde import default_models_dir, load_frontend
@@ -677,77 +731,49 @@ def run_evaluation(
     else:
         degraded = DegradedGroundTruthMDE(seed=seed)
         front = degraded
+    return front, degraded
 
-    def frame_iter():
-        for i in indices:
-            f = dataset[i]
-            if degraded is not None:
-                degraded.frame = f
+
+class _EvalFrames:
+    """The chosen frames of a dataset, read one at a time (each shown to the degraded front-end first)."""
+
+    def __init__(self, dataset: Any, indices: list[int], degraded: Any) -> None:
+        self.dataset, self.indices, self.degraded = dataset, indices, degraded
+
+    def __len__(self):
+        return len(self.indices)
+
+    def __iter__(self):
+        for i in self.indices:
+            f = self.dataset[i]
+            if self.degraded is not None:
+                self.degraded.frame = f
             yield f
 
-    class _Frames:
-        def __len__(self):
-            return len(indices)
 
-        def __iter__(self):
-            return frame_iter()
-
-    first: dict = {}
-
-    def keep_first(setup: EvalSetup, outputs: dict) -> None:
-        if first or not qualitative:
-            return
-        key = qualitative_choice(outputs)
-        if key is not None:
-            out, sparse = outputs[key]
-            first.update(setup=setup, out=out, sparse=sparse, key=key)
-
-    levels = {p: level_values for p in protocols} if level_values else None
-    rows = evaluate(
-        _Frames(),
-        front,
-        protocols=protocols,
-        levels=levels,
-        methods=method_list,
-        suite=MethodSuite(device=device),
-        resolution=resolution,
-        seed=seed,
-        progress=progress,
-        on_frame=keep_first,
-    )
-    summary = summarize(rows)
-    output = Path(output)
+def _write_results(rows: list[dict], summary: list[dict], output: Path, info: dict, protocols: list[str]) -> None:
+    """Writes results.csv, summary.csv, results.json, summary.md and the RMSE plots."""
     write_csv(rows, output / "results.csv")
     write_csv(summary, output / "summary.csv")
-    write_json(
-        output / "results.json",
-        {
-            "data": str(data),
-            "dataset": type(dataset).__name__,
-            "mde": mde,
-            "resolution": resolution,
-            "frames": [dataset.names[i] for i in indices],
-            "seed": seed,
-            "summary": summary,
-            "rows": rows,
-        },
-    )
+    write_json(output / "results.json", {**info, "summary": summary, "rows": rows})
     table = markdown_table(summary)
     atomic_write(output / "summary.md", lambda tmp: tmp.write_text(table + "\n"))
     for p in protocols:
         if any(s["protocol"] == p and np.isfinite(s["rmse"]) for s in summary):
             plot_rmse_vs_level(summary, p, output / f"rmse_{p}.png")
-    if first:
-        s, out = first["setup"], first["out"]
-        protocol_name, level, method = first["key"]
-        plot_qualitative(
-            s.frame.rgb,
-            s.mde,
-            first["sparse"],
-            out.mean,
-            np.sqrt(np.maximum(out.variance, 0)),
-            s.gt,
-            output / "qualitative.png",
-            title=f"{s.frame.name}: {method}, {protocol_name} {level_label(protocol_name, level)}",
-        )
-    return summary
+
+
+def _plot_first(first: dict, output: Path) -> None:
+    """Draws qualitative.png of the kept first frame."""
+    s, out = first["setup"], first["out"]
+    protocol_name, level, method = first["key"]
+    plot_qualitative(
+        s.frame.rgb,
+        s.mde,
+        first["sparse"],
+        out.mean,
+        np.sqrt(np.maximum(out.variance, 0)),
+        s.gt,
+        output / "qualitative.png",
+        title=f"{s.frame.name}: {method}, {protocol_name} {level_label(protocol_name, level)}",
+    )

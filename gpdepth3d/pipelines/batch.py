@@ -814,6 +814,60 @@ def run_batch(
         The `BatchReport`; it is also written to ``output_dir/batch_report.json``.
     """
     t_start = time.perf_counter()
+    frames, workers, address, config, engine, loader = _check_batch_args(
+        frames, task, workers, address, connect_timeout, max_in_flight, config, engine, loader
+    )
+    output_dir = make_output_dir(output_dir)
+
+    with _exclusive(output_dir), _settings_kept_with_outputs(output_dir, frames, task, png, previews):
+        check_settings(output_dir, config, loader, engine)
+        removed = remove_stale_temp_files(output_dir)
+        previews = bool(previews) and (variance or task == "eval")
+        todo = [f for f in frames if not frame_done(output_dir, f.frame_id, task, png=png, previews=previews)]
+        n_skipped = len(frames) - len(todo)
+        kwargs = dict(
+            config=config, engine=engine, loader=loader, task=task, variance=variance, png=png, previews=previews
+        )
+        results, startup, compute, n_workers = _compute_frames(
+            todo, output_dir, kwargs, workers, address, connect_timeout, max_in_flight, progress
+        )
+
+        failures = tuple(
+            FrameFailure(r.frame_id, r.error or "unknown error", r.traceback or "") for r in results if not r.ok
+        )
+        n_computed = sum(r.ok for r in results)
+        aggregate = aggregate_metrics(output_dir, [f.frame_id for f in frames]) if task == "eval" else None
+        report = BatchReport(
+            task=task,
+            output_dir=output_dir,
+            n_frames=len(frames),
+            n_computed=n_computed,
+            n_skipped=n_skipped,
+            failures=failures,
+            seconds=time.perf_counter() - t_start,
+            startup_seconds=startup,
+            compute_seconds=compute,
+            frames_per_second=n_computed / compute if compute > 0 else 0.0,
+            temp_files_removed=removed,
+            workers=n_workers,
+            aggregate=aggregate,
+        )
+        write_json(output_dir / REPORT_NAME, report.to_dict())
+    return report
+
+
+def _check_batch_args(
+    frames: Sequence[FrameSpec],
+    task: Any,
+    workers: Any,
+    address: Any,
+    connect_timeout: Any,
+    max_in_flight: Any,
+    config: Any,
+    engine: Any,
+    loader: Any,
+) -> tuple:
+    """Checks `run_batch`'s arguments and fills in the defaults (frames, workers, address, config, engine, loader)."""
     frames = _check_frames(frames)
     if task not in TASKS:
         raise InvalidInputError("task", "'complete' or 'eval'", task)
@@ -842,62 +896,44 @@ def run_batch(
     loader = loader or HoldoutInputs()
     if not callable(loader):
         raise InvalidInputError("loader", "a callable loader(spec) -> FrameInputs", type(loader).__name__)
-    output_dir = make_output_dir(output_dir)
+    return frames, workers, address, config, engine, loader
 
-    with _exclusive(output_dir), _settings_kept_with_outputs(output_dir, frames, task, png, previews):
-        check_settings(output_dir, config, loader, engine)
-        removed = remove_stale_temp_files(output_dir)
-        previews = bool(previews) and (variance or task == "eval")
-        todo = [f for f in frames if not frame_done(output_dir, f.frame_id, task, png=png, previews=previews)]
-        n_skipped = len(frames) - len(todo)
-        kwargs = dict(
-            config=config, engine=engine, loader=loader, task=task, variance=variance, png=png, previews=previews
-        )
-        results: list[FrameResult] = []
-        startup = 0.0
-        t_compute = time.perf_counter()
-        n_workers = 0
-        bar = _progress_bar(len(todo), task, progress and bool(todo))
-        try:
-            if todo and (workers == 0 and address is None):
-                for spec in todo:
-                    results.append(process_frame(spec, str(output_dir), **kwargs))
-                    _advance(bar, results)
-            elif todo:
-                t0 = time.perf_counter()
-                with _client(workers, address, connect_timeout) as (client, threads):
-                    startup = time.perf_counter() - t0
-                    n_workers = len(client.nthreads()) or workers
-                    t_compute = time.perf_counter()
-                    window = int(max_in_flight or 2 * max(threads, 1))
-                    results = _run_dask(client, todo, str(output_dir), kwargs, window, bar)
-        finally:
-            if bar is not None:
-                bar.close()
-        compute = time.perf_counter() - t_compute if todo else 0.0
 
-        failures = tuple(
-            FrameFailure(r.frame_id, r.error or "unknown error", r.traceback or "") for r in results if not r.ok
-        )
-        n_computed = sum(r.ok for r in results)
-        aggregate = aggregate_metrics(output_dir, [f.frame_id for f in frames]) if task == "eval" else None
-        report = BatchReport(
-            task=task,
-            output_dir=output_dir,
-            n_frames=len(frames),
-            n_computed=n_computed,
-            n_skipped=n_skipped,
-            failures=failures,
-            seconds=time.perf_counter() - t_start,
-            startup_seconds=startup,
-            compute_seconds=compute,
-            frames_per_second=n_computed / compute if compute > 0 else 0.0,
-            temp_files_removed=removed,
-            workers=n_workers,
-            aggregate=aggregate,
-        )
-        write_json(output_dir / REPORT_NAME, report.to_dict())
-    return report
+def _compute_frames(
+    todo: list[FrameSpec],
+    output_dir: Path,
+    kwargs: dict,
+    workers: int,
+    address: str | None,
+    connect_timeout: float,
+    max_in_flight: int | None,
+    progress: bool,
+) -> tuple[list[FrameResult], float, float, int]:
+    """Runs the frames to do in this process or on Dask: (results, startup s, compute s, workers)."""
+    task = kwargs["task"]
+    results: list[FrameResult] = []
+    startup = 0.0
+    t_compute = time.perf_counter()
+    n_workers = 0
+    bar = _progress_bar(len(todo), task, progress and bool(todo))
+    try:
+        if todo and (workers == 0 and address is None):
+            for spec in todo:
+                results.append(process_frame(spec, str(output_dir), **kwargs))
+                _advance(bar, results)
+        elif todo:
+            t0 = time.perf_counter()
+            with _client(workers, address, connect_timeout) as (client, threads):
+                startup = time.perf_counter() - t0
+                n_workers = len(client.nthreads()) or workers
+                t_compute = time.perf_counter()
+                window = int(max_in_flight or 2 * max(threads, 1))
+                results = _run_dask(client, todo, str(output_dir), kwargs, window, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    compute = time.perf_counter() - t_compute if todo else 0.0
+    return results, startup, compute, n_workers
 
 
 def _progress_bar(total: int, task: str, enabled: bool):

@@ -86,7 +86,8 @@ def fuse_sequence(
         ``sparse_bias_per_frame`` (per frame with measurements: median signed relative error
         of the measurements against the Kinect depth).
     """
-    import cv2
+    # the optional dependency of the comparison volumes, checked before the run
+    import cv2  # noqa: F401
 
     from ..datasets.sevenscenes import SevenScenes
 
@@ -101,33 +102,81 @@ def fuse_sequence(
         if rgb_K is None
         else PinholeCamera.from_K(np.asarray(rgb_K), first.camera.width, first.camera.height)
     )
-    depth_cam = first.camera
-    times: list[dict] = []
-    npoints: list[int] = []
-    depth_err: dict[str, list[float]] = {"mde": [], "gp": []}
-    sparse_err: list[float] = []
-    volume_errors: list[str] = []
-    frame_warnings: list[str] = []
-    extra: dict[str, TSDFFusion] = {}
-    masked = 0
+    record = _FuseRecord(config, rgb_cam, first.camera)
+    mapped = map_sequence(
+        reader,
+        mde=mde,
+        config=replace(config, fusion=replace(config.fusion, weighting="variance")),
+        working_width=None,
+        camera=rgb_cam,
+        max_frames=n,
+        evaluate=False,
+        progress=progress,
+        on_frame=record,
+        force=True,  # the dataset's own (ground-truth) poses
+    )
+    meshes = _variant_meshes(record.extra, mapped.mapper.fusion)
+    empty = sorted(k for k, m in meshes.items() if m is None or len(m.faces) == 0)
+    timing, timing_median = _fuse_timing(record.times)
+    return {
+        "meshes": meshes,
+        "metrics": _variant_metrics(meshes, empty, threshold, metric_samples),
+        "timing": timing,
+        "timing_median": timing_median,
+        "frames": n,
+        "frames_fused": mapped.frames_fused,
+        "frame_errors": mapped.frame_errors + record.volume_errors,
+        "frame_warnings": record.frame_warnings,
+        "masked_pixels": record.masked,
+        "empty_meshes": empty,
+        "sparse_points": float(np.mean(record.npoints)) if record.npoints else 0.0,
+        "depth_median_abs_error": {k: float(np.mean(v)) if v else float("nan") for k, v in record.depth_err.items()},
+        "sparse_bias_per_frame": record.sparse_err,
+    }
 
-    def evaluate(event: FrameEvent) -> None:
+
+@dataclass
+class _FuseRecord:
+    """The comparison volumes and per-frame records `fuse_sequence` gathers from `map_sequence`'s events."""
+
+    config: MapperConfig
+    rgb_cam: PinholeCamera
+    depth_cam: PinholeCamera
+    times: list[dict] = field(default_factory=list)
+    npoints: list[int] = field(default_factory=list)
+    depth_err: dict[str, list[float]] = field(default_factory=lambda: {"mde": [], "gp": []})
+    sparse_err: list[float] = field(default_factory=list)
+    volume_errors: list[str] = field(default_factory=list)
+    frame_warnings: list[str] = field(default_factory=list)
+    extra: dict[str, TSDFFusion] = field(default_factory=dict)
+    masked: int = 0
+
+    def __call__(self, event: FrameEvent) -> None:
         """Records one fused (or failed) frame and fuses the comparison variants of it."""
-        nonlocal masked
-        times.append(dict(event.timings))
+        self.times.append(dict(event.timings))
         result, frame, work = event.result, event.result_frame, event.mapper.work_camera
         if result is None or frame is None:
             return
-        depth_work = depth_cam.resized(work.width, work.height)
-        if not extra:
-            extra.update(
-                mde=TSDFFusion(work, replace(config.fusion, weighting="uniform")),
-                gp_uniform=TSDFFusion(work, replace(config.fusion, weighting="uniform")),
-                gt=TSDFFusion(depth_work, replace(config.fusion, weighting="uniform")),
+        self._fuse_variants(result, frame, work)
+        if not result.depth.size:
+            return
+        self._score_depth(result, frame, work)
+        self.npoints.append(len(result.sparse))
+
+    def _fuse_variants(self, result: FrameResult, frame: Frame, work: PinholeCamera) -> None:
+        """Fuses the frame's MDE, uniform-weight GP and ground-truth depth into the comparison volumes."""
+        import cv2
+
+        depth_work = self.depth_cam.resized(work.width, work.height)
+        if not self.extra:
+            self.extra.update(
+                mde=TSDFFusion(work, replace(self.config.fusion, weighting="uniform")),
+                gp_uniform=TSDFFusion(work, replace(self.config.fusion, weighting="uniform")),
+                gt=TSDFFusion(depth_work, replace(self.config.fusion, weighting="uniform")),
             )
         i = result.keyframe_id
-        frame_warnings.extend(result.warnings)
-        masked += result.masked_pixels
+        self.frame_warnings.extend(result.warnings)
+        self.masked += result.masked_pixels
         work_rgb = cv2.resize(frame.rgb, (work.width, work.height), interpolation=cv2.INTER_AREA)
         others = [("gt", resize_depth(frame.depth, depth_work.shape), work_rgb)]
         if result.mde.size:
@@ -138,49 +187,39 @@ def fuse_sequence(
             t0 = time.perf_counter()
             try:
                 if depth.size:
-                    extra[name].integrate(depth, frame.pose, rgb=colour)
+                    self.extra[name].integrate(depth, frame.pose, rgb=colour)
             except GPDepthError as exc:
-                volume_errors.append(f"frame {i}: {name} volume: {type(exc).__name__}: {exc}")
+                self.volume_errors.append(f"frame {i}: {name} volume: {type(exc).__name__}: {exc}")
             if name == "gp_uniform":
-                times[-1]["fuse_uniform"] = time.perf_counter() - t0
-        if not result.depth.size:
-            return
+                self.times[-1]["fuse_uniform"] = time.perf_counter() - t0
+
+    def _score_depth(self, result: FrameResult, frame: Frame, work: PinholeCamera) -> None:
+        """Records the frame's sparse bias and the MDE's and GP's median depth errors against the Kinect."""
         # Ground truth at the working resolution: lift with the frame's camera, project (z-buffer).
         pts, _ = frame.camera.backproject(frame.depth)
         gt_rgb = project_points(pts, work).to_depth_map()
         ok = gt_rgb > 0
         if len(result.sparse):
             # signed relative error of the measurements against the Kinect depth (the frame's camera)
-            lifted = rgb_cam.backproject_pixels(result.sparse.uv, result.sparse.depth)
-            uv, z = depth_cam.project(lifted)
-            inside = depth_cam.in_image(uv)
+            lifted = self.rgb_cam.backproject_pixels(result.sparse.uv, result.sparse.depth)
+            uv, z = self.depth_cam.project(lifted)
+            inside = self.depth_cam.in_image(uv)
             iu = np.rint(uv[inside]).astype(np.int64)
             kinect = frame.depth[iu[:, 1], iu[:, 0]]
             good = kinect > 0
             if good.any():
-                sparse_err.append(float(np.median((z[inside][good] - kinect[good]) / kinect[good])))
+                self.sparse_err.append(float(np.median((z[inside][good] - kinect[good]) / kinect[good])))
         if ok.any():
-            depth_err["mde"].append(float(np.median(np.abs(result.mde[ok] - gt_rgb[ok]))))
-            depth_err["gp"].append(float(np.median(np.abs(result.depth[ok] - gt_rgb[ok]))))
-        npoints.append(len(result.sparse))
+            self.depth_err["mde"].append(float(np.median(np.abs(result.mde[ok] - gt_rgb[ok]))))
+            self.depth_err["gp"].append(float(np.median(np.abs(result.depth[ok] - gt_rgb[ok]))))
 
-    mapped = map_sequence(
-        reader,
-        mde=mde,
-        config=replace(config, fusion=replace(config.fusion, weighting="variance")),
-        working_width=None,
-        camera=rgb_cam,
-        max_frames=n,
-        evaluate=False,
-        progress=progress,
-        on_frame=evaluate,
-        force=True,  # the dataset's own (ground-truth) poses
-    )
-    mapper = mapped.mapper
+
+def _variant_meshes(extra: dict[str, TSDFFusion], variance: TSDFFusion) -> dict[str, Any]:
+    """The four variants' meshes (None for a volume that never got a frame)."""
     volumes = {
         "mde": extra.get("mde"),
         "gp_uniform": extra.get("gp_uniform"),
-        "gp_variance": mapper.fusion,
+        "gp_variance": variance,
         "gt": extra.get("gt"),
     }
     meshes = {}
@@ -188,37 +227,30 @@ def fuse_sequence(
         meshes[name] = (
             volume.extract_mesh(allow_empty=True) if volume is not None and volume.frames_integrated else None
         )
-    empty = sorted(k for k, m in meshes.items() if m is None or len(m.faces) == 0)
+    return meshes
+
+
+def _variant_metrics(meshes: dict[str, Any], empty: list[str], threshold: float, samples: int) -> dict[str, Any]:
+    """Scores each variant's mesh against the ground-truth one (None where either is empty)."""
     metrics: dict[str, Any] = {}
     for k, m in meshes.items():
         if k == "gt":
             continue
         metrics[k] = (
-            None
-            if k in empty or "gt" in empty
-            else mesh_metrics(m, meshes["gt"], threshold=threshold, samples=metric_samples)
+            None if k in empty or "gt" in empty else mesh_metrics(m, meshes["gt"], threshold=threshold, samples=samples)
         )
+    return metrics
+
+
+def _fuse_timing(times: list[dict]) -> tuple[dict[str, float], dict[str, float]]:
+    """Mean (with the fusion benchmark's stage names) and median seconds per frame per stage."""
     keys = sorted({k for t in times for k in t})
     timing = {k: float(np.mean([t[k] for t in times if k in t])) for k in keys}
     # the names the fusion benchmark reads (docs/results.md)
     timing.update(
         {"triangulate": timing.get("points", 0.0), "refine": timing.get("gp", 0.0), "fuse": timing.get("fusion", 0.0)}
     )
-    return {
-        "meshes": meshes,
-        "metrics": metrics,
-        "timing": timing,
-        "timing_median": {k: float(np.median([t[k] for t in times if k in t])) for k in keys},
-        "frames": n,
-        "frames_fused": mapped.frames_fused,
-        "frame_errors": mapped.frame_errors + volume_errors,
-        "frame_warnings": frame_warnings,
-        "masked_pixels": masked,
-        "empty_meshes": empty,
-        "sparse_points": float(np.mean(npoints)) if npoints else 0.0,
-        "depth_median_abs_error": {k: float(np.mean(v)) if v else float("nan") for k, v in depth_err.items()},
-        "sparse_bias_per_frame": sparse_err,
-    }
+    return timing, {k: float(np.median([t[k] for t in times if k in t])) for k in keys}
 
 
 # ---------------------------------------------------------------------- a user's own sequence
@@ -431,6 +463,54 @@ def map_sequence(
 
     inputs = inputs if isinstance(inputs, PosedInputs) else PosedInputs(inputs, "given")
     sequence = inputs.sequence
+    _check_map_args(stride, metric_samples, working_width, max_frames, threshold)
+    if len(sequence) == 0:
+        raise EmptyInputError("inputs", "a sequence with frames", "none")
+    indices = list(range(0, len(sequence), int(stride)))[:max_frames]
+    camera = camera or getattr(sequence, "camera", None) or sequence[indices[0]].camera
+    config = config or MapperConfig()
+    if working_width is not None:
+        config = replace(config, working_scale=min(1.0, int(working_width) / camera.width))
+    t_start = time.perf_counter()
+    mapper = Mapper(camera, config, mde=mde)
+    uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
+    run = _MapRun(mapper, inputs, force, uniform)
+    bar = tqdm(indices, desc="map", unit="frame", disable=not progress, leave=False)
+    for i in bar:
+        run.step(i, evaluate, on_frame)
+    for result in mapper.flush():
+        result_frame = run.record(result)
+        if on_frame is not None:
+            on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
+    bar.close()
+    if not force:
+        check_poses_agree(run.checked, inputs.pose_format, final=True)
+    if run.fused == 0:
+        raise EmptyInputError(
+            "images",
+            "at least one frame that can be fused",
+            f"none of {len(indices)}: " + "; ".join(run.frame_errors[:3]),
+        )
+    mesh, cloud = _map_surface(mapper)
+    stages = sorted({k for t in mapper.timings for k in t})
+    timing = {k: float(np.median([t[k] for t in mapper.timings if k in t])) for k in stages}
+    timing["wall"] = time.perf_counter() - t_start
+    return MapResult(
+        mapper=mapper,
+        mesh=mesh,
+        cloud=cloud,
+        frames=len(indices),
+        frames_fused=run.fused,
+        frame_errors=run.frame_errors,
+        frames_without_points=run.without_points,
+        sparse_points=float(np.median(run.points)) if run.points else 0.0,
+        metrics=_map_metrics(run.volumes, mesh, threshold, metric_samples),
+        timing=timing,
+    )
+
+
+def _check_map_args(stride: Any, metric_samples: Any, working_width: Any, max_frames: Any, threshold: Any) -> None:
+    """Refuses a bad ``stride``, ``metric_samples``, ``working_width``, ``max_frames`` or ``threshold``."""
     for name, value, low in (("stride", stride, 1), ("metric_samples", metric_samples, 1)) + (
         (("working_width", working_width, 2),) if working_width is not None else ()
     ):
@@ -442,44 +522,27 @@ def map_sequence(
         raise InvalidInputError("max_frames", "an integer >= 1 (or None for all)", max_frames)
     if not (isinstance(threshold, (int, float)) and np.isfinite(threshold) and threshold > 0):
         raise InvalidInputError("threshold", "a distance > 0 (metres)", threshold)
-    if len(sequence) == 0:
-        raise EmptyInputError("inputs", "a sequence with frames", "none")
-    indices = list(range(0, len(sequence), int(stride)))[:max_frames]
-    camera = camera or getattr(sequence, "camera", None) or sequence[indices[0]].camera
-    config = config or MapperConfig()
-    if working_width is not None:
-        config = replace(config, working_scale=min(1.0, int(working_width) / camera.width))
-    t_start = time.perf_counter()
-    mapper = Mapper(camera, config, mde=mde)
-    work = mapper.work_camera
-    uniform = replace(config.fusion, weighting="uniform", integrate_variance=False)
-    volumes: dict[str, TSDFFusion] = {}  # the sensor depth's and the MDE's, made with the first frame with depth
-    frame_errors: list[str] = []
-    without_points: list[str] = []
-    points: list[int] = []
-    fused = 0
-    waiting: dict[int, Frame] = {}
-    checked: list[bool] = []  # per frame returned: its pose failed the pose check
 
-    def record(result: FrameResult) -> Frame:
-        nonlocal fused
-        frame = waiting.pop(result.keyframe_id)
-        checked.append(bool(getattr(result, "pose_in_doubt", False)))
-        if not force:
-            check_poses_agree(checked, inputs.pose_format, final=False)
-        if result.error is not None:
-            frame_errors.append(f"image {frame.name}: {result.error}")
-        if result.fused:
-            fused += 1
-            points.append(len(result.sparse))
-            if len(result.sparse) == 0:
-                without_points.append(frame.name)
-        if "mde" in volumes and result.mde.size:
-            _integrate(volumes["mde"], result.mde, frame, work, frame_errors, "MDE-only volume")
-        return frame
 
-    bar = tqdm(indices, desc="map", unit="frame", disable=not progress, leave=False)
-    for i in bar:
+@dataclass
+class _MapRun:
+    """The state of one `map_sequence` run: frames waiting for their result, errors, counts, sensor volumes."""
+
+    mapper: Mapper
+    inputs: PosedInputs
+    force: bool
+    uniform: Any
+    volumes: dict[str, TSDFFusion] = field(default_factory=dict)  # the sensor depth's and the MDE's
+    frame_errors: list[str] = field(default_factory=list)
+    without_points: list[str] = field(default_factory=list)
+    points: list[int] = field(default_factory=list)
+    fused: int = 0
+    waiting: dict[int, Frame] = field(default_factory=dict)
+    checked: list[bool] = field(default_factory=list)  # per frame returned: its pose failed the pose check
+
+    def step(self, i: int, evaluate: bool, on_frame: FrameCallback | None) -> None:
+        """Adds frame ``i`` to the Mapper (a failure named, the run goes on) and records what it returned."""
+        sequence, inputs = self.inputs.sequence, self.inputs
         try:
             frame = sequence[i]
             extra = {}
@@ -487,62 +550,64 @@ def map_sequence(
                 extra["map_points_world"] = inputs.map_points[i]
                 if inputs.map_points_sigma is not None:
                     extra["map_points_sigma"] = inputs.map_points_sigma[i]
-            waiting[i] = frame
-            result = mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i, **extra)
+            self.waiting[i] = frame
+            result = self.mapper.add_frame(frame.rgb, frame.pose, keyframe_id=i, **extra)
         except GPDepthError as exc:  # an unreadable frame or a bad pose: named, the run goes on
-            waiting.pop(i, None)
-            frame_errors.append(f"image {sequence.names[i]}: {type(exc).__name__}: {exc}")
-            continue
+            self.waiting.pop(i, None)
+            self.frame_errors.append(f"image {sequence.names[i]}: {type(exc).__name__}: {exc}")
+            return
         if evaluate and frame.depth is not None:
-            if not volumes:
-                volumes.update(reference=TSDFFusion(work, uniform), mde=TSDFFusion(work, uniform))
-            pts, _ = frame.camera.backproject(frame.depth)
-            _integrate(
-                volumes["reference"],
-                project_points(pts, work).to_depth_map(),
-                frame,
-                work,
-                frame_errors,
-                "sensor-depth volume",
-            )
-        result_frame = record(result) if result is not None else None
+            self._fuse_sensor_depth(frame)
+        result_frame = self.record(result) if result is not None else None
         if on_frame is not None:
-            on_frame(FrameEvent(mapper, frame, result, result_frame, dict(mapper.timings[-1])))
-    for result in mapper.flush():
-        result_frame = record(result)
-        if on_frame is not None:
-            on_frame(FrameEvent(mapper, None, result, result_frame, dict(result.timings)))
-    bar.close()
-    if not force:
-        check_poses_agree(checked, inputs.pose_format, final=True)
-    if fused == 0:
-        raise EmptyInputError(
-            "images", "at least one frame that can be fused", f"none of {len(indices)}: " + "; ".join(frame_errors[:3])
+            on_frame(FrameEvent(self.mapper, frame, result, result_frame, dict(self.mapper.timings[-1])))
+
+    def _fuse_sensor_depth(self, frame: Frame) -> None:
+        """Fuses the frame's sensor depth into the reference volume (made with the first frame with depth)."""
+        work = self.mapper.work_camera
+        if not self.volumes:
+            self.volumes.update(reference=TSDFFusion(work, self.uniform), mde=TSDFFusion(work, self.uniform))
+        pts, _ = frame.camera.backproject(frame.depth)
+        _integrate(
+            self.volumes["reference"],
+            project_points(pts, work).to_depth_map(),
+            frame,
+            work,
+            self.frame_errors,
+            "sensor-depth volume",
         )
-    mesh, cloud = _map_surface(mapper)
-    metrics = None
-    if volumes and volumes["reference"].frames_integrated:
-        ref_mesh = volumes["reference"].extract_mesh(allow_empty=True)
-        mde_mesh = volumes["mde"].extract_mesh(allow_empty=True) if volumes["mde"].frames_integrated else None
-        metrics = {}
-        for name, m in (("map", mesh), ("mde", mde_mesh)):
-            ok = m is not None and len(m.faces) and len(ref_mesh.faces)
-            metrics[name] = mesh_metrics(m, ref_mesh, threshold=threshold, samples=metric_samples) if ok else None
-    stages = sorted({k for t in mapper.timings for k in t})
-    timing = {k: float(np.median([t[k] for t in mapper.timings if k in t])) for k in stages}
-    timing["wall"] = time.perf_counter() - t_start
-    return MapResult(
-        mapper=mapper,
-        mesh=mesh,
-        cloud=cloud,
-        frames=len(indices),
-        frames_fused=fused,
-        frame_errors=frame_errors,
-        frames_without_points=without_points,
-        sparse_points=float(np.median(points)) if points else 0.0,
-        metrics=metrics,
-        timing=timing,
-    )
+
+    def record(self, result: FrameResult) -> Frame:
+        """Books one returned frame: pose check, error, counts, its MDE in the MDE-only volume."""
+        frame = self.waiting.pop(result.keyframe_id)
+        self.checked.append(bool(getattr(result, "pose_in_doubt", False)))
+        if not self.force:
+            check_poses_agree(self.checked, self.inputs.pose_format, final=False)
+        if result.error is not None:
+            self.frame_errors.append(f"image {frame.name}: {result.error}")
+        if result.fused:
+            self.fused += 1
+            self.points.append(len(result.sparse))
+            if len(result.sparse) == 0:
+                self.without_points.append(frame.name)
+        if "mde" in self.volumes and result.mde.size:
+            _integrate(
+                self.volumes["mde"], result.mde, frame, self.mapper.work_camera, self.frame_errors, "MDE-only volume"
+            )
+        return frame
+
+
+def _map_metrics(volumes: dict[str, TSDFFusion], mesh: Any, threshold: float, samples: int) -> dict | None:
+    """Scores the map and the MDE-only mesh against the sensor-depth mesh (None without sensor depth)."""
+    if not (volumes and volumes["reference"].frames_integrated):
+        return None
+    ref_mesh = volumes["reference"].extract_mesh(allow_empty=True)
+    mde_mesh = volumes["mde"].extract_mesh(allow_empty=True) if volumes["mde"].frames_integrated else None
+    metrics = {}
+    for name, m in (("map", mesh), ("mde", mde_mesh)):
+        ok = m is not None and len(m.faces) and len(ref_mesh.faces)
+        metrics[name] = mesh_metrics(m, ref_mesh, threshold=threshold, samples=samples) if ok else None
+    return metrics
 
 
 POSE_CHECK_SHARE = 0.5

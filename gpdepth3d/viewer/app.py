@@ -249,8 +249,6 @@ class Viewer:
 
     # ------------------------------------------------------------------ scene
     def _build_scene(self, meshes: Sequence[Any]) -> None:
-        import viser.transforms as vtf
-
         scene = self.server.scene
         T0 = self.frames[0].pose if self.frames else np.eye(4)
         self._right = T0[:3, 0].copy()
@@ -258,18 +256,21 @@ class Viewer:
         forward = T0[:3, 2]
         scene.set_up_direction(tuple(float(x) for x in up))
 
-        loaded = []
-        if meshes:
-            import trimesh  # slow to import: only when there are meshes
-        for i, mesh in enumerate(meshes):
-            if isinstance(mesh, (str, Path)):
-                loaded.extend(load_geometry(mesh))  # a mesh, a point cloud or a map folder
-                continue
-            if not isinstance(mesh, (trimesh.Trimesh, trimesh.PointCloud)):
-                raise InvalidInputError(
-                    f"meshes[{i}]", "a trimesh.Trimesh or PointCloud, or a mesh, cloud or map path", type(mesh).__name__
-                )
-            loaded.append(mesh)
+        loaded = _check_meshes(meshes)
+        extent, centre, height = self._scene_extent(loaded, T0, up, forward)
+        self._spacing = 1.15 * extent
+
+        # Each group is created at its place in the layout, labels shown only side by side: the page
+        # never draws the layers (and their labels) on top of each other while the scene arrives.
+        side = self.config.layout == "side-by-side"
+        label_at = centre + up * 0.6 * height
+        self._add_layers(label_at, side)
+        self._add_frustums(0.05 * max(extent, height))
+        self._add_meshes(loaded, label_at, side)
+        self._set_initial_view(centre, extent, up, forward)
+
+    def _scene_extent(self, loaded: list[Any], T0: np.ndarray, up: np.ndarray, forward: np.ndarray) -> tuple:
+        """The layers' (else the meshes') width along the camera's right, centre and height, metres."""
         gp = self._layers["gp"].points
         ref = gp if len(gp) else np.concatenate([self._layers[k].points for k in LAYER_LABELS])
         if len(ref) == 0 and loaded:
@@ -282,15 +283,15 @@ class Viewer:
             height = float(np.ptp(np.percentile(ref.astype(np.float64) @ up, [1, 99])))
         else:
             extent, centre, height = 1.0, T0[:3, 3] + forward, 1.0
-        self._spacing = 1.15 * extent
+        return extent, centre, height
 
+    def _add_layers(self, label_at: np.ndarray, side: bool) -> None:
+        """Draws each non-empty layer's points (and label) in its group; drops the preview cloud."""
+        scene = self.server.scene
         preview = getattr(self, "_preview", None)
         self.groups: dict[str, Any] = {}
         self.point_clouds: dict[str, Any] = {}
         self._labels: list[Any] = []
-        # Each group is created at its place in the layout, labels shown only side by side: the page
-        # never draws the layers (and their labels) on top of each other while the scene arrives.
-        side = self.config.layout == "side-by-side"
         for key, label in LAYER_LABELS.items():
             layer = self._layers[key]
             if len(layer) == 0:
@@ -307,13 +308,7 @@ class Viewer:
             )
             if key != "sparse":
                 self._labels.append(
-                    scene.add_label(
-                        f"/{key}/label",
-                        label,
-                        position=centre + up * 0.6 * height,
-                        anchor="bottom-center",
-                        visible=side,
-                    )
+                    scene.add_label(f"/{key}/label", label, position=label_at, anchor="bottom-center", visible=side)
                 )
             self._event(f"cloud:{key}")
         if preview is not None:
@@ -322,51 +317,60 @@ class Viewer:
         if "sparse" in self.point_clouds:
             self.point_clouds["sparse"].point_size = 3.0 * self._point_size
 
+    def _add_frustums(self, default_scale: float) -> None:
+        """Draws the cameras' frustums (with a small image each) in the cameras group."""
+        import viser.transforms as vtf
+
+        scene = self.server.scene
         self.frustums = []
-        if self.frames:
-            self.groups["cameras"] = scene.add_frame(
-                "/cameras", show_axes=False, position=self._group_position("cameras")
-            )
-            scale = self.config.frustum_scale or 0.05 * max(extent, height)
-            for i, f in enumerate(self.frames):
-                cam = f.camera
-                image = None
-                if f.rgb is not None:
-                    small_w = min(256, f.rgb.shape[1])
-                    image = _resize(f.rgb, (max(1, round(f.rgb.shape[0] * small_w / f.rgb.shape[1])), small_w))
-                T = f.pose
-                self.frustums.append(
-                    scene.add_camera_frustum(
-                        f"/cameras/{i:04d}",
-                        fov=2.0 * math.atan2(cam.height / 2.0, cam.fy),
-                        aspect=cam.width / cam.height,
-                        scale=scale,
-                        image=image,
-                        format="jpeg",
-                        wxyz=vtf.SO3.from_matrix(T[:3, :3]).wxyz,
-                        position=T[:3, 3],
-                        color=(230, 80, 30),
-                        thickness=0.1 * scale,
-                    )
+        if not self.frames:
+            return
+        self.groups["cameras"] = scene.add_frame("/cameras", show_axes=False, position=self._group_position("cameras"))
+        scale = self.config.frustum_scale or default_scale
+        for i, f in enumerate(self.frames):
+            cam = f.camera
+            image = None
+            if f.rgb is not None:
+                small_w = min(256, f.rgb.shape[1])
+                image = _resize(f.rgb, (max(1, round(f.rgb.shape[0] * small_w / f.rgb.shape[1])), small_w))
+            T = f.pose
+            self.frustums.append(
+                scene.add_camera_frustum(
+                    f"/cameras/{i:04d}",
+                    fov=2.0 * math.atan2(cam.height / 2.0, cam.fy),
+                    aspect=cam.width / cam.height,
+                    scale=scale,
+                    image=image,
+                    format="jpeg",
+                    wxyz=vtf.SO3.from_matrix(T[:3, :3]).wxyz,
+                    position=T[:3, 3],
+                    color=(230, 80, 30),
+                    thickness=0.1 * scale,
                 )
+            )
 
+    def _add_meshes(self, loaded: list[Any], label_at: np.ndarray, side: bool) -> None:
+        """Draws the given meshes and clouds (and their label) in the meshes group."""
+        scene = self.server.scene
         self.meshes = []
-        if loaded:
-            self.groups["meshes"] = scene.add_frame("/meshes", show_axes=False, position=self._group_position("meshes"))
-            for i, mesh in enumerate(loaded):
-                self.meshes.append(self._add_geometry(f"/meshes/{i:03d}", mesh))
-            clouds = sum(not hasattr(m, "faces") for m in loaded)
-            self._labels.append(
-                scene.add_label(
-                    "/meshes/label",
-                    "Fused mesh" if not clouds else "Point cloud" if clouds == len(loaded) else "Mesh and cloud",
-                    position=centre + up * 0.6 * height,
-                    anchor="bottom-center",
-                    visible=side,
-                )
+        if not loaded:
+            return
+        self.groups["meshes"] = scene.add_frame("/meshes", show_axes=False, position=self._group_position("meshes"))
+        for i, mesh in enumerate(loaded):
+            self.meshes.append(self._add_geometry(f"/meshes/{i:03d}", mesh))
+        clouds = sum(not hasattr(m, "faces") for m in loaded)
+        self._labels.append(
+            scene.add_label(
+                "/meshes/label",
+                "Fused mesh" if not clouds else "Point cloud" if clouds == len(loaded) else "Mesh and cloud",
+                position=label_at,
+                anchor="bottom-center",
+                visible=side,
             )
+        )
 
-        # Initial view: behind and above the first camera, looking at the scene centre.
+    def _set_initial_view(self, centre: np.ndarray, extent: float, up: np.ndarray, forward: np.ndarray) -> None:
+        """Initial view: behind and above the first camera, looking at the scene centre."""
         slots = {self._slot(k) for k in self.groups} or {0.0}
         width = self._spacing * (max(slots) - min(slots) + 1.0)
         fov = math.radians(50.0)
@@ -665,6 +669,23 @@ class Viewer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _check_meshes(meshes: Sequence[Any]) -> list[Any]:
+    """The viewer's extra geometry: trimesh objects as given, paths loaded (`load_geometry`)."""
+    loaded = []
+    if meshes:
+        import trimesh  # slow to import: only when there are meshes
+    for i, mesh in enumerate(meshes):
+        if isinstance(mesh, (str, Path)):
+            loaded.extend(load_geometry(mesh))  # a mesh, a point cloud or a map folder
+            continue
+        if not isinstance(mesh, (trimesh.Trimesh, trimesh.PointCloud)):
+            raise InvalidInputError(
+                f"meshes[{i}]", "a trimesh.Trimesh or PointCloud, or a mesh, cloud or map path", type(mesh).__name__
+            )
+        loaded.append(mesh)
+    return loaded
 
 
 def show(

@@ -452,38 +452,12 @@ def triangulate_tracks(
         CalibrationError: a pose that is not rigid.
     """
     config = config or TriangulationConfig()
-    tracks = np.asarray(tracks, dtype=np.float64)
-    if tracks.ndim != 3 or tracks.shape[2] != 2:
-        raise ShapeError("tracks", "an (N, V, 2) array of pixel positions", describe(tracks))
-    n, V = tracks.shape[:2]
-    poses = list(poses)
-    if len(poses) != V or V < 2:
-        raise ShapeError("poses", f"{V} 4x4 poses, one per view of tracks (>= 2 views)", len(poses))
-    Ts = np.stack([T if _checked else check_pose(T, f"poses[{k}]") for k, T in enumerate(poses)])
-    if not -V <= reference < V:
-        raise InvalidInputError("reference", f"an index into {V} views", reference)
-    ref = reference % V
-    if n and not np.all(np.isfinite(tracks[:, ref])):
-        raise InvalidInputError(
-            "tracks", "every track seen (finite) in the reference view", "NaN in the reference view"
-        )
-    others = [k for k in range(V) if k != ref]
-    empty = MultiViewPoints(
-        np.zeros(0, np.int64),
-        np.zeros((0, 2)),
-        np.zeros(0),
-        np.zeros(0),
-        np.zeros((0, 3)),
-        np.zeros(0, np.int64),
-        np.zeros(0),
-        np.zeros(0),
-        Ts.copy(),
-        float(config.pixel_sigma),
-    )
+    tracks, Ts, ref = _checked_tracks(tracks, poses, reference, _checked)
+    others = [k for k in range(tracks.shape[1]) if k != ref]
     mask = np.all(np.isfinite(tracks[:, others]), axis=-1)
     keep = np.nonzero(mask.sum(axis=1) >= config.min_views - 1)[0]
     if keep.size == 0:
-        return empty
+        return _no_points(Ts, config)
     uv_ref = tracks[keep, ref]
     obs = tracks[keep][:, others]
     mask = mask[keep]
@@ -501,16 +475,68 @@ def triangulate_tracks(
         # the tracks contradict the given poses: refine them (a bundle adjustment with the looser prior);
         # the noise the residuals showed against the given poses (``seen``) still widens sigma
         # (``variance_factor``): the refined poses fit the tracks, not necessarily the scene's depth
-        prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, config)
-        sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, len(others), config)[1]
-        # corrections far beyond the prior: the given poses do not belong to these images
-        z = np.sqrt(np.mean(prob.xi**2 * prob.prior, axis=1))
-        contradicted = bool(z.size and np.max(z) > _CONTRADICTED)
+        prob, rho, r, valid, sigma_px, contradicted = _refined(xbar, obs, mask, T_jr, camera, config, len(others))
     else:
         config = held
     var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
     out = _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
     return replace(out, agreeing=held_agreeing) if contradicted else out
+
+
+def _checked_tracks(
+    tracks: np.ndarray, poses: Sequence[np.ndarray] | np.ndarray, reference: int, checked: bool
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Checks `triangulate_tracks`'s tracks, poses and reference: (tracks, stacked poses, reference index)."""
+    tracks = np.asarray(tracks, dtype=np.float64)
+    if tracks.ndim != 3 or tracks.shape[2] != 2:
+        raise ShapeError("tracks", "an (N, V, 2) array of pixel positions", describe(tracks))
+    n, V = tracks.shape[:2]
+    poses = list(poses)
+    if len(poses) != V or V < 2:
+        raise ShapeError("poses", f"{V} 4x4 poses, one per view of tracks (>= 2 views)", len(poses))
+    Ts = np.stack([T if checked else check_pose(T, f"poses[{k}]") for k, T in enumerate(poses)])
+    if not -V <= reference < V:
+        raise InvalidInputError("reference", f"an index into {V} views", reference)
+    ref = reference % V
+    if n and not np.all(np.isfinite(tracks[:, ref])):
+        raise InvalidInputError(
+            "tracks", "every track seen (finite) in the reference view", "NaN in the reference view"
+        )
+    return tracks, Ts, ref
+
+
+def _no_points(Ts: np.ndarray, config: TriangulationConfig) -> MultiViewPoints:
+    """The `MultiViewPoints` without any point (the poses as given)."""
+    return MultiViewPoints(
+        np.zeros(0, np.int64),
+        np.zeros((0, 2)),
+        np.zeros(0),
+        np.zeros(0),
+        np.zeros((0, 3)),
+        np.zeros(0, np.int64),
+        np.zeros(0),
+        np.zeros(0),
+        Ts.copy(),
+        float(config.pixel_sigma),
+    )
+
+
+def _refined(
+    xbar: np.ndarray,
+    obs: np.ndarray,
+    mask: np.ndarray,
+    T_jr: np.ndarray,
+    camera: PinholeCamera,
+    config: TriangulationConfig,
+    n_others: int,
+) -> tuple:
+    """Solves again with the poses refined: (problem, rho, residuals, valid, pixel sigma, poses contradicted)."""
+    prob, rho, r, valid = _solved(xbar, obs, mask, T_jr, camera, config)
+    sigma_px = _pixel_noise(r, valid, prob.pixel_sigma, n_others, config)[1]
+    # corrections far beyond the prior: the given poses do not belong to these images
+    z = np.sqrt(np.mean(prob.xi**2 * prob.prior, axis=1))
+    contradicted = bool(z.size and np.max(z) > _CONTRADICTED)
+    return prob, rho, r, valid, sigma_px, contradicted
 
 
 _CONTRADICTED = 4.0
