@@ -327,7 +327,7 @@ def readme_mapping_table(results: Path = RESULTS) -> str:
     rows = [
         [
             f"{s.get('label', SEQUENCE_NAMES.get(name, name))} ({s['frames_fused']} of {s['frames']} frames)",
-            f"**{f3(s['fscore_map'])}**",
+            "–" if s["fscore_map"] is None else f"**{f3(s['fscore_map'])}**",
             f3(s["fscore_mde_only"]),
             fmt(s["mapping_wall_s"], 0),
         ]

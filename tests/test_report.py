@@ -63,7 +63,7 @@ def test_mapping_tables_follow_the_json(tmp_path):
     results = tmp_path / "results"
     results.mkdir()
     d = json.loads((ROOT / "bench" / "results" / "map_recipes.json").read_text(encoding="utf-8"))
-    d["sequences"]["hololens"]["fscore_map"] = 0.987
+    d["sequences"]["map_hololens"]["fscore_map"] = 0.987
     (results / "map_recipes.json").write_text(json.dumps(d), encoding="utf-8")
     assert "| **0.987** |" in report.readme_mapping_table(results)
     selection = {

@@ -90,6 +90,30 @@ def _mapper(frames: int = 3, shade: int = 0) -> Mapper:
     return mapper
 
 
+def _save_dying_at(folder: str, shade: int, step: int) -> None:
+    """In a fresh interpreter: saves `_mapper(shade=shade)` to ``folder``, dying (``os._exit(3)``, no clean-up)
+    at its ``step``-th file-system change; exit code 0 when the save finishes first."""
+    try:
+        mapper = _mapper(shade=shade)
+        counter = {"n": 0}
+
+        def dying(fn):
+            def call(*a, **k):
+                counter["n"] += 1
+                if counter["n"] == step:
+                    os._exit(3)
+                return fn(*a, **k)
+
+            return call
+
+        for mod, name in ((os, "replace"), (os, "unlink"), (gio.tempfile, "mkstemp"), (os, "fsync")):
+            setattr(mod, name, dying(getattr(mod, name)))
+        mapper.save(folder)
+        os._exit(0)
+    except BaseException:
+        os._exit(4)
+
+
 def _voxels(mapper: Mapper) -> dict:
     vox = mapper.fusion.voxels()
     order = np.lexsort(vox["coords"].T)
@@ -195,35 +219,22 @@ class TestSaveAsOneSet:
         with pytest.raises(DataFormatError, match="interrupted save"):
             Mapper.load(folder)
 
-    @pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+    @pytest.mark.slow  # a fresh interpreter per step (a forked child of a threaded process can deadlock)
     def test_save_killed_at_every_step_leaves_old_or_new_map(self, tmp_path):
+        import multiprocessing
+
         folder = tmp_path / "m"
-        maps = [_mapper(shade=s) for s in (0, 30)]
+        shades = (0, 30)
+        maps = [_mapper(shade=s) for s in shades]
         maps[0].save(folder)
         shade = {int(m.keyframes[0].rgb[0, 0, 0]): i for i, m in enumerate(maps)}
         step, finished, seen = 1, False, set()
+        spawn = multiprocessing.get_context("spawn")
         while not finished:
-            pid = os.fork()
-            if pid == 0:  # the child dies (os._exit, no clean-up) at its step-th file-system change
-                try:
-                    counter = {"n": 0}
-
-                    def dying(fn):
-                        def call(*a, **k):
-                            counter["n"] += 1
-                            if counter["n"] == step:
-                                os._exit(3)
-                            return fn(*a, **k)
-
-                        return call
-
-                    for mod, name in ((os, "replace"), (os, "unlink"), (gio.tempfile, "mkstemp"), (os, "fsync")):
-                        setattr(mod, name, dying(getattr(mod, name)))
-                    maps[1 - step % 2].save(folder)
-                    os._exit(0)
-                except BaseException:
-                    os._exit(4)
-            code = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+            child = spawn.Process(target=_save_dying_at, args=(str(folder), shades[1 - step % 2], step))
+            child.start()
+            child.join()
+            code = child.exitcode
             assert code in (0, 3), f"step {step}: child failed with {code}"
             finished = code == 0
             loaded = Mapper.load(folder)  # finishes or rolls back what the kill left
