@@ -1,11 +1,11 @@
-"""Wall time and F-score of ``gpdepth3d map`` on the shared sequences, run as docs/mapping.md writes it.
+"""Wall time and F-score of ``gpdepth3d map`` on the shared sequences, run as the README and docs write it.
 
 Usage::
 
     python bench/map_recipes.py [--out bench/results/map_recipes.json]
 
-Each ``gpdepth3d map ... ../shared/data/...`` line of docs/mapping.md (the HoloLens walk, 94 frames; the
-7-Scenes frames, 60) is started as a user starts it: a fresh ``python -m gpdepth3d.cli`` process from the
+Every ``gpdepth3d map ... ../shared/data/...`` line of the README (posed, from images alone, with
+``--points``), then docs/mapping.md's posed ones (the 7-Scenes frames, 60), is started as a user starts it: a fresh ``python -m gpdepth3d.cli`` process from the
 repository root, with the library's defaults (FastDepth TFLite, the Mapper's own triangulated points,
 320-px working width). Recorded per sequence: the process's wall time, the run's own mapping time
 (``wall_s`` of its metrics.json), frames fused, frames without points, and the F-score at 5 cm of the map
@@ -22,6 +22,7 @@ import json
 import os
 import platform
 import re
+import resource
 import shlex
 import subprocess
 import sys
@@ -56,10 +57,17 @@ def label(line: str) -> str:
     return f"{SEQUENCES.get(sequence, sequence)}, {poses}"
 
 
-def run(line: str) -> dict:
+def run_command(line: str) -> tuple[dict, dict]:
+    """Runs one ``gpdepth3d`` command line as a user starts it: a fresh process from the repository root.
+
+    Returns:
+        (the ``metrics.json`` of its ``--output`` folder, the process: ``output``, ``process_wall_s``,
+        ``process_cpu_s``, ``loadavg_before``, ``loadavg_after``).
+    """
     argv = shlex.split(line)[1:]
     out = REPO / argv[argv.index("--output") + 1]
     load_before = os.getloadavg()
+    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.monotonic()
     proc = subprocess.run(
         [sys.executable, "-m", "gpdepth3d.cli", *argv],
@@ -69,14 +77,28 @@ def run(line: str) -> dict:
         env={**os.environ, "PYTHONPATH": str(REPO)},
     )
     wall = time.monotonic() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if proc.returncode != 0:
         raise SystemExit(f"{line}\n{proc.stderr[-3000:]}")
     summary = json.loads((out / "metrics.json").read_text())
+    process = {
+        "output": str(out),
+        "process_wall_s": wall,
+        "process_cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime),
+        "loadavg_before": load_before,
+        "loadavg_after": os.getloadavg(),
+    }
+    return summary, process
+
+
+def run(line: str) -> dict:
+    """One ``map`` line's record: its process and what its ``metrics.json`` says."""
+    summary, process = run_command(line)
     metrics = summary["metrics"] or {}
     return {
         "command": line,
         "label": label(line),
-        "process_wall_s": wall,
+        "process_wall_s": process["process_wall_s"],
         "mapping_wall_s": summary["wall_s"],
         "frames": summary["frames"],
         "frames_fused": summary["frames_fused"],
@@ -87,8 +109,8 @@ def run(line: str) -> dict:
         "precision_map": (metrics.get("map") or {}).get("precision"),
         "recall_map": (metrics.get("map") or {}).get("recall"),
         "add_frame_median_s": summary["timing_median_s_per_frame"].get("total"),
-        "loadavg_before": load_before,
-        "loadavg_after": os.getloadavg(),
+        "loadavg_before": process["loadavg_before"],
+        "loadavg_after": process["loadavg_after"],
     }
 
 

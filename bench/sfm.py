@@ -27,14 +27,13 @@ import json
 import os
 import platform
 import re
-import resource
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from map_recipes import run_command  # a sibling script: bench/ is on the path
 
 REPO = Path(__file__).resolve().parents[1]
 FIT_ON = "7scenes"
@@ -51,38 +50,22 @@ def recipes() -> dict[str, str]:
 
 def run(line: str) -> dict:
     """Runs one command line in a fresh process; its wall and CPU time, load and metrics.json."""
-    argv = shlex.split(line)[1:]
-    out = REPO / argv[argv.index("--output") + 1]
-    load_before = os.getloadavg()
-    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.monotonic()
-    proc = subprocess.run(
-        [sys.executable, "-m", "gpdepth3d.cli", *argv],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-    )
-    wall = time.monotonic() - t0
-    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if proc.returncode != 0:
-        raise SystemExit(f"{line}\n{proc.stderr[-3000:]}")
-    summary = json.loads((out / "metrics.json").read_text())
+    summary, process = run_command(line)
     pieces = summary["pieces"]
     metrics = summary.get("metrics") or {}
     return {
         "command": line,
-        "output": str(out),
-        "process_wall_s": wall,
-        "process_cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime),
+        "output": process["output"],
+        "process_wall_s": process["process_wall_s"],
+        "process_cpu_s": process["process_cpu_s"],
         "frames": pieces["frames"],
         "registered": pieces["registered"],
         "pieces": pieces["pieces"],
         "timing_s": pieces["timing_s"],
         "fscore_map": (metrics.get("map") or {}).get("fscore"),
         "fscore_mde_only": (metrics.get("mde") or {}).get("fscore"),
-        "loadavg_before": load_before,
-        "loadavg_after": os.getloadavg(),
+        "loadavg_before": process["loadavg_before"],
+        "loadavg_after": process["loadavg_after"],
     }
 
 
