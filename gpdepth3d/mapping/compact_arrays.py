@@ -14,6 +14,8 @@ observed), NaN as NaN and signs as they were.
 
 from __future__ import annotations
 
+import io
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -68,17 +70,22 @@ def from_fixed(q: np.ndarray) -> np.ndarray:
 def read_npz_members(path: str | Path, names: list[str]) -> dict[str, np.ndarray]:
     """The members ``names`` of an ``.npz``, decompressed in parallel threads (zlib releases the GIL).
 
+    Only the decompression runs in the threads; each ``.npy`` header is parsed on the calling thread,
+    because NumPy parses it with `ast.literal_eval`, which CPython 3.11 does not run safely from several
+    threads at once (``SystemError: AST constructor recursion depth mismatch``).
+
     Raises:
         KeyError: a member is missing. OSError, ValueError, zipfile.BadZipFile: not a readable ``.npz``.
     """
 
-    def one(name: str) -> np.ndarray:
-        with np.load(path, allow_pickle=False) as d:  # one archive handle per thread
-            return d[name]
+    def raw(name: str) -> bytes:
+        with zipfile.ZipFile(path) as archive:  # one archive handle per thread
+            return archive.read(name + ".npy")
 
     with np.load(path, allow_pickle=False) as d:
         missing = [n for n in names if n not in d.files]
     if missing:
         raise KeyError(f"no member {missing[0]!r}")
     with ThreadPoolExecutor(max_workers=min(4, max(1, len(names)))) as pool:
-        return dict(zip(names, pool.map(one, names)))
+        members = list(pool.map(raw, names))
+    return {n: np.lib.format.read_array(io.BytesIO(b), allow_pickle=False) for n, b in zip(names, members)}
