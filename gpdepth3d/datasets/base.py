@@ -8,29 +8,13 @@ from typing import Iterator
 
 import numpy as np
 
-from ..camera import PinholeCamera, check_pose
-from ..io import read_matrix as read_matrix  # noqa: F401  (re-exported for the readers)
-from ..errors import CalibrationError, DataFormatError, InvalidInputError, describe
+from ..camera import PinholeCamera
+from ..errors import DataFormatError, InvalidInputError, describe
 from ..limits import check_memory
 from ..measurements import LidarCalibration, SparseDepth
 
 RESIZED_BYTES_PER_PIXEL = 40
 """Peak bytes per pixel of `Frame.resized`: the image, the depth as float32 and float64, temporaries."""
-
-
-def checked_pose(T: np.ndarray, path: Path, where: str = "") -> np.ndarray:
-    """A pose read from ``path`` checked by `gpdepth3d.camera.check_pose` (the one check every reader uses).
-
-    Returns the 4x4 T_world_camera with its rotation snapped to orthonormal.
-
-    Raises:
-        DataFormatError: naming the file (and ``where``, e.g. "line 3") when T is not a rigid
-            transform (not orthonormal, det != +1, scaled, non-finite).
-    """
-    try:
-        return check_pose(T, "pose")
-    except CalibrationError as exc:
-        raise DataFormatError(path, f"{where + ': ' if where else ''}not a rigid transform: {exc}") from None
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,10 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..errors import DataFormatError
-from ..io import load_npz_arrays, load_rgb
+from ..io import load_npz_arrays, load_rgb, read_matrix
+from ..io.poses import read_kitti_poses
 from ..measurements import LidarCalibration, SparseDepth, load_velodyne
-from .base import DatasetReader, Frame, checked_pose, read_matrix
+from .base import DatasetReader, Frame
 
 
 class KittiTiny(DatasetReader):
@@ -34,15 +35,7 @@ class KittiTiny(DatasetReader):
         self.poses: np.ndarray | None = None
         pose_path = self.root / "poses.txt"
         if pose_path.is_file():
-            try:
-                rows = np.loadtxt(pose_path, ndmin=2)
-            except ValueError as exc:
-                raise DataFormatError(pose_path, f"expected one 3x4 pose (12 numbers) per line: {exc}") from None
-            if rows.shape[1] != 12 or not np.all(np.isfinite(rows)):
-                raise DataFormatError(pose_path, f"expected 12 finite numbers per line, got shape {rows.shape}")
-            poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
-            poses[:, :3, :] = rows.reshape(-1, 3, 4)
-            self.poses = np.stack([checked_pose(T, pose_path, f"line {i + 1}") for i, T in enumerate(poses)])
+            self.poses = read_kitti_poses(pose_path).poses
         self.calibration: LidarCalibration | None = None
         if (self.root / "calib_cam_to_cam.txt").is_file() and (self.root / "calib_velo_to_cam.txt").is_file():
             self.calibration = LidarCalibration.from_kitti(self.root, camera=2)

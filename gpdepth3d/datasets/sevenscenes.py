@@ -8,9 +8,10 @@ import numpy as np
 
 from ..camera import PinholeCamera
 from ..errors import DataFormatError, InvalidInputError
-from ..io import load_depth, load_rgb
+from ..io import load_depth, load_rgb, read_matrix
+from ..io.poses import load_pose
 from ..measurements import project_points
-from .base import DatasetReader, Frame, checked_pose, read_matrix
+from .base import DatasetReader, Frame
 
 DEFAULT_INTRINSICS = np.array([[585.0, 0.0, 320.0], [0.0, 585.0, 240.0], [0.0, 0.0, 1.0]])
 """The depth camera's K when the folder has no ``camera-intrinsics.txt`` (the dataset's default)."""
@@ -71,7 +72,7 @@ class SevenScenes(DatasetReader):
         pose = None
         pose_path = self.root / f"{name}.pose.txt"
         if pose_path.is_file():
-            pose = checked_pose(read_matrix(pose_path, (4, 4), "pose"), pose_path)
+            pose = load_pose(pose_path)
         h, w = rgb.shape[:2]
         depth_camera = PinholeCamera.from_K(self.K, w, h)
         if not self.register:

@@ -427,14 +427,8 @@ def read_pose_files(folder: str | Path) -> Trajectory:
             break
     if not files:
         raise DataFormatError(folder, f"no pose files ({' or '.join(POSE_FILE_PATTERNS)})")
-    poses = []
-    for f in files:
-        table, lines = _numeric_rows(f, (4, 16), "4x4 pose")
-        table, lines = table.reshape(1, -1), lines[:1]
-        if table.shape[1] != 16:
-            raise DataFormatError(f, f"expected 16 numbers (a 4x4 pose), got {table.shape[1]}")
-        poses.append(_poses_from_rows(f, table, lines)[0])
-    return Trajectory(np.stack(poses), names=tuple(pose_file_key(f.name) for f in files))
+    poses = np.stack([load_pose(f) for f in files])
+    return Trajectory(poses, names=tuple(pose_file_key(f.name) for f in files))
 
 
 # ---------------------------------------------------------------------- COLMAP
@@ -632,7 +626,21 @@ def _check_colmap_quaternions(path: Path) -> None:
 
 
 # ---------------------------------------------------------------------- any format, and images
-POSE_FORMATS = ("tum", "kitti", "rows", "files", "colmap")
+def _colmap_trajectory(path: str | Path) -> Trajectory:
+    """A COLMAP model's registered images as a trajectory (distortion ignored: poses only)."""
+    return read_colmap_model(path, ignore_distortion=True).trajectory()
+
+
+_READERS = {
+    "tum": read_tum_trajectory,
+    "kitti": read_kitti_poses,
+    "rows": read_flat_poses,
+    "files": read_pose_files,
+    "colmap": _colmap_trajectory,
+}
+"""One reader per pose format (the module docstring lists them)."""
+
+POSE_FORMATS = tuple(_READERS)
 """The pose formats `read_trajectory` reads (see the module docstring)."""
 
 _COLMAP_FILES = ("images.bin", "images.txt")
@@ -671,10 +679,7 @@ def read_trajectory(path: str | Path, format: str = "auto") -> Trajectory:  # no
         format = detect_pose_format(path)
     if format not in POSE_FORMATS:
         raise InvalidInputError("format", f"'auto' or one of {', '.join(POSE_FORMATS)}", format)
-    if format == "colmap":
-        return read_colmap_model(path, ignore_distortion=True).trajectory()
-    readers = {"tum": read_tum_trajectory, "kitti": read_kitti_poses, "rows": read_flat_poses, "files": read_pose_files}
-    return readers[format](path)
+    return _READERS[format](path)
 
 
 ASSOCIATIONS = ("auto", "name", "timestamp", "order")
@@ -785,19 +790,24 @@ def associate_poses(
 
 
 def load_pose(path: str | Path) -> np.ndarray:
-    """Reads a 4x4 ``T_world_camera`` from text: 4 rows of 4 numbers (7-Scenes/TUM) or 12 numbers (3x4)."""
+    """Reads one pose file: a 4x4 ``T_world_camera`` as 4 rows of 4 numbers (7-Scenes) or one row of 16,
+    or a 3x4 as 3 rows of 4 or one row of 12 (``#`` comments and blank lines skipped).
+
+    Returns:
+        (4, 4) float64, its rotation snapped to exactly orthonormal (`gpdepth3d.camera.check_pose`).
+
+    Raises:
+        DataFormatError: if the file is missing, holds another count of numbers, or is not a rigid
+            transform (naming the file).
+    """
     path = _as_path(path)
     if not path.is_file():
         raise DataFormatError(path, "pose file not found")
-    try:
-        values = np.loadtxt(path, ndmin=1).ravel()
-    except ValueError as exc:
-        raise DataFormatError(path, f"expected numbers of a 4x4 or 3x4 pose: {exc}") from None
-    if values.size == 12:
-        values = np.concatenate([values, [0.0, 0.0, 0.0, 1.0]])
-    if values.size != 16:
-        raise DataFormatError(path, f"expected 16 (4x4) or 12 (3x4) numbers, got {values.size}")
-    return check_pose(values.reshape(4, 4), str(path))
+    table, lines = _numeric_rows(path, (4, 12, 16), "4x4 or 3x4 pose")
+    values = table.reshape(1, -1)
+    if values.shape[1] not in (12, 16):
+        raise DataFormatError(path, f"expected 16 (4x4) or 12 (3x4) numbers, got {values.shape[1]}")
+    return _poses_from_rows(path, values, lines[:1])[0]
 
 
 def load_poses(path: str | Path) -> list[np.ndarray]:

@@ -153,7 +153,7 @@ class TestKittiTiny:
 
 
 class TestPoseCheckIsShared:
-    """The KITTI-tiny and 7-Scenes readers refuse the same non-rigid pose (one check: checked_pose)."""
+    """The KITTI-tiny and 7-Scenes readers refuse the same non-rigid pose (one reader each: gpdepth3d.io.poses)."""
 
     def test_scaled_pose_refused_by_both(self, shared_data, tmp_path):
         src = _folder(shared_data, "kitti_tiny")
@@ -174,13 +174,6 @@ class TestPoseCheckIsShared:
         np.savetxt(seven / "frame-000000.pose.txt", T)
         with pytest.raises(DataFormatError, match="not a rigid transform"):
             SevenScenes(seven)[0]
-
-    def test_checked_pose(self, tmp_path):
-        from gpdepth3d.datasets.base import checked_pose
-
-        np.testing.assert_allclose(checked_pose(np.eye(4), tmp_path / "p.txt"), np.eye(4))
-        with pytest.raises(DataFormatError, match="p.txt: line 7: not a rigid"):
-            checked_pose(np.diag([2.0, 2, 2, 1]), tmp_path / "p.txt", "line 7")
 
     def test_truncated_colour_image(self, shared_data, tmp_path):
         seven = tmp_path / "7scenes"

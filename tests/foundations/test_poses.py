@@ -14,6 +14,7 @@ from gpdepth3d.io.poses import (
     InvertedPoseWarning,
     associate_poses,
     detect_pose_format,
+    load_pose,
     read_flat_poses,
     read_pose_files,
     read_trajectory,
@@ -372,6 +373,20 @@ class TestPoseFiles:
             read_pose_files(tmp_path)
         with pytest.raises(DataFormatError, match="not found"):
             read_pose_files(tmp_path / "missing")
+
+    def test_one_file_forms(self, tmp_path: Path):
+        """`load_pose` (the 7-Scenes reader's and the folder reader's one parser): 4x4, 3x4 rows, comments."""
+        T = _random_pose(np.random.default_rng(3))
+        (tmp_path / "c.txt").write_text("# pose\n" + "\n".join(" ".join(f"{v:.17g}" for v in r) for r in T[:3]) + "\n")
+        np.testing.assert_allclose(load_pose(tmp_path / "c.txt"), T, atol=1e-12)
+        scaled = T.copy()
+        scaled[:3, :3] *= 2.0
+        np.savetxt(tmp_path / "s.txt", scaled)
+        with pytest.raises(DataFormatError, match="s.txt.*not a rigid transform"):
+            load_pose(tmp_path / "s.txt")
+        (tmp_path / "n.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 nan\n0 0 0 1\n")
+        with pytest.raises(DataFormatError, match="n.txt"):
+            load_pose(tmp_path / "n.txt")
 
 
 class TestAnyFormat:
