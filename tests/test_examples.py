@@ -66,6 +66,9 @@ class TestExample03:
         )
         assert result["identical_to_scratch"] and result["identical_after_load"]
         assert 3 in result["reintegrated"] and result["blocks"] > 0
+        # the corrected keyframe's surface lands on the Kinect mesh; drifted by 20 cm and 10 degrees it did not
+        assert 2 * result["keyframe_distance_after"] < result["keyframe_distance_before"]
+        assert result["keyframe_distance_after"] < 0.1
         assert result["faces_before"] > 1000 and result["faces_after"] > 1000
         names = sorted(p.name for p in tmp_path.iterdir())
         assert names == ["map", "mesh_after.ply", "mesh_before.ply", "mesh_reference.ply"]
