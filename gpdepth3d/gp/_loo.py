@@ -431,36 +431,6 @@ def _ring_parallel(r, c, width, start, members, column, key, targets, k, nn, dis
         )
 
 
-@nb.njit(**_FLAGS)
-def taxicab_at(r, c, height, width, sources):
-    """(N,) L1 distance of each point (integer cells r, c of a height x width image) to the nearest of the points
-    ``sources`` (non-empty): an exact two-pass city-block distance transform of the image, read at the points."""
-    far = height + width
-    d = np.full((height, width), far, dtype=np.int64)
-    for s in sources:
-        d[r[s], c[s]] = 0
-    for i in range(height):  # from above and the left
-        for j in range(width):
-            v = d[i, j]
-            if i > 0 and d[i - 1, j] + 1 < v:
-                v = d[i - 1, j] + 1
-            if j > 0 and d[i, j - 1] + 1 < v:
-                v = d[i, j - 1] + 1
-            d[i, j] = v
-    for i in range(height - 1, -1, -1):  # from below and the right
-        for j in range(width - 1, -1, -1):
-            v = d[i, j]
-            if i < height - 1 and d[i + 1, j] + 1 < v:
-                v = d[i + 1, j] + 1
-            if j < width - 1 and d[i, j + 1] + 1 < v:
-                v = d[i, j + 1] + 1
-            d[i, j] = v
-    out = np.empty(r.size)
-    for a in range(r.size):
-        out[a] = d[r[a], c[a]]
-    return out
-
-
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N,) non-negative int64: a fixed pseudo-random hash (splitmix64) of each point's pixel."""
     r = np.asarray(np.rint(rows), dtype=np.int64).astype(np.uint64)

@@ -186,7 +186,7 @@ def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach:
     """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
 
     Points on integer pixels in a box of at most ``DISTANCE_CELLS_PER_POINT`` cells per point: an exact
-    city-block distance transform of the box around them (`gpdepth3d.gp._loo.taxicab_at`, O(box)); fewer points
+    city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); fewer points
     in a larger box, or points off the pixel grid: a k-d tree of the sources (O(N log sources)). Both are exact.
     """
     rows = np.asarray(rows, dtype=np.float64)
@@ -195,11 +195,11 @@ def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach:
         return np.full(rows.size, np.inf)
     box = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
     if _on_pixel_grid(rows, cols) and DISTANCE_CELLS_PER_POINT * rows.size >= box:
-        from ._loo import taxicab_at
+        from .distance import taxicab_transform
 
         r = (rows - rows.min()).astype(np.int64)
         c = (cols - cols.min()).astype(np.int64)
-        return taxicab_at(r, c, int(r.max()) + 1, int(c.max()) + 1, np.asarray(sources, dtype=np.int64))
+        return taxicab_transform((int(r.max()) + 1, int(c.max()) + 1), r[sources], c[sources])[r, c].astype(np.float64)
     from scipy.spatial import cKDTree
 
     bound = float(np.max(reach[np.isfinite(reach)], initial=0.0))

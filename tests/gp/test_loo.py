@@ -144,16 +144,6 @@ class TestNeighbours:
         np.testing.assert_array_equal(got[1], ref[1])
         assert ref[1][:, -1].max() > 2 * _loo.WALK_RADIUS and ref[1][:, -1].min() <= _loo.WALK_RADIUS
 
-    def test_taxicab_distances_are_brute_force(self):
-        rng = np.random.default_rng(5)
-        h, w = 23, 41
-        r, c = rng.integers(0, h, 150), rng.integers(0, w, 150)
-        sources = np.array([3, 40, 41, 99])
-        got = _loo.taxicab_at(r, c, h, w, sources)
-        ref = np.min(np.abs(r[:, None] - r[sources]) + np.abs(c[:, None] - c[sources]), axis=1)
-        np.testing.assert_array_equal(got, ref)
-        assert got.dtype == np.float64
-
     def test_ring_offsets_cover_each_ring_once(self):
         for d in (1, 2, 5, 40):
             offs = np.array([_loo.ring_offset(d, p) for p in range(4 * d)])
