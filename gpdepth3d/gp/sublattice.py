@@ -165,8 +165,18 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
                 continue
             for a in range(n):
                 dinv[a] = 1.0 / A[a, a]
-            for q in range(m):  # y = L^-1 r
-                for a in range(n):
+            for a in range(n):  # y = L^-1 r, three right-hand sides at a time (independent sums in flight)
+                q = 0
+                while q + 2 < m:
+                    s, s_1, s_2 = resid[ids[a], q], resid[ids[a], q + 1], resid[ids[a], q + 2]
+                    for t in range(a):
+                        x = A[a, t]
+                        s -= x * y[t, q]
+                        s_1 -= x * y[t, q + 1]
+                        s_2 -= x * y[t, q + 2]
+                    y[a, q], y[a, q + 1], y[a, q + 2] = s * dinv[a], s_1 * dinv[a], s_2 * dinv[a]
+                    q += 3
+                for q in range(q, m):
                     s = resid[ids[a], q]
                     for t in range(a):
                         s -= A[a, t] * y[t, q]
