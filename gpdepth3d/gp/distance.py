@@ -1,8 +1,8 @@
 """The exact city-block (L1, taxicab) distance transform of an image, compiled.
 
-Every pixel's L1 distance to the nearest of some source pixels, by two raster passes (from above and the left,
-then from below and the right): on a grid without obstacles the L1 distance's shortest paths are monotone
-staircases, so the two passes are exact. The outlier screen's incremental rounds (`gpdepth3d.gp.points`) and the
+Every pixel's L1 distance to the nearest of some source pixels: the L1 distance is separable, min over sources of
+|di| + |dj| = min over rows of (|di| + the row's 1-D distance), so a 1-D transform of every row (two sweeps) and
+then of every column of the result (two sweeps) is exact. The outlier screen's incremental rounds (`gpdepth3d.gp.points`) and the
 coverage warning (`gpdepth3d.completion.diagnostics`) use it.
 """
 
@@ -16,24 +16,21 @@ from ..errors import InvalidInputError, ShapeError, describe
 
 @nb.njit(cache=True, nogil=True)
 def _transform(d):  # pragma: no cover - compiled
-    """The two passes in place over d (0 at the sources, a bound at least every distance elsewhere)."""
+    """The transform in place over d (0 at the sources, a bound at least every distance elsewhere), one axis after
+    the other (the L1 distance is separable): each row from the left and from the right, then each column down and
+    up, row by row (those two sweeps run along the rows' contiguous pixels)."""
     height, width = d.shape
-    for i in range(height):  # from above and the left
+    for i in range(height):
+        for j in range(1, width):
+            d[i, j] = min(d[i, j], d[i, j - 1] + 1)
+        for j in range(width - 2, -1, -1):
+            d[i, j] = min(d[i, j], d[i, j + 1] + 1)
+    for i in range(1, height):
         for j in range(width):
-            v = d[i, j]
-            if i > 0 and d[i - 1, j] + 1 < v:
-                v = d[i - 1, j] + 1
-            if j > 0 and d[i, j - 1] + 1 < v:
-                v = d[i, j - 1] + 1
-            d[i, j] = v
-    for i in range(height - 1, -1, -1):  # from below and the right
-        for j in range(width - 1, -1, -1):
-            v = d[i, j]
-            if i < height - 1 and d[i + 1, j] + 1 < v:
-                v = d[i + 1, j] + 1
-            if j < width - 1 and d[i, j + 1] + 1 < v:
-                v = d[i, j + 1] + 1
-            d[i, j] = v
+            d[i, j] = min(d[i, j], d[i - 1, j] + 1)
+    for i in range(height - 2, -1, -1):
+        for j in range(width):
+            d[i, j] = min(d[i, j], d[i + 1, j] + 1)
 
 
 def taxicab_transform(shape: tuple[int, int], rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
