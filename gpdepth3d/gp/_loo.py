@@ -431,6 +431,23 @@ def _ring_parallel(r, c, width, start, members, column, key, targets, k, nn, dis
         )
 
 
+@nb.njit(**_FLAGS)
+def _buckets(cell, pool, cells):
+    """(start (cells + 1,), members): the points ``pool`` (increasing indices) by their ``cell``, then by index (a
+    counting sort); cell x holds members[start[x]:start[x + 1]]."""
+    start = np.zeros(cells + 1, dtype=np.int64)
+    for x in cell:
+        start[x + 1] += 1
+    for x in range(cells):
+        start[x + 1] += start[x]
+    fill = start[:-1].copy()
+    members = np.empty(pool.size, dtype=np.int64)
+    for a in range(pool.size):
+        members[fill[cell[a]]] = pool[a]
+        fill[cell[a]] += 1
+    return start, members
+
+
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N,) non-negative int64: a fixed pseudo-random hash (splitmix64) of each point's pixel."""
     r = np.asarray(np.rint(rows), dtype=np.int64).astype(np.uint64)
@@ -472,11 +489,8 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     r, c = r - r.min(), c - c.min()
     height, width = int(r.max()) + 1, int(c.max()) + 1
     pool = np.flatnonzero(usable)
-    cell = r[pool] * width + c[pool]
-    members = pool[np.argsort(cell, kind="stable")]  # by cell, then by index
+    start, members = _buckets(r[pool] * width + c[pool], pool, height * width)  # members by cell, then by index
     column = c[members]
-    start = np.zeros(height * width + 1, dtype=np.int64)
-    np.cumsum(np.bincount(cell, minlength=height * width), out=start[1:])
     targets = np.ascontiguousarray(targets, dtype=np.int64)
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)
