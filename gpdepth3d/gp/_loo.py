@@ -232,37 +232,6 @@ def _ring_start(key, d):
     return (h * (4 * d)) >> 32
 
 
-@nb.njit(**_FLAGS)
-def _ring_position(dr, dc, d):
-    """Position (0 .. 4d - 1) of the offset (dr, dc) on the ring of L1 radius d >= 1: the inverse of `ring_offset`."""
-    if dr < 0 and dc >= 0:
-        return dc
-    if dr >= 0 and dc > 0:
-        return d + dr
-    if dr > 0 and dc <= 0:
-        return 2 * d - dc
-    return 3 * d - dr
-
-
-@nb.njit(**_FLAGS)
-def _gather(ri, ci, i, radius, width, height, start, members, column, cand, cdr, cdc):
-    """The members within L1 ``radius`` of (ri, ci) other than i, row by row, each row's in cell then index
-    order: their count, in ``cand`` with their row and column offsets in ``cdr`` / ``cdc``. A row's cells within
-    the radius are one run of ``members`` (``column``: each member's column)."""
-    m = 0
-    for rr in range(max(0, ri - radius), min(height - 1, ri + radius) + 1):
-        rem = radius - abs(rr - ri)
-        x = rr * width
-        for a in range(start[x + max(0, ci - rem)], start[x + min(width - 1, ci + rem) + 1]):
-            p = members[a]
-            if p != i:
-                cand[m] = p
-                cdr[m] = rr - ri
-                cdc[m] = column[a] - ci
-                m += 1
-    return m
-
-
 #: The previous target's k-th distance up to which `_ring_range` walks the rings pixel by pixel (`_walk`); beyond it,
 #: fewer points per pixel, it gathers a diamond row by row (`_diamond`). Both give the same neighbours.
 WALK_RADIUS = 4
@@ -352,16 +321,24 @@ def _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist):
 @nb.njit(**_FLAGS)
 def _diamond(q, guess, r, c, width, height, start, members, column, key, targets, k, nn, dist, cand, cdr, cdc, order,
              hist, s0):  # fmt: skip
-    """`_ring_range` for target q: the members of a diamond (L1 ball) around it gathered row by row (`_gather`),
-    widened from the radius ``guess`` until it holds k of them, those up to the k-th distance sorted by (distance,
+    """`_ring_range` for target q: the members of a diamond (L1 ball) around it gathered row by row, widened from the radius ``guess`` until it holds k of them, those up to the k-th distance sorted by (distance,
     ring position from the start); its k-th distance (-1 with fewer than k). Work arrays: ``cand`` .. ``order``
     (members.size), ``hist``, ``s0`` (height + width + 1)."""
     i = targets[q]
     ri, ci = r[i], c[i]
     dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
     radius = min(max(guess, 1), dmax)
-    while True:
-        m = _gather(ri, ci, i, radius, width, height, start, members, column, cand, cdr, cdc)
+    while True:  # the members within L1 ``radius`` other than i, row by row (a row's cells: one run of members)
+        m = 0
+        for rr in range(max(0, ri - radius), min(height - 1, ri + radius) + 1):
+            rem = radius - abs(rr - ri)
+            x = rr * width
+            for a in range(start[x + max(0, ci - rem)], start[x + min(width - 1, ci + rem) + 1]):
+                if members[a] != i:
+                    cand[m] = members[a]
+                    cdr[m] = rr - ri
+                    cdc[m] = column[a] - ci
+                    m += 1
         if m >= k or radius >= dmax:
             break
         radius = min(radius + 1 + radius // 4, dmax)
@@ -382,8 +359,17 @@ def _diamond(q, guess, r, c, width, height, start, members, column, key, targets
         d = abs(cdr[a]) + abs(cdc[a])
         if d <= far:
             rel = 0
-            if d > 0:
-                rel = _ring_position(cdr[a], cdc[a], d) - s0[d]
+            if d > 0:  # the position on the ring (the inverse of `ring_offset`) from the target's start
+                dr, dc = cdr[a], cdc[a]
+                if dr < 0 and dc >= 0:
+                    rel = dc
+                elif dr >= 0 and dc > 0:
+                    rel = d + dr
+                elif dr > 0 and dc <= 0:
+                    rel = 2 * d - dc
+                else:
+                    rel = 3 * d - dr
+                rel -= s0[d]
                 if rel < 0:
                     rel += 4 * d
             order[n] = d * (4 * far + 4) + rel
@@ -431,23 +417,6 @@ def _ring_parallel(r, c, width, start, members, column, key, targets, k, nn, dis
         )
 
 
-@nb.njit(**_FLAGS)
-def _buckets(cell, pool, cells):
-    """(start (cells + 1,), members): the points ``pool`` (increasing indices) by their ``cell``, then by index (a
-    counting sort); cell x holds members[start[x]:start[x + 1]]."""
-    start = np.zeros(cells + 1, dtype=np.int64)
-    for x in cell:
-        start[x + 1] += 1
-    for x in range(cells):
-        start[x + 1] += start[x]
-    fill = start[:-1].copy()
-    members = np.empty(pool.size, dtype=np.int64)
-    for a in range(pool.size):
-        members[fill[cell[a]]] = pool[a]
-        fill[cell[a]] += 1
-    return start, members
-
-
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N,) non-negative int64: a fixed pseudo-random hash (splitmix64) of each point's pixel."""
     r = np.asarray(np.rint(rows), dtype=np.int64).astype(np.uint64)
@@ -489,8 +458,11 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     r, c = r - r.min(), c - c.min()
     height, width = int(r.max()) + 1, int(c.max()) + 1
     pool = np.flatnonzero(usable)
-    start, members = _buckets(r[pool] * width + c[pool], pool, height * width)  # members by cell, then by index
+    cell = r[pool] * width + c[pool]
+    members = pool[np.argsort(cell, kind="stable")]  # by cell, then by index
     column = c[members]
+    start = np.zeros(height * width + 1, dtype=np.int64)
+    np.cumsum(np.bincount(cell, minlength=height * width), out=start[1:])
     targets = np.ascontiguousarray(targets, dtype=np.int64)
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)

@@ -247,10 +247,19 @@ def _pixels_by_four(ids, n, A, dinv, y, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o
         r0 = r1 = r2 = r3 = 0.0
         for a in range(n):
             pa = ids[a]
-            u0 = _c(pa, i_0, j_0, pt_r, pt_c, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, s2, span)
-            u1 = _c(pa, i_1, j_1, pt_r, pt_c, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, s2, span)
-            u2 = _c(pa, i_2, j_2, pt_r, pt_c, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, s2, span)
-            u3 = _c(pa, i_3, j_3, pt_r, pt_c, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, s2, span)
+            # c = C_e(points, x) as `_krige_row` computes it, for each of the four pixels
+            dr, dc = pt_r[pa] - cr[i_0] + span, pt_c[pa] - cc[j_0] + span
+            er, rr_, ec, rc = Er_o[i_0, dr], Rr_o[i_0, dr], Ec_o[j_0, dc], Rc_o[j_0, dc]
+            u0 = s2 * (rr_ * ec + rc * er - er * ec)
+            dr, dc = pt_r[pa] - cr[i_1] + span, pt_c[pa] - cc[j_1] + span
+            er, rr_, ec, rc = Er_o[i_1, dr], Rr_o[i_1, dr], Ec_o[j_1, dc], Rc_o[j_1, dc]
+            u1 = s2 * (rr_ * ec + rc * er - er * ec)
+            dr, dc = pt_r[pa] - cr[i_2] + span, pt_c[pa] - cc[j_2] + span
+            er, rr_, ec, rc = Er_o[i_2, dr], Rr_o[i_2, dr], Ec_o[j_2, dc], Rc_o[j_2, dc]
+            u2 = s2 * (rr_ * ec + rc * er - er * ec)
+            dr, dc = pt_r[pa] - cr[i_3] + span, pt_c[pa] - cc[j_3] + span
+            er, rr_, ec, rc = Er_o[i_3, dr], Rr_o[i_3, dr], Ec_o[j_3, dc], Rc_o[j_3, dc]
+            u3 = s2 * (rr_ * ec + rc * er - er * ec)
             for t in range(a):  # v = L^-1 c
                 x = A[a, t]
                 u0 -= x * V[t, 0]
@@ -272,16 +281,6 @@ def _pixels_by_four(ids, n, A, dinv, y, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o
                     for a in range(n):
                         s += V[a, lane] * y[a, q]
                     corr[q, i, j] = s
-
-
-@njit(cache=True, nogil=True)
-def _c(pa, i, j, pt_r, pt_c, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, s2, span):  # pragma: no cover - compiled
-    """C_e(point pa, output pixel (i, j)) from the tables (as `_krige_row` computes it)."""
-    dr = pt_r[pa] - cr[i] + span
-    dc = pt_c[pa] - cc[j] + span
-    er, rr_ = Er_o[i, dr], Rr_o[i, dr]
-    ec, rc = Ec_o[j, dc], Rc_o[j, dc]
-    return s2 * (rr_ * ec + rc * er - er * ec)
 
 
 def sublattice_kriging(
