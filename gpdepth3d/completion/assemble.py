@@ -81,8 +81,8 @@ def assemble_depth(
         slope_term=lattice.slope_term,
         variance=True,
     )
-    bad = ~(np.isfinite(mean) & (mean > 0) & np.isfinite(var))
-    if bad.any():
+    if not (mean.min() > 0 and np.isfinite(mean.max()) and np.isfinite(var.min()) and np.isfinite(var.max())):
+        bad = ~(np.isfinite(mean) & (mean > 0) & np.isfinite(var))  # NaN reaches min and max too
         raise InvalidInputError(
             "mde_depth, sparse",
             "an MDE and points whose log-normal posterior is finite in float64",

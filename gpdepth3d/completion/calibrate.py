@@ -39,7 +39,9 @@ def calibrate(
     h, w = frame.shape
     if config.assembly.edge_sigma > 0:
         window = 2 * int(np.ceil(max(frame.out_shape[0] / h, frame.out_shape[1] / w))) + 1
-        var = var + (config.assembly.edge_sigma * np.exp(screened.fit.log_scale) * edge_range(moments.mde, window)) ** 2
+        edge = edge_range(moments.mde, window)  # its own array: scaled and squared in place
+        edge *= config.assembly.edge_sigma * np.exp(screened.fit.log_scale)
+        var = var + np.square(edge, out=edge)
     keep = screened.keep
     if config.calibration.reach is None or np.count_nonzero(keep) < config.calibration.min_points:
         return Calibrated(var, None)
@@ -67,7 +69,10 @@ def calibrate(
         noise_share=shares[keep],
     )
     factor = frame.to_output(factor)
-    return Calibrated(var * factor, factor)
+    if var is moments.variance:  # the moments' array is left as it was
+        return Calibrated(var * factor, factor)
+    var *= factor
+    return Calibrated(var, factor)
 
 
 def edge_range(depth: np.ndarray, window: int) -> np.ndarray:

@@ -24,8 +24,7 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     ho, wo = frame.out_shape
     if lattice.stride == 1 or not is_exponential(config.nu) or not lattice.rows.size or ho < h or wo < w:
         return field
-    fields = np.stack((field.mean, *field.extra))
-    at = _at_points(fields, lattice.rows, lattice.cols, (h, w))
+    at = _at_points((field.mean, *field.extra), lattice.rows, lattice.cols, (h, w))
     kernel = lattice.problem.kernel
     corr, reduction = sublattice_kriging(
         np.arange(h, dtype=np.float64),
@@ -43,19 +42,22 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     if not frame.same_grid:
         corr = np.stack([frame.to_output(f) for f in corr])
         reduction = frame.to_output(reduction)
-    extra = tuple(e + c for e, c in zip(field.extra, corr[1:]))
-    return replace(field, mean=field.mean + corr[0], variance=np.maximum(field.variance - reduction, 0.0), extra=extra)
+    for f, c in zip((field.mean, *field.extra), corr):  # the corrections' own (fresh) arrays take the sums
+        c += f
+    variance = np.subtract(field.variance, reduction, out=reduction)
+    np.maximum(variance, 0.0, out=variance)
+    return replace(field, mean=corr[0], variance=variance, extra=tuple(corr[1:]))
 
 
-def _at_points(fields: np.ndarray, rows: np.ndarray, cols: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
-    """(m, n) values of (m, Ho, Wo) output fields at the GP-grid pixels (rows, cols); output >= grid.
+def _at_points(fields: tuple[np.ndarray, ...], rows: np.ndarray, cols: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """(m, n) values of m (Ho, Wo) output fields at the GP-grid pixels (rows, cols); output >= grid.
 
     The output's own pixels where they coincide with the grid's, else bilinear between output pixels.
     """
-    _, ho, wo = fields.shape
+    ho, wo = fields[0].shape
     h, w = grid
     if (ho, wo) == (h, w):
-        return fields[:, rows, cols]
+        return np.stack([f[rows, cols] for f in fields])
     from scipy.ndimage import map_coordinates
 
     y = (rows + 0.5) * ho / h - 0.5  # the inverse of output_coordinates

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..gp.distance import taxicab_transform
 from ..gp.model import DepthGPConfig
 from ..measurements import SparseDepth
 from .log_frame import LogFrame
@@ -73,11 +74,8 @@ def log_residual_warnings(
 
 def _far_share(frame: LogFrame, keep: np.ndarray) -> float:
     """Share of the GP grid farther than max(H, W) / COVERAGE_REACH pixels (taxicab) from every kept point."""
-    from scipy.ndimage import distance_transform_cdt
-
-    seen = np.ones(frame.shape, dtype=bool)
-    seen[frame.rows[keep], frame.cols[keep]] = False
-    return float(np.mean(distance_transform_cdt(seen, metric="taxicab") > max(frame.shape) / COVERAGE_REACH))
+    far = taxicab_transform(frame.shape, frame.rows[keep], frame.cols[keep]) > max(frame.shape) / COVERAGE_REACH
+    return float(np.mean(far))
 
 
 def scale_message(name: str, factor: float, median_mde: float) -> str:

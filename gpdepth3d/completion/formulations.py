@@ -78,7 +78,9 @@ class LogResidual(Formulation):
             mde=mde_on_output(mde, valid, out_shape),
             sparse=grid_sparse,
             config=result.config,
-            depth_scale=float(np.median(mde[valid])) if valid.any() else float(np.median(grid_sparse.depth)),
+            depth_scale=float(np.median(mde[valid], overwrite_input=True))  # a copy of its own
+            if valid.any()
+            else float(np.median(grid_sparse.depth)),
             alignment=result.alignment,
             timings={"setup": t1 - t0, **result.timings},
             rejected=result.rejected,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -18,13 +19,19 @@ class Sloped:
 
     Attributes:
         fit: The slope fit (`SlopeFit`), None when the slope is fixed at 1.
-        log_mde: (H, W) the re-sloped log MDE depth, c + a (log MDE - c).
-        resid: (N,) the points' log residuals against it, log z - log MDE'.
+        raw_log_mde: (H, W) the frame's log MDE depth, before the slope.
+        resid: (N,) the points' log residuals against the re-sloped one, log z - log MDE'.
     """
 
     fit: SlopeFit | None
-    log_mde: np.ndarray
+    raw_log_mde: np.ndarray
     resid: np.ndarray
+
+    @cached_property
+    def log_mde(self) -> np.ndarray:
+        """(H, W) the re-sloped log MDE depth, c + a (log MDE - c), computed when first asked for (a slope that
+        is fitted again never needs its own)."""
+        return self.raw_log_mde if self.fit is None else self.fit.apply(self.raw_log_mde)
 
     @property
     def a(self) -> float:
@@ -56,8 +63,7 @@ def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = N
             huber=config.slope.huber,
             iterations=config.slope.iterations,
         )
-    log_mde = fit.apply(frame.log_mde)
-    return Sloped(fit, log_mde, frame.log_z - log_mde[rows, cols])
+    return Sloped(fit, frame.log_mde, frame.log_z - fit.apply(frame.log_mde[rows, cols]))
 
 
 def refit_slope(frame: LogFrame, sloped: Sloped, rejected: np.ndarray, config: DepthGPConfig) -> Sloped:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 from ..depthmap import fill_nearest, resize_map
 from ..errors import EmptyInputError, InvalidDepthError, InvalidInputError, ShapeError, describe
@@ -59,21 +62,38 @@ def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise ShapeError("mde_depth", "a 2-D (H, W) depth map with H, W >= 2", describe(d))
     if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):
         raise ShapeError("mde_depth", "a real-valued depth map", describe(d))
-    d = d.astype(np.float64)
-    finite = np.isfinite(d)
-    if np.any(d[finite] < 0):
+    d = np.asarray(d, dtype=np.float64)
+    out = np.empty(d.shape)
+    valid = np.empty(d.shape, dtype=bool)
+    negative, outside, first = _valid_depth(d, out, valid)
+    if negative:
+        raise InvalidDepthError("mde_depth", "z-depths >= 0 in metres (0/NaN/inf = no depth)", f"{negative} negative")
+    if outside:  # beyond any camera: the GP's scales would under/overflow
         raise InvalidDepthError(
-            "mde_depth", "z-depths >= 0 in metres (0/NaN/inf = no depth)", f"{int(np.sum(d[finite] < 0))} negative"
+            "mde_depth", "z-depths in [1e-6, 1e6] m (0/NaN/inf = no depth)", f"{outside} outside, e.g. {first:g}"
         )
-    valid = finite & (d > 0)
-    outside = valid & ((d < 1e-6) | (d > 1e6))  # beyond any camera: the GP's scales would under/overflow
-    if np.any(outside):
-        raise InvalidDepthError(
-            "mde_depth",
-            "z-depths in [1e-6, 1e6] m (0/NaN/inf = no depth)",
-            f"{int(outside.sum())} outside, e.g. {float(d[outside].flat[0]):g}",
-        )
-    return np.where(valid, d, 0.0), valid
+    return out, valid
+
+
+@njit(cache=True, nogil=True)
+def _valid_depth(d, out, valid):  # pragma: no cover - compiled
+    """One pass over the map d: valid = finite and > 0, out = d there and 0 elsewhere; returns the counts of finite
+    negative depths and of valid ones outside [1e-6, 1e6], and the first of those in row-major order."""
+    negative, outside, first = 0, 0, 0.0
+    for i in range(d.shape[0]):
+        for j in range(d.shape[1]):
+            x = d[i, j]
+            finite = math.isfinite(x)
+            ok = finite and x > 0.0
+            if finite and x < 0.0:
+                negative += 1
+            if ok and (x < 1e-6 or x > 1e6):
+                if outside == 0:
+                    first = x
+                outside += 1
+            valid[i, j] = ok
+            out[i, j] = x if ok else 0.0
+    return negative, outside, first
 
 
 def _frame_inputs(

@@ -4,9 +4,10 @@ Neighbours (`grid_neighbours`): the k nearest usable points of each target in L1
 ties at equal distance broken by the position on the ring of that radius, scanned from a
 starting pixel that a hash of the target fixes: the neighbourhood of a point is a function of the
 point set alone, whichever search finds it, does not depend on the points' order and favours no
-direction. The search scans these rings around each target in a bucket image of the points (a
-cell per pixel), in parallel over targets: O(pixels within the k-th neighbour's distance) per
-target, against a k-d tree's O(log N) queries with large constants.
+direction. The search reads a bucket image of the points (a cell per pixel), in parallel over
+targets: near points walk the rings pixel by pixel, sparse ones gather the rows of a diamond and
+sort it by that order (O(rows and points within the k-th neighbour's distance) per target),
+against a k-d tree's O(log N) queries with large constants.
 
 For every target point i with neighbours N (found by the caller), the simple-kriging weights
 w = (K_NN + diag(tau^2 + noise_N))^-1 k_Ni of the separable Matern kernel, the prediction
@@ -231,62 +232,166 @@ def _ring_start(key, d):
     return (h * (4 * d)) >> 32
 
 
+#: The previous target's k-th distance up to which `_ring_range` walks the rings pixel by pixel (`_walk`); beyond it,
+#: fewer points per pixel, it gathers a diamond row by row (`_diamond`). Both give the same neighbours.
+WALK_RADIUS = 4
+
+
 @nb.njit(**_FLAGS)
-def _ring_range(lo, hi, r, c, width, start, members, key, targets, k, nn, dist):
-    """nn[q] / dist[q] for lo <= q < hi: the k nearest members of each target, by rings of equal L1 distance.
+def _ring_range(lo, hi, r, c, width, start, members, column, key, targets, k, nn, dist):
+    """nn[q] / dist[q] for lo <= q < hi: the k nearest members of each target, in the order of rings of equal L1
+    distance.
 
     ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
-    rows; the members of cell x are members[start[x]:start[x + 1]] in index order. The ring of
-    radius d >= 1 is the cycle of its 4d pixels clockwise from the top (`ring_offset`: four
-    diagonal sides of d pixels); each target walks it from its own starting position
-    (`_ring_start`, a hash of the target's pixel and d) and takes members until the row is full:
-    that is the tie order, with no preferred direction over the targets. Other points on the
-    target's own pixel (distance 0) come first, by index. With fewer than k members (other than
-    the target) the rest of the row is -1.
+    rows; the members of cell x are members[start[x]:start[x + 1]] in index order (``column``: their
+    columns). The ring of radius d >= 1 is the cycle of its 4d pixels clockwise from the top
+    (`ring_offset`: four diagonal sides of d pixels); each target reads it from its own starting
+    position (`_ring_start`, a hash of the target's pixel and d), a pixel's members by index: that
+    is the tie order, with no preferred direction over the targets. Other points on the target's
+    own pixel (distance 0) come first, by index. With fewer than k members (other than the target)
+    the rest of the row is -1. Where the previous target's k-th distance is small, the rings are
+    walked pixel by pixel (`_walk`), else a diamond is gathered row by row and sorted (`_diamond`).
     """
     height = (start.size - 1) // width
+    cap = members.size
+    cand = np.empty(cap, dtype=np.int64)
+    cdr = np.empty(cap, dtype=np.int64)
+    cdc = np.empty(cap, dtype=np.int64)
+    order = np.empty(cap, dtype=np.int64)
+    hist = np.zeros(height + width + 1, dtype=np.int64)
+    s0 = np.empty(height + width + 1, dtype=np.int64)
+    guess = 1
     for q in range(lo, hi):
-        i = targets[q]
-        ri, ci = r[i], c[i]
-        count = 0
-        x = ri * width + ci
-        for a in range(start[x], start[x + 1]):  # d = 0: other points on the target's pixel
-            p = members[a]
-            if p != i and count < k:
-                nn[q, count] = p
-                dist[q, count] = 0
-                count += 1
-        dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
-        d = 1
-        while count < k and d <= dmax:
-            s0 = _ring_start(key[i], d)
-            side = s0 // d
-            t = s0 - side * d
-            dr, dc = ring_offset(d, s0)
-            rr, cc = ri + dr, ci + dc
-            for _ in range(4 * d):
-                if rr >= 0 and rr < height and cc >= 0 and cc < width:
-                    x = rr * width + cc
-                    for a in range(start[x], start[x + 1]):
-                        if count < k:
-                            nn[q, count] = members[a]
-                            dist[q, count] = d
-                            count += 1
-                    if count == k:
-                        break
-                t += 1
-                if t == d:  # the next side starts at a corner
-                    t = 0
-                    side = (side + 1) & 3
-                    dr, dc = ring_offset(d, side * d)
-                    rr, cc = ri + dr, ci + dc
-                else:  # along the side: sides 0 .. 3 step (+1, +1), (+1, -1), (-1, -1), (-1, +1)
-                    rr += 1 if side < 2 else -1
-                    cc += 1 if side == 0 or side == 3 else -1
-            d += 1
-        for a in range(count, k):
-            nn[q, a] = -1
-            dist[q, a] = -1
+        if guess <= WALK_RADIUS:
+            far = _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist)
+        else:
+            far = _diamond(q, guess, r, c, width, height, start, members, column, key, targets, k, nn, dist, cand, cdr,
+                           cdc, order, hist, s0)  # fmt: skip
+        if far >= 0:
+            guess = far
+
+
+@nb.njit(**_FLAGS)
+def _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist):
+    """`_ring_range` for target q, walking the rings pixel by pixel; its k-th distance (-1 with fewer than k)."""
+    i = targets[q]
+    ri, ci = r[i], c[i]
+    count = 0
+    x = ri * width + ci
+    for a in range(start[x], start[x + 1]):  # d = 0: other points on the target's pixel
+        p = members[a]
+        if p != i and count < k:
+            nn[q, count] = p
+            dist[q, count] = 0
+            count += 1
+    dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
+    d = 1
+    while count < k and d <= dmax:
+        s0 = _ring_start(key[i], d)
+        side = s0 // d
+        t = s0 - side * d
+        dr, dc = ring_offset(d, s0)
+        rr, cc = ri + dr, ci + dc
+        for _ in range(4 * d):
+            if rr >= 0 and rr < height and cc >= 0 and cc < width:
+                x = rr * width + cc
+                for a in range(start[x], start[x + 1]):
+                    if count < k:
+                        nn[q, count] = members[a]
+                        dist[q, count] = d
+                        count += 1
+                if count == k:
+                    break
+            t += 1
+            if t == d:  # the next side starts at a corner
+                t = 0
+                side = (side + 1) & 3
+                dr, dc = ring_offset(d, side * d)
+                rr, cc = ri + dr, ci + dc
+            else:  # along the side: sides 0 .. 3 step (+1, +1), (+1, -1), (-1, -1), (-1, +1)
+                rr += 1 if side < 2 else -1
+                cc += 1 if side == 0 or side == 3 else -1
+        d += 1
+    for a in range(count, k):
+        nn[q, a] = -1
+        dist[q, a] = -1
+    return dist[q, k - 1]
+
+
+@nb.njit(**_FLAGS)
+def _diamond(q, guess, r, c, width, height, start, members, column, key, targets, k, nn, dist, cand, cdr, cdc, order,
+             hist, s0):  # fmt: skip
+    """`_ring_range` for target q: the members of a diamond (L1 ball) around it gathered row by row, widened from the radius ``guess`` until it holds k of them, those up to the k-th distance sorted by (distance,
+    ring position from the start); its k-th distance (-1 with fewer than k). Work arrays: ``cand`` .. ``order``
+    (members.size), ``hist``, ``s0`` (height + width + 1)."""
+    i = targets[q]
+    ri, ci = r[i], c[i]
+    dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
+    radius = min(max(guess, 1), dmax)
+    while True:  # the members within L1 ``radius`` other than i, row by row (a row's cells: one run of members)
+        m = 0
+        for rr in range(max(0, ri - radius), min(height - 1, ri + radius) + 1):
+            rem = radius - abs(rr - ri)
+            x = rr * width
+            for a in range(start[x + max(0, ci - rem)], start[x + min(width - 1, ci + rem) + 1]):
+                if members[a] != i:
+                    cand[m] = members[a]
+                    cdr[m] = rr - ri
+                    cdc[m] = column[a] - ci
+                    m += 1
+        if m >= k or radius >= dmax:
+            break
+        radius = min(radius + 1 + radius // 4, dmax)
+    for a in range(radius + 1):
+        hist[a] = 0
+    for a in range(m):
+        hist[abs(cdr[a]) + abs(cdc[a])] += 1
+    far, below = radius, 0  # the k-th distance (the radius when fewer than k)
+    for d in range(radius + 1):
+        below += hist[d]
+        if below >= k:
+            far = d
+            break
+    for d in range(1, far + 1):
+        s0[d] = _ring_start(key[i], d)
+    n = 0
+    for a in range(m):  # the candidates up to the k-th distance, keyed by (distance, ring position)
+        d = abs(cdr[a]) + abs(cdc[a])
+        if d <= far:
+            rel = 0
+            if d > 0:  # the position on the ring (the inverse of `ring_offset`) from the target's start
+                dr, dc = cdr[a], cdc[a]
+                if dr < 0 and dc >= 0:
+                    rel = dc
+                elif dr >= 0 and dc > 0:
+                    rel = d + dr
+                elif dr > 0 and dc <= 0:
+                    rel = 2 * d - dc
+                else:
+                    rel = 3 * d - dr
+                rel -= s0[d]
+                if rel < 0:
+                    rel += 4 * d
+            order[n] = d * (4 * far + 4) + rel
+            cand[n] = cand[a]
+            n += 1
+    for a in range(1, n):  # insertion sort, stable: a pixel's members stay in index order
+        o, p = order[a], cand[a]
+        b = a - 1
+        while b >= 0 and order[b] > o:
+            order[b + 1] = order[b]
+            cand[b + 1] = cand[b]
+            b -= 1
+        order[b + 1] = o
+        cand[b + 1] = p
+    count = min(n, k)
+    for a in range(count):
+        nn[q, a] = cand[a]
+        dist[q, a] = order[a] // (4 * far + 4)
+    for a in range(count, k):
+        nn[q, a] = -1
+        dist[q, a] = -1
+    return far if m >= k else -1
 
 
 @nb.njit(**_FLAGS)
@@ -304,10 +409,12 @@ def ring_offset(d, pos):
 
 
 @nb.njit(parallel=True, **_FLAGS)
-def _ring_parallel(r, c, width, start, members, key, targets, k, nn, dist):
+def _ring_parallel(r, c, width, start, members, column, key, targets, k, nn, dist):
     t = targets.size
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
-        _ring_range(c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, key, targets, k, nn, dist)
+        _ring_range(
+            c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, column, key, targets, k, nn, dist
+        )
 
 
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -353,15 +460,16 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
     pool = np.flatnonzero(usable)
     cell = r[pool] * width + c[pool]
     members = pool[np.argsort(cell, kind="stable")]  # by cell, then by index
+    column = c[members]
     start = np.zeros(height * width + 1, dtype=np.int64)
     np.cumsum(np.bincount(cell, minlength=height * width), out=start[1:])
     targets = np.ascontiguousarray(targets, dtype=np.int64)
     nn = np.empty((targets.size, k), dtype=np.int64)
     dist = np.empty((targets.size, k), dtype=np.int64)
     if targets.size <= CHUNK:
-        _ring_range(0, targets.size, r, c, width, start, members, key, targets, int(k), nn, dist)
+        _ring_range(0, targets.size, r, c, width, start, members, column, key, targets, int(k), nn, dist)
     else:
-        _ring_parallel(r, c, width, start, members, key, targets, int(k), nn, dist)
+        _ring_parallel(r, c, width, start, members, column, key, targets, int(k), nn, dist)
     return nn, dist.astype(np.float64)
 
 

@@ -178,26 +178,28 @@ def _loo_lstsq(rows, cols, r, noise, stated, targets, nn, fit: PointFit, nu: flo
     return (r[targets] - pred) / np.sqrt(var), np.minimum(spread / var, 1.0)
 
 
+#: `_distance_to` transforms the box around the points when it has at most this many cells per point.
+DISTANCE_CELLS_PER_POINT = 48
+
+
 def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray) -> np.ndarray:
     """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
 
-    Many points on integer pixels: an exact city-block distance transform of the box around them
-    (O(box)); few points in a large box, or points off the pixel grid: a k-d tree of the sources
-    (O(N log sources)). Both are exact.
+    Points on integer pixels in a box of at most ``DISTANCE_CELLS_PER_POINT`` cells per point: an exact
+    city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); fewer points
+    in a larger box, or points off the pixel grid: a k-d tree of the sources (O(N log sources)). Both are exact.
     """
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     if sources.size == 0:
         return np.full(rows.size, np.inf)
     box = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
-    if _on_pixel_grid(rows, cols) and 8 * rows.size >= box:
-        from scipy.ndimage import distance_transform_cdt
+    if _on_pixel_grid(rows, cols) and DISTANCE_CELLS_PER_POINT * rows.size >= box:
+        from .distance import taxicab_transform
 
         r = (rows - rows.min()).astype(np.int64)
         c = (cols - cols.min()).astype(np.int64)
-        free = np.ones((int(r.max()) + 1, int(c.max()) + 1), dtype=bool)
-        free[r[sources], c[sources]] = False
-        return distance_transform_cdt(free, metric="taxicab")[r, c].astype(np.float64)
+        return taxicab_transform((int(r.max()) + 1, int(c.max()) + 1), r[sources], c[sources])[r, c].astype(np.float64)
     from scipy.spatial import cKDTree
 
     bound = float(np.max(reach[np.isfinite(reach)], initial=0.0))

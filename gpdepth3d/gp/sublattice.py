@@ -120,7 +120,7 @@ SERIAL_POINTS = 1024
 def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
                resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """The cells of row ci: per cell one factorisation of its window's points (at most max_points), then every
-    output pixel in it."""
+    output pixel in it (four at a time from `BY_FOUR` points on, `_pixels_by_four`)."""
     h, w = index.shape
     m = resid.shape[1]
     side = k + 2 * reach
@@ -135,6 +135,7 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
         y = np.empty((size, m))
         c = np.empty(size)
         dinv = np.empty(size)
+        V = np.empty((size, 4))
         for cj in range(col_start.shape[0] - 1):
             if col_start[cj] == col_start[cj + 1]:
                 continue
@@ -148,17 +149,7 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
             if n == 0:
                 continue
             if n > max_points:  # the max_points nearest the cell's centre (L1; ties: the earlier in the window)
-                count[:] = 0
-                for a in range(n):  # a counting sort by (distance, window order); twice the L1 distance < 4 side
-                    dist[a] = abs(2 * pt_r[ids[a]] - (2 * k * ci + k - 1)) + abs(2 * pt_c[ids[a]] - (2 * k * cj + k - 1))
-                    count[dist[a] + 1] += 1
-                for d in range(1, count.size):
-                    count[d] += count[d - 1]
-                for a in range(n):
-                    picked[count[dist[a]]] = ids[a]
-                    count[dist[a]] += 1
-                for a in range(max_points):
-                    ids[a] = picked[a]
+                _nearest(ids, n, max_points, 2 * k * ci + k - 1, 2 * k * cj + k - 1, pt_r, pt_c, dist, count, picked)
                 n = max_points
             for a in range(n):
                 pa = ids[a]
@@ -174,12 +165,26 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
                 continue
             for a in range(n):
                 dinv[a] = 1.0 / A[a, a]
-            for q in range(m):  # y = L^-1 r
-                for a in range(n):
+            for a in range(n):  # y = L^-1 r, three right-hand sides at a time (independent sums in flight)
+                q = 0
+                while q + 2 < m:
+                    s, s_1, s_2 = resid[ids[a], q], resid[ids[a], q + 1], resid[ids[a], q + 2]
+                    for t in range(a):
+                        x = A[a, t]
+                        s -= x * y[t, q]
+                        s_1 -= x * y[t, q + 1]
+                        s_2 -= x * y[t, q + 2]
+                    y[a, q], y[a, q + 1], y[a, q + 2] = s * dinv[a], s_1 * dinv[a], s_2 * dinv[a]
+                    q += 3
+                for q in range(q, m):
                     s = resid[ids[a], q]
                     for t in range(a):
                         s -= A[a, t] * y[t, q]
                     y[a, q] = s * dinv[a]
+            if n >= BY_FOUR:
+                _pixels_by_four(ids, n, A, dinv, y, row_start[ci], row_start[ci + 1], col_start[cj], col_start[cj + 1],
+                                cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pt_r, pt_c, s2, span, V, corr, vred)
+                continue
             for i in range(row_start[ci], row_start[ci + 1]):
                 for j in range(col_start[cj], col_start[cj + 1]):
                     red = 0.0
@@ -200,6 +205,82 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
                         for a in range(n):
                             s += c[a] * y[a, q]
                         corr[q, i, j] = s
+
+
+#: Window points from which `_krige_row` computes a cell's output pixels four at a time (`_pixels_by_four`); below,
+#: the call costs more than it saves. The results are the same.
+BY_FOUR = 8
+
+
+@njit(cache=True, nogil=True)
+def _nearest(ids, n, keep, centre_r2, centre_c2, pt_r, pt_c, dist, count, picked):  # pragma: no cover - compiled
+    """ids[:keep]: the ``keep`` of the points ids[:n] nearest the cell's centre (twice its coordinates: centre_r2,
+    centre_c2; L1; ties: the earlier in ids), by a counting sort (twice an L1 distance in the window < count.size - 1)."""
+    count[:] = 0
+    for a in range(n):
+        dist[a] = abs(2 * pt_r[ids[a]] - centre_r2) + abs(2 * pt_c[ids[a]] - centre_c2)
+        count[dist[a] + 1] += 1
+    for d in range(1, count.size):
+        count[d] += count[d - 1]
+    for a in range(n):
+        picked[count[dist[a]]] = ids[a]
+        count[dist[a]] += 1
+    for a in range(keep):
+        ids[a] = picked[a]
+
+
+@njit(cache=True, nogil=True)
+def _pixels_by_four(ids, n, A, dinv, y, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pt_r, pt_c, s2, span, V, corr,
+                    vred):  # pragma: no cover - compiled
+    """The output pixels i0 <= i < i1, j0 <= j < j1 of one cell from its window's points ids[:n] (L in A's lower
+    triangle, 1 / diag(L) in ``dinv``, y = L^-1 r): v = L^-1 c, vred = v . v and corr = v . y, four pixels at a
+    time: four independent sums in flight, each pixel's arithmetic in the order of `_krige_row`'s one pixel.
+    V: (n, 4) work array (a pixel past the last repeats it; its results are dropped)."""
+    m = y.shape[1]
+    nj = j1 - j0
+    npix = (i1 - i0) * nj
+    for p0 in range(0, npix, 4):
+        i_0, j_0 = i0 + p0 // nj, j0 + p0 % nj
+        i_1, j_1 = i0 + min(p0 + 1, npix - 1) // nj, j0 + min(p0 + 1, npix - 1) % nj
+        i_2, j_2 = i0 + min(p0 + 2, npix - 1) // nj, j0 + min(p0 + 2, npix - 1) % nj
+        i_3, j_3 = i0 + min(p0 + 3, npix - 1) // nj, j0 + min(p0 + 3, npix - 1) % nj
+        r0 = r1 = r2 = r3 = 0.0
+        for a in range(n):
+            pa = ids[a]
+            # c = C_e(points, x) as `_krige_row` computes it, for each of the four pixels
+            dr, dc = pt_r[pa] - cr[i_0] + span, pt_c[pa] - cc[j_0] + span
+            er, rr_, ec, rc = Er_o[i_0, dr], Rr_o[i_0, dr], Ec_o[j_0, dc], Rc_o[j_0, dc]
+            u0 = s2 * (rr_ * ec + rc * er - er * ec)
+            dr, dc = pt_r[pa] - cr[i_1] + span, pt_c[pa] - cc[j_1] + span
+            er, rr_, ec, rc = Er_o[i_1, dr], Rr_o[i_1, dr], Ec_o[j_1, dc], Rc_o[j_1, dc]
+            u1 = s2 * (rr_ * ec + rc * er - er * ec)
+            dr, dc = pt_r[pa] - cr[i_2] + span, pt_c[pa] - cc[j_2] + span
+            er, rr_, ec, rc = Er_o[i_2, dr], Rr_o[i_2, dr], Ec_o[j_2, dc], Rc_o[j_2, dc]
+            u2 = s2 * (rr_ * ec + rc * er - er * ec)
+            dr, dc = pt_r[pa] - cr[i_3] + span, pt_c[pa] - cc[j_3] + span
+            er, rr_, ec, rc = Er_o[i_3, dr], Rr_o[i_3, dr], Ec_o[j_3, dc], Rc_o[j_3, dc]
+            u3 = s2 * (rr_ * ec + rc * er - er * ec)
+            for t in range(a):  # v = L^-1 c
+                x = A[a, t]
+                u0 -= x * V[t, 0]
+                u1 -= x * V[t, 1]
+                u2 -= x * V[t, 2]
+                u3 -= x * V[t, 3]
+            d = dinv[a]
+            V[a, 0], V[a, 1], V[a, 2], V[a, 3] = u0 * d, u1 * d, u2 * d, u3 * d
+            r0 += V[a, 0] * V[a, 0]
+            r1 += V[a, 1] * V[a, 1]
+            r2 += V[a, 2] * V[a, 2]
+            r3 += V[a, 3] * V[a, 3]
+        for lane, red in enumerate((r0, r1, r2, r3)):
+            if p0 + lane < npix:
+                i, j = i0 + (p0 + lane) // nj, j0 + (p0 + lane) % nj
+                vred[i, j] = red
+                for q in range(m):
+                    s = 0.0
+                    for a in range(n):
+                        s += V[a, lane] * y[a, q]
+                    corr[q, i, j] = s
 
 
 def sublattice_kriging(

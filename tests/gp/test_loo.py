@@ -127,6 +127,23 @@ class TestNeighbours:
         assert np.all(dist[:, :4] == 1) and np.all(dist[:, 4:] == 2)
         assert abs(np.mean(dr < 0) - np.mean(dr > 0)) < 0.03 and abs(np.mean(dc < 0) - np.mean(dc > 0)) < 0.03
 
+    def test_dense_and_sparse_parts_both_searches(self):
+        """A dense block (rings walked pixel by pixel) beside sparse points (diamonds gathered by rows and sorted),
+        with targets alternating between them so that each search starts from the other's distance."""
+        rng = np.random.default_rng(11)
+        dense = np.unique(rng.integers(0, 12, (300, 2)), axis=0).astype(np.float64)
+        sparse = np.unique(rng.integers(0, 200, (60, 2)) + [20, 0], axis=0).astype(np.float64)
+        pts = np.concatenate([dense, sparse])
+        order = np.argsort(np.arange(len(pts)) % 7, kind="stable")  # dense and sparse points interleaved
+        rows, cols = pts[order, 0], pts[order, 1]
+        usable = rng.random(rows.size) > 0.1
+        targets = np.arange(rows.size)
+        got = grid_neighbours(rows, cols, usable, targets, 12)
+        ref = _brute_neighbours(rows, cols, usable, targets, 12)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+        assert ref[1][:, -1].max() > 2 * _loo.WALK_RADIUS and ref[1][:, -1].min() <= _loo.WALK_RADIUS
+
     def test_ring_offsets_cover_each_ring_once(self):
         for d in (1, 2, 5, 40):
             offs = np.array([_loo.ring_offset(d, p) for p in range(4 * d)])
