@@ -29,12 +29,17 @@ class SfMConfig:
         max_features: SIFT keypoints per image at most.
         peak_threshold: SIFT's contrast threshold (COLMAP's default 0.0067; lower finds keypoints on
             weak texture).
-        overlap: Each image is matched with this many following images (sequential matching).
+        overlap: Sequential matching: image ``i`` is matched with images ``i + 1, i + 2, i + 4, ...,
+            i + 2 ** (overlap - 1)`` (pycolmap's quadratic overlap: near neighbours for the chain, a few
+            far ones for a walk that comes back).
         init_min_num_inliers: Inlier matches a pair needs to start a model (COLMAP: 100).
         init_min_tri_angle: Median triangulation angle a starting pair needs, degrees (COLMAP: 16; the
             frames of a walk are close together).
         abs_pose_min_num_inliers: 2-D / 3-D inliers an image needs to be registered (COLMAP: 30).
         abs_pose_min_inlier_ratio: Their share of the image's matches (COLMAP: 0.25).
+        max_reg_trials: Times an image that failed to register is tried again as the model grows
+            (COLMAP: 3; after a turn the next images see few of the model's points until more are
+            triangulated).
         min_tri_angle: Smallest angle between two rays of a point kept, degrees (COLMAP: 1.5).
         two_view_tracks: Triangulate points seen in two images only (COLMAP ignores them; in a walk
             they are what registers the next image).
@@ -48,8 +53,9 @@ class SfMConfig:
     overlap: int = 8
     init_min_num_inliers: int = 30
     init_min_tri_angle: float = 4.0
-    abs_pose_min_num_inliers: int = 10
-    abs_pose_min_inlier_ratio: float = 0.15
+    abs_pose_min_num_inliers: int = 6
+    abs_pose_min_inlier_ratio: float = 0.08
+    max_reg_trials: int = 10
     min_tri_angle: float = 0.5
     two_view_tracks: bool = True
     min_model_size: int = 3
@@ -62,6 +68,7 @@ class SfMConfig:
             ("overlap", 1),
             ("init_min_num_inliers", 8),
             ("abs_pose_min_num_inliers", 6),
+            ("max_reg_trials", 1),
             ("min_model_size", 2),
             ("threads", 1),
             ("seed", 0),
@@ -99,6 +106,7 @@ def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path
     )
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = config.overlap
+    pairing.quadratic_overlap = True
     pairing.num_threads = config.threads
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = config.threads
@@ -120,6 +128,7 @@ def _mapping_options(config: SfMConfig):
     options.mapper.init_min_tri_angle = config.init_min_tri_angle
     options.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
     options.mapper.abs_pose_min_inlier_ratio = config.abs_pose_min_inlier_ratio
+    options.mapper.max_reg_trials = config.max_reg_trials
     options.mapper.abs_pose_refine_focal_length = False
     options.mapper.abs_pose_refine_extra_params = False
     options.mapper.filter_min_tri_angle = config.min_tri_angle
