@@ -12,11 +12,23 @@ from gpdepth3d.mapping.points.colmap_sfm import SfMConfig, reconstruct_sequence
 @pytest.mark.parametrize(
     "field, value",
     [("max_features", 10), ("overlap", 0), ("threads", True), ("peak_threshold", 0.0), ("min_tri_angle", -1.0)]
-    + [("abs_pose_min_inlier_ratio", 1.0), ("init_min_num_inliers", 2.5)],
+    + [("abs_pose_min_inlier_ratio", 1.0), ("init_min_num_inliers", 2.5), ("max_reg_trials", 0)],
 )
 def test_config_refuses_bad_values(field, value):
     with pytest.raises(InvalidInputError, match=field):
         SfMConfig(**{field: value})
+
+
+def test_mapping_options_carry_the_config():
+    """pycolmap's mapper gets our registration thresholds and retries, the intrinsics held fixed."""
+    pytest.importorskip("pycolmap")
+    from gpdepth3d.mapping.points.colmap_sfm import _mapping_options
+
+    config = SfMConfig(abs_pose_min_num_inliers=7, abs_pose_min_inlier_ratio=0.1, max_reg_trials=4, min_model_size=5)
+    options = _mapping_options(config)
+    assert options.mapper.abs_pose_min_num_inliers == 7 and options.mapper.max_reg_trials == 4
+    assert options.mapper.abs_pose_min_inlier_ratio == pytest.approx(0.1) and options.min_model_size == 5
+    assert not options.ba_refine_focal_length and not options.mapper.abs_pose_refine_focal_length
 
 
 def test_needs_two_images_of_one_folder(tmp_path):
