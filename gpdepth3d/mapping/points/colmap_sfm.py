@@ -4,7 +4,9 @@
 the images of a sequence whose intrinsics are known (COLMAP camera model PINHOLE, held fixed). The
 settings of `SfMConfig` are chosen for hand-held indoor walks with little texture: more, weaker SIFT
 keypoints, a smaller triangulation angle and fewer inliers to start a model or register an image than
-COLMAP's defaults (which are tuned for photo collections with wide baselines). Where the images do
+COLMAP's defaults (which are tuned for photo collections with wide baselines); SIFT runs on the images
+upsampled twice (COLMAP's default, slow) only when at their own size they give too few keypoints
+(`SfMConfig.min_keypoints`). Where the images do
 not chain (a blank wall, a fast turn) pycolmap starts a new model; every model is one piece, with its
 own frame and scale. See https://colmap.github.io/pycolmap/index.html.
 """
@@ -29,6 +31,10 @@ class SfMConfig:
         max_features: SIFT keypoints per image at most.
         peak_threshold: SIFT's contrast threshold (COLMAP's default 0.0067; lower finds keypoints on
             weak texture).
+        min_keypoints: SIFT runs first on the images at their own size; when the median image has
+            fewer keypoints than this, it runs again on the images upsampled twice (SIFT's first
+            octave -1, COLMAP's default: many more keypoints on weak texture, several times the
+            time of extraction and matching).
         overlap: Sequential matching: image ``i`` is matched with images ``i + 1, i + 2, i + 4, ...,
             i + 2 ** (overlap - 1)`` (pycolmap's quadratic overlap: near neighbours for the chain, a few
             far ones for a walk that comes back).
@@ -50,6 +56,7 @@ class SfMConfig:
 
     max_features: int = 4096
     peak_threshold: float = 0.002
+    min_keypoints: int = 500
     overlap: int = 8
     init_min_num_inliers: int = 30
     init_min_tri_angle: float = 4.0
@@ -65,6 +72,7 @@ class SfMConfig:
     def __post_init__(self) -> None:
         for name, low in (
             ("max_features", 64),
+            ("min_keypoints", 0),
             ("overlap", 1),
             ("init_min_num_inliers", 8),
             ("abs_pose_min_num_inliers", 6),
@@ -84,10 +92,11 @@ class SfMConfig:
             raise InvalidInputError("abs_pose_min_inlier_ratio", "a share in [0, 1)", self.abs_pose_min_inlier_ratio)
 
 
-def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig) -> None:
-    """SIFT keypoints of every image into ``database`` (one PINHOLE camera, fixed), then sequential matches."""
+def _extract(images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig, first_octave: int) -> None:
+    """SIFT keypoints of every image into a new ``database`` (one PINHOLE camera, fixed)."""
     import pycolmap
 
+    database.unlink(missing_ok=True)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"  # COLMAP puts the first pixel's centre at 0.5
     reader.camera_params = f"{camera.fx},{camera.fy},{camera.cx + 0.5},{camera.cy + 0.5}"
@@ -95,6 +104,7 @@ def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path
     extraction.num_threads = config.threads
     extraction.sift.max_num_features = config.max_features
     extraction.sift.peak_threshold = config.peak_threshold
+    extraction.sift.first_octave = first_octave
     pycolmap.extract_features(
         database,
         images[0].parent,
@@ -104,6 +114,24 @@ def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
+
+
+def median_keypoints(database: Path) -> float:
+    """The median number of keypoints per image in a COLMAP database (0 when it has none)."""
+    import sqlite3
+
+    with sqlite3.connect(database) as db:
+        counts = [row[0] for row in db.execute("SELECT rows FROM keypoints")]
+    return float(np.median(counts)) if counts else 0.0
+
+
+def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig) -> None:
+    """SIFT keypoints of every image (upsampled when the images have too few), then sequential matches."""
+    import pycolmap
+
+    _extract(images, camera, database, config, first_octave=0)
+    if median_keypoints(database) < config.min_keypoints:
+        _extract(images, camera, database, config, first_octave=-1)
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = config.overlap
     pairing.quadratic_overlap = True
