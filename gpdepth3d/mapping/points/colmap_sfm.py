@@ -6,7 +6,7 @@ settings of `SfMConfig` are chosen for hand-held indoor walks with little textur
 keypoints, a smaller triangulation angle and fewer inliers to start a model or register an image than
 COLMAP's defaults (which are tuned for photo collections with wide baselines); SIFT runs on the images
 upsampled twice (COLMAP's default, slow) only when at their own size they give too few keypoints
-(`SfMConfig.min_keypoints`). Where the images do
+(`SfMConfig.min_keypoints`) or register too few images (`SfMConfig.min_registered`). Where the images do
 not chain (a blank wall, a fast turn) pycolmap starts a new model; every model is one piece, with its
 own frame and scale. See https://colmap.github.io/pycolmap/index.html.
 """
@@ -35,6 +35,9 @@ class SfMConfig:
             fewer keypoints than this, it runs again on the images upsampled twice (SIFT's first
             octave -1, COLMAP's default: many more keypoints on weak texture, several times the
             time of extraction and matching).
+        min_registered: Share of the images the pieces must register between them when SfM ran on
+            keypoints at the images' own size; below it, SfM runs again on the upsampled images and the
+            run that registers more images is kept.
         overlap: Sequential matching: image ``i`` is matched with images ``i + 1, i + 2, i + 4, ...,
             i + 2 ** (overlap - 1)`` (pycolmap's quadratic overlap: near neighbours for the chain, a few
             far ones for a walk that comes back).
@@ -57,6 +60,7 @@ class SfMConfig:
     max_features: int = 4096
     peak_threshold: float = 0.002
     min_keypoints: int = 500
+    min_registered: float = 0.9
     overlap: int = 8
     init_min_num_inliers: int = 30
     init_min_tri_angle: float = 4.0
@@ -88,6 +92,8 @@ class SfMConfig:
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(name, "a finite value > 0", value)
+        if not 0 <= self.min_registered <= 1:
+            raise InvalidInputError("min_registered", "a share in [0, 1]", self.min_registered)
         if not 0 <= self.abs_pose_min_inlier_ratio < 1:
             raise InvalidInputError("abs_pose_min_inlier_ratio", "a share in [0, 1)", self.abs_pose_min_inlier_ratio)
 
@@ -125,12 +131,20 @@ def median_keypoints(database: Path) -> float:
     return float(np.median(counts)) if counts else 0.0
 
 
-def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig) -> None:
-    """SIFT keypoints of every image (upsampled when the images have too few), then sequential matches."""
+def _extract_and_match(
+    images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig, *, upsample: bool | None = None
+) -> bool:
+    """SIFT keypoints of every image, then sequential matches; returns whether the images were upsampled.
+
+    ``upsample`` None: at the images' own size, upsampled twice when the median image has fewer than
+    ``config.min_keypoints`` there; True: upsampled at once.
+    """
     import pycolmap
 
-    _extract(images, camera, database, config, first_octave=0)
-    if median_keypoints(database) < config.min_keypoints:
+    if not upsample:
+        _extract(images, camera, database, config, first_octave=0)
+        upsample = median_keypoints(database) < config.min_keypoints
+    if upsample:
         _extract(images, camera, database, config, first_octave=-1)
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = config.overlap
@@ -139,6 +153,7 @@ def _extract_and_match(images: list[Path], camera: PinholeCamera, database: Path
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = config.threads
     pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu)
+    return upsample
 
 
 def _mapping_options(config: SfMConfig):
@@ -165,6 +180,11 @@ def _mapping_options(config: SfMConfig):
     return options
 
 
+def registered_images(models: dict) -> int:
+    """Distinct images registered by pycolmap's models (an image may be registered in two of them)."""
+    return len({model.images[i].name for model in models.values() for i in model.reg_image_ids()})
+
+
 def reconstruct_sequence(
     images: Sequence[str | Path], camera: PinholeCamera, workdir: str | Path, *, config: SfMConfig | None = None
 ) -> list[Path]:
@@ -175,7 +195,9 @@ def reconstruct_sequence(
         camera: Pinhole intrinsics shared by the images (held fixed).
         workdir: Folder for ``database.db`` and the models (``sparse/0``, ``sparse/1``, ...); an
             earlier run there is replaced.
-        config: `SfMConfig` (default: settings for indoor walks).
+        config: `SfMConfig` (default: settings for indoor walks). When the keypoints at the images' own
+            size register fewer than ``config.min_registered`` of the images, SfM runs again on the
+            upsampled images and the run registering more images is kept.
 
     Returns:
         One folder per piece (`gpdepth3d.mapping.trajectories.read_colmap_model` reads it), the piece
@@ -201,8 +223,14 @@ def reconstruct_sequence(
     for folder in (sparse, raw):
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir()
-    _extract_and_match(images, camera, database, config)
+    upsampled = _extract_and_match(images, camera, database, config)
     models = pycolmap.incremental_mapping(database, images[0].parent, raw, options=_mapping_options(config))
+    if not upsampled and registered_images(models) < config.min_registered * len(images):
+        shutil.rmtree(raw, ignore_errors=True)
+        raw.mkdir()
+        _extract_and_match(images, camera, database, config, upsample=True)
+        again = pycolmap.incremental_mapping(database, images[0].parent, raw, options=_mapping_options(config))
+        models = again if registered_images(again) >= registered_images(models) else models
     shutil.rmtree(raw, ignore_errors=True)
     order = sorted(models, key=lambda k: (-models[k].num_reg_images(), k))
     folders = []
