@@ -221,7 +221,10 @@ def _map_unposed(args: dict) -> dict[str, Any]:
     for k, piece in enumerate(result.pieces):
         s = piece.scale
         scale = "" if s is None else f", scale {s.scale:.4f} ± {s.sigma:.4f} m per unit ({s.points} points)"
-        print(f"piece {k}: {len(piece.names)} frames{scale}" + (f": not mapped: {piece.error}" if piece.error else ""))
+        if piece.error:
+            print(f"piece {k} of {len(piece.names)} frames not mapped{scale}: {piece.error}")
+        else:
+            print(f"piece {k}: {len(piece.names)} frames{scale}")
         if piece.result is not None and piece.result.metrics is not None:
             print(f"piece {k}: " + _fscore_line(piece.result.metrics, a["threshold"]))
     print(f"wrote {len(written)} files to {Path(a['output']).resolve()} in {result.timing['wall']:.1f} s")

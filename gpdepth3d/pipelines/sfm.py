@@ -6,7 +6,8 @@ each piece with the `Mapper`, its points given the calibrated sigma of `PointSig
 scale's uncertainty. `map_with_points` maps a posed sequence with given world points (a COLMAP model in
 the poses' frame, or points with a stated sigma); a COLMAP model without poses goes through
 `map_pieces` like an SfM run. A reconstruction in several pieces (a SLAM that lost tracking, an SfM
-that could not chain every image) is mapped as separate maps, one per piece.
+that could not chain every image) is mapped as separate maps, one per piece; a piece whose metric
+scale is not to be trusted (`PieceRule`) is not mapped, and its result says why.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from ..mapping.points.colmap_sfm import SfMConfig, reconstruct_sequence
 from ..mapping.points.given_points import GivenPoints, PointSigmaRule, read_given_points
 from ..mapping.mapper import MDEFrontEnd
 from ..mapping.mapper_config import MapperConfig
-from ..mapping.points.sfm_scale import MetricScale, depth_ratios, focal_ratio, metric_scale
+from ..mapping.points.sfm_scale import MetricScale, PieceRule, depth_ratios, focal_ratio, metric_scale
 from ..io.poses import invert_pose
 
 
@@ -55,7 +56,8 @@ class PiecesResult:
     Attributes:
         pieces: `PieceResult` per piece.
         frames: Images given.
-        registered: Images in some piece (registered by SfM, or observed by the given model).
+        registered: Distinct images in some piece (registered by SfM, or observed by the given model;
+            pycolmap may register an image in two overlapping pieces).
         models: Folders of the SfM models (piece order), when SfM ran.
         timing: Seconds: ``sfm``, ``scale``, ``map`` and ``wall``.
     """
@@ -119,6 +121,7 @@ def map_pieces(
     depth: FileSpec | None = None,
     depth_kw: dict | None = None,
     map_kw: dict | None = None,
+    piece_rule: PieceRule | None = None,
 ) -> PiecesResult:
     """Maps each piece of a reconstruction known up to scale: metric scale from ``mde``, then the `Mapper`.
 
@@ -134,10 +137,12 @@ def map_pieces(
         depth: Sensor depth for scoring only (folder, glob or files matched by name).
         depth_kw: ``depth_scale``, ``depth_invalid``, ``depth_intrinsics`` for `PosedSequence`.
         map_kw: Further arguments of `map_sequence` (``working_width``, ``threshold``, ...).
+        piece_rule: When a piece's scale is not trusted (default `PieceRule()`): such a piece is not
+            mapped (its geometry would be worse than the network's), its result says why.
 
     Returns:
-        `PiecesResult`; a piece that cannot be mapped (no ratio for its scale, no frame fused) carries
-        its error, the others go on.
+        `PiecesResult`; a piece that cannot be mapped (no ratio for its scale, refused by
+        ``piece_rule``, no frame fused) carries its error, the others go on.
 
     Raises:
         EmptyInputError: no piece could be mapped (naming why).
@@ -146,14 +151,15 @@ def map_pieces(
 
     t0 = time.perf_counter()
     rule = sigma_rule or PointSigmaRule()
+    trust = piece_rule or PieceRule()
     names = [f.name for f in files]
     depth_kw = dict(depth_kw or {})
     if depth is not None:
         depth_kw["depth"] = [str(p) for p in _matched_depth(files, depth)]
-    out, registered, t_scale = [], 0, 0.0
+    out, registered, t_scale = [], set(), 0.0
     for piece in pieces:
         frames = piece_frames(piece, names)
-        registered += len(frames)
+        registered.update(i for i, _ in frames)
         piece_names = [names[i] for i, _ in frames]
         if len(frames) < 1:
             continue
@@ -164,6 +170,10 @@ def map_pieces(
             out.append(PieceResult(piece_names, None, None, f"no metric scale: {exc}"))
             continue
         t_scale += time.perf_counter() - t1
+        refusal = trust.refusal(len(frames), scale)
+        if refusal is not None:
+            out.append(PieceResult(piece_names, scale, None, refusal))
+            continue
         kw = dict(depth_kw)
         if "depth" in kw:
             kw["depth"] = [kw["depth"][i] for i, _ in frames]
@@ -178,7 +188,9 @@ def map_pieces(
         why = "; ".join(p.error for p in out if p.error) or "no piece observes these images"
         raise EmptyInputError("images", "a piece of the reconstruction that can be mapped", why)
     wall = time.perf_counter() - t0
-    return PiecesResult(out, len(files), registered, timing={"scale": t_scale, "map": wall - t_scale, "wall": wall})
+    return PiecesResult(
+        out, len(files), len(registered), timing={"scale": t_scale, "map": wall - t_scale, "wall": wall}
+    )
 
 
 def _matched_depth(files: list[Path], depth: FileSpec) -> list[Path]:

@@ -48,7 +48,11 @@ def test_images_alone_register_scale_and_map(seven, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_restarted_reconstruction_is_mapped_as_pieces(seven, tmp_path, capsys):
-    """Two COLMAP models of two stretches (a SLAM that lost tracking): two maps, each with its own scale."""
+    """Two COLMAP models of two stretches (a SLAM that lost tracking): two maps, each with its own scale.
+
+    A third model of a few frames, inside the first stretch, is not mapped (`PieceRule`: too few
+    frames for a trusted scale), says so, and its frames are not counted twice as registered.
+    """
     from gpdepth3d.datasets.posed import IMAGE_SUFFIXES, list_files, read_intrinsics
     from gpdepth3d.mapping.points.colmap_sfm import reconstruct_sequence
 
@@ -57,21 +61,25 @@ def test_restarted_reconstruction_is_mapped_as_pieces(seven, tmp_path, capsys):
     files = list_files(seven, IMAGE_SUFFIXES, "color", "images")
     camera = read_intrinsics("525,525,320,240", 640, 480)
     sizes = []
-    for k, part in enumerate((files[:8], files[30:38])):
+    for k, part in enumerate((files[:8], files[30:38], files[2:7])):
         (model,) = reconstruct_sequence(part, camera, tmp_path / f"sfm{k}")
         shutil.copytree(model, tmp_path / "sparse" / str(k))
         sizes.append(len(read_colmap_model(model).images))
-    assert min(sizes) >= 4
+    assert min(sizes[:2]) >= 4 and 3 <= sizes[2] < 8
     out = tmp_path / "map"
     argv = ["map", "--images", str(seven), "--points", str(tmp_path / "sparse"), *SEVEN, *_depth(seven)]
     assert main([*argv, "--output", str(out)]) == 0
     text = capsys.readouterr().out
-    assert f"registered {sum(sizes)} of 60 images in 2 piece(s)" in text
+    assert f"registered {sizes[0] + sizes[1]} of 60 images in 3 piece(s)" in text
+    assert f"piece 2 of {sizes[2]} frames not mapped, scale " in text and "fewer than 8 frames" in text
     first, second = (json.loads((f / "metrics.json").read_text()) for f in (out, out / "piece1"))
-    assert second["piece"] == 1 and sorted([first["frames_fused"], second["frames_fused"]]) == sorted(sizes)
-    starts = sorted(p["first"] for p in first["pieces"]["pieces"])
+    assert not (out / "piece2").exists()
+    assert second["piece"] == 1 and sorted([first["frames_fused"], second["frames_fused"]]) == sorted(sizes[:2])
+    rows = first["pieces"]["pieces"]
+    assert [r["error"] is None for r in rows] == [True, True, False] and rows[2]["frames_fused"] == 0
+    starts = sorted(p["first"] for p in rows[:2])
     assert starts[0] <= files[7].name and files[30].name <= starts[1] <= files[37].name
-    assert all(p["scale"]["scale"] > 0 for p in first["pieces"]["pieces"])
+    assert all(p["scale"]["scale"] > 0 for p in rows)
 
 
 @pytest.mark.slow

@@ -2,9 +2,15 @@
 
 Structure from motion gives poses and points up to one unknown factor. The network's depth is metric
 but wrong by a few to tens of percent per frame and per region. Each point an image observes gives one
-ratio ``network depth / model depth`` at its pixel; `metric_scale` takes the median of all of them, and
-its uncertainty from a bootstrap over frames (the network's error is shared by the points of one frame,
-so frames, not points, are the independent draws), with the spread of the ratios (MAD) beside it.
+ratio ``network depth / model depth`` at its pixel; `metric_scale` takes each frame's median ratio and
+the median of those over the frames, and its uncertainty from a bootstrap over frames (the network's
+error is shared by the points of one frame, so frames, not points, are the independent draws; pooling
+the points instead lets the few frames with many points, a textured corner seen close, set the
+scale), with the spread of the ratios (MAD) beside it.
+
+`PieceRule` says when a piece's scale is not to be trusted (too few frames, too wide a bootstrap,
+ratios that disagree too much): fusing such a piece puts every point at a wrong depth, which is worse
+than the network's own depth.
 
 A network learns sizes in its training camera: shown an image whose field of view is narrower, it sees
 things larger and puts them nearer. `focal_ratio` is that factor, from the focal lengths over the image
@@ -30,7 +36,8 @@ class MetricScale:
     """Metres per model unit, with its uncertainty.
 
     Attributes:
-        scale: Median of the per-point ratios network depth / model depth (metres per unit).
+        scale: Median over the frames of each frame's median ratio network depth / model depth
+            (metres per unit).
         sigma: Standard deviation of that median over bootstrap draws of frames (metres per unit).
         interval: 2.5 and 97.5 percentiles of the bootstrap medians.
         mad: Median absolute deviation of the per-point ratios over their median (a share: the
@@ -102,7 +109,10 @@ def depth_ratios(
 
 
 def metric_scale(ratios: Sequence[np.ndarray], *, draws: int = 500, seed: int = 0) -> MetricScale:
-    """The median of per-point depth ratios, with a bootstrap over frames for its uncertainty.
+    """The median over frames of each frame's median depth ratio, with a bootstrap over frames for its uncertainty.
+
+    Every frame counts once, whatever its number of points: the network's error is a per-frame
+    factor, so a frame with many points is one draw of it, not many.
 
     Args:
         ratios: Per frame, its points' ratios network depth / model depth (`depth_ratios`).
@@ -120,12 +130,10 @@ def metric_scale(ratios: Sequence[np.ndarray], *, draws: int = 500, seed: int = 
     if not frames:
         raise EmptyInputError("ratios", "frames with positive depth ratios", "none")
     pooled = np.concatenate(frames)
-    scale = float(np.median(pooled))
+    per_frame = np.array([np.median(r) for r in frames])
+    scale = float(np.median(per_frame))
     rng = np.random.default_rng(seed)
-    medians = np.empty(draws)
-    for k in range(draws):
-        pick = rng.integers(0, len(frames), len(frames))
-        medians[k] = np.median(np.concatenate([frames[i] for i in pick]))
+    medians = np.median(per_frame[rng.integers(0, len(frames), (draws, len(frames)))], axis=1)
     lo, hi = np.percentile(medians, [2.5, 97.5])
     return MetricScale(
         scale=scale,
@@ -135,3 +143,57 @@ def metric_scale(ratios: Sequence[np.ndarray], *, draws: int = 500, seed: int = 
         points=int(pooled.size),
         frames=len(frames),
     )
+
+
+@dataclass(frozen=True)
+class PieceRule:
+    """When a piece of a reconstruction known up to scale is not mapped: its metric scale is not to be trusted.
+
+    A piece's map puts every point at ``scale`` times its model depth; a scale off by a tenth puts a wall
+    at 3 m 30 cm away, farther than the network's own depth would. The scale is an average of the
+    network's per-frame error, so it needs frames; its bootstrap sigma says how well they pin it down;
+    the MAD of the ratios says whether the reconstruction's depths and the network's agree at all (a
+    piece of a few frames with a short baseline has depths the network contradicts).
+
+    Attributes:
+        min_frames: Frames a piece needs (a smaller piece rests on too few network depth maps).
+        max_relative_sigma: Largest ``sigma / scale`` of the scale's bootstrap.
+        max_mad: Largest MAD of the ratios over the scale (a share).
+    """
+
+    min_frames: int = 8
+    max_relative_sigma: float = 0.05
+    max_mad: float = 0.2
+
+    def __post_init__(self) -> None:
+        if (
+            isinstance(self.min_frames, bool)
+            or not isinstance(self.min_frames, (int, np.integer))
+            or self.min_frames < 1
+        ):
+            raise InvalidInputError("min_frames", "an integer >= 1", self.min_frames)
+        for name in ("max_relative_sigma", "max_mad"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise InvalidInputError(name, "a finite share > 0", value)
+
+    def refusal(self, frames: int, scale: MetricScale) -> str | None:
+        """Why a piece of ``frames`` frames with this scale is not to be mapped, or None when it may be.
+
+        Args:
+            frames: The piece's registered frames.
+            scale: Its `metric_scale`.
+
+        Returns:
+            One line naming the first failed test and its numbers, or None.
+        """
+        if frames < self.min_frames:
+            return f"fewer than {self.min_frames} frames: its scale rests on too few network depth maps"
+        if scale.relative_sigma > self.max_relative_sigma:
+            return f"scale uncertain: sigma {scale.relative_sigma:.1%} of the scale > {self.max_relative_sigma:.1%}"
+        if scale.mad > self.max_mad:
+            return (
+                f"the network's depth and the reconstruction disagree: MAD of the ratios {scale.mad:.2f} > "
+                f"{self.max_mad:.2f}"
+            )
+        return None
