@@ -41,6 +41,8 @@ class OwnPoints:
         self._tracker: TrackTriangulator | None = None
         self._refinder = Refinder(camera, config.refind, config.triangulation)
         self.queue: deque[PendingFrame] = deque()
+        # the last frame checked needed re-finding: the next frames' descriptors are computed ahead (speed only)
+        self._refinding = False
 
     @property
     def lagged(self) -> bool:
@@ -60,7 +62,7 @@ class OwnPoints:
         self.queue.append(entry)
         ready: PendingFrame | None = None
         if self.refinds:
-            self._refinder.add(rgb, T, kid)
+            self._refinder.add(rgb, T, kid, prefetch=self._refinding)
         if self.lagged:
             tracker = self._get_tracker()
             try:
@@ -145,6 +147,8 @@ class OwnPoints:
 
     def _with_refound(self, entry: PendingFrame, points: SparseDepth) -> SparseDepth:
         """The frame's track points, plus descriptor points when they are fewer than ``refind.below``."""
+        if self.refinds:
+            self._refinding = len(points) < self.config.refind.below
         if not self.refinds or len(points) >= self.config.refind.below or entry.mde is None:
             return points
         valid = entry.mde[entry.mde > 0]

@@ -127,17 +127,28 @@ def match_features(
     if a.detector == "orb":
         pairs = _orb_matches(a, b, config.ratio)
     else:
-        pairs = _mutual_ratio_matches(_descriptor_distances(a, b), config.ratio)
+        pairs = _mutual_ratio_matches(_squared_descriptor_distances(a, b), config.ratio)
     if F is not None and len(pairs):
         err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
         pairs = pairs[np.isfinite(err) & (err <= config.max_epipolar_error)]
     return pairs
 
 
-def _descriptor_distances(a: Features, b: Features) -> np.ndarray:
-    """(Na, Nb) Euclidean distances of SIFT descriptors, from one matrix product (float32)."""
+def _squared_descriptor_distances(a: Features, b: Features) -> np.ndarray:
+    """(Na, Nb) squared Euclidean distances of SIFT descriptors (float32; may be slightly < 0 from rounding).
+
+    One matrix product, ``|a|^2 + |b|^2 - 2 a.b``, computed in place: no (Na, Nb) temporaries beyond the result.
+    """
     da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
-    sq = np.einsum("ij,ij->i", da, da)[:, None] + np.einsum("ij,ij->i", db, db)[None, :] - 2.0 * (da @ db.T)
+    sq = np.einsum("ij,ij->i", da, da)[:, None] + np.einsum("ij,ij->i", db, db)[None, :]
+    dot = da @ db.T
+    dot *= 2.0  # exact in floating point: the same sum as ``|a|^2 + |b|^2 - 2.0 * (a @ b.T)``
+    sq -= dot
+    return sq
+
+
+def _distance(sq: np.ndarray) -> np.ndarray:
+    """Euclidean distances from squared ones that rounding may have made slightly negative."""
     return np.sqrt(np.maximum(sq, 0.0))
 
 
@@ -155,13 +166,26 @@ def _orb_matches(a: Features, b: Features, ratio: float) -> np.ndarray:
     return pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
 
 
-def _mutual_ratio_matches(dist: np.ndarray, ratio: float) -> np.ndarray:
-    """Index pairs (i, j): j nearest to i, closer than ``ratio`` times i's second nearest, and i nearest to j."""
-    nearest = np.argpartition(dist, 1, axis=1)[:, :2]
-    d2 = np.take_along_axis(dist, nearest, axis=1)
-    first = np.argmin(d2, axis=1)
-    j = nearest[np.arange(len(dist)), first]
-    best, second = d2.min(axis=1), d2.max(axis=1)
-    i = np.arange(len(dist))
-    keep = (best < ratio * second) & (np.argmin(dist, axis=0)[j] == i)
-    return np.column_stack([i[keep], j[keep]]).astype(np.int64)
+def _mutual_ratio_matches(sq: np.ndarray, ratio: float) -> np.ndarray:
+    """Index pairs (i, j): j nearest to i, closer than ``ratio`` times i's second nearest, and i nearest to j.
+
+    ``sq`` holds squared distances (`_squared_descriptor_distances`); the distances compared are
+    ``sqrt(max(sq, 0))``. That map never decreases, so the nearest and second-nearest distances are
+    the map of the squared ones' and only the few compared values are taken to distances: the
+    result is the one on the full distance matrix, without it. ``sq`` is left as it was.
+    """
+    rows = np.arange(sq.shape[0])
+    j = np.argmin(sq, axis=1)
+    best_sq = sq[rows, j]
+    column_min = _distance(sq.min(axis=0))
+    sq[rows, j] = np.inf  # the second nearest: the smallest once the nearest is set aside
+    second = _distance(sq.min(axis=1))
+    sq[rows, j] = best_sq
+    best = _distance(best_sq)
+    # a tie at the nearest gives best == second, which the ratio test (ratio <= 1) drops whichever j it named
+    i = rows[(best < ratio * second) & (best == column_min[j])]
+    j = j[i]
+    if i.size:  # i nearest to j: the first row of column j at its minimum (argmin's tie rule)
+        mutual = np.argmin(_distance(sq[:, j]), axis=0) == i
+        i, j = i[mutual], j[mutual]
+    return np.column_stack([i, j]).astype(np.int64)

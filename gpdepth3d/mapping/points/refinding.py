@@ -12,6 +12,7 @@ https://docs.opencv.org/4.x/dc/dc3/tutorial_py_matcher.html for the matching.
 from __future__ import annotations
 
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -121,11 +122,23 @@ class Refinder:
         self.triangulation = replace(
             base, detector=detector, max_features=int(self.config.max_features), variance_factor=False
         )
-        self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | None]
+        self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | Future | None]
+        self._detector: ThreadPoolExecutor | None = None
 
-    def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object) -> None:
-        """Remembers a posed frame (its grey image; descriptors are computed when first needed)."""
-        self._frames[key] = [_gray(rgb, "rgb"), np.asarray(T_world_camera, dtype=np.float64), None]
+    def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object, *, prefetch: bool = False) -> None:
+        """Remembers a posed frame (its grey image; descriptors are computed when first needed).
+
+        With ``prefetch`` its descriptors are computed at once on a background thread (OpenCV
+        releases the GIL), so that a later `points` call finds them ready while the caller goes on
+        (e.g. with its GP and fusion): the same `Features` as computing them when first needed.
+        """
+        gray = _gray(rgb, "rgb")
+        features = None
+        if prefetch and self.config.detector != "none":
+            if self._detector is None:
+                self._detector = ThreadPoolExecutor(1, thread_name_prefix="gpdepth3d-refind")
+            features = self._detector.submit(detect_features, gray, config=self.triangulation)
+        self._frames[key] = [gray, np.asarray(T_world_camera, dtype=np.float64), features]
         while len(self._frames) > self.config.pool:
             self._frames.popitem(last=False)
 
@@ -139,6 +152,9 @@ class Refinder:
         entry = self._frames[key]
         if entry[2] is None:
             entry[2] = detect_features(entry[0], config=self.triangulation)
+        elif isinstance(entry[2], Future):  # prefetched: wait for it
+            future, entry[2] = entry[2], None
+            entry[2] = future.result()  # its error is raised here, and the next call detects again
         return entry[2]
 
     def points(self, key: object, depth: float) -> SparseDepth:

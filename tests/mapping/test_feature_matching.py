@@ -1,0 +1,56 @@
+"""The SIFT matcher's fast path (`_mutual_ratio_matches` on squared distances) against the plain full-matrix one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpdepth3d.mapping.points.features import (
+    Features,
+    _mutual_ratio_matches,
+    _squared_descriptor_distances,
+    match_features,
+)
+from gpdepth3d.mapping.points.triangulation_config import TriangulationConfig
+
+
+def _plain_matches(da: np.ndarray, db: np.ndarray, ratio: float) -> np.ndarray:
+    """The mutual ratio test written out on the full distance matrix (partition for the two nearest)."""
+    sq = np.einsum("ij,ij->i", da, da)[:, None] + np.einsum("ij,ij->i", db, db)[None, :] - 2.0 * (da @ db.T)
+    dist = np.sqrt(np.maximum(sq, 0.0))
+    nearest = np.argpartition(dist, 1, axis=1)[:, :2]
+    d2 = np.take_along_axis(dist, nearest, axis=1)
+    j = nearest[np.arange(len(dist)), np.argmin(d2, axis=1)]
+    i = np.arange(len(dist))
+    keep = (d2.min(axis=1) < ratio * d2.max(axis=1)) & (np.argmin(dist, axis=0)[j] == i)
+    return np.column_stack([i[keep], j[keep]]).astype(np.int64)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("ratio", [0.6, 0.8, 1.0])
+def test_fast_mutual_ratio_matches_equal_the_full_distance_matrix(seed, ratio):
+    """Same pairs as the full-matrix test, also with duplicated descriptors (ties at the nearest, both ways)."""
+    rng = np.random.default_rng(seed)
+    da = rng.integers(0, 8, (400, 16)).astype(np.float32)  # few values: many exactly tied distances
+    db = np.vstack([da[:200] + rng.integers(-1, 2, (200, 16)), da[:50], rng.integers(0, 8, (150, 16))])
+    db = db.astype(np.float32)
+    a, b = Features(np.zeros((400, 2)), da, "sift"), Features(np.zeros((400, 2)), db, "sift")
+    sq = _squared_descriptor_distances(a, b)
+    before = sq.copy()
+    fast = _mutual_ratio_matches(sq, ratio)
+    assert np.array_equal(sq, before)  # the matrix is given back as it came
+    expected = _plain_matches(da, db, ratio)
+    assert fast.dtype == np.int64 and fast.shape[1] == 2
+    assert np.array_equal(fast, expected)
+    assert len(expected) > 20  # the test compares real matches, not two empty lists
+
+
+def test_match_features_sift_equals_the_full_distance_matrix_on_sift_like_descriptors():
+    """Whole `match_features` (no epipolar gate) on SIFT-like float descriptors gives the plain test's pairs."""
+    rng = np.random.default_rng(7)
+    da = rng.gamma(1.0, 30.0, (900, 128)).astype(np.float32)
+    db = np.vstack([da[:500] + rng.normal(0, 8, (500, 128)), rng.gamma(1.0, 30.0, (700, 128))]).astype(np.float32)
+    a, b = Features(rng.uniform(0, 300, (900, 2)), da, "sift"), Features(rng.uniform(0, 300, (1200, 2)), db, "sift")
+    pairs = match_features(a, b, config=TriangulationConfig(ratio=0.8))
+    assert np.array_equal(pairs, _plain_matches(da, db, 0.8))
+    assert len(pairs) > 300
