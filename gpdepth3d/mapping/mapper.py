@@ -371,9 +371,10 @@ class Mapper:
         return None, depth, variance
 
     def _side_by_side(self) -> bool:
-        """Whether the held-out GP may run beside the full one: a `DepthCompleter` without per-frame fitting
-        (a fitted completer starts each frame from the previous call's fit, so its calls keep their order)."""
-        return isinstance(self.completer, DepthCompleter) and not self.completer.config.fit
+        """Whether the held-out GP may run beside the full one: a plain `DepthCompleter` (the worker gets one of
+        its config and engine) without per-frame fitting (a fitted completer starts each call from the
+        previous call's fit, so its calls keep their order)."""
+        return type(self.completer) is DepthCompleter and not self.completer.config.fit
 
     def _held_out_worker(self) -> ThreadPoolExecutor:
         """The thread the held-out GP runs on, with its own completer (an engine's set-up is per completer)."""
