@@ -54,3 +54,24 @@ def test_match_features_sift_equals_the_full_distance_matrix_on_sift_like_descri
     pairs = match_features(a, b, config=TriangulationConfig(ratio=0.8))
     assert np.array_equal(pairs, _plain_matches(da, db, 0.8))
     assert len(pairs) > 300
+
+
+def test_integer_descriptors_take_one_product_with_the_three_step_values_bit_for_bit():
+    """SIFT-like integer descriptors (OpenCV's) go through the augmented product; its values are the plain ones."""
+    from gpdepth3d.mapping.points.features import EXACT_NORM2, _exactly_held, _integer_squared_distances
+
+    rng = np.random.default_rng(11)
+    da = rng.integers(0, 160, (700, 128)).astype(np.float32)
+    da *= np.minimum(1.0, np.sqrt(EXACT_NORM2 / np.einsum("ij,ij->i", da, da)))[:, None] * 0.5
+    da = np.rint(da)  # integer values, squared norms within the bound (as SIFT's ~512^2)
+    db = np.rint(da[::-1] * 0.9 + rng.integers(-3, 4, da.shape)).clip(0).astype(np.float32)
+    na, nb = np.einsum("ij,ij->i", da, da), np.einsum("ij,ij->i", db, db)
+    assert _exactly_held(da, na) and _exactly_held(db, nb)
+    plain = (na[:, None] + nb[None, :]) - 2.0 * (da @ db.T)
+    assert np.array_equal(_integer_squared_distances(da, na, db, nb), plain)
+    a, b = Features(np.zeros((700, 2)), da, "sift"), Features(np.zeros((700, 2)), db, "sift")
+    assert np.array_equal(_squared_descriptor_distances(a, b), plain)
+    # not integers, or norms beyond the bound: the three-step path (same formula, rounded as before)
+    assert not _exactly_held(da + 0.25, np.einsum("ij,ij->i", da + 0.25, da + 0.25))
+    big = np.full((3, 128), 200.0, np.float32)
+    assert not _exactly_held(big, np.einsum("ij,ij->i", big, big))

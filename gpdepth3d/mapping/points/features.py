@@ -134,17 +134,41 @@ def match_features(
     return pairs
 
 
+EXACT_NORM2 = float(2**20)
+"""Largest squared descriptor norm for which float32 holds every term of a squared distance exactly (as integers)."""
+
+
 def _squared_descriptor_distances(a: Features, b: Features) -> np.ndarray:
     """(Na, Nb) squared Euclidean distances of SIFT descriptors (float32; may be slightly < 0 from rounding).
 
-    One matrix product, ``|a|^2 + |b|^2 - 2 a.b``, computed in place: no (Na, Nb) temporaries beyond the result.
+    ``|a|^2 + |b|^2 - 2 a.b`` from one matrix product. OpenCV's SIFT descriptors are integers of small
+    norm: then every product and partial sum is an integer below 2^24 that float32 holds exactly, whatever
+    the order of the sums, and one product of augmented matrices ``[a, |a|^2, 1] [-2b, 1, |b|^2]^T`` gives
+    the same values bit for bit in one pass (`_integer_squared_distances`).
     """
     da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
-    sq = np.einsum("ij,ij->i", da, da)[:, None] + np.einsum("ij,ij->i", db, db)[None, :]
+    na, nb = np.einsum("ij,ij->i", da, da), np.einsum("ij,ij->i", db, db)
+    if _exactly_held(da, na) and _exactly_held(db, nb):
+        return _integer_squared_distances(da, na, db, nb)
+    sq = na[:, None] + nb[None, :]
     dot = da @ db.T
     dot *= 2.0  # exact in floating point: the same sum as ``|a|^2 + |b|^2 - 2.0 * (a @ b.T)``
     sq -= dot
     return sq
+
+
+def _exactly_held(d: np.ndarray, norm2: np.ndarray) -> bool:
+    """Descriptors of integer values whose squared norms are at most `EXACT_NORM2` (Cauchy-Schwarz bounds every
+    partial dot product by it)."""
+    return bool(d.size and norm2.max() <= EXACT_NORM2 and np.array_equal(d, np.rint(d)))
+
+
+def _integer_squared_distances(da: np.ndarray, na: np.ndarray, db: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Squared distances of integer descriptors (`_exactly_held`) from one augmented matrix product, float32."""
+    one_a, one_b = np.ones((len(da), 1), np.float32), np.ones((len(db), 1), np.float32)
+    left = np.hstack([da, na[:, None], one_a])
+    right = np.hstack([-2.0 * db, one_b, nb[:, None]])
+    return left @ right.T
 
 
 def _distance(sq: np.ndarray) -> np.ndarray:
