@@ -75,3 +75,29 @@ def test_integer_descriptors_take_one_product_with_the_three_step_values_bit_for
     assert not _exactly_held(da + 0.25, np.einsum("ij,ij->i", da + 0.25, da + 0.25))
     big = np.full((3, 128), 200.0, np.float32)
     assert not _exactly_held(big, np.einsum("ij,ij->i", big, big))
+
+
+def test_match_features_is_descriptor_matches_then_the_epipolar_gate():
+    """The two halves give the whole: pose-free matches first, the gate of F (Sampson distance) after."""
+    from gpdepth3d.errors import InvalidInputError
+    from gpdepth3d.mapping.points.features import descriptor_matches, epipolar_gate, sampson_distance
+
+    rng = np.random.default_rng(5)
+    da = rng.integers(0, 60, (300, 128)).astype(np.float32)
+    db = (da + rng.integers(-2, 3, da.shape)).clip(0).astype(np.float32)
+    uv = rng.uniform(0, 200, (300, 2))
+    a, b = Features(uv, da, "sift"), Features(uv + rng.normal(0, 3, (300, 2)), db, "sift")
+    F = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # pure x translation: epipolar lines v = v'
+    config = TriangulationConfig(ratio=0.8, max_epipolar_error=2.0)
+    raw = descriptor_matches(a, b, ratio=0.8)
+    gated = epipolar_gate(raw, a, b, F, 2.0)
+    err = sampson_distance(F, a.uv[raw[:, 0]], b.uv[raw[:, 1]])
+    assert len(raw) > 200 and 0 < len(gated) < len(raw)
+    assert np.array_equal(gated, raw[err <= 2.0])
+    assert np.array_equal(match_features(a, b, config=config, F=F), gated)
+    assert np.array_equal(match_features(a, b, config=config), raw)
+    assert np.array_equal(epipolar_gate(raw, a, b, None, 2.0), raw)
+    with pytest.raises(InvalidInputError, match="b"):
+        descriptor_matches(a, Features(uv, da[:, :32].astype(np.uint8), "orb"))
+    with pytest.raises(InvalidInputError, match="klt"):
+        descriptor_matches(Features(uv, np.zeros((300, 0), np.float32), "klt"), b)

@@ -118,6 +118,25 @@ def match_features(
     """
 
     config = config or TriangulationConfig()
+    return epipolar_gate(descriptor_matches(a, b, ratio=config.ratio), a, b, F, config.max_epipolar_error)
+
+
+def descriptor_matches(a: Features, b: Features, *, ratio: float = 0.8) -> np.ndarray:
+    """`match_features` before the epipolar gate: the mutual ratio-test matches of the descriptors alone.
+
+    They do not depend on the poses, so they can be computed ahead and gated later (`epipolar_gate`).
+
+    Args:
+        a: Features of the first image.
+        b: Features of the second image (same detector).
+        ratio: Lowe's ratio threshold, in (0, 1].
+
+    Returns:
+        (M, 2) int64 index pairs (index into a, index into b), by increasing index into a.
+
+    Raises:
+        InvalidInputError: features of two detectors, or KLT corners (no descriptors).
+    """
     if a.detector != b.detector:
         raise InvalidInputError("b", f"features of the same detector as a ({a.detector})", b.detector)
     if a.detector == "klt":
@@ -125,13 +144,17 @@ def match_features(
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), np.int64)
     if a.detector == "orb":
-        pairs = _orb_matches(a, b, config.ratio)
-    else:
-        pairs = _mutual_ratio_matches(_squared_descriptor_distances(a, b), config.ratio)
-    if F is not None and len(pairs):
-        err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
-        pairs = pairs[np.isfinite(err) & (err <= config.max_epipolar_error)]
-    return pairs
+        return _orb_matches(a, b, ratio)
+    return _mutual_ratio_matches(_squared_descriptor_distances(a, b), ratio)
+
+
+def epipolar_gate(pairs: np.ndarray, a: Features, b: Features, F: np.ndarray | None, max_error: float) -> np.ndarray:
+    """The index pairs whose keypoints lie within ``max_error`` pixels (Sampson distance) of F's epipolar
+    geometry (x_b^T F x_a = 0); all of them without F."""
+    if F is None or not len(pairs):
+        return pairs
+    err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
+    return pairs[np.isfinite(err) & (err <= max_error)]
 
 
 EXACT_NORM2 = float(2**20)
