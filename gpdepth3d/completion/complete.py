@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import warnings
 import zipfile
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -255,7 +254,6 @@ class DepthCompleter:
         output_shape: tuple[int, int] | None = None,
         variance: bool = True,
         frame: str | None = None,
-        warn: bool = True,
     ) -> DepthPosterior:
         """Posterior depth (mean and variance) given an MDE map and sparse measurements.
 
@@ -265,16 +263,9 @@ class DepthCompleter:
             output_shape: (Ho, Wo) of the result; default (H, W).
             variance: Compute the marginal variance (else it is NaN, and faster).
             frame: Name of the frame, used in the posterior's warnings.
-            warn: Issue the posterior's ``warnings`` as `PosteriorWarning`s at the caller; False: only
-                keep them on the posterior (warnings filters are process-wide, so a call on a worker
-                thread that must stay quiet cannot silence itself with ``warnings.catch_warnings``).
         """
         strategy = formulation_of(self.config)  # `gpdepth3d.completion.formulations`
-        posterior = DepthPosterior(**strategy.posterior(self, mde_depth, sparse, output_shape, variance, frame))
-        if warn:
-            for message in posterior.warnings:
-                warnings.warn(message, PosteriorWarning, stacklevel=2)
-        return posterior
+        return DepthPosterior(**strategy.posterior(self, mde_depth, sparse, output_shape, variance, frame))
 
     def map(
         self,

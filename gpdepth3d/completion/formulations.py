@@ -12,6 +12,7 @@ here and its name in `DepthGPConfig`'s accepted values.
 from __future__ import annotations
 
 import time
+import warnings
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -20,7 +21,7 @@ import numpy as np
 from ..depthmap import resize_map
 from ..gp.model import DepthGPConfig
 from ..measurements import SparseDepth
-from .diagnostics import gaussian_warnings
+from .diagnostics import PosteriorWarning, gaussian_warnings
 from .log_frame import log_frame
 from .log_residual import log_residual_posterior
 from .problem import _frame_inputs, build_problem, check_mde_depth
@@ -44,8 +45,8 @@ class Formulation(ABC):
         """The keyword arguments of the frame's `DepthPosterior` (see `DepthCompleter.complete`).
 
         ``completer`` is the calling `DepthCompleter`: it holds the config, the engine and what the previous
-        frame fitted (``fitted``), which a formulation updates. The posterior's ``warnings`` are returned, not
-        issued: `DepthCompleter.complete` issues them as `PosteriorWarning`s at its caller.
+        frame fitted (``fitted``), which a formulation updates. `PosteriorWarning`s are issued at the caller of
+        `DepthCompleter.complete`.
         """
 
 
@@ -68,6 +69,8 @@ class LogResidual(Formulation):
             previous=completer._point_fit if completer.fitted is not None else None,
             stride=completer.engine_config.lattice_stride,
         )
+        for message in result.warnings:
+            warnings.warn(message, PosteriorWarning, stacklevel=3)
         completer.fitted, completer._point_fit = result.config, result.fit
         return dict(
             mean=result.mean,
@@ -103,6 +106,8 @@ class Gaussian(Formulation):
             var = np.full(mean.shape, np.nan)
         mde, valid = check_mde_depth(mde_depth)
         messages = gaussian_warnings(mean, mde, valid, grid_sparse, f"frame {frame}: " if frame is not None else "")
+        for message in messages:
+            warnings.warn(message, PosteriorWarning, stacklevel=3)
         return dict(
             mean=mean,
             variance=var,

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -55,7 +54,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..camera import PinholeCamera, check_pose
-from ..completion.complete import DepthCompleter, DepthPosterior, PosteriorWarning
+from ..completion.complete import DepthCompleter, DepthPosterior
 from ..datasets.sevenscenes import COLOUR_INTRINSICS
 from ..errors import CalibrationError, DataFormatError, InvalidInputError, ShapeError, describe
 from ..io import output_set
@@ -137,8 +136,6 @@ class Mapper:
         self._next_id = 0
         self.timings: list[dict] = []
         self.failures: list[str] = []
-        self._held_out_pool: ThreadPoolExecutor | None = None  # `_held_out_worker`, made when first needed
-        self._held_out_gp: DepthCompleter | None = None
 
     # ------------------------------------------------------------------ per frame
     def add_frame(
@@ -330,74 +327,31 @@ class Mapper:
         return None
 
     def _refine(self, entry: PendingFrame) -> tuple[DepthPosterior | None, np.ndarray, np.ndarray]:
-        """The GP step: (posterior, depth to fuse, its variance); without refinement the MDE with NaN variance.
-
-        The held-out check (`held_out_check`) runs its GP on a worker thread while this thread solves the
-        frame's full GP (`_side_by_side`): the compiled kernels release the GIL, so on two cores the two
-        solves overlap. Each is the solve the serial order gives; the full posterior's warnings are issued
-        only when it is kept (a frame that falls back to its MDE says so instead).
-        """
+        """The GP step: (posterior, depth to fuse, its variance); without refinement the MDE with NaN variance."""
         work_shape = self.work_camera.shape
         if not self.config.refine:
             return None, entry.mde, np.full(work_shape, np.nan)
         # the frame's name goes into the posterior's warnings (a duck-typed completer may not take it)
         named = {"frame": str(entry.kid)} if isinstance(self.completer, DepthCompleter) else {}
-        held = None
         if self.config.held_out > 0 and len(entry.measurements):
-            if self._side_by_side():
-                pool = self._held_out_worker()
-                held = pool.submit(self._held_out_check, entry, work_shape, self._held_out_gp)
-                named["warn"] = False
-            else:
-                entry.held_out = self._held_out_check(entry, work_shape)
-                if entry.mde_fallback:
-                    return self._mde_fallback(entry)
-        posterior = self.completer.complete(entry.mde, entry.measurements, output_shape=work_shape, **named)
-        if held is not None:
-            entry.held_out = held.result()
+            entry.held_out = self._held_out_check(entry, work_shape)
             if entry.mde_fallback:
-                return self._mde_fallback(entry)
-            for message in posterior.warnings:  # where `DepthCompleter.complete` would have issued them
-                warnings.warn(message, PosteriorWarning, stacklevel=1)
+                entry.notes.append(entry.held_out.describe(entry.kid))
+                depth, variance = mde_fallback(entry.mde, entry.held_out)
+                return None, depth, variance
+        posterior = self.completer.complete(entry.mde, entry.measurements, output_shape=work_shape, **named)
         depth, variance = fused_depth(posterior, self.config.fuse_depth), posterior.variance
         if self.config.scale_variance and entry.scale_var > 0:
             variance = variance + entry.scale_var * np.square(depth)
         return posterior, depth, variance
 
-    def _mde_fallback(self, entry: PendingFrame) -> tuple[None, np.ndarray, np.ndarray]:
-        """The frame's rescaled MDE and its variance, noted on the frame (its GP predicted held-out points worse)."""
-        entry.notes.append(entry.held_out.describe(entry.kid))
-        depth, variance = mde_fallback(entry.mde, entry.held_out)
-        return None, depth, variance
-
-    def _side_by_side(self) -> bool:
-        """Whether the held-out GP may run beside the full one: a plain `DepthCompleter` (the worker gets one of
-        its config and engine) without per-frame fitting (a fitted completer starts each call from the
-        previous call's fit, so its calls keep their order)."""
-        return type(self.completer) is DepthCompleter and not self.completer.config.fit
-
-    def _held_out_worker(self) -> ThreadPoolExecutor:
-        """The thread the held-out GP runs on, with its own completer (an engine's set-up is per completer)."""
-        if self._held_out_pool is None:
-            self._held_out_gp = DepthCompleter(self.completer.config, engine=self.completer.engine_config)
-            self._held_out_pool = ThreadPoolExecutor(
-                1, thread_name_prefix="gpdepth3d-held-out", initializer=_one_numba_thread
-            )
-        return self._held_out_pool
-
-    def _held_out_check(
-        self, entry: PendingFrame, work_shape: tuple[int, int], completer: DepthCompleter | None = None
-    ) -> HeldOutCheck:
-        """The frame's GP on most of its points against its rescaled MDE at the others (`held_out_check`);
-        ``completer`` (default: the Mapper's) computes that GP, quietly (its warnings are not the frame's)."""
+    def _held_out_check(self, entry: PendingFrame, work_shape: tuple[int, int]) -> HeldOutCheck:
+        """The frame's GP on most of its points against its rescaled MDE at the others (`held_out_check`)."""
 
         def refine(kept: SparseDepth) -> np.ndarray:
-            if completer is not None:
-                posterior = completer.complete(entry.mde, kept, output_shape=work_shape, warn=False)
-            else:
-                with warnings.catch_warnings():  # the full posterior's warnings are the frame's
-                    warnings.simplefilter("ignore")
-                    posterior = self.completer.complete(entry.mde, kept, output_shape=work_shape)
+            with warnings.catch_warnings():  # the full posterior's warnings are the frame's
+                warnings.simplefilter("ignore")
+                posterior = self.completer.complete(entry.mde, kept, output_shape=work_shape)
             return fused_depth(posterior, self.config.fuse_depth)
 
         cfg = self.config
@@ -665,13 +619,6 @@ def _frame_result(
         mde_fallback=entry.mde_fallback,
         held_out=entry.held_out,
     )
-
-
-def _one_numba_thread() -> None:
-    """The held-out worker's compiled parallel regions run on its own thread (numba's count is per thread)."""
-    import numba
-
-    numba.set_num_threads(1)
 
 
 def _masked(entry: PendingFrame, depth: np.ndarray, variance: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
