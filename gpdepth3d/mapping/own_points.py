@@ -41,6 +41,8 @@ class OwnPoints:
         self._tracker: TrackTriangulator | None = None
         self._refinder = Refinder(camera, config.refind, config.triangulation)
         self.queue: deque[PendingFrame] = deque()
+        # the last frame checked needed re-finding: the next frames' descriptors are computed ahead (speed only)
+        self._refinding = False
 
     @property
     def lagged(self) -> bool:
@@ -60,7 +62,7 @@ class OwnPoints:
         self.queue.append(entry)
         ready: PendingFrame | None = None
         if self.refinds:
-            self._refinder.add(rgb, T, kid)
+            self._refinder.add(rgb, T, kid, prefetch=self._refinding)
         if self.lagged:
             tracker = self._get_tracker()
             try:
@@ -74,6 +76,13 @@ class OwnPoints:
                 tracker.reset()  # the tracks start again; the frames waiting get no triangulated points
             if len(self.queue) > self.config.lag:
                 ready = self.queue.popleft()
+            if self._refinding and self.queue:  # the next frame to refine will likely need re-finding too
+                depth = _typical_depth(self.queue[0])
+                try:
+                    if depth is not None:
+                        self._refinder.prepare(self.queue[0].kid, depth)
+                except Exception:  # noqa: BLE001 - speed only: without it `points` matches them itself
+                    pass
         else:
             ready = self.queue.popleft()
             if self.config.triangulate:
@@ -145,13 +154,13 @@ class OwnPoints:
 
     def _with_refound(self, entry: PendingFrame, points: SparseDepth) -> SparseDepth:
         """The frame's track points, plus descriptor points when they are fewer than ``refind.below``."""
-        if not self.refinds or len(points) >= self.config.refind.below or entry.mde is None:
-            return points
-        valid = entry.mde[entry.mde > 0]
-        if not valid.size:
+        if self.refinds:
+            self._refinding = len(points) < self.config.refind.below
+        depth = _typical_depth(entry) if self.refinds and len(points) < self.config.refind.below else None
+        if depth is None:
             return points
         try:
-            extra = self._refinder.points(entry.kid, fast_median(valid))
+            extra = self._refinder.points(entry.kid, depth)
         except Exception as exc:  # noqa: BLE001 - the frame keeps its track points
             entry.note("descriptor re-finding", exc)
             return points
@@ -164,3 +173,11 @@ class OwnPoints:
                 self.camera, self.config.triangulation, window=int(self.config.window), lag=lag
             )
         return self._tracker
+
+
+def _typical_depth(entry: PendingFrame) -> float | None:
+    """The median of a frame's MDE depth where it has one (metres); None without."""
+    if entry.mde is None:
+        return None
+    valid = entry.mde[entry.mde > 0]
+    return fast_median(valid) if valid.size else None

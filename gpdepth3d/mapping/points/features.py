@@ -118,6 +118,25 @@ def match_features(
     """
 
     config = config or TriangulationConfig()
+    return epipolar_gate(descriptor_matches(a, b, ratio=config.ratio), a, b, F, config.max_epipolar_error)
+
+
+def descriptor_matches(a: Features, b: Features, *, ratio: float = 0.8) -> np.ndarray:
+    """`match_features` before the epipolar gate: the mutual ratio-test matches of the descriptors alone.
+
+    They do not depend on the poses, so they can be computed ahead and gated later (`epipolar_gate`).
+
+    Args:
+        a: Features of the first image.
+        b: Features of the second image (same detector).
+        ratio: Lowe's ratio threshold, in (0, 1].
+
+    Returns:
+        (M, 2) int64 index pairs (index into a, index into b), by increasing index into a.
+
+    Raises:
+        InvalidInputError: features of two detectors, or KLT corners (no descriptors).
+    """
     if a.detector != b.detector:
         raise InvalidInputError("b", f"features of the same detector as a ({a.detector})", b.detector)
     if a.detector == "klt":
@@ -125,19 +144,58 @@ def match_features(
     if len(a) < 2 or len(b) < 2:
         return np.zeros((0, 2), np.int64)
     if a.detector == "orb":
-        pairs = _orb_matches(a, b, config.ratio)
-    else:
-        pairs = _mutual_ratio_matches(_descriptor_distances(a, b), config.ratio)
-    if F is not None and len(pairs):
-        err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
-        pairs = pairs[np.isfinite(err) & (err <= config.max_epipolar_error)]
-    return pairs
+        return _orb_matches(a, b, ratio)
+    return _mutual_ratio_matches(_squared_descriptor_distances(a, b), ratio)
 
 
-def _descriptor_distances(a: Features, b: Features) -> np.ndarray:
-    """(Na, Nb) Euclidean distances of SIFT descriptors, from one matrix product (float32)."""
+def epipolar_gate(pairs: np.ndarray, a: Features, b: Features, F: np.ndarray | None, max_error: float) -> np.ndarray:
+    """The index pairs whose keypoints lie within ``max_error`` pixels (Sampson distance) of F's epipolar
+    geometry (x_b^T F x_a = 0); all of them without F."""
+    if F is None or not len(pairs):
+        return pairs
+    err = sampson_distance(np.asarray(F, np.float64), a.uv[pairs[:, 0]], b.uv[pairs[:, 1]])
+    return pairs[np.isfinite(err) & (err <= max_error)]
+
+
+EXACT_NORM2 = float(2**20)
+"""Largest squared descriptor norm for which float32 holds every term of a squared distance exactly (as integers)."""
+
+
+def _squared_descriptor_distances(a: Features, b: Features) -> np.ndarray:
+    """(Na, Nb) squared Euclidean distances of SIFT descriptors (float32; may be slightly < 0 from rounding).
+
+    ``|a|^2 + |b|^2 - 2 a.b`` from one matrix product. OpenCV's SIFT descriptors are integers of small
+    norm: then every product and partial sum is an integer below 2^24 that float32 holds exactly, whatever
+    the order of the sums, and one product of augmented matrices ``[a, |a|^2, 1] [-2b, 1, |b|^2]^T`` gives
+    the same values bit for bit in one pass (`_integer_squared_distances`).
+    """
     da, db = a.descriptors.astype(np.float32), b.descriptors.astype(np.float32)
-    sq = np.einsum("ij,ij->i", da, da)[:, None] + np.einsum("ij,ij->i", db, db)[None, :] - 2.0 * (da @ db.T)
+    na, nb = np.einsum("ij,ij->i", da, da), np.einsum("ij,ij->i", db, db)
+    if _exactly_held(da, na) and _exactly_held(db, nb):
+        return _integer_squared_distances(da, na, db, nb)
+    sq = na[:, None] + nb[None, :]
+    dot = da @ db.T
+    dot *= 2.0  # exact in floating point: the same sum as ``|a|^2 + |b|^2 - 2.0 * (a @ b.T)``
+    sq -= dot
+    return sq
+
+
+def _exactly_held(d: np.ndarray, norm2: np.ndarray) -> bool:
+    """Descriptors of integer values whose squared norms are at most `EXACT_NORM2` (Cauchy-Schwarz bounds every
+    partial dot product by it)."""
+    return bool(d.size and norm2.max() <= EXACT_NORM2 and np.array_equal(d, np.rint(d)))
+
+
+def _integer_squared_distances(da: np.ndarray, na: np.ndarray, db: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Squared distances of integer descriptors (`_exactly_held`) from one augmented matrix product, float32."""
+    one_a, one_b = np.ones((len(da), 1), np.float32), np.ones((len(db), 1), np.float32)
+    left = np.hstack([da, na[:, None], one_a])
+    right = np.hstack([-2.0 * db, one_b, nb[:, None]])
+    return left @ right.T
+
+
+def _distance(sq: np.ndarray) -> np.ndarray:
+    """Euclidean distances from squared ones that rounding may have made slightly negative."""
     return np.sqrt(np.maximum(sq, 0.0))
 
 
@@ -155,13 +213,26 @@ def _orb_matches(a: Features, b: Features, ratio: float) -> np.ndarray:
     return pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
 
 
-def _mutual_ratio_matches(dist: np.ndarray, ratio: float) -> np.ndarray:
-    """Index pairs (i, j): j nearest to i, closer than ``ratio`` times i's second nearest, and i nearest to j."""
-    nearest = np.argpartition(dist, 1, axis=1)[:, :2]
-    d2 = np.take_along_axis(dist, nearest, axis=1)
-    first = np.argmin(d2, axis=1)
-    j = nearest[np.arange(len(dist)), first]
-    best, second = d2.min(axis=1), d2.max(axis=1)
-    i = np.arange(len(dist))
-    keep = (best < ratio * second) & (np.argmin(dist, axis=0)[j] == i)
-    return np.column_stack([i[keep], j[keep]]).astype(np.int64)
+def _mutual_ratio_matches(sq: np.ndarray, ratio: float) -> np.ndarray:
+    """Index pairs (i, j): j nearest to i, closer than ``ratio`` times i's second nearest, and i nearest to j.
+
+    ``sq`` holds squared distances (`_squared_descriptor_distances`); the distances compared are
+    ``sqrt(max(sq, 0))``. That map never decreases, so the nearest and second-nearest distances are
+    the map of the squared ones' and only the few compared values are taken to distances: the
+    result is the one on the full distance matrix, without it. ``sq`` is left as it was.
+    """
+    rows = np.arange(sq.shape[0])
+    j = np.argmin(sq, axis=1)
+    best_sq = sq[rows, j]
+    column_min = _distance(sq.min(axis=0))
+    sq[rows, j] = np.inf  # the second nearest: the smallest once the nearest is set aside
+    second = _distance(sq.min(axis=1))
+    sq[rows, j] = best_sq
+    best = _distance(best_sq)
+    # a tie at the nearest gives best == second, which the ratio test (ratio <= 1) drops whichever j it named
+    i = rows[(best < ratio * second) & (best == column_min[j])]
+    j = j[i]
+    if i.size:  # i nearest to j: the first row of column j at its minimum (argmin's tie rule)
+        mutual = np.argmin(_distance(sq[:, j]), axis=0) == i
+        i, j = i[mutual], j[mutual]
+    return np.column_stack([i, j]).astype(np.int64)

@@ -12,6 +12,7 @@ https://docs.opencv.org/4.x/dc/dc3/tutorial_py_matcher.html for the matching.
 from __future__ import annotations
 
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -20,7 +21,7 @@ from ...camera import PinholeCamera
 from ...checks import Choice, Int, Real, check_fields
 from ...errors import InvalidInputError
 from ...measurements import SparseDepth
-from .features import Features, _gray, detect_features
+from .features import Features, _gray, descriptor_matches, detect_features
 from .tracks import triangulate_frames
 from .triangulation_config import TriangulationConfig
 
@@ -121,13 +122,60 @@ class Refinder:
         self.triangulation = replace(
             base, detector=detector, max_features=int(self.config.max_features), variance_factor=False
         )
-        self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | None]
+        self._frames: OrderedDict = OrderedDict()  # key -> [gray, pose, Features | Future | None]
+        self._detector: ThreadPoolExecutor | None = None
+        self._ahead: dict[tuple, Future] = {}  # (frame, view) -> its `descriptor_matches`, started by `prepare`
 
-    def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object) -> None:
-        """Remembers a posed frame (its grey image; descriptors are computed when first needed)."""
-        self._frames[key] = [_gray(rgb, "rgb"), np.asarray(T_world_camera, dtype=np.float64), None]
+    def add(self, rgb: np.ndarray, T_world_camera: np.ndarray, key: object, *, prefetch: bool = False) -> None:
+        """Remembers a posed frame (its grey image; descriptors are computed when first needed).
+
+        With ``prefetch`` its descriptors are computed at once on a background thread (OpenCV
+        releases the GIL), so that a later `points` call finds them ready while the caller goes on
+        (e.g. with its GP and fusion): the same `Features` as computing them when first needed.
+        """
+        gray = _gray(rgb, "rgb")
+        features = None
+        if prefetch and self.config.detector != "none":
+            features = self._background().submit(detect_features, gray, config=self.triangulation)
+        self._frames[key] = [gray, np.asarray(T_world_camera, dtype=np.float64), features]
         while len(self._frames) > self.config.pool:
-            self._frames.popitem(last=False)
+            gone, _ = self._frames.popitem(last=False)
+            for pair in [p for p in self._ahead if gone in p]:
+                del self._ahead[pair]
+
+    def prepare(self, key: object, depth: float) -> None:
+        """Starts matching frame ``key`` with the views `select_views` picks now, on the background thread.
+
+        For a frame whose `points` call comes later (the next frame a fixed-lag caller refines): its
+        descriptors' matches with each view (`descriptor_matches`, which do not depend on the poses) are
+        computed while the caller goes on, and `points` takes those of the views it picks then (a view
+        added since is matched there). The points are the ones `points` gives without it.
+
+        Args:
+            key: A frame given to `add`.
+            depth: Its typical depth (metres), as for `points`.
+        """
+        if self.config.detector == "none" or key not in self._frames or not np.isfinite(depth) or depth <= 0:
+            return
+        others = {k: v[1] for k, v in self._frames.items() if k != key}
+        views = [
+            v for v in select_views(self._frames[key][1], depth, others, self.config) if (key, v) not in self._ahead
+        ]
+        if not views:
+            return
+        pool = self._background()
+        for k in (key, *views):  # descriptors not asked for yet: found on the same thread, before the matches
+            if self._frames[k][2] is None:
+                self._frames[k][2] = pool.submit(detect_features, self._frames[k][0], config=self.triangulation)
+        ratio = float(self.triangulation.ratio)
+        for v in views:
+            self._ahead[(key, v)] = pool.submit(_matches_of, self._frames[key][2], self._frames[v][2], ratio)
+
+    def _background(self) -> ThreadPoolExecutor:
+        """The one background thread (first in, first out: a task finds the descriptors it needs done)."""
+        if self._detector is None:
+            self._detector = ThreadPoolExecutor(1, thread_name_prefix="gpdepth3d-refind")
+        return self._detector
 
     def update_poses(self, poses: dict) -> None:
         """New poses of remembered frames (after a loop closure); unknown keys are ignored."""
@@ -139,6 +187,9 @@ class Refinder:
         entry = self._frames[key]
         if entry[2] is None:
             entry[2] = detect_features(entry[0], config=self.triangulation)
+        elif isinstance(entry[2], Future):  # prefetched: wait for it
+            future, entry[2] = entry[2], None
+            entry[2] = future.result()  # its error is raised here, and the next call detects again
         return entry[2]
 
     def points(self, key: object, depth: float) -> SparseDepth:
@@ -159,11 +210,21 @@ class Refinder:
         if not views:
             return SparseDepth.empty(self.camera.shape)
         keys = [*views, key]
+        features = [self._features(k) for k in keys]
+        ahead = {pair: self._ahead.pop(pair) for pair in [p for p in self._ahead if p[0] == key]}
+        matches = [ahead[(key, v)].result() if (key, v) in ahead else None for v in views] + [None]
         return triangulate_frames(
             [self._frames[k][0] for k in keys],
             [self._frames[k][1] for k in keys],
             self.camera,
             reference=-1,
             config=self.triangulation,
-            features=[self._features(k) for k in keys],
+            features=features,
+            matches=matches,
         )
+
+
+def _matches_of(a: Features | Future, b: Features | Future, ratio: float) -> np.ndarray:
+    """`descriptor_matches` of two frames' features, either given or still being found (`Refinder.prepare`)."""
+    a, b = (f.result() if isinstance(f, Future) else f for f in (a, b))
+    return descriptor_matches(a, b, ratio=ratio)

@@ -10,7 +10,7 @@ import numpy as np
 from ...camera import PinholeCamera, check_pose
 from ...errors import InvalidInputError, ShapeError, describe
 from ...measurements import SparseDepth
-from .features import Features, _gray, detect_features, fundamental_from_poses, match_features
+from .features import Features, _gray, descriptor_matches, detect_features, epipolar_gate, fundamental_from_poses
 from .multiview import MultiViewPoints, triangulate_tracks
 from .triangulation_config import TriangulationConfig
 
@@ -57,9 +57,15 @@ def _track_klt(
 
 
 def _match_tracks(
-    feats: Sequence[Features], ref: int, camera: PinholeCamera, poses, config: TriangulationConfig
+    feats: Sequence[Features],
+    ref: int,
+    camera: PinholeCamera,
+    poses,
+    config: TriangulationConfig,
+    matches: Sequence[np.ndarray | None] | None = None,
 ) -> np.ndarray:
-    """Star tracks: every reference keypoint with its descriptor match in each other view."""
+    """Star tracks: every reference keypoint with its descriptor match in each other view (`match_features`;
+    ``matches[j]``, where given, is view j's `descriptor_matches` computed ahead)."""
     n = len(feats[ref])
     out = np.full((n, len(feats), 2), np.nan)
     out[:, ref] = feats[ref].uv
@@ -67,7 +73,10 @@ def _match_tracks(
         if j == ref:
             continue
         F = fundamental_from_poses(camera, poses[ref], poses[j])
-        pairs = match_features(feats[ref], feats[j], config=config, F=F)
+        pairs = matches[j] if matches is not None and matches[j] is not None else None
+        if pairs is None:
+            pairs = descriptor_matches(feats[ref], feats[j], ratio=config.ratio)
+        pairs = epipolar_gate(pairs, feats[ref], feats[j], F, config.max_epipolar_error)
         out[pairs[:, 0], j] = feats[j].uv[pairs[:, 1]]
     return out
 
@@ -80,6 +89,7 @@ def build_tracks(
     reference: int = -1,
     config: TriangulationConfig | None = None,
     features: Sequence[Features] | None = None,
+    matches: Sequence[np.ndarray | None] | None = None,
 ) -> np.ndarray:
     """Feature tracks of the reference frame's keypoints through the other frames.
 
@@ -98,6 +108,9 @@ def build_tracks(
         config: Options.
         features: Optional precomputed features (one per frame; only the reference's are
             used with "klt").
+        matches: Optional, with descriptors: per frame, the reference's `descriptor_matches` with it
+            computed ahead (None for the reference and for frames to match here); the epipolar gate
+            is applied to them here, with ``poses``.
 
     Returns:
         (N, V, 2) pixel positions, NaN where a track is not seen; column ``reference`` is
@@ -139,7 +152,9 @@ def build_tracks(
         return out
     if feats is None:
         feats = [detect_features(im, config=config) for im in rgbs]
-    return _match_tracks(feats, ref, camera, poses, config)
+    if matches is not None and len(matches) != V:
+        raise InvalidInputError("matches", f"{V} entries, one per frame", len(matches))
+    return _match_tracks(feats, ref, camera, poses, config, matches)
 
 
 def triangulate_frames(
@@ -150,6 +165,7 @@ def triangulate_frames(
     reference: int = -1,
     config: TriangulationConfig | None = None,
     features: Sequence[Features] | None = None,
+    matches: Sequence[np.ndarray | None] | None = None,
 ) -> SparseDepth:
     """Sparse depth for one frame from multi-view feature tracks through the other posed frames.
 
@@ -167,6 +183,7 @@ def triangulate_frames(
         reference: Index of the frame whose depth is returned.
         config: Options.
         features: Optional precomputed features, one per frame.
+        matches: Optional descriptor matches computed ahead, as in `build_tracks`.
 
     Returns:
         `SparseDepth` in the reference image with per-point sigma (metres).
@@ -179,7 +196,7 @@ def triangulate_frames(
         raise InvalidInputError("features", f"{n} Features, one per frame", len(features))
     if not -n <= reference < n:
         raise InvalidInputError("reference", f"an index into {n} frames", reference)
-    tracks = build_tracks(rgbs, poses, camera, reference=reference, config=config, features=features)
+    tracks = build_tracks(rgbs, poses, camera, reference=reference, config=config, features=features, matches=matches)
     if tracks.shape[0] == 0:
         return SparseDepth.empty(camera.shape)
     mv = triangulate_tracks(tracks, poses, camera, reference=reference, config=config)
