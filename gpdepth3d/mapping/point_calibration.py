@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+from scipy import ndimage
 
 from ..errors import InvalidInputError
 from ..measurements import SparseDepth
@@ -51,6 +52,63 @@ def paired_z_scores(own: SparseDepth, others: SparseDepth, cell: float) -> np.nd
     scale = np.hypot(own.sigma[a], others.sigma[b])
     ok = np.isfinite(scale) & (scale > 0)
     return (own.depth[a][ok] - others.depth[b][ok]) / scale[ok]
+
+
+def misplacement_sigma(points: SparseDepth, depth_map: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) depth sigma, metres, of points that may lie up to ``radius`` pixels from where they are drawn.
+
+    A point carried into a frame through poses that are off lands beside its pixel: its depth then stands
+    for the surface some pixels away, and on a slope or across an edge that is another depth. The depth
+    range of ``depth_map`` (e.g. the frame's MDE) in the square of half-side ``radius`` around each point,
+    relative to its depth there, times the point's depth, is taken as +-2 sigma: sigma = d (max - min) / (4 m).
+
+    Args:
+        points: The points, pixels of their image.
+        depth_map: (h, w) depth of the same image at any resolution, metres (<= 0 or NaN: none).
+        radius: How far the points may lie from their pixels, pixels of the points' image (>= 0).
+
+    Returns:
+        The sigma of each point (0 where the map has no depth around it or ``radius`` is under half a map pixel).
+    """
+    if not np.isfinite(radius) or radius < 0:
+        raise InvalidInputError("radius", "a distance >= 0 (pixels)", radius)
+    depth_map = np.asarray(depth_map, dtype=np.float64)
+    if depth_map.ndim != 2:
+        raise InvalidInputError("depth_map", "an (h, w) depth map", depth_map.shape)
+    h, w = depth_map.shape
+    sx = w / points.image_size[1]
+    half = int(np.floor(radius * sx + 0.5))
+    if not len(points) or half < 1:
+        return np.zeros(len(points))
+    valid = np.isfinite(depth_map) & (depth_map > 0)
+    size = 2 * half + 1
+    hi = ndimage.maximum_filter(np.where(valid, depth_map, -np.inf), size=size, mode="nearest")
+    lo = ndimage.minimum_filter(np.where(valid, depth_map, np.inf), size=size, mode="nearest")
+    iu = np.clip((points.u * sx).astype(np.int64), 0, w - 1)
+    iv = np.clip((points.v * h / points.image_size[0]).astype(np.int64), 0, h - 1)
+    hi, lo = hi[iv, iu], lo[iv, iu]
+    centre = np.where(valid[iv, iu], depth_map[iv, iu], 0.5 * (hi + lo))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = (hi - lo) / (4.0 * centre)
+    return np.where(np.isfinite(rel) & (rel > 0), rel, 0.0) * points.depth
+
+
+MIN_FRAME_PAIRS = 10
+"""Fewest z-scores of one frame for `frame_factor` to depart from 1."""
+
+
+def frame_factor(z: np.ndarray) -> float:
+    """The factor one frame's own points' sigma is multiplied by: its z-scores' robust spread about 0, at least 1.
+
+    About 0 rather than about their median: a frame whose points all sit off the map's (the scale of its
+    neighbours' translations, which its tracks cannot see) has a bias as much as a spread. 1 with fewer than
+    `MIN_FRAME_PAIRS` finite z-scores.
+    """
+    z = np.asarray(z, dtype=np.float64).ravel()
+    z = z[np.isfinite(z)]
+    if z.size < MIN_FRAME_PAIRS:
+        return 1.0
+    return max(1.0, MAD_TO_SIGMA * float(np.median(np.abs(z))))
 
 
 class SigmaCalibration:
