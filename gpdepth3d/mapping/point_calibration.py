@@ -1,12 +1,16 @@
-"""The points' sigma checked against each other: a running variance factor from overlapping points.
+"""The points' sigma checked against each other, and what carrying a point between frames adds to it.
 
 A frame's own points and the local map's points (triangulated by the last frames, placed in this
 frame by their poses and its pose) often measure the same surface. Their difference over the sigma
 both claim is a z-score that needs no ground truth: when the poses are worse than the triangulation's
 pose prior says (a SLAM back-end's drift, a VIO's jitter), the z-scores spread wider than 1.
-`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is
-multiplied by: their robust spread (1.4826 times the median absolute z), never below 1, so that exact
-poses keep the triangulation's sigma and poorer poses widen it by what the points themselves show.
+`frame_factor` widens one frame's own points by the spread of its own z-scores about 0 (a frame whose
+points all sit off the map: a scale its tracks could not see); `SigmaCalibration` keeps the z-scores
+of the last frames and gives the factor every point's sigma is multiplied by: their robust spread
+(1.4826 times the median absolute z), never below 1, so that exact poses keep the triangulation's
+sigma and poorer poses widen it by what the points themselves show. `misplacement_sigma` is what a
+point carried into a frame through inexact poses gets for landing beside its pixel (the depth range
+around it), before the z-scores are taken.
 """
 
 from __future__ import annotations
@@ -87,8 +91,8 @@ def misplacement_sigma(points: SparseDepth, depth_map: np.ndarray, radius: float
     iu = np.clip((points.u * sx).astype(np.int64), 0, w - 1)
     iv = np.clip((points.v * h / points.image_size[0]).astype(np.int64), 0, h - 1)
     hi, lo = hi[iv, iu], lo[iv, iu]
-    centre = np.where(valid[iv, iu], depth_map[iv, iu], 0.5 * (hi + lo))
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):  # no depth around a point: inf - inf, NaN below
+        centre = np.where(valid[iv, iu], depth_map[iv, iu], 0.5 * (hi + lo))
         rel = (hi - lo) / (4.0 * centre)
     return np.where(np.isfinite(rel) & (rel > 0), rel, 0.0) * points.depth
 
