@@ -82,7 +82,7 @@ from .map_store import (
 from .mapper_config import MapperConfig
 from .mde_check import HeldOutCheck, held_out_check, mde_fallback
 from .own_points import OwnPoints
-from .point_calibration import SigmaCalibration, frame_factor, misplacement_sigma, paired_z_scores
+from .point_calibration import SigmaCalibration, misplacement_sigma, paired_z_scores
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
@@ -296,11 +296,7 @@ class Mapper:
                 seen = self._misplaced(self._local_map.seen(entry.T, self.camera), entry)
                 if own is not None and self._calibration is not None:
                     cell = self._local_map.cell * self.camera.width
-                    z = paired_z_scores(own, seen, cell)
-                    self._calibration.add(z)
-                    # a frame whose own points disagree with the map more than the window's (a scale its
-                    # tracks could not see) keeps that wider sigma, also in the local map
-                    own = own.with_sigma(own.sigma * frame_factor(z))
+                    self._calibration.add(paired_z_scores(own, seen, cell))
                 fill = self._local_map.fill(
                     merge_sparse(*parts, image_size=self.camera.shape), entry.T, self.camera, seen
                 )

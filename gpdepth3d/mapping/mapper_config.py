@@ -69,7 +69,7 @@ class MapperConfig:
             Mapper's own points (`gpdepth3d.mapping.point_calibration`; 0 off, and off without the local
             map): where a frame's points and the local map's meet, their differences over their sigmas
             must spread as z-scores do; a wider spread (poses worse than the triangulation's prior)
-            widens every own point's sigma by it (one frame's own spread widens that frame's points).
+            widens every own point's sigma by it.
         held_out: Share of a frame's points held out to test its refinement (`gpdepth3d.mapping.mde_check`;
             0 off): the GP on the other points must predict them better than the MDE rescaled by one
             median, else the frame is fused as that rescaled MDE with its variance, weighted as a frame

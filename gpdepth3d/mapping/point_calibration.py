@@ -4,9 +4,7 @@ A frame's own points and the local map's points (triangulated by the last frames
 frame by their poses and its pose) often measure the same surface. Their difference over the sigma
 both claim is a z-score that needs no ground truth: when the poses are worse than the triangulation's
 pose prior says (a SLAM back-end's drift, a VIO's jitter), the z-scores spread wider than 1.
-`frame_factor` widens one frame's own points by the spread of its own z-scores about 0 (a frame whose
-points all sit off the map: a scale its tracks could not see); `SigmaCalibration` keeps the z-scores
-of the last frames and gives the factor every point's sigma is multiplied by: their robust spread
+`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is multiplied by: their robust spread
 (1.4826 times the median absolute z), never below 1, so that exact poses keep the triangulation's
 sigma and poorer poses widen it by what the points themselves show. `misplacement_sigma` is what a
 point carried into a frame through inexact poses gets for landing beside its pixel (the depth range
@@ -95,24 +93,6 @@ def misplacement_sigma(points: SparseDepth, depth_map: np.ndarray, radius: float
         centre = np.where(valid[iv, iu], depth_map[iv, iu], 0.5 * (hi + lo))
         rel = (hi - lo) / (4.0 * centre)
     return np.where(np.isfinite(rel) & (rel > 0), rel, 0.0) * points.depth
-
-
-MIN_FRAME_PAIRS = 10
-"""Fewest z-scores of one frame for `frame_factor` to depart from 1."""
-
-
-def frame_factor(z: np.ndarray) -> float:
-    """The factor one frame's own points' sigma is multiplied by: its z-scores' robust spread about 0, at least 1.
-
-    About 0 rather than about their median: a frame whose points all sit off the map's (the scale of its
-    neighbours' translations, which its tracks cannot see) has a bias as much as a spread. 1 with fewer than
-    `MIN_FRAME_PAIRS` finite z-scores.
-    """
-    z = np.asarray(z, dtype=np.float64).ravel()
-    z = z[np.isfinite(z)]
-    if z.size < MIN_FRAME_PAIRS:
-        return 1.0
-    return max(1.0, MAD_TO_SIGMA * float(np.median(np.abs(z))))
 
 
 class SigmaCalibration:

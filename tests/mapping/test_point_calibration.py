@@ -6,14 +6,7 @@ import numpy as np
 import pytest
 
 from gpdepth3d.errors import InvalidInputError
-from gpdepth3d.mapping.mde_check import MAD_TO_SIGMA
-from gpdepth3d.mapping.point_calibration import (
-    MIN_FRAME_PAIRS,
-    SigmaCalibration,
-    frame_factor,
-    misplacement_sigma,
-    paired_z_scores,
-)
+from gpdepth3d.mapping.point_calibration import SigmaCalibration, misplacement_sigma, paired_z_scores
 from gpdepth3d.measurements import SparseDepth
 
 SHAPE = (100, 100)
@@ -70,16 +63,6 @@ def test_poses_worse_than_the_prior_widen_the_sigma_by_what_the_points_show():
         cal.add(paired_z_scores(own, other, 10.0))
     # the frames differ by 2 m x 6 % x sqrt(2) ~ 0.17 m against a combined sigma of 0.028 m
     assert 3.0 < cal.factor < 9.0
-
-
-def test_frame_factor_is_the_robust_spread_about_zero_of_one_frames_z_scores():
-    rng = np.random.default_rng(3)
-    assert frame_factor(rng.normal(0, 5.0, MIN_FRAME_PAIRS - 1)) == 1.0  # too few to say
-    assert frame_factor(rng.normal(0, 0.7, 400)) == 1.0  # honest or pessimistic sigmas are kept
-    assert frame_factor(rng.normal(0, 3.0, 400)) == pytest.approx(3.0, rel=0.15)
-    # a frame whose points all sit off the map by 4 sigma (its scale) is widened by that bias
-    assert frame_factor(rng.normal(-4.0, 0.3, 400)) == pytest.approx(4.0 * MAD_TO_SIGMA, rel=0.1)
-    assert frame_factor(np.r_[np.full(MIN_FRAME_PAIRS, 2.0), np.nan, np.inf]) == pytest.approx(2.0 * MAD_TO_SIGMA)
 
 
 def _edge_scene(h: int = 120, w: int = 160) -> np.ndarray:
