@@ -51,6 +51,8 @@ class PendingFrame:
         pose_doubted: Its feature tracks contradict its pose (`check_tracks` warned): the local
             map's points, placed by that pose, are not used.
         held_out: The held-out comparison of its GP with its rescaled MDE (`mde_check`), once run.
+        pose_displacement: How far, pixels, its pose and its neighbours' carry its tracks' points across
+            their images from where they are seen (`MultiViewPoints.pose_displacement`; 0 when unknown).
     """
 
     kid: int
@@ -68,6 +70,7 @@ class PendingFrame:
     scale_var: float = 0.0
     pose_doubted: bool = False
     held_out: HeldOutCheck | None = None
+    pose_displacement: float = 0.0
 
     @property
     def mde_fallback(self) -> bool:

@@ -82,7 +82,7 @@ from .map_store import (
 from .mapper_config import MapperConfig
 from .mde_check import HeldOutCheck, held_out_check, mde_fallback
 from .own_points import OwnPoints
-from .point_calibration import SigmaCalibration, paired_z_scores
+from .point_calibration import SigmaCalibration, misplacement_sigma, paired_z_scores
 
 MDEFrontEnd = Callable[[np.ndarray], np.ndarray]
 
@@ -293,7 +293,7 @@ class Mapper:
             parts.append(own)
         if self._local_map is not None:
             if not entry.pose_in_doubt:  # the local map's points land where the frame's pose puts them
-                seen = self._local_map.seen(entry.T, self.camera)
+                seen = self._misplaced(self._local_map.seen(entry.T, self.camera), entry)
                 if own is not None and self._calibration is not None:
                     cell = self._local_map.cell * self.camera.width
                     self._calibration.add(paired_z_scores(own, seen, cell))
@@ -306,6 +306,17 @@ class Mapper:
         if own is not None:
             parts[own_index] = self._calibrated(own)
         entry.measurements = select_measurements(parts, self.camera.shape, cfg.max_points)
+
+    def _misplaced(self, points: SparseDepth, entry: PendingFrame) -> SparseDepth:
+        """The local map's points in a frame with what carrying them through two inexact poses adds to their sigma.
+
+        The depth range of the frame's MDE within twice the distance its pose and its neighbours' move its
+        tracks' points across the images (`PendingFrame.pose_displacement`, `misplacement_sigma`), in quadrature.
+        """
+        if entry.mde is None or entry.pose_displacement <= 0 or not len(points):
+            return points
+        extra = misplacement_sigma(points, entry.mde, 2.0 * entry.pose_displacement)
+        return points.with_sigma(np.hypot(points.sigma, extra)) if np.any(extra > 0) else points
 
     def _calibrated(self, points: SparseDepth) -> SparseDepth:
         """The Mapper's own points with their sigma times the running factor (`SigmaCalibration`)."""

@@ -70,6 +70,7 @@ class OwnPoints:
                 for p in self.queue:
                     if p.kid == tracker.last_key:
                         p.check_tracks(tracker.tracks_seen.pop(p.kid, 0), tracker.tracks_agreeing.pop(p.kid, 0))
+                        p.pose_displacement = tracker.pose_displacement.pop(p.kid, 0.0)
                         p.triangulated = self._with_refound(p, points)
             except Exception as exc:  # noqa: BLE001 - no points from this step; the MDE still counts
                 entry.note("triangulation", exc)
@@ -112,6 +113,7 @@ class OwnPoints:
             entry.check_tracks(
                 tracker.tracks_seen.pop(entry.kid, 0), tracker.tracks_agreeing.pop(entry.kid, 0), stacklevel=4
             )
+            entry.pose_displacement = tracker.pose_displacement.pop(entry.kid, 0.0)
             entry.triangulated = self._with_refound(entry, points)
 
     def triangulate(self, rgb: np.ndarray, T: np.ndarray, kid: int) -> SparseDepth:

@@ -1,12 +1,14 @@
-"""The points' sigma checked against each other: a running variance factor from overlapping points.
+"""The points' sigma checked against each other, and what carrying a point between frames adds to it.
 
 A frame's own points and the local map's points (triangulated by the last frames, placed in this
 frame by their poses and its pose) often measure the same surface. Their difference over the sigma
 both claim is a z-score that needs no ground truth: when the poses are worse than the triangulation's
 pose prior says (a SLAM back-end's drift, a VIO's jitter), the z-scores spread wider than 1.
-`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is
-multiplied by: their robust spread (1.4826 times the median absolute z), never below 1, so that exact
-poses keep the triangulation's sigma and poorer poses widen it by what the points themselves show.
+`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is multiplied by: their robust spread
+(1.4826 times the median absolute z), never below 1, so that exact poses keep the triangulation's
+sigma and poorer poses widen it by what the points themselves show. `misplacement_sigma` is what a
+point carried into a frame through inexact poses gets for landing beside its pixel (the depth range
+around it), before the z-scores are taken.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
+from scipy import ndimage
 
 from ..errors import InvalidInputError
 from ..measurements import SparseDepth
@@ -51,6 +54,45 @@ def paired_z_scores(own: SparseDepth, others: SparseDepth, cell: float) -> np.nd
     scale = np.hypot(own.sigma[a], others.sigma[b])
     ok = np.isfinite(scale) & (scale > 0)
     return (own.depth[a][ok] - others.depth[b][ok]) / scale[ok]
+
+
+def misplacement_sigma(points: SparseDepth, depth_map: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) depth sigma, metres, of points that may lie up to ``radius`` pixels from where they are drawn.
+
+    A point carried into a frame through poses that are off lands beside its pixel: its depth then stands
+    for the surface some pixels away, and on a slope or across an edge that is another depth. The depth
+    range of ``depth_map`` (e.g. the frame's MDE) in the square of half-side ``radius`` around each point,
+    relative to its depth there, times the point's depth, is taken as +-2 sigma: sigma = d (max - min) / (4 m).
+
+    Args:
+        points: The points, pixels of their image.
+        depth_map: (h, w) depth of the same image at any resolution, metres (<= 0 or NaN: none).
+        radius: How far the points may lie from their pixels, pixels of the points' image (>= 0).
+
+    Returns:
+        The sigma of each point (0 where the map has no depth around it or ``radius`` is under half a map pixel).
+    """
+    if not np.isfinite(radius) or radius < 0:
+        raise InvalidInputError("radius", "a distance >= 0 (pixels)", radius)
+    depth_map = np.asarray(depth_map, dtype=np.float64)
+    if depth_map.ndim != 2:
+        raise InvalidInputError("depth_map", "an (h, w) depth map", depth_map.shape)
+    h, w = depth_map.shape
+    sx = w / points.image_size[1]
+    half = int(np.floor(radius * sx + 0.5))
+    if not len(points) or half < 1:
+        return np.zeros(len(points))
+    valid = np.isfinite(depth_map) & (depth_map > 0)
+    size = 2 * half + 1
+    hi = ndimage.maximum_filter(np.where(valid, depth_map, -np.inf), size=size, mode="nearest")
+    lo = ndimage.minimum_filter(np.where(valid, depth_map, np.inf), size=size, mode="nearest")
+    iu = np.clip((points.u * sx).astype(np.int64), 0, w - 1)
+    iv = np.clip((points.v * h / points.image_size[0]).astype(np.int64), 0, h - 1)
+    hi, lo = hi[iv, iu], lo[iv, iu]
+    with np.errstate(invalid="ignore", divide="ignore"):  # no depth around a point: inf - inf, NaN below
+        centre = np.where(valid[iv, iu], depth_map[iv, iu], 0.5 * (hi + lo))
+        rel = (hi - lo) / (4.0 * centre)
+    return np.where(np.isfinite(rel) & (rel > 0), rel, 0.0) * points.depth
 
 
 class SigmaCalibration:

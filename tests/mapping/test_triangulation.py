@@ -774,3 +774,21 @@ def test_sift_contrast_threshold_keeps_weaker_keypoints(shared_data):
     for bad in (0.0, -0.01, float("nan")):
         with pytest.raises(InvalidInputError, match="sift_contrast_threshold"):
             TriangulationConfig(sift_contrast_threshold=bad)
+
+
+def test_pose_displacement_measures_how_far_the_given_poses_move_the_tracks():
+    """Exact poses: about 0 (keypoint noise is subtracted); every neighbour turned by 1 degree: about f times that."""
+    rng = np.random.default_rng(21)
+    X = _scene(300, seed=21)
+    poses = _views()
+    tracks = _tracks(X, poses) + rng.normal(0, 0.5, (300, 4, 2))
+    tracks[:, 0] = _tracks(X, poses)[:, 0]
+    cfg = TriangulationConfig(max_relative_sigma=1.0)
+    exact = triangulate_tracks(tracks, poses, CAM, reference=0, config=cfg)
+    assert 0.0 <= exact.pose_displacement < 0.5
+    turned = [poses[0]] + [
+        T @ _posed([0.0, 0.0, 0.0], tuple(a)) for T, a in zip(poses[1:], ([1, 0, 0], [0, 0, 1], [0.7, 0.7, 0]))
+    ]
+    moved = triangulate_tracks(tracks, turned, CAM, reference=0, config=cfg)
+    # 1 degree moves a point about 500 px x 0.0175 = 8.7 px; part of it along the epipolar lines the depths absorb
+    assert 3.0 < moved.pose_displacement < 12.0

@@ -43,6 +43,11 @@ class MultiViewPoints:
         agreeing: Tracks the poses agree with: in front of their views and seen within
             ``max_reprojection_error`` in ``min_views`` of them, whether or not they pass the parallax,
             depth and sigma checks (a pose that does not belong to its image leaves few).
+        pose_displacement: Median distance, pixels, between where the neighbours see the triangulated
+            tracks and where the poses as given put them, beyond what ``pixel_sigma`` keypoint noise gives
+            (subtracted in quadrature; 0 without any): how far the relative poses' error moves a point
+            carried from one of these frames into another across the image (the refinement of poorer poses
+            takes that error out of the frame's own points, not out of points carried between frames).
     """
 
     index: np.ndarray
@@ -56,6 +61,7 @@ class MultiViewPoints:
     poses: np.ndarray
     pixel_sigma: float
     agreeing: int = 0
+    pose_displacement: float = 0.0
 
     def __len__(self) -> int:
         return int(self.depth.shape[0])
@@ -480,7 +486,23 @@ def triangulate_tracks(
         config = held
     var_rho = _inverse_depth_variance(prob, rho, valid, xbar, sigma_px, seen, config)
     out = _accepted(prob, rho, r, valid, xbar, var_rho, sigma_px, keep, uv_ref, Ts, ref, others, config)
+    out = replace(out, pose_displacement=_given_pose_displacement(prob, rho, valid, config.pixel_sigma))
     return replace(out, agreeing=held_agreeing) if contradicted else out
+
+
+def _given_pose_displacement(prob: _Problem, rho: np.ndarray, valid: np.ndarray, pixel_sigma: float) -> float:
+    """Median distance (pixels) between the valid observations and the tracks' points projected by the given poses,
+    beyond what keypoint noise of ``pixel_sigma`` in both images gives alone (subtracted in quadrature)."""
+    use = valid & (rho > 0)[:, None]
+    if not use.any():
+        return 0.0
+    _, z, uv = prob.project(rho, prob.R0, prob.t0)
+    dist = np.linalg.norm(uv - prob.uv, axis=-1)[use & (z > 1e-9)]
+    dist = dist[np.isfinite(dist)]
+    if not dist.size:
+        return 0.0
+    noise = np.sqrt(2.0 * np.log(2.0)) * np.sqrt(2.0) * pixel_sigma  # median norm of 2-D noise, both keypoints
+    return float(np.sqrt(max(0.0, float(np.median(dist)) ** 2 - noise**2)))
 
 
 def _checked_tracks(

@@ -234,6 +234,8 @@ class TrackTriangulator:
             `gpdepth3d.mapping.frame_points.POSE_TRACK_SHARE`).
         tracks_agreeing: frame key -> how many of those its pose and its neighbours' agree with
             (`MultiViewPoints.agreeing`: within the reprojection gate, in front), points or not.
+        pose_displacement: frame key -> how far, pixels, the given poses carry its tracks' points
+            across its neighbours' images from where they are seen (`MultiViewPoints.pose_displacement`).
     """
 
     def __init__(
@@ -253,6 +255,7 @@ class TrackTriangulator:
         self.last_key: object = None
         self.tracks_seen: dict = {}
         self.tracks_agreeing: dict = {}
+        self.pose_displacement: dict = {}
         self.reset()
 
     def reset(self) -> None:
@@ -266,6 +269,7 @@ class TrackTriangulator:
         self.last_key = None
         self.tracks_seen = {}  # key -> tracks of that frame seen in another view, when it was triangulated
         self.tracks_agreeing = {}  # key -> of those, the ones its pose agrees with
+        self.pose_displacement = {}  # key -> MultiViewPoints.pose_displacement of its triangulation
 
     @property
     def n_tracks(self) -> int:
@@ -350,7 +354,8 @@ class TrackTriangulator:
         self.last, self.last_key = None, self._keys[col]
         self.tracks_seen[self.last_key] = 0
         self.tracks_agreeing[self.last_key] = 0
-        for kept in (self.tracks_seen, self.tracks_agreeing):
+        self.pose_displacement[self.last_key] = 0.0
+        for kept in (self.tracks_seen, self.tracks_agreeing, self.pose_displacement):
             if len(kept) > 4 * (self.window + self.lag + 1):  # keys nobody asked for
                 kept.pop(next(iter(kept)))
         if tracks.shape[0] == 0 or tracks.shape[1] < 2:
@@ -366,6 +371,7 @@ class TrackTriangulator:
         # point rows refer to the tracks given; map back to all tracks
         self.last = replace(mv, index=np.nonzero(seen)[0][mv.index])
         self.tracks_agreeing[self.last_key] = mv.agreeing
+        self.pose_displacement[self.last_key] = mv.pose_displacement
         return mv.to_sparse(self.camera.shape)
 
     def _prune(self) -> None:

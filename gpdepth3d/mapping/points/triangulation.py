@@ -22,8 +22,10 @@ Given posed RGB frames (``T_world_camera``, e.g. from a SLAM system) and intrins
   (refined poses: the Schur complement, so the uncertainty all points share reaches each depth;
   held poses: the prior); with ``variance_factor`` the whole variance is scaled by
   (residual noise / ``pixel_sigma``)^2 when the residuals are larger than the assumed pixel noise;
-  a relative floor ``depth_sigma_floor`` is added in quadrature. The `Mapper` then calibrates the
-  sigma of its points against the local map's (`gpdepth3d.mapping.point_calibration`).
+  a relative floor ``depth_sigma_floor`` is added in quadrature. ``MultiViewPoints.pose_displacement``
+  says how far the given poses move the tracks' points across the neighbours' images beyond keypoint
+  noise: the `Mapper` widens the points it carries between frames by it, and calibrates the sigma of
+  its points against the local map's (`gpdepth3d.mapping.point_calibration`).
 
 Accuracy on the shared sequences, with exact and perturbed poses (points per frame, +-2 sigma
 coverage against the sensor depth): see docs/results.md.
