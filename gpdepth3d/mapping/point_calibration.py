@@ -4,19 +4,19 @@ A frame's own points and the local map's points (triangulated by the last frames
 frame by their poses and its pose) often measure the same surface. Their difference over the sigma
 both claim is a z-score that needs no ground truth: when the poses are worse than the triangulation's
 pose prior says (a SLAM back-end's drift, a VIO's jitter), the z-scores spread wider than 1.
-`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is multiplied by: their robust spread
-(1.4826 times the median absolute z), never below 1, so that exact poses keep the triangulation's
-sigma and poorer poses widen it by what the points themselves show. `misplacement_sigma` is what a
-point carried into a frame through inexact poses gets for landing beside its pixel (the depth range
-around it), before the z-scores are taken.
+`SigmaCalibration` keeps the z-scores of the last frames and gives the factor every point's sigma is
+multiplied by: their robust spread (1.4826 times the median absolute z), never below 1, so that exact
+poses keep the triangulation's sigma and poorer poses widen it by what the points themselves show.
+`misplacement_sigma` is what a point carried into a frame through inexact poses gets for landing beside
+its pixel (the depth range around it), before the z-scores are taken.
 """
 
 from __future__ import annotations
 
 from collections import deque
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
 from ..errors import InvalidInputError
 from ..measurements import SparseDepth
@@ -83,9 +83,9 @@ def misplacement_sigma(points: SparseDepth, depth_map: np.ndarray, radius: float
     if not len(points) or half < 1:
         return np.zeros(len(points))
     valid = np.isfinite(depth_map) & (depth_map > 0)
-    size = 2 * half + 1
-    hi = ndimage.maximum_filter(np.where(valid, depth_map, -np.inf), size=size, mode="nearest")
-    lo = ndimage.minimum_filter(np.where(valid, depth_map, np.inf), size=size, mode="nearest")
+    square = np.ones((2 * half + 1, 2 * half + 1), np.uint8)  # OpenCV's max / min filters (van Herk: any size)
+    hi = cv2.dilate(np.where(valid, depth_map, -np.inf), square, borderType=cv2.BORDER_REPLICATE)
+    lo = cv2.erode(np.where(valid, depth_map, np.inf), square, borderType=cv2.BORDER_REPLICATE)
     iu = np.clip((points.u * sx).astype(np.int64), 0, w - 1)
     iv = np.clip((points.v * h / points.image_size[0]).astype(np.int64), 0, h - 1)
     hi, lo = hi[iv, iu], lo[iv, iu]
