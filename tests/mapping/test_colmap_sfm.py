@@ -18,6 +18,7 @@ from gpdepth3d.mapping.points.colmap_sfm import SfMConfig, reconstruct_sequence
         ("max_reg_trials", 0),
         ("min_keypoints", -1),
         ("min_registered", 1.5),
+        ("upsample", "yes"),
     ],
 )
 def test_config_refuses_bad_values(field, value):

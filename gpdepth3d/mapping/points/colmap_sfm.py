@@ -5,8 +5,9 @@ the images of a sequence whose intrinsics are known (COLMAP camera model PINHOLE
 settings of `SfMConfig` are chosen for hand-held indoor walks with little texture: more, weaker SIFT
 keypoints, a smaller triangulation angle and fewer inliers to start a model or register an image than
 COLMAP's defaults (which are tuned for photo collections with wide baselines); SIFT runs on the images
-upsampled twice (COLMAP's default, slow) only when at their own size they give too few keypoints
-(`SfMConfig.min_keypoints`) or register too few images (`SfMConfig.min_registered`). Where the images do
+upsampled twice (COLMAP's default: the most points to fix the metric scale with), or, with
+``SfMConfig(upsample=False)``, at their own size first and upsampled only when there they give too few
+keypoints (`SfMConfig.min_keypoints`) or register too few images (`SfMConfig.min_registered`). Where the images do
 not chain (a blank wall, a fast turn) pycolmap starts a new model; every model is one piece, with its
 own frame and scale. See https://colmap.github.io/pycolmap/index.html.
 """
@@ -31,13 +32,15 @@ class SfMConfig:
         max_features: SIFT keypoints per image at most.
         peak_threshold: SIFT's contrast threshold (COLMAP's default 0.0067; lower finds keypoints on
             weak texture).
-        min_keypoints: SIFT runs first on the images at their own size; when the median image has
-            fewer keypoints than this, it runs again on the images upsampled twice (SIFT's first
-            octave -1, COLMAP's default: many more keypoints on weak texture, several times the
-            time of extraction and matching).
-        min_registered: Share of the images the pieces must register between them when SfM ran on
-            keypoints at the images' own size; below it, SfM runs again on the upsampled images and the
-            run that registers more images is kept.
+        upsample: SIFT on the images upsampled twice (SIFT's first octave -1, COLMAP's default): several
+            times the points at their own size, which fix the metric scale more closely (`sfm_scale`), at
+            several times the time of extraction and matching. False: at their own size first
+            (``min_keypoints``, ``min_registered`` decide whether to upsample after all).
+        min_keypoints: Without ``upsample``: when the median image has fewer keypoints than this at its
+            own size, SIFT runs again on the images upsampled twice.
+        min_registered: Without ``upsample``: share of the images the pieces must register between them
+            with keypoints at the images' own size; below it, SfM runs again on the upsampled images and
+            the run that registers more images is kept.
         overlap: Sequential matching: image ``i`` is matched with images ``i + 1, i + 2, i + 4, ...,
             i + 2 ** (overlap - 1)`` (pycolmap's quadratic overlap: near neighbours for the chain, a few
             far ones for a walk that comes back).
@@ -59,6 +62,7 @@ class SfMConfig:
 
     max_features: int = 4096
     peak_threshold: float = 0.002
+    upsample: bool = True
     min_keypoints: int = 500
     min_registered: float = 0.9
     overlap: int = 8
@@ -92,6 +96,8 @@ class SfMConfig:
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
                 raise InvalidInputError(name, "a finite value > 0", value)
+        if not isinstance(self.upsample, (bool, np.bool_)):
+            raise InvalidInputError("upsample", "True or False", self.upsample)
         if not 0 <= self.min_registered <= 1:
             raise InvalidInputError("min_registered", "a share in [0, 1]", self.min_registered)
         if not 0 <= self.abs_pose_min_inlier_ratio < 1:
@@ -223,7 +229,7 @@ def reconstruct_sequence(
     for folder in (sparse, raw):
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir()
-    upsampled = _extract_and_match(images, camera, database, config)
+    upsampled = _extract_and_match(images, camera, database, config, upsample=True if config.upsample else None)
     models = pycolmap.incremental_mapping(database, images[0].parent, raw, options=_mapping_options(config))
     if not upsampled and registered_images(models) < config.min_registered * len(images):
         shutil.rmtree(raw, ignore_errors=True)
