@@ -449,7 +449,7 @@ def main(argv: list[str] | None = None) -> dict:
     report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     report["machine"] = {
         "platform": platform.platform(),
-        "note": "shared 2-core machine, other jobs running",
+        "cpus": os.cpu_count(),
         "load_average_1min": {"before": load_before, "after": os.getloadavg()[0]},
     }
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
@@ -523,7 +523,7 @@ def select_main(args, mde) -> dict:
                 print(f"{key}={value} {seq}: F {run['fscore']:.3f}", flush=True)
         report["fields"][key] = {"values": rows, "chosen": choose(rows, choose_on), "chosen_on": choose_on}
     report["date"] = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
-    report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running"}
+    report["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count()}
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
 
@@ -565,7 +565,7 @@ def refuse_main(args) -> dict:
         report["sequences"][seq] = {
             name: {"fusion": asdict(configs[name]), "metrics": m} for name, m in metrics.items()
         }
-    report["machine"] = {"platform": platform.platform(), "note": "shared 2-core machine, other jobs running"}
+    report["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count()}
     atomic_write(args.out, lambda tmp: Path(tmp).write_text(json.dumps(to_jsonable(report), indent=1)))
     return report
 

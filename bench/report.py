@@ -90,7 +90,8 @@ def run_info(d: dict, script: str) -> str:
     date = d.get("date") or d.get("started") or "not recorded"
     machine = d.get("machine", "not recorded")
     if isinstance(machine, dict):
-        machine = ", ".join(f"{v}" for k, v in machine.items() if k in ("platform", "cpus", "note"))
+        labels = {"platform": "{}", "cpus": "{} CPUs", "note": "{}"}
+        machine = ", ".join(labels[k].format(v) for k, v in machine.items() if k in labels)
     return f"*`{script}`; run {date}; machine: {machine}; load average (1 min): {_load_of(d)}.*"
 
 
