@@ -80,7 +80,7 @@ from .map_store import (
     write_map_meta,
 )
 from .mapper_config import MapperConfig
-from .mde_check import HeldOutCheck, held_out_check, mde_fallback
+from .mde_check import HeldOutCheck, held_out_check, held_out_shape, mde_fallback
 from .own_points import OwnPoints
 from .point_calibration import SigmaCalibration, misplacement_sigma, paired_z_scores
 
@@ -357,12 +357,14 @@ class Mapper:
         return posterior, depth, variance
 
     def _held_out_check(self, entry: PendingFrame, work_shape: tuple[int, int]) -> HeldOutCheck:
-        """The frame's GP on most of its points against its rescaled MDE at the others (`held_out_check`)."""
+        """The frame's GP on most of its points against its rescaled MDE at the others (`held_out_check`), its
+        posterior on the coarser `held_out_shape` grid: only its values at the held-out points count."""
+        shape = held_out_shape(work_shape)
 
         def refine(kept: SparseDepth) -> np.ndarray:
             with warnings.catch_warnings():  # the full posterior's warnings are the frame's
                 warnings.simplefilter("ignore")
-                posterior = self.completer.complete(entry.mde, kept, output_shape=work_shape)
+                posterior = self.completer.complete(entry.mde, kept, output_shape=shape)
             return fused_depth(posterior, self.config.fuse_depth)
 
         cfg = self.config

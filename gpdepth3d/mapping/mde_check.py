@@ -5,9 +5,10 @@ specular surfaces, a local map placed by a wrong pose. The map must then not be 
 network's depth alone. `held_out_check` holds out a share of the frame's points, runs the GP on the
 others, and compares how well the posterior median and the MDE rescaled by one median (fitted on the
 same points) predict the held-out depths (median absolute log error: robust to the outliers that
-such points contain). Where the GP does not predict them better, `mde_fallback` gives the rescaled
-MDE with the variance its residuals at all points show, and the `Mapper` fuses that instead and says
-so (`FrameResult.mde_fallback`, a warning).
+such points contain). The held-out GP runs on a coarser output grid (`held_out_shape`): only its
+values at the held-out points are read. Where the GP does not predict them better, `mde_fallback`
+gives the rescaled MDE with the variance its residuals at all points show, and the `Mapper` fuses
+that instead and says so (`FrameResult.mde_fallback`, a warning).
 """
 
 from __future__ import annotations
@@ -22,6 +23,15 @@ from .map_scale import fast_median
 
 MAD_TO_SIGMA = 1.4826
 """The standard deviation of a normal distribution over its median absolute deviation."""
+
+HELD_OUT_COARSENING = 2
+"""Working-resolution pixels per side of one pixel of the held-out GP's output (`held_out_shape`).
+
+The check reads that posterior only at the held-out points (each at the coarse pixel it falls in); a
+coarser output skips most of the read-out and assembly of a full-size one and its sub-lattice detail
+(the GP's lattice then follows `gpdepth3d.completion.lattice.lattice_stride`'s rule for such outputs),
+while the fit and outlier screen of the kept points, which make most of the prediction, are unchanged.
+"""
 
 
 @dataclass(frozen=True)
@@ -80,6 +90,15 @@ def _log_errors(prediction: np.ndarray, depth: np.ndarray) -> np.ndarray:
     return np.abs(np.log(prediction[ok] / depth[ok]))
 
 
+def held_out_shape(shape: tuple[int, int], coarsening: int = HELD_OUT_COARSENING) -> tuple[int, int]:
+    """The output shape of the held-out GP for a (h, w) working grid: each side divided by ``coarsening``
+    (rounded up, at least 1 pixel)."""
+    if int(coarsening) != coarsening or coarsening < 1:
+        raise InvalidInputError("coarsening", "an integer >= 1", coarsening)
+    c = int(coarsening)
+    return max(1, -(-int(shape[0]) // c)), max(1, -(-int(shape[1]) // c))
+
+
 def rescaled_mde(mde: np.ndarray, points: SparseDepth) -> tuple[float, float]:
     """(scale, relative sigma) of the MDE against the points: median ratio, and the MAD of the log ratios after it.
 
@@ -98,7 +117,8 @@ def held_out_check(refine, mde: np.ndarray, points: SparseDepth, *, fraction: fl
     """Holds out ``fraction`` of the points, refines with the others, and scores both predictors at them.
 
     Args:
-        refine: ``(kept points) -> posterior median depth`` at the MDE's resolution (the frame's GP).
+        refine: ``(kept points) -> posterior median depth`` at any resolution of the points' image (the
+            frame's GP; e.g. at `held_out_shape`), sampled at each held-out point's pixel (`sample_at`).
         mde: (h, w) MDE depth at the working resolution, metres (0: none).
         points: The frame's measurements (any resolution of the same image).
         fraction: Share of the points held out.

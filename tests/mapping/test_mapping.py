@@ -346,6 +346,26 @@ class TestRobustness:
         assert any("held-out points worse than the MDE" in w for w in res.warnings)
         assert res.fallback_weight == mapper.fusion.config.fallback_for(0)
 
+    def test_the_held_out_gp_runs_on_the_coarse_grid_and_the_frame_on_the_full_one(self, shared_data):
+        from gpdepth3d.mapping.mde_check import held_out_shape
+
+        f = _frames(shared_data, (0,))[0]
+        completer = _NegativeCompleter()
+        shapes = []
+
+        def recording(mde, sparse, *, output_shape=None):
+            shapes.append((len(sparse), tuple(output_shape)))
+            return _NegativeCompleter.complete(completer, mde, sparse, output_shape=output_shape)
+
+        completer.complete = recording
+        mapper = Mapper(f.camera, _small_config(), completer=completer)
+        res = mapper.add_frame(
+            f.rgb, f.pose, mde_depth=_standin_mde(f.depth), sparse=_kinect_sparse(f, f.camera, 100, 0)
+        )
+        work = mapper.work_camera.shape
+        assert shapes[0] == (80, held_out_shape(work)) and res.held_out.held_out == 20
+        assert shapes[1:] == ([] if res.mde_fallback else [(100, work)])
+
     def test_bad_frames_are_recorded_and_the_sequence_goes_on(self, shared_data):
         frames = _frames(shared_data, (0, 1, 2, 3))
         cam = frames[0].camera

@@ -9,6 +9,7 @@ from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.mapping.mde_check import (
     HeldOutCheck,
     held_out_check,
+    held_out_shape,
     mde_fallback,
     rescaled_mde,
     sample_at,
@@ -99,3 +100,57 @@ def test_fallback_variance_is_relative_to_the_depth():
     check = HeldOutCheck(20, 0.2, 0.1, 1.5, 0.1)
     depth, variance = mde_fallback(np.array([[2.0, 0.0]]), check)
     assert np.allclose(depth, [[3.0, 0.0]]) and np.allclose(variance, [[0.09, 0.0]])
+
+
+def test_held_out_shape_divides_each_side_rounding_up():
+    assert held_out_shape((240, 320)) == (120, 160)
+    assert held_out_shape((213, 320), 4) == (54, 80)
+    assert held_out_shape((3, 5), 8) == (1, 1)
+    assert held_out_shape((30, 40), 1) == (30, 40)
+    for bad in (0, 1.5):
+        with pytest.raises(InvalidInputError, match="coarsening"):
+            held_out_shape((30, 40), bad)
+
+
+def _gp_at_held_out_shape(mde, corrupt=None):
+    """The default model's GP on the kept points, at the held-out check's coarse output (as the Mapper runs it)."""
+    import warnings
+
+    from gpdepth3d.completion.complete import DepthCompleter
+    from gpdepth3d.mapping.map_scale import fused_depth
+
+    completer = DepthCompleter()
+
+    def refine(kept):
+        if corrupt is not None:
+            kept = SparseDepth.from_arrays(kept.u, kept.v, corrupt(kept.depth), kept.image_size, kept.sigma)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = fused_depth(completer.complete(mde, kept, output_shape=held_out_shape(mde.shape)))
+        assert out.shape == held_out_shape(mde.shape)
+        return out
+
+    return refine
+
+
+def _bump(u, v):  # a ramp with a bump the MDE below does not have
+    return _ramp(u, v) * (1.0 + 0.4 * np.exp(-((u - 40.0) ** 2 + (v - 30.0) ** 2) / 300.0))
+
+
+def test_the_coarse_gp_that_corrects_the_mde_is_kept():
+    # points on a surface with a bump, an MDE without it: the GP from the kept points predicts the
+    # held-out ones (read off its coarse output) better than the MDE rescaled by one median
+    sp = _points(_bump, n=400)
+    check = held_out_check(_gp_at_held_out_shape(_mde_ramp()), _mde_ramp(), sp, fraction=0.2, min_held_out=10, seed=2)
+    assert check.held_out == 80 and check.gp_better
+    assert check.gp_error < 0.5 * check.mde_error
+
+
+def test_the_coarse_gp_misled_by_its_points_falls_back():
+    # an MDE of the right shape, and kept points scattered far beyond the sigma they state (a wrong pose, a
+    # moving surface): the GP follows them and predicts the held-out points worse than the rescaled MDE
+    sp = _points(_ramp, n=400)
+    rng = np.random.default_rng(5)
+    scatter = _gp_at_held_out_shape(_mde_ramp(), corrupt=lambda d: d * np.exp(rng.normal(0.0, 0.4, d.shape)))
+    check = held_out_check(scatter, _mde_ramp(), sp, fraction=0.2, min_held_out=10, seed=2)
+    assert check.held_out == 80 and not check.gp_better
