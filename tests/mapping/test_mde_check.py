@@ -7,6 +7,7 @@ import pytest
 
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.mapping.mde_check import (
+    HELD_OUT_COARSENING,
     HeldOutCheck,
     held_out_check,
     held_out_shape,
@@ -103,7 +104,9 @@ def test_fallback_variance_is_relative_to_the_depth():
 
 
 def test_held_out_shape_divides_each_side_rounding_up():
-    assert held_out_shape((240, 320)) == (120, 160)
+    assert held_out_shape((240, 320), 2) == (120, 160)
+    assert held_out_shape((240, 320)) == held_out_shape((240, 320), HELD_OUT_COARSENING)
+    assert HELD_OUT_COARSENING > 1  # the check's GP skips the full-size output
     assert held_out_shape((213, 320), 4) == (54, 80)
     assert held_out_shape((3, 5), 8) == (1, 1)
     assert held_out_shape((30, 40), 1) == (30, 40)
