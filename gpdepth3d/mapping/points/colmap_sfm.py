@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ...camera import PinholeCamera
+from ...checks import Bool, Int, Real, check_fields, positive
 from ...errors import InvalidInputError
 
 
@@ -78,30 +79,13 @@ class SfMConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name, low in (
-            ("max_features", 64),
-            ("min_keypoints", 0),
-            ("overlap", 1),
-            ("init_min_num_inliers", 8),
-            ("abs_pose_min_num_inliers", 6),
-            ("max_reg_trials", 1),
-            ("min_model_size", 2),
-            ("threads", 1),
-            ("seed", 0),
-        ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                raise InvalidInputError(name, f"an integer >= {low}", value)
-        for name in ("peak_threshold", "init_min_tri_angle", "min_tri_angle"):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise InvalidInputError(name, "a finite value > 0", value)
-        if not isinstance(self.upsample, (bool, np.bool_)):
-            raise InvalidInputError("upsample", "True or False", self.upsample)
-        if not 0 <= self.min_registered <= 1:
-            raise InvalidInputError("min_registered", "a share in [0, 1]", self.min_registered)
-        if not 0 <= self.abs_pose_min_inlier_ratio < 1:
-            raise InvalidInputError("abs_pose_min_inlier_ratio", "a share in [0, 1)", self.abs_pose_min_inlier_ratio)
+        rules = {n: Int(low) for n, low in (("max_features", 64), ("min_keypoints", 0), ("overlap", 1))}
+        rules.update(init_min_num_inliers=Int(8), abs_pose_min_num_inliers=Int(6), max_reg_trials=Int(1))
+        rules.update(min_model_size=Int(2), threads=Int(1), seed=Int(0), upsample=Bool())
+        rules.update({n: positive() for n in ("peak_threshold", "init_min_tri_angle", "min_tri_angle")})
+        rules.update(min_registered=Real(0.0, 1.0, unit="a share"))
+        rules.update(abs_pose_min_inlier_ratio=Real(0.0, 1.0, high_open=True, unit="a share"))
+        check_fields(self, rules)
 
 
 def _extract(images: list[Path], camera: PinholeCamera, database: Path, config: SfMConfig, first_octave: int) -> None:

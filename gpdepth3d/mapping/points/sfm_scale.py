@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...camera import PinholeCamera, transform_points
+from ...checks import Int, check_fields, positive
 from ...errors import EmptyInputError, InvalidInputError
 from ...io.poses import invert_pose
 
@@ -166,16 +167,9 @@ class PieceRule:
     max_mad: float = 0.2
 
     def __post_init__(self) -> None:
-        if (
-            isinstance(self.min_frames, bool)
-            or not isinstance(self.min_frames, (int, np.integer))
-            or self.min_frames < 1
-        ):
-            raise InvalidInputError("min_frames", "an integer >= 1", self.min_frames)
-        for name in ("max_relative_sigma", "max_mad"):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise InvalidInputError(name, "a finite share > 0", value)
+        check_fields(
+            self, {"min_frames": Int(1), "max_relative_sigma": positive("a share"), "max_mad": positive("a share")}
+        )
 
     def refusal(self, frames: int, scale: MetricScale) -> str | None:
         """Why a piece of ``frames`` frames with this scale is not to be mapped, or None when it may be.
