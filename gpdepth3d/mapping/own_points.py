@@ -156,9 +156,8 @@ class OwnPoints:
 
     def _with_refound(self, entry: PendingFrame, points: SparseDepth) -> SparseDepth:
         """The frame's track points, plus descriptor points when they are fewer than ``refind.below``."""
-        if self.refinds:
-            self._refinding = len(points) < self.config.refind.below
-        depth = _typical_depth(entry) if self.refinds and len(points) < self.config.refind.below else None
+        self._refinding = self.refinds and len(points) < self.config.refind.below
+        depth = _typical_depth(entry) if self._refinding else None
         if depth is None:
             return points
         try:
