@@ -86,10 +86,11 @@ def test_seven_scenes_frames_register_in_one_piece(shared_data, tmp_path):
 
     files = list_files(shared_data / "7scenes", IMAGE_SUFFIXES, "color", "images")[:8]
     camera = read_intrinsics("525,525,320,240", 640, 480)
-    (folder,) = reconstruct_sequence(files, camera, tmp_path / "sfm")
+    # one thread: pycolmap's runs are repeatable (with two they differ from run to run)
+    (folder,) = reconstruct_sequence(files, camera, tmp_path / "sfm", config=SfMConfig(threads=1))
     model = read_colmap_model(folder)
     assert sorted(image.name for image in model.images.values()) == [f.name for f in files]
-    assert len(model.points) > 200 and np.median(model.errors) < 1.5  # keypoints at the images' own size
+    assert len(model.points) > 200 and np.median(model.errors) < 1.5
     by_name = {image.name: image.T_world_camera[:3, 3] for image in model.images.values()}
     sfm = np.array([by_name[f.name] for f in files])
     true = np.array([np.loadtxt(str(f).replace(".color.jpg", ".pose.txt"))[:3, 3] for f in files])

@@ -58,7 +58,8 @@ class SfMConfig:
             they are what registers the next image).
         min_model_size: Registered images a piece needs to be kept.
         threads: CPU threads pycolmap may use.
-        seed: pycolmap's random seed (runs are repeatable with the same seed and threads).
+        seed: pycolmap's random seed. Runs are repeatable with the same seed and one thread; with more,
+            pycolmap's extraction, matching and mapping may differ from run to run.
     """
 
     max_features: int = 4096
