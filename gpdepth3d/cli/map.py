@@ -102,48 +102,65 @@ def map_command(
     Returns:
         The summary written to ``metrics.json``.
     """
-    from ..pipelines.mapping_run import map_files, open_map_inputs
-    from ._warnings import quiet_third_party, report_warnings
+    from ..pipelines.mapping_run import open_map_inputs
 
     if view_duration is not None and not (math.isfinite(view_duration) and view_duration >= 0):
         raise InvalidInputError("--view-duration", "seconds >= 0 (or none: until Ctrl-C)", view_duration)
     if poses is None:
         if view:
             raise InvalidInputError("--view", "--poses (the live view draws the camera path first)", "no --poses")
-        return _map_unposed(locals())
+        return _map_unposed(
+            images, intrinsics=intrinsics, points=points, output=output, mde=mde, models_dir=models_dir,
+            stride=stride, frames=frames, voxel_size=voxel_size, depth_max=depth_max, depth=depth,
+            depth_kw={"depth_scale": depth_scale, "depth_invalid": depth_invalid, "depth_intrinsics": depth_intrinsics},
+            map_kw={"working_width": working_width, "threshold": threshold, "metric_samples": metric_samples},
+            mesh_format=mesh_format,
+        )  # fmt: skip
     inputs = open_map_inputs(images, poses, intrinsics, output=output, pose_format=pose_format,
                              association=association, max_time_difference=max_time_difference, depth=depth,
                              depth_scale=depth_scale, depth_invalid=depth_invalid,
                              depth_intrinsics=depth_intrinsics, points=points)  # fmt: skip
+    run = dict(mde=mde, models_dir=models_dir, working_width=working_width, stride=stride, frames=frames,
+               voxel_size=voxel_size, depth_max=depth_max, threshold=threshold, metric_samples=metric_samples,
+               mesh_format=mesh_format, force=force)  # fmt: skip
+    summary, live = _map_posed(inputs, output, run, (host, port, allow_remote) if view else None)
+    if live is not None:
+        print(f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})")
+        live.wait(view_duration)
+        live.stop()
+    return summary
+
+
+def _map_posed(inputs, output: Path, run: dict, viewer: tuple | None):
+    """``map`` with --poses: the sequence mapped frame by frame (`map_files` with the options ``run``), the live
+    view at ``viewer`` (host, port, allow_remote) fed as it grows, the result printed; returns (summary, the live
+    viewer or None)."""
+    from ..pipelines.mapping_run import map_files
+    from ._warnings import quiet_third_party, report_warnings
+
     seq = inputs.sequence
     print(
         f"map: {len(seq)} images of {seq.camera.width}x{seq.camera.height}, poses: {inputs.pose_format}"
         + (", with depth" if seq.depth_files is not None else ""),
         flush=True,
     )
-    live = _start_viewer(seq, host, port, allow_remote) if view else None
+    live = None if viewer is None else _start_viewer(seq, *viewer)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         quiet_third_party()
         try:
-            result, summary, written = map_files(inputs, output, mde=mde, models_dir=models_dir,
-                                                 working_width=working_width, stride=stride, frames=frames,
-                                                 voxel_size=voxel_size, depth_max=depth_max, threshold=threshold,
-                                                 metric_samples=metric_samples, mesh_format=mesh_format,
-                                                 progress=sys.stderr.isatty(), force=force,
-                                                 on_frame=None if live is None else live.update)  # fmt: skip
+            result, summary, written = map_files(
+                inputs, output, progress=sys.stderr.isatty(), on_frame=None if live is None else live.update, **run
+            )
         except BaseException:
             if live is not None:
                 live.stop()
             raise
     report_warnings(caught, dict(enumerate(seq.names)))
-    _print_result(result, written, output, threshold)
+    _print_result(result, written, output, run["threshold"])
     if live is not None:
         live.finish(result)
-        print(f"viewer at {live.url} ({'Ctrl-C to stop' if view_duration is None else f'{view_duration:g} s'})")
-        live.wait(view_duration)
-        live.stop()
-    return summary
+    return summary, live
 
 
 def _start_viewer(seq, host: str, port: int, allow_remote: bool):
@@ -177,8 +194,25 @@ def _print_result(result, written: list, output: Path, threshold: float) -> None
         print(_fscore_line(result.metrics, threshold))
 
 
-def _map_unposed(args: dict) -> dict[str, Any]:
-    """``map`` without --poses: SfM (or the --points COLMAP model), metric scale from the network, one map per piece."""
+def _map_unposed(
+    images: Path,
+    *,
+    intrinsics: Optional[str],
+    points: Optional[Path],
+    output: Path,
+    mde: str,
+    models_dir: Optional[Path],
+    stride: int,
+    frames: Optional[int],
+    voxel_size: float,
+    depth_max: float,
+    depth: Optional[Path],
+    depth_kw: dict,
+    map_kw: dict,
+    mesh_format: str,
+) -> dict[str, Any]:
+    """``map`` without --poses: SfM (or the --points COLMAP model), metric scale from the network, one map per piece
+    (``depth_kw``: how to read --depth; ``map_kw``: working width and metrics of each piece's map)."""
     import tempfile
 
     from dataclasses import replace
@@ -189,34 +223,39 @@ def _map_unposed(args: dict) -> dict[str, Any]:
     from ..pipelines.sfm import map_unposed, pieces_summary, write_pieces
     from ._warnings import quiet_third_party, report_warnings
 
-    a = args
-    check_output_folder(Path(a["output"]), "--output")
+    check_output_folder(Path(output), "--output")
     base = MapperConfig()
-    config = replace(base, fusion=replace(base.fusion, voxel_size=a["voxel_size"], depth_max=a["depth_max"]))
-    depth_kw = {"depth_scale": a["depth_scale"], "depth_invalid": a["depth_invalid"]}
-    depth_kw["depth_intrinsics"] = a["depth_intrinsics"]
-    map_kw = {"working_width": a["working_width"], "threshold": a["threshold"], "metric_samples": a["metric_samples"]}
-    print(f"map: no poses: {'the COLMAP model ' + str(a['points']) if a['points'] else 'pycolmap SfM on the images'}")
+    config = replace(base, fusion=replace(base.fusion, voxel_size=voxel_size, depth_max=depth_max))
+    print(f"map: no poses: {'the COLMAP model ' + str(points) if points else 'pycolmap SfM on the images'}")
     with tempfile.TemporaryDirectory(prefix="gpdepth3d-sfm-") as tmp, warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         quiet_third_party()
         result = map_unposed(
-            str(a["images"]),
-            a["intrinsics"],
-            mde=load_frontend(a["mde"], models_dir=a["models_dir"], argument="--mde"),
-            points=a["points"],
+            str(images),
+            intrinsics,
+            mde=load_frontend(mde, models_dir=models_dir, argument="--mde"),
+            points=points,
             workdir=tmp,
-            stride=a["stride"],
-            max_frames=a["frames"],
+            stride=stride,
+            max_frames=frames,
             config=config,
-            depth=None if a["depth"] is None else str(a["depth"]),
+            depth=None if depth is None else str(depth),
             depth_kw=depth_kw,
             map_kw=map_kw,
         )
-        inputs = {k: None if a[k] is None else str(a[k]) for k in ("images", "points", "intrinsics", "depth", "mde")}
-        written = write_pieces(result, a["output"], summary={"inputs": inputs}, mesh_format=a["mesh_format"])
+        named = {"images": images, "points": points, "intrinsics": intrinsics, "depth": depth, "mde": mde}
+        inputs = {k: None if v is None else str(v) for k, v in named.items()}
+        written = write_pieces(result, output, summary={"inputs": inputs}, mesh_format=mesh_format)
     report_warnings(caught)
-    summary = pieces_summary(result)
+    _print_pieces(result, map_kw["threshold"])
+    print(f"wrote {len(written)} files to {Path(output).resolve()} in {result.timing['wall']:.1f} s")
+    for path in written:
+        print(f"wrote {path}")
+    return pieces_summary(result)
+
+
+def _print_pieces(result, threshold: float) -> None:
+    """The images registered, and per piece its frames, scale and F-score, or why it was not mapped."""
     print(f"registered {result.registered} of {result.frames} images in {len(result.pieces)} piece(s)")
     for k, piece in enumerate(result.pieces):
         s = piece.scale
@@ -226,11 +265,7 @@ def _map_unposed(args: dict) -> dict[str, Any]:
         else:
             print(f"piece {k}: {len(piece.names)} frames{scale}")
         if piece.result is not None and piece.result.metrics is not None:
-            print(f"piece {k}: " + _fscore_line(piece.result.metrics, a["threshold"]))
-    print(f"wrote {len(written)} files to {Path(a['output']).resolve()} in {result.timing['wall']:.1f} s")
-    for path in written:
-        print(f"wrote {path}")
-    return summary
+            print(f"piece {k}: " + _fscore_line(piece.result.metrics, threshold))
 
 
 def _fscore_line(metrics: dict, threshold: float) -> str:
