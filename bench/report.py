@@ -683,6 +683,7 @@ def section_sfm(d: dict) -> str:
             rows,
         ),
     ]
+    parts += _sfm_pieces(runs)
     sigma = d.get("sigma")
     if sigma:
         rules = list(sigma["rules"])
@@ -719,6 +720,29 @@ def section_sfm(d: dict) -> str:
             f"As mapped (the network's scale, the default rule widened by the scale's sigma): ±2σ covers {mapped}.",
         ]
     return "\n\n".join(parts)
+
+
+def _sfm_pieces(runs: dict) -> list[str]:
+    """Every piece of each run: its frames, scale and F, or why it was not mapped (`PieceRule`)."""
+    rows = []
+    for name, r in runs.items():
+        for k, p in enumerate(r["pieces"]):
+            scale = p.get("scale") or {}
+            rows.append(
+                [
+                    SEQUENCE_NAMES.get(name, name),
+                    str(k),
+                    f"{p['frames']} ({p.get('first', '')} – {p.get('last', '')})",
+                    f"{fmt(scale.get('scale'), 4)} ± {fmt(scale.get('sigma'), 4)} (MAD {pct(scale.get('mad'))})",
+                    fmt(p.get("fscore")),
+                    fmt(p.get("fscore_mde_only")),
+                    p.get("error") or "mapped",
+                ]
+            )
+    if not rows:
+        return []
+    header = ["sequence", "piece", "frames (first – last)", "scale", "F map", "F MDE only", "mapped"]
+    return ["Each piece, in the order `map` writes them (`piece<k>`):", table(header, rows)]
 
 
 SECTIONS: list[tuple[str, Callable[[dict], str]]] = [
