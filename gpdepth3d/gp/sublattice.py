@@ -37,7 +37,7 @@ import numpy as np
 from numba import get_num_threads, njit, prange
 
 from ..errors import InvalidInputError, ShapeError, describe
-from ._cholesky import cholesky_in_place
+from ._cholesky import cholesky_dots_in_place
 from .kernels import smoothness_code, unit_correlation
 from .model import LatticeConfig
 
@@ -138,8 +138,9 @@ SERIAL_POINTS = 1024
 @njit(cache=True, nogil=True)
 def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr, by_row, pt_r,
                pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
-    """The cells of row ci: per cell one factorisation of its window's points (at most max_points, `_window`),
-    then every output pixel in it (`_cell_pixels`; one at a time below `BY_LANES` points, `_cell_pixels_few`)."""
+    """The cells of row ci: per cell one factorisation of its window's points (at most max_points, `_window`;
+    `cholesky_dots_in_place`, vectorised dot products, so equal to the plain loop's factor to rounding only), then
+    every output pixel in it (`_cell_pixels`; one at a time below `BY_LANES` points, `_cell_pixels_few`)."""
     h = row_ptr.shape[0] - 1
     m = resid.shape[1]
     side = k + 2 * reach
@@ -175,7 +176,7 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
         for a in range(n):
             pr[a], pc[a] = pt_r[ids[a]], pt_c[ids[a]]
         _window_covariance(n, pr, pc, ids, noise, Er_p, Rr_p, Ec_p, Rc_p, s2, span, A)
-        if not cholesky_in_place(A, n):  # numerically singular: leave this cell uncorrected
+        if not cholesky_dots_in_place(A, n):  # numerically singular: leave this cell uncorrected
             continue
         for a in range(n):
             dinv[a] = 1.0 / A[a, a]
