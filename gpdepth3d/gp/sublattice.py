@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import get_num_threads, njit, prange, uint64
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_dots_in_place
@@ -218,15 +218,19 @@ def _window(r0, c0, c1, row_ptr, by_row, pt_c, cursor, ids):  # pragma: no cover
 
 @njit(cache=True, nogil=True)
 def _window_covariance(n, pr, pc, ids, noise, Er_p, Rr_p, Ec_p, Rc_p, s2, span, A):  # pragma: no cover - compiled
-    """A[:n, :n]'s lower triangle: C_e between the window's points (rows pr, columns pc) plus their noise."""
+    """A[:n, :n]'s lower triangle: C_e between the window's points (rows pr, columns pc) plus their noise.
+
+    The tables' offsets are >= 0 by construction; as unsigned integers they index without numba's check for
+    negative indices (which the loop pays for at every entry otherwise)."""
     for a in range(n):
-        Era, Eca = Er_p[pr[a]], Ec_p[pc[a]]
+        Era, Eca, Aa = Er_p[pr[a]], Ec_p[pc[a]], A[a]
+        off_r, off_c = span - pr[a], span - pc[a]
         for b in range(a + 1):
-            du = pr[b] - pr[a] + span
-            dv = pc[b] - pc[a] + span
+            du = uint64(pr[b] + off_r)
+            dv = uint64(pc[b] + off_c)
             er, rr_ = Era[du], Rr_p[du]
             ec, rc = Eca[dv], Rc_p[dv]
-            A[a, b] = s2 * (rr_ * ec + rc * er - er * ec)
+            Aa[b] = s2 * (rr_ * ec + rc * er - er * ec)
         A[a, a] += noise[ids[a]]
 
 
@@ -237,17 +241,20 @@ def _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o,
     work arrays of at least (n, m) and n."""
     m = resid.shape[1]
     for a in range(n):  # y = L^-1 r
+        pa = uint64(ids[a])
         for q in range(m):
-            s = resid[ids[a], q]
+            s = resid[pa, q]
             for t in range(a):
                 s -= A[a, t] * y[t, q]
             y[a, q] = s * dinv[a]
-    for i in range(i0, i1):
-        for j in range(j0, j1):
+    for i_ in range(i0, i1):
+        i = uint64(i_)  # indices >= 0 as unsigned integers: no check for negative ones (`_window_covariance`)
+        for j_ in range(j0, j1):
+            j = uint64(j_)
             red = 0.0
             for a in range(n):  # v = L^-1 c, c = C_e(points, x)
-                dr = pr[a] - cr[i] + span
-                dc = pc[a] - cc[j] + span
+                dr = uint64(pr[a] + span - cr[i])
+                dc = uint64(pc[a] + span - cc[j])
                 er, rr_ = Er_o[i, dr], Rr_o[i, dr]
                 ec, rc = Ec_o[j, dc], Rc_o[j, dc]
                 s = s2 * (rr_ * ec + rc * er - er * ec)
@@ -285,8 +292,9 @@ def _scatter(values, i0, i1, j0, j1, out):  # pragma: no cover - compiled
     """out[i0:i1, j0:j1] = values, row by row."""
     nj = j1 - j0
     for i in range(i1 - i0):
+        row = out[uint64(i0 + i)]
         for j in range(nj):
-            out[i0 + i, j0 + j] = values[i * nj + j]
+            row[uint64(j0 + j)] = values[i * nj + j]
 
 
 @njit(cache=True, nogil=True)
@@ -309,14 +317,16 @@ def _cell_pixels(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_
     lanes = _lanes(npix + m)
     ec, rc = F[0], F[1]
     for a in range(n):  # the right-hand sides: c = C_e(points, x) per pixel, the residuals, zeros
-        pa = ids[a]
+        pa = uint64(ids[a])  # indices >= 0 as unsigned integers: no check for negative ones (`_window_covariance`)
         for j in range(nj):
-            dc = pc[a] - cc[j0 + j] + span
-            ec[j], rc[j] = Ec_o[j0 + j, dc], Rc_o[j0 + j, dc]
+            jj = uint64(j0 + j)
+            dc = uint64(pc[a] + span - cc[jj])
+            ec[j], rc[j] = Ec_o[jj, dc], Rc_o[jj, dc]
         va = V[a]
         for i in range(i1 - i0):
-            dr = pr[a] - cr[i0 + i] + span
-            er, rr_ = Er_o[i0 + i, dr], Rr_o[i0 + i, dr]
+            ii = uint64(i0 + i)
+            dr = uint64(pr[a] + span - cr[ii])
+            er, rr_ = Er_o[ii, dr], Rr_o[ii, dr]
             vi = va[i * nj:]
             for j in range(nj):
                 vi[j] = s2 * (rr_ * ec[j] + rc[j] * er - er * ec[j])
