@@ -174,7 +174,8 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
             _nearest(ids, n, max_points, 2 * k * ci + k - 1, 2 * k * cj + k - 1, pt_r, pt_c, dist, count, picked)
             n = max_points
         for a in range(n):
-            pr[a], pc[a] = pt_r[ids[a]], pt_c[ids[a]]
+            pa = uint64(ids[a])
+            pr[a], pc[a] = pt_r[pa], pt_c[pa]
         _window_covariance(n, pr, pc, ids, noise, Er_p, Rr_p, Ec_p, Rc_p, s2, span, A)
         if not cholesky_dots_in_place(A, n):  # numerically singular: leave this cell uncorrected
             continue
@@ -206,11 +207,11 @@ def _window(r0, c0, c1, row_ptr, by_row, pt_c, cursor, ids):  # pragma: no cover
     n = 0
     for u in range(cursor.shape[0]):
         q, end = cursor[u], row_ptr[r0 + u + 1]
-        while q < end and pt_c[by_row[q]] < c0:
+        while q < end and pt_c[uint64(by_row[uint64(q)])] < c0:  # unsigned: see `_window_covariance`
             q += 1
         cursor[u] = q
-        while q < end and pt_c[by_row[q]] < c1:
-            ids[n] = by_row[q]
+        while q < end and pt_c[uint64(by_row[uint64(q)])] < c1:
+            ids[n] = by_row[uint64(q)]
             n += 1
             q += 1
     return n
@@ -276,7 +277,8 @@ def _nearest(ids, n, keep, centre_r2, centre_c2, pt_r, pt_c, dist, count, picked
     centre_c2; L1; ties: the earlier in ids), by a counting sort (twice an L1 distance in the window < count.size - 1)."""
     count[:] = 0
     for a in range(n):
-        dist[a] = abs(2 * pt_r[ids[a]] - centre_r2) + abs(2 * pt_c[ids[a]] - centre_c2)
+        pa = uint64(ids[a])  # unsigned: see `_window_covariance`
+        dist[a] = abs(2 * pt_r[pa] - centre_r2) + abs(2 * pt_c[pa] - centre_c2)
         count[dist[a] + 1] += 1
     for d in range(1, count.size):
         count[d] += count[d - 1]
