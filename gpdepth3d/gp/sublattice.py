@@ -346,18 +346,18 @@ def _cell_pixels(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_
         d = dinv[a]
         for p in range(lanes):
             V[a, p] = acc[p] * d
-    for p in range(lanes):  # vred
+    for p in range(npix):  # vred (the pixels' columns only)
         acc[p] = 0.0
     for a in range(n):
-        for p in range(lanes):
+        for p in range(npix):
             acc[p] += V[a, p] * V[a, p]
     _scatter(acc, i0, i1, j0, j1, vred)
     for q in range(m):  # corr = v . y
-        for p in range(lanes):
+        for p in range(npix):
             acc[p] = 0.0
         for a in range(n):
             yq = V[a, npix + q]
-            for p in range(lanes):
+            for p in range(npix):
                 acc[p] += V[a, p] * yq
         _scatter(acc, i0, i1, j0, j1, corr[q])
 
