@@ -108,7 +108,7 @@ def _axis_tables(targets, centres, k, n_nodes, inv_l, span) -> tuple[np.ndarray,
     if found is None:
         found = _tables(targets, centres, k, n_nodes, inv_l, span)
         while len(_TABLES) >= _TABLES_KEPT:
-            _TABLES.pop(next(iter(_TABLES)), None)
+            _TABLES.pop(next(iter(_TABLES), None), None)
         _TABLES[key] = found
     return found
 
