@@ -34,10 +34,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import get_num_threads, njit, prange
+from numba import get_num_threads, njit, prange, uint64
 
 from ..errors import InvalidInputError, ShapeError, describe
-from ._cholesky import cholesky_in_place
+from ._cholesky import cholesky_dots_in_place
 from .kernels import smoothness_code, unit_correlation
 from .model import LatticeConfig
 
@@ -94,22 +94,41 @@ def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - c
     return E, R
 
 
+_TABLES: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+_TABLES_KEPT = 16
+
+
+def _axis_tables(targets, centres, k, n_nodes, inv_l, span) -> tuple[np.ndarray, np.ndarray]:
+    """`_tables`, remembered: a stream of frames asks for the same few (the grid's and the output's axes).
+
+    The kernels only read them. The oldest of more than `_TABLES_KEPT` are forgotten.
+    """
+    key = (targets.tobytes(), centres.astype(np.int64).tobytes(), int(k), int(n_nodes), float(inv_l), int(span))
+    found = _TABLES.get(key)
+    if found is None:
+        found = _tables(targets, centres, k, n_nodes, inv_l, span)
+        while len(_TABLES) >= _TABLES_KEPT:
+            _TABLES.pop(next(iter(_TABLES), None), None)
+        _TABLES[key] = found
+    return found
+
+
 @njit(cache=True, nogil=True, parallel=True)
-def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r,
-           pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr, by_row,
+           pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """`_krige_row` for the rows of cells ``cell_rows``, in parallel."""
     for ii in prange(cell_rows.shape[0]):  # rows of cells in parallel, each with its own buffers
-        _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index,
-                   pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
+        _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p,
+                   row_ptr, by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
 
 
 @njit(cache=True, nogil=True)
-def _krige_serial(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index,
-                  pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+def _krige_serial(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr,
+                  by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """`_krige` on the calling thread (few points: waking the worker threads costs more than their work)."""
     for ii in range(cell_rows.shape[0]):
-        _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index,
-                   pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
+        _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p,
+                   row_ptr, by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
 
 
 #: Fewer points than this are kriged on the calling thread (`_krige_serial`).
@@ -117,99 +136,139 @@ SERIAL_POINTS = 1024
 
 
 @njit(cache=True, nogil=True)
-def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, index, pt_r, pt_c,
-               resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
-    """The cells of row ci: per cell one factorisation of its window's points (at most max_points), then every
-    output pixel in it (four at a time from `BY_FOUR` points on, `_pixels_by_four`)."""
-    h, w = index.shape
+def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr, by_row, pt_r,
+               pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
+    """The cells of row ci: per cell one factorisation of its window's points (at most max_points, `_window`;
+    `cholesky_dots_in_place`, vectorised dot products, so equal to the plain loop's factor to rounding only), then
+    every output pixel in it (`_cell_pixels`; one at a time below `BY_LANES` points, `_cell_pixels_few`)."""
+    h = row_ptr.shape[0] - 1
     m = resid.shape[1]
     side = k + 2 * reach
     size = side * side
     span = Rr_p.shape[0] // 2
-    if row_start[ci] < row_start[ci + 1]:
-        ids = np.empty(size, np.int64)
-        dist = np.empty(size, np.int64)
-        count = np.empty(4 * side + 2, np.int64)
-        picked = np.empty(size, np.int64)
-        A = np.empty((size, size))
-        y = np.empty((size, m))
-        c = np.empty(size)
-        dinv = np.empty(size)
-        V = np.empty((size, 4))
-        for cj in range(col_start.shape[0] - 1):
-            if col_start[cj] == col_start[cj + 1]:
-                continue
-            n = 0
-            for rr in range(max(k * ci - reach, 0), min(k * ci + k + reach, h)):
-                for cc_ in range(max(k * cj - reach, 0), min(k * cj + k + reach, w)):
-                    p = index[rr, cc_]
-                    if p >= 0:
-                        ids[n] = p
-                        n += 1
-            if n == 0:
-                continue
-            if n > max_points:  # the max_points nearest the cell's centre (L1; ties: the earlier in the window)
-                _nearest(ids, n, max_points, 2 * k * ci + k - 1, 2 * k * cj + k - 1, pt_r, pt_c, dist, count, picked)
-                n = max_points
-            for a in range(n):
-                pa = ids[a]
-                for b in range(a + 1):
-                    pb = ids[b]
-                    du = pt_r[pb] - pt_r[pa] + span
-                    dv = pt_c[pb] - pt_c[pa] + span
-                    er, rr_ = Er_p[pt_r[pa], du], Rr_p[du]
-                    ec, rc = Ec_p[pt_c[pa], dv], Rc_p[dv]
-                    A[a, b] = s2 * (rr_ * ec + rc * er - er * ec)
-                A[a, a] += noise[pa]
-            if not cholesky_in_place(A, n):  # numerically singular: leave this cell uncorrected
-                continue
-            for a in range(n):
-                dinv[a] = 1.0 / A[a, a]
-            for a in range(n):  # y = L^-1 r, three right-hand sides at a time (independent sums in flight)
-                q = 0
-                while q + 2 < m:
-                    s, s_1, s_2 = resid[ids[a], q], resid[ids[a], q + 1], resid[ids[a], q + 2]
-                    for t in range(a):
-                        x = A[a, t]
-                        s -= x * y[t, q]
-                        s_1 -= x * y[t, q + 1]
-                        s_2 -= x * y[t, q + 2]
-                    y[a, q], y[a, q + 1], y[a, q + 2] = s * dinv[a], s_1 * dinv[a], s_2 * dinv[a]
-                    q += 3
-                for q in range(q, m):
-                    s = resid[ids[a], q]
-                    for t in range(a):
-                        s -= A[a, t] * y[t, q]
-                    y[a, q] = s * dinv[a]
-            if n >= BY_FOUR:
-                _pixels_by_four(ids, n, A, dinv, y, row_start[ci], row_start[ci + 1], col_start[cj], col_start[cj + 1],
-                                cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pt_r, pt_c, s2, span, V, corr, vred)
-                continue
-            for i in range(row_start[ci], row_start[ci + 1]):
-                for j in range(col_start[cj], col_start[cj + 1]):
-                    red = 0.0
-                    for a in range(n):  # v = L^-1 c, c = C_e(points, x)
-                        pa = ids[a]
-                        dr = pt_r[pa] - cr[i] + span
-                        dc = pt_c[pa] - cc[j] + span
-                        er, rr_ = Er_o[i, dr], Rr_o[i, dr]
-                        ec, rc = Ec_o[j, dc], Rc_o[j, dc]
-                        s = s2 * (rr_ * ec + rc * er - er * ec)
-                        for t in range(a):
-                            s -= A[a, t] * c[t]
-                        c[a] = s * dinv[a]
-                        red += c[a] * c[a]
-                    vred[i, j] = red
-                    for q in range(m):
-                        s = 0.0
-                        for a in range(n):
-                            s += c[a] * y[a, q]
-                        corr[q, i, j] = s
+    if row_start[ci] == row_start[ci + 1]:
+        return
+    r0, r1 = max(k * ci - reach, 0), min(k * ci + k + reach, h)
+    cursor = row_ptr[r0:r1].copy()  # per window row: its first point at or right of the window (`_window`)
+    ids = np.empty(size, np.int64)
+    pr = np.empty(size, np.int64)
+    pc = np.empty(size, np.int64)
+    dist = np.empty(size, np.int64)
+    count = np.empty(4 * side + 2, np.int64)
+    picked = np.empty(size, np.int64)
+    A = np.empty((size, size))
+    dinv = np.empty(size)
+    widest = 0  # most output columns of a cell
+    for cj in range(col_start.shape[0] - 1):
+        widest = max(widest, col_start[cj + 1] - col_start[cj])
+    V = np.empty((size, _lanes((row_start[ci + 1] - row_start[ci]) * widest + m)))
+    acc = np.empty(max(V.shape[1], size))
+    F = np.empty((2, widest))
+    for cj in range(col_start.shape[0] - 1):
+        if col_start[cj] == col_start[cj + 1]:
+            continue
+        n = _window(r0, k * cj - reach, k * cj + k + reach, row_ptr, by_row, pt_c, cursor, ids)
+        if n == 0:
+            continue
+        if n > max_points:  # the max_points nearest the cell's centre (L1; ties: the earlier in the window)
+            _nearest(ids, n, max_points, 2 * k * ci + k - 1, 2 * k * cj + k - 1, pt_r, pt_c, dist, count, picked)
+            n = max_points
+        for a in range(n):
+            pa = uint64(ids[a])
+            pr[a], pc[a] = pt_r[pa], pt_c[pa]
+        _window_covariance(n, pr, pc, ids, noise, Er_p, Rr_p, Ec_p, Rc_p, s2, span, A)
+        if not cholesky_dots_in_place(A, n):  # numerically singular: leave this cell uncorrected
+            continue
+        for a in range(n):
+            dinv[a] = 1.0 / A[a, a]
+        i0, i1, j0, j1 = row_start[ci], row_start[ci + 1], col_start[cj], col_start[cj + 1]
+        if n >= BY_LANES:
+            _cell_pixels(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span, V,
+                         acc, F, corr, vred)
+        else:
+            _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span,
+                             V, acc, corr, vred)
 
 
-#: Window points from which `_krige_row` computes a cell's output pixels four at a time (`_pixels_by_four`); below,
-#: the call costs more than it saves. The results are the same.
-BY_FOUR = 8
+#: Window points from which `_krige_row` computes a cell's output pixels side by side (`_cell_pixels`); below,
+#: one at a time (`_cell_pixels_few`). The results are the same.
+BY_LANES = 8
+
+
+@njit(cache=True, nogil=True)
+def _window(r0, c0, c1, row_ptr, by_row, pt_c, cursor, ids):  # pragma: no cover - compiled
+    """The points of the window's rows r0 + u (u < cursor.size), columns c0 <= c < c1, into ids, row by row and
+    left to right (the order of a scan of the window's pixels); their number.
+
+    by_row: the point ids ordered by row, then column; row_ptr: each row's first position in it. cursor[u]: a
+    position in row r0 + u at or left of its first point in the window, moved forwards (the windows of a row
+    of cells are visited left to right, so each row's points are passed over once).
+    """
+    n = 0
+    for u in range(cursor.shape[0]):
+        q, end = cursor[u], row_ptr[r0 + u + 1]
+        while q < end and pt_c[uint64(by_row[uint64(q)])] < c0:  # unsigned: see `_window_covariance`
+            q += 1
+        cursor[u] = q
+        while q < end and pt_c[uint64(by_row[uint64(q)])] < c1:
+            ids[n] = by_row[uint64(q)]
+            n += 1
+            q += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _window_covariance(n, pr, pc, ids, noise, Er_p, Rr_p, Ec_p, Rc_p, s2, span, A):  # pragma: no cover - compiled
+    """A[:n, :n]'s lower triangle: C_e between the window's points (rows pr, columns pc) plus their noise.
+
+    The tables' offsets are >= 0 by construction; as unsigned integers they index without numba's check for
+    negative indices (which the loop pays for at every entry otherwise)."""
+    for a in range(n):
+        Era, Eca, Aa = Er_p[pr[a]], Ec_p[pc[a]], A[a]
+        off_r, off_c = span - pr[a], span - pc[a]
+        for b in range(a + 1):
+            du = uint64(pr[b] + off_r)
+            dv = uint64(pc[b] + off_c)
+            er, rr_ = Era[du], Rr_p[du]
+            ec, rc = Eca[dv], Rc_p[dv]
+            Aa[b] = s2 * (rr_ * ec + rc * er - er * ec)
+        A[a, a] += noise[ids[a]]
+
+
+@njit(cache=True, nogil=True)
+def _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span, y, c,
+                     corr, vred):  # pragma: no cover - compiled
+    """`_cell_pixels` one output pixel at a time (few points: the lanes would cost more than they save); y, c:
+    work arrays of at least (n, m) and n."""
+    m = resid.shape[1]
+    for a in range(n):  # y = L^-1 r
+        pa = uint64(ids[a])
+        for q in range(m):
+            s = resid[pa, q]
+            for t in range(a):
+                s -= A[a, t] * y[t, q]
+            y[a, q] = s * dinv[a]
+    for i_ in range(i0, i1):
+        i = uint64(i_)  # indices >= 0 as unsigned integers: no check for negative ones (`_window_covariance`)
+        for j_ in range(j0, j1):
+            j = uint64(j_)
+            red = 0.0
+            for a in range(n):  # v = L^-1 c, c = C_e(points, x)
+                dr = uint64(pr[a] + span - cr[i])
+                dc = uint64(pc[a] + span - cc[j])
+                er, rr_ = Er_o[i, dr], Rr_o[i, dr]
+                ec, rc = Ec_o[j, dc], Rc_o[j, dc]
+                s = s2 * (rr_ * ec + rc * er - er * ec)
+                for t in range(a):
+                    s -= A[a, t] * c[t]
+                c[a] = s * dinv[a]
+                red += c[a] * c[a]
+            vred[i, j] = red
+            for q in range(m):
+                s = 0.0
+                for a in range(n):
+                    s += c[a] * y[a, q]
+                corr[q, i, j] = s
 
 
 @njit(cache=True, nogil=True)
@@ -218,7 +277,8 @@ def _nearest(ids, n, keep, centre_r2, centre_c2, pt_r, pt_c, dist, count, picked
     centre_c2; L1; ties: the earlier in ids), by a counting sort (twice an L1 distance in the window < count.size - 1)."""
     count[:] = 0
     for a in range(n):
-        dist[a] = abs(2 * pt_r[ids[a]] - centre_r2) + abs(2 * pt_c[ids[a]] - centre_c2)
+        pa = uint64(ids[a])  # unsigned: see `_window_covariance`
+        dist[a] = abs(2 * pt_r[pa] - centre_r2) + abs(2 * pt_c[pa] - centre_c2)
         count[dist[a] + 1] += 1
     for d in range(1, count.size):
         count[d] += count[d - 1]
@@ -230,57 +290,76 @@ def _nearest(ids, n, keep, centre_r2, centre_c2, pt_r, pt_c, dist, count, picked
 
 
 @njit(cache=True, nogil=True)
-def _pixels_by_four(ids, n, A, dinv, y, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pt_r, pt_c, s2, span, V, corr,
-                    vred):  # pragma: no cover - compiled
+def _scatter(values, i0, i1, j0, j1, out):  # pragma: no cover - compiled
+    """out[i0:i1, j0:j1] = values, row by row."""
+    nj = j1 - j0
+    for i in range(i1 - i0):
+        row = out[uint64(i0 + i)]
+        for j in range(nj):
+            row[uint64(j0 + j)] = values[i * nj + j]
+
+
+@njit(cache=True, nogil=True)
+def _lanes(count):  # pragma: no cover - compiled
+    """``count`` rounded up to a multiple of four: the columns of `_cell_pixels`' work array."""
+    return (count + 3) // 4 * 4
+
+
+@njit(cache=True, nogil=True)
+def _cell_pixels(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span, V, acc, F,
+                 corr, vred):  # pragma: no cover - compiled
     """The output pixels i0 <= i < i1, j0 <= j < j1 of one cell from its window's points ids[:n] (L in A's lower
-    triangle, 1 / diag(L) in ``dinv``, y = L^-1 r): v = L^-1 c, vred = v . v and corr = v . y, four pixels at a
-    time: four independent sums in flight, each pixel's arithmetic in the order of `_krige_row`'s one pixel.
-    V: (n, 4) work array (a pixel past the last repeats it; its results are dropped)."""
-    m = y.shape[1]
+    triangle, 1 / diag(L) in ``dinv``): v = L^-1 c and y = L^-1 r in one forward solve, its right-hand sides side by
+    side in V's columns (the pixels' c, then the residuals r, then zeros to a multiple of four), so that its inner
+    loops run along contiguous rows; then vred = v . v and corr = v . y. Each sum in the order of a one-column solve.
+    """
+    m = resid.shape[1]
     nj = j1 - j0
     npix = (i1 - i0) * nj
-    for p0 in range(0, npix, 4):
-        i_0, j_0 = i0 + p0 // nj, j0 + p0 % nj
-        i_1, j_1 = i0 + min(p0 + 1, npix - 1) // nj, j0 + min(p0 + 1, npix - 1) % nj
-        i_2, j_2 = i0 + min(p0 + 2, npix - 1) // nj, j0 + min(p0 + 2, npix - 1) % nj
-        i_3, j_3 = i0 + min(p0 + 3, npix - 1) // nj, j0 + min(p0 + 3, npix - 1) % nj
-        r0 = r1 = r2 = r3 = 0.0
+    lanes = _lanes(npix + m)
+    ec, rc = F[0], F[1]
+    for a in range(n):  # the right-hand sides: c = C_e(points, x) per pixel, the residuals, zeros
+        pa = uint64(ids[a])  # indices >= 0 as unsigned integers: no check for negative ones (`_window_covariance`)
+        for j in range(nj):
+            jj = uint64(j0 + j)
+            dc = uint64(pc[a] + span - cc[jj])
+            ec[j], rc[j] = Ec_o[jj, dc], Rc_o[jj, dc]
+        va = V[a]
+        for i in range(i1 - i0):
+            ii = uint64(i0 + i)
+            dr = uint64(pr[a] + span - cr[ii])
+            er, rr_ = Er_o[ii, dr], Rr_o[ii, dr]
+            vi = va[i * nj:]
+            for j in range(nj):
+                vi[j] = s2 * (rr_ * ec[j] + rc[j] * er - er * ec[j])
+        for q in range(m):
+            V[a, npix + q] = resid[pa, q]
+        for p in range(npix + m, lanes):
+            V[a, p] = 0.0
+    for a in range(n):  # V[a] = (V[a] - sum_t L[a, t] V[t]) / L[a, a], by ascending t
+        for p in range(lanes):
+            acc[p] = V[a, p]
+        for t in range(a):
+            x = A[a, t]
+            for p in range(lanes):
+                acc[p] -= x * V[t, p]
+        d = dinv[a]
+        for p in range(lanes):
+            V[a, p] = acc[p] * d
+    for p in range(npix):  # vred (the pixels' columns only)
+        acc[p] = 0.0
+    for a in range(n):
+        for p in range(npix):
+            acc[p] += V[a, p] * V[a, p]
+    _scatter(acc, i0, i1, j0, j1, vred)
+    for q in range(m):  # corr = v . y
+        for p in range(npix):
+            acc[p] = 0.0
         for a in range(n):
-            pa = ids[a]
-            # c = C_e(points, x) as `_krige_row` computes it, for each of the four pixels
-            dr, dc = pt_r[pa] - cr[i_0] + span, pt_c[pa] - cc[j_0] + span
-            er, rr_, ec, rc = Er_o[i_0, dr], Rr_o[i_0, dr], Ec_o[j_0, dc], Rc_o[j_0, dc]
-            u0 = s2 * (rr_ * ec + rc * er - er * ec)
-            dr, dc = pt_r[pa] - cr[i_1] + span, pt_c[pa] - cc[j_1] + span
-            er, rr_, ec, rc = Er_o[i_1, dr], Rr_o[i_1, dr], Ec_o[j_1, dc], Rc_o[j_1, dc]
-            u1 = s2 * (rr_ * ec + rc * er - er * ec)
-            dr, dc = pt_r[pa] - cr[i_2] + span, pt_c[pa] - cc[j_2] + span
-            er, rr_, ec, rc = Er_o[i_2, dr], Rr_o[i_2, dr], Ec_o[j_2, dc], Rc_o[j_2, dc]
-            u2 = s2 * (rr_ * ec + rc * er - er * ec)
-            dr, dc = pt_r[pa] - cr[i_3] + span, pt_c[pa] - cc[j_3] + span
-            er, rr_, ec, rc = Er_o[i_3, dr], Rr_o[i_3, dr], Ec_o[j_3, dc], Rc_o[j_3, dc]
-            u3 = s2 * (rr_ * ec + rc * er - er * ec)
-            for t in range(a):  # v = L^-1 c
-                x = A[a, t]
-                u0 -= x * V[t, 0]
-                u1 -= x * V[t, 1]
-                u2 -= x * V[t, 2]
-                u3 -= x * V[t, 3]
-            d = dinv[a]
-            V[a, 0], V[a, 1], V[a, 2], V[a, 3] = u0 * d, u1 * d, u2 * d, u3 * d
-            r0 += V[a, 0] * V[a, 0]
-            r1 += V[a, 1] * V[a, 1]
-            r2 += V[a, 2] * V[a, 2]
-            r3 += V[a, 3] * V[a, 3]
-        for lane, red in enumerate((r0, r1, r2, r3)):
-            if p0 + lane < npix:
-                i, j = i0 + (p0 + lane) // nj, j0 + (p0 + lane) % nj
-                vred[i, j] = red
-                for q in range(m):
-                    s = 0.0
-                    for a in range(n):
-                        s += V[a, lane] * y[a, q]
-                    corr[q, i, j] = s
+            yq = V[a, npix + q]
+            for p in range(npix):
+                acc[p] += V[a, p] * yq
+        _scatter(acc, i0, i1, j0, j1, corr[q])
 
 
 def sublattice_kriging(
@@ -340,10 +419,12 @@ def sublattice_kriging(
         raise ShapeError("rows, cols", f"pixels of the {h} x {w} grid", "points outside it")
     if n and not np.all(np.isfinite(noise) & (noise >= 0)):
         raise InvalidInputError("noise", "finite variances >= 0", "negative or non-finite values")
-    index = np.full((h, w), -1, dtype=np.int64)
-    index[rows, cols] = np.arange(n)
-    if np.count_nonzero(index >= 0) != n:
+    flat = rows * w + cols
+    by_row = np.argsort(flat, kind="stable")  # the points by row, then column (fast when they come so)
+    flat = flat[by_row]
+    if n > 1 and np.any(flat[1:] == flat[:-1]):
         raise InvalidInputError("rows, cols", "at most one point per pixel", "two points on one pixel")
+    row_ptr = np.searchsorted(rows[by_row], np.arange(h + 1)).astype(np.int64)
     out_rows = np.asarray(out_rows, dtype=np.float64)
     out_cols = np.asarray(out_cols, dtype=np.float64)
     reach = window_reach(k)
@@ -357,10 +438,10 @@ def sublattice_kriging(
     row_start = np.searchsorted(cr // k, np.arange(hl + 1)).astype(np.int64)
     col_start = np.searchsorted(cc // k, np.arange(wl + 1)).astype(np.int64)
     span = k + 2 * reach  # farthest offset between a window's pixel and a pixel of its cell, or two of its pixels
-    Er_o, Rr_o = _tables(out_rows, cr, k, hl, inv_l, span)
-    Ec_o, Rc_o = _tables(out_cols, cc, k, wl, inv_l, span)
-    Er_p, Rr_p = _tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
-    Ec_p, Rc_p = _tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
+    Er_o, Rr_o = _axis_tables(out_rows, cr, k, hl, inv_l, span)
+    Ec_o, Rc_o = _axis_tables(out_cols, cc, k, wl, inv_l, span)
+    Er_p, Rr_p = _axis_tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
+    Ec_p, Rc_p = _axis_tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
     corr = np.zeros((res.shape[1], out_rows.size, out_cols.size))
     vred = np.zeros((out_rows.size, out_cols.size))
     if n:
@@ -369,6 +450,7 @@ def sublattice_kriging(
         threads = get_num_threads() if n >= SERIAL_POINTS else 1
         cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
         kernel = _krige if threads > 1 else _krige_serial
-        kernel(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], index,
-               rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points), corr, vred)
+        kernel(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], row_ptr,
+               by_row.astype(np.int64), rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points),
+               corr, vred)
     return (corr[0] if one else corr), vred

@@ -173,3 +173,42 @@ def test_separable_correlation_is_the_product_of_the_axes(nu):
 def test_the_window_grows_with_the_stride():
     """6 x 6 pixels for stride 2, 10 x 10 for stride 4 (the taper scales with the cells it covers)."""
     assert [k + 2 * window_reach(k) for k in (2, 3, 4, 8)] == [6, 7, 10, 18]
+
+
+def test_an_output_finer_than_the_grid_matches_the_dense_conditional_covariance():
+    """Three output pixels per grid pixel and axis: a cell holds more output pixels than k x k."""
+    rng = np.random.default_rng(11)
+    shape, k = (10, 13), 2
+    flat = rng.choice(shape[0] * shape[1], size=60, replace=False)
+    rows, cols = flat // shape[1], flat % shape[1]
+    resid, noise = rng.normal(0, 0.1, rows.size), rng.uniform(1e-4, 4e-3, rows.size)
+    out_rows = (np.arange(3 * shape[0]) + 0.5) / 3 - 0.5
+    out_cols = (np.arange(3 * shape[1]) + 0.5) / 3 - 0.5
+    corr, vred = sublattice_kriging(
+        out_rows, out_cols, rows, cols, resid, noise, shape, stride=k, lengthscale=4.0, outputscale=0.3
+    )
+    c_ref, v_ref = _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, 4.0, 0.3)
+    np.testing.assert_allclose(corr, c_ref, atol=1e-10)
+    np.testing.assert_allclose(vred, v_ref, atol=1e-12)
+
+
+def test_calls_on_other_grids_in_between_change_nothing():
+    """The axis tables are remembered across calls: a call on another grid or stride between two equal calls
+    leaves the second equal to the first."""
+
+    def call(shape, k):
+        rng = np.random.default_rng(shape[0] + k)
+        h, w = shape
+        flat = rng.choice(h * w, size=40, replace=False)
+        rows, cols = flat // w, flat % w
+        resid, noise = rng.normal(0, 0.1, 40), np.full(40, 1e-3)
+        grid = (np.arange(float(h)), np.arange(float(w)))
+        return sublattice_kriging(*grid, rows, cols, resid, noise, shape, stride=k, lengthscale=5.0, outputscale=0.2)
+
+    first = call((12, 15), 2)
+    call((14, 11), 2)
+    call((12, 15), 4)
+    again = call((12, 15), 2)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a, b)
+    assert np.any(first[0] != 0)
