@@ -94,25 +94,6 @@ def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - c
     return E, R
 
 
-_TABLES: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-_TABLES_KEPT = 16
-
-
-def _axis_tables(targets, centres, k, n_nodes, inv_l, span) -> tuple[np.ndarray, np.ndarray]:
-    """`_tables`, remembered: a stream of frames asks for the same few (the grid's and the output's axes).
-
-    The kernels only read them. The oldest of more than `_TABLES_KEPT` are forgotten.
-    """
-    key = (targets.tobytes(), centres.astype(np.int64).tobytes(), int(k), int(n_nodes), float(inv_l), int(span))
-    found = _TABLES.get(key)
-    if found is None:
-        found = _tables(targets, centres, k, n_nodes, inv_l, span)
-        while len(_TABLES) >= _TABLES_KEPT:
-            _TABLES.pop(next(iter(_TABLES), None), None)
-        _TABLES[key] = found
-    return found
-
-
 @njit(cache=True, nogil=True, parallel=True)
 def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr, by_row,
            pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
@@ -438,10 +419,10 @@ def sublattice_kriging(
     row_start = np.searchsorted(cr // k, np.arange(hl + 1)).astype(np.int64)
     col_start = np.searchsorted(cc // k, np.arange(wl + 1)).astype(np.int64)
     span = k + 2 * reach  # farthest offset between a window's pixel and a pixel of its cell, or two of its pixels
-    Er_o, Rr_o = _axis_tables(out_rows, cr, k, hl, inv_l, span)
-    Ec_o, Rc_o = _axis_tables(out_cols, cc, k, wl, inv_l, span)
-    Er_p, Rr_p = _axis_tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
-    Ec_p, Rc_p = _axis_tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
+    Er_o, Rr_o = _tables(out_rows, cr, k, hl, inv_l, span)
+    Ec_o, Rc_o = _tables(out_cols, cc, k, wl, inv_l, span)
+    Er_p, Rr_p = _tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
+    Ec_p, Rc_p = _tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
     corr = np.zeros((res.shape[1], out_rows.size, out_cols.size))
     vred = np.zeros((out_rows.size, out_cols.size))
     if n:

@@ -193,8 +193,8 @@ def test_an_output_finer_than_the_grid_matches_the_dense_conditional_covariance(
 
 
 def test_calls_on_other_grids_in_between_change_nothing():
-    """The axis tables are remembered across calls: a call on another grid or stride between two equal calls
-    leaves the second equal to the first."""
+    """A call keeps no state: a call on another grid or stride between two equal calls leaves the second equal to
+    the first."""
 
     def call(shape, k):
         rng = np.random.default_rng(shape[0] + k)
