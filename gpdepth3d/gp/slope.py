@@ -79,7 +79,8 @@ def fit_mde_slope(
         ShapeError: inputs of different lengths.
         InvalidInputError: prior_sigma not > 0, max_points < 2.
     """
-    arrays = [np.asarray(a, dtype=np.float64).ravel() for a in (rows, cols, log_z, log_mde, noise)]
+    arrays = [np.asarray(a).ravel() for a in (rows, cols)]  # as float64 once the subset is taken
+    arrays += [np.asarray(a, dtype=np.float64).ravel() for a in (log_z, log_mde, noise)]
     n = arrays[0].size
     for name, a in zip(("rows", "cols", "log_z", "log_mde", "noise"), arrays):
         if a.size != n:
@@ -90,7 +91,8 @@ def fit_mde_slope(
         raise InvalidInputError("max_points", "an integer >= 2", max_points)
     r, c, y, x, e = arrays
     ok = np.isfinite(y) & np.isfinite(x) & np.isfinite(e)
-    r, c, y, x, e = r[ok], c[ok], y[ok], x[ok], e[ok]
+    if not ok.all():
+        r, c, y, x, e = r[ok], c[ok], y[ok], x[ok], e[ok]
     n = y.size
     if n == 0:
         return SlopeFit(1.0, float(prior_sigma) ** 2, 0.0, 0)
@@ -98,6 +100,7 @@ def fit_mde_slope(
     if n > max_points:
         take = np.linspace(0, n - 1, int(max_points)).round().astype(np.int64)
         r, c, y, x, e = r[take], c[take], y[take], x[take], e[take]
+    r, c = r.astype(np.float64), c.astype(np.float64)
     xc = x - centre
     yc = y - centre - xc  # the log ratio under a = 1; its slope on xc is a - 1
     H = np.column_stack([np.ones_like(xc), xc])
