@@ -55,6 +55,17 @@ class TestFitMdeSlope:
         assert abs(fit.slope - slope) < 3 * np.sqrt(fit.slope_var) + 0.02
         assert np.sqrt(fit.slope_var) < 0.1
 
+    def test_points_with_a_non_finite_value_are_left_out(self):
+        rows, cols, y, x, e = _draw(300, 0.7, seed=4)
+        bad = np.zeros(300, dtype=bool)
+        bad[[3, 50, 120, 299]] = True
+        y2, x2, e2 = y.copy(), x.copy(), e.copy()
+        y2[3], x2[50], e2[120], y2[299] = np.nan, np.inf, np.nan, -np.inf
+        got = fit_mde_slope(rows.astype(np.int64), cols.astype(np.int64), y2, x2, e2, KERNEL, 0.02, prior_sigma=0.5)
+        keep = ~bad
+        ref = fit_mde_slope(rows[keep], cols[keep], y[keep], x[keep], e[keep], KERNEL, 0.02, prior_sigma=0.5)
+        assert got == ref and got.n_used == 150
+
     def test_few_points_stay_near_the_prior(self):
         rows, cols, y, x, e = _draw(3, 0.3, seed=3)
         fit = fit_mde_slope(rows, cols, y, x, e, KERNEL, 0.02, prior_sigma=0.1)
