@@ -316,7 +316,7 @@ def _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, d
     for a in range(count, k):
         nn[q, a] = -1
         dist[q, a] = -1
-    return dist[q, k - 1]
+    return int(dist[q, k - 1])
 
 
 @nb.njit(**_FLAGS)
@@ -508,13 +508,13 @@ def grid_neighbours(
     r, c, width, start, members, column, key = image
     targets = np.ascontiguousarray(targets, dtype=np.int64)
     nn = np.empty((targets.size, k), dtype=np.int64)
-    dist = np.empty((targets.size, k), dtype=np.int64)
+    dist = np.empty((targets.size, k))  # whole numbers, written as float64 by the search
     args = (r, c, width, start, members, column, usable, key, targets, int(k), nn, dist)
     if targets.size <= CHUNK:
         _ring_range(0, targets.size, *args)
     else:
         _ring_parallel(*args)
-    return nn, dist.astype(np.float64)
+    return nn, dist
 
 
 def loo_predict(

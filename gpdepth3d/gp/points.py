@@ -197,17 +197,25 @@ def _loo_lstsq(rows, cols, r, noise, stated, targets, nn, fit: PointFit, nu: flo
 DISTANCE_CELLS_PER_POINT = 48
 
 
-def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray) -> np.ndarray:
+def _distance_to(
+    rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray, image: NeighbourImage | None = None
+) -> np.ndarray:
     """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
 
     Points on integer pixels in a box of at most ``DISTANCE_CELLS_PER_POINT`` cells per point: an exact
     city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); fewer points
     in a larger box, or points off the pixel grid: a k-d tree of the sources (O(N log sources)). Both are exact.
+    ``image``: the points' `NeighbourImage` when they have one (its cells are the box's pixels).
     """
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     if sources.size == 0:
         return np.full(rows.size, np.inf)
+    if image is not None and DISTANCE_CELLS_PER_POINT * rows.size >= image.start.size - 1:
+        from .distance import taxicab_transform
+
+        box = ((image.start.size - 1) // image.width, image.width)
+        return taxicab_transform(box, image.r[sources], image.c[sources])[image.r, image.c].astype(np.float64)
     box = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
     if _on_pixel_grid(rows, cols) and DISTANCE_CELLS_PER_POINT * rows.size >= box:
         from .distance import taxicab_transform
@@ -284,7 +292,7 @@ def screen_points(
         A `Screen`: the fit without the flagged points, the (N,) bool mask of the flagged points,
         the (N,) final leave-one-out z-scores and noise shares (`loo_zscores`; 0 where not computed).
     """  # fmt: skip
-    resid = np.asarray(resid, dtype=np.float64)
+    rows, cols, resid = (np.asarray(a, dtype=np.float64) for a in (rows, cols, resid))  # converted once, not per round
     n = resid.size
     rejected = np.zeros(n, dtype=bool)
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
@@ -321,7 +329,7 @@ def screen_points(
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
             moved = np.flatnonzero(changed)
-            only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach) <= reach), moved)
+            only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach, image) <= reach), moved)
         k_used = k_now
         z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=options.neighbours,
                                                   exclude=rejected, only=only, radius=True,

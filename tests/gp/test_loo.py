@@ -310,6 +310,8 @@ class TestScreening:
         d = _distance_to(rows, cols, sources, np.full(rows.size, np.inf))
         ref = np.min(np.abs(rows[:, None] - rows[sources]) + np.abs(cols[:, None] - cols[sources]), axis=1)
         np.testing.assert_array_equal(d, ref)
+        image = _loo.neighbour_image(rows, cols)  # the transform on the image's cells
+        np.testing.assert_array_equal(_distance_to(rows, cols, sources, np.full(rows.size, np.inf), image), ref)
         reach = np.full(rows.size, 6.0)
         d_tree = _distance_to(rows + 0.5, cols, sources, reach)  # off the pixel grid: a k-d tree, inf beyond 6
         np.testing.assert_array_equal(d_tree[ref <= 6], ref[ref <= 6])
