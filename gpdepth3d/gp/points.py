@@ -329,7 +329,7 @@ def screen_points(
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
             moved = np.flatnonzero(changed)
-            only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach, image) <= reach), moved)
+            only = np.flatnonzero((_distance_to(rows, cols, moved, reach, image) <= reach) | changed)
         k_used = k_now
         z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=options.neighbours,
                                                   exclude=rejected, only=only, radius=True,
