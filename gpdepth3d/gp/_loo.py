@@ -466,9 +466,23 @@ def neighbour_image(rows: np.ndarray, cols: np.ndarray, pool: np.ndarray | None 
     cell = r * width + c if pool is None else r[pool] * width + c[pool]
     order = np.argsort(cell, kind="stable")
     members = order if pool is None else pool[order]  # by cell, then by index
-    start = np.zeros(height * width + 1, dtype=np.int64)
-    np.cumsum(np.bincount(cell, minlength=height * width), out=start[1:])
-    return NeighbourImage(r, c, width, start, members, c[members], key)
+    return NeighbourImage(r, c, width, _cell_starts(cell[order], height * width), members, c[members], key)
+
+
+@nb.njit(**_FLAGS)
+def _cell_starts(cells, size):
+    """(size + 1,) int64: entry x is the number of ``cells`` (sorted cell numbers 0 .. size - 1) below x, in one
+    pass over the image (a count per cell and its running sum would write it three times)."""
+    start = np.empty(size + 1, dtype=np.int64)
+    x = 0
+    for a in range(cells.size):
+        while x <= cells[a]:
+            start[x] = a
+            x += 1
+    while x <= size:
+        start[x] = cells.size
+        x += 1
+    return start
 
 
 def grid_neighbours(
