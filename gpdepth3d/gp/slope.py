@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import lapack
 
 from ..errors import InvalidInputError, ShapeError, describe
 from .model import Kernel
@@ -112,20 +112,34 @@ def fit_mde_slope(
     beta = np.zeros(2)
     M = prior_prec
     rhs = np.column_stack([H, yc])
+    diagonal = np.arange(len(yc))
     for it in range(max(1, int(iterations))):
-        S = K + np.diag(white / weights)
-        try:
-            factor = cho_factor(S, lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            factor = cho_factor(S + np.eye(len(yc)) * 1e-10 * np.trace(S) / len(yc), lower=True, check_finite=False)
-        Z = cho_solve(factor, rhs, check_finite=False)  # S^-1 [H, y]
+        S = K.copy()
+        S[diagonal, diagonal] += white / weights
+        Z = _cholesky_solve(S, rhs)  # S^-1 [H, y]
         M = H.T @ Z[:, :2] + prior_prec
         beta = np.linalg.solve(M, H.T @ Z[:, 2])
         if it + 1 < iterations:
             t = np.abs(yc - H @ beta) / marginal
             new = np.where(t <= huber, 1.0, huber / np.maximum(t, 1e-300))
-            if np.allclose(new, weights):
+            if np.all(np.abs(new - weights) <= 1e-8 + 1e-5 * weights):  # np.allclose of the (positive) weights
                 break
             weights = new
     cov = np.linalg.inv(M)
     return SlopeFit(float(1.0 + beta[1]), float(cov[1, 1]), centre, int(len(yc)))
+
+
+def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """S^-1 rhs by LAPACK's Cholesky factorisation and solve (potrf, potrs: those scipy's cho_factor and cho_solve
+    call, without their checks on a matrix built here); a matrix that is not numerically positive definite gets a
+    jitter of 1e-10 times its mean diagonal.
+
+    Raises:
+        numpy.linalg.LinAlgError: not positive definite even with the jitter.
+    """
+    factor, info = lapack.dpotrf(S, lower=1, clean=0)
+    if info > 0:
+        factor, info = lapack.dpotrf(S + np.eye(len(S)) * 1e-10 * np.trace(S) / len(S), lower=1, clean=0)
+        if info > 0:
+            raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
+    return lapack.dpotrs(factor, rhs, lower=1)[0]

@@ -192,3 +192,32 @@ def test_an_mde_the_points_contradict_warns(recwarn):
     assert np.sqrt(np.mean((post.mean - truth) ** 2)) < 0.5 * np.sqrt(
         np.mean((disparity * np.median(truth / disparity) - truth) ** 2)
     )
+
+
+class TestCholeskySolve:
+    """`gpdepth3d.gp.slope._cholesky_solve`: scipy's cho_factor / cho_solve, bit for bit, with a jitter when needed."""
+
+    def test_equals_cho_factor_and_cho_solve(self):
+        from scipy.linalg import cho_factor, cho_solve
+
+        from gpdepth3d.gp.slope import _cholesky_solve
+
+        rng = np.random.default_rng(0)
+        X = rng.standard_normal((40, 50))
+        S, rhs = X @ X.T + np.eye(40), rng.standard_normal((40, 3))
+        ref = cho_solve(cho_factor(S, lower=True, check_finite=False), rhs, check_finite=False)
+        np.testing.assert_array_equal(_cholesky_solve(S, rhs), ref)
+
+    def test_a_singular_matrix_gets_the_jitter_and_a_negative_one_is_refused(self):
+        from scipy.linalg import cho_factor, cho_solve
+
+        from gpdepth3d.gp.slope import _cholesky_solve
+
+        rng = np.random.default_rng(1)
+        X = rng.standard_normal((30, 5))
+        S, rhs = X @ X.T, rng.standard_normal((30, 2))  # rank 5
+        jittered = S + np.eye(30) * 1e-10 * np.trace(S) / 30
+        ref = cho_solve(cho_factor(jittered, lower=True, check_finite=False), rhs, check_finite=False)
+        np.testing.assert_array_equal(_cholesky_solve(S, rhs), ref)
+        with pytest.raises(np.linalg.LinAlgError):
+            _cholesky_solve(-np.eye(4), np.ones(4))
