@@ -245,7 +245,8 @@ def _ring_range(lo, hi, r, c, width, start, members, column, usable, key, target
 
     ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
     rows; the members of cell x are members[start[x]:start[x + 1]] in index order (``column``: their
-    columns); only the members that are ``usable`` count (an image of more points serves any subset). The ring of radius d >= 1 is the cycle of its 4d pixels clockwise from the top
+    columns); only the members that are ``usable`` count (so an image of more points serves any
+    subset). The ring of radius d >= 1 is the cycle of its 4d pixels clockwise from the top
     (`ring_offset`: four diagonal sides of d pixels); each target reads it from its own starting
     position (`_ring_start`, a hash of the target's pixel and d), a pixel's members by index: that
     is the tie order, with no preferred direction over the targets. Other points on the target's
