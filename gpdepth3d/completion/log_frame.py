@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -39,6 +40,11 @@ class LogFrame:
     @property
     def shape(self) -> tuple[int, int]:
         return self.base.shape  # type: ignore[return-value]
+
+    @cached_property
+    def log_mde_at(self) -> np.ndarray:
+        """(N,) ``log_mde`` at the points (computed when first asked for: the slope's fits share it)."""
+        return self.log_mde[self.rows, self.cols]
 
     @property
     def n(self) -> int:

@@ -25,6 +25,7 @@ from .log_frame import LogFrame
 from .screen import follow_slope, screen
 from .mde_slope import fit_slope, refit_slope
 from .solve import solve_field
+from .threads import single_threaded_blas
 
 
 @dataclass(frozen=True)
@@ -72,10 +73,11 @@ def log_residual_posterior(
     """Runs the default model's stages on one frame; ``previous`` starts the scales' search (sequences),
     ``stride`` fixes the lattice's (`gpdepth3d.gp.EngineConfig.lattice_stride`; None: automatic)."""
     t0 = time.perf_counter()
-    first = fit_slope(frame, config)
-    screened = screen(frame, first, config, previous)
-    sloped = refit_slope(frame, first, screened.rejected, config)
-    screened = follow_slope(screened, first, sloped, config)
+    with single_threaded_blas():  # one block for the stage's small dense algebra (each step's own is then free)
+        first = fit_slope(frame, config)
+        screened = screen(frame, first, config, previous)
+        sloped = refit_slope(frame, first, screened.rejected, config)
+        screened = follow_slope(screened, first, sloped, config)
     t1 = time.perf_counter()
     lattice = build_lattice(frame, sloped, screened, config, stride)
     ta = time.perf_counter()

@@ -41,21 +41,17 @@ class Sloped:
 
 def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = None) -> Sloped:
     """Fits the slope on the points ``use`` (default all) with the edge term added to their noise."""
-    rows, cols = frame.rows, frame.cols
+    at = frame.log_mde_at
     if config.slope.prior_sigma is None or frame.n < config.slope.min_points:
-        return Sloped(None, frame.log_mde, frame.log_z - frame.log_mde[rows, cols])
+        return Sloped(None, frame.log_mde, frame.log_z - at)
     noise = (
         frame.noise + (config.assembly.edge_sigma * frame.edge) ** 2 if config.assembly.edge_sigma > 0 else frame.noise
     )
-    use = np.ones(frame.n, dtype=bool) if use is None else use
+    points = (frame.rows, frame.cols, frame.log_z, at, noise)
     kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
     with single_threaded_blas():
         fit = fit_mde_slope(
-            rows[use],
-            cols[use],
-            frame.log_z[use],
-            frame.log_mde[rows[use], cols[use]],
-            noise[use],
+            *(points if use is None else (a[use] for a in points)),
             kernel,
             config.nugget,
             prior_sigma=config.slope.prior_sigma,
@@ -63,7 +59,7 @@ def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = N
             huber=config.slope.huber,
             iterations=config.slope.iterations,
         )
-    return Sloped(fit, frame.log_mde, frame.log_z - fit.apply(frame.log_mde[rows, cols]))
+    return Sloped(fit, frame.log_mde, frame.log_z - fit.apply(at))
 
 
 def refit_slope(frame: LogFrame, sloped: Sloped, rejected: np.ndarray, config: DepthGPConfig) -> Sloped:

@@ -22,6 +22,7 @@ stated sigmas, `gpdepth3d.gp.local_calibration`): (stated_i + sum_j w_j^2 stated
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -238,13 +239,14 @@ WALK_RADIUS = 4
 
 
 @nb.njit(**_FLAGS)
-def _ring_range(lo, hi, r, c, width, start, members, column, key, targets, k, nn, dist):
+def _ring_range(lo, hi, r, c, width, start, members, column, usable, key, targets, k, nn, dist):
     """nn[q] / dist[q] for lo <= q < hi: the k nearest members of each target, in the order of rings of equal L1
     distance.
 
     ``r``, ``c``: integer cell coordinates of every point; the image has (start.size - 1) / width
     rows; the members of cell x are members[start[x]:start[x + 1]] in index order (``column``: their
-    columns). The ring of radius d >= 1 is the cycle of its 4d pixels clockwise from the top
+    columns); only the members that are ``usable`` count (so an image of more points serves any
+    subset). The ring of radius d >= 1 is the cycle of its 4d pixels clockwise from the top
     (`ring_offset`: four diagonal sides of d pixels); each target reads it from its own starting
     position (`_ring_start`, a hash of the target's pixel and d), a pixel's members by index: that
     is the tie order, with no preferred direction over the targets. Other points on the target's
@@ -263,16 +265,16 @@ def _ring_range(lo, hi, r, c, width, start, members, column, key, targets, k, nn
     guess = 1
     for q in range(lo, hi):
         if guess <= WALK_RADIUS:
-            far = _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist)
+            far = _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, dist)
         else:
-            far = _diamond(q, guess, r, c, width, height, start, members, column, key, targets, k, nn, dist, cand, cdr,
-                           cdc, order, hist, s0)  # fmt: skip
+            far = _diamond(q, guess, r, c, width, height, start, members, column, usable, key, targets, k, nn, dist,
+                           cand, cdr, cdc, order, hist, s0)  # fmt: skip
         if far >= 0:
             guess = far
 
 
 @nb.njit(**_FLAGS)
-def _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist):
+def _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, dist):
     """`_ring_range` for target q, walking the rings pixel by pixel; its k-th distance (-1 with fewer than k)."""
     i = targets[q]
     ri, ci = r[i], c[i]
@@ -280,7 +282,7 @@ def _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist):
     x = ri * width + ci
     for a in range(start[x], start[x + 1]):  # d = 0: other points on the target's pixel
         p = members[a]
-        if p != i and count < k:
+        if p != i and usable[p] and count < k:
             nn[q, count] = p
             dist[q, count] = 0
             count += 1
@@ -296,7 +298,7 @@ def _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist):
             if rr >= 0 and rr < height and cc >= 0 and cc < width:
                 x = rr * width + cc
                 for a in range(start[x], start[x + 1]):
-                    if count < k:
+                    if count < k and usable[members[a]]:
                         nn[q, count] = members[a]
                         dist[q, count] = d
                         count += 1
@@ -315,12 +317,12 @@ def _walk(q, r, c, width, height, start, members, key, targets, k, nn, dist):
     for a in range(count, k):
         nn[q, a] = -1
         dist[q, a] = -1
-    return dist[q, k - 1]
+    return int(dist[q, k - 1])
 
 
 @nb.njit(**_FLAGS)
-def _diamond(q, guess, r, c, width, height, start, members, column, key, targets, k, nn, dist, cand, cdr, cdc, order,
-             hist, s0):  # fmt: skip
+def _diamond(q, guess, r, c, width, height, start, members, column, usable, key, targets, k, nn, dist, cand, cdr, cdc,
+             order, hist, s0):  # fmt: skip
     """`_ring_range` for target q: the members of a diamond (L1 ball) around it gathered row by row, widened from the radius ``guess`` until it holds k of them, those up to the k-th distance sorted by (distance,
     ring position from the start); its k-th distance (-1 with fewer than k). Work arrays: ``cand`` .. ``order``
     (members.size), ``hist``, ``s0`` (height + width + 1)."""
@@ -334,8 +336,9 @@ def _diamond(q, guess, r, c, width, height, start, members, column, key, targets
             rem = radius - abs(rr - ri)
             x = rr * width
             for a in range(start[x + max(0, ci - rem)], start[x + min(width - 1, ci + rem) + 1]):
-                if members[a] != i:
-                    cand[m] = members[a]
+                p = members[a]
+                if p != i and usable[p]:
+                    cand[m] = p
                     cdr[m] = rr - ri
                     cdc[m] = column[a] - ci
                     m += 1
@@ -409,11 +412,11 @@ def ring_offset(d, pos):
 
 
 @nb.njit(parallel=True, **_FLAGS)
-def _ring_parallel(r, c, width, start, members, column, key, targets, k, nn, dist):
+def _ring_parallel(r, c, width, start, members, column, usable, key, targets, k, nn, dist):
     t = targets.size
     for c0 in nb.prange((t + CHUNK - 1) // CHUNK):
         _ring_range(
-            c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, column, key, targets, k, nn, dist
+            c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, column, usable, key, targets, k, nn, dist
         )
 
 
@@ -430,7 +433,67 @@ def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     return (z >> np.uint64(1)).astype(np.int64)
 
 
-def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
+class NeighbourImage(NamedTuple):
+    """The bucket image of a point set that `grid_neighbours` searches (one cell per pixel of the box around the
+    points); built once (`neighbour_image`), it serves searches among any subset of its points.
+
+    Attributes:
+        r, c: (N,) int64 cell of every point (its pixel less the points' smallest row and column).
+        width: Cells per image row.
+        start: (cells + 1,) int64: the members of cell x are members[start[x]:start[x + 1]].
+        members: The points in the image, by cell, then by index.
+        column: (members.size,) the members' cell columns.
+        key: (N,) `pixel_hash` of every point (the tie rule's starting positions).
+    """
+
+    r: np.ndarray
+    c: np.ndarray
+    width: int
+    start: np.ndarray
+    members: np.ndarray
+    column: np.ndarray
+    key: np.ndarray
+
+
+def neighbour_image(rows: np.ndarray, cols: np.ndarray, pool: np.ndarray | None = None) -> NeighbourImage:
+    """The `NeighbourImage` of the points ``pool`` (indices; default all) among (N,) integer-valued ``rows``,
+    ``cols`` (any origin)."""
+    key = pixel_hash(rows, cols)
+    r = np.asarray(rows, dtype=np.float64).astype(np.int64)
+    c = np.asarray(cols, dtype=np.float64).astype(np.int64)
+    r -= r.min()
+    c -= c.min()
+    height, width = int(r.max()) + 1, int(c.max()) + 1
+    cell = r * width + c if pool is None else r[pool] * width + c[pool]
+    order = np.argsort(cell, kind="stable")
+    members = order if pool is None else pool[order]  # by cell, then by index
+    return NeighbourImage(r, c, width, _cell_starts(cell[order], height * width), members, c[members], key)
+
+
+@nb.njit(**_FLAGS)
+def _cell_starts(cells, size):
+    """(size + 1,) int64: entry x is the number of ``cells`` (sorted cell numbers 0 .. size - 1) below x, in one
+    pass over the image (a count per cell and its running sum would write it three times)."""
+    start = np.empty(size + 1, dtype=np.int64)
+    x = 0
+    for a in range(cells.size):
+        while x <= cells[a]:
+            start[x] = a
+            x += 1
+    while x <= size:
+        start[x] = cells.size
+        x += 1
+    return start
+
+
+def grid_neighbours(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    usable: np.ndarray,
+    targets: np.ndarray,
+    k: int,
+    image: NeighbourImage | None = None,
+):
     """The k nearest usable points of each target in L1 distance, ties broken by the ring order.
 
     Points at equal distance d >= 1 from a target come in the order of their pixel on the ring
@@ -447,30 +510,26 @@ def grid_neighbours(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targ
         targets: (T,) indices of the points whose neighbours to find (a target is never its own
             neighbour; another point on the same pixel is one, at distance 0).
         k: Neighbours per target, at least 1 and at most the usable points other than any target.
+        image: The points' `NeighbourImage` (holding at least the usable ones), for searches
+            repeated on the same points with other usable sets; None: one of the usable points is built.
 
     Returns:
         (nn (T, k) int64, dist (T, k) float64): each row's neighbours in that order, and their
         L1 distances.
     """
-    key = pixel_hash(rows, cols)
-    r = np.asarray(rows, dtype=np.float64).astype(np.int64)
-    c = np.asarray(cols, dtype=np.float64).astype(np.int64)
-    r, c = r - r.min(), c - c.min()
-    height, width = int(r.max()) + 1, int(c.max()) + 1
-    pool = np.flatnonzero(usable)
-    cell = r[pool] * width + c[pool]
-    members = pool[np.argsort(cell, kind="stable")]  # by cell, then by index
-    column = c[members]
-    start = np.zeros(height * width + 1, dtype=np.int64)
-    np.cumsum(np.bincount(cell, minlength=height * width), out=start[1:])
+    usable = np.ascontiguousarray(usable, dtype=np.bool_)
+    if image is None:
+        image = neighbour_image(rows, cols, np.flatnonzero(usable))
+    r, c, width, start, members, column, key = image
     targets = np.ascontiguousarray(targets, dtype=np.int64)
     nn = np.empty((targets.size, k), dtype=np.int64)
-    dist = np.empty((targets.size, k), dtype=np.int64)
+    dist = np.empty((targets.size, k))  # whole numbers, written as float64 by the search
+    args = (r, c, width, start, members, column, usable, key, targets, int(k), nn, dist)
     if targets.size <= CHUNK:
-        _ring_range(0, targets.size, r, c, width, start, members, column, key, targets, int(k), nn, dist)
+        _ring_range(0, targets.size, *args)
     else:
-        _ring_parallel(r, c, width, start, members, column, key, targets, int(k), nn, dist)
-    return nn, dist.astype(np.float64)
+        _ring_parallel(*args)
+    return nn, dist
 
 
 def loo_predict(

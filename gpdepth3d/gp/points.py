@@ -11,13 +11,16 @@ Coordinates are GP-grid pixels, residuals log depth.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from ..errors import InvalidInputError
 from .fit import PointFit, fit_log_residual, raised_outputscale
 from .model import ScreenConfig, separable_correlation
+
+if TYPE_CHECKING:
+    from ._loo import NeighbourImage
 
 
 def loo_zscores(
@@ -33,6 +36,7 @@ def loo_zscores(
     only: np.ndarray | None = None,
     radius: bool = False,
     stated: np.ndarray | None = None,
+    image: NeighbourImage | None = None,
 ) -> np.ndarray | tuple[np.ndarray, ...]:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
@@ -59,6 +63,8 @@ def loo_zscores(
             predictive variance that this noise makes (its own and its neighbours' through the
             kriging weights), in [0, 1]. With independent errors E[z^2] is at least the share
             whatever the field.
+        image: The points' `gpdepth3d.gp._loo.NeighbourImage` (`neighbour_image`, points on integer pixels), for
+            calls repeated on the same points (the outlier screen's rounds); None: built here when it is used.
 
     Returns:
         (N,) z-scores (0 where no neighbour is available or not computed); with ``radius``,
@@ -78,7 +84,7 @@ def loo_zscores(
     extras = ((reach,) if radius else ()) + ((shares,) if stated is not None else ())  # filled in place below
     if n == 0 or k < 1 or targets.size == 0:
         return (out, *extras) if extras else out
-    nn, dist = neighbours_of(rows, cols, usable, targets, k)
+    nn, dist = neighbours_of(rows, cols, usable, targets, k, image)
     from ._loo import loo_predict
     from .multifrontal import numeric_section
 
@@ -119,7 +125,14 @@ def _on_pixel_grid(rows: np.ndarray, cols: np.ndarray) -> bool:
     return cells <= GRID_CELLS_PER_POINT * rows.size + 2**20
 
 
-def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, targets: np.ndarray, k: int):
+def neighbours_of(
+    rows: np.ndarray,
+    cols: np.ndarray,
+    usable: np.ndarray,
+    targets: np.ndarray,
+    k: int,
+    image: NeighbourImage | None = None,
+):
     """The k nearest usable points of each target in L1 distance, with a deterministic tie rule.
 
     Points on integer pixels (the GP grid's): `gpdepth3d.gp._loo.grid_neighbours`, ties at equal
@@ -133,6 +146,8 @@ def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, target
         usable: (N,) bool, the points that may be neighbours.
         targets: (T,) indices of the points whose neighbours to find (never their own neighbour).
         k: Neighbours per target, 1 <= k <= the usable points other than any target.
+        image: The points' `NeighbourImage` (they lie on integer pixels: the image search is used), for searches
+            repeated on the same points; None: one is built when the image search is used.
 
     Returns:
         (nn (T, k) int64, dist (T, k) float64): each row's neighbours in tie order, their distances.
@@ -142,8 +157,8 @@ def neighbours_of(rows: np.ndarray, cols: np.ndarray, usable: np.ndarray, target
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.int64)
-    if _on_pixel_grid(rows, cols):
-        return grid_neighbours(rows, cols, usable, targets, k)
+    if image is not None or _on_pixel_grid(rows, cols):
+        return grid_neighbours(rows, cols, usable, targets, k, image)
     from scipy.spatial import cKDTree
 
     pool = np.flatnonzero(usable)
@@ -182,17 +197,25 @@ def _loo_lstsq(rows, cols, r, noise, stated, targets, nn, fit: PointFit, nu: flo
 DISTANCE_CELLS_PER_POINT = 48
 
 
-def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray) -> np.ndarray:
+def _distance_to(
+    rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray, image: NeighbourImage | None = None
+) -> np.ndarray:
     """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
 
     Points on integer pixels in a box of at most ``DISTANCE_CELLS_PER_POINT`` cells per point: an exact
     city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); fewer points
     in a larger box, or points off the pixel grid: a k-d tree of the sources (O(N log sources)). Both are exact.
+    ``image``: the points' `NeighbourImage` when they have one (its cells are the box's pixels).
     """
     rows = np.asarray(rows, dtype=np.float64)
     cols = np.asarray(cols, dtype=np.float64)
     if sources.size == 0:
         return np.full(rows.size, np.inf)
+    if image is not None and DISTANCE_CELLS_PER_POINT * rows.size >= image.start.size - 1:
+        from .distance import taxicab_transform
+
+        box = ((image.start.size - 1) // image.width, image.width)
+        return taxicab_transform(box, image.r[sources], image.c[sources])[image.r, image.c].astype(np.float64)
     box = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
     if _on_pixel_grid(rows, cols) and DISTANCE_CELLS_PER_POINT * rows.size >= box:
         from .distance import taxicab_transform
@@ -206,6 +229,15 @@ def _distance_to(rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach:
     xy = np.column_stack([rows, cols])
     d, _ = cKDTree(xy[sources]).query(xy, k=1, p=1, distance_upper_bound=bound * (1 + 1e-12) + 1e-12)
     return d
+
+
+def _image_of(rows: np.ndarray, cols: np.ndarray) -> NeighbourImage | None:
+    """The points' `NeighbourImage` when `neighbours_of` searches them by image, else None (a k-d tree is used)."""
+    if not _on_pixel_grid(rows, cols):
+        return None
+    from ._loo import neighbour_image
+
+    return neighbour_image(rows, cols)
 
 
 class Screen(NamedTuple):
@@ -260,13 +292,13 @@ def screen_points(
         A `Screen`: the fit without the flagged points, the (N,) bool mask of the flagged points,
         the (N,) final leave-one-out z-scores and noise shares (`loo_zscores`; 0 where not computed).
     """  # fmt: skip
-    resid = np.asarray(resid, dtype=np.float64)
+    rows, cols, resid = (np.asarray(a, dtype=np.float64) for a in (rows, cols, resid))  # converted once, not per round
     n = resid.size
     rejected = np.zeros(n, dtype=bool)
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
-    fit, fitted_on, z, reach, share, changed = start, None, None, None, None, None
-    k_used = None
+    fit, fitted_on, z, reach, share, changed, k_used = start, None, None, None, None, None, None
+    image = _image_of(rows, cols) if threshold is not None and n >= 5 else None  # the rounds share it
     options = options or ScreenConfig()
     max_points = options.max_points
     for _ in range(options.iterations if threshold is not None else 1):
@@ -297,11 +329,11 @@ def screen_points(
             # same fit: only points that a newly flagged or cleared point can enter or leave the
             # neighbourhood of (it lies within their neighbourhood radius), and those points, change
             moved = np.flatnonzero(changed)
-            only = np.union1d(np.flatnonzero(_distance_to(rows, cols, moved, reach) <= reach), moved)
+            only = np.flatnonzero((_distance_to(rows, cols, moved, reach, image) <= reach) | changed)
         k_used = k_now
         z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=options.neighbours,
                                                   exclude=rejected, only=only, radius=True,
-                                                  stated=np.zeros(n) if stated is None else stated)  # fmt: skip
+                                                  stated=np.zeros(n) if stated is None else stated, image=image)  # fmt: skip
         if only is None:
             z, reach, share = z_new, reach_new, share_new
         else:

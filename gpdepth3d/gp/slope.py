@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
+from scipy.linalg import lapack
 
 from ..errors import InvalidInputError, ShapeError, describe
 from .model import Kernel
@@ -79,7 +79,8 @@ def fit_mde_slope(
         ShapeError: inputs of different lengths.
         InvalidInputError: prior_sigma not > 0, max_points < 2.
     """
-    arrays = [np.asarray(a, dtype=np.float64).ravel() for a in (rows, cols, log_z, log_mde, noise)]
+    arrays = [np.asarray(a).ravel() for a in (rows, cols)]  # as float64 once the subset is taken
+    arrays += [np.asarray(a, dtype=np.float64).ravel() for a in (log_z, log_mde, noise)]
     n = arrays[0].size
     for name, a in zip(("rows", "cols", "log_z", "log_mde", "noise"), arrays):
         if a.size != n:
@@ -90,7 +91,8 @@ def fit_mde_slope(
         raise InvalidInputError("max_points", "an integer >= 2", max_points)
     r, c, y, x, e = arrays
     ok = np.isfinite(y) & np.isfinite(x) & np.isfinite(e)
-    r, c, y, x, e = r[ok], c[ok], y[ok], x[ok], e[ok]
+    if not ok.all():
+        r, c, y, x, e = r[ok], c[ok], y[ok], x[ok], e[ok]
     n = y.size
     if n == 0:
         return SlopeFit(1.0, float(prior_sigma) ** 2, 0.0, 0)
@@ -98,6 +100,7 @@ def fit_mde_slope(
     if n > max_points:
         take = np.linspace(0, n - 1, int(max_points)).round().astype(np.int64)
         r, c, y, x, e = r[take], c[take], y[take], x[take], e[take]
+    r, c = r.astype(np.float64), c.astype(np.float64)
     xc = x - centre
     yc = y - centre - xc  # the log ratio under a = 1; its slope on xc is a - 1
     H = np.column_stack([np.ones_like(xc), xc])
@@ -109,20 +112,34 @@ def fit_mde_slope(
     beta = np.zeros(2)
     M = prior_prec
     rhs = np.column_stack([H, yc])
+    diagonal = np.arange(len(yc))
     for it in range(max(1, int(iterations))):
-        S = K + np.diag(white / weights)
-        try:
-            factor = cho_factor(S, lower=True, check_finite=False)
-        except np.linalg.LinAlgError:
-            factor = cho_factor(S + np.eye(len(yc)) * 1e-10 * np.trace(S) / len(yc), lower=True, check_finite=False)
-        Z = cho_solve(factor, rhs, check_finite=False)  # S^-1 [H, y]
+        S = K.copy()
+        S[diagonal, diagonal] += white / weights
+        Z = _cholesky_solve(S, rhs)  # S^-1 [H, y]
         M = H.T @ Z[:, :2] + prior_prec
         beta = np.linalg.solve(M, H.T @ Z[:, 2])
         if it + 1 < iterations:
             t = np.abs(yc - H @ beta) / marginal
             new = np.where(t <= huber, 1.0, huber / np.maximum(t, 1e-300))
-            if np.allclose(new, weights):
+            if np.all(np.abs(new - weights) <= 1e-8 + 1e-5 * weights):  # np.allclose of the (positive) weights
                 break
             weights = new
     cov = np.linalg.inv(M)
     return SlopeFit(float(1.0 + beta[1]), float(cov[1, 1]), centre, int(len(yc)))
+
+
+def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """S^-1 rhs by LAPACK's Cholesky factorisation and solve (potrf, potrs: those scipy's cho_factor and cho_solve
+    call, without their checks on a matrix built here); a matrix that is not numerically positive definite gets a
+    jitter of 1e-10 times its mean diagonal.
+
+    Raises:
+        numpy.linalg.LinAlgError: not positive definite even with the jitter.
+    """
+    factor, info = lapack.dpotrf(S, lower=1, clean=0)
+    if info > 0:
+        factor, info = lapack.dpotrf(S + np.eye(len(S)) * 1e-10 * np.trace(S) / len(S), lower=1, clean=0)
+        if info > 0:
+            raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
+    return lapack.dpotrs(factor, rhs, lower=1)[0]

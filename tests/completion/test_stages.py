@@ -79,6 +79,12 @@ class TestStages:
         assert moved.fit.log_scale == pytest.approx(float(np.median(again.resid)))
         assert follow_slope(screened, first, first, config) is screened
 
+    def test_log_mde_at_is_the_log_mde_at_each_point(self):
+        _, mde, sp = _scene()
+        frame = _frame(mde, sp, DepthGPConfig())
+        np.testing.assert_array_equal(frame.log_mde_at, np.log(frame.base[frame.rows, frame.cols]))
+        assert frame.log_mde_at is frame.log_mde_at  # computed once
+
     def test_lattice_holds_every_kept_point(self):
         _, mde, sp = _scene(n=200)
         config = DepthGPConfig()

@@ -82,6 +82,23 @@ class TestNeighbours:
         np.testing.assert_array_equal(got[0], ref[0])
         np.testing.assert_array_equal(got[1], ref[1])
 
+    @pytest.mark.parametrize("seed", range(4))
+    def test_one_image_serves_every_usable_set(self, seed):
+        """An image of all the points (`neighbour_image`) searched with a subset usable, in both searches (dense and
+        sparse points, several on a pixel), gives the brute-force neighbours of that subset."""
+        rng = np.random.default_rng(40 + seed)
+        rows, cols = _points(rng, 500, *((30, 160) if seed < 2 else (12, 30)), dup=True)  # sparse, dense
+        n = rows.size
+        image = _loo.neighbour_image(rows, cols)
+        for drop in (0.0, 0.05, 0.6):
+            usable = rng.random(n) >= drop
+            usable[:2] = True
+            targets = rng.choice(n, 300, replace=False)
+            got = grid_neighbours(rows, cols, usable, targets, 12, image)
+            ref = _brute_neighbours(rows, cols, usable, targets, 12)
+            np.testing.assert_array_equal(got[0], ref[0])
+            np.testing.assert_array_equal(got[1], ref[1])
+
     def test_far_neighbours(self):
         """Few points far apart: rings of radius up to the image's extent."""
         rows = np.array([0.0, 0.0, 50.0, 90.0, 10.0, 80.0])
@@ -293,6 +310,8 @@ class TestScreening:
         d = _distance_to(rows, cols, sources, np.full(rows.size, np.inf))
         ref = np.min(np.abs(rows[:, None] - rows[sources]) + np.abs(cols[:, None] - cols[sources]), axis=1)
         np.testing.assert_array_equal(d, ref)
+        image = _loo.neighbour_image(rows, cols)  # the transform on the image's cells
+        np.testing.assert_array_equal(_distance_to(rows, cols, sources, np.full(rows.size, np.inf), image), ref)
         reach = np.full(rows.size, 6.0)
         d_tree = _distance_to(rows + 0.5, cols, sources, reach)  # off the pixel grid: a k-d tree, inf beyond 6
         np.testing.assert_array_equal(d_tree[ref <= 6], ref[ref <= 6])

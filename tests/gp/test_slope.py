@@ -55,6 +55,17 @@ class TestFitMdeSlope:
         assert abs(fit.slope - slope) < 3 * np.sqrt(fit.slope_var) + 0.02
         assert np.sqrt(fit.slope_var) < 0.1
 
+    def test_points_with_a_non_finite_value_are_left_out(self):
+        rows, cols, y, x, e = _draw(300, 0.7, seed=4)
+        bad = np.zeros(300, dtype=bool)
+        bad[[3, 50, 120, 299]] = True
+        y2, x2, e2 = y.copy(), x.copy(), e.copy()
+        y2[3], x2[50], e2[120], y2[299] = np.nan, np.inf, np.nan, -np.inf
+        got = fit_mde_slope(rows.astype(np.int64), cols.astype(np.int64), y2, x2, e2, KERNEL, 0.02, prior_sigma=0.5)
+        keep = ~bad
+        ref = fit_mde_slope(rows[keep], cols[keep], y[keep], x[keep], e[keep], KERNEL, 0.02, prior_sigma=0.5)
+        assert got == ref and got.n_used == 150
+
     def test_few_points_stay_near_the_prior(self):
         rows, cols, y, x, e = _draw(3, 0.3, seed=3)
         fit = fit_mde_slope(rows, cols, y, x, e, KERNEL, 0.02, prior_sigma=0.1)
@@ -181,3 +192,32 @@ def test_an_mde_the_points_contradict_warns(recwarn):
     assert np.sqrt(np.mean((post.mean - truth) ** 2)) < 0.5 * np.sqrt(
         np.mean((disparity * np.median(truth / disparity) - truth) ** 2)
     )
+
+
+class TestCholeskySolve:
+    """`gpdepth3d.gp.slope._cholesky_solve`: scipy's cho_factor / cho_solve, bit for bit, with a jitter when needed."""
+
+    def test_equals_cho_factor_and_cho_solve(self):
+        from scipy.linalg import cho_factor, cho_solve
+
+        from gpdepth3d.gp.slope import _cholesky_solve
+
+        rng = np.random.default_rng(0)
+        X = rng.standard_normal((40, 50))
+        S, rhs = X @ X.T + np.eye(40), rng.standard_normal((40, 3))
+        ref = cho_solve(cho_factor(S, lower=True, check_finite=False), rhs, check_finite=False)
+        np.testing.assert_array_equal(_cholesky_solve(S, rhs), ref)
+
+    def test_a_singular_matrix_gets_the_jitter_and_a_negative_one_is_refused(self):
+        from scipy.linalg import cho_factor, cho_solve
+
+        from gpdepth3d.gp.slope import _cholesky_solve
+
+        rng = np.random.default_rng(1)
+        X = rng.standard_normal((30, 5))
+        S, rhs = X @ X.T, rng.standard_normal((30, 2))  # rank 5
+        jittered = S + np.eye(30) * 1e-10 * np.trace(S) / 30
+        ref = cho_solve(cho_factor(jittered, lower=True, check_finite=False), rhs, check_finite=False)
+        np.testing.assert_array_equal(_cholesky_solve(S, rhs), ref)
+        with pytest.raises(np.linalg.LinAlgError):
+            _cholesky_solve(-np.eye(4), np.ones(4))
