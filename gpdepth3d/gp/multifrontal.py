@@ -501,6 +501,77 @@ def _w_columns(L, no, nbf, nf, W):
                 W[wj + i] = 0.0
 
 
+@nb.njit(**_FAST)
+def _lam_lower(L, S, no, nf):
+    """Lower triangle of L11^-T L11^-1 into the S_JJ block of ``S`` (both nf x nf-strided fronts), as
+    dot products of the columns of the stored L11^-1 (what dlauum computes, without call overhead)."""
+    uno, unf = np.uint64(no), np.uint64(nf)
+    for j in range(uno):
+        cj = j * unf
+        for i in range(j, uno):
+            ci = i * unf
+            acc = 0.0
+            for k in range(i, uno):
+                acc += L[ci + k] * L[cj + k]
+            S[cj + i] = acc
+
+
+@nb.njit(**_FAST)
+def _small_cov(S, no, nbf, nf, W):
+    """Sigma_BJ = -Sigma_BB W and the lower triangle of Sigma_JJ = L11^-T L11^-1 - Sigma_BJ^T W, in place.
+
+    ``S`` is a covariance front holding Sigma_BB (lower triangle) and L11^-T L11^-1 (lower) in
+    Sigma_JJ; ``W`` = L21 L11^-1 (nb x no, leading dimension nb). The products of dsymm and dgemm
+    in compiled loops, for the small fronts where those calls' overhead dominates: Sigma_BB is
+    mirrored into its upper triangle, so that Sigma_BJ is built from axpys of whole columns (loops
+    of one length, which vectorise) rather than from the triangle's ragged ones.
+    """
+    uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+    for c in range(unb):
+        sc = uno + (uno + c) * unf
+        for i in range(c + np.uint64(1), unb):
+            S[uno + c + (uno + i) * unf] = S[sc + i]
+    for j in range(uno):
+        bj = uno + j * unf
+        for i in range(unb):
+            S[bj + i] = 0.0
+    for c in range(unb):
+        sc = uno + (uno + c) * unf
+        for j in range(uno):
+            wc = W[j * unb + c]
+            bj = uno + j * unf
+            for i in range(unb):
+                S[bj + i] -= S[sc + i] * wc
+    for j in range(uno):
+        wj = j * unb
+        for i in range(j, uno):
+            bi = uno + i * unf
+            acc = 0.0
+            for k in range(unb):
+                acc += S[bi + k] * W[wj + k]
+            S[i + j * unf] -= acc
+
+@nb.njit(**_FAST)
+def _readout_forms(S, nf, r0, r1, ro_out, ro_pos, ro_wgt, out):
+    """out[ro_out[r]] = w^T Sigma w for the read-outs r0 .. r1 of a covariance front ``S`` (lower triangle).
+
+    Each form as sum_a w_a (w_a Sigma_aa + 2 sum_{b<a} w_b Sigma_ab): every distinct entry read once.
+    """
+    unf = np.uint64(nf)
+    nw = ro_pos.shape[1]
+    for r in range(r0, r1):
+        acc = 0.0
+        for a in range(nw):
+            pa = np.uint64(ro_pos[r, a])
+            t = 0.0
+            for b in range(a):
+                pb = np.uint64(ro_pos[r, b])
+                t += ro_wgt[r, b] * (S[pa + pb * unf] if pa >= pb else S[pb + pa * unf])
+            wa = ro_wgt[r, a]
+            acc += wa * (wa * S[pa + pa * unf] + 2.0 * t)
+        out[ro_out[r]] = acc
+
+
 @nb.njit(**_FLAGS)
 def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, touched, prior_w,
                 w_ptr, prior_lam, lam_ptr, children_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
@@ -514,7 +585,6 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
     dp = _CONST
     cL, cN, cT = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2
     one, mone, zero = dp.ctypes.data, dp.ctypes.data + 8, dp.ctypes.data + 16
-    nw = ro_pos.shape[1]
     for k in range(order.size - 1, -1, -1):
         f = order[k]
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
@@ -557,6 +627,12 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                 for i in range(j, no):
                     S[i + j * nf] = prior_lam[lam0 + i + j * no]
             wp = prior_w[w_ptr[f] :].ctypes.data
+            if nf <= _SMALL:
+                _small_cov(S, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no])
+        elif nf <= _SMALL:  # compiled loops instead of dlauum, dtrmm, dsymm and dgemm
+            _lam_lower(L, S, no, nf)
+            _w_columns(L, no, nbf, nf, work)
+            _small_cov(S, no, nbf, nf, work)
         else:
             for j in range(no):
                 for i in range(j, no):
@@ -565,7 +641,7 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
             wp = work.ctypes.data
             if nbf > 0:
                 _w_block(L, no, nbf, nf, work, ip)
-        if nbf > 0:
+        if nbf > 0 and nf > _SMALL:
             sbj = S.ctypes.data + no * 8
             _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
                    ip.ctypes.data + 4, wp, ip.ctypes.data + 16, zero, sbj, ip.ctypes.data + 4)
@@ -574,15 +650,7 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
         _flush(S, 0, nf, no, nf)
         for j in range(no):
             diag[s + j] = S[j * (nf + 1)]
-        for r in range(ro_ptr[f], ro_ptr[f + 1]):
-            acc = 0.0
-            for a in range(nw):
-                pa = ro_pos[r, a]
-                for b in range(nw):
-                    pb = ro_pos[r, b]
-                    v = S[pa + pb * nf] if pa >= pb else S[pb + pa * nf]
-                    acc += ro_wgt[r, a] * ro_wgt[r, b] * v
-            out[ro_out[r]] = acc
+        _readout_forms(S, nf, ro_ptr[f], ro_ptr[f + 1], ro_out, ro_pos, ro_wgt, out)
 
 
 @nb.njit(**_FLAGS)
