@@ -14,8 +14,10 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from llvmlite import binding as llvm
+from llvmlite import ir
 from numba import types
-from numba.extending import get_cython_function_address
+from numba.core import cgutils
+from numba.extending import get_cython_function_address, intrinsic
 
 
 def _bind(lib: str, name: str, nargs: int):
@@ -59,6 +61,48 @@ def _flush(A, off, m, n, lda):
         for i in range(m):
             if abs(A[c + i]) < _TINY:
                 A[c + i] = 0.0
+
+
+def _prefetch_intrinsic(write: int):
+    """An intrinsic hinting the CPU to load the cache line at an address (an integer), for reading
+    (``write`` 0) or writing (1): LLVM's prefetch."""
+
+    @intrinsic
+    def prefetch_line(typingctx, address):
+        def codegen(context, builder, signature, args):
+            i8p = ir.IntType(8).as_pointer()
+            i32 = ir.IntType(32)
+            fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+            fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0i8")
+            builder.call(fn, [builder.inttoptr(args[0], i8p), i32(write), i32(3), i32(1)])
+            return context.get_dummy_value()
+
+        return types.void(types.intp), codegen
+
+    return prefetch_line
+
+
+_prefetch_read = _prefetch_intrinsic(0)
+_prefetch_write = _prefetch_intrinsic(1)
+
+
+@nb.njit(**_FLAGS)
+def _prefetch(a, lo, hi, write=False):
+    """Prefetches the entries lo .. hi of the contiguous array ``a`` (flat index), a cache line at a time.
+
+    The fronts' data (factor columns, assembly and read-out maps) stream from memory in pieces of
+    a few KiB, too short for the hardware prefetcher; asking for the next front's piece while this
+    front is computed hides that latency.
+    """
+    if hi <= lo:
+        return
+    base = a.ctypes.data
+    size = a.itemsize
+    for b in range(base + lo * size, base + hi * size, 64):
+        if write:
+            _prefetch_write(b)
+        else:
+            _prefetch_read(b)
 
 
 # Constants passed to LAPACK/BLAS by reference. Module-level arrays are frozen into the compiled
@@ -217,7 +261,13 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
     logdet = 0.0
     skip = touched.size > 0
-    for f in order:
+    for k in range(order.size):
+        f = order[k]
+        if k + 1 < order.size:  # the next front's assembly map, while this one is computed
+            g = order[k + 1]
+            _prefetch(asm_pos, asm_ptr[g], asm_ptr[g + 1])
+            _prefetch(asm_src, asm_ptr[g], asm_ptr[g + 1])
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g], True)
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         if skip and not touched[f]:
             l0 = np.uint64(l_ptr[f])
@@ -312,7 +362,11 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, t
     ldy = y.size // nrhs
     nseq = acc.size // nrhs
     z = np.empty(_SMALL)
-    for f in order:
+    for k in range(order.size):
+        f = order[k]
+        if k + 1 < order.size:  # the next front's factor columns, while this one is computed
+            g = order[k + 1]
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g])
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         if nf <= _SMALL:  # compiled loops: y_s <- L11^-1 y_s, tmp = L21 y_s
             l0 = np.uint64(l_ptr[f])
@@ -367,6 +421,9 @@ def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, 
     ldy = y.size // nrhs
     for k in range(order.size - 1, -1, -1):
         f = order[k]
+        if k > 0:  # the next front's factor columns, while this one is computed
+            g = order[k - 1]
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g])
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         if nf <= _SMALL:  # compiled loops: y_s <- L11^-T (y_s - L21^T y_B)
             l0 = np.uint64(l_ptr[f])
@@ -585,8 +642,15 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
     dp = _CONST
     cL, cN, cT = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2
     one, mone, zero = dp.ctypes.data, dp.ctypes.data + 8, dp.ctypes.data + 16
+    nw = ro_pos.shape[1]
     for k in range(order.size - 1, -1, -1):
         f = order[k]
+        if k > 0:  # the next front's factor columns and read-out maps, while this one is computed
+            g = order[k - 1]
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g])
+            _prefetch(ro_pos, ro_ptr[g] * nw, ro_ptr[g + 1] * nw)
+            _prefetch(ro_wgt, ro_ptr[g] * nw, ro_ptr[g + 1] * nw)
+            _prefetch(ro_out, ro_ptr[g], ro_ptr[g + 1])
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         S = sig[sig_off[f] : sig_off[f] + nf * nf]
         L = lbuf[l_ptr[f] : l_ptr[f] + nf * no]
