@@ -113,16 +113,16 @@ _CONST = np.array([1.0, -1.0, 0.0])  # alpha / beta values
 
 
 @nb.njit(**_FAST)
-def _tri_inv(A, off, n, lda, ip):
+def _tri_inv(A, off, n, lda, ip, t):
     """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
 
     Blocked as LAPACK's dtrtri, but every off-diagonal step is a dtrmm with an already inverted
     block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is much slower than
-    dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops.
+    dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops, with
+    ``t`` (_BLOCK,) as scratch (passed in: the factorisation calls this once per front).
     """
     ch = _CHARS
     dp = _CONST
-    t = np.empty(_BLOCK)
     ulda = np.uint64(lda)
     j = ((n - 1) // _BLOCK) * _BLOCK
     while j >= 0:
@@ -164,7 +164,7 @@ def _inverse_from_cholesky(A, n, ip):
 
     L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: what dpotri computes, without dtrsm.
     """
-    _tri_inv(A, 0, n, n, ip)
+    _tri_inv(A, 0, n, n, ip, np.empty(_BLOCK))
     ip[0], ip[1] = n, 0
     _dlauum(_CHARS.ctypes.data, ip.ctypes.data, A.ctypes.data, ip.ctypes.data, ip.ctypes.data + 4)
     return ip[1]
@@ -256,6 +256,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)  # integer scalars passed by reference
     ip2 = np.zeros(4, dtype=np.int32)
+    tri = np.empty(_BLOCK)  # scratch of _tri_inv
     dp = _CONST
     cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
@@ -313,7 +314,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
         logdet += ld
         if save:
             front_ld[f] = ld
-        _tri_inv(F, 0, no, nf, ip2)
+        _tri_inv(F, 0, no, nf, ip2, tri)
         _flush(F, 0, no, no, nf)
         if nbf > 0 and not small:
             a21 = F.ctypes.data + no * 8
