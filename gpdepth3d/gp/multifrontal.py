@@ -14,8 +14,10 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from llvmlite import binding as llvm
+from llvmlite import ir
 from numba import types
-from numba.extending import get_cython_function_address
+from numba.core import cgutils
+from numba.extending import get_cython_function_address, intrinsic
 
 
 def _bind(lib: str, name: str, nargs: int):
@@ -61,6 +63,48 @@ def _flush(A, off, m, n, lda):
                 A[c + i] = 0.0
 
 
+def _prefetch_intrinsic(write: int):
+    """An intrinsic hinting the CPU to load the cache line at an address (an integer), for reading
+    (``write`` 0) or writing (1): LLVM's prefetch."""
+
+    @intrinsic
+    def prefetch_line(typingctx, address):
+        def codegen(context, builder, signature, args):
+            i8p = ir.IntType(8).as_pointer()
+            i32 = ir.IntType(32)
+            fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+            fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0i8")
+            builder.call(fn, [builder.inttoptr(args[0], i8p), i32(write), i32(3), i32(1)])
+            return context.get_dummy_value()
+
+        return types.void(types.intp), codegen
+
+    return prefetch_line
+
+
+_prefetch_read = _prefetch_intrinsic(0)
+_prefetch_write = _prefetch_intrinsic(1)
+
+
+@nb.njit(**_FLAGS)
+def _prefetch(a, lo, hi, write=False):
+    """Prefetches the entries lo .. hi of the contiguous array ``a`` (flat index), a cache line at a time.
+
+    The fronts' data (factor columns, assembly and read-out maps) stream from memory in pieces of
+    a few KiB, too short for the hardware prefetcher; asking for the next front's piece while this
+    front is computed hides that latency.
+    """
+    if hi <= lo:
+        return
+    base = a.ctypes.data
+    size = a.itemsize
+    for b in range(base + lo * size, base + hi * size, 64):
+        if write:
+            _prefetch_write(b)
+        else:
+            _prefetch_read(b)
+
+
 # Constants passed to LAPACK/BLAS by reference. Module-level arrays are frozen into the compiled
 # code as static data, so their addresses stay valid for the whole call (a local array's memory
 # is released after its last use in numba's IR, which is before the BLAS calls that read it).
@@ -69,16 +113,16 @@ _CONST = np.array([1.0, -1.0, 0.0])  # alpha / beta values
 
 
 @nb.njit(**_FAST)
-def _tri_inv(A, off, n, lda, ip):
+def _tri_inv(A, off, n, lda, ip, t):
     """In-place inverse of the lower-triangular n x n block of flat column-major ``A`` at ``off``.
 
     Blocked as LAPACK's dtrtri, but every off-diagonal step is a dtrmm with an already inverted
     block (OpenBLAS's dtrsm, which dtrtri and a plain triangular solve use, is much slower than
-    dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops.
+    dtrmm on these shapes); the 32 x 32 diagonal blocks are inverted by compiled loops, with
+    ``t`` (_BLOCK,) as scratch (passed in: the factorisation calls this once per front).
     """
     ch = _CHARS
     dp = _CONST
-    t = np.empty(_BLOCK)
     ulda = np.uint64(lda)
     j = ((n - 1) // _BLOCK) * _BLOCK
     while j >= 0:
@@ -120,7 +164,7 @@ def _inverse_from_cholesky(A, n, ip):
 
     L^-1 by `_tri_inv` (dtrmm-based), then (L^-1)^T L^-1 by LAPACK's dlauum: what dpotri computes, without dtrsm.
     """
-    _tri_inv(A, 0, n, n, ip)
+    _tri_inv(A, 0, n, n, ip, np.empty(_BLOCK))
     ip[0], ip[1] = n, 0
     _dlauum(_CHARS.ctypes.data, ip.ctypes.data, A.ctypes.data, ip.ctypes.data, ip.ctypes.data + 4)
     return ip[1]
@@ -212,12 +256,19 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)  # integer scalars passed by reference
     ip2 = np.zeros(4, dtype=np.int32)
+    tri = np.empty(_BLOCK)  # scratch of _tri_inv
     dp = _CONST
     cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
     logdet = 0.0
     skip = touched.size > 0
-    for f in order:
+    for k in range(order.size):
+        f = order[k]
+        if k + 1 < order.size:  # the next front's assembly map, while this one is computed
+            g = order[k + 1]
+            _prefetch(asm_pos, asm_ptr[g], asm_ptr[g + 1])
+            _prefetch(asm_src, asm_ptr[g], asm_ptr[g + 1])
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g], True)
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         if skip and not touched[f]:
             l0 = np.uint64(l_ptr[f])
@@ -263,7 +314,7 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
         logdet += ld
         if save:
             front_ld[f] = ld
-        _tri_inv(F, 0, no, nf, ip2)
+        _tri_inv(F, 0, no, nf, ip2, tri)
         _flush(F, 0, no, no, nf)
         if nbf > 0 and not small:
             a21 = F.ctypes.data + no * 8
@@ -312,7 +363,11 @@ def _forward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, t
     ldy = y.size // nrhs
     nseq = acc.size // nrhs
     z = np.empty(_SMALL)
-    for f in order:
+    for k in range(order.size):
+        f = order[k]
+        if k + 1 < order.size:  # the next front's factor columns, while this one is computed
+            g = order[k + 1]
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g])
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         if nf <= _SMALL:  # compiled loops: y_s <- L11^-1 y_s, tmp = L21 y_s
             l0 = np.uint64(l_ptr[f])
@@ -367,6 +422,9 @@ def _backward_run(order, st, no_, nb_, nf_, bnd_ptr, bnd, l_ptr, lbuf, y, nrhs, 
     ldy = y.size // nrhs
     for k in range(order.size - 1, -1, -1):
         f = order[k]
+        if k > 0:  # the next front's factor columns, while this one is computed
+            g = order[k - 1]
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g])
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         if nf <= _SMALL:  # compiled loops: y_s <- L11^-T (y_s - L21^T y_B)
             l0 = np.uint64(l_ptr[f])
@@ -501,6 +559,77 @@ def _w_columns(L, no, nbf, nf, W):
                 W[wj + i] = 0.0
 
 
+@nb.njit(**_FAST)
+def _lam_lower(L, S, no, nf):
+    """Lower triangle of L11^-T L11^-1 into the S_JJ block of ``S`` (both nf x nf-strided fronts), as
+    dot products of the columns of the stored L11^-1 (what dlauum computes, without call overhead)."""
+    uno, unf = np.uint64(no), np.uint64(nf)
+    for j in range(uno):
+        cj = j * unf
+        for i in range(j, uno):
+            ci = i * unf
+            acc = 0.0
+            for k in range(i, uno):
+                acc += L[ci + k] * L[cj + k]
+            S[cj + i] = acc
+
+
+@nb.njit(**_FAST)
+def _small_cov(S, no, nbf, nf, W):
+    """Sigma_BJ = -Sigma_BB W and the lower triangle of Sigma_JJ = L11^-T L11^-1 - Sigma_BJ^T W, in place.
+
+    ``S`` is a covariance front holding Sigma_BB (lower triangle) and L11^-T L11^-1 (lower) in
+    Sigma_JJ; ``W`` = L21 L11^-1 (nb x no, leading dimension nb). The products of dsymm and dgemm
+    in compiled loops, for the small fronts where those calls' overhead dominates: Sigma_BB is
+    mirrored into its upper triangle, so that Sigma_BJ is built from axpys of whole columns (loops
+    of one length, which vectorise) rather than from the triangle's ragged ones.
+    """
+    uno, unb, unf = np.uint64(no), np.uint64(nbf), np.uint64(nf)
+    for c in range(unb):
+        sc = uno + (uno + c) * unf
+        for i in range(c + np.uint64(1), unb):
+            S[uno + c + (uno + i) * unf] = S[sc + i]
+    for j in range(uno):
+        bj = uno + j * unf
+        for i in range(unb):
+            S[bj + i] = 0.0
+    for c in range(unb):
+        sc = uno + (uno + c) * unf
+        for j in range(uno):
+            wc = W[j * unb + c]
+            bj = uno + j * unf
+            for i in range(unb):
+                S[bj + i] -= S[sc + i] * wc
+    for j in range(uno):
+        wj = j * unb
+        for i in range(j, uno):
+            bi = uno + i * unf
+            acc = 0.0
+            for k in range(unb):
+                acc += S[bi + k] * W[wj + k]
+            S[i + j * unf] -= acc
+
+@nb.njit(**_FAST)
+def _readout_forms(S, nf, r0, r1, ro_out, ro_pos, ro_wgt, out):
+    """out[ro_out[r]] = w^T Sigma w for the read-outs r0 .. r1 of a covariance front ``S`` (lower triangle).
+
+    Each form as sum_a w_a (w_a Sigma_aa + 2 sum_{b<a} w_b Sigma_ab): every distinct entry read once.
+    """
+    unf = np.uint64(nf)
+    nw = ro_pos.shape[1]
+    for r in range(r0, r1):
+        acc = 0.0
+        for a in range(nw):
+            pa = np.uint64(ro_pos[r, a])
+            t = 0.0
+            for b in range(a):
+                pb = np.uint64(ro_pos[r, b])
+                t += ro_wgt[r, b] * (S[pa + pb * unf] if pa >= pb else S[pb + pa * unf])
+            wa = ro_wgt[r, a]
+            acc += wa * (wa * S[pa + pa * unf] + 2.0 * t)
+        out[ro_out[r]] = acc
+
+
 @nb.njit(**_FLAGS)
 def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, sig_off, sig, touched, prior_w,
                 w_ptr, prior_lam, lam_ptr, children_ptr, work, diag, ro_ptr, ro_out, ro_pos, ro_wgt, out):
@@ -517,6 +646,12 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
     nw = ro_pos.shape[1]
     for k in range(order.size - 1, -1, -1):
         f = order[k]
+        if k > 0:  # the next front's factor columns and read-out maps, while this one is computed
+            g = order[k - 1]
+            _prefetch(lbuf, l_ptr[g], l_ptr[g] + nf_[g] * no_[g])
+            _prefetch(ro_pos, ro_ptr[g] * nw, ro_ptr[g + 1] * nw)
+            _prefetch(ro_wgt, ro_ptr[g] * nw, ro_ptr[g + 1] * nw)
+            _prefetch(ro_out, ro_ptr[g], ro_ptr[g + 1])
         no, nbf, nf, s = no_[f], nb_[f], nf_[f], st[f]
         S = sig[sig_off[f] : sig_off[f] + nf * nf]
         L = lbuf[l_ptr[f] : l_ptr[f] + nf * no]
@@ -557,6 +692,12 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                 for i in range(j, no):
                     S[i + j * nf] = prior_lam[lam0 + i + j * no]
             wp = prior_w[w_ptr[f] :].ctypes.data
+            if nf <= _SMALL:
+                _small_cov(S, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no])
+        elif nf <= _SMALL:  # compiled loops instead of dlauum, dtrmm, dsymm and dgemm
+            _lam_lower(L, S, no, nf)
+            _w_columns(L, no, nbf, nf, work)
+            _small_cov(S, no, nbf, nf, work)
         else:
             for j in range(no):
                 for i in range(j, no):
@@ -565,7 +706,7 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
             wp = work.ctypes.data
             if nbf > 0:
                 _w_block(L, no, nbf, nf, work, ip)
-        if nbf > 0:
+        if nbf > 0 and nf > _SMALL:
             sbj = S.ctypes.data + no * 8
             _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
                    ip.ctypes.data + 4, wp, ip.ctypes.data + 16, zero, sbj, ip.ctypes.data + 4)
@@ -574,15 +715,7 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
         _flush(S, 0, nf, no, nf)
         for j in range(no):
             diag[s + j] = S[j * (nf + 1)]
-        for r in range(ro_ptr[f], ro_ptr[f + 1]):
-            acc = 0.0
-            for a in range(nw):
-                pa = ro_pos[r, a]
-                for b in range(nw):
-                    pb = ro_pos[r, b]
-                    v = S[pa + pb * nf] if pa >= pb else S[pb + pa * nf]
-                    acc += ro_wgt[r, a] * ro_wgt[r, b] * v
-            out[ro_out[r]] = acc
+        _readout_forms(S, nf, ro_ptr[f], ro_ptr[f + 1], ro_out, ro_pos, ro_wgt, out)
 
 
 @nb.njit(**_FLAGS)
