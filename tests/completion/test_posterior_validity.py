@@ -324,3 +324,26 @@ def test_assemble_gives_a_variance_for_any_slope_and_weights(a, lz, s, tau, var_
         variance=True,
     )
     assert np.all(mean > 0) and np.all(var >= 0)  # NaN fails both
+
+
+def test_read_out_centres_in_the_pass_and_counts_the_pixels_that_overflow():
+    """`_read_out` with ``centre`` gives `assemble` of the centred map bit for bit (serial and parallel sizes), and
+    counts the pixels whose mean is not finite and > 0 or whose variance is not finite (`assemble_depth` refuses
+    those)."""
+    from gpdepth3d.completion.assemble import CHUNK, _read_out, assemble
+
+    rng = np.random.default_rng(5)
+    terms = dict(b=0.1, s2=0.04, tau2=4e-4, var_b=1e-4, var_a=3e-3, a=0.9, lz=0.7, floor=1e-3, scale_term=True)
+    for shape in ((4, 5), (3, CHUNK // 2 + 7)):
+        log_out, x_raw = rng.normal(1.0, 1.0, shape), rng.normal(2.0, 2.0, shape)
+        g_mean, g_var = rng.normal(0.0, 0.2, shape), rng.uniform(0.0, 0.04, shape)
+        w1, wx = rng.normal(0.5, 1.0, shape), rng.normal(0.0, 3.0, shape)
+        fields = (log_out, g_mean, g_var, w1, wx)
+        mean, var = assemble(*fields, x_raw - 2.5, **terms, slope_term=True, variance=True)
+        mean2, var2, bad = _read_out(*fields, x_raw, **terms, slope_term=True, variance=True, centre=2.5)
+        np.testing.assert_array_equal(mean2, mean)
+        np.testing.assert_array_equal(var2, var)
+        assert bad == 0
+        log_out[0, :2] = 800.0  # exp overflows: inf
+        g_var[1, 0] = np.nan
+        assert _read_out(*fields, x_raw, **terms, slope_term=True, variance=True, centre=2.5)[2] == 3
