@@ -65,8 +65,9 @@ def log_frame(
     rows, cols = grid_sparse.v.astype(np.int64), grid_sparse.u.astype(np.int64)
     z, sig = grid_sparse.depth, grid_sparse.sigma
     unit = 1.0 if config.units == "metres" else z
-    noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
-    stated = np.where(np.isfinite(sig), sig / z, 0.0) ** 2
+    given, relative = np.isfinite(sig), sig / z
+    noise = np.where(given, relative, config.sigma_meas * unit / z) ** 2
+    stated = np.where(given, relative, 0.0) ** 2
     log_mde = np.log(base)
     edge = edge_range_at(log_mde, rows, cols) if config.assembly.edge_sigma > 0 else np.zeros(rows.size)
     return LogFrame(base, log_mde, rows, cols, np.log(z), noise, stated, edge, tuple(out_shape))
