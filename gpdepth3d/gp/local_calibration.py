@@ -114,11 +114,8 @@ def local_variance_factor(
     sums, weights = sums.reshape(hb, wb), weights.reshape(hb, wb)
     sigma = radius / c
     size = 2 * int(math.ceil(3 * sigma)) + 1
-    # OpenCV's Gaussian blur: its kernel, applied by the separable filter directly (the same sums, without the blur's
-    # dispatch per call)
-    gauss = cv2.getGaussianKernel(size, sigma)
-    sums = cv2.sepFilter2D(sums, -1, gauss, gauss, borderType=cv2.BORDER_CONSTANT)
-    weights = cv2.sepFilter2D(weights, -1, gauss, gauss, borderType=cv2.BORDER_CONSTANT)
+    sums = cv2.GaussianBlur(sums, (size, size), sigma, borderType=cv2.BORDER_CONSTANT)
+    weights = cv2.GaussianBlur(weights, (size, size), sigma, borderType=cv2.BORDER_CONSTANT)
     w0 = prior_points / (2 * math.pi * sigma * sigma)  # a point's own weight under the blur
     factor = (np.maximum(sums, 0.0) + w0) / (np.maximum(weights, 0.0) + w0)
     if c > 1:
