@@ -120,13 +120,21 @@ def _assemble(
 ):  # pragma: no cover - compiled
     """The read-out of pixels lo..hi-1 (``x_out`` centred on ``centre`` here); returns 1 when one of them may have a
     mean that is not finite and > 0 or a variance that is not finite (the running sum of means and variances is
-    not finite, or their minimum mean not > 0), else 0."""
-    total, low = 0.0, math.inf
+    not finite, or their minimum mean not > 0), else 0.
+
+    Four passes, each pixel's operations those of the formula in its order: the exponent of rho, rho, the log mean
+    and v, the exponentials; the arithmetic's loops vectorise, the exponentials' calls have loops of their own.
+    ``mean`` holds rho, then the log mean, ``var`` v, until the last pass."""
+    if depth_aware:
+        for i in range(lo, hi):
+            w = w1[i] if abs(w1[i]) >= floor else 1.0  # rho = 1 there: the quotient is not used
+            mean[i] = -abs(a) * abs((x_out[i] - centre) - wx[i] / w) * inv_lz
+        for i in range(lo, hi):
+            mean[i] = math.exp(mean[i]) if abs(w1[i]) >= floor else 1.0
+    else:
+        mean[lo:hi] = 1.0
     for i in range(lo, hi):
-        x = x_out[i] - centre if depth_aware or slope_term else 0.0
-        rho = 1.0
-        if depth_aware and abs(w1[i]) >= floor:
-            rho = math.exp(-abs(a) * abs(x - wx[i] / w1[i]) * inv_lz)
+        rho = mean[i]
         mu = log_out[i] + b + rho * g_mean[i]
         v = 0.0
         if want_var:
@@ -140,14 +148,18 @@ def _assemble(
                 bt = var_b
             v = gv + tau2 + bt
             if slope_term:
-                t = x - rho * wx[i]
+                t = (x_out[i] - centre) - rho * wx[i]
                 v += var_a * t * t
-        m = math.exp(mu + 0.5 * v)
+            var[i] = v
+        mean[i] = mu + 0.5 * v
+    total, low = 0.0, math.inf
+    for i in range(lo, hi):
+        m = math.exp(mean[i])
         mean[i] = m
         low = min(low, m)
         total += m
         if want_var:
-            vv = math.expm1(v) * m * m
+            vv = math.expm1(var[i]) * m * m
             var[i] = vv
             total += vv
     return 0 if math.isfinite(total) and low > 0.0 else 1
