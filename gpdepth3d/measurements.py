@@ -255,6 +255,8 @@ class SparseDepth:
         row, col = self.pixel_indices(shape)
         flat = row * shape[1] + col
         keep = None
+        if flat.size == 1 or np.all(flat[1:] > flat[:-1]):  # already one point per pixel, by pixel (a rasterisation)
+            return SparseDepth(col.astype(np.float64), row.astype(np.float64), self.depth, shape, self.sigma)
         if shape[0] * shape[1] <= 16 * flat.size:  # dense points: a pixel table instead of a sort
             slot = np.full(shape[0] * shape[1], -1, dtype=np.int64)
             slot[flat] = np.arange(flat.size)

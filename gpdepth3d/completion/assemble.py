@@ -58,11 +58,11 @@ def assemble_depth(
     mde_out = frame.to_output(mde)
     log_out = sloped.log_mde if frame.same_grid else np.log(mde_out)
     x_out = None
-    if lattice.depth_aware or lattice.slope_term:  # the raw log MDE, centred
-        x_out = (frame.log_mde if frame.same_grid else np.log(frame.to_output(frame.base))) - lattice.centre
+    if lattice.depth_aware or lattice.slope_term:  # the raw log MDE (centred on lattice.centre in the pass)
+        x_out = frame.log_mde if frame.same_grid else np.log(frame.to_output(frame.base))
     w1 = field.extra[0] if field.extra else None
     wx = field.extra[1] if len(field.extra) > 1 else None
-    mean, var = assemble(
+    mean, var, bad = _read_out(
         log_out,
         field.mean,
         field.variance,
@@ -80,13 +80,13 @@ def assemble_depth(
         scale_term=lattice.scale_term,
         slope_term=lattice.slope_term,
         variance=True,
+        centre=lattice.centre,
     )
-    if not (mean.min() > 0 and np.isfinite(mean.max()) and np.isfinite(var.min()) and np.isfinite(var.max())):
-        bad = ~(np.isfinite(mean) & (mean > 0) & np.isfinite(var))  # NaN reaches min and max too
+    if bad:
         raise InvalidInputError(
             "mde_depth, sparse",
             "an MDE and points whose log-normal posterior is finite in float64",
-            f"{int(np.count_nonzero(bad))} pixels overflow (MDE depths {float(frame.base.min()):g}-"
+            f"{bad} pixels overflow (MDE depths {float(frame.base.min()):g}-"
             f"{float(frame.base.max()):g} m, fitted slope {sloped.a:.3g})",
         )
     return DepthMoments(mean, var, mde_out)
@@ -114,13 +114,27 @@ def _assemble(
     want_var,
     mean,
     var,
+    centre,
     lo,
     hi,
 ):  # pragma: no cover - compiled
+    """The read-out of pixels lo..hi-1 (``x_out`` centred on ``centre`` here); returns 1 when one of them may have a
+    mean that is not finite and > 0 or a variance that is not finite (the running sum of means and variances is
+    not finite, or their minimum mean not > 0), else 0.
+
+    Four passes, each pixel's operations those of the formula in its order: the exponent of rho, rho, the log mean
+    and v, the exponentials; the arithmetic's loops vectorise, the exponentials' calls have loops of their own.
+    ``mean`` holds rho, then the log mean, ``var`` v, until the last pass."""
+    if depth_aware:
+        for i in range(lo, hi):
+            w = w1[i] if abs(w1[i]) >= floor else 1.0  # rho = 1 there: the quotient is not used
+            mean[i] = -abs(a) * abs((x_out[i] - centre) - wx[i] / w) * inv_lz
+        for i in range(lo, hi):
+            mean[i] = math.exp(mean[i]) if abs(w1[i]) >= floor else 1.0
+    else:
+        mean[lo:hi] = 1.0
     for i in range(lo, hi):
-        rho = 1.0
-        if depth_aware and abs(w1[i]) >= floor:
-            rho = math.exp(-abs(a) * abs(x_out[i] - wx[i] / w1[i]) * inv_lz)
+        rho = mean[i]
         mu = log_out[i] + b + rho * g_mean[i]
         v = 0.0
         if want_var:
@@ -134,12 +148,21 @@ def _assemble(
                 bt = var_b
             v = gv + tau2 + bt
             if slope_term:
-                t = x_out[i] - rho * wx[i]
+                t = (x_out[i] - centre) - rho * wx[i]
                 v += var_a * t * t
-        m = math.exp(mu + 0.5 * v)
+            var[i] = v
+        mean[i] = mu + 0.5 * v
+    total, low = 0.0, math.inf
+    for i in range(lo, hi):
+        m = math.exp(mean[i])
         mean[i] = m
+        low = min(low, m)
+        total += m
         if want_var:
-            var[i] = math.expm1(v) * m * m
+            vv = math.expm1(var[i]) * m * m
+            var[i] = vv
+            total += vv
+    return 0 if math.isfinite(total) and low > 0.0 else 1
 
 
 #: Output pixels per parallel chunk of `_assemble_parallel`; smaller outputs run on the calling thread.
@@ -150,8 +173,10 @@ CHUNK = 65536
 def _assemble_parallel(*args):  # pragma: no cover - compiled
     """`_assemble` over chunks of `CHUNK` pixels in parallel (each pixel's arithmetic is the serial one)."""
     n = args[0].size
+    suspect = 0
     for c in prange((n + CHUNK - 1) // CHUNK):
-        _assemble(*args, c * CHUNK, min(n, (c + 1) * CHUNK))
+        suspect += _assemble(*args, c * CHUNK, min(n, (c + 1) * CHUNK))
+    return suspect
 
 
 def assemble(
@@ -160,9 +185,37 @@ def assemble(
     """Posterior mean and variance (depth, m and m^2) of every output pixel, as arrays (the compiled pass).
 
     ``w1``, ``wx``, ``x_out`` may be None when neither the depth-aware correlation (``lz`` None),
-    the scale term nor the slope term needs them; ``g_var`` may be None without ``variance``.
+    the scale term nor the slope term needs them (``x_out`` centred); ``g_var`` may be None without ``variance``.
     Returns (mean, variance) with the shape of ``log_out`` (variance NaN without ``variance``).
     """
+    terms = dict(b=b, s2=s2, tau2=tau2, var_b=var_b, var_a=var_a, a=a, lz=lz, floor=floor, scale_term=scale_term)
+    mean, var, _ = _read_out(log_out, g_mean, g_var, w1, wx, x_out, **terms, slope_term=slope_term, variance=variance)
+    return mean, var
+
+
+def _read_out(
+    log_out,
+    g_mean,
+    g_var,
+    w1,
+    wx,
+    x_out,
+    *,
+    b,
+    s2,
+    tau2,
+    var_b,
+    var_a,
+    a,
+    lz,
+    floor,
+    scale_term,
+    slope_term,
+    variance,
+    centre=0.0,
+):
+    """`assemble` with ``x_out`` centred on ``centre`` in the pass; also returns how many pixels have a mean that is
+    not finite and > 0 or (with ``variance``) a variance that is not finite (counted only when the pass saw one)."""
     shape = log_out.shape
     flat = lambda x: np.ascontiguousarray(x, dtype=np.float64).ravel()  # noqa: E731
     zeros = np.zeros(1)
@@ -170,7 +223,7 @@ def assemble(
     mean = np.empty(log_out.size)
     var = np.empty(log_out.size) if variance else zeros
     kernel = _assemble_parallel if log_out.size > CHUNK else _assemble
-    kernel(
+    suspect = kernel(
         flat(log_out),
         flat(g_mean),
         flat(g_var) if variance else zeros,
@@ -191,6 +244,11 @@ def assemble(
         bool(variance),
         mean,
         var,
+        float(centre),
         *((0, log_out.size) if kernel is _assemble else ()),
     )
-    return mean.reshape(shape), (var.reshape(shape) if variance else np.full(shape, np.nan))
+    mean, var = mean.reshape(shape), (var.reshape(shape) if variance else np.full(shape, np.nan))
+    bad = 0
+    if suspect:  # NaN fails every comparison
+        bad = int(np.count_nonzero(~((mean > 0) & np.isfinite(mean) & (np.isfinite(var) if variance else True))))
+    return mean, var, bad

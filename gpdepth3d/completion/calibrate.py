@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..gp.local_calibration import local_variance_factor
 from ..gp.model import DepthGPConfig
@@ -35,16 +36,27 @@ def calibrate(
     """Adds the edge term (``assembly.edge_sigma`` x the MDE's local depth range, scaled by exp(b)) and multiplies by the
     local factor of the points' squared z-scores (`gpdepth3d.gp.local_calibration`; frames with fewer than
     ``calibration.min_points`` kept points keep the model's variance)."""
-    var = moments.variance
-    h, w = frame.shape
-    if config.assembly.edge_sigma > 0:
-        window = 2 * int(np.ceil(max(frame.out_shape[0] / h, frame.out_shape[1] / w))) + 1
-        edge = edge_range(moments.mde, window)  # its own array: scaled and squared in place
-        edge *= config.assembly.edge_sigma * np.exp(screened.fit.log_scale)
-        var = var + np.square(edge, out=edge)
+    factor = None
     keep = screened.keep
-    if config.calibration.reach is None or np.count_nonzero(keep) < config.calibration.min_points:
-        return Calibrated(var, None)
+    if config.calibration.reach is not None and np.count_nonzero(keep) >= config.calibration.min_points:
+        factor = frame.to_output(_local_factor(frame, sloped, screened, config))
+    var = moments.variance  # the moments' array is left as it was
+    if config.assembly.edge_sigma > 0:
+        h, w = frame.shape
+        half = int(np.ceil(max(frame.out_shape[0] / h, frame.out_shape[1] / w)))
+        scale = config.assembly.edge_sigma * np.exp(screened.fit.log_scale)
+        out = np.empty(var.shape)
+        mde = np.ascontiguousarray(moments.mde, dtype=np.float64)
+        use = factor is not None
+        _edge_variance(var, mde, half, float(scale), factor if use else var, use, out)
+        return Calibrated(out, factor)
+    return Calibrated(var if factor is None else var * factor, factor)
+
+
+def _local_factor(frame: LogFrame, sloped: Sloped, screened: Screened, config: DepthGPConfig) -> np.ndarray:
+    """The local calibration's factor on the GP grid, from the kept points' z-scores (computed here when no screen
+    ran)."""
+    keep = screened.keep
     zscores, shares = screened.zscores, screened.shares
     if config.screen.outlier_threshold is None:  # no screen ran: the z-scores computed here
         with single_threaded_blas():
@@ -58,7 +70,7 @@ def calibrate(
                 neighbours=config.screen.neighbours,
                 stated=frame.stated,
             )
-    factor = local_variance_factor(
+    return local_variance_factor(
         frame.shape,
         frame.rows[keep],
         frame.cols[keep],
@@ -68,11 +80,38 @@ def calibrate(
         zscore_cap=config.calibration.zscore_cap,
         noise_share=shares[keep],
     )
-    factor = frame.to_output(factor)
-    if var is moments.variance:  # the moments' array is left as it was
-        return Calibrated(var * factor, factor)
-    var *= factor
-    return Calibrated(var, factor)
+
+
+@njit(cache=True, nogil=True)
+def _edge_variance(var, mde, half, scale, factor, use_factor, out):  # pragma: no cover - compiled
+    """out = (var + (scale x edge range)^2) x factor in one pass over the rows (the factor only with ``use_factor``),
+    the edge range being `edge_range`'s with window 2 half + 1: per row, each column's max and min over the window's
+    rows, then over the window's columns, each step a loop over the row that vectorises (max and min are exact, so
+    this is the morphology's value)."""
+    h, w = mde.shape
+    col_hi, col_lo, hi, lo = np.empty(w), np.empty(w), np.empty(w), np.empty(w)
+    for i in range(h):
+        r0, r1 = max(i - half, 0), min(i + half, h - 1)
+        for j in range(w):
+            col_hi[j] = mde[r0, j]
+            col_lo[j] = mde[r0, j]
+        for r in range(r0 + 1, r1 + 1):
+            for j in range(w):
+                col_hi[j] = max(col_hi[j], mde[r, j])
+                col_lo[j] = min(col_lo[j], mde[r, j])
+        hi[:] = col_hi
+        lo[:] = col_lo
+        for d in range(1, half + 1):
+            for j in range(w - d):
+                hi[j] = max(hi[j], col_hi[j + d])
+                lo[j] = min(lo[j], col_lo[j + d])
+            for j in range(d, w):
+                hi[j] = max(hi[j], col_hi[j - d])
+                lo[j] = min(lo[j], col_lo[j - d])
+        for j in range(w):
+            e = (hi[j] - lo[j]) * scale
+            v = var[i, j] + e * e
+            out[i, j] = v * factor[i, j] if use_factor else v
 
 
 def edge_range(depth: np.ndarray, window: int) -> np.ndarray:

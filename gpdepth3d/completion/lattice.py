@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -42,6 +43,15 @@ class Lattice:
     depth_aware: bool
     scale_term: bool
     slope_term: bool
+
+
+@lru_cache(maxsize=8)
+def _zeros(shape: tuple[int, int]) -> np.ndarray:
+    """A read-only (H, W) map of zeros, one per shape: the field's prior mean on the lattice and on the output grid
+    is the same every frame of a sequence, so it is made (and its pages touched) once, not per frame."""
+    out = np.zeros(shape)
+    out.setflags(write=False)
+    return out
 
 
 def lattice_stride(
@@ -88,18 +98,20 @@ def build_lattice(
     r, c = frame.rows[keep], frame.cols[keep]
     k = lattice_stride(config, h, w, r.size, fit.lengthscale, frame.out_shape, stride)
     hl, wl = -(-h // k), -(-w // k)
-    off_r, off_c = r - (k * (r // k) + (k - 1) / 2), c - (k * (c // k) + (k - 1) / 2)
+    node_r, node_c = r // k, c // k
+    off_r, off_c = r - (k * node_r + (k - 1) / 2), c - (k * node_c + (k - 1) / 2)
     between = (
         2 * fit.outputscale**2 * (1 - separable_correlation(off_r, off_c, fit.lengthscale, config.nu)) if k > 1 else 0.0
     )
     white = fit.nugget**2 + frame.noise[keep]
     precision_pt = 1.0 / (white + between)
-    cell = (r // k) * wl + c // k
+    cell = node_r * wl + node_c
     precision = np.bincount(cell, precision_pt, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)
+    observed = precision > 0
 
     def on_lattice(values):  # per-point values -> the precision-weighted mean at each node
         out = np.bincount(cell, precision_pt * values, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)
-        np.divide(out, precision, out=out, where=precision > 0)
+        np.divide(out, precision, out=out, where=observed)
         return out
 
     targets = [sloped.resid[keep] - fit.log_scale]
@@ -112,12 +124,12 @@ def build_lattice(
         targets.append(np.ones(r.size))
     if depth_aware or slope_term:
         targets.append(x_pts - centre)
-    extra = (np.where(precision > 0, 1.0, 0.0),) + tuple(on_lattice(t) for t in targets[2:]) if len(targets) > 1 else ()
+    extra = (observed.astype(np.float64),) + tuple(on_lattice(t) for t in targets[2:]) if len(targets) > 1 else ()
     out_rows = (output_coordinates(h, frame.out_shape[0]) - (k - 1) / 2) / k
     out_cols = (output_coordinates(w, frame.out_shape[1]) - (k - 1) / 2) / k
     kernel = Kernel(config.nu, fit.lengthscale / k, fit.outputscale)
     problem = GridProblem(
-        np.zeros((hl, wl)), on_lattice(targets[0]), precision, out_rows, out_cols, np.zeros(frame.out_shape), kernel
+        _zeros((hl, wl)), on_lattice(targets[0]), precision, out_rows, out_cols, _zeros(frame.out_shape), kernel
     )
     return Lattice(
         k,

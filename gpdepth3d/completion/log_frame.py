@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numba import njit
 
 from ..depthmap import fill_nearest, resize_map
 from ..gp.model import DepthGPConfig
@@ -69,8 +71,9 @@ def log_frame(
     rows, cols = grid_sparse.v.astype(np.int64), grid_sparse.u.astype(np.int64)
     z, sig = grid_sparse.depth, grid_sparse.sigma
     unit = 1.0 if config.units == "metres" else z
-    noise = np.where(np.isfinite(sig), sig / z, config.sigma_meas * unit / z) ** 2
-    stated = np.where(np.isfinite(sig), sig / z, 0.0) ** 2
+    given, relative = np.isfinite(sig), sig / z
+    noise = np.where(given, relative, config.sigma_meas * unit / z) ** 2
+    stated = np.where(given, relative, 0.0) ** 2
     log_mde = np.log(base)
     edge = edge_range_at(log_mde, rows, cols) if config.assembly.edge_sigma > 0 else np.zeros(rows.size)
     return LogFrame(base, log_mde, rows, cols, np.log(z), noise, stated, edge, tuple(out_shape))
@@ -78,8 +81,22 @@ def log_frame(
 
 def edge_range_at(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N,) max - min of ``depth`` over the 3 x 3 pixels around (rows, cols) (borders: the edge pixel repeated)."""
+    out = np.empty(rows.size)
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    _edge_range_at(depth, np.asarray(rows, np.int64), np.asarray(cols, np.int64), out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _edge_range_at(depth, rows, cols, out):  # pragma: no cover - compiled
+    """One pass over the points: the nine neighbours of each read where they lie (one compiled loop, not nine gathers
+    of the whole point set)."""
     h, w = depth.shape
-    around = [
-        depth[np.clip(rows + dr, 0, h - 1), np.clip(cols + dc, 0, w - 1)] for dr in (-1, 0, 1) for dc in (-1, 0, 1)
-    ]
-    return np.max(around, axis=0) - np.min(around, axis=0)
+    for k in range(rows.size):
+        hi, lo = -math.inf, math.inf
+        for dr in range(-1, 2):
+            i = min(max(rows[k] + dr, 0), h - 1)
+            for dc in range(-1, 2):
+                x = depth[i, min(max(cols[k] + dc, 0), w - 1)]
+                hi, lo = max(hi, x), min(lo, x)
+        out[k] = hi - lo

@@ -117,7 +117,9 @@ def local_variance_factor(
     sums = cv2.GaussianBlur(sums, (size, size), sigma, borderType=cv2.BORDER_CONSTANT)
     weights = cv2.GaussianBlur(weights, (size, size), sigma, borderType=cv2.BORDER_CONSTANT)
     w0 = prior_points / (2 * math.pi * sigma * sigma)  # a point's own weight under the blur
-    factor = (np.maximum(sums, 0.0) + w0) / (np.maximum(weights, 0.0) + w0)
+    factor = np.maximum(sums, 0.0, out=sums)  # the blurred maps are this function's own: the factor made in place
+    factor += w0
+    factor /= np.add(np.maximum(weights, 0.0, out=weights), w0, out=weights)
     if c > 1:
         factor = cv2.resize(factor, (wb * c, hb * c), interpolation=cv2.INTER_LINEAR)[:h, :w]
     return np.ascontiguousarray(factor)

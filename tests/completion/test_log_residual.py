@@ -382,6 +382,21 @@ def test_edge_range_equals_scipy_max_minus_min_filter():
         np.testing.assert_array_equal(_edge_range(depth, window), expected)
 
 
+def test_edge_variance_pass_equals_the_morphology_formula():
+    """The calibration's one compiled pass gives (var + (scale x edge range)^2) x factor bit for bit, borders included."""
+    from gpdepth3d.completion.calibrate import _edge_variance, edge_range
+
+    rng = np.random.default_rng(2)
+    for shape, half in (((17, 23), 1), ((40, 61), 3), ((5, 4), 4), ((2, 2), 1)):
+        mde, var, factor = rng.uniform(0.5, 20.0, shape), rng.uniform(0.0, 3.0, shape), rng.uniform(0.2, 4.0, shape)
+        edge = edge_range(mde, 2 * half + 1) * 0.37
+        for use in (False, True):
+            out = np.empty(shape)
+            _edge_variance(var, mde, half, 0.37, factor if use else var, use, out)
+            expected = var + edge**2
+            np.testing.assert_array_equal(out, expected * factor if use else expected)
+
+
 class TestLattice:
     """The field's lattice: every pixel, 2nd or 4th (`lattice_stride`)."""
 

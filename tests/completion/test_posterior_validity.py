@@ -324,3 +324,65 @@ def test_assemble_gives_a_variance_for_any_slope_and_weights(a, lz, s, tau, var_
         variance=True,
     )
     assert np.all(mean > 0) and np.all(var >= 0)  # NaN fails both
+
+
+def test_read_out_centres_in_the_pass_and_counts_the_pixels_that_overflow():
+    """`_read_out` with ``centre`` gives `assemble` of the centred map bit for bit (serial and parallel sizes), and
+    counts the pixels whose mean is not finite and > 0 or whose variance is not finite (`assemble_depth` refuses
+    those)."""
+    from gpdepth3d.completion.assemble import CHUNK, _read_out, assemble
+
+    rng = np.random.default_rng(5)
+    terms = dict(b=0.1, s2=0.04, tau2=4e-4, var_b=1e-4, var_a=3e-3, a=0.9, lz=0.7, floor=1e-3, scale_term=True)
+    for shape in ((4, 5), (3, CHUNK // 2 + 7)):
+        log_out, x_raw = rng.normal(1.0, 1.0, shape), rng.normal(2.0, 2.0, shape)
+        g_mean, g_var = rng.normal(0.0, 0.2, shape), rng.uniform(0.0, 0.04, shape)
+        w1, wx = rng.normal(0.5, 1.0, shape), rng.normal(0.0, 3.0, shape)
+        fields = (log_out, g_mean, g_var, w1, wx)
+        mean, var = assemble(*fields, x_raw - 2.5, **terms, slope_term=True, variance=True)
+        mean2, var2, bad = _read_out(*fields, x_raw, **terms, slope_term=True, variance=True, centre=2.5)
+        np.testing.assert_array_equal(mean2, mean)
+        np.testing.assert_array_equal(var2, var)
+        assert bad == 0
+        log_out[0, :2] = 800.0  # exp overflows: inf
+        g_var[1, 0] = np.nan
+        assert _read_out(*fields, x_raw, **terms, slope_term=True, variance=True, centre=2.5)[2] == 3
+
+
+@pytest.mark.parametrize("lz", [None, 0.7])
+@pytest.mark.parametrize("scale_term", [False, True])
+@pytest.mark.parametrize("slope_term", [False, True])
+@pytest.mark.parametrize("variance", [False, True])
+def test_assemble_is_the_formula_of_its_module(lz, scale_term, slope_term, variance):
+    """The compiled read-out against the module docstring's formula in numpy, every switch on and off (pixels with
+    |w1| under the floor included: rho = 1 there)."""
+    from gpdepth3d.completion.assemble import assemble
+
+    rng = np.random.default_rng(7)
+    shape = (6, 9)
+    log_out, x_out = rng.normal(1.0, 1.0, shape), rng.normal(0.0, 2.0, shape)
+    g_mean, g_var = rng.normal(0.0, 0.2, shape), rng.uniform(-1e-9, 0.04, shape)
+    w1, wx = rng.normal(0.5, 1.0, shape), rng.normal(0.0, 3.0, shape)
+    w1[0, :3] = [0.0, 5e-4, -5e-4]
+    b, s2, tau2, var_b, var_a, a, floor = 0.1, 0.04, 4e-4, 1e-3, 3e-3, -0.9, 1e-3
+    mean, var = assemble(
+        log_out, g_mean, g_var, w1, wx, x_out, b=b, s2=s2, tau2=tau2, var_b=var_b, var_a=var_a, a=a, lz=lz,
+        floor=floor, scale_term=scale_term, slope_term=slope_term, variance=variance,
+    )  # fmt: skip
+    rho = np.ones(shape)
+    if lz is not None:
+        ok = np.abs(w1) >= floor
+        rho[ok] = np.exp(-abs(a) * np.abs(x_out - wx / np.where(ok, w1, 1.0)) / lz)[ok]
+    v = np.zeros(shape)
+    if variance:
+        gv = np.maximum(g_var, 0.0)
+        if lz is not None:
+            gv = (1 - rho**2) * s2 + rho**2 * gv
+        v = gv + tau2 + var_b * ((1 - rho * w1) ** 2 if scale_term else 1.0)
+        v += var_a * (x_out - rho * wx) ** 2 if slope_term else 0.0
+    expected = np.exp(log_out + b + rho * g_mean + v / 2)
+    np.testing.assert_allclose(mean, expected, rtol=1e-12)
+    if variance:
+        np.testing.assert_allclose(var, np.expm1(v) * expected**2, rtol=1e-12)
+    else:
+        assert np.all(np.isnan(var))

@@ -96,6 +96,12 @@ class TestStages:
         observed = np.unique((lattice.rows // 2) * 20 + lattice.cols // 2)
         assert np.count_nonzero(lattice.problem.precision) == observed.size
         assert lattice.targets.shape == (int(screened.keep.sum()), 3)  # residuals, ones, centred log MDE
+        np.testing.assert_array_equal(lattice.extra[0], lattice.problem.precision > 0)  # 1 at the observed nodes
+        again = build_lattice(frame, sloped, screened, config, stride=2)  # the prior means: zeros made once per shape
+        for prior in (lattice.problem.prior_mean, lattice.problem.out_prior_mean):
+            assert not prior.flags.writeable and not prior.any()
+        assert again.problem.out_prior_mean is lattice.problem.out_prior_mean
+        assert lattice.problem.out_prior_mean.shape == frame.out_shape
 
 
 class TestNestedConfigs:

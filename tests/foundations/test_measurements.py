@@ -165,6 +165,22 @@ class TestRasterize:
         twice = sd(np.r_[u, u], np.r_[v, v], np.r_[np.full(n, 5.0), np.full(n, 2.0)], size=(40, 60)).rasterize()
         assert len(twice) == n and np.all(twice.depth == 2.0)  # two per pixel: the nearer
 
+    def test_a_rasterisation_comes_back_as_it_is(self):
+        rng = np.random.default_rng(3)
+        flat = np.sort(rng.choice(40 * 60, 500, replace=False))  # one point per pixel, by pixel: the shortcut
+        u, v = flat % 60 + rng.uniform(-0.4, 0.4, 500), flat // 60 + rng.uniform(-0.4, 0.4, 500)
+        s = sd(u, v, rng.uniform(1.0, 9.0, 500), size=(40, 60))
+        r = s.rasterize()
+        np.testing.assert_array_equal(r.u, flat % 60)  # snapped to the pixel centres
+        np.testing.assert_array_equal(r.v, flat // 60)
+        np.testing.assert_array_equal(r.depth, s.depth)
+        again = r.rasterize()
+        assert all(
+            np.array_equal(getattr(again, k), getattr(r, k), equal_nan=True) for k in ("u", "v", "depth", "sigma")
+        )
+        one = sd([2.3], [1.6], [4.0], size=(40, 60)).rasterize()
+        assert (one.u[0], one.v[0], one.depth[0]) == (2.0, 2.0, 4.0)
+
     def test_to_depth_map_matches(self):
         s = sd([0.4, 0.2, 3], [0, 0.3, 2], [4.0, 2.0, 1.0])
         m = s.to_depth_map()
