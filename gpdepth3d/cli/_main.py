@@ -167,12 +167,21 @@ def _compile_notice(argv: list[str]):
     return on_first_compile(cold)
 
 
+def _idle_threads_sleep() -> None:
+    """The compiled kernels' OpenMP threads sleep between parallel regions instead of spinning, unless the user set
+    ``OMP_WAIT_POLICY``: on cores shared with other busy processes (a robot's SLAM, a second run) spinning threads
+    make a frame several times slower; alone on its cores it costs a few per cent (docs/engines.md, "Threads").
+    Read when the OpenMP runtime loads, so it is set before the first parallel kernel runs."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``gpdepth3d`` command.
 
     Every failure is one line on stderr and exit code 1 (a bad option value included); set
     GPDEPTH3D_DEBUG=1 to see the traceback of an unexpected error instead.
     """
+    _idle_threads_sleep()
     command = None
     show_warning = warnings.showwarning
     warnings.showwarning = _one_line_warning

@@ -389,3 +389,17 @@ class TestThirdPartyNoise:
         assert main(["demo", "--output", str(tmp_path / "d")]) == 0
         err = capsys.readouterr().err.strip().splitlines()
         assert err == ["gpdepth3d: warning: Something a user should see"]
+
+
+@pytest.mark.parametrize("given, expected", [(None, "PASSIVE"), ("ACTIVE", "ACTIVE")])
+def test_command_lets_idle_threads_sleep_unless_told(given, expected, monkeypatch, capsys):
+    """``gpdepth3d`` runs with OMP_WAIT_POLICY=PASSIVE (spinning threads slow a shared machine); a user's own
+    setting stands."""
+    import os
+
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    if given is not None:
+        monkeypatch.setenv("OMP_WAIT_POLICY", given)
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    assert os.environ["OMP_WAIT_POLICY"] == expected
