@@ -287,28 +287,36 @@ def _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, d
             dist[q, count] = 0
             count += 1
     dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
+    last = members.size - 1
     d = 1
     while count < k and d <= dmax:
         s0 = _ring_start(key[i], d)
-        side = s0 // d
+        side = (s0 >= d) + (s0 >= 2 * d) + (s0 >= 3 * d)  # s0 // d without an integer division (s0 < 4d)
         t = s0 - side * d
-        dr, dc = ring_offset(d, s0)
+        dr, dc = _side_offset(d, side, t)
         rr, cc = ri + dr, ci + dc
         for _ in range(4 * d):
             if rr >= 0 and rr < height and cc >= 0 and cc < width:
                 x = rr * width + cc
-                for a in range(start[x], start[x + 1]):
-                    if count < k and usable[members[a]]:
-                        nn[q, count] = members[a]
-                        dist[q, count] = d
-                        count += 1
+                a0, a1 = start[x], start[x + 1]
+                if a1 - a0 <= 1 and last >= 0:  # no member or one: written, then counted if real and usable
+                    p = members[min(a0, last)]  # (no branch on the pixel's occupancy, which is as good as random)
+                    nn[q, count] = p
+                    dist[q, count] = d
+                    count += int(a1 > a0) & int(usable[p])
+                else:
+                    for a in range(a0, a1):
+                        if count < k and usable[members[a]]:
+                            nn[q, count] = members[a]
+                            dist[q, count] = d
+                            count += 1
                 if count == k:
                     break
             t += 1
             if t == d:  # the next side starts at a corner
                 t = 0
                 side = (side + 1) & 3
-                dr, dc = ring_offset(d, side * d)
+                dr, dc = _side_offset(d, side, 0)
                 rr, cc = ri + dr, ci + dc
             else:  # along the side: sides 0 .. 3 step (+1, +1), (+1, -1), (-1, -1), (-1, +1)
                 rr += 1 if side < 2 else -1
@@ -401,7 +409,13 @@ def _diamond(q, guess, r, c, width, height, start, members, column, usable, key,
 def ring_offset(d, pos):
     """(row, column) offset of position ``pos`` (0 .. 4d - 1) on the ring of L1 radius d >= 1, clockwise from the top."""
     side = pos // d
-    t = pos - side * d
+    return _side_offset(d, side, pos - side * d)
+
+
+@nb.njit(**_FLAGS)
+def _side_offset(d, side, t):
+    """`ring_offset` of the position t (0 .. d - 1) along side ``side`` (0 .. 3) of the ring of radius d (the walk
+    steps along the sides: an integer division per pixel would cost more than reading it)."""
     if side == 0:
         return -d + t, t
     if side == 1:
