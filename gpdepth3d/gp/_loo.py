@@ -363,46 +363,43 @@ def _diamond(q, guess, r, c, width, height, start, members, column, usable, key,
         if below >= k:
             far = d
             break
+    s0[0] = 0
     for d in range(1, far + 1):
         s0[d] = _ring_start(key[i], d)
     n = 0
-    for a in range(m):  # the candidates up to the k-th distance, keyed by (distance, ring position)
-        d = abs(cdr[a]) + abs(cdc[a])
-        if d <= far:
-            rel = 0
-            if d > 0:  # the position on the ring (the inverse of `ring_offset`) from the target's start
-                dr, dc = cdr[a], cdc[a]
-                if dr < 0 and dc >= 0:
-                    rel = dc
-                elif dr >= 0 and dc > 0:
-                    rel = d + dr
-                elif dr > 0 and dc <= 0:
-                    rel = 2 * d - dc
-                else:
-                    rel = 3 * d - dr
-                rel -= s0[d]
-                if rel < 0:
-                    rel += 4 * d
-            order[n] = d * (4 * far + 4) + rel
-            cand[n] = cand[a]
-            n += 1
-    for a in range(1, n):  # insertion sort, stable: a pixel's members stay in index order
-        o, p = order[a], cand[a]
-        b = a - 1
-        while b >= 0 and order[b] > o:
-            order[b + 1] = order[b]
-            cand[b + 1] = cand[b]
-            b -= 1
-        order[b + 1] = o
-        cand[b + 1] = p
-    count = min(n, k)
-    for a in range(count):
-        nn[q, a] = cand[a]
-        dist[q, a] = order[a] // (4 * far + 4)
-    for a in range(count, k):
+    for a in range(m):  # the candidates up to the k-th distance, keyed by (distance, ring position), without branches
+        dr, dc = cdr[a], cdc[a]
+        d = abs(dr) + abs(dc)
+        rel = _ring_position(dr, dc, d) - s0[min(d, far)]  # from the target's start (0 at d = 0)
+        rel += 4 * d * int(rel < 0)
+        order[n] = (d * (4 * far + 4) + rel) * m + n  # n: a pixel's members in index order (the keys distinct)
+        cand[n] = cand[a]
+        cdr[n] = d
+        n += int(d <= far)  # (written, then kept if within the k-th distance)
+    for a in range(min(n, k), k):
         nn[q, a] = -1
         dist[q, a] = -1
+    for a in range(n):  # each candidate's rank among the (distinct) keys, by comparisons without branches
+        o = order[a]
+        rank = 0
+        for b in range(n):
+            rank += int(order[b] < o)
+        if rank < k:
+            nn[q, rank] = cand[a]
+            dist[q, rank] = cdr[a]
     return far if m >= k else -1
+
+
+@nb.njit(**_FLAGS)
+def _ring_position(dr, dc, d):
+    """The position on the ring of radius d (the inverse of `ring_offset`) of the offset (dr, dc), d = |dr| + |dc|;
+    0 at d = 0. Arithmetic on the four sides' indicators, not branches: the sides of a target's candidates come
+    in no order a branch predictor could learn."""
+    top = int(dr < 0) & int(dc >= 0)
+    right = int(dr >= 0) & int(dc > 0)
+    bottom = int(dr > 0) & int(dc <= 0)
+    left = int(dr <= 0) & int(dc < 0)
+    return top * dc + right * (d + dr) + bottom * (2 * d - dc) + left * (3 * d - dr)
 
 
 @nb.njit(**_FLAGS)
