@@ -93,14 +93,14 @@ def _loo_lanes(lo, hi, z, share, rows, cols, r, noise, stated, targets, nn, s2, 
             for a in range(k):
                 ir[a, l] = int(rows[nn[q, a]])
                 ic[a, l] = int(cols[nn[q, a]])
-        for l in range(W):
-            q = q0 + min(l, n - 1)
-            for a in range(k):
+        for a in range(k):  # the lanes innermost here too: each entry's W values written side by side
+            for l in range(W):
                 y[a, l] = s2 * (er[abs(ri[l] - ir[a, l])] * ec[abs(ci[l] - ic[a, l])])
-                for b in range(a):
-                    A[a, b, l] = s2 * (er[abs(ir[a, l] - ir[b, l])] * ec[abs(ic[a, l] - ic[b, l])])
-                A[a, a, l] = s2 + tau2 + noise[nn[q, a]]
                 kx[a, l] = y[a, l]
+                A[a, a, l] = s2 + tau2 + noise[nn[q0 + min(l, n - 1), a]]
+            for b in range(a):
+                for l in range(W):
+                    A[a, b, l] = s2 * (er[abs(ir[a, l] - ir[b, l])] * ec[abs(ic[a, l] - ic[b, l])])
         ok[:] = True
         for j in range(k):  # Cholesky A = L L^T in the lower triangle, column j from its diagonal down
             for a in range(j, k):
