@@ -60,37 +60,36 @@ def _rho(r):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _bridge(x, y, k, n_nodes, inv_l):  # pragma: no cover - compiled
-    """1-D residual covariance E(x, y) of the unit exponential field given nodes k j + (k - 1) / 2, j < n_nodes."""
-    off = 0.5 * (k - 1)
-    jx = min(max(math.floor((x - off) / k), -1), n_nodes - 1)
-    jy = min(max(math.floor((y - off) / k), -1), n_nodes - 1)
-    rho = _rho(abs(x - y) * inv_l)
-    if jx != jy:
-        return 0.0
-    if jx < 0 or jx == n_nodes - 1:  # outside the first or last node: one node conditions
-        a = off if jx < 0 else off + k * (n_nodes - 1)
-        return rho - _rho(abs(x - a) * inv_l) * _rho(abs(y - a) * inv_l)
-    a = off + k * jx
-    b = a + k
-    rab = _rho(k * inv_l)
-    rax, rbx = _rho(abs(x - a) * inv_l), _rho(abs(x - b) * inv_l)
-    ray, rby = _rho(abs(y - a) * inv_l), _rho(abs(y - b) * inv_l)
-    explained = (rax * ray + rbx * rby - rab * (rax * rby + rbx * ray)) / (1.0 - rab * rab)
-    return rho - explained
-
-
-@njit(cache=True, nogil=True)
 def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - compiled
-    """(E, rho) of each target against the integer coordinates centre + d, d in [-reach, reach]."""
+    """(E, rho) of each target x against the integer coordinates y = centre + d, d in [-reach, reach]: rho the unit
+    exponential correlation, E(x, y) the 1-D residual covariance given nodes k j + (k - 1) / 2, j < n_nodes (an
+    Ornstein-Uhlenbeck bridge: zero unless x and y lie between the same two nodes, or beyond the same end node).
+    The target's own correlations with its nodes are computed once per target."""
     m = targets.shape[0]
     E = np.empty((m, 2 * reach + 1))
     R = np.empty((m, 2 * reach + 1))
+    off = 0.5 * (k - 1)
+    rab = _rho(k * inv_l)
     for i in range(m):
+        x = targets[i]
+        jx = min(max(math.floor((x - off) / k), -1), n_nodes - 1)
+        edge = jx < 0 or jx == n_nodes - 1  # outside the first or last node: one node conditions
+        a = (off if jx < 0 else off + k * (n_nodes - 1)) if edge else off + k * jx
+        b = a + k
+        rax, rbx = _rho(abs(x - a) * inv_l), _rho(abs(x - b) * inv_l)
         for d in range(-reach, reach + 1):
             y = float(centres[i] + d)
-            E[i, d + reach] = _bridge(targets[i], y, k, n_nodes, inv_l)
-            R[i, d + reach] = _rho(abs(targets[i] - y) * inv_l)
+            rho = _rho(abs(x - y) * inv_l)
+            R[i, d + reach] = rho
+            jy = min(max(math.floor((y - off) / k), -1), n_nodes - 1)
+            if jx != jy:
+                E[i, d + reach] = 0.0
+            elif edge:
+                E[i, d + reach] = rho - rax * _rho(abs(y - a) * inv_l)
+            else:
+                ray, rby = _rho(abs(y - a) * inv_l), _rho(abs(y - b) * inv_l)
+                explained = (rax * ray + rbx * rby - rab * (rax * rby + rbx * ray)) / (1.0 - rab * rab)
+                E[i, d + reach] = rho - explained
     return E, R
 
 
@@ -472,10 +471,13 @@ def sublattice_kriging(
     row_start = np.searchsorted(cr // k, np.arange(hl + 1)).astype(np.int64)
     col_start = np.searchsorted(cc // k, np.arange(wl + 1)).astype(np.int64)
     span = k + 2 * reach  # farthest offset between a window's pixel and a pixel of its cell, or two of its pixels
-    Er_o, Rr_o = _tables(out_rows, cr, k, hl, inv_l, span)
-    Ec_o, Rc_o = _tables(out_cols, cc, k, wl, inv_l, span)
     Er_p, Rr_p = _tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
     Ec_p, Rc_p = _tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
+    # at the grid's own pixels (how `gpdepth3d.completion` krigs) the output's tables are the points' tables
+    same_rows = np.array_equal(out_rows, np.arange(h))
+    same_cols = np.array_equal(out_cols, np.arange(w))
+    Er_o, Rr_o = (Er_p, Rr_p) if same_rows else _tables(out_rows, cr, k, hl, inv_l, span)
+    Ec_o, Rc_o = (Ec_p, Rc_p) if same_cols else _tables(out_cols, cc, k, wl, inv_l, span)
     corr = np.zeros((res.shape[1], out_rows.size, out_cols.size))
     vred = np.zeros((out_rows.size, out_cols.size))
     if n:
