@@ -60,37 +60,36 @@ def _rho(r):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _bridge(x, y, k, n_nodes, inv_l):  # pragma: no cover - compiled
-    """1-D residual covariance E(x, y) of the unit exponential field given nodes k j + (k - 1) / 2, j < n_nodes."""
-    off = 0.5 * (k - 1)
-    jx = min(max(math.floor((x - off) / k), -1), n_nodes - 1)
-    jy = min(max(math.floor((y - off) / k), -1), n_nodes - 1)
-    rho = _rho(abs(x - y) * inv_l)
-    if jx != jy:
-        return 0.0
-    if jx < 0 or jx == n_nodes - 1:  # outside the first or last node: one node conditions
-        a = off if jx < 0 else off + k * (n_nodes - 1)
-        return rho - _rho(abs(x - a) * inv_l) * _rho(abs(y - a) * inv_l)
-    a = off + k * jx
-    b = a + k
-    rab = _rho(k * inv_l)
-    rax, rbx = _rho(abs(x - a) * inv_l), _rho(abs(x - b) * inv_l)
-    ray, rby = _rho(abs(y - a) * inv_l), _rho(abs(y - b) * inv_l)
-    explained = (rax * ray + rbx * rby - rab * (rax * rby + rbx * ray)) / (1.0 - rab * rab)
-    return rho - explained
-
-
-@njit(cache=True, nogil=True)
 def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - compiled
-    """(E, rho) of each target against the integer coordinates centre + d, d in [-reach, reach]."""
+    """(E, rho) of each target x against the integer coordinates y = centre + d, d in [-reach, reach]: rho the unit
+    exponential correlation, E(x, y) the 1-D residual covariance given nodes k j + (k - 1) / 2, j < n_nodes (an
+    Ornstein-Uhlenbeck bridge: zero unless x and y lie between the same two nodes, or beyond the same end node).
+    The target's own correlations with its nodes are computed once per target."""
     m = targets.shape[0]
     E = np.empty((m, 2 * reach + 1))
     R = np.empty((m, 2 * reach + 1))
+    off = 0.5 * (k - 1)
+    rab = _rho(k * inv_l)
     for i in range(m):
+        x = targets[i]
+        jx = min(max(math.floor((x - off) / k), -1), n_nodes - 1)
+        edge = jx < 0 or jx == n_nodes - 1  # outside the first or last node: one node conditions
+        a = (off if jx < 0 else off + k * (n_nodes - 1)) if edge else off + k * jx
+        b = a + k
+        rax, rbx = _rho(abs(x - a) * inv_l), _rho(abs(x - b) * inv_l)
         for d in range(-reach, reach + 1):
             y = float(centres[i] + d)
-            E[i, d + reach] = _bridge(targets[i], y, k, n_nodes, inv_l)
-            R[i, d + reach] = _rho(abs(targets[i] - y) * inv_l)
+            rho = _rho(abs(x - y) * inv_l)
+            R[i, d + reach] = rho
+            jy = min(max(math.floor((y - off) / k), -1), n_nodes - 1)
+            if jx != jy:
+                E[i, d + reach] = 0.0
+            elif edge:
+                E[i, d + reach] = rho - rax * _rho(abs(y - a) * inv_l)
+            else:
+                ray, rby = _rho(abs(y - a) * inv_l), _rho(abs(y - b) * inv_l)
+                explained = (rax * ray + rbx * rby - rab * (rax * rby + rbx * ray)) / (1.0 - rab * rab)
+                E[i, d + reach] = rho - explained
     return E, R
 
 
@@ -121,7 +120,8 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
                pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """The cells of row ci: per cell one factorisation of its window's points (at most max_points, `_window`;
     `cholesky_dots_in_place`, vectorised dot products, so equal to the plain loop's factor to rounding only), then
-    every output pixel in it (`_cell_pixels`; one at a time below `BY_LANES` points, `_cell_pixels_few`)."""
+    every output pixel in it (`_cell_pixels`; one at a time below `BY_LANES` points, `_cell_pixels_few`, written
+    out for at most four, `_cell_pixels_four`)."""
     h = row_ptr.shape[0] - 1
     m = resid.shape[1]
     side = k + 2 * reach
@@ -166,6 +166,9 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
         if n >= BY_LANES:
             _cell_pixels(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span, V,
                          acc, F, corr, vred)
+        elif n <= 4:
+            _cell_pixels_four(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span,
+                              V, corr, vred)
         else:
             _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span,
                              V, acc, corr, vred)
@@ -250,6 +253,55 @@ def _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o,
                 for a in range(n):
                     s += c[a] * y[a, q]
                 corr[q, i, j] = s
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_pixels_four(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span, y,
+                      corr, vred):  # pragma: no cover - compiled
+    """`_cell_pixels_few` for n <= 4 points written out for four (at a few points the loops' overhead is most of the
+    work); inlined into `_krige_row`, as a call would pass every array's fields and count its references.
+
+    The missing points are padded with copies of the first whose rows of L and 1 / L[a, a] are zero (A and dinv hold
+    at least four rows): they add exact zeros, so the sums are those of `_cell_pixels_few`. No branches but the
+    loops (they keep numba from pruning the arrays' reference counting). y: a work array of at least (4, m).
+    """
+    m = resid.shape[1]
+    for a in range(n):  # y = L^-1 r
+        pa = uint64(ids[a])
+        for q in range(m):
+            s = resid[pa, q]
+            for t in range(a):
+                s -= A[a, t] * y[t, q]
+            y[a, q] = s * dinv[a]
+    for a in range(n, 4):  # the padding
+        pr[a], pc[a], dinv[a] = pr[0], pc[0], 0.0
+        for t in range(a):
+            A[a, t] = 0.0
+        for q in range(m):
+            y[a, q] = 0.0
+    d0, d1, d2, d3 = dinv[0], dinv[1], dinv[2], dinv[3]
+    l10, l20, l21, l30, l31, l32 = A[1, 0], A[2, 0], A[2, 1], A[3, 0], A[3, 1], A[3, 2]
+    for i_ in range(i0, i1):
+        i = uint64(i_)  # indices >= 0 as unsigned integers: no check for negative ones (`_window_covariance`)
+        o = span - cr[i]
+        u0, u1, u2, u3 = uint64(pr[0] + o), uint64(pr[1] + o), uint64(pr[2] + o), uint64(pr[3] + o)
+        er0, rr0, er1, rr1 = Er_o[i, u0], Rr_o[i, u0], Er_o[i, u1], Rr_o[i, u1]
+        er2, rr2, er3, rr3 = Er_o[i, u2], Rr_o[i, u2], Er_o[i, u3], Rr_o[i, u3]
+        for j_ in range(j0, j1):
+            j = uint64(j_)
+            o = span - cc[j]
+            w0, w1, w2, w3 = uint64(pc[0] + o), uint64(pc[1] + o), uint64(pc[2] + o), uint64(pc[3] + o)
+            ec, rc = Ec_o[j, w0], Rc_o[j, w0]
+            v0 = s2 * (rr0 * ec + rc * er0 - er0 * ec) * d0
+            ec, rc = Ec_o[j, w1], Rc_o[j, w1]
+            v1 = (s2 * (rr1 * ec + rc * er1 - er1 * ec) - l10 * v0) * d1
+            ec, rc = Ec_o[j, w2], Rc_o[j, w2]
+            v2 = (s2 * (rr2 * ec + rc * er2 - er2 * ec) - l20 * v0 - l21 * v1) * d2
+            ec, rc = Ec_o[j, w3], Rc_o[j, w3]
+            v3 = (s2 * (rr3 * ec + rc * er3 - er3 * ec) - l30 * v0 - l31 * v1 - l32 * v2) * d3
+            vred[i, j] = v0 * v0 + v1 * v1 + v2 * v2 + v3 * v3
+            for q in range(m):
+                corr[q, i, j] = v0 * y[0, q] + v1 * y[1, q] + v2 * y[2, q] + v3 * y[3, q]
 
 
 @njit(cache=True, nogil=True)
@@ -419,10 +471,13 @@ def sublattice_kriging(
     row_start = np.searchsorted(cr // k, np.arange(hl + 1)).astype(np.int64)
     col_start = np.searchsorted(cc // k, np.arange(wl + 1)).astype(np.int64)
     span = k + 2 * reach  # farthest offset between a window's pixel and a pixel of its cell, or two of its pixels
-    Er_o, Rr_o = _tables(out_rows, cr, k, hl, inv_l, span)
-    Ec_o, Rc_o = _tables(out_cols, cc, k, wl, inv_l, span)
     Er_p, Rr_p = _tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
     Ec_p, Rc_p = _tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
+    # at the grid's own pixels (how `gpdepth3d.completion` krigs) the output's tables are the points' tables
+    same_rows = np.array_equal(out_rows, np.arange(h))
+    same_cols = np.array_equal(out_cols, np.arange(w))
+    Er_o, Rr_o = (Er_p, Rr_p) if same_rows else _tables(out_rows, cr, k, hl, inv_l, span)
+    Ec_o, Rc_o = (Ec_p, Rc_p) if same_cols else _tables(out_cols, cc, k, wl, inv_l, span)
     corr = np.zeros((res.shape[1], out_rows.size, out_cols.size))
     vred = np.zeros((out_rows.size, out_cols.size))
     if n:

@@ -55,10 +55,12 @@ def _dense(out_rows, out_cols, rows, cols, resid, noise, shape, k, l, s):
 
 
 @pytest.mark.parametrize(
-    "k, shape, share", [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 3), (4, (13, 17), 1)]
+    "k, shape, share",
+    [(2, (9, 11), 3), (2, (10, 12), 3), (3, (10, 13), 3), (4, (13, 17), 3), (4, (13, 17), 1), (2, (14, 18), 12)],
 )
 def test_matches_the_dense_conditional_covariance(k, shape, share):
-    """share 1: a point on every pixel, so stride 4's 10 x 10 windows keep only their MAX_WINDOW_POINTS nearest."""
+    """share 1: a point on every pixel, so stride 4's 10 x 10 windows keep only their MAX_WINDOW_POINTS nearest;
+    share 12: one to four points in most windows (the written-out path)."""
     rng = np.random.default_rng(k + shape[0])
     h, w = shape
     flat = rng.choice(h * w, size=h * w // share, replace=False)
