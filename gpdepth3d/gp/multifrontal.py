@@ -192,55 +192,59 @@ def _partial_cholesky(F, no, nf):
     """Eliminates the first ``no`` variables of the flat column-major nf x nf front ``F`` in place
     (lower triangle): [L11; L21] in the first ``no`` columns, F22 - L21 L21^T in the rest.
 
-    Right-looking, two columns at a time (each pass over the trailing matrix applies a rank-2
-    update), entries of L below _TINY flushed before they are used. For the small fronts at the
-    bottom of the tree (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and
-    small-matrix paths dominate there. Returns 0, or j + 1 when pivot j is not positive.
+    Right-looking by panels of four columns: a panel is factorised (each of its columns updated
+    by the panel's earlier ones), then the trailing matrix takes one rank-4 update (each of its
+    entries loaded and stored once per panel; contiguous loops that vectorise). Entries of L
+    below _TINY are flushed before they are used. For the small fronts at the bottom of the tree
+    (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and small-matrix paths
+    dominate there. Returns 0, or j + 1 when pivot j is not positive.
     """
     unf = np.uint64(nf)
     j = 0
     while j < no:
-        uj = np.uint64(j)
-        cj = uj * unf
-        d = F[cj + uj]
-        if not d > 0.0:
-            return j + 1
-        d = np.sqrt(d)
-        F[cj + uj] = d
-        inv = 1.0 / d
-        for i in range(uj + np.uint64(1), unf):
-            v = F[cj + i] * inv
-            F[cj + i] = v if abs(v) >= _TINY else 0.0
-        if j + 1 < no:  # the next column too, then one rank-2 update of the trailing matrix
-            uk = uj + np.uint64(1)
-            ck = uk * unf
-            a = F[cj + uk]
-            for i in range(uk, unf):
-                F[ck + i] -= a * F[cj + i]
-            d = F[ck + uk]
+        g = min(4, no - j)
+        for p in range(g):  # the panel's columns
+            uc = np.uint64(j + p)
+            cc = uc * unf
+            for q in range(np.uint64(j), uc):
+                a = F[q * unf + uc]
+                cq = q * unf
+                for i in range(uc, unf):
+                    F[cc + i] -= a * F[cq + i]
+            d = F[cc + uc]
             if not d > 0.0:
-                return j + 2
+                return j + p + 1
             d = np.sqrt(d)
-            F[ck + uk] = d
+            F[cc + uc] = d
             inv = 1.0 / d
-            for i in range(uk + np.uint64(1), unf):
-                v = F[ck + i] * inv
-                F[ck + i] = v if abs(v) >= _TINY else 0.0
-            for m in range(uk + np.uint64(1), unf):
-                a = F[cj + m]
-                b = F[ck + m]
-                cm = m * unf
-                for i in range(m, unf):
-                    F[cm + i] -= a * F[cj + i] + b * F[ck + i]
-            j += 2
-        else:
-            for m in range(uj + np.uint64(1), unf):
-                a = F[cj + m]
-                cm = m * unf
-                for i in range(m, unf):
-                    F[cm + i] -= a * F[cj + i]
-            j += 1
+            for i in range(uc + np.uint64(1), unf):
+                v = F[cc + i] * inv
+                F[cc + i] = v if abs(v) >= _TINY else 0.0
+        _trailing_update(F, j, g, unf)
+        j += g
     return 0
+
+
+@nb.njit(**_FAST)
+def _trailing_update(F, j, g, unf):
+    """F[m:, m] -= sum_q F[m, q] F[m:, q] for the trailing columns m >= j + g, q the panel j .. j + g - 1."""
+    uj = np.uint64(j)
+    start = uj + np.uint64(g)
+    if g == 4:
+        c0, c1, c2, c3 = uj * unf, (uj + np.uint64(1)) * unf, (uj + np.uint64(2)) * unf, (uj + np.uint64(3)) * unf
+        for m in range(start, unf):
+            a0, a1, a2, a3 = F[c0 + m], F[c1 + m], F[c2 + m], F[c3 + m]
+            cm = m * unf
+            for i in range(m, unf):
+                F[cm + i] -= (a0 * F[c0 + i] + a1 * F[c1 + i]) + (a2 * F[c2 + i] + a3 * F[c3 + i])
+        return
+    for m in range(start, unf):
+        cm = m * unf
+        for q in range(uj, start):
+            cq = q * unf
+            a = F[cq + m]
+            for i in range(m, unf):
+                F[cm + i] -= a * F[cq + i]
 
 
 @nb.njit(**_FLAGS)
