@@ -310,10 +310,11 @@ class FastEngine:
         prior_mean = np.asarray(problem.prior_mean, np.float64)
         observed = prec > 0
         resid = np.where(observed, np.asarray(problem.obs, np.float64) - prior_mean, 0.0)
-        b = np.zeros((tree.nvar, 1 + len(extra)))
-        b[real_vars.ravel(), 0] = (prec * resid).ravel()
+        rhs = np.zeros((1 + len(extra), tree.nvar))  # one right-hand side per row: b = rhs.T, no transposed copy
+        rhs[0, real_vars.ravel()] = (prec * resid).ravel()
         for j, e in enumerate(extra):
-            b[real_vars.ravel(), 1 + j] = np.where(observed, prec * (e - prior_mean), 0.0).ravel()
+            rhs[1 + j, real_vars.ravel()] = np.where(observed, prec * (e - prior_mean), 0.0).ravel()
+        b = rhs.T
         with self._threads():
             if self.backend == "compiled":
                 x = factor.solve(b)
