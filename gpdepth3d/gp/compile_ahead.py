@@ -20,13 +20,21 @@ import sys
 import numpy as np
 
 GROUPS = ("detail", "neumann")
-"""The kernel groups this module compiles: the sub-lattice detail (`gpdepth3d.gp.sublattice`) and the Neumann
-route (`gpdepth3d.gp.neumann`)."""
+"""The kernel groups this module compiles: the grid route's read-out of means (`gpdepth3d.gp.readout.read_mean`)
+with the sub-lattice detail (`gpdepth3d.gp.sublattice`), and the Neumann route (`gpdepth3d.gp.neumann`)."""
 
 
 def _detail() -> None:
-    """The sub-lattice kriging's parallel kernel, as the default model calls it (three right-hand sides)."""
+    """The read-out of the grid route's means off the grid, then the sub-lattice kriging's parallel kernel, as
+    the default model calls them (three right-hand sides)."""
+    import scipy.sparse as sp
+
+    from .readout import Readout, read_mean
     from .sublattice import SERIAL_POINTS, sublattice_kriging
+
+    weights = sp.csr_matrix(np.ones((3, 2)))
+    read_mean(Readout(weights, weights, None, None, None, None, None), np.zeros(4), np.arange(4).reshape(2, 2), 1,
+              np.zeros((3, 3)))  # fmt: skip
 
     h, w = 48, 2 * SERIAL_POINTS // 48 + 8
     rng = np.random.default_rng(0)

@@ -13,6 +13,7 @@ import re
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Iterator, Literal, Protocol, runtime_checkable
 
+import numba as nb
 import numpy as np
 
 from ..checks import Choice, Int, check_fields, positive
@@ -243,15 +244,42 @@ def check_extra_obs(problem, extra_obs) -> tuple[np.ndarray, ...]:
     if isinstance(extra_obs, np.ndarray) or not hasattr(extra_obs, "__iter__"):
         raise ShapeError("extra_obs", "a sequence of (H, W) observation arrays", describe(extra_obs))
     out = []
-    observed = np.asarray(problem.precision) > 0
+    prec = np.asarray(problem.precision, dtype=np.float64)
     for i, obs in enumerate(extra_obs):
         a = np.asarray(obs, dtype=np.float64)
         if a.shape != problem.shape:
             raise ShapeError(f"extra_obs[{i}]", f"shape {problem.shape}", describe(a))
-        if not np.all(np.isfinite(a[observed])):
+        if any_outside_where_observed(prec, a, np.inf):
             raise InvalidInputError(f"extra_obs[{i}]", "finite values at the observed pixels", "non-finite values")
         out.append(a)
     return tuple(out)
+
+
+def any_outside_where_observed(precision: np.ndarray, values: np.ndarray, limit: float) -> bool:
+    """True when a value at an observed pixel (precision > 0) is not finite or beyond +-``limit``.
+
+    One compiled pass over both (H, W) arrays, without the boolean masks and compressed copies of
+    ``values[precision > 0]`` (a check that runs on every solve).
+    """
+    return bool(_any_outside(_flat(precision), _flat(values), float(limit)))
+
+
+def _flat(a: np.ndarray) -> np.ndarray:
+    """``a`` as a read-only contiguous 1-D float64 array (one compiled signature for every caller's array)."""
+    out = np.ascontiguousarray(a, dtype=np.float64).reshape(-1).view()
+    out.flags.writeable = False
+    return out
+
+
+@nb.njit(nogil=True, cache=True)
+def _any_outside(precision, values, limit):
+    """`any_outside_where_observed` over flat arrays."""
+    for i in range(precision.size):
+        if precision[i] > 0.0:
+            v = abs(values[i])
+            if not (v <= limit and v < np.inf):
+                return True
+    return False
 
 
 @runtime_checkable

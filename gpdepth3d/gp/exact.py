@@ -14,7 +14,7 @@ import numpy as np
 import scipy.linalg
 
 from ..errors import ConvergenceError, InvalidDepthError, InvalidInputError, ProblemTooLargeError, ShapeError
-from .engine import Solution, SolveInfo, check_extra_obs
+from .engine import Solution, SolveInfo, any_outside_where_observed, check_extra_obs
 from .model import GridProblem
 
 # Ranges every engine accepts (metres): beyond them s^2, 1/s^2 or the products of the algebra
@@ -50,9 +50,9 @@ def check_problem(problem: GridProblem) -> None:
     if not (np.isfinite(k.lengthscale) and 0 < float(k.lengthscale) <= 1e8):
         raise InvalidInputError("problem.kernel.lengthscale", "a length scale in (0, 1e8] px", k.lengthscale)
     prec = np.asarray(problem.precision, dtype=np.float64)
-    if not np.all(np.isfinite(prec)) or np.any(prec < 0):
-        raise InvalidInputError("problem.precision", "finite values >= 0", "negative or non-finite values")
     pmax = float(prec.max(initial=0.0))
+    if not (float(prec.min(initial=0.0)) >= 0.0 and np.isfinite(pmax)):  # a NaN fails both comparisons
+        raise InvalidInputError("problem.precision", "finite values >= 0", "negative or non-finite values")
     if pmax * float(k.outputscale) ** 2 > MAX_PRECISION_RATIO:
         raise InvalidInputError(
             "problem.precision",
@@ -63,14 +63,20 @@ def check_problem(problem: GridProblem) -> None:
     for name in ("out_rows", "out_cols"):
         if not np.all(np.isfinite(np.asarray(getattr(problem, name), dtype=np.float64))):
             raise InvalidInputError(f"problem.{name}", "finite output coordinates", "non-finite values")
-    observed = prec > 0
-    for name, values in (
-        ("prior_mean", np.asarray(problem.prior_mean, np.float64)[observed]),
-        ("obs", np.asarray(problem.obs, np.float64)[observed]),
-        ("out_prior_mean", np.asarray(problem.out_prior_mean, np.float64)),
+    out_prior = np.asarray(problem.out_prior_mean, np.float64)
+    for name, values, suspect in (
+        ("prior_mean", problem.prior_mean, any_outside_where_observed(prec, problem.prior_mean, MAX_ABS_DEPTH)),
+        ("obs", problem.obs, any_outside_where_observed(prec, problem.obs, MAX_ABS_DEPTH)),
+        (
+            "out_prior_mean",
+            out_prior,
+            not (-MAX_ABS_DEPTH <= out_prior.min(initial=0.0) and out_prior.max(initial=0.0) <= MAX_ABS_DEPTH),
+        ),
     ):
-        bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_DEPTH)
-        if np.any(bad):
+        if suspect:  # the values in question, for the message
+            values = np.asarray(values, np.float64)
+            values = values if name == "out_prior_mean" else values[prec > 0]
+            bad = ~np.isfinite(values) | (np.abs(values) > MAX_ABS_DEPTH)
             raise InvalidDepthError(
                 f"problem.{name}",
                 f"finite depths within +-{MAX_ABS_DEPTH:g} m",

@@ -24,7 +24,7 @@ from .elimination_tree import EliminationTree, build_tree, front_tree
 from .grid_prior import build_batched_prior, build_frontal_prior
 from .observed_lattice import LATTICE_QUANTUM as LATTICE_QUANTUM
 from .observed_lattice import observed_lattice as observed_lattice
-from .readout import Readout, build_readout, frontal_readout
+from .readout import Readout, build_readout, frontal_readout, read_mean
 from .torch_factor import TorchFactor, torch_threads
 from .cost_model import grid_error_estimate as grid_error_estimate
 from .cost_model import memory_budget as memory_budget
@@ -310,10 +310,11 @@ class FastEngine:
         prior_mean = np.asarray(problem.prior_mean, np.float64)
         observed = prec > 0
         resid = np.where(observed, np.asarray(problem.obs, np.float64) - prior_mean, 0.0)
-        b = np.zeros((tree.nvar, 1 + len(extra)))
-        b[real_vars.ravel(), 0] = (prec * resid).ravel()
+        rhs = np.zeros((1 + len(extra), tree.nvar))  # one right-hand side per row: b = rhs.T, no transposed copy
+        rhs[0, real_vars.ravel()] = (prec * resid).ravel()
         for j, e in enumerate(extra):
-            b[real_vars.ravel(), 1 + j] = np.where(observed, prec * (e - prior_mean), 0.0).ravel()
+            rhs[1 + j, real_vars.ravel()] = np.where(observed, prec * (e - prior_mean), 0.0).ravel()
+        b = rhs.T
         with self._threads():
             if self.backend == "compiled":
                 x = factor.solve(b)
@@ -442,19 +443,16 @@ class FastEngine:
         h, w = problem.shape
         k = problem.kernel
         d = state_dim(k.nu)
-        ds = tree.ds
         s2 = float(k.outputscale) ** 2
         same_grid = problem.output_is_input
         readout = None if same_grid else self._readout(tree, problem)
         out_prior = np.asarray(problem.out_prior_mean, np.float64)
         means = []
         for x in mus:
-            states = x[real_vars[..., None] + np.arange(ds)].reshape(h, w, d, d)  # (r, c, k, l)
             if same_grid:
-                means.append(out_prior + states[:, :, 0, 0])
+                means.append(out_prior + x[real_vars])  # state (0, 0) of each pixel
             else:
-                M = states.transpose(0, 2, 1, 3).reshape(h * d, w * d)
-                means.append(out_prior + readout.wv @ (readout.wu @ M.T).T)
+                means.append(read_mean(readout, x, real_vars, d, out_prior))
         seconds["mean"] = time.perf_counter() - t
         if not variance:
             return means[0], None, tuple(means[1:])

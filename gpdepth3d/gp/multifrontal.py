@@ -192,66 +192,71 @@ def _partial_cholesky(F, no, nf):
     """Eliminates the first ``no`` variables of the flat column-major nf x nf front ``F`` in place
     (lower triangle): [L11; L21] in the first ``no`` columns, F22 - L21 L21^T in the rest.
 
-    Right-looking, two columns at a time (each pass over the trailing matrix applies a rank-2
-    update), entries of L below _TINY flushed before they are used. For the small fronts at the
-    bottom of the tree (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and
-    small-matrix paths dominate there. Returns 0, or j + 1 when pivot j is not positive.
+    Right-looking by panels of four columns: a panel is factorised (each of its columns updated
+    by the panel's earlier ones), then the trailing matrix takes one rank-4 update (each of its
+    entries loaded and stored once per panel; contiguous loops that vectorise). Entries of L
+    below _TINY are flushed before they are used. For the small fronts at the bottom of the tree
+    (nf <= _SMALL) it replaces dpotrf + dtrmm + dsyrk, whose call overhead and small-matrix paths
+    dominate there. Returns 0, or j + 1 when pivot j is not positive.
     """
     unf = np.uint64(nf)
     j = 0
     while j < no:
-        uj = np.uint64(j)
-        cj = uj * unf
-        d = F[cj + uj]
-        if not d > 0.0:
-            return j + 1
-        d = np.sqrt(d)
-        F[cj + uj] = d
-        inv = 1.0 / d
-        for i in range(uj + np.uint64(1), unf):
-            v = F[cj + i] * inv
-            F[cj + i] = v if abs(v) >= _TINY else 0.0
-        if j + 1 < no:  # the next column too, then one rank-2 update of the trailing matrix
-            uk = uj + np.uint64(1)
-            ck = uk * unf
-            a = F[cj + uk]
-            for i in range(uk, unf):
-                F[ck + i] -= a * F[cj + i]
-            d = F[ck + uk]
+        g = min(4, no - j)
+        for p in range(g):  # the panel's columns
+            uc = np.uint64(j + p)
+            cc = uc * unf
+            for q in range(np.uint64(j), uc):
+                a = F[q * unf + uc]
+                cq = q * unf
+                for i in range(uc, unf):
+                    F[cc + i] -= a * F[cq + i]
+            d = F[cc + uc]
             if not d > 0.0:
-                return j + 2
+                return j + p + 1
             d = np.sqrt(d)
-            F[ck + uk] = d
+            F[cc + uc] = d
             inv = 1.0 / d
-            for i in range(uk + np.uint64(1), unf):
-                v = F[ck + i] * inv
-                F[ck + i] = v if abs(v) >= _TINY else 0.0
-            for m in range(uk + np.uint64(1), unf):
-                a = F[cj + m]
-                b = F[ck + m]
-                cm = m * unf
-                for i in range(m, unf):
-                    F[cm + i] -= a * F[cj + i] + b * F[ck + i]
-            j += 2
-        else:
-            for m in range(uj + np.uint64(1), unf):
-                a = F[cj + m]
-                cm = m * unf
-                for i in range(m, unf):
-                    F[cm + i] -= a * F[cj + i]
-            j += 1
+            for i in range(uc + np.uint64(1), unf):
+                v = F[cc + i] * inv
+                F[cc + i] = v if abs(v) >= _TINY else 0.0
+        _trailing_update(F, j, g, unf)
+        j += g
     return 0
+
+
+@nb.njit(**_FAST)
+def _trailing_update(F, j, g, unf):
+    """F[m:, m] -= sum_q F[m, q] F[m:, q] for the trailing columns m >= j + g, q the panel j .. j + g - 1."""
+    uj = np.uint64(j)
+    start = uj + np.uint64(g)
+    if g == 4:
+        c0, c1, c2, c3 = uj * unf, (uj + np.uint64(1)) * unf, (uj + np.uint64(2)) * unf, (uj + np.uint64(3)) * unf
+        for m in range(start, unf):
+            a0, a1, a2, a3 = F[c0 + m], F[c1 + m], F[c2 + m], F[c3 + m]
+            cm = m * unf
+            for i in range(m, unf):
+                F[cm + i] -= (a0 * F[c0 + i] + a1 * F[c1 + i]) + (a2 * F[c2 + i] + a3 * F[c3 + i])
+        return
+    for m in range(start, unf):
+        cm = m * unf
+        for q in range(uj, start):
+            cq = q * unf
+            a = F[cq + m]
+            for i in range(m, unf):
+                F[cm + i] -= a * F[cq + i]
 
 
 @nb.njit(**_FLAGS)
 def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr, asm_pos, asm_src,
-                qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr, front_ld, save, work):
-    """Multifrontal Cholesky of the fronts in ``order``; returns (log det, first failing front or -1).
+                qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr, save, work):
+    """Multifrontal Cholesky of the fronts in ``order``; returns the first failing front or -1.
 
     Stores per front [L11^-1; L21] (nf x no, column-major) at ``lbuf[l_ptr[f]]``. With a prior
     factor (``touched`` non-empty), a front that no observation reaches is copied from
-    ``prior_l`` (its log det from ``front_ld``) and its update is read from ``prior_upd``; with
-    ``save`` every front's update and log det are stored there (building the prior factor).
+    ``prior_l`` and its update is read from ``prior_upd``; with ``save`` every front's update is
+    stored there (building the prior factor). The log det is read from ``lbuf`` when asked
+    (`_logdet`), sparing a logarithm per variable in every solve that does not use it.
     """
     ch = _CHARS
     ip = np.zeros(8, dtype=np.int32)  # integer scalars passed by reference
@@ -260,7 +265,6 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
     dp = _CONST
     cL, cN, cT, cR = ch.ctypes.data, ch.ctypes.data + 1, ch.ctypes.data + 2, ch.ctypes.data + 3
     one, mone = dp.ctypes.data, dp.ctypes.data + 8
-    logdet = 0.0
     skip = touched.size > 0
     for k in range(order.size):
         f = order[k]
@@ -274,7 +278,6 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
             l0 = np.uint64(l_ptr[f])
             for i in range(np.uint64(nf * no)):
                 lbuf[l0 + i] = prior_l[l0 + i]
-            logdet += front_ld[f]
             continue
         F = work[: nf * nf]
         unf = np.uint64(nf)
@@ -303,17 +306,11 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
         small = nf <= _SMALL
         if small:  # L11, L21 and the update in one compiled pass (no BLAS call overhead)
             if _partial_cholesky(F, no, nf) != 0:
-                return logdet, f
+                return f
         else:
             _dpotrf(cL, ip.ctypes.data, F.ctypes.data, ip.ctypes.data + 4, ip.ctypes.data + 12)
             if ip[3] != 0:
-                return logdet, f
-        ld = 0.0
-        for j in range(no):
-            ld += 2.0 * np.log(F[j * (nf + 1)])
-        logdet += ld
-        if save:
-            front_ld[f] = ld
+                return f
         _tri_inv(F, 0, no, nf, ip2, tri)
         _flush(F, 0, no, no, nf)
         if nbf > 0 and not small:
@@ -341,7 +338,18 @@ def _factor_run(order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos
         l0 = np.uint64(l_ptr[f])
         for i in range(np.uint64(nf * no)):
             lbuf[l0 + i] = F[i]
-    return logdet, -1
+    return -1
+
+
+@nb.njit(**_FLAGS)
+def _logdet(no_, nf_, l_ptr, lbuf):
+    """log det(L L^T) from the stored fronts [L11^-1; L21]: the diagonal of L11^-1 holds 1 / L_jj."""
+    ld = 0.0
+    for f in range(no_.size):
+        l0, nf = l_ptr[f], nf_[f]
+        for j in range(no_[f]):
+            ld -= 2.0 * np.log(lbuf[l0 + j * (nf + 1)])
+    return ld
 
 
 @nb.njit(**_FAST)
@@ -736,17 +744,16 @@ def _touched(order, parent, st, no_, prec):
 @nb.njit(parallel=True, nogil=True, cache=True)
 def _factor_bins(bin_ptr, bin_order, st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos, asm_ptr,
                  asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr,
-                 front_ld, save, work):
-    """Factorises the independent subtrees, one bin per thread; returns (log det, first failing front)."""
+                 save, work):
+    """Factorises the independent subtrees, one bin per thread; returns the first failing front or -1."""
     nbins = bin_ptr.size - 1
-    logdets = np.zeros(nbins)
     bad = np.full(nbins, -1, dtype=np.int64)
     for b in nb.prange(nbins):
-        logdets[b], bad[b] = _factor_run(
+        bad[b] = _factor_run(
             bin_order[bin_ptr[b] : bin_ptr[b + 1]], st, no_, nb_, nf_, children_ptr, children, ea_ptr, ea_pos,
             asm_ptr, asm_pos, asm_src, qvals, prec, l_ptr, lbuf, upd_off, stack, touched, prior_l, prior_upd, u_ptr,
-            front_ld, save, work[b])
-    return logdets.sum(), bad.max()
+            save, work[b])
+    return bad.max()
 
 
 @nb.njit(parallel=True, nogil=True, cache=True)
@@ -1101,21 +1108,28 @@ class FrontalFactor:
             if prior.tree is not t:
                 raise ValueError("the prior factor belongs to another tree")
             touched = _touched(t.order, t.parent, t.st, t.no, d)
-            skip = (touched, prior.lbuf, prior.upd, prior.u_ptr, prior.front_ld)
+            skip = (touched, prior.lbuf, prior.upd, prior.u_ptr)
             self._reuse = (touched, prior.w, prior.w_ptr, prior.lam, prior.lam_ptr)
         else:
-            skip = (np.zeros(0, np.bool_), np.zeros(0), np.zeros(0), t.l_ptr, np.zeros(0))
+            skip = (np.zeros(0, np.bool_), np.zeros(0), np.zeros(0), t.l_ptr)
             self._reuse = (np.zeros(0, np.bool_), np.zeros(0), t.l_ptr, np.zeros(0), t.l_ptr)
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q, d,
                   t.l_ptr, self.lbuf, t.upd_off, stack, *skip, False)
         with numeric_section():
-            logdet, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
+            bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
             if bad < 0:
-                ld, bad = _factor_run(t.seq_order, *common, work[0])
-                logdet += ld
+                bad = _factor_run(t.seq_order, *common, work[0])
         if bad >= 0:
             raise np.linalg.LinAlgError("posterior precision not positive definite (check precisions and scales)")
-        self.logdet = float(logdet) - t.nvar * np.log(self.scale2)
+        self._logdet: float | None = None
+
+    @property
+    def logdet(self) -> float:
+        """log det A (computed from the stored factor on first use: most solves never ask)."""
+        if self._logdet is None:
+            t = self.tree
+            self._logdet = float(_logdet(t.no, t.nf, t.l_ptr, self.lbuf)) - t.nvar * np.log(self.scale2)
+        return self._logdet
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """x = A^-1 b for b (nvar,) or (nvar, r): r right-hand sides in one pass over the factor."""
@@ -1173,18 +1187,17 @@ class PriorFactor:
         nb2 = t.nb * t.nb
         self.u_ptr = np.concatenate([[0], np.cumsum(nb2)]).astype(np.int64)
         self.upd = np.empty(max(1, int(self.u_ptr[-1])))
-        self.front_ld = np.zeros(t.st.size)
         self.lbuf = np.empty(t.l_size)
         stack = np.empty(t.stack_size)
         work = np.empty((t.bin_ptr.size - 1, t.work_size))
         q = np.ascontiguousarray(qvals, dtype=np.float64)
         common = (t.st, t.no, t.nb, t.nf, t.children_ptr, t.children, t.bnd_ptr, t.ea_pos, asm[0], asm[1], asm[2], q,
                   np.zeros(t.nvar), t.l_ptr, self.lbuf, t.upd_off, stack, np.zeros(0, np.bool_), self.lbuf, self.upd,
-                  self.u_ptr, self.front_ld, True)
+                  self.u_ptr, True)
         with numeric_section():
-            _, bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
+            bad = _factor_bins(t.bin_ptr, t.bin_order, *common, work)
             if bad < 0:
-                _, bad = _factor_run(t.seq_order, *common, work[0])
+                bad = _factor_run(t.seq_order, *common, work[0])
         if bad >= 0:
             raise np.linalg.LinAlgError("prior precision not positive definite")
         self.w_ptr = np.concatenate([[0], np.cumsum(t.nb * t.no)]).astype(np.int64)

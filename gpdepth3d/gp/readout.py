@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 import scipy.sparse as sp
 
@@ -129,3 +130,81 @@ def frontal_readout(fronts: FrontTree, readout: Readout) -> tuple:
         )
         readout.__dict__["_frontal"] = cached
     return cached[1]
+
+
+def read_mean(readout: Readout, x: np.ndarray, real_vars: np.ndarray, d: int, out_prior: np.ndarray) -> np.ndarray:
+    """Posterior mean at the output grid (Ho, Wo), metres: ``out_prior + Wv M Wu^T`` for the state means ``x``.
+
+    ``M`` (H d, W d) holds state (k, l) of grid pixel (r, c) at (r d + k, c d + l), read from ``x``
+    (nvar,) at ``real_vars[r, c] + k d + l``. The two sparse products in compiled loops, without
+    their transposed copies and temporaries (the same sums in the same order).
+
+    Args:
+        readout: The read-out (its row and column weights ``wv``, ``wu``).
+        x: (nvar,) posterior state means of the factorised grid.
+        real_vars: (H, W) variable of state 0 of each grid pixel.
+        d: States per axis (`gpdepth3d.gp.markov.state_dim`).
+        out_prior: (Ho, Wo) prior mean at the outputs (metres).
+    """
+    wv, wu = readout.wv, readout.wu
+    h, w = real_vars.shape
+    out = np.empty(out_prior.shape)
+    prior = np.ascontiguousarray(out_prior, dtype=np.float64).view()
+    prior.flags.writeable = False  # one compiled signature, whether the caller's array is writeable or not
+    _read_mean(
+        np.ascontiguousarray(x, dtype=np.float64),
+        np.ascontiguousarray(real_vars, dtype=np.int64),
+        int(d),
+        wv.indptr.astype(np.int64),
+        wv.indices.astype(np.int64),
+        wv.data.astype(np.float64),
+        wu.indptr.astype(np.int64),
+        wu.indices.astype(np.int64),
+        wu.data.astype(np.float64),
+        prior,
+        np.empty((h * d, out.shape[1])),
+        out,
+    )
+    return out
+
+
+@nb.njit(nogil=True, cache=True, boundscheck=False)
+def _read_mean(x, real_vars, d, wv_ptr, wv_idx, wv_dat, wu_ptr, wu_idx, wu_dat, out_prior, T, out):
+    """out = out_prior + Wv (Wu M^T)^T (CSR weights, in the order of the sparse products), M (H d, W d)
+    read from ``x``; ``T`` (H d, Wo) is scratch for M Wu^T.
+
+    The column weights' gathers run once per grid row (H d of them, fewer than the Ho output
+    rows), the row weights' combination of T's rows is contiguous (vectorised). Flat unsigned
+    offsets (all >= 0 by construction): no checks for negative indices in the loops.
+    """
+    h, w = real_vars.shape
+    ud = np.uint64(d)
+    ho, wo = out.shape
+    uwo = np.uint64(wo)
+    tf, of, pf = T.ravel(), out.ravel(), out_prior.ravel()
+    rv = real_vars.ravel()
+    mrow = np.empty(w * d)
+    for r in range(np.uint64(h)):
+        for k in range(ud):
+            for c in range(np.uint64(w)):  # row r d + k of M
+                v = np.uint64(rv[r * np.uint64(w) + c]) + k * ud
+                for l in range(ud):
+                    mrow[c * ud + l] = x[v + l]
+            t0 = (r * ud + k) * uwo
+            for j in range(uwo):
+                acc = 0.0
+                for b in range(np.uint64(wu_ptr[j]), np.uint64(wu_ptr[j + np.uint64(1)])):
+                    acc += wu_dat[b] * mrow[np.uint64(wu_idx[b])]
+                tf[t0 + j] = acc
+    buf = np.empty(wo)
+    for i in range(np.uint64(ho)):
+        for j in range(uwo):
+            buf[j] = 0.0
+        for a in range(np.uint64(wv_ptr[i]), np.uint64(wv_ptr[i + np.uint64(1)])):
+            wt = wv_dat[a]
+            r0 = np.uint64(wv_idx[a]) * uwo
+            for j in range(uwo):
+                buf[j] += wt * tf[r0 + j]
+        o0 = i * uwo
+        for j in range(uwo):
+            of[o0 + j] = pf[o0 + j] + buf[j]

@@ -9,7 +9,7 @@ import pytest
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import EngineConfig
-from gpdepth3d.gp import neumann, sublattice
+from gpdepth3d.gp import neumann, readout, sublattice
 from gpdepth3d.gp.compile_ahead import GROUPS, compile_ahead, compile_groups
 from gpdepth3d.gp.model import DepthGPConfig
 
@@ -21,7 +21,13 @@ def test_the_groups_compile_the_signatures_of_a_real_run(street_frame):
     DepthCompleter(DepthGPConfig.paper(), engine=EngineConfig(route="neumann")).complete(
         street_frame.mde, street_frame.lidar
     )
-    kernels = [sublattice._krige, neumann._coefficients, neumann._neumann_mean, neumann._diag_series]
+    kernels = [
+        readout._read_mean,
+        sublattice._krige,
+        neumann._coefficients,
+        neumann._neumann_mean,
+        neumann._diag_series,
+    ]
     before = [len(k.signatures) for k in kernels]
     assert all(n >= 1 for n in before), "the real run did not reach every kernel of the groups"
     compile_groups(list(GROUPS))

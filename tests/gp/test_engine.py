@@ -402,3 +402,17 @@ def test_engine_functions_fit_in_100_lines(module):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
     ]
     assert [f for f in long if f[1] > 100] == []
+
+
+def test_any_outside_where_observed():
+    from gpdepth3d.gp.engine import any_outside_where_observed
+
+    prec = np.array([[0.0, 1.0], [2.0, 0.0]])
+    ok = np.array([[np.nan, 3.0], [-4.0, np.inf]])  # the unobserved pixels' values do not count
+    assert not any_outside_where_observed(prec, ok, 5.0)
+    assert any_outside_where_observed(prec, ok, 3.5)  # |-4| > 3.5
+    for bad in (np.nan, np.inf, -np.inf):
+        v = ok.copy()
+        v[0, 1] = bad
+        assert any_outside_where_observed(prec, v, np.inf)
+    assert not any_outside_where_observed(prec, ok[:, ::-1][:, ::-1].astype(np.float32), 5.0)  # any layout, dtype

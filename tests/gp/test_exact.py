@@ -328,3 +328,34 @@ class TestDenseAlgebra:
         p = with_changes(grid_problem(n_obs=20, shape=(8, 9)), kernel=Kernel(2.5, 1e6, 1.0))
         with pytest.raises(ConvergenceError, match=r"nu=2.5, lengthscale=1e\+06 px.*noise/s\^2 = 0.01"):
             ExactEngine().solve(p)
+
+
+@pytest.mark.parametrize(
+    "field, value, error, match",
+    [
+        ("precision", np.nan, "InvalidInputError", "problem.precision"),
+        ("precision", -1.0, "InvalidInputError", "problem.precision"),
+        ("precision", np.inf, "InvalidInputError", "problem.precision"),
+        ("prior_mean", np.nan, "InvalidDepthError", "problem.prior_mean.*1 values outside"),
+        ("obs", 2e8, "InvalidDepthError", "problem.obs.*1 values outside, e.g. 2e"),
+        ("obs", -np.inf, "InvalidDepthError", "problem.obs"),
+        ("out_prior_mean", np.nan, "InvalidDepthError", "problem.out_prior_mean"),
+        ("out_prior_mean", -3e8, "InvalidDepthError", "problem.out_prior_mean.*e.g. -3e"),
+    ],
+)
+def test_check_problem_rejects_bad_values(field, value, error, match):
+    from gpdepth3d import errors
+    from gpdepth3d.gp.exact import check_problem
+
+    p = grid_problem(n_obs=6)
+    check_problem(p)
+    arr = np.array(getattr(p, field), dtype=np.float64)
+    r, c = np.argwhere(p.precision > 0)[0]
+    arr[r, c] = value  # an observed pixel
+    with pytest.raises(getattr(errors, error), match=match):
+        check_problem(with_changes(p, **{field: arr}))
+    if field in ("prior_mean", "obs"):  # where nothing is observed a value is not used, and not checked
+        arr = np.array(getattr(p, field), dtype=np.float64)
+        r, c = np.argwhere(p.precision == 0)[0]
+        arr[r, c] = value
+        check_problem(with_changes(p, **{field: arr}))
