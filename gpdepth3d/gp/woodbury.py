@@ -91,27 +91,27 @@ def _filter_means(buf, lam_r, lam_c, g, qmap, prior, out):
 
     The mean's operators are F and B only (X, Y: 0 = F, 1 = B; the recursions of `_filter`).
     buf (nq, k, Wo + 1, 4): the stored rows' impulses (qmap as in `_filter`), left all zero;
-    g (nq, 2, Wo) is scratch: the column pass per row operator.
+    g (nq, 4, Wo) is scratch: the column pass per row operator, its F and B parts apart (slots
+    X and 2 + X: the two recursions run in one loop, their chains overlapping in the pipeline).
     """
     hs, w = buf.shape[0], buf.shape[2] - 1
     h = out.shape[1]
     rowf = np.empty(w)
     for k in range(buf.shape[1]):
         for s in range(hs):  # columns: F forward, B backward (B input stored at i + 1)
-            f1 = f2 = 0.0
+            f1 = f2 = b1 = b2 = 0.0
             for i in range(w):
                 li = lam_c[i]
                 f1 = li * f1 + buf[s, k, i, 0]
                 f2 = li * f2 + buf[s, k, i, 2]
                 g[s, 0, i] = f1
                 g[s, 1, i] = f2
-            b1 = b2 = 0.0
-            for i in range(w - 1, -1, -1):
-                li = lam_c[i + 1]
-                b1 = li * b1 + buf[s, k, i + 1, 1]
-                b2 = li * b2 + buf[s, k, i + 1, 3]
-                g[s, 0, i] += b1
-                g[s, 1, i] += b2
+                e = w - 1 - i
+                le = lam_c[e + 1]
+                b1 = le * b1 + buf[s, k, e + 1, 1]
+                b2 = le * b2 + buf[s, k, e + 1, 3]
+                g[s, 2, e] = b1
+                g[s, 3, e] = b2
             buf[s, k, :, :] = 0.0
         o = out[k]
         rowf[:] = 0.0
@@ -120,7 +120,7 @@ def _filter_means(buf, lam_r, lam_c, g, qmap, prior, out):
             q = qmap[i]
             if q >= 0:
                 for c in range(w):
-                    rowf[c] = li * rowf[c] + g[q, 0, c]
+                    rowf[c] = li * rowf[c] + (g[q, 0, c] + g[q, 2, c])
                     o[i, c] = rowf[c]
             else:
                 for c in range(w):
@@ -132,7 +132,7 @@ def _filter_means(buf, lam_r, lam_c, g, qmap, prior, out):
             q = qmap[i + 1]
             if q >= 0:
                 for c in range(w):
-                    rowf[c] = li * rowf[c] + g[q, 1, c]
+                    rowf[c] = li * rowf[c] + (g[q, 1, c] + g[q, 3, c])
                     o[i, c] = prior[i, c] + (o[i, c] + rowf[c])
             else:
                 for c in range(w):
@@ -369,7 +369,7 @@ class WoodburyPosterior:
         ci, cv = ca.impulses(self.cc, self.inv_l, interval=False)
         qmap, ri = _stored_rows(ri, ra.n)
         k = len(alphas)
-        buf, g = _workspace(self._store, f"means{k}", (ra.n + 1, k, ca.n + 1, 4), (ra.n + 1, 2, ca.n))
+        buf, g = _workspace(self._store, f"means{k}", (ra.n + 1, k, ca.n + 1, 4), (ra.n + 1, 4, ca.n))
         nq = int(qmap.max()) + 1
         out = np.empty((k, ra.n, ca.n))
         with numeric_section():
