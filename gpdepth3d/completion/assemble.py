@@ -92,6 +92,10 @@ def assemble_depth(
     return DepthMoments(mean, var, mde_out)
 
 
+#: The phases of `_assemble`; numpy's vectorised exponentials run between them (`_read_out`).
+_RHO_EXPONENT, _LOG_MOMENTS, _MOMENTS = 0, 1, 2
+
+
 @njit(cache=True, nogil=True)
 def _assemble(
     log_out,
@@ -115,51 +119,51 @@ def _assemble(
     mean,
     var,
     centre,
+    phase,
     lo,
     hi,
 ):  # pragma: no cover - compiled
-    """The read-out of pixels lo..hi-1 (``x_out`` centred on ``centre`` here); returns 1 when one of them may have a
-    mean that is not finite and > 0 or a variance that is not finite (the running sum of means and variances is
-    not finite, or their minimum mean not > 0), else 0.
+    """One phase of the read-out of pixels lo..hi-1 (``x_out`` centred on ``centre`` here), each pixel's operations
+    those of the formula in its order; the exponentials are numpy's, over the whole arrays, between the phases.
 
-    Four passes, each pixel's operations those of the formula in its order: the exponent of rho, rho, the log mean
-    and v, the exponentials; the arithmetic's loops vectorise, the exponentials' calls have loops of their own.
-    ``mean`` holds rho, then the log mean, ``var`` v, until the last pass."""
-    if depth_aware:
+    `_RHO_EXPONENT`: ``mean`` = the exponent of rho. `_LOG_MOMENTS`: from rho (``mean`` exponentiated, read
+    only where the depth-aware rho applies), ``mean`` = the log mean and ``var`` = v. `_MOMENTS`: from ``mean``
+    exponentiated and ``var`` = expm1(v), ``var`` = the variance; returns 1 when one of the pixels may have a mean
+    that is not finite and > 0 or a variance that is not finite (the running sum of means and variances is not
+    finite, or their minimum mean not > 0), else 0. The arithmetic's loops vectorise."""
+    if phase == _RHO_EXPONENT:
         for i in range(lo, hi):
             w = w1[i] if abs(w1[i]) >= floor else 1.0  # rho = 1 there: the quotient is not used
             mean[i] = -abs(a) * abs((x_out[i] - centre) - wx[i] / w) * inv_lz
+        return 0
+    if phase == _LOG_MOMENTS:
         for i in range(lo, hi):
-            mean[i] = math.exp(mean[i]) if abs(w1[i]) >= floor else 1.0
-    else:
-        mean[lo:hi] = 1.0
-    for i in range(lo, hi):
-        rho = mean[i]
-        mu = log_out[i] + b + rho * g_mean[i]
-        v = 0.0
-        if want_var:
-            gv = max(g_var[i], 0.0)  # an engine's rounding below 0
-            if depth_aware:
-                gv = (1.0 - rho * rho) * s2 + rho * rho * gv
-            if scale_term:
-                t = 1.0 - rho * w1[i]
-                bt = var_b * t * t
-            else:
-                bt = var_b
-            v = gv + tau2 + bt
-            if slope_term:
-                t = (x_out[i] - centre) - rho * wx[i]
-                v += var_a * t * t
-            var[i] = v
-        mean[i] = mu + 0.5 * v
+            rho = mean[i] if depth_aware and abs(w1[i]) >= floor else 1.0
+            mu = log_out[i] + b + rho * g_mean[i]
+            v = 0.0
+            if want_var:
+                gv = max(g_var[i], 0.0)  # an engine's rounding below 0
+                if depth_aware:
+                    gv = (1.0 - rho * rho) * s2 + rho * rho * gv
+                if scale_term:
+                    t = 1.0 - rho * w1[i]
+                    bt = var_b * t * t
+                else:
+                    bt = var_b
+                v = gv + tau2 + bt
+                if slope_term:
+                    t = (x_out[i] - centre) - rho * wx[i]
+                    v += var_a * t * t
+                var[i] = v
+            mean[i] = mu + 0.5 * v
+        return 0
     total, low = 0.0, math.inf
     for i in range(lo, hi):
-        m = math.exp(mean[i])
-        mean[i] = m
+        m = mean[i]
         low = min(low, m)
         total += m
         if want_var:
-            vv = math.expm1(var[i]) * m * m
+            vv = var[i] * m * m
             var[i] = vv
             total += vv
     return 0 if math.isfinite(total) and low > 0.0 else 1
@@ -223,7 +227,7 @@ def _read_out(
     mean = np.empty(log_out.size)
     var = np.empty(log_out.size) if variance else zeros
     kernel = _assemble_parallel if log_out.size > CHUNK else _assemble
-    suspect = kernel(
+    args = (
         flat(log_out),
         flat(g_mean),
         flat(g_var) if variance else zeros,
@@ -245,8 +249,17 @@ def _read_out(
         mean,
         var,
         float(centre),
-        *((0, log_out.size) if kernel is _assemble else ()),
     )
+    span = (0, log_out.size) if kernel is _assemble else ()
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is counted below
+        if depth_aware:
+            kernel(*args, _RHO_EXPONENT, *span)
+            np.exp(mean, out=mean)
+        kernel(*args, _LOG_MOMENTS, *span)
+        np.exp(mean, out=mean)
+        if variance:
+            np.expm1(var, out=var)
+        suspect = kernel(*args, _MOMENTS, *span)
     mean, var = mean.reshape(shape), (var.reshape(shape) if variance else np.full(shape, np.nan))
     bad = 0
     if suspect:  # NaN fails every comparison

@@ -398,8 +398,7 @@ class FastEngine:
             post = self._woodbury(problem, self._woodbury_buffers)
             seconds["factor"] = time.perf_counter() - t
             t = time.perf_counter()
-            mean = post.mean()
-            extras = tuple(post.mean(e) for e in extra)
+            mean, extras = post.means(extra)
             seconds["mean"] = time.perf_counter() - t
             t = time.perf_counter()
             var = post.variance() if variance else None

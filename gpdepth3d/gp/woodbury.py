@@ -23,7 +23,8 @@ _LOG_2PI = float(np.log(2 * np.pi))
 # C start and the B impulse of a point share a cell, as do the C end and the F impulse: a pair
 # writes 16 values into 4 cells. Only the rows that hold an impulse (at most two per point row)
 # are stored: buf (nq, Wo + 1, 9) with qmap (Ho + 1,) the stored row of each row index (-1 =
-# none), so the column pass costs nq Wo, not Ho Wo.
+# none), so the column pass costs nq Wo, not Ho Wo. The mean has F and B only: its buffer
+# (nq, k, Wo + 1, 4) holds slot 2 X + Y (0 = F, 1 = B) of each of its k right-hand sides.
 
 
 @nb.njit(cache=True, nogil=True)
@@ -68,26 +69,86 @@ def _splat_pairs(M, K, cc, ri, rv, ci, cv, buf):
 
 
 @nb.njit(cache=True, nogil=True)
-def _splat_points(alpha, ri, rv, ci, cv, buf):
-    """Adds every point's F / B impulses (the mean: F from the first x >= p) into buf's slots 4, 5, 7, 8."""
-    for j in range(alpha.shape[0]):
-        s, t = ri[0, j], ci[0, j]
-        a = alpha[j]
-        buf[s, t, 4] += a * rv[1, j] * cv[1, j]
-        buf[s, t, 5] += a * rv[1, j] * cv[0, j]
-        buf[s, t, 7] += a * rv[0, j] * cv[1, j]
-        buf[s, t, 8] += a * rv[0, j] * cv[0, j]
+def _splat_points(alphas, ri, rv, ci, cv, buf):
+    """Adds every point's F / B impulses for each right-hand side into buf (nq, k, Wo + 1, 4) (see `_filter_means`).
+
+    alphas (k, m): the weights (A^-1 r) of the k right-hand sides. The mean's F impulse starts at
+    the first x >= p, so a point writes one cell per right-hand side.
+    """
+    for h in range(alphas.shape[0]):
+        for j in range(alphas.shape[1]):
+            s, t = ri[0, j], ci[0, j]
+            a = alphas[h, j]
+            buf[s, h, t, 0] += a * rv[1, j] * cv[1, j]
+            buf[s, h, t, 1] += a * rv[1, j] * cv[0, j]
+            buf[s, h, t, 2] += a * rv[0, j] * cv[1, j]
+            buf[s, h, t, 3] += a * rv[0, j] * cv[0, j]
 
 
 @nb.njit(cache=True, nogil=True)
-def _filter(buf, lam_r, lam_c, g, out, interval, qmap):
-    """out (Ho, Wo) = sum_X rowop_X(sum_Y colop_Y(slot 3 X + Y of buf)), buf as laid out above.
+def _filter_means(buf, lam_r, lam_c, g, qmap, prior, out):
+    """out[h] (Ho, Wo) = prior + sum_X rowop_X(sum_Y colop_Y(buf[h] slot 2 X + Y)) for each right-hand side h.
+
+    The mean's operators are F and B only (X, Y: 0 = F, 1 = B; the recursions of `_filter`).
+    buf (nq, k, Wo + 1, 4): the stored rows' impulses (qmap as in `_filter`), left all zero;
+    g (nq, 4, Wo) is scratch: the column pass per row operator, its F and B parts apart (slots
+    X and 2 + X: the two recursions run in one loop, their chains overlapping in the pipeline).
+    """
+    hs, w = buf.shape[0], buf.shape[2] - 1
+    h = out.shape[1]
+    rowf = np.empty(w)
+    for k in range(buf.shape[1]):
+        for s in range(hs):  # columns: F forward, B backward (B input stored at i + 1)
+            f1 = f2 = b1 = b2 = 0.0
+            for i in range(w):
+                li = lam_c[i]
+                f1 = li * f1 + buf[s, k, i, 0]
+                f2 = li * f2 + buf[s, k, i, 2]
+                g[s, 0, i] = f1
+                g[s, 1, i] = f2
+                e = w - 1 - i
+                le = lam_c[e + 1]
+                b1 = le * b1 + buf[s, k, e + 1, 1]
+                b2 = le * b2 + buf[s, k, e + 1, 3]
+                g[s, 2, e] = b1
+                g[s, 3, e] = b2
+            buf[s, k, :, :] = 0.0
+        o = out[k]
+        rowf[:] = 0.0
+        for i in range(h):  # rows: F forward
+            li = lam_r[i]
+            q = qmap[i]
+            if q >= 0:
+                for c in range(w):
+                    rowf[c] = li * rowf[c] + (g[q, 0, c] + g[q, 2, c])
+                    o[i, c] = rowf[c]
+            else:
+                for c in range(w):
+                    rowf[c] = li * rowf[c]
+                    o[i, c] = rowf[c]
+        rowf[:] = 0.0
+        for i in range(h - 1, -1, -1):  # rows: B backward, then the prior mean
+            li = lam_r[i + 1]
+            q = qmap[i + 1]
+            if q >= 0:
+                for c in range(w):
+                    rowf[c] = li * rowf[c] + (g[q, 1, c] + g[q, 3, c])
+                    o[i, c] = prior[i, c] + (o[i, c] + rowf[c])
+            else:
+                for c in range(w):
+                    rowf[c] = li * rowf[c]
+                    o[i, c] = prior[i, c] + (o[i, c] + rowf[c])
+
+
+@nb.njit(cache=True, nogil=True)
+def _filter(buf, lam_r, lam_c, g, out, qmap, s2):
+    """out (Ho, Wo) = max(s2 (1 - corr), 0), corr = sum_X rowop_X(sum_Y colop_Y(slot 3 X + Y of buf)) (layout above).
 
     C: cumulative sum; F: y_i = lam[i] y_{i-1} + u_i; B: y_i = lam[i + 1] y_{i+1} + u_{i+1 stored}.
     lam (n + 1,): lam[i] = e^{-rate (x_i - x_{i-1})}, lam[0] and lam[n] unused / 0. buf (nq, Wo + 1,
-    9): the stored rows (qmap (Ho + 1,): row index -> stored row or -1); g (nq, Wo, 3) is scratch:
-    the column pass per row operator. interval=False skips the C slots (the mean has none). buf
-    is left all zero (read and cleared).
+    9): the stored rows (qmap (Ho + 1,): row index -> stored row or -1); g (nq, 3, Wo) is scratch:
+    the column pass per row operator. corr is the posterior correlation's reduction (the variance
+    over s2's complement); the clamp keeps the variance >= 0 under rounding. buf is left all zero.
     """
     hs, ws, _ = buf.shape
     h, w = out.shape[0], ws - 1
@@ -95,26 +156,24 @@ def _filter(buf, lam_r, lam_c, g, out, interval, qmap):
         c0 = c1 = c2 = f0 = f1 = f2 = 0.0
         for i in range(w):
             li = lam_c[i]
-            if interval:
-                c0 += buf[s, i, 0]
-                c1 += buf[s, i, 3]
-                c2 += buf[s, i, 6]
-                f0 = li * f0 + buf[s, i, 1]
+            c0 += buf[s, i, 0]
+            c1 += buf[s, i, 3]
+            c2 += buf[s, i, 6]
+            f0 = li * f0 + buf[s, i, 1]
             f1 = li * f1 + buf[s, i, 4]
             f2 = li * f2 + buf[s, i, 7]
-            g[s, i, 0] = c0 + f0
-            g[s, i, 1] = c1 + f1
-            g[s, i, 2] = c2 + f2
+            g[s, 0, i] = c0 + f0
+            g[s, 1, i] = c1 + f1
+            g[s, 2, i] = c2 + f2
         b0 = b1 = b2 = 0.0
         for i in range(w - 1, -1, -1):
             li = lam_c[i + 1]
-            if interval:
-                b0 = li * b0 + buf[s, i + 1, 2]
+            b0 = li * b0 + buf[s, i + 1, 2]
             b1 = li * b1 + buf[s, i + 1, 5]
             b2 = li * b2 + buf[s, i + 1, 8]
-            g[s, i, 0] += b0
-            g[s, i, 1] += b1
-            g[s, i, 2] += b2
+            g[s, 0, i] += b0
+            g[s, 1, i] += b1
+            g[s, 2, i] += b2
         buf[s, :, :] = 0.0
     rowc = np.zeros(w)
     rowf = np.zeros(w)
@@ -123,26 +182,27 @@ def _filter(buf, lam_r, lam_c, g, out, interval, qmap):
         q = qmap[i]
         if q >= 0:
             for c in range(w):
-                if interval:
-                    rowc[c] += g[q, c, 0]
-                rowf[c] = li * rowf[c] + g[q, c, 1]
+                rowc[c] += g[q, 0, c]
+                rowf[c] = li * rowf[c] + g[q, 1, c]
                 out[i, c] = rowc[c] + rowf[c]
         else:
             for c in range(w):
                 rowf[c] = li * rowf[c]
                 out[i, c] = rowc[c] + rowf[c]
     rowf[:] = 0.0
-    for i in range(h - 1, -1, -1):  # rows: B backward
+    for i in range(h - 1, -1, -1):  # rows: B backward, then the variance
         li = lam_r[i + 1]
         q = qmap[i + 1]
         if q >= 0:
             for c in range(w):
-                rowf[c] = li * rowf[c] + g[q, c, 2]
-                out[i, c] += rowf[c]
+                rowf[c] = li * rowf[c] + g[q, 2, c]
+                v = s2 * (1.0 - (out[i, c] + rowf[c]))
+                out[i, c] = 0.0 if v < 0.0 else v
         else:
             for c in range(w):
                 rowf[c] = li * rowf[c]
-                out[i, c] += rowf[c]
+                v = s2 * (1.0 - (out[i, c] + rowf[c]))
+                out[i, c] = 0.0 if v < 0.0 else v
 
 
 @nb.njit(cache=True, nogil=True)
@@ -190,18 +250,18 @@ class _Axis:
         vf = np.exp(-rate * (x_pad[end + 1] - p))  # 0 when end = n
         return np.stack([ge, end]).astype(np.int64), np.stack([vb, vf])
 
-    def workspace(self, other: "_Axis", store: dict | None):
-        """All-zero impulse buffer (Ho + 1, Wo + 1, 9) and scratch (Ho + 1, Wo, 3) (the filters use their first rows).
 
-        Taken from ``store["free"]`` when it has this shape (``dict.pop``: one taker at a time), else
-        new. `_filter` clears the buffer as it reads it, and `WoodburyPosterior._filtered` puts
-        the pair back only then, so a buffer in the store is always zero.
-        """
-        shape = (self.n + 1, other.n + 1, 9)
-        free = store.pop("free", None) if store is not None else None
-        if free is not None and free[0].shape == shape:
-            return free
-        return np.zeros(shape), np.zeros((self.n + 1, other.n, 3))
+def _workspace(store: dict | None, key: str, buf_shape: tuple, scratch_shape: tuple):
+    """All-zero impulse buffer of ``buf_shape`` and scratch of ``scratch_shape`` (the filters use their first rows).
+
+    Taken from ``store[key]`` when it has these shapes (``dict.pop``: one taker at a time), else
+    new. The filters clear the buffer as they read it, and `WoodburyPosterior` puts the pair back
+    only then, so a buffer in the store is always zero.
+    """
+    free = store.pop(key, None) if store is not None else None
+    if free is not None and free[0].shape == buf_shape and free[1].shape == scratch_shape:
+        return free
+    return np.zeros(buf_shape), np.zeros(scratch_shape)
 
 
 def _stored_rows(ri: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -260,14 +320,13 @@ class WoodburyPosterior:
         out[np.ix_(ra.order, ca.order)] = img
         return out
 
-    def _filtered(self, buf: np.ndarray, g: np.ndarray, rate: float, interval: bool, qmap: np.ndarray) -> np.ndarray:
-        ra, ca = self._rows_axis, self._cols_axis
-        out = np.empty((ra.n, ca.n))
-        nq = int(qmap.max()) + 1
-        _filter(buf[:nq], ra.decay(rate), ca.decay(rate), g[:nq], out, interval, qmap)
+    def _release(self, key: str, buf: np.ndarray, g: np.ndarray) -> None:
         if self._store is not None:
-            self._store["free"] = (buf, g)  # all zero again
-        return self._unsort(out)
+            self._store[key] = (buf, g)  # all zero again
+
+    def _sorted_prior(self, prior: np.ndarray) -> np.ndarray:
+        ra, ca = self._rows_axis, self._cols_axis
+        return prior if ra.sorted and ca.sorted else prior[np.ix_(ra.order, ca.order)]
 
     def mean(self, obs: np.ndarray | None = None) -> np.ndarray:
         """Posterior mean (Ho, Wo), metres.
@@ -276,23 +335,49 @@ class WoodburyPosterior:
             obs: Another (H, W) observation array to use instead of the problem's (the same
                 precision, prior mean and kernel: the factorisation is shared).
         """
+        if obs is None:
+            return self.means()[0]
+        return self._means([self._alpha(obs)])[0]
+
+    def means(self, extra_obs=()) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """The posterior mean (Ho, Wo), metres, and that of each of ``extra_obs`` in one pass.
+
+        Args:
+            extra_obs: Further (H, W) observation arrays (the same precision, prior mean and
+                kernel); each mean equals ``mean(obs)``, read out together with the problem's.
+        """
+        out = self._means([self.alpha if self.m else None] + [self._alpha(e) for e in extra_obs])
+        return out[0], tuple(out[1:])
+
+    def _alpha(self, obs: np.ndarray) -> np.ndarray | None:
+        """Weights A^-1 r of the residuals of ``obs`` at the observed pixels (None without points)."""
+        if not self.m:
+            return None
+        p = self.problem
+        rows, cols = self.rr.astype(np.int64), self.cc.astype(np.int64)
+        resid = np.asarray(obs, np.float64)[rows, cols] - np.asarray(p.prior_mean, np.float64)[rows, cols]
+        alpha, _ = scipy.linalg.lapack.dpotrs(self.L, resid, lower=1)
+        return alpha
+
+    def _means(self, alphas: list) -> list[np.ndarray]:
+        """prior + the read-out of each weight vector of ``alphas`` (the recursive filters, one pass per vector)."""
         ra, ca = self._rows_axis, self._cols_axis
         prior = np.asarray(self.problem.out_prior_mean, np.float64)
         if not self.m:
-            return prior.copy()
-        alpha = self.alpha
-        if obs is not None:
-            p = self.problem
-            rows, cols = self.rr.astype(np.int64), self.cc.astype(np.int64)
-            resid = np.asarray(obs, np.float64)[rows, cols] - np.asarray(p.prior_mean, np.float64)[rows, cols]
-            alpha, _ = scipy.linalg.lapack.dpotrs(self.L, resid, lower=1)
+            return [prior.copy() for _ in alphas]
         ri, rv = ra.impulses(self.rr, self.inv_l, interval=False)
         ci, cv = ca.impulses(self.cc, self.inv_l, interval=False)
         qmap, ri = _stored_rows(ri, ra.n)
-        buf, g = ra.workspace(ca, self._store)
+        k = len(alphas)
+        buf, g = _workspace(self._store, f"means{k}", (ra.n + 1, k, ca.n + 1, 4), (ra.n + 1, 4, ca.n))
+        nq = int(qmap.max()) + 1
+        out = np.empty((k, ra.n, ca.n))
         with numeric_section():
-            _splat_points(alpha, ri, rv, ci, cv, buf)
-            return prior + self._filtered(buf, g, self.inv_l, False, qmap)
+            _splat_points(np.stack(alphas), ri, rv, ci, cv, buf)
+            lam_r, lam_c = ra.decay(self.inv_l), ca.decay(self.inv_l)
+            _filter_means(buf[:nq], lam_r, lam_c, g[:nq], qmap, np.ascontiguousarray(self._sorted_prior(prior)), out)
+        self._release(f"means{k}", buf, g)
+        return [self._unsort(o) for o in out]
 
     def variance(self) -> np.ndarray:
         """Posterior marginal variance (Ho, Wo), m^2."""
@@ -303,12 +388,15 @@ class WoodburyPosterior:
         ri, rv = ra.impulses(self.rr, rate, interval=True)
         ci, cv = ca.impulses(self.cc, rate, interval=True)
         qmap, ri = _stored_rows(ri, ra.n)
-        buf, g = ra.workspace(ca, self._store)
+        buf, g = _workspace(self._store, "variance", (ra.n + 1, ca.n + 1, 9), (ra.n + 1, 3, ca.n))
+        nq = int(qmap.max()) + 1
+        out = np.empty((ra.n, ca.n))
         with numeric_section():
             Minv = inverse_from_cholesky(np.array(self.L, order="F"))
             _splat_pairs(Minv, self.A, self.cc, ri, rv, ci, cv, buf)  # rr is sorted (row-major order)
-            corr = self._filtered(buf, g, rate, True, qmap)
-        return np.maximum(self.s2 * (1.0 - corr), 0.0)
+            _filter(buf[:nq], ra.decay(rate), ca.decay(rate), g[:nq], out, qmap, self.s2)
+        self._release("variance", buf, g)
+        return self._unsort(out)
 
     def log_marginal_likelihood(self) -> float:
         """log p(y) of the observed pixels (nats)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import numpy as np
 import pytest
 
@@ -57,6 +58,25 @@ class TestAgainstExact:
         m1, v1 = FastEngine(route="woodbury").solve(problem)
         np.testing.assert_allclose(m1, m0, atol=1e-10)
         np.testing.assert_allclose(v1, v0, rtol=1e-8)
+
+    @pytest.mark.parametrize("sort", [True, False])
+    def test_means_read_out_every_right_hand_side_like_mean(self, sort):
+        rng = np.random.default_rng(5)
+        rows, cols = np.linspace(-2.0, 20.0, 15), np.linspace(-0.5, 29.5, 21)
+        if not sort:
+            rows, cols = rng.permutation(rows), rng.permutation(cols)
+        problem = sparse_problem(rng, 18, 30, 35, out_rows=rows, out_cols=cols)
+        extra = [rng.normal(0.0, 1.0, (18, 30)) for _ in range(2)]
+        store: dict = {}
+        for _ in range(2):  # the second call takes the first's buffers from the store
+            post = WoodburyPosterior(problem, store)
+            mean, extras = post.means(extra)
+            np.testing.assert_array_equal(mean, post.mean())
+            assert len(extras) == 2
+            for e, m in zip(extra, extras):
+                np.testing.assert_array_equal(m, post.mean(e))
+                exact = ExactEngine().solve(dataclasses.replace(problem, obs=e), variance=False)[0]
+                np.testing.assert_allclose(m, exact, atol=1e-10)
 
     def test_unsorted_and_outside_output_coordinates(self):
         rng = np.random.default_rng(2)
