@@ -219,19 +219,26 @@ def _window_covariance(n, pr, pc, ids, noise, Er_p, Rr_p, Ec_p, Rc_p, s2, span, 
         A[a, a] += noise[ids[a]]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _residual_solve(ids, n, A, dinv, resid, y):  # pragma: no cover - compiled
+    """y = L^-1 r for the window's points ``ids[:n]`` (L in A's lower triangle, 1 / diag(L) in ``dinv``): each
+    point's residual right-hand sides, one at a time (inlined into the per-pixel paths of few points)."""
+    for a in range(n):
+        pa = uint64(ids[a])
+        for q in range(resid.shape[1]):
+            s = resid[pa, q]
+            for t in range(a):
+                s -= A[a, t] * y[t, q]
+            y[a, q] = s * dinv[a]
+
+
 @njit(cache=True, nogil=True)
 def _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span, y, c,
                      corr, vred):  # pragma: no cover - compiled
     """`_cell_pixels` one output pixel at a time (few points: the lanes would cost more than they save); y, c:
     work arrays of at least (n, m) and n."""
     m = resid.shape[1]
-    for a in range(n):  # y = L^-1 r
-        pa = uint64(ids[a])
-        for q in range(m):
-            s = resid[pa, q]
-            for t in range(a):
-                s -= A[a, t] * y[t, q]
-            y[a, q] = s * dinv[a]
+    _residual_solve(ids, n, A, dinv, resid, y)
     for i_ in range(i0, i1):
         i = uint64(i_)  # indices >= 0 as unsigned integers: no check for negative ones (`_window_covariance`)
         for j_ in range(j0, j1):
@@ -266,13 +273,7 @@ def _cell_pixels_four(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o
     loops (they keep numba from pruning the arrays' reference counting). y: a work array of at least (4, m).
     """
     m = resid.shape[1]
-    for a in range(n):  # y = L^-1 r
-        pa = uint64(ids[a])
-        for q in range(m):
-            s = resid[pa, q]
-            for t in range(a):
-                s -= A[a, t] * y[t, q]
-            y[a, q] = s * dinv[a]
+    _residual_solve(ids, n, A, dinv, resid, y)
     for a in range(n, 4):  # the padding
         pr[a], pc[a], dinv[a] = pr[0], pc[0], 0.0
         for t in range(a):
