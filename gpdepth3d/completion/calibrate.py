@@ -85,9 +85,9 @@ def _local_factor(frame: LogFrame, sloped: Sloped, screened: Screened, config: D
 @njit(cache=True, nogil=True)
 def _edge_variance(var, mde, half, scale, factor, use_factor, out):  # pragma: no cover - compiled
     """out = (var + (scale x edge range)^2) x factor in one pass over the rows (the factor only with ``use_factor``),
-    the edge range being `edge_range`'s with window 2 half + 1: per row, each column's max and min over the window's
-    rows, then over the window's columns, each step a loop over the row that vectorises (max and min are exact, so
-    this is the morphology's value)."""
+    the edge range being the MDE's max - min over the (2 half + 1)^2 window around each pixel (borders: the window
+    cut at the map's edge): per row, each column's max and min over the window's rows, then over the window's
+    columns, each step a loop over the row that vectorises."""
     h, w = mde.shape
     col_hi, col_lo, hi, lo = np.empty(w), np.empty(w), np.empty(w), np.empty(w)
     for i in range(h):
@@ -112,12 +112,3 @@ def _edge_variance(var, mde, half, scale, factor, use_factor, out):  # pragma: n
             e = (hi[j] - lo[j]) * scale
             v = var[i, j] + e * e
             out[i, j] = v * factor[i, j] if use_factor else v
-
-
-def edge_range(depth: np.ndarray, window: int) -> np.ndarray:
-    """Local depth range (max - min) over a window x window neighbourhood (OpenCV's dilate and erode), metres."""
-    import cv2
-
-    kernel = np.ones((window, window), np.uint8)
-    depth = np.ascontiguousarray(depth, dtype=np.float64)
-    return cv2.dilate(depth, kernel) - cv2.erode(depth, kernel)

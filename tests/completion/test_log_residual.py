@@ -359,37 +359,31 @@ class TestLogResidualPosterior:
         )
 
 
+def _max_minus_min(depth: np.ndarray, window: int) -> np.ndarray:
+    """The reference local depth range: SciPy's maximum_filter - minimum_filter over window x window pixels."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    return maximum_filter(depth, window) - minimum_filter(depth, window)
+
+
 def test_edge_range_at_points_equals_the_filtered_map():
     """The screening's edge term, computed at the points only, is the 3 x 3 max - min filter's value there (borders too)."""
-    from gpdepth3d.completion.calibrate import edge_range as _edge_range
     from gpdepth3d.completion.log_frame import edge_range_at as _edge_range_at
 
     depth = np.random.default_rng(0).uniform(0.5, 20.0, (17, 23))
     rows, cols = np.divmod(np.arange(17 * 23), 23)
-    np.testing.assert_array_equal(_edge_range_at(depth, rows, cols), _edge_range(depth, 3)[rows, cols])
-
-
-def test_edge_range_equals_scipy_max_minus_min_filter():
-    """`_edge_range` (OpenCV morphology) gives SciPy's maximum_filter - minimum_filter exactly, borders included."""
-    from scipy.ndimage import maximum_filter, minimum_filter
-
-    from gpdepth3d.completion.calibrate import edge_range as _edge_range
-
-    rng = np.random.default_rng(1)
-    for shape, window in (((17, 23), 3), ((40, 61), 7), ((5, 4), 9)):
-        depth = rng.uniform(0.5, 20.0, shape)
-        expected = maximum_filter(depth, window) - minimum_filter(depth, window)
-        np.testing.assert_array_equal(_edge_range(depth, window), expected)
+    np.testing.assert_array_equal(_edge_range_at(depth, rows, cols), _max_minus_min(depth, 3)[rows, cols])
 
 
 def test_edge_variance_pass_equals_the_morphology_formula():
-    """The calibration's one compiled pass gives (var + (scale x edge range)^2) x factor bit for bit, borders included."""
-    from gpdepth3d.completion.calibrate import _edge_variance, edge_range
+    """The calibration's one compiled pass gives (var + (scale x edge range)^2) x factor bit for bit, borders included
+    (the edge range: SciPy's max - min filter, windows of 3 to 9 pixels, maps smaller than the window too)."""
+    from gpdepth3d.completion.calibrate import _edge_variance
 
     rng = np.random.default_rng(2)
     for shape, half in (((17, 23), 1), ((40, 61), 3), ((5, 4), 4), ((2, 2), 1)):
         mde, var, factor = rng.uniform(0.5, 20.0, shape), rng.uniform(0.0, 3.0, shape), rng.uniform(0.2, 4.0, shape)
-        edge = edge_range(mde, 2 * half + 1) * 0.37
+        edge = _max_minus_min(mde, 2 * half + 1) * 0.37
         for use in (False, True):
             out = np.empty(shape)
             _edge_variance(var, mde, half, 0.37, factor if use else var, use, out)

@@ -14,8 +14,8 @@ import warnings
 import numpy as np
 import pytest
 
-from gpdepth3d.completion.calibrate import edge_range as _edge_range
 from gpdepth3d.completion.complete import DepthCompleter
+from gpdepth3d.completion.log_frame import edge_range_at
 from gpdepth3d.gp import EngineConfig
 from gpdepth3d.gp.model import DepthGPConfig, separable_correlation
 from gpdepth3d.gp.points import PointFit, loo_zscores
@@ -97,7 +97,7 @@ def test_leave_one_out_kernel_equals_numpy(kitti):
     sp = inputs[1.0]
     rows, cols = sp.v.astype(np.float64), sp.u.astype(np.float64)
     resid = np.log(sp.depth) - np.log(setup.mde_grid[rows.astype(int), cols.astype(int)])
-    noise = 1e-4 + _edge_range(np.log(setup.mde_grid), 3)[rows.astype(int), cols.astype(int)] ** 2
+    noise = 1e-4 + edge_range_at(np.log(setup.mde_grid), rows.astype(int), cols.astype(int)) ** 2
     fit = PointFit(32.0, 0.2, 0.02, float(np.median(resid)), 1e-5, len(sp))
     z = loo_zscores(rows, cols, resid, noise, fit)
     n = len(sp)
