@@ -118,7 +118,7 @@ def build_lattice(
     depth_aware = config.assembly.depth_lengthscale is not None and r.size > 0
     scale_term = fit.log_scale_var > config.assembly.scale_var_share * fit.nugget**2
     slope_term = sloped.fit is not None and r.size > 0
-    x_pts = frame.log_mde[r, c]  # the raw (not re-sloped) log MDE at the points
+    x_pts = frame.log_mde_at[keep]  # the raw (not re-sloped) log MDE at the points, read once per frame
     centre = sloped.fit.centre if sloped.fit is not None else (float(np.median(x_pts)) if r.size else 0.0)
     if depth_aware or scale_term or slope_term:
         targets.append(np.ones(r.size))
