@@ -567,15 +567,8 @@ class _MapRun:
         work = self.mapper.work_camera
         if not self.volumes:
             self.volumes.update(reference=TSDFFusion(work, self.uniform), mde=TSDFFusion(work, self.uniform))
-        pts, _ = frame.camera.backproject(frame.depth)
-        _integrate(
-            self.volumes["reference"],
-            project_points(pts, work).to_depth_map(),
-            frame,
-            work,
-            self.frame_errors,
-            "sensor-depth volume",
-        )
+        depth = _sensor_depth_at(frame, self.mapper.camera, work)
+        _integrate(self.volumes["reference"], depth, frame, work, self.frame_errors, "sensor-depth volume")
 
     def record(self, result: FrameResult) -> Frame:
         """Books one returned frame: pose check, error, counts, its MDE in the MDE-only volume."""
@@ -595,6 +588,20 @@ class _MapRun:
                 self.volumes["mde"], result.mde, frame, self.mapper.work_camera, self.frame_errors, "MDE-only volume"
             )
         return frame
+
+
+def _sensor_depth_at(frame: Frame, camera: PinholeCamera, work: PinholeCamera) -> np.ndarray:
+    """The frame's sensor depth on the working camera ``work`` (metres, 0 = none): the reference the maps are
+    scored against.
+
+    When the frame is seen by ``camera`` (the camera ``work`` was resized from), the depth is resized to the
+    working size (`resize_depth`: nearest when shrinking, so no mixed depths), the reference `fuse_sequence`
+    fuses too; a frame from another camera is lifted with its own and projected into ``work`` (z-buffer).
+    """
+    if frame.camera == camera:
+        return resize_depth(frame.depth, work.shape)
+    points, _ = frame.camera.backproject(frame.depth)
+    return project_points(points, work).to_depth_map()
 
 
 def _map_metrics(volumes: dict[str, TSDFFusion], mesh: Any, threshold: float, samples: int) -> dict | None:

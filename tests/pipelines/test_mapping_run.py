@@ -209,3 +209,29 @@ class TestColmapInputs:
         np.testing.assert_allclose(np.sort(inputs.map_points[0][:, 0]), np.sort(points[:20, 0]), atol=1e-9)
         with pytest.raises(DataFormatError, match="no pose of that name"):
             open_posed_sequence(seven / "rgb", tmp_path / "sparse")
+
+
+def test_sensor_depth_reference_is_the_resized_depth_of_the_same_camera():
+    """The map's reference depth is `resize_depth` of the sensor depth when the frame's camera is the one the
+    working camera was resized from (the reference `fuse_sequence` fuses); another camera's depth is projected."""
+    from gpdepth3d.camera import PinholeCamera
+    from gpdepth3d.datasets.base import Frame
+    from gpdepth3d.mapping.frame_inputs import resize_depth
+    from gpdepth3d.pipelines.mapping_run import _sensor_depth_at
+
+    rng = np.random.default_rng(0)
+    camera = PinholeCamera(100.0, 100.0, 39.5, 29.5, 80, 60)
+    work = camera.resized(40, 30)
+    depth = rng.uniform(1.0, 3.0, (60, 80))
+    depth[rng.random((60, 80)) < 0.3] = 0.0
+    frame = Frame(name="f", rgb=np.zeros((60, 80, 3), np.uint8), camera=camera, depth=depth, pose=np.eye(4))
+    got = _sensor_depth_at(frame, camera, work)
+    assert got.shape == (30, 40)
+    np.testing.assert_array_equal(got, resize_depth(depth, (30, 40)))
+
+    other = PinholeCamera(120.0, 120.0, 39.5, 29.5, 80, 60)  # a frame seen by another camera: lifted, projected
+    flat = Frame(name="g", rgb=frame.rgb, camera=other, depth=np.full((60, 80), 2.0), pose=np.eye(4))
+    projected = _sensor_depth_at(flat, camera, work)
+    assert projected.shape == (30, 40)
+    assert np.allclose(projected[projected > 0], 2.0) and (projected > 0).mean() > 0.5
+    assert (projected[0] == 0).all()  # the narrower field of view leaves the border empty
