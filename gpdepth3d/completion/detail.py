@@ -24,8 +24,11 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     ho, wo = frame.out_shape
     if lattice.stride == 1 or not is_exponential(config.nu) or not lattice.rows.size or ho < h or wo < w:
         return field
-    at = _at_points((field.mean, *field.extra), lattice.rows, lattice.cols, (h, w))
+    fields = (field.mean, *field.extra)
+    at = _at_points(fields, lattice.rows, lattice.cols, (h, w))
     kernel = lattice.problem.kernel
+    # on the grid itself the kriging writes the fields plus their corrections and the reduced variance in its pass
+    same = frame.same_grid
     corr, reduction = sublattice_kriging(
         np.arange(h, dtype=np.float64),
         np.arange(w, dtype=np.float64),
@@ -38,11 +41,14 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
         lengthscale=lattice.lengthscale,
         outputscale=kernel.outputscale,
         max_window_points=config.lattice.max_window_points,
+        base=fields if same else None,
+        variance=field.variance if same else None,
     )
-    if not frame.same_grid:
-        corr = np.stack([frame.to_output(f) for f in corr])
-        reduction = frame.to_output(reduction)
-    for f, c in zip((field.mean, *field.extra), corr):  # the corrections' own (fresh) arrays take the sums
+    if same:
+        return replace(field, mean=corr[0], variance=reduction, extra=tuple(corr[1:]))
+    corr = np.stack([frame.to_output(f) for f in corr])
+    reduction = frame.to_output(reduction)
+    for f, c in zip(fields, corr):  # the corrections' own (fresh) arrays take the sums
         c += f
     variance = np.subtract(field.variance, reduction, out=reduction)
     np.maximum(variance, 0.0, out=variance)
@@ -56,8 +62,9 @@ def _at_points(fields: tuple[np.ndarray, ...], rows: np.ndarray, cols: np.ndarra
     """
     ho, wo = fields[0].shape
     h, w = grid
-    if (ho, wo) == (h, w):
-        return np.stack([f[rows, cols] for f in fields])
+    if (ho, wo) == (h, w):  # one flat index for all the fields
+        flat = rows * w + cols
+        return np.stack([f.ravel().take(flat) for f in fields])
     from scipy.ndimage import map_coordinates
 
     y = (rows + 0.5) * ho / h - 0.5  # the inverse of output_coordinates

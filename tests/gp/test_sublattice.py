@@ -214,3 +214,40 @@ def test_calls_on_other_grids_in_between_change_nothing():
     for a, b in zip(first, again):
         np.testing.assert_array_equal(a, b)
     assert np.any(first[0] != 0)
+
+
+@pytest.mark.parametrize("k, share", [(2, 12), (4, 1)])
+def test_base_and_variance_give_the_sums_in_the_same_pass(k, share):
+    """With ``base`` and ``variance`` the call returns base + corrections and max(variance - reduction, 0), equal to
+    the bit to the sums taken after a plain call, pixels no window reaches (base, max(variance, 0)) included."""
+    rng = np.random.default_rng(5)
+    shape = (21, 26)
+    h, w = shape
+    flat = rng.choice(h * w, size=h * w // share, replace=False)
+    flat = flat[flat // w > 4]  # the upper rows without points
+    rows, cols = flat // w, flat % w
+    resid, noise = rng.normal(0, 0.1, (rows.size, 3)), rng.uniform(1e-4, 4e-3, rows.size)
+    base = [rng.normal(0, 1, shape) for _ in range(3)]
+    variance = rng.uniform(-1e-3, 2e-2, shape)  # a few engine roundings below 0
+    args = (np.arange(float(h)), np.arange(float(w)), rows, cols, resid, noise, shape)
+    kw = dict(stride=k, lengthscale=4.0, outputscale=0.3)
+    corr, vred = sublattice_kriging(*args, **kw)
+    summed, reduced = sublattice_kriging(*args, **kw, base=base, variance=variance)
+    np.testing.assert_array_equal(summed, np.stack(base) + corr)
+    np.testing.assert_array_equal(reduced, np.maximum(variance - vred, 0.0))
+    one, v1 = sublattice_kriging(*args[:4], resid[:, 0], *args[5:], **kw, base=base[0], variance=variance)
+    np.testing.assert_array_equal(one, summed[0])
+    np.testing.assert_array_equal(v1, reduced)
+    none = sublattice_kriging(*args[:2], rows[:0], cols[:0], resid[:0], noise[:0], shape, **kw, base=base,
+                              variance=variance)  # fmt: skip
+    np.testing.assert_array_equal(none[0], np.stack(base))
+    np.testing.assert_array_equal(none[1], np.maximum(variance, 0.0))
+
+
+def test_base_without_variance_is_refused():
+    args = (np.arange(4.0), np.arange(4.0), [1], [1], [0.1], [1e-3], (4, 4))
+    with pytest.raises(InvalidInputError, match="base, variance"):
+        sublattice_kriging(*args, stride=2, lengthscale=2.0, outputscale=0.1, base=np.zeros((4, 4)))
+    with pytest.raises(ShapeError, match="base"):
+        sublattice_kriging(*args, stride=2, lengthscale=2.0, outputscale=0.1, base=np.zeros((3, 4)),
+                           variance=np.zeros((4, 4)))  # fmt: skip
