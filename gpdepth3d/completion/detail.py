@@ -24,11 +24,8 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     ho, wo = frame.out_shape
     if lattice.stride == 1 or not is_exponential(config.nu) or not lattice.rows.size or ho < h or wo < w:
         return field
-    fields = (field.mean, *field.extra)
-    at = _at_points(fields, lattice.rows, lattice.cols, (h, w))
+    at = _at_points((field.mean, *field.extra), lattice.rows, lattice.cols, (h, w))
     kernel = lattice.problem.kernel
-    # on the grid itself the kriging writes the fields plus their corrections and the reduced variance in its pass
-    same = frame.same_grid
     corr, reduction = sublattice_kriging(
         np.arange(h, dtype=np.float64),
         np.arange(w, dtype=np.float64),
@@ -41,14 +38,11 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
         lengthscale=lattice.lengthscale,
         outputscale=kernel.outputscale,
         max_window_points=config.lattice.max_window_points,
-        base=fields if same else None,
-        variance=field.variance if same else None,
     )
-    if same:
-        return replace(field, mean=corr[0], variance=reduction, extra=tuple(corr[1:]))
-    corr = np.stack([frame.to_output(f) for f in corr])
-    reduction = frame.to_output(reduction)
-    for f, c in zip(fields, corr):  # the corrections' own (fresh) arrays take the sums
+    if not frame.same_grid:
+        corr = np.stack([frame.to_output(f) for f in corr])
+        reduction = frame.to_output(reduction)
+    for f, c in zip((field.mean, *field.extra), corr):  # the corrections' own (fresh) arrays take the sums
         c += f
     variance = np.subtract(field.variance, reduction, out=reduction)
     np.maximum(variance, 0.0, out=variance)

@@ -32,7 +32,6 @@ Coordinates are GP-grid pixels (pixel centres at integers), the lattice nodes at
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import numpy as np
 from numba import get_num_threads, njit, prange, uint64
@@ -96,21 +95,20 @@ def _tables(targets, centres, k, n_nodes, inv_l, reach):  # pragma: no cover - c
 
 @njit(cache=True, nogil=True, parallel=True)
 def _krige(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr, by_row,
-           pt_r, pt_c, resid, noise, s2, k, reach, max_points, base, var, fused, corr, vred):  # pragma: no cover - compiled
+           pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """`_krige_row` for the rows of cells ``cell_rows``, in parallel."""
     for ii in prange(cell_rows.shape[0]):  # rows of cells in parallel, each with its own buffers
         _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p,
-                   row_ptr, by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, base, var, fused, corr, vred)
+                   row_ptr, by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
 
 
 @njit(cache=True, nogil=True)
 def _krige_serial(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr,
-                  by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, base, var, fused, corr,
-                  vred):  # pragma: no cover - compiled
+                  by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """`_krige` on the calling thread (few points: waking the worker threads costs more than their work)."""
     for ii in range(cell_rows.shape[0]):
         _krige_row(cell_rows[ii], row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p,
-                   row_ptr, by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, base, var, fused, corr, vred)
+                   row_ptr, by_row, pt_r, pt_c, resid, noise, s2, k, reach, max_points, corr, vred)
 
 
 #: Fewer points than this are kriged on the calling thread (`_krige_serial`).
@@ -119,11 +117,11 @@ SERIAL_POINTS = 1024
 
 @njit(cache=True, nogil=True)
 def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p, Ec_p, Rc_p, row_ptr, by_row, pt_r,
-               pt_c, resid, noise, s2, k, reach, max_points, base, var, fused, corr, vred):  # pragma: no cover - compiled
+               pt_c, resid, noise, s2, k, reach, max_points, corr, vred):  # pragma: no cover - compiled
     """The cells of row ci: per cell one factorisation of its window's points (at most max_points, `_window`;
     `cholesky_dots_in_place`, vectorised dot products, so equal to the plain loop's factor to rounding only), then
     every output pixel in it (`_cell_pixels`; one at a time below `BY_LANES` points, `_cell_pixels_few`, written
-    out for at most four, `_cell_pixels_four`); their output rows set to zero before and summed after (`_band`)."""
+    out for at most four, `_cell_pixels_four`)."""
     h = row_ptr.shape[0] - 1
     m = resid.shape[1]
     side = k + 2 * reach
@@ -131,7 +129,6 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
     span = Rr_p.shape[0] // 2
     if row_start[ci] == row_start[ci + 1]:
         return
-    _band(row_start[ci], row_start[ci + 1], base, var, fused, corr, vred, False)
     r0, r1 = max(k * ci - reach, 0), min(k * ci + k + reach, h)
     cursor = row_ptr[r0:r1].copy()  # per window row: its first point at or right of the window (`_window`)
     ids = np.empty(size, np.int64)
@@ -175,30 +172,6 @@ def _krige_row(ci, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, R
         else:
             _cell_pixels_few(ids, n, A, dinv, resid, i0, i1, j0, j1, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, pr, pc, s2, span,
                              V, acc, corr, vred)
-    _band(row_start[ci], row_start[ci + 1], base, var, fused, corr, vred, True)
-
-
-@njit(cache=True, nogil=True)
-def _band(i0, i1, base, var, fused, corr, vred, finish):  # pragma: no cover - compiled
-    """Output rows i0 <= i < i1 of a row of cells: before its cells (not ``finish``) corr = vred = 0; after them, with
-    ``fused``, corr[q] = base[q] + corr[q] and vred = max(var - vred, 0) (numpy's maximum), while the rows are still
-    in the cache (the sums `sublattice_kriging` would otherwise take over the whole maps afterwards)."""
-    for i_ in range(i0, i1):
-        i = uint64(i_)  # unsigned: see `_window_covariance`
-        red = vred[i]
-        if not finish:
-            red[:] = 0.0
-            for q in range(corr.shape[0]):
-                corr[q, i] = 0.0
-        elif fused:
-            v = var[i]
-            for j in range(red.shape[0]):
-                x = v[j] - red[j]
-                red[j] = 0.0 if x < 0.0 else x
-            for q in range(corr.shape[0]):
-                b, c = base[q][i], corr[q, i]
-                for j in range(c.shape[0]):
-                    c[j] = b[j] + c[j]
 
 
 #: Window points from which `_krige_row` computes a cell's output pixels side by side (`_cell_pixels`); below,
@@ -436,8 +409,6 @@ def sublattice_kriging(
     lengthscale: float,
     outputscale: float,
     max_window_points: int = LatticeConfig.max_window_points,
-    base: Sequence[np.ndarray] | np.ndarray | None = None,
-    variance: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The sub-lattice kriging of residuals at an output tensor grid (see the module docstring).
 
@@ -454,20 +425,14 @@ def sublattice_kriging(
         outputscale: Its standard deviation s.
         max_window_points: Most points of one cell's window (the nearest to its centre); it bounds the
             cost of coarse lattices (stride k: (k + 2 window_reach(k))^2 pixels per window).
-        base: m (Ho, Wo) posterior means (one (Ho, Wo) map for 1-D ``residuals``), with ``variance`` (Ho, Wo)
-            their variance: returned are base + corrections and max(variance - reduction, 0) instead (summed
-            per row of cells while its rows are in the cache, not in passes over the maps afterwards).
 
     Returns:
         corrections (m, Ho, Wo) (``(Ho, Wo)`` for 1-D ``residuals``) to add to the posterior
-        mean(s), and the variance reduction (Ho, Wo) to subtract from the posterior variance (with ``base`` and
-        ``variance``: base + corrections and the reduced variance, >= 0).
+        mean(s), and the variance reduction (Ho, Wo) to subtract from the posterior variance.
 
     Raises:
-        InvalidInputError: a stride below 2, non-positive scales, negative noise, two points on one pixel,
-            ``base`` without ``variance`` or the reverse.
-        ShapeError: arrays of mismatched lengths, points outside the grid, or ``base`` / ``variance`` not of the
-            output's shape.
+        InvalidInputError: a stride below 2, non-positive scales, negative noise, two points on one pixel.
+        ShapeError: arrays of mismatched lengths, or points outside the grid.
     """
     h, w = (int(x) for x in shape)
     k = int(stride)
@@ -514,37 +479,15 @@ def sublattice_kriging(
     same_cols = np.array_equal(out_cols, np.arange(w))
     Er_o, Rr_o = (Er_p, Rr_p) if same_rows else _tables(out_rows, cr, k, hl, inv_l, span)
     Ec_o, Rc_o = (Ec_p, Rc_p) if same_cols else _tables(out_cols, cc, k, wl, inv_l, span)
-    base, var, fused = _prior(base, variance, res.shape[1], (out_rows.size, out_cols.size))
-    if not n and fused:
-        return (base[0].copy() if one else np.stack(base)), np.maximum(var, 0.0)
-    if not n:
-        return np.zeros((out_rows.size, out_cols.size) if one else (res.shape[1], out_rows.size, out_cols.size)), np.zeros(
-            (out_rows.size, out_cols.size)
-        )
-    corr = np.empty((res.shape[1], out_rows.size, out_cols.size))
-    vred = np.empty((out_rows.size, out_cols.size))
-    # prange hands each thread one contiguous share of the rows of cells; the points often fill only part of
-    # the image (the LiDAR its lower two thirds), so each share takes every t-th row, not one block of rows
-    threads = get_num_threads() if n >= SERIAL_POINTS else 1
-    cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
-    kernel = _krige if threads > 1 else _krige_serial
-    kernel(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], row_ptr,
-           by_row.astype(np.int64), rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points),
-           base, var, fused, corr, vred)
+    corr = np.zeros((res.shape[1], out_rows.size, out_cols.size))
+    vred = np.zeros((out_rows.size, out_cols.size))
+    if n:
+        # prange hands each thread one contiguous share of the rows of cells; the points often fill only part of
+        # the image (the LiDAR its lower two thirds), so each share takes every t-th row, not one block of rows
+        threads = get_num_threads() if n >= SERIAL_POINTS else 1
+        cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
+        kernel = _krige if threads > 1 else _krige_serial
+        kernel(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], row_ptr,
+               by_row.astype(np.int64), rows, cols, res, noise, float(outputscale) ** 2, k, reach, int(max_window_points),
+               corr, vred)
     return (corr[0] if one else corr), vred
-
-
-def _prior(base, variance, m: int, shape: tuple[int, int]) -> tuple[tuple[np.ndarray, ...], np.ndarray, bool]:
-    """The kernels' (base, variance, fused) of `sublattice_kriging`'s ``base`` and ``variance`` (both or neither;
-    neither: empty maps the kernels do not read)."""
-    if (base is None) != (variance is None):
-        raise InvalidInputError("base, variance", "both or neither", "only one of them")
-    if base is None:
-        return (np.zeros((0, 0)),) * m, np.zeros((0, 0)), False
-    maps = tuple(np.ascontiguousarray(b, dtype=np.float64) for b in ([base] if m == 1 and np.ndim(base) == 2 else base))
-    if len(maps) != m or any(b.shape != shape for b in maps):
-        raise ShapeError("base", f"{m} maps of {shape}", f"{len(maps)} of {[b.shape for b in maps]}")
-    var = np.ascontiguousarray(variance, dtype=np.float64)
-    if var.shape != shape:
-        raise ShapeError("variance", f"a map of {shape}", describe(var))
-    return maps, var, True
