@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, uint64
 
 from ..errors import InvalidInputError
 from ..gp.model import DepthGPConfig
@@ -132,12 +132,14 @@ def _assemble(
     that is not finite and > 0 or a variance that is not finite (the running sum of means and variances is not
     finite, or their minimum mean not > 0), else 0. The arithmetic's loops vectorise."""
     if phase == _RHO_EXPONENT:
-        for i in range(lo, hi):
+        for i_ in range(lo, hi):
+            i = uint64(i_)  # unsigned: no check for negative indices, so the loop vectorises
             w = w1[i] if abs(w1[i]) >= floor else 1.0  # rho = 1 there: the quotient is not used
             mean[i] = -abs(a) * abs((x_out[i] - centre) - wx[i] / w) * inv_lz
         return 0
     if phase == _LOG_MOMENTS:
-        for i in range(lo, hi):
+        for i_ in range(lo, hi):
+            i = uint64(i_)  # unsigned: no check for negative indices, so the loop vectorises
             rho = mean[i] if depth_aware and abs(w1[i]) >= floor else 1.0
             mu = log_out[i] + b + rho * g_mean[i]
             v = 0.0
@@ -158,7 +160,8 @@ def _assemble(
             mean[i] = mu + 0.5 * v
         return 0
     total, low = 0.0, math.inf
-    for i in range(lo, hi):
+    for i_ in range(lo, hi):
+        i = uint64(i_)
         m = mean[i]
         low = min(low, m)
         total += m

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, uint64
 
 from ..gp.local_calibration import local_variance_factor
 from ..gp.model import DepthGPConfig
@@ -90,25 +90,31 @@ def _edge_variance(var, mde, half, scale, factor, use_factor, out):  # pragma: n
     columns, each step a loop over the row that vectorises."""
     h, w = mde.shape
     col_hi, col_lo, hi, lo = np.empty(w), np.empty(w), np.empty(w), np.empty(w)
-    for i in range(h):
-        r0, r1 = max(i - half, 0), min(i + half, h - 1)
+    for i_ in range(h):
+        i = uint64(i_)  # indices >= 0 as unsigned integers: no check for negative ones, so the loops vectorise
+        r0, r1 = max(i_ - half, 0), min(i_ + half, h - 1)
+        first = mde[uint64(r0)]
         for j in range(w):
-            col_hi[j] = mde[r0, j]
-            col_lo[j] = mde[r0, j]
+            col_hi[j] = first[j]
+            col_lo[j] = first[j]
         for r in range(r0 + 1, r1 + 1):
+            row = mde[uint64(r)]
             for j in range(w):
-                col_hi[j] = max(col_hi[j], mde[r, j])
-                col_lo[j] = min(col_lo[j], mde[r, j])
+                col_hi[j] = max(col_hi[j], row[j])
+                col_lo[j] = min(col_lo[j], row[j])
         hi[:] = col_hi
         lo[:] = col_lo
         for d in range(1, half + 1):
-            for j in range(w - d):
+            for j_ in range(w - d):
+                j = uint64(j_)
                 hi[j] = max(hi[j], col_hi[j + d])
                 lo[j] = min(lo[j], col_lo[j + d])
-            for j in range(d, w):
+            for j_ in range(d, w):
+                j = uint64(j_)
                 hi[j] = max(hi[j], col_hi[j - d])
                 lo[j] = min(lo[j], col_lo[j - d])
+        vi, fi, oi = var[i], factor[i], out[i]
         for j in range(w):
             e = (hi[j] - lo[j]) * scale
-            v = var[i, j] + e * e
-            out[i, j] = v * factor[i, j] if use_factor else v
+            v = vi[j] + e * e
+            oi[j] = v * fi[j] if use_factor else v

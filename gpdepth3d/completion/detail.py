@@ -56,8 +56,9 @@ def _at_points(fields: tuple[np.ndarray, ...], rows: np.ndarray, cols: np.ndarra
     """
     ho, wo = fields[0].shape
     h, w = grid
-    if (ho, wo) == (h, w):
-        return np.stack([f[rows, cols] for f in fields])
+    if (ho, wo) == (h, w):  # one flat index for all the fields
+        flat = rows * w + cols
+        return np.stack([f.ravel().take(flat) for f in fields])
     from scipy.ndimage import map_coordinates
 
     y = (rows + 0.5) * ho / h - 0.5  # the inverse of output_coordinates

@@ -108,11 +108,12 @@ def build_lattice(
     cell = node_r * wl + node_c
     precision = np.bincount(cell, precision_pt, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)
     observed = precision > 0
+    # the nodes' precision, 1 where none (their sums are 0 there): a plain division, not one masked by `observed`
+    denominator = precision + ~observed
 
     def on_lattice(values):  # per-point values -> the precision-weighted mean at each node
         out = np.bincount(cell, precision_pt * values, hl * wl).astype(np.float64, copy=False).reshape(hl, wl)
-        np.divide(out, precision, out=out, where=observed)
-        return out
+        return np.divide(out, denominator, out=out)
 
     targets = [sloped.resid[keep] - fit.log_scale]
     depth_aware = config.assembly.depth_lengthscale is not None and r.size > 0

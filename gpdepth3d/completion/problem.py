@@ -78,21 +78,26 @@ def check_mde_depth(mde_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @njit(cache=True, nogil=True)
 def _valid_depth(d, out, valid):  # pragma: no cover - compiled
     """One pass over the map d: valid = finite and > 0, out = d there and 0 elsewhere; returns the counts of finite
-    negative depths and of valid ones outside [1e-6, 1e6], and the first of those in row-major order."""
-    negative, outside, first = 0, 0, 0.0
+    negative depths and of valid ones outside [1e-6, 1e6], and the first of those in row-major order.
+
+    The pass has no branches (comparisons as 0/1 counts, NaN failing each), so it vectorises; the first depth
+    outside the range is looked for only when there is one."""
+    negative, outside = 0, 0
     for i in range(d.shape[0]):
-        for j in range(d.shape[1]):
-            x = d[i, j]
-            finite = math.isfinite(x)
-            ok = finite and x > 0.0
-            if finite and x < 0.0:
-                negative += 1
-            if ok and (x < 1e-6 or x > 1e6):
-                if outside == 0:
-                    first = x
-                outside += 1
-            valid[i, j] = ok
-            out[i, j] = x if ok else 0.0
+        row, o, v = d[i], out[i], valid[i]
+        for j in range(row.shape[0]):
+            x = row[j]
+            ok = (x > 0.0) & (x < math.inf)
+            negative += (x < 0.0) & (x > -math.inf)
+            outside += ((x > 0.0) & (x < 1e-6)) | ((x > 1e6) & (x < math.inf))
+            v[j] = ok
+            o[j] = x if ok else 0.0
+    first = 0.0
+    if outside:
+        for x in d.ravel():
+            if (x > 0.0 and x < 1e-6) or (x > 1e6 and x < math.inf):
+                first = x
+                break
     return negative, outside, first
 
 

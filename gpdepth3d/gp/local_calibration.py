@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from ..errors import InvalidInputError, describe
 from .model import CalibrationConfig
@@ -102,15 +103,7 @@ def local_variance_factor(
         sums, weights = np.bincount(cell, q, h * w), np.bincount(cell, None, h * w).astype(np.float64)
     else:
         sums, weights = np.zeros(hb * wb), np.zeros(hb * wb)
-        y, x = (rows - (c - 1) / 2) / c, (cols - (c - 1) / 2) / c
-        i0, j0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
-        fy, fx = y - i0, x - j0
-        for di, wy in ((0, 1 - fy), (1, fy)):
-            for dj, wx in ((0, 1 - fx), (1, fx)):
-                cell = np.clip(i0 + di, 0, hb - 1) * wb + np.clip(j0 + dj, 0, wb - 1)
-                share = wy * wx
-                sums += np.bincount(cell, share * q, hb * wb)
-                weights += np.bincount(cell, share, hb * wb)
+        _splat(rows, cols, q, c, hb, wb, sums, weights, np.zeros(hb * wb), np.zeros(hb * wb))
     sums, weights = sums.reshape(hb, wb), weights.reshape(hb, wb)
     sigma = radius / c
     size = 2 * int(math.ceil(3 * sigma)) + 1
@@ -123,3 +116,35 @@ def local_variance_factor(
     if c > 1:
         factor = cv2.resize(factor, (wb * c, hb * c), interpolation=cv2.INTER_LINEAR)[:h, :w]
     return np.ascontiguousarray(factor)
+
+
+@njit(cache=True, nogil=True)
+def _splat(rows, cols, q, c, hb, wb, sums, weights, part, part_w):  # pragma: no cover - compiled
+    """sums, weights += each point's q and 1 splatted bilinearly onto the 4 bin centres around it (bins of c pixels,
+    hb x wb, flat; clipped at the borders), corner by corner: a corner's sums over the points by bin first (in
+    ``part``, ``part_w``: zeros in, zeros out), then added, so each bin's sum is that of one np.bincount per corner
+    added in turn; a bin is touched only where a point lands (no pass over all bins per corner)."""
+    half = (c - 1) / 2
+    for di in range(2):
+        for dj in range(2):
+            for p in range(rows.size):
+                b = _corner(rows[p], cols[p], half, c, di, dj, hb, wb)
+                y, x = (rows[p] - half) / c, (cols[p] - half) / c
+                fy, fx = y - math.floor(y), x - math.floor(x)
+                share = (fy if di else 1 - fy) * (fx if dj else 1 - fx)
+                part[b] += share * q[p]
+                part_w[b] += share
+            for p in range(rows.size):  # each bin's corner sum added once (a bin added again adds its zero)
+                b = _corner(rows[p], cols[p], half, c, di, dj, hb, wb)
+                sums[b] += part[b]
+                weights[b] += part_w[b]
+                part[b] = 0.0
+                part_w[b] = 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _corner(r, col, half, c, di, dj, hb, wb):  # pragma: no cover - compiled
+    """The flat bin of corner (di, dj) of the bilinear splat of pixel (r, col) (`_splat`)."""
+    i = min(max(math.floor((r - half) / c) + di, 0), hb - 1)
+    j = min(max(math.floor((col - half) / c) + dj, 0), wb - 1)
+    return i * wb + j

@@ -58,6 +58,14 @@ class TestCheckMdeDepth:
         with pytest.raises(error):
             check_mde_depth(d)
 
+    def test_errors_count_the_bad_depths_and_name_the_first_outside_the_range(self):
+        d = np.array([[1.0, -0.5, -np.inf, np.nan], [-2.0, 3e6, 1.0, 1e-7]])  # -inf and NaN: no depth, not negative
+        with pytest.raises(InvalidDepthError, match="2 negative"):
+            check_mde_depth(d)
+        d = np.array([[1.0, np.inf, 1e-7, 2.0], [3e6, 1.0, 5e-7, 1.0]])  # inf: no depth, not outside
+        with pytest.raises(InvalidDepthError, match=r"3 outside, e\.g\. 1e-07"):
+            check_mde_depth(d)
+
 
 class TestBuildProblem:
     def test_balanced(self):

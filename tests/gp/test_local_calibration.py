@@ -180,3 +180,32 @@ class TestInsideComplete:
         assert g.DepthGPConfig.paper().calibration.reach is None
         assert g.DepthGPConfig.residual().calibration.reach is None
         assert g.DepthGPConfig().calibration.reach == 1.5
+
+
+@pytest.mark.parametrize("c", [2, 3, 5])
+def test_the_splat_equals_one_bincount_per_corner_added_in_turn(c):
+    """`_splat` (the compiled bilinear splat onto bins of c pixels) gives the sums of the plain NumPy form to the bit:
+    per corner one np.bincount of the points' shares, the corners added in turn; points on the borders clipped."""
+    from gpdepth3d.gp.local_calibration import _splat
+
+    rng = np.random.default_rng(c)
+    h, w = 23, 31
+    flat = rng.choice(h * w, 150, replace=False)
+    rows, cols = np.concatenate([flat // w, [0, h - 1]]), np.concatenate([flat % w, [0, w - 1]])
+    q = rng.uniform(0, 4, rows.size)
+    hb, wb = -(-h // c), -(-w // c)
+    sums, weights = np.zeros(hb * wb), np.zeros(hb * wb)
+    _splat(rows, cols, q, c, hb, wb, sums, weights, np.zeros(hb * wb), np.zeros(hb * wb))
+    ref_s, ref_w = np.zeros(hb * wb), np.zeros(hb * wb)
+    y, x = (rows - (c - 1) / 2) / c, (cols - (c - 1) / 2) / c
+    i0, j0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+    fy, fx = y - i0, x - j0
+    for di, wy in ((0, 1 - fy), (1, fy)):
+        for dj, wx in ((0, 1 - fx), (1, fx)):
+            cell = np.clip(i0 + di, 0, hb - 1) * wb + np.clip(j0 + dj, 0, wb - 1)
+            share = wy * wx
+            ref_s += np.bincount(cell, share * q, hb * wb)
+            ref_w += np.bincount(cell, share, hb * wb)
+    np.testing.assert_array_equal(sums, ref_s)
+    np.testing.assert_array_equal(weights, ref_w)
+    np.testing.assert_allclose(weights.sum(), rows.size)
