@@ -6,7 +6,7 @@ read-out's, the selected inverse's, and the sub-lattice detail's; the demo then 
 Neumann route has kernels of its own. `compile_ahead` starts a second Python process that compiles the later
 groups (`GROUPS`) into the same cache on another core, through the same wrappers (so with the same signatures) on
 a small problem, and reports each group as it is done; by the time the first process reaches them it loads them
-from the cache. Before it calls a group's kernels, the first process waits in `ready` until the second has
+from the cache. Before it calls a group's kernels, the first process waits (`gpdepth3d.gp.compile_wait.ready`) until the second has
 reported the group: the wait is mostly shorter than compiling the group here would be (the second process is
 at it on the other core, or done), and the two processes do not both compile a group.
 
@@ -18,47 +18,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import threading
-from dataclasses import dataclass, field
 
 import numpy as np
+
+from . import compile_wait
 
 GROUPS = ("solve", "detail", "neumann")
 """The kernel groups this module compiles: the grid route's solve (`gpdepth3d.gp.multifrontal`) with its read-out
 of means off the grid (`gpdepth3d.gp.readout.read_mean`), the sub-lattice detail (`gpdepth3d.gp.sublattice`),
 and the Neumann route (`gpdepth3d.gp.neumann`)."""
-
-
-@dataclass
-class _Ahead:
-    """The process `compile_ahead` started, and the groups it has not reported yet."""
-
-    proc: subprocess.Popen
-    pending: set = field(default_factory=set)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-
-_AHEAD: _Ahead | None = None
-"""The process compiling ahead for this one, while it has groups pending; None otherwise (warm runs)."""
-
-
-def ready(group: str) -> None:
-    """Returns once the process `compile_ahead` started has compiled ``group`` (or has ended); at once when no
-    such process runs or ``group`` is not among its groups.
-
-    Called before a group's first kernel call, so that this process loads the kernels from the cache instead of
-    compiling them a second time alongside the other process.
-    """
-    ahead = _AHEAD
-    if ahead is None or group not in ahead.pending:
-        return
-    with ahead.lock:
-        while group in ahead.pending:
-            line = ahead.proc.stdout.readline()
-            if not line:  # the process ended (or failed): whatever it did not compile, this one compiles
-                ahead.pending.clear()
-                break
-            ahead.pending.discard(line.decode(errors="replace").strip())
 
 
 def _solve() -> None:
@@ -118,7 +86,7 @@ def _neumann() -> None:
 
 def compile_groups(groups: list[str], *, report: bool = False) -> None:
     """Compiles ``groups`` (names of `GROUPS`) in this process, in order; with ``report``, writes each group's
-    name on a line of the standard output once it is compiled (what `ready` waits for)."""
+    name on a line of the standard output once it is compiled (what `gpdepth3d.gp.compile_wait.ready` waits for)."""
     for name in groups:
         {"solve": _solve, "detail": _detail, "neumann": _neumann}[name]()
         if report:
@@ -132,7 +100,7 @@ def compile_ahead(groups: tuple[str, ...] = GROUPS) -> subprocess.Popen | None:
     """Starts a process compiling ``groups`` into the numba cache; None on a one-core machine (no core to spare).
 
     The process inherits the environment (the same ``NUMBA_CACHE_DIR`` and import path) and is left to finish on
-    its own; until then `ready` waits for its groups.
+    its own; until then `gpdepth3d.gp.compile_wait.ready` waits for its groups.
     """
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
@@ -141,7 +109,6 @@ def compile_ahead(groups: tuple[str, ...] = GROUPS) -> subprocess.Popen | None:
         raise InvalidInputError("groups", f"names from {GROUPS}", unknown)
     if (os.cpu_count() or 1) < 2 or not groups:
         return None
-    global _AHEAD
     proc = subprocess.Popen(
         [sys.executable, "-m", __name__, *groups],
         stdin=subprocess.DEVNULL,
@@ -149,7 +116,7 @@ def compile_ahead(groups: tuple[str, ...] = GROUPS) -> subprocess.Popen | None:
         stderr=subprocess.DEVNULL,
         start_new_session=True,
     )
-    _AHEAD = _Ahead(proc, set(groups))
+    compile_wait.track(proc, groups)
     return proc
 
 

@@ -19,7 +19,7 @@ from .exact import check_problem, dense_log_marginal_likelihood, dense_solve
 from .markov import chain_precision, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
-from .compile_ahead import ready as compiled_ahead
+from .compile_wait import ready as compiled_ahead
 from .cost_model import grid_bytes as grid_bytes
 from .elimination_tree import EliminationTree, build_tree, front_tree
 from .grid_prior import build_batched_prior, build_frontal_prior

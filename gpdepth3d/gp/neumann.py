@@ -12,7 +12,7 @@ from functools import lru_cache
 import numba as nb
 import numpy as np
 
-from .compile_ahead import ready as compiled_ahead
+from .compile_wait import ready as compiled_ahead
 from .markov import chain_precision
 from .model import GridProblem
 from .multifrontal import numeric_section

@@ -1,4 +1,4 @@
-"""Tests of gpdepth3d.gp.compile_ahead: the kernels it compiles ahead are the ones a real run calls (the same
+"""Tests of gpdepth3d.gp.compile_ahead and compile_wait: the kernels it compiles ahead are the ones a real run calls (the same
 signatures, so a run loads them from the cache), the process it starts leaves them in the cache, and `ready`
 waits for the groups that process reports."""
 
@@ -12,9 +12,10 @@ import pytest
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import EngineConfig
-from gpdepth3d.gp import compile_ahead as ahead_module
+from gpdepth3d.gp import compile_wait as ahead_module
 from gpdepth3d.gp import multifrontal, neumann, readout, sublattice
-from gpdepth3d.gp.compile_ahead import GROUPS, compile_ahead, compile_groups, ready
+from gpdepth3d.gp.compile_ahead import GROUPS, compile_ahead, compile_groups
+from gpdepth3d.gp.compile_wait import ready
 from gpdepth3d.gp.model import DepthGPConfig
 
 
@@ -60,7 +61,8 @@ def _reporting(*lines: str) -> subprocess.Popen:
 
 def test_ready_waits_for_the_reported_group(monkeypatch):
     proc = _reporting("solve", "detail")
-    monkeypatch.setattr(ahead_module, "_AHEAD", ahead_module._Ahead(proc, {"solve", "detail", "neumann"}))
+    monkeypatch.setattr(ahead_module, "_AHEAD", None)
+    ahead_module.track(proc, ("solve", "detail", "neumann"))
     ready("other")  # not a group of the process: at once, nothing read
     assert ahead_module._AHEAD.pending == {"solve", "detail", "neumann"}
     ready("detail")  # reads the reports up to the group's
