@@ -38,7 +38,7 @@ from numba import get_num_threads, njit, prange, uint64
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_dots_in_place
-from .compile_ahead import ready as compiled_ahead
+from .compile_wait import ready as compiled_ahead
 from .kernels import smoothness_code, unit_correlation
 from .model import LatticeConfig
 
