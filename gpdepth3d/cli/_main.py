@@ -162,7 +162,7 @@ def _compile_notice(argv: list[str]):
         from ..gp.compile_ahead import compile_ahead
 
         print(COMPILE_NOTICE, flush=True)
-        compile_ahead(("neumann", "detail") if argv[0] == "demo" else ("detail",))
+        compile_ahead(("solve", "detail", "neumann") if argv[0] == "demo" else ("solve", "detail"))
 
     return on_first_compile(cold)
 

@@ -262,7 +262,7 @@ def _ring_range(lo, hi, r, c, width, start, members, column, usable, key, target
     order = np.empty(cap, dtype=np.int64)
     hist = np.zeros(height + width + 1, dtype=np.int64)
     s0 = np.empty(height + width + 1, dtype=np.int64)
-    guess = 1
+    guess = np.int64(1)  # int64, not the literal 1: _diamond is compiled for one signature, not two
     for q in range(lo, hi):
         if guess <= WALK_RADIUS:
             far = _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, dist)
@@ -288,7 +288,7 @@ def _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, d
             count += 1
     dmax = max(ri, height - 1 - ri) + max(ci, width - 1 - ci)
     last = members.size - 1
-    d = 1
+    d = np.int64(1)  # int64, not the literal 1: one compiled signature of _ring_start and _side_offset
     while count < k and d <= dmax:
         s0 = _ring_start(key[i], d)
         side = (s0 >= d) + (s0 >= 2 * d) + (s0 >= 3 * d)  # s0 // d without an integer division (s0 < 4d)
@@ -314,9 +314,9 @@ def _walk(q, r, c, width, height, start, members, usable, key, targets, k, nn, d
                     break
             t += 1
             if t == d:  # the next side starts at a corner
-                t = 0
+                t = np.int64(0)  # (int64, not the literal 0: one compiled signature of _side_offset)
                 side = (side + 1) & 3
-                dr, dc = _side_offset(d, side, 0)
+                dr, dc = _side_offset(d, side, t)
                 rr, cc = ri + dr, ci + dc
             else:  # along the side: sides 0 .. 3 step (+1, +1), (+1, -1), (-1, -1), (-1, +1)
                 rr += 1 if side < 2 else -1

@@ -1,14 +1,16 @@
 """Kernels compiled ahead, in a second process, while a first run compiles its own (a cold numba cache).
 
 A first run compiles every kernel it calls (numba compiles on one core, and caches on disk). A run of the
-default model calls the outlier screen's, the factorisation's, the solve's and the selected inverse's kernels
-first, and the sub-lattice detail's after them; the demo then runs the paper's model, whose Neumann route has
-kernels of its own. `compile_ahead` starts a second Python process that compiles those later kernels into the same
-cache on another core, through the same wrappers (so with the same signatures) on a small problem; by the time the
-first process reaches them it loads them from the cache. When it gets there first, both compile them, and
-nothing is lost but the other core's time.
+default model calls the outlier screen's and the factorisation's kernels first, then the solve's and the
+read-out's, the selected inverse's, and the sub-lattice detail's; the demo then runs the paper's model, whose
+Neumann route has kernels of its own. `compile_ahead` starts a second Python process that compiles the later
+groups (`GROUPS`) into the same cache on another core, through the same wrappers (so with the same signatures) on
+a small problem, and reports each group as it is done; by the time the first process reaches them it loads them
+from the cache. Before it calls a group's kernels, the first process waits (`gpdepth3d.gp.compile_wait.ready`) until the second has
+reported the group: the wait is mostly shorter than compiling the group here would be (the second process is
+at it on the other core, or done), and the two processes do not both compile a group.
 
-    python -m gpdepth3d.gp.compile_ahead detail neumann
+    python -m gpdepth3d.gp.compile_ahead solve detail neumann
 """
 
 from __future__ import annotations
@@ -19,22 +21,34 @@ import sys
 
 import numpy as np
 
-GROUPS = ("detail", "neumann")
-"""The kernel groups this module compiles: the grid route's read-out of means (`gpdepth3d.gp.readout.read_mean`)
-with the sub-lattice detail (`gpdepth3d.gp.sublattice`), and the Neumann route (`gpdepth3d.gp.neumann`)."""
+from . import compile_wait
+
+GROUPS = ("solve", "detail", "neumann")
+"""The kernel groups this module compiles: the grid route's solve (`gpdepth3d.gp.multifrontal`) with its read-out
+of means off the grid (`gpdepth3d.gp.readout.read_mean`), the sub-lattice detail (`gpdepth3d.gp.sublattice`),
+and the Neumann route (`gpdepth3d.gp.neumann`)."""
 
 
-def _detail() -> None:
-    """The read-out of the grid route's means off the grid, then the sub-lattice kriging's parallel kernel, as
-    the default model calls them (three right-hand sides)."""
+def _solve() -> None:
+    """The grid route's solve (three right-hand sides) on a two-front tree, then the read-out of its means off the
+    grid, as the default model calls them. The factor is left at zero: only the kernels' types matter here."""
     import scipy.sparse as sp
 
+    from .multifrontal import FrontalFactor, FrontTree
     from .readout import Readout, read_mean
-    from .sublattice import SERIAL_POINTS, sublattice_kriging
 
+    tree = FrontTree.build([0, 2], [2, 2], [1, -1], [[2], []], 4)
+    factor = FrontalFactor.__new__(FrontalFactor)  # no factorisation: its kernels are the first process's
+    factor.tree, factor.scale2, factor.lbuf = tree, 1.0, np.zeros(tree.l_size)
+    factor.solve(np.zeros((4, 3)))
     weights = sp.csr_matrix(np.ones((3, 2)))
     read_mean(Readout(weights, weights, None, None, None, None, None), np.zeros(4), np.arange(4).reshape(2, 2), 1,
               np.zeros((3, 3)))  # fmt: skip
+
+
+def _detail() -> None:
+    """The sub-lattice kriging's parallel kernel, as the default model calls it (three right-hand sides)."""
+    from .sublattice import SERIAL_POINTS, sublattice_kriging
 
     h, w = 48, 2 * SERIAL_POINTS // 48 + 8
     rng = np.random.default_rng(0)
@@ -70,17 +84,23 @@ def _neumann() -> None:
     post.variance(min(4, MAX_VARIANCE_TERMS))
 
 
-def compile_groups(groups: list[str]) -> None:
-    """Compiles ``groups`` (names of `GROUPS`) in this process, in order."""
+def compile_groups(groups: list[str], *, report: bool = False) -> None:
+    """Compiles ``groups`` (names of `GROUPS`) in this process, in order; with ``report``, writes each group's
+    name on a line of the standard output once it is compiled (what `gpdepth3d.gp.compile_wait.ready` waits for)."""
     for name in groups:
-        {"detail": _detail, "neumann": _neumann}[name]()
+        {"solve": _solve, "detail": _detail, "neumann": _neumann}[name]()
+        if report:
+            try:
+                os.write(1, f"{name}\n".encode())
+            except OSError:  # the first process has ended: the cache is still worth filling
+                pass
 
 
 def compile_ahead(groups: tuple[str, ...] = GROUPS) -> subprocess.Popen | None:
     """Starts a process compiling ``groups`` into the numba cache; None on a one-core machine (no core to spare).
 
-    The process inherits the environment (the same ``NUMBA_CACHE_DIR`` and import path), prints nothing and is
-    left to finish on its own.
+    The process inherits the environment (the same ``NUMBA_CACHE_DIR`` and import path) and is left to finish on
+    its own; until then `gpdepth3d.gp.compile_wait.ready` waits for its groups.
     """
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
@@ -89,14 +109,16 @@ def compile_ahead(groups: tuple[str, ...] = GROUPS) -> subprocess.Popen | None:
         raise InvalidInputError("groups", f"names from {GROUPS}", unknown)
     if (os.cpu_count() or 1) < 2 or not groups:
         return None
-    return subprocess.Popen(
+    proc = subprocess.Popen(
         [sys.executable, "-m", __name__, *groups],
         stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
     )
+    compile_wait.track(proc, groups)
+    return proc
 
 
 if __name__ == "__main__":  # pragma: no cover - the process compile_ahead starts
-    compile_groups(sys.argv[1:])
+    compile_groups(sys.argv[1:], report=True)

@@ -19,6 +19,7 @@ from .exact import check_problem, dense_log_marginal_likelihood, dense_solve
 from .markov import chain_precision, state_dim
 from .multifrontal import FrontalFactor, FrontTree, PriorFactor
 from .model import GridProblem
+from .compile_wait import ready as compiled_ahead
 from .cost_model import grid_bytes as grid_bytes
 from .elimination_tree import EliminationTree, build_tree, front_tree
 from .grid_prior import build_batched_prior, build_frontal_prior
@@ -315,6 +316,7 @@ class FastEngine:
         for j, e in enumerate(extra):
             rhs[1 + j, real_vars.ravel()] = np.where(observed, prec * (e - prior_mean), 0.0).ravel()
         b = rhs.T
+        compiled_ahead("solve")  # a cold cache: the solve's and read-out's kernels come from the second process
         with self._threads():
             if self.backend == "compiled":
                 x = factor.solve(b)

@@ -200,7 +200,7 @@ def _partial_cholesky(F, no, nf):
     dominate there. Returns 0, or j + 1 when pivot j is not positive.
     """
     unf = np.uint64(nf)
-    j = 0
+    j = np.int64(0)  # int64, not the literal 0: _trailing_update is compiled for one signature, not two
     while j < no:
         g = min(4, no - j)
         for p in range(g):  # the panel's columns

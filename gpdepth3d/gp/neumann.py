@@ -12,6 +12,7 @@ from functools import lru_cache
 import numba as nb
 import numpy as np
 
+from .compile_wait import ready as compiled_ahead
 from .markov import chain_precision
 from .model import GridProblem
 from .multifrontal import numeric_section
@@ -191,6 +192,7 @@ class NeumannPosterior:
         k = problem.kernel
         if not k.exponential:
             raise ValueError("internal error: the Neumann route needs the exponential kernel (nu = 0.5)")
+        compiled_ahead("neumann")  # a cold cache: the route's kernels come from the second process
         self.problem = problem
         h, w = problem.shape
         dv, ov = _tridiagonal(h, float(k.lengthscale))

@@ -38,6 +38,7 @@ from numba import get_num_threads, njit, prange, uint64
 
 from ..errors import InvalidInputError, ShapeError, describe
 from ._cholesky import cholesky_dots_in_place
+from .compile_wait import ready as compiled_ahead
 from .kernels import smoothness_code, unit_correlation
 from .model import LatticeConfig
 
@@ -434,6 +435,7 @@ def sublattice_kriging(
         InvalidInputError: a stride below 2, non-positive scales, negative noise, two points on one pixel.
         ShapeError: arrays of mismatched lengths, or points outside the grid.
     """
+    compiled_ahead("detail")  # a cold cache: the kriging's kernels come from the second process
     h, w = (int(x) for x in shape)
     k = int(stride)
     if k < 2:

@@ -1,16 +1,21 @@
-"""Tests of gpdepth3d.gp.compile_ahead: the kernels it compiles ahead are the ones a real run calls (the same
-signatures, so a run loads them from the cache), and the process it starts leaves them in the cache."""
+"""Tests of gpdepth3d.gp.compile_ahead and compile_wait: the kernels it compiles ahead are the ones a real run calls (the same
+signatures, so a run loads them from the cache), the process it starts leaves them in the cache, and `ready`
+waits for the groups that process reports."""
 
 from __future__ import annotations
 
-import numpy as np
+import subprocess
+import sys
+
 import pytest
 
 from gpdepth3d.completion.complete import DepthCompleter
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import EngineConfig
-from gpdepth3d.gp import neumann, readout, sublattice
+from gpdepth3d.gp import compile_wait as ahead_module
+from gpdepth3d.gp import multifrontal, neumann, readout, sublattice
 from gpdepth3d.gp.compile_ahead import GROUPS, compile_ahead, compile_groups
+from gpdepth3d.gp.compile_wait import ready
 from gpdepth3d.gp.model import DepthGPConfig
 
 
@@ -22,6 +27,7 @@ def test_the_groups_compile_the_signatures_of_a_real_run(street_frame):
         street_frame.mde, street_frame.lidar
     )
     kernels = [
+        multifrontal._solve,
         readout._read_mean,
         sublattice._krige,
         neumann._coefficients,
@@ -37,11 +43,40 @@ def test_the_groups_compile_the_signatures_of_a_real_run(street_frame):
 @pytest.mark.slow
 def test_the_process_fills_the_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))  # a cold cache, inherited by the process
+    monkeypatch.setattr(ahead_module, "_AHEAD", None)
     proc = compile_ahead(("neumann",))
     if proc is None:
         pytest.skip("one core: nothing is compiled ahead")
-    assert proc.wait(timeout=900) == 0
+    ready("neumann")  # returns once the process has reported the group
     assert any(p.suffix == ".nbc" and "neumann" in p.name for p in tmp_path.rglob("*"))
+    assert proc.wait(timeout=900) == 0
+    assert ahead_module._AHEAD.pending == set()
+
+
+def _reporting(*lines: str) -> subprocess.Popen:
+    """A process that writes ``lines`` (group names) as the compiling process does, then ends."""
+    script = "import sys; [print(x, flush=True) for x in sys.argv[1:]]"
+    return subprocess.Popen([sys.executable, "-c", script, *lines], stdout=subprocess.PIPE)
+
+
+def test_ready_waits_for_the_reported_group(monkeypatch):
+    proc = _reporting("solve", "detail")
+    monkeypatch.setattr(ahead_module, "_AHEAD", None)
+    ahead_module.track(proc, ("solve", "detail", "neumann"))
+    ready("other")  # not a group of the process: at once, nothing read
+    assert ahead_module._AHEAD.pending == {"solve", "detail", "neumann"}
+    ready("detail")  # reads the reports up to the group's
+    assert ahead_module._AHEAD.pending == {"neumann"}
+    ready("solve")  # already reported
+    ready("neumann")  # never reported: the process ends, and nothing is left to wait for
+    assert ahead_module._AHEAD.pending == set()
+    assert proc.wait(timeout=60) == 0
+
+
+def test_ready_without_a_process_returns_at_once(monkeypatch):
+    monkeypatch.setattr(ahead_module, "_AHEAD", None)
+    for group in GROUPS:
+        ready(group)
 
 
 def test_groups_are_checked():
@@ -50,4 +85,4 @@ def test_groups_are_checked():
     assert compile_ahead(()) is None
     with pytest.raises(KeyError):
         compile_groups(["everything"])
-    assert np.all([g in ("detail", "neumann") for g in GROUPS])
+    assert GROUPS == ("solve", "detail", "neumann")  # the order a run reaches them

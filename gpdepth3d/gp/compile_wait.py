@@ -1,0 +1,53 @@
+"""Waiting for the kernels that a second process compiles ahead (`gpdepth3d.gp.compile_ahead`).
+
+On a cold numba cache the command line starts a process compiling the kernel groups a run reaches later; it
+writes each group's name on its standard output once the group is in the cache. A module calls `ready` with a
+group's name before its first kernel call: it returns at once on warm runs (no such process) and otherwise once
+the group is reported, so that this process loads the group's kernels from the cache instead of compiling them a
+second time alongside the other process. Kept apart from `gpdepth3d.gp.compile_ahead`, which imports the kernels'
+modules, so that those can import this one.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+from dataclasses import dataclass, field
+
+
+@dataclass
+class _Ahead:
+    """The process compiling ahead, and the groups it has not reported yet."""
+
+    proc: subprocess.Popen
+    pending: set = field(default_factory=set)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+_AHEAD: _Ahead | None = None
+"""The process compiling ahead for this one, while it has groups pending; None otherwise (warm runs)."""
+
+
+def track(proc: subprocess.Popen, groups) -> None:
+    """Makes `ready` wait for ``groups`` (names) until ``proc`` (its standard output a pipe) reports them."""
+    global _AHEAD
+    _AHEAD = _Ahead(proc, set(groups))
+
+
+def ready(group: str) -> None:
+    """Returns once the process compiling ahead has compiled ``group`` (or has ended); at once when no
+    such process runs or ``group`` is not among its groups.
+
+    Called before a group's first kernel call, so that this process loads the kernels from the cache instead of
+    compiling them a second time alongside the other process.
+    """
+    ahead = _AHEAD
+    if ahead is None or group not in ahead.pending:
+        return
+    with ahead.lock:
+        while group in ahead.pending:
+            line = ahead.proc.stdout.readline()
+            if not line:  # the process ended (or failed): whatever it did not compile, this one compiles
+                ahead.pending.clear()
+                break
+            ahead.pending.discard(line.decode(errors="replace").strip())
