@@ -10,9 +10,16 @@ modules, so that those can import this one.
 
 from __future__ import annotations
 
+import selectors
 import subprocess
 import threading
+import time
 from dataclasses import dataclass, field
+
+MAX_WAIT_S = 300.0
+"""The longest `ready` waits for a group (seconds): a process that reports nothing for that long is not waited for
+again, and this process compiles what it needs itself. Far above a cold compile on a slow core, so it only ends a
+wait on a process that is stuck."""
 
 
 @dataclass
@@ -45,9 +52,22 @@ def ready(group: str) -> None:
     if ahead is None or group not in ahead.pending:
         return
     with ahead.lock:
+        deadline = time.monotonic() + MAX_WAIT_S
         while group in ahead.pending:
-            line = ahead.proc.stdout.readline()
-            if not line:  # the process ended (or failed): whatever it did not compile, this one compiles
+            line = _report(ahead.proc, deadline - time.monotonic())
+            if not line:  # ended, failed or stuck: whatever it did not compile, this process compiles
                 ahead.pending.clear()
                 break
             ahead.pending.discard(line.decode(errors="replace").strip())
+
+
+def _report(proc: subprocess.Popen, timeout: float) -> bytes:
+    """The next line ``proc`` writes, or b"" when it ends or writes none within ``timeout`` seconds."""
+    if timeout <= 0:
+        return b""
+    with selectors.DefaultSelector() as sel:
+        try:
+            sel.register(proc.stdout, selectors.EVENT_READ)
+        except (ValueError, OSError):  # a pipe the platform cannot select on (Windows): wait without a bound
+            return proc.stdout.readline()
+        return proc.stdout.readline() if sel.select(timeout) else b""

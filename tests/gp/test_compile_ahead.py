@@ -73,6 +73,20 @@ def test_ready_waits_for_the_reported_group(monkeypatch):
     assert proc.wait(timeout=60) == 0
 
 
+def test_ready_stops_waiting_for_a_stuck_process(monkeypatch):
+    """A process that reports nothing within `MAX_WAIT_S` is not waited for: the run compiles for itself."""
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], stdout=subprocess.PIPE)
+    try:
+        monkeypatch.setattr(ahead_module, "MAX_WAIT_S", 0.5)
+        monkeypatch.setattr(ahead_module, "_AHEAD", None)
+        ahead_module.track(proc, ("solve",))
+        ready("solve")
+        assert ahead_module._AHEAD.pending == set()
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def test_ready_without_a_process_returns_at_once(monkeypatch):
     monkeypatch.setattr(ahead_module, "_AHEAD", None)
     for group in GROUPS:
