@@ -22,6 +22,7 @@ stated sigmas, `gpdepth3d.gp.local_calibration`): (stated_i + sum_j w_j^2 stated
 from __future__ import annotations
 
 import math
+import threading
 from typing import NamedTuple
 
 import numba as nb
@@ -429,6 +430,49 @@ def _ring_parallel(r, c, width, start, members, column, usable, key, targets, k,
         _ring_range(
             c0 * CHUNK, min(t, (c0 + 1) * CHUNK), r, c, width, start, members, column, usable, key, targets, k, nn, dist
         )
+
+
+@nb.njit(**_FLAGS)
+def _ring_claim(claimed, backward, r, c, width, start, members, column, usable, key, targets, k, nn, dist):
+    """`_ring_range` over the chunks of CHUNK targets (``claimed``: one flag per chunk) from the first, or with
+    ``backward`` from the last, claiming each, until a chunk that the other caller has claimed: two callers, one
+    from each end, share the targets without a lock. A chunk that both claim at once is computed twice, to the
+    same values (each of its rows ends with its final values written), which costs time, not correctness."""
+    chunks = claimed.size
+    for a in range(chunks):
+        x = chunks - 1 - a if backward else a
+        if claimed[x]:
+            return
+        claimed[x] = True
+        _ring_range(
+            x * CHUNK, min(targets.size, (x + 1) * CHUNK), r, c, width, start, members, column, usable, key, targets,
+            k, nn, dist,
+        )  # fmt: skip
+
+
+class SharedSearch:
+    """`grid_neighbours` of every point among all of them (the outlier screen's first round), started on a second
+    thread that works through the targets from the first while the caller does other work (the frame's slope fit):
+    `result` then computes the rest from the last target down and waits for the thread. The neighbours are those of
+    `grid_neighbours`, whichever thread finds them (a function of the pixels alone)."""
+
+    def __init__(self, image: NeighbourImage, k: int):
+        n = image.r.size
+        self.image, self.k = image, int(k)
+        self.nn = np.empty((n, self.k), dtype=np.int64)
+        self.dist = np.empty((n, self.k))
+        self._claimed = np.zeros((n + CHUNK - 1) // CHUNK, dtype=np.bool_)
+        r, c, width, start, members, column, key = image
+        usable = np.ones(n, dtype=np.bool_)
+        self._args = (r, c, width, start, members, column, usable, key, np.arange(n), self.k, self.nn, self.dist)
+        self._thread = threading.Thread(target=_ring_claim, args=(self._claimed, False, *self._args), daemon=True)
+        self._thread.start()  # returns once the thread runs (the compiled search then holds no lock)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nn (N, k) int64, dist (N, k) float64) as `grid_neighbours` gives them for all points, all usable."""
+        _ring_claim(self._claimed, True, *self._args)
+        self._thread.join()
+        return self.nn, self.dist
 
 
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
