@@ -510,6 +510,11 @@ class NeighbourImage(NamedTuple):
     key: np.ndarray
 
 
+def image_spans(image: NeighbourImage) -> tuple[int, int]:
+    """The row and column ranges (max - min, pixels) of the points of ``image`` (its cells' box)."""
+    return (image.start.size - 1) // image.width - 1, image.width - 1
+
+
 def neighbour_image(rows: np.ndarray, cols: np.ndarray, pool: np.ndarray | None = None) -> NeighbourImage:
     """The `NeighbourImage` of the points ``pool`` (indices; default all) among (N,) integer-valued ``rows``,
     ``cols`` (any origin)."""
@@ -600,6 +605,7 @@ def loo_predict(
     lengthscale: float,
     nu: float,
     stated: np.ndarray | None = None,
+    spans: tuple[int, int] | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Leave-one-out z-scores of the targets given their neighbours (see the module docstring).
 
@@ -612,6 +618,8 @@ def loo_predict(
         outputscale, nugget, lengthscale, nu: The kernel (s, tau, l in pixels, Matern nu).
         stated: (N,) a part of ``noise`` (each entry between 0 and the point's noise): with it, also
             return each target's share of it.
+        spans: The points lie on integer pixels with these row and column ranges (max - min; `image_spans` of their
+            image), which the caller knows; None: checked here.
 
     Returns:
         (T,) z = (r_i - w . r_N) / sqrt(max(var, 1e-30)); NaN where the neighbourhood's matrix is
@@ -625,8 +633,16 @@ def loo_predict(
     none = np.zeros(0)
     er = ec = none
     kernel = Kernel(nu, float(lengthscale), float(outputscale))
-    if kernel.exponential and rows.size and np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols)):
-        span_r, span_c = float(np.ptp(rows)), float(np.ptp(cols))
+    if (
+        spans is None
+        and kernel.exponential
+        and rows.size
+        and np.all(rows == np.rint(rows))
+        and np.all(cols == np.rint(cols))
+    ):
+        spans = (float(np.ptp(rows)), float(np.ptp(cols)))
+    if kernel.exponential and spans is not None:
+        span_r, span_c = spans
         if span_r + span_c <= 1e6:  # tables e^{-d / l} over every offset that occurs
             er = kernel.lag_correlation(int(span_r) + 1)
             ec = kernel.lag_correlation(int(span_c) + 1)

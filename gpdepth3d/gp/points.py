@@ -84,12 +84,11 @@ def loo_zscores(
     pool = int(np.count_nonzero(usable))
     k = min(int(neighbours), pool - 1 if pool else 0)
     targets = np.arange(n) if only is None else np.asarray(only, dtype=np.int64)
-    out, reach, shares = np.zeros(n), np.full(n, np.inf), np.zeros(n)
-    extras = ((reach,) if radius else ()) + ((shares,) if stated is not None else ())  # filled in place below
     if n == 0 or k < 1 or targets.size == 0:
-        return (out, *extras) if extras else out
+        extras = ((np.full(n, np.inf),) if radius else ()) + ((np.zeros(n),) if stated is not None else ())
+        return (np.zeros(n), *extras) if extras else np.zeros(n)
     nn, dist = neighbours_of(rows, cols, usable, targets, k, image) if found is None else found
-    from ._loo import loo_predict
+    from ._loo import image_spans, loo_predict
     from .multifrontal import numeric_section
 
     stated_part = np.zeros(n) if stated is None else np.asarray(stated, dtype=np.float64)
@@ -106,13 +105,17 @@ def loo_zscores(
             lengthscale=fit.lengthscale,
             nu=nu,
             stated=stated_part,
+            spans=None if image is None else image_spans(image),
         )
     bad = ~np.isfinite(z)
     if np.any(bad):  # a neighbourhood whose matrix is not numerically positive definite
         z[bad], share[bad] = _loo_lstsq(rows, cols, r, noise, stated_part, targets[bad], nn[bad], fit, nu)
-    out[targets] = z
-    reach[targets] = dist[:, -1]
-    shares[targets] = share
+    if only is None:  # every point computed: the kernels' arrays are the results
+        out, reach, shares = z, dist[:, -1].copy(), share
+    else:
+        out, reach, shares = np.zeros(n), np.full(n, np.inf), np.zeros(n)
+        out[targets], reach[targets], shares[targets] = z, dist[:, -1], share
+    extras = ((reach,) if radius else ()) + ((shares,) if stated is not None else ())
     return (out, *extras) if extras else out
 
 
@@ -349,9 +352,7 @@ def screen_points(
             )  # fmt: skip
             fitted_on, around = keep, (fit.lengthscale, fit.eta)
         elif refit:
-            raised = raised_outputscale(
-                rows[keep], cols[keep], resid[keep], noise[keep], start, nu=nu, max_points=max_points
-            )
+            raised = raised_outputscale(rows, cols, resid, noise, start, nu=nu, max_points=max_points, use=keep)
             fitted_on, refit = keep, raised is not fit  # s unchanged: only the points near a change are recomputed
             fit = raised
         if threshold is None or n < 5:

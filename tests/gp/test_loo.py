@@ -247,6 +247,21 @@ class TestKriging:
             loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu), z
         )  # z alone without `stated`
 
+    def test_spans_of_the_image_give_the_same_tables(self):
+        """`loo_predict` with the points' spans from their image (`_loo.image_spans`) equals it checking them."""
+        rng = np.random.default_rng(12)
+        rows, cols = _points(rng, 400, 30, 50)
+        image = _loo.neighbour_image(rows, cols)
+        assert _loo.image_spans(image) == (np.ptp(rows), np.ptp(cols))
+        n = rows.size
+        nn, _ = grid_neighbours(rows, cols, np.ones(n, dtype=bool), np.arange(n), 12, image)
+        r, noise = rng.standard_normal(n), np.full(n, 1e-3)
+        kw = dict(outputscale=0.3, nugget=0.03, lengthscale=7.0, nu=0.5, stated=noise)
+        ref = loo_predict(rows, cols, r, noise, np.arange(n), nn, **kw)
+        got = loo_predict(rows, cols, r, noise, np.arange(n), nn, spans=_loo.image_spans(image), **kw)
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+
     def test_noise_share_is_a_floor_of_the_mean_squared_zscore(self):
         """With independent noises as stated, E[z^2] = share + (1 - share) x (field calibration): a field drawn
         from the model gives mean z^2 ~ 1; a field with no variation (all residuals from the noise) gives mean
