@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from typing import NamedTuple
 
 import numba as nb
@@ -450,6 +451,12 @@ def _ring_claim(claimed, backward, r, c, width, start, members, column, usable, 
         )  # fmt: skip
 
 
+#: Most times `SharedSearch` yields the interpreter lock for its thread to start its search: the caller then runs
+#: Python code, which would otherwise keep the thread waiting for the lock for the interpreter's switch interval
+#: (a thread that no core runs soon is not waited for: the caller then finds the chunks unclaimed and computes them).
+HANDOFFS = 50
+
+
 class SharedSearch:
     """`grid_neighbours` of every point among all of them (the outlier screen's first round), started on a second
     thread that works through the targets from the first while the caller does other work (the frame's slope fit):
@@ -466,7 +473,11 @@ class SharedSearch:
         usable = np.ones(n, dtype=np.bool_)
         self._args = (r, c, width, start, members, column, usable, key, np.arange(n), self.k, self.nn, self.dist)
         self._thread = threading.Thread(target=_ring_claim, args=(self._claimed, False, *self._args), daemon=True)
-        self._thread.start()  # returns once the thread runs (the compiled search then holds no lock)
+        self._thread.start()
+        for _ in range(HANDOFFS):  # until the thread's compiled search runs (it has claimed its first chunk)
+            if self._claimed.any() or not self._thread.is_alive():
+                break
+            time.sleep(0)  # lets the thread take the interpreter lock, which it needs until its compiled search starts
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         """(nn (N, k) int64, dist (N, k) float64) as `grid_neighbours` gives them for all points, all usable."""
