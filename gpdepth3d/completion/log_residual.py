@@ -22,7 +22,7 @@ from .detail import add_detail
 from .diagnostics import log_residual_warnings
 from .lattice import build_lattice
 from .log_frame import LogFrame
-from .screen import follow_slope, screen
+from .screen import follow_slope, screen, start_search
 from .mde_slope import fit_slope, refit_slope
 from .solve import solve_field
 from .threads import single_threaded_blas
@@ -74,8 +74,9 @@ def log_residual_posterior(
     ``stride`` fixes the lattice's (`gpdepth3d.gp.EngineConfig.lattice_stride`; None: automatic)."""
     t0 = time.perf_counter()
     with single_threaded_blas():  # one block for the stage's small dense algebra (each step's own is then free)
+        search = start_search(frame, config)  # on a second thread while the slope is fitted
         first = fit_slope(frame, config)
-        screened = screen(frame, first, config, previous)
+        screened = screen(frame, first, config, previous, search)
         sloped = refit_slope(frame, first, screened.rejected, config)
         screened = follow_slope(screened, first, sloped, config)
     t1 = time.perf_counter()

@@ -51,13 +51,14 @@ def fit_slope(frame: LogFrame, config: DepthGPConfig, use: np.ndarray | None = N
     kernel = Kernel(config.nu, config.lengthscale, config.outputscale)
     with single_threaded_blas():
         fit = fit_mde_slope(
-            *(points if use is None else (a[use] for a in points)),
+            *points,
             kernel,
             config.nugget,
             prior_sigma=config.slope.prior_sigma,
             max_points=config.slope.max_points,
             huber=config.slope.huber,
             iterations=config.slope.iterations,
+            use=use,
         )
     return Sloped(fit, frame.log_mde, frame.log_z - fit.apply(at))
 

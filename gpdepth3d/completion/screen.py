@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..gp.fit import PointFit
 from ..gp.model import DepthGPConfig
-from ..gp.points import screen_points
+from ..gp.points import screen_points, start_screen_search
 from .log_frame import LogFrame
 from .mde_slope import Sloped
 from .threads import single_threaded_blas
+
+if TYPE_CHECKING:
+    from ..gp._loo import SharedSearch
 
 
 @dataclass(frozen=True)
@@ -37,11 +41,18 @@ class Screened:
         return ~self.rejected
 
 
-def screen(frame: LogFrame, sloped: Sloped, config: DepthGPConfig, previous: PointFit | None = None) -> Screened:
+def screen(
+    frame: LogFrame,
+    sloped: Sloped,
+    config: DepthGPConfig,
+    previous: PointFit | None = None,
+    search: SharedSearch | None = None,
+) -> Screened:
     """Fits or raises the scales on the points and rejects those their neighbours contradict.
 
     A point at an MDE depth edge is judged with the edge's uncertainty (the same term the variance gets):
-    there its neighbours may rightly disagree with it. ``previous`` (a `PointFit`) starts a fit's search.
+    there its neighbours may rightly disagree with it. ``previous`` (a `PointFit`) starts a fit's search;
+    ``search``: the first round's neighbour search started before (`start_search`), None: searched here.
     """
     n, resid = frame.n, sloped.resid
     noise = frame.noise
@@ -67,8 +78,18 @@ def screen(frame: LogFrame, sloped: Sloped, config: DepthGPConfig, previous: Poi
             around=around,
             raise_outputscale=start is not None and config.screen.raise_outputscale,
             stated=frame.stated,
+            search=search,
         )
     return Screened(fit, rejected, zscores, shares, noise)
+
+
+def start_search(frame: LogFrame, config: DepthGPConfig) -> SharedSearch | None:
+    """The screen's first neighbour search on the frame's points, started on a second thread (it needs only their
+    positions) to run while the slope is fitted (`gpdepth3d.gp.points.start_screen_search`); None where it does not
+    pay or the screen does not search."""
+    if config.fit and frame.n < 3:  # `screen` fits nothing and screens nothing
+        return None
+    return start_screen_search(frame.rows, frame.cols, config.screen)
 
 
 def follow_slope(screened: Screened, before: Sloped, after: Sloped, config: DepthGPConfig) -> Screened:

@@ -22,6 +22,8 @@ stated sigmas, `gpdepth3d.gp.local_calibration`): (stated_i + sum_j w_j^2 stated
 from __future__ import annotations
 
 import math
+import threading
+import time
 from typing import NamedTuple
 
 import numba as nb
@@ -431,6 +433,59 @@ def _ring_parallel(r, c, width, start, members, column, usable, key, targets, k,
         )
 
 
+@nb.njit(**_FLAGS)
+def _ring_claim(claimed, backward, r, c, width, start, members, column, usable, key, targets, k, nn, dist):
+    """`_ring_range` over the chunks of CHUNK targets (``claimed``: one flag per chunk) from the first, or with
+    ``backward`` from the last, claiming each, until a chunk that the other caller has claimed: two callers, one
+    from each end, share the targets without a lock. A chunk that both claim at once is computed twice, to the
+    same values (each of its rows ends with its final values written), which costs time, not correctness."""
+    chunks = claimed.size
+    for a in range(chunks):
+        x = chunks - 1 - a if backward else a
+        if claimed[x]:
+            return
+        claimed[x] = True
+        _ring_range(
+            x * CHUNK, min(targets.size, (x + 1) * CHUNK), r, c, width, start, members, column, usable, key, targets,
+            k, nn, dist,
+        )  # fmt: skip
+
+
+#: Most times `SharedSearch` yields the interpreter lock for its thread to start its search: the caller then runs
+#: Python code, which would otherwise keep the thread waiting for the lock for the interpreter's switch interval
+#: (a thread that no core runs soon is not waited for: the caller then finds the chunks unclaimed and computes them).
+HANDOFFS = 50
+
+
+class SharedSearch:
+    """`grid_neighbours` of every point among all of them (the outlier screen's first round), started on a second
+    thread that works through the targets from the first while the caller does other work (the frame's slope fit):
+    `result` then computes the rest from the last target down and waits for the thread. The neighbours are those of
+    `grid_neighbours`, whichever thread finds them (a function of the pixels alone)."""
+
+    def __init__(self, image: NeighbourImage, k: int):
+        n = image.r.size
+        self.image, self.k = image, int(k)
+        self.nn = np.empty((n, self.k), dtype=np.int64)
+        self.dist = np.empty((n, self.k))
+        self._claimed = np.zeros((n + CHUNK - 1) // CHUNK, dtype=np.bool_)
+        r, c, width, start, members, column, key = image
+        usable = np.ones(n, dtype=np.bool_)
+        self._args = (r, c, width, start, members, column, usable, key, np.arange(n), self.k, self.nn, self.dist)
+        self._thread = threading.Thread(target=_ring_claim, args=(self._claimed, False, *self._args), daemon=True)
+        self._thread.start()
+        for _ in range(HANDOFFS):  # until the thread's compiled search runs (it has claimed its first chunk)
+            if self._claimed.any() or not self._thread.is_alive():
+                break
+            time.sleep(0)  # lets the thread take the interpreter lock, which it needs until its compiled search starts
+
+    def result(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nn (N, k) int64, dist (N, k) float64) as `grid_neighbours` gives them for all points, all usable."""
+        _ring_claim(self._claimed, True, *self._args)
+        self._thread.join()
+        return self.nn, self.dist
+
+
 def pixel_hash(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """(N,) non-negative int64: a fixed pseudo-random hash (splitmix64) of each point's pixel."""
     r = np.asarray(np.rint(rows), dtype=np.int64).astype(np.uint64)
@@ -464,6 +519,11 @@ class NeighbourImage(NamedTuple):
     members: np.ndarray
     column: np.ndarray
     key: np.ndarray
+
+
+def image_spans(image: NeighbourImage) -> tuple[int, int]:
+    """The row and column ranges (max - min, pixels) of the points of ``image`` (its cells' box)."""
+    return (image.start.size - 1) // image.width - 1, image.width - 1
 
 
 def neighbour_image(rows: np.ndarray, cols: np.ndarray, pool: np.ndarray | None = None) -> NeighbourImage:
@@ -556,6 +616,7 @@ def loo_predict(
     lengthscale: float,
     nu: float,
     stated: np.ndarray | None = None,
+    spans: tuple[int, int] | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Leave-one-out z-scores of the targets given their neighbours (see the module docstring).
 
@@ -568,6 +629,8 @@ def loo_predict(
         outputscale, nugget, lengthscale, nu: The kernel (s, tau, l in pixels, Matern nu).
         stated: (N,) a part of ``noise`` (each entry between 0 and the point's noise): with it, also
             return each target's share of it.
+        spans: The points lie on integer pixels with these row and column ranges (max - min; `image_spans` of their
+            image), which the caller knows; None: checked here.
 
     Returns:
         (T,) z = (r_i - w . r_N) / sqrt(max(var, 1e-30)); NaN where the neighbourhood's matrix is
@@ -581,8 +644,16 @@ def loo_predict(
     none = np.zeros(0)
     er = ec = none
     kernel = Kernel(nu, float(lengthscale), float(outputscale))
-    if kernel.exponential and rows.size and np.all(rows == np.rint(rows)) and np.all(cols == np.rint(cols)):
-        span_r, span_c = float(np.ptp(rows)), float(np.ptp(cols))
+    if (
+        spans is None
+        and kernel.exponential
+        and rows.size
+        and np.all(rows == np.rint(rows))
+        and np.all(cols == np.rint(cols))
+    ):
+        spans = (float(np.ptp(rows)), float(np.ptp(cols)))
+    if kernel.exponential and spans is not None:
+        span_r, span_c = spans
         if span_r + span_c <= 1e6:  # tables e^{-d / l} over every offset that occurs
             er = kernel.lag_correlation(int(span_r) + 1)
             ec = kernel.lag_correlation(int(span_c) + 1)

@@ -309,6 +309,7 @@ def raised_outputscale(
     *,
     nu: float = 0.5,
     max_points: int = 150,
+    use: np.ndarray | None = None,
 ) -> PointFit:
     """``start`` with its s raised to what the points show, never lowered.
 
@@ -324,14 +325,18 @@ def raised_outputscale(
         start: The configured (floor) hyperparameters.
         nu: Matern smoothness.
         max_points: Subset size of the fit.
+        use: (N,) bool, the points to fit on (default all): the same as passing those points alone, without
+            gathering more of them than the subset.
     """
-    n = np.asarray(resid).size
+    n = np.asarray(resid).size if use is None else int(np.count_nonzero(use))
     if n < 3:
         return start
     eta = (start.nugget / start.outputscale) ** 2
     # l is not fitted, so no close pairs are needed: an evenly strided subset in the points' order
     # (as gp.slope's), not `fit_log_residual`'s k-d tree pairing (cheaper, and l is not fitted)
     take = np.linspace(0, n - 1, min(n, int(max_points))).round().astype(np.int64)
+    if use is not None:
+        take = np.flatnonzero(use)[take]
     fitted = fit_log_residual(
         np.asarray(rows)[take],
         np.asarray(cols)[take],

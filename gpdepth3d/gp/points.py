@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, NamedTuple
 
+import numba
 import numpy as np
 
 from ..errors import InvalidInputError
@@ -20,7 +21,7 @@ from .fit import PointFit, fit_log_residual, raised_outputscale
 from .model import ScreenConfig, separable_correlation
 
 if TYPE_CHECKING:
-    from ._loo import NeighbourImage
+    from ._loo import NeighbourImage, SharedSearch
 
 
 def loo_zscores(
@@ -37,6 +38,7 @@ def loo_zscores(
     radius: bool = False,
     stated: np.ndarray | None = None,
     image: NeighbourImage | None = None,
+    found: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray | tuple[np.ndarray, ...]:
     """Leave-one-out z-scores of the points, each predicted from its nearest neighbours.
 
@@ -65,6 +67,8 @@ def loo_zscores(
             whatever the field.
         image: The points' `gpdepth3d.gp._loo.NeighbourImage` (`neighbour_image`, points on integer pixels), for
             calls repeated on the same points (the outlier screen's rounds); None: built here when it is used.
+        found: The targets' neighbours and their distances as `neighbours_of` gives them (these exclusions and
+            ``neighbours``), found before (`start_screen_search`); None: searched here.
 
     Returns:
         (N,) z-scores (0 where no neighbour is available or not computed); with ``radius``,
@@ -80,12 +84,11 @@ def loo_zscores(
     pool = int(np.count_nonzero(usable))
     k = min(int(neighbours), pool - 1 if pool else 0)
     targets = np.arange(n) if only is None else np.asarray(only, dtype=np.int64)
-    out, reach, shares = np.zeros(n), np.full(n, np.inf), np.zeros(n)
-    extras = ((reach,) if radius else ()) + ((shares,) if stated is not None else ())  # filled in place below
     if n == 0 or k < 1 or targets.size == 0:
-        return (out, *extras) if extras else out
-    nn, dist = neighbours_of(rows, cols, usable, targets, k, image)
-    from ._loo import loo_predict
+        extras = ((np.full(n, np.inf),) if radius else ()) + ((np.zeros(n),) if stated is not None else ())
+        return (np.zeros(n), *extras) if extras else np.zeros(n)
+    nn, dist = neighbours_of(rows, cols, usable, targets, k, image) if found is None else found
+    from ._loo import image_spans, loo_predict
     from .multifrontal import numeric_section
 
     stated_part = np.zeros(n) if stated is None else np.asarray(stated, dtype=np.float64)
@@ -102,13 +105,17 @@ def loo_zscores(
             lengthscale=fit.lengthscale,
             nu=nu,
             stated=stated_part,
+            spans=None if image is None else image_spans(image),
         )
     bad = ~np.isfinite(z)
     if np.any(bad):  # a neighbourhood whose matrix is not numerically positive definite
         z[bad], share[bad] = _loo_lstsq(rows, cols, r, noise, stated_part, targets[bad], nn[bad], fit, nu)
-    out[targets] = z
-    reach[targets] = dist[:, -1]
-    shares[targets] = share
+    if only is None:  # every point computed: the kernels' arrays are the results
+        out, reach, shares = z, dist[:, -1].copy(), share
+    else:
+        out, reach, shares = np.zeros(n), np.full(n, np.inf), np.zeros(n)
+        out[targets], reach[targets], shares[targets] = z, dist[:, -1], share
+    extras = ((reach,) if radius else ()) + ((shares,) if stated is not None else ())
     return (out, *extras) if extras else out
 
 
@@ -240,6 +247,29 @@ def _image_of(rows: np.ndarray, cols: np.ndarray) -> NeighbourImage | None:
     return neighbour_image(rows, cols)
 
 
+def start_screen_search(rows: np.ndarray, cols: np.ndarray, options: ScreenConfig | None = None) -> SharedSearch | None:
+    """The first round's neighbour search of `screen_points` on these points, started on a second thread
+    (`gpdepth3d.gp._loo.SharedSearch`) so that it runs while the caller fits what the screen needs (the slope).
+
+    Only the positions and the number of neighbours decide that search (every point is usable in the first round).
+    None where `screen_points` would not use it (no threshold, points off the pixel grid) or where it does not pay:
+    too few points to split between two threads, or numba limited to one thread.
+
+    Args:
+        rows, cols: (N,) the points' pixel coordinates, as `screen_points` will get them.
+        options: The screen's settings (`ScreenConfig`; None: its defaults).
+    """
+    from ._loo import CHUNK, SharedSearch
+
+    options = options or ScreenConfig()
+    rows = np.asarray(rows, dtype=np.float64)
+    cols = np.asarray(cols, dtype=np.float64)
+    if options.outlier_threshold is None or rows.size <= CHUNK or numba.get_num_threads() < 2:
+        return None
+    image = _image_of(rows, cols)
+    return None if image is None else SharedSearch(image, min(options.neighbours, rows.size - 1))
+
+
 class Screen(NamedTuple):
     """The result of `screen_points`."""
 
@@ -262,6 +292,7 @@ def screen_points(
     around: tuple[float, float] | None = None,
     raise_outputscale: bool = False,
     stated: np.ndarray | None = None,
+    search: SharedSearch | None = None,
 ) -> Screen:
     """Fits the log-residual GP robustly and flags the points that contradict it.
 
@@ -287,6 +318,8 @@ def screen_points(
             round refits only while s stays raised: flagged points only widen the spread).
         stated: (N,) the part of ``noise`` that the points' own sigmas state, for the noise shares
             (`loo_zscores`); None: shares of 0.
+        search: The first round's neighbour search of these points started before (`start_screen_search` with
+            these ``options``); None: searched here.
 
     Returns:
         A `Screen`: the fit without the flagged points, the (N,) bool mask of the flagged points,
@@ -298,8 +331,11 @@ def screen_points(
     if threshold is not None and (not np.isfinite(threshold) or threshold <= 0):
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, share, changed, k_used = start, None, None, None, None, None, None
-    image = _image_of(rows, cols) if threshold is not None and n >= 5 else None  # the rounds share it
     options = options or ScreenConfig()
+    if search is not None and (search.nn.shape != (n, min(options.neighbours, n - 1)) or threshold is None or n < 5):
+        raise InvalidInputError("search", f"the first round's search of these {n} points", search.nn.shape)
+    # the rounds share one image
+    image = search.image if search is not None else _image_of(rows, cols) if threshold is not None and n >= 5 else None
     max_points = options.max_points
     for _ in range(options.iterations if threshold is not None else 1):
         keep = ~rejected
@@ -316,9 +352,7 @@ def screen_points(
             )  # fmt: skip
             fitted_on, around = keep, (fit.lengthscale, fit.eta)
         elif refit:
-            raised = raised_outputscale(
-                rows[keep], cols[keep], resid[keep], noise[keep], start, nu=nu, max_points=max_points
-            )
+            raised = raised_outputscale(rows, cols, resid, noise, start, nu=nu, max_points=max_points, use=keep)
             fitted_on, refit = keep, raised is not fit  # s unchanged: only the points near a change are recomputed
             fit = raised
         if threshold is None or n < 5:
@@ -333,7 +367,8 @@ def screen_points(
         k_used = k_now
         z_new, reach_new, share_new = loo_zscores(rows, cols, resid, noise, fit, nu=nu, neighbours=options.neighbours,
                                                   exclude=rejected, only=only, radius=True,
-                                                  stated=np.zeros(n) if stated is None else stated, image=image)  # fmt: skip
+                                                  stated=np.zeros(n) if stated is None else stated, image=image,
+                                                  found=search.result() if search is not None and z is None else None)  # fmt: skip
         if only is None:
             z, reach, share = z_new, reach_new, share_new
         else:

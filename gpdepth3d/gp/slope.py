@@ -57,6 +57,7 @@ def fit_mde_slope(
     max_points: int = 150,
     huber: float = 2.0,
     iterations: int = 3,
+    use: np.ndarray | None = None,
 ) -> SlopeFit:
     """Fits the MDE's log-depth coefficient of one frame by robust generalised least squares.
 
@@ -71,6 +72,8 @@ def fit_mde_slope(
         max_points: Largest number of points the dense fit uses (an evenly strided subset above).
         huber: Huber threshold on the standardised residuals (re-weighting of outliers).
         iterations: Re-weighting rounds.
+        use: (N,) bool, the points to fit on (default all): the same as passing those points alone, without
+            gathering more of them than the fit uses.
 
     Returns:
         `SlopeFit`; with no points the prior (slope 1, variance prior_sigma^2).
@@ -89,17 +92,24 @@ def fit_mde_slope(
         raise InvalidInputError("prior_sigma", "a standard deviation > 0", prior_sigma)
     if int(max_points) != max_points or max_points < 2:
         raise InvalidInputError("max_points", "an integer >= 2", max_points)
+    if use is not None and np.shape(use) != (n,):
+        raise ShapeError("use", f"{n} flags, one per point", describe(np.asarray(use)))
     r, c, y, x, e = arrays
     ok = np.isfinite(y) & np.isfinite(x) & np.isfinite(e)
-    if not ok.all():
-        r, c, y, x, e = r[ok], c[ok], y[ok], x[ok], e[ok]
-    n = y.size
+    if use is not None:
+        ok &= np.asarray(use, dtype=bool)
+    pick = None if ok.all() else np.flatnonzero(ok)  # the points fitted on (None: all); the others gathered last
+    if pick is not None:
+        x = x[pick]  # all of them for the median
+    n = x.size
     if n == 0:
         return SlopeFit(1.0, float(prior_sigma) ** 2, 0.0, 0)
     centre = float(np.median(x))
     if n > max_points:
         take = np.linspace(0, n - 1, int(max_points)).round().astype(np.int64)
-        r, c, y, x, e = r[take], c[take], y[take], x[take], e[take]
+        x, pick = x[take], take if pick is None else pick[take]
+    if pick is not None:
+        r, c, y, e = r[pick], c[pick], y[pick], e[pick]
     r, c = r.astype(np.float64), c.astype(np.float64)
     xc = x - centre
     yc = y - centre - xc  # the log ratio under a = 1; its slope on xc is a - 1

@@ -106,6 +106,16 @@ class TestScreenPoints:
         assert raised_outputscale(*narrow, np.full(300, 1e-6), start) is start  # s = 0.05 < 0.2: kept
         assert raised_outputscale(np.zeros(2), np.arange(2.0), np.array([0.0, 3.0]), np.ones(2), start) is start
 
+    def test_raised_outputscale_on_some_points_is_that_of_those_points(self):
+        rng = np.random.default_rng(8)
+        rows, cols = rng.integers(0, 40, 500).astype(float), rng.integers(0, 60, 500).astype(float)
+        resid, noise = 0.4 * rng.standard_normal(500), rng.uniform(1e-6, 1e-3, 500)
+        start = PointFit(10.0, 0.2, 0.02, 0.0, 1e-4, 500)
+        for use in (rng.random(500) > 0.3, np.arange(500) < 2):
+            got = raised_outputscale(rows, cols, resid, noise, start, use=use)
+            assert got == raised_outputscale(rows[use], cols[use], resid[use], noise[use], start)
+        assert raised_outputscale(rows, cols, resid, noise, start, use=rng.random(500) > 0.3) is not start
+
     def test_raise_outputscale_screens_a_wide_field_without_losing_its_points(self):
         """A field far wider than the configured s, with 15 gross outliers: a fixed s = 0.2 flags good
         points too; with the floor raised by the points the outliers go and the good points stay."""

@@ -6,6 +6,7 @@ import json
 import warnings
 from dataclasses import asdict
 
+import numba
 import numpy as np
 import pytest
 
@@ -15,7 +16,7 @@ from gpdepth3d.completion.lattice import build_lattice, lattice_stride
 from gpdepth3d.completion.log_frame import log_frame
 from gpdepth3d.completion.log_residual import log_residual_posterior
 from gpdepth3d.completion.problem import _frame_inputs
-from gpdepth3d.completion.screen import follow_slope, screen
+from gpdepth3d.completion.screen import follow_slope, screen, start_search
 from gpdepth3d.completion.mde_slope import fit_slope, refit_slope
 from gpdepth3d.errors import InvalidInputError
 from gpdepth3d.gp import make_engine
@@ -78,6 +79,24 @@ class TestStages:
         moved = follow_slope(screened, first, again, config)
         assert moved.fit.log_scale == pytest.approx(float(np.median(again.resid)))
         assert follow_slope(screened, first, first, config) is screened
+
+    def test_screen_with_its_first_search_started_before_is_the_same(self):
+        """`start_search` (the screen's first neighbour search on a second thread while the slope is fitted) changes
+        nothing in `screen`; None where the screen does not search."""
+        _, mde, sp = _scene(n=900, h=60, w=80)
+        config = DepthGPConfig()
+        frame = _frame(mde, sp, config)
+        search = start_search(frame, config)
+        if numba.get_num_threads() < 2:
+            pytest.skip("numba has one thread: no search is started")
+        assert search is not None
+        first = fit_slope(frame, config)
+        got, ref = screen(frame, first, config, search=search), screen(frame, first, config)
+        assert got.fit == ref.fit
+        for name in ("rejected", "zscores", "shares", "noise"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+        assert start_search(frame, config.replace(screen={"outlier_threshold": None})) is None
+        assert start_search(_frame(*_scene()[1:], config), config) is None  # too few points to split
 
     def test_log_mde_at_is_the_log_mde_at_each_point(self):
         _, mde, sp = _scene()

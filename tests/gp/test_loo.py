@@ -7,6 +7,7 @@ recomputes every point each round.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -14,7 +15,9 @@ from gpdepth3d.gp import _loo
 from gpdepth3d.gp._loo import grid_neighbours, loo_predict
 from gpdepth3d.gp.model import separable_correlation
 from gpdepth3d.gp.fit import PointFit
-from gpdepth3d.gp.points import _distance_to, loo_zscores, neighbours_of, screen_points
+from gpdepth3d.errors import InvalidInputError
+from gpdepth3d.gp.model import ScreenConfig
+from gpdepth3d.gp.points import _distance_to, loo_zscores, neighbours_of, screen_points, start_screen_search
 
 
 def _ring_position(dr, dc, d):
@@ -161,6 +164,37 @@ class TestNeighbours:
         np.testing.assert_array_equal(got[1], ref[1])
         assert ref[1][:, -1].max() > 2 * _loo.WALK_RADIUS and ref[1][:, -1].min() <= _loo.WALK_RADIUS
 
+    def test_two_callers_share_the_targets_from_both_ends(self):
+        """`_loo._ring_claim` from the first chunk and from the last, each alone or after the other has claimed some
+        chunks, and `_loo.SharedSearch` (a second thread and the caller), give `grid_neighbours` of every point."""
+        rng = np.random.default_rng(21)
+        rows, cols = _points(rng, 2600, 60, 90, dup=True)
+        n, k = rows.size, 12
+        image = _loo.neighbour_image(rows, cols)
+        ref_nn, ref_dist = grid_neighbours(rows, cols, np.ones(n, dtype=bool), np.arange(n), k, image)
+        r, c, width, start, members, column, key = image
+        chunks = (n + _loo.CHUNK - 1) // _loo.CHUNK
+        assert chunks >= 4
+        for backward in (False, True):
+            for taken in (0, 2):  # chunks the other caller holds at the far end
+                nn, dist = np.full((n, k), -7), np.full((n, k), -7.0)
+                claimed = np.zeros(chunks, dtype=bool)
+                far = slice(chunks - taken, chunks) if not backward else slice(0, taken)
+                claimed[far] = True
+                args = (r, c, width, start, members, column, np.ones(n, dtype=bool), key, np.arange(n), k, nn, dist)
+                _loo._ring_claim(claimed, backward, *args)
+                held = np.zeros(n, dtype=bool)
+                held[far.start * _loo.CHUNK : far.stop * _loo.CHUNK] = True
+                done = ~held
+                assert claimed.all()
+                np.testing.assert_array_equal(nn[done], ref_nn[done])
+                np.testing.assert_array_equal(dist[done], ref_dist[done])
+                assert np.all(nn[held] == -7)  # the other caller's chunks are left to it
+        for _ in range(3):
+            got_nn, got_dist = _loo.SharedSearch(image, k).result()
+            np.testing.assert_array_equal(got_nn, ref_nn)
+            np.testing.assert_array_equal(got_dist, ref_dist)
+
     def test_ring_offsets_cover_each_ring_once(self):
         for d in (1, 2, 5, 40):
             offs = np.array([_loo.ring_offset(d, p) for p in range(4 * d)])
@@ -212,6 +246,21 @@ class TestKriging:
         np.testing.assert_array_equal(
             loo_predict(rows, cols, r, noise, targets, nn, outputscale=0.2, nugget=0.02, lengthscale=9.0, nu=nu), z
         )  # z alone without `stated`
+
+    def test_spans_of_the_image_give_the_same_tables(self):
+        """`loo_predict` with the points' spans from their image (`_loo.image_spans`) equals it checking them."""
+        rng = np.random.default_rng(12)
+        rows, cols = _points(rng, 400, 30, 50)
+        image = _loo.neighbour_image(rows, cols)
+        assert _loo.image_spans(image) == (np.ptp(rows), np.ptp(cols))
+        n = rows.size
+        nn, _ = grid_neighbours(rows, cols, np.ones(n, dtype=bool), np.arange(n), 12, image)
+        r, noise = rng.standard_normal(n), np.full(n, 1e-3)
+        kw = dict(outputscale=0.3, nugget=0.03, lengthscale=7.0, nu=0.5, stated=noise)
+        ref = loo_predict(rows, cols, r, noise, np.arange(n), nn, **kw)
+        got = loo_predict(rows, cols, r, noise, np.arange(n), nn, spans=_loo.image_spans(image), **kw)
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
 
     def test_noise_share_is_a_floor_of_the_mean_squared_zscore(self):
         """With independent noises as stated, E[z^2] = share + (1 - share) x (field calibration): a field drawn
@@ -302,6 +351,40 @@ class TestScreening:
         np.testing.assert_array_equal(rejected, ref_rejected)
         np.testing.assert_allclose(z, ref_z, rtol=1e-12, atol=1e-12)
         assert rejected[bad].mean() > 0.8
+
+    def test_a_search_started_before_gives_the_same_screen(self):
+        """`start_screen_search` (the first round's search on a second thread) changes nothing in `screen_points`;
+        it is None where the screen would not search (no threshold, few points, off the pixel grid), and a search
+        of other points is refused."""
+        rng = np.random.default_rng(3)
+        rows, cols = _points(rng, 1500, 50, 80)
+        n = rows.size
+        resid = 0.1 * np.sin(rows / 9.0) + rng.normal(0.0, 0.02, n)
+        resid[rng.choice(n, 40, replace=False)] += 1.0
+        noise = np.full(n, 1e-4)
+        fit = PointFit(16.0, 0.2, 0.02, 0.0, 1e-4, n)
+        ref = screen_points(rows, cols, resid, noise, threshold=3.5, start=fit, raise_outputscale=True)
+        threads = numba.get_num_threads()
+        numba.set_num_threads(1)
+        try:
+            assert start_screen_search(rows, cols) is None  # one thread: nothing to share the search with
+        finally:
+            numba.set_num_threads(threads)
+        if threads < 2:
+            pytest.skip("numba has one thread: no search is started")
+        search = start_screen_search(rows, cols, ScreenConfig(outlier_threshold=3.5))
+        assert search is not None
+        got = screen_points(rows, cols, resid, noise, threshold=3.5, start=fit, raise_outputscale=True, search=search)
+        assert got.fit == ref.fit and got.rejected.any()
+        for name in ("rejected", "zscores", "noise_share"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+        assert start_screen_search(rows, cols, ScreenConfig(outlier_threshold=None)) is None
+        assert start_screen_search(rows[:400], cols[:400]) is None  # one chunk: not split
+        assert start_screen_search(rows + 0.5, cols) is None
+        other = start_screen_search(rows[:-1], cols[:-1])
+        with pytest.raises(InvalidInputError, match="search"):
+            screen_points(rows, cols, resid, noise, threshold=3.5, start=fit, search=other)
+        other.result()
 
     def test_distance_to_sources_grid_and_tree_agree(self):
         rng = np.random.default_rng(5)

@@ -66,6 +66,18 @@ class TestFitMdeSlope:
         ref = fit_mde_slope(rows[keep], cols[keep], y[keep], x[keep], e[keep], KERNEL, 0.02, prior_sigma=0.5)
         assert got == ref and got.n_used == 150
 
+    def test_use_is_the_fit_of_those_points_alone(self):
+        rows, cols, y, x, e = _draw(500, 0.7, seed=6)
+        x = x.copy()
+        x[7] = np.nan
+        rng = np.random.default_rng(6)
+        for use in (rng.random(500) > 0.3, rng.random(500) > 0.9, np.zeros(500, dtype=bool)):
+            got = fit_mde_slope(rows, cols, y, x, e, KERNEL, 0.02, prior_sigma=0.5, use=use)
+            ref = fit_mde_slope(rows[use], cols[use], y[use], x[use], e[use], KERNEL, 0.02, prior_sigma=0.5)
+            assert got == ref
+        with pytest.raises(ShapeError, match="use"):
+            fit_mde_slope(rows, cols, y, x, e, KERNEL, 0.02, prior_sigma=0.5, use=np.ones(3, dtype=bool))
+
     def test_few_points_stay_near_the_prior(self):
         rows, cols, y, x, e = _draw(3, 0.3, seed=3)
         fit = fit_mde_slope(rows, cols, y, x, e, KERNEL, 0.02, prior_sigma=0.1)
