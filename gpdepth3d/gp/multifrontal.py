@@ -557,11 +557,23 @@ def _w_columns(L, no, nbf, nf, W):
         wj = j * unb
         for i in range(unb):
             W[wj + i] = 0.0
-        for k in range(j, uno):
+        k = j
+        while k + np.uint64(4) <= uno:  # four columns of L21 per pass over W's column
+            a0, a1 = L[k + j * unf], L[k + np.uint64(1) + j * unf]
+            a2, a3 = L[k + np.uint64(2) + j * unf], L[k + np.uint64(3) + j * unf]
+            l0 = uno + k * unf
+            l1 = l0 + unf
+            l2 = l1 + unf
+            l3 = l2 + unf
+            for i in range(unb):
+                W[wj + i] += (L[l0 + i] * a0 + L[l1 + i] * a1) + (L[l2 + i] * a2 + L[l3 + i] * a3)
+            k += np.uint64(4)
+        while k < uno:
             a = L[k + j * unf]
             lk = uno + k * unf
             for i in range(unb):
                 W[wj + i] += L[lk + i] * a
+            k += np.uint64(1)
         for i in range(unb):
             if abs(W[wj + i]) < _TINY:
                 W[wj + i] = 0.0
@@ -597,17 +609,28 @@ def _small_cov(S, no, nbf, nf, W):
         sc = uno + (uno + c) * unf
         for i in range(c + np.uint64(1), unb):
             S[uno + c + (uno + i) * unf] = S[sc + i]
-    for j in range(uno):
+    s0 = uno + uno * unf
+    for j in range(uno):  # column j of Sigma_BJ, four columns of Sigma_BB per pass over it
         bj = uno + j * unf
+        wj = j * unb
         for i in range(unb):
             S[bj + i] = 0.0
-    for c in range(unb):
-        sc = uno + (uno + c) * unf
-        for j in range(uno):
-            wc = W[j * unb + c]
-            bj = uno + j * unf
+        c = np.uint64(0)
+        while c + np.uint64(4) <= unb:
+            w0, w1, w2, w3 = W[wj + c], W[wj + c + np.uint64(1)], W[wj + c + np.uint64(2)], W[wj + c + np.uint64(3)]
+            c0 = s0 + c * unf
+            c1 = c0 + unf
+            c2 = c1 + unf
+            c3 = c2 + unf
             for i in range(unb):
-                S[bj + i] -= S[sc + i] * wc
+                S[bj + i] -= (S[c0 + i] * w0 + S[c1 + i] * w1) + (S[c2 + i] * w2 + S[c3 + i] * w3)
+            c += np.uint64(4)
+        while c < unb:
+            wc = W[wj + c]
+            c0 = s0 + c * unf
+            for i in range(unb):
+                S[bj + i] -= S[c0 + i] * wc
+            c += np.uint64(1)
     for j in range(uno):
         wj = j * unb
         for i in range(j, uno):
