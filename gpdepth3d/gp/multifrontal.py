@@ -631,14 +631,33 @@ def _small_cov(S, no, nbf, nf, W):
             for i in range(unb):
                 S[bj + i] -= S[c0 + i] * wc
             c += np.uint64(1)
-    for j in range(uno):
+    for j in range(uno):  # Sigma_JJ: four rows per pass over W's column j
         wj = j * unb
-        for i in range(j, uno):
+        i = j
+        while i + np.uint64(4) <= uno:
+            b0 = uno + i * unf
+            b1 = b0 + unf
+            b2 = b1 + unf
+            b3 = b2 + unf
+            acc0 = acc1 = acc2 = acc3 = 0.0
+            for k in range(unb):
+                w = W[wj + k]
+                acc0 += S[b0 + k] * w
+                acc1 += S[b1 + k] * w
+                acc2 += S[b2 + k] * w
+                acc3 += S[b3 + k] * w
+            S[i + j * unf] -= acc0
+            S[i + np.uint64(1) + j * unf] -= acc1
+            S[i + np.uint64(2) + j * unf] -= acc2
+            S[i + np.uint64(3) + j * unf] -= acc3
+            i += np.uint64(4)
+        while i < uno:
             bi = uno + i * unf
             acc = 0.0
             for k in range(unb):
                 acc += S[bi + k] * W[wj + k]
             S[i + j * unf] -= acc
+            i += np.uint64(1)
 
 @nb.njit(**_FAST)
 def _readout_forms(S, nf, r0, r1, ro_out, ro_pos, ro_wgt, out):
