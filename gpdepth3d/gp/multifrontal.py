@@ -736,18 +736,17 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                     acc -= S[no + i + j * nf] * work[i + j * nbf]
                 diag[s + j] = acc
             continue
+        w_small = work  # W of a small front (one call of _small_cov below: its loops compiled once)
         if prior_front:  # prior front: W and L11^-T L11^-1 are cached
             lam0 = lam_ptr[f]
             for j in range(no):
                 for i in range(j, no):
                     S[i + j * nf] = prior_lam[lam0 + i + j * no]
             wp = prior_w[w_ptr[f] :].ctypes.data
-            if nf <= _SMALL:
-                _small_cov(S, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no])
+            w_small = prior_w[w_ptr[f] : w_ptr[f] + nbf * no]
         elif nf <= _SMALL:  # compiled loops instead of dlauum, dtrmm, dsymm and dgemm
             _lam_lower(L, S, no, nf)
             _w_columns(L, no, nbf, nf, work)
-            _small_cov(S, no, nbf, nf, work)
         else:
             for j in range(no):
                 for i in range(j, no):
@@ -756,6 +755,8 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
             wp = work.ctypes.data
             if nbf > 0:
                 _w_block(L, no, nbf, nf, work, ip)
+        if nf <= _SMALL:
+            _small_cov(S, no, nbf, nf, w_small)
         if nbf > 0 and nf > _SMALL:
             sbj = S.ctypes.data + no * 8
             _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
