@@ -557,11 +557,23 @@ def _w_columns(L, no, nbf, nf, W):
         wj = j * unb
         for i in range(unb):
             W[wj + i] = 0.0
-        for k in range(j, uno):
+        k = j
+        while k + np.uint64(4) <= uno:  # four columns of L21 per pass over W's column
+            a0, a1 = L[k + j * unf], L[k + np.uint64(1) + j * unf]
+            a2, a3 = L[k + np.uint64(2) + j * unf], L[k + np.uint64(3) + j * unf]
+            l0 = uno + k * unf
+            l1 = l0 + unf
+            l2 = l1 + unf
+            l3 = l2 + unf
+            for i in range(unb):
+                W[wj + i] += (L[l0 + i] * a0 + L[l1 + i] * a1) + (L[l2 + i] * a2 + L[l3 + i] * a3)
+            k += np.uint64(4)
+        while k < uno:
             a = L[k + j * unf]
             lk = uno + k * unf
             for i in range(unb):
                 W[wj + i] += L[lk + i] * a
+            k += np.uint64(1)
         for i in range(unb):
             if abs(W[wj + i]) < _TINY:
                 W[wj + i] = 0.0
@@ -597,25 +609,55 @@ def _small_cov(S, no, nbf, nf, W):
         sc = uno + (uno + c) * unf
         for i in range(c + np.uint64(1), unb):
             S[uno + c + (uno + i) * unf] = S[sc + i]
-    for j in range(uno):
+    s0 = uno + uno * unf
+    for j in range(uno):  # column j of Sigma_BJ, four columns of Sigma_BB per pass over it
         bj = uno + j * unf
+        wj = j * unb
         for i in range(unb):
             S[bj + i] = 0.0
-    for c in range(unb):
-        sc = uno + (uno + c) * unf
-        for j in range(uno):
-            wc = W[j * unb + c]
-            bj = uno + j * unf
+        c = np.uint64(0)
+        while c + np.uint64(4) <= unb:
+            w0, w1, w2, w3 = W[wj + c], W[wj + c + np.uint64(1)], W[wj + c + np.uint64(2)], W[wj + c + np.uint64(3)]
+            c0 = s0 + c * unf
+            c1 = c0 + unf
+            c2 = c1 + unf
+            c3 = c2 + unf
             for i in range(unb):
-                S[bj + i] -= S[sc + i] * wc
-    for j in range(uno):
+                S[bj + i] -= (S[c0 + i] * w0 + S[c1 + i] * w1) + (S[c2 + i] * w2 + S[c3 + i] * w3)
+            c += np.uint64(4)
+        while c < unb:
+            wc = W[wj + c]
+            c0 = s0 + c * unf
+            for i in range(unb):
+                S[bj + i] -= S[c0 + i] * wc
+            c += np.uint64(1)
+    for j in range(uno):  # Sigma_JJ: four rows per pass over W's column j
         wj = j * unb
-        for i in range(j, uno):
+        i = j
+        while i + np.uint64(4) <= uno:
+            b0 = uno + i * unf
+            b1 = b0 + unf
+            b2 = b1 + unf
+            b3 = b2 + unf
+            acc0 = acc1 = acc2 = acc3 = 0.0
+            for k in range(unb):
+                w = W[wj + k]
+                acc0 += S[b0 + k] * w
+                acc1 += S[b1 + k] * w
+                acc2 += S[b2 + k] * w
+                acc3 += S[b3 + k] * w
+            S[i + j * unf] -= acc0
+            S[i + np.uint64(1) + j * unf] -= acc1
+            S[i + np.uint64(2) + j * unf] -= acc2
+            S[i + np.uint64(3) + j * unf] -= acc3
+            i += np.uint64(4)
+        while i < uno:
             bi = uno + i * unf
             acc = 0.0
             for k in range(unb):
                 acc += S[bi + k] * W[wj + k]
             S[i + j * unf] -= acc
+            i += np.uint64(1)
 
 @nb.njit(**_FAST)
 def _readout_forms(S, nf, r0, r1, ro_out, ro_pos, ro_wgt, out):
@@ -694,18 +736,17 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
                     acc -= S[no + i + j * nf] * work[i + j * nbf]
                 diag[s + j] = acc
             continue
+        w_small = work  # W of a small front (one call of _small_cov below: its loops compiled once)
         if prior_front:  # prior front: W and L11^-T L11^-1 are cached
             lam0 = lam_ptr[f]
             for j in range(no):
                 for i in range(j, no):
                     S[i + j * nf] = prior_lam[lam0 + i + j * no]
             wp = prior_w[w_ptr[f] :].ctypes.data
-            if nf <= _SMALL:
-                _small_cov(S, no, nbf, nf, prior_w[w_ptr[f] : w_ptr[f] + nbf * no])
+            w_small = prior_w[w_ptr[f] : w_ptr[f] + nbf * no]
         elif nf <= _SMALL:  # compiled loops instead of dlauum, dtrmm, dsymm and dgemm
             _lam_lower(L, S, no, nf)
             _w_columns(L, no, nbf, nf, work)
-            _small_cov(S, no, nbf, nf, work)
         else:
             for j in range(no):
                 for i in range(j, no):
@@ -714,6 +755,8 @@ def _selinv_run(order, parent, st, no_, nb_, nf_, ea_ptr, ea_pos, l_ptr, lbuf, s
             wp = work.ctypes.data
             if nbf > 0:
                 _w_block(L, no, nbf, nf, work, ip)
+        if nf <= _SMALL:
+            _small_cov(S, no, nbf, nf, w_small)
         if nbf > 0 and nf > _SMALL:
             sbj = S.ctypes.data + no * 8
             _dsymm(cL, cL, ip.ctypes.data + 8, ip.ctypes.data, mone, S.ctypes.data + (no + no * nf) * 8,
