@@ -73,23 +73,29 @@ def log_residual_posterior(
     """Runs the default model's stages on one frame; ``previous`` starts the scales' search (sequences),
     ``stride`` fixes the lattice's (`gpdepth3d.gp.EngineConfig.lattice_stride`; None: automatic)."""
     t0 = time.perf_counter()
-    with single_threaded_blas():  # one block for the stage's small dense algebra (each step's own is then free)
+    # One block for the frame: every stage's small dense algebra and the engine's numeric sections run with one
+    # BLAS thread, and the blocks inside it are then free (each outermost block sets and restores every library).
+    with single_threaded_blas():
         search = start_search(frame, config)  # on a second thread while the slope is fitted
         first = fit_slope(frame, config)
         screened = screen(frame, first, config, previous, search)
         sloped = refit_slope(frame, first, screened.rejected, config)
         screened = follow_slope(screened, first, sloped, config)
-    t1 = time.perf_counter()
-    lattice = build_lattice(frame, sloped, screened, config, stride)
-    ta = time.perf_counter()
-    field = solve_field(engine, lattice)
-    tb = time.perf_counter()
-    field = add_detail(field, lattice, frame, config)
-    tc = time.perf_counter()
-    moments = assemble_depth(frame, sloped, screened, lattice, field, config)
-    td = time.perf_counter()
-    var = calibrate(moments, frame, sloped, screened, config).variance if variance else np.full(frame.out_shape, np.nan)
-    t2 = time.perf_counter()
+        t1 = time.perf_counter()
+        lattice = build_lattice(frame, sloped, screened, config, stride)
+        ta = time.perf_counter()
+        field = solve_field(engine, lattice)
+        tb = time.perf_counter()
+        field = add_detail(field, lattice, frame, config)
+        tc = time.perf_counter()
+        moments = assemble_depth(frame, sloped, screened, lattice, field, config)
+        td = time.perf_counter()
+        var = (
+            calibrate(moments, frame, sloped, screened, config).variance
+            if variance
+            else np.full(frame.out_shape, np.nan)
+        )
+        t2 = time.perf_counter()
     stages = {"lattice": ta - t1, "engine": tb - ta, "detail": tc - tb, "assemble": td - tc, "calibrate": t2 - td}
     fit = screened.fit
     return LogResidualPosterior(
