@@ -134,8 +134,16 @@ class Real:
     optional: bool = False
 
     def __call__(self, name: str, value: Any):
-        opts = dict(low_open=self.low_open, high_open=self.high_open, unit=self.unit, optional=self.optional)
-        return check_real(name, value, self.low, self.high, **opts)
+        return check_real(
+            name,
+            value,
+            self.low,
+            self.high,
+            low_open=self.low_open,
+            high_open=self.high_open,
+            unit=self.unit,
+            optional=self.optional,
+        )
 
 
 @dataclass(frozen=True)

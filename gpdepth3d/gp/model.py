@@ -11,6 +11,7 @@ are written down in docs/model.md.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
+from functools import cache
 from typing import Literal
 
 import numpy as np
@@ -258,13 +259,11 @@ class DepthGPConfig:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     def __post_init__(self) -> None:
-        check_fields(self, {name: _nested(kind) for name, kind in _NESTED.items()})
-        rules = {name: _ranged(name) for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget")}
-        rules.update(formulation=Choice(("log_residual", "balanced", "residual")), nu=lambda _, v: check_nu(v))
-        rules.update(units=Choice(("relative", "metres")), align=Choice(("none", "scale", "scale_shift")), fit=Bool())
+        nested, rules, log_outputscale = _config_rules()
+        check_fields(self, nested)
         check_fields(self, rules)
         if self.formulation == "log_residual":  # log-depth scales: exp() of their squares must stay finite
-            _ranged("log_outputscale")("outputscale", self.outputscale)
+            log_outputscale("outputscale", self.outputscale)
 
     @classmethod
     def paper(cls, **overrides) -> "DepthGPConfig":
@@ -351,6 +350,17 @@ def _ranged(name: str, *, optional: bool = False) -> Real:
     """The rule of the hyperparameter ``name``: a number in its `RANGES` interval (``optional``: or None)."""
     low, high, unit = RANGES[name]
     return Real(low, high, unit=unit, optional=optional)
+
+
+@cache
+def _config_rules() -> tuple[dict, dict, Real]:
+    """`DepthGPConfig`'s field rules: (nested configs, the other fields, the log-depth bound of ``outputscale``);
+    built once, as every config (each frame's fitted one too) is checked by them."""
+    nested = {name: _nested(kind) for name, kind in _NESTED.items()}
+    rules = {name: _ranged(name) for name in ("lengthscale", "outputscale", "sigma_dl", "sigma_meas", "nugget")}
+    rules.update(formulation=Choice(("log_residual", "balanced", "residual")), nu=lambda _, v: check_nu(v))
+    rules.update(units=Choice(("relative", "metres")), align=Choice(("none", "scale", "scale_shift")), fit=Bool())
+    return nested, rules, _ranged("log_outputscale")
 
 
 def _nested(kind: type):
