@@ -201,7 +201,10 @@ class MaternKernel:
         if self.exponential:  # exp(-|du| / l) exp(-|dv| / l) as one exponential
             du = np.abs(np.subtract.outer(np.asarray(rows_a, float), np.asarray(rows_b, float)))
             du += np.abs(np.subtract.outer(np.asarray(cols_a, float), np.asarray(cols_b, float)))
-            return self.outputscale**2 * np.exp(du * (-1.0 / self.lengthscale))
+            du *= -1.0 / self.lengthscale  # in place: the (n, m) temporaries are the cost at a few hundred points
+            np.exp(du, out=du)
+            du *= self.outputscale**2
+            return du
         return self.outputscale**2 * self.factor(rows_a, rows_b) * self.factor(cols_a, cols_b)
 
 

@@ -203,6 +203,10 @@ def _loo_lstsq(rows, cols, r, noise, stated, targets, nn, fit: PointFit, nu: flo
 #: `_distance_to` transforms the box around the points when it has at most this many cells per point.
 DISTANCE_CELLS_PER_POINT = 48
 
+#: `_distance_to` compares every point with every source when there are at most this many pairs (few points in
+#: a large box: cheaper than building a k-d tree).
+DISTANCE_PAIRS = 1 << 14
+
 
 def _distance_to(
     rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray, image: NeighbourImage | None = None
@@ -210,8 +214,9 @@ def _distance_to(
     """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
 
     Points on integer pixels in a box of at most ``DISTANCE_CELLS_PER_POINT`` cells per point: an exact
-    city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); fewer points
-    in a larger box, or points off the pixel grid: a k-d tree of the sources (O(N log sources)). Both are exact.
+    city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); at most
+    ``DISTANCE_PAIRS`` point-source pairs: every pair (O(N sources)); else a k-d tree of the sources
+    (O(N log sources)). All are exact (the same |dr| + |dc| in floating point).
     ``image``: the points' `NeighbourImage` when they have one (its cells are the box's pixels).
     """
     rows = np.asarray(rows, dtype=np.float64)
@@ -223,6 +228,8 @@ def _distance_to(
 
         box = ((image.start.size - 1) // image.width, image.width)
         return taxicab_transform(box, image.r[sources], image.c[sources])[image.r, image.c].astype(np.float64)
+    if rows.size * sources.size <= DISTANCE_PAIRS:
+        return np.min(np.abs(rows[:, None] - rows[sources]) + np.abs(cols[:, None] - cols[sources]), axis=1)
     box = (float(np.ptp(rows)) + 1.0) * (float(np.ptp(cols)) + 1.0)
     if _on_pixel_grid(rows, cols) and DISTANCE_CELLS_PER_POINT * rows.size >= box:
         from .distance import taxicab_transform

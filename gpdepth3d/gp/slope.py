@@ -122,11 +122,9 @@ def fit_mde_slope(
     beta = np.zeros(2)
     M = prior_prec
     rhs = np.column_stack([H, yc])
-    diagonal = np.arange(len(yc))
+    work = np.empty_like(K, order="F")  # the factor, in LAPACK's order (no copy of the matrix per round)
     for it in range(max(1, int(iterations))):
-        S = K.copy()
-        S[diagonal, diagonal] += white / weights
-        Z = _cholesky_solve(S, rhs)  # S^-1 [H, y]
+        Z = _cholesky_solve(K, white / weights, rhs, work)  # (K + diag(white / weights))^-1 [H, y]
         M = H.T @ Z[:, :2] + prior_prec
         beta = np.linalg.solve(M, H.T @ Z[:, 2])
         if it + 1 < iterations:
@@ -139,17 +137,26 @@ def fit_mde_slope(
     return SlopeFit(float(1.0 + beta[1]), float(cov[1, 1]), centre, int(len(yc)))
 
 
-def _cholesky_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """S^-1 rhs by LAPACK's Cholesky factorisation and solve (potrf, potrs: those scipy's cho_factor and cho_solve
-    call, without their checks on a matrix built here); a matrix that is not numerically positive definite gets a
-    jitter of 1e-10 times its mean diagonal.
+def _cholesky_solve(K: np.ndarray, diag: np.ndarray, rhs: np.ndarray, work: np.ndarray) -> np.ndarray:
+    """S^-1 rhs, S = K + diag(diag), by LAPACK's Cholesky factorisation and solve (potrf, potrs: those scipy's
+    cho_factor and cho_solve call, without their checks on a matrix built here); a matrix that is not numerically
+    positive definite gets a jitter of 1e-10 times its mean diagonal.
+
+    ``work``: an (n, n) Fortran-ordered buffer S is built and factorised in (LAPACK's order: no copy of it).
 
     Raises:
         numpy.linalg.LinAlgError: not positive definite even with the jitter.
     """
-    factor, info = lapack.dpotrf(S, lower=1, clean=0)
+    n = len(K)
+    on_diagonal = np.arange(n)
+    np.copyto(work, K)
+    work[on_diagonal, on_diagonal] += diag
+    factor, info = lapack.dpotrf(work, lower=1, clean=0, overwrite_a=1)
     if info > 0:
-        factor, info = lapack.dpotrf(S + np.eye(len(S)) * 1e-10 * np.trace(S) / len(S), lower=1, clean=0)
+        np.copyto(work, K)  # S again (the failed factorisation overwrote it), with the jitter on its diagonal
+        work[on_diagonal, on_diagonal] += diag
+        work[on_diagonal, on_diagonal] += 1e-10 * np.trace(work) / n
+        factor, info = lapack.dpotrf(work, lower=1, clean=0, overwrite_a=1)
         if info > 0:
             raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
     return lapack.dpotrs(factor, rhs, lower=1)[0]

@@ -11,7 +11,7 @@ import numba
 import numpy as np
 import pytest
 
-from gpdepth3d.gp import _loo
+from gpdepth3d.gp import _loo, points
 from gpdepth3d.gp._loo import grid_neighbours, loo_predict
 from gpdepth3d.gp.model import separable_correlation
 from gpdepth3d.gp.fit import PointFit
@@ -386,7 +386,9 @@ class TestScreening:
             screen_points(rows, cols, resid, noise, threshold=3.5, start=fit, search=other)
         other.result()
 
-    def test_distance_to_sources_grid_and_tree_agree(self):
+    @pytest.mark.parametrize("pairs", [0, 1 << 30])  # a k-d tree off the grid; every pair
+    def test_distance_to_sources_grid_and_tree_agree(self, pairs, monkeypatch):
+        monkeypatch.setattr(points, "DISTANCE_PAIRS", pairs)
         rng = np.random.default_rng(5)
         rows, cols = _points(rng, 500, 40, 70)
         sources = rng.choice(rows.size, 9, replace=False)
@@ -396,6 +398,6 @@ class TestScreening:
         image = _loo.neighbour_image(rows, cols)  # the transform on the image's cells
         np.testing.assert_array_equal(_distance_to(rows, cols, sources, np.full(rows.size, np.inf), image), ref)
         reach = np.full(rows.size, 6.0)
-        d_tree = _distance_to(rows + 0.5, cols, sources, reach)  # off the pixel grid: a k-d tree, inf beyond 6
-        np.testing.assert_array_equal(d_tree[ref <= 6], ref[ref <= 6])
-        assert np.all(np.isinf(d_tree[ref > 6]))
+        d_off = _distance_to(rows + 0.5, cols, sources, reach)  # off the pixel grid: inf beyond 6 from the tree
+        np.testing.assert_array_equal(d_off[ref <= 6], ref[ref <= 6])
+        assert np.all(np.isinf(d_off[ref > 6]) if pairs == 0 else d_off == ref)

@@ -216,9 +216,13 @@ class TestCholeskySolve:
 
         rng = np.random.default_rng(0)
         X = rng.standard_normal((40, 50))
-        S, rhs = X @ X.T + np.eye(40), rng.standard_normal((40, 3))
-        ref = cho_solve(cho_factor(S, lower=True, check_finite=False), rhs, check_finite=False)
-        np.testing.assert_array_equal(_cholesky_solve(S, rhs), ref)
+        K, rhs = X @ X.T, rng.standard_normal((40, 3))
+        diag = rng.uniform(0.5, 2.0, 40)
+        ref = cho_solve(cho_factor(K + np.diag(diag), lower=True, check_finite=False), rhs, check_finite=False)
+        work = np.empty((40, 40), order="F")
+        for _ in range(2):  # the buffer reused: K is left as it was
+            np.testing.assert_array_equal(_cholesky_solve(K, diag, rhs, work), ref)
+        np.testing.assert_array_equal(K, X @ X.T)
 
     def test_a_singular_matrix_gets_the_jitter_and_a_negative_one_is_refused(self):
         from scipy.linalg import cho_factor, cho_solve
@@ -230,6 +234,6 @@ class TestCholeskySolve:
         S, rhs = X @ X.T, rng.standard_normal((30, 2))  # rank 5
         jittered = S + np.eye(30) * 1e-10 * np.trace(S) / 30
         ref = cho_solve(cho_factor(jittered, lower=True, check_finite=False), rhs, check_finite=False)
-        np.testing.assert_array_equal(_cholesky_solve(S, rhs), ref)
+        np.testing.assert_array_equal(_cholesky_solve(S, np.zeros(30), rhs, np.empty((30, 30), order="F")), ref)
         with pytest.raises(np.linalg.LinAlgError):
-            _cholesky_solve(-np.eye(4), np.ones(4))
+            _cholesky_solve(-np.eye(4), np.zeros(4), np.ones(4), np.empty((4, 4), order="F"))
