@@ -211,7 +211,7 @@ DISTANCE_PAIRS = 1 << 14
 def _distance_to(
     rows: np.ndarray, cols: np.ndarray, sources: np.ndarray, reach: np.ndarray, image: NeighbourImage | None = None
 ) -> np.ndarray:
-    """(N,) L1 distance of every point to the nearest of the points ``sources`` (inf beyond max(reach)).
+    """(N,) L1 distance of every point to the nearest of the points ``sources`` (beyond max(reach): that or inf).
 
     Points on integer pixels in a box of at most ``DISTANCE_CELLS_PER_POINT`` cells per point: an exact
     city-block distance transform of the box around them (`gpdepth3d.gp.distance`, O(box)); at most
