@@ -277,6 +277,21 @@ def start_screen_search(rows: np.ndarray, cols: np.ndarray, options: ScreenConfi
     return None if image is None else SharedSearch(image, min(options.neighbours, rows.size - 1))
 
 
+def _rounds_image(
+    rows: np.ndarray, cols: np.ndarray, threshold: float | None, options: ScreenConfig, search: SharedSearch | None
+) -> NeighbourImage | None:
+    """The `NeighbourImage` that `screen_points`' rounds share: ``search``'s when one was started (checked to be
+    the first round's search of these points), else one built here; None when no round searches (no threshold,
+    fewer than 5 points) or the points are off the pixel grid."""
+    n = rows.size
+    searched = threshold is not None and n >= 5
+    if search is not None:
+        if search.nn.shape != (n, min(options.neighbours, n - 1)) or not searched:
+            raise InvalidInputError("search", f"the first round's search of these {n} points", search.nn.shape)
+        return search.image
+    return _image_of(rows, cols) if searched else None
+
+
 class Screen(NamedTuple):
     """The result of `screen_points`."""
 
@@ -325,8 +340,7 @@ def screen_points(
             round refits only while s stays raised: flagged points only widen the spread).
         stated: (N,) the part of ``noise`` that the points' own sigmas state, for the noise shares
             (`loo_zscores`); None: shares of 0.
-        search: The first round's neighbour search of these points started before (`start_screen_search` with
-            these ``options``); None: searched here.
+        search: The first round's neighbour search, started before (`start_screen_search`); None: searched here.
 
     Returns:
         A `Screen`: the fit without the flagged points, the (N,) bool mask of the flagged points,
@@ -339,10 +353,7 @@ def screen_points(
         raise InvalidInputError("threshold", "a z-score > 0 or None", threshold)
     fit, fitted_on, z, reach, share, changed, k_used = start, None, None, None, None, None, None
     options = options or ScreenConfig()
-    if search is not None and (search.nn.shape != (n, min(options.neighbours, n - 1)) or threshold is None or n < 5):
-        raise InvalidInputError("search", f"the first round's search of these {n} points", search.nn.shape)
-    # the rounds share one image
-    image = search.image if search is not None else _image_of(rows, cols) if threshold is not None and n >= 5 else None
+    image = _rounds_image(rows, cols, threshold, options, search)
     max_points = options.max_points
     for _ in range(options.iterations if threshold is not None else 1):
         keep = ~rejected
@@ -382,7 +393,7 @@ def screen_points(
             z[only], reach[only], share[only] = z_new[only], reach_new[only], share_new[only]
         new = np.abs(z) > threshold
         changed = new != rejected
-        if np.array_equal(new, rejected):
+        if not changed.any():
             break
         rejected = new
     if z is None or threshold is None:
