@@ -99,6 +99,28 @@ class _KissGPModel(gpytorch.models.ExactGP):
         return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
 
 
+def variance_flops(
+    n: int, shape: tuple[int, int], outputs: int, columns: int, iterations: int, *, pad: int = 2, toeplitz: bool = False
+) -> dict[str, float]:
+    """Floating-point operations of the variance at ``outputs`` pixels from n observed pixels of a grid of
+    ``shape``: {"cholesky": the dense route, "cg": CG over ``columns`` right-hand sides ("solve": one per output
+    pixel; "probe": one per colour) of ``iterations`` products each}.
+
+    One product with the KISS-GP matrix costs the interpolation (16 weights a point, both sides) and the grid's
+    Kronecker product (dense factors: 2 H W (H + W); Toeplitz: FFTs). The Cholesky forms the (n, n) matrix and
+    a cross-covariance column per output pixel with one product each, factorises (n^3 / 3) and solves a
+    triangle per output pixel (n^2): with the hundreds of CG iterations a long length scale takes, it is the
+    cheaper well beyond a few thousand points.
+    """
+    hp, wp = shape[0] + 2 * pad, shape[1] + 2 * pad
+    grid = 10.0 * hp * wp * math.log2(hp * wp) if toeplitz else 2.0 * hp * wp * (hp + wp)
+    product = grid + 64.0 * n
+    return {
+        "cholesky": (n + outputs) * product + n**3 / 3 + float(outputs) * n * n,
+        "cg": float(columns) * (max(iterations, 1) + 2) * product,
+    }
+
+
 def default_device() -> str:
     """ "cuda" when torch sees a GPU, else "cpu"."""
     return "cuda" if torch.cuda.is_available() else "cpu"
@@ -125,10 +147,11 @@ class KissGPEngine:
 
     Args:
         device: Torch device ("cpu", "cuda", "cuda:1"); default "cuda" if available else "cpu".
-        variance_method: "auto" (default: "cholesky" for at most `max_cholesky_size`
-            observed pixels, else "probe" when at least half the pixels are observed, else
-            "solve"), "cholesky", "probe", "solve" (all exact on the grid, see the module
-            docstring) or "love" (GPyTorch LOVE / fast_pred_var, approximate).
+        variance_method: "auto" (default: "cholesky" for at most `max_cholesky_size` observed pixels;
+            beyond, the CG method, "probe" when at least half the pixels are observed, else "solve", unless
+            "cholesky" needs fewer flops than its solves and fits the memory budget, `variance_flops`),
+            "cholesky", "probe", "solve" (all exact on the grid, see the module docstring) or "love"
+            (GPyTorch LOVE / fast_pred_var, approximate).
         cg_tolerance: Relative residual ||A x - b|| / ||b|| at which CG stops (mean solve).
         variance_cg_tolerance: Relative residual of the batched variance solves (mean over
             the block; every column is checked against 10x this afterwards).
@@ -142,7 +165,8 @@ class KissGPEngine:
         pad: Inducing-grid nodes beyond the image on every side (>= 2).
         toeplitz: Kronecker factors as Toeplitz (FFT) operators instead of dense matrices;
             default: only for grid axes longer than `TOEPLITZ_ABOVE` nodes.
-        max_cholesky_size: "auto" uses the Cholesky route up to this many observed pixels.
+        max_cholesky_size: "auto" uses the Cholesky route up to this many observed pixels whatever it
+            costs (beyond, where it needs fewer flops than the CG solves and its matrices fit the memory budget).
         probe_spacing: Lattice spacing (GP-grid pixels) of the "probe" colouring; the number
             of probe vectors is its square (plus one per output pixel over a hole).
     """
@@ -335,7 +359,7 @@ class KissGPEngine:
             stats["time_mean"] = t2 - t1
             var_np = None
             if variance:
-                method = self._choose_variance_method(n, (h, w))
+                method = self._choose_variance_method(problem, n, iters)
                 stats["variance_method"] = method
                 if method == "cholesky":
                     var = self._variance_cholesky(covar, A, train_x, test_x, stats)
@@ -364,14 +388,31 @@ class KissGPEngine:
                 f"(tolerance {self.variance_cg_tolerance:g}); raise max_cg_iterations"
             )
 
-    def _choose_variance_method(self, n: int, shape: tuple[int, int]) -> str:
+    def _memory_budget(self) -> int:
+        """Bytes the engine's device may hold: three quarters of a GPU's free memory, or of the host's."""
+        if self.device.type == "cuda":
+            return torch.cuda.mem_get_info(self.device)[0] * 3 // 4
+        return memory_budget()
+
+    def _choose_variance_method(self, problem: GridProblem, n: int, iterations: int) -> str:
+        """The "auto" variance method for n observed pixels (see the class docstring); ``iterations``: the mean's
+        CG iterations, the estimate of each variance column's."""
         if self.variance_method != "auto":
             return self.variance_method
         if n <= self.max_cholesky_size:
             return "cholesky"
-        if n >= 0.5 * shape[0] * shape[1]:
-            return "probe"
-        return "solve"
+        h, w = problem.shape
+        iterative = "probe" if n >= 0.5 * h * w else "solve"
+        columns = (
+            self._probe_colours(problem)[1] if iterative == "probe" else problem.out_shape[0] * problem.out_shape[1]
+        )
+        toeplitz = self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE
+        outputs = problem.out_shape[0] * problem.out_shape[1]
+        flops = variance_flops(n, (h, w), outputs, columns, iterations, pad=self.pad, toeplitz=toeplitz)
+        dense_bytes = 8 * (3 * n * n + 2 * self.block_entries)  # A, its symmetrised copy, L; two blocks
+        if flops["cholesky"] < flops["cg"] and dense_bytes <= self._memory_budget():
+            return "cholesky"
+        return iterative
 
     def _columns(self, op, count: int, start: int, stop: int) -> torch.Tensor:
         """Columns start:stop of a (.., count) operator as a dense block (one product per column)."""
@@ -402,6 +443,23 @@ class KissGPEngine:
         stats["cg_iterations_variance"] = 0
         return out
 
+    def _probe_colours(self, problem: GridProblem) -> tuple[np.ndarray, int, np.ndarray]:
+        """(colour of each output pixel, number of colours, the output pixels over holes) of the "probe" method:
+        a lattice of spacing `probe_spacing` GP-grid pixels, and a colour of its own for each output pixel whose
+        nearest GP pixel is unobserved."""
+        ho, wo = problem.out_shape
+        h, w = problem.shape
+        dr = max(1, int(math.ceil(self.probe_spacing * ho / h - 1e-9)))
+        dc = max(1, int(math.ceil(self.probe_spacing * wo / w - 1e-9)))
+        rr, cc = np.meshgrid(np.arange(ho), np.arange(wo), indexing="ij")
+        colour = ((rr % dr) * dc + (cc % dc)).ravel()
+        near_r = np.clip(np.rint(problem.out_rows), 0, h - 1).astype(np.int64)
+        near_c = np.clip(np.rint(problem.out_cols), 0, w - 1).astype(np.int64)
+        observed = (problem.precision[near_r][:, near_c] > 0).ravel()
+        lone = np.flatnonzero(~observed)
+        colour[lone] = dr * dc + np.arange(lone.size)
+        return colour, dr * dc + lone.size, lone
+
     def _variance_probe(self, covar, A, train_x, test_x, problem, precond, stats) -> torch.Tensor:
         """Posterior covariance probing: diag(S) from S Z for a colouring Z of the output pixels.
 
@@ -414,18 +472,7 @@ class KissGPEngine:
         bound tests/gp/test_kissgp.py checks. Output pixels over unobserved pixels (holes),
         where the posterior covariance is long-ranged, each get a column of their own (exact).
         """
-        ho, wo = problem.out_shape
-        h, w = problem.shape
-        dr = max(1, int(math.ceil(self.probe_spacing * ho / h - 1e-9)))
-        dc = max(1, int(math.ceil(self.probe_spacing * wo / w - 1e-9)))
-        rr, cc = np.meshgrid(np.arange(ho), np.arange(wo), indexing="ij")
-        colour = ((rr % dr) * dc + (cc % dc)).ravel()
-        near_r = np.clip(np.rint(problem.out_rows), 0, h - 1).astype(np.int64)
-        near_c = np.clip(np.rint(problem.out_cols), 0, w - 1).astype(np.int64)
-        observed = (problem.precision[near_r][:, near_c] > 0).ravel()
-        lone = np.flatnonzero(~observed)
-        colour[lone] = dr * dc + np.arange(lone.size)
-        count = dr * dc + lone.size
+        colour, count, lone = self._probe_colours(problem)
         m = test_x.shape[0]
         n = train_x.shape[0]
         colour_t = torch.as_tensor(colour, device=self.device)

@@ -30,7 +30,13 @@ from gpdepth3d.completion.complete import build_problem
 from gpdepth3d.errors import ProblemTooLargeError, InvalidInputError
 from gpdepth3d.gp import make_engine
 from gpdepth3d.gp.exact import ExactEngine
-from gpdepth3d.gp.kissgp import ConvergenceError, KissGPEngine, PixelGridInterpolationKernel, default_device
+from gpdepth3d.gp.kissgp import (
+    ConvergenceError,
+    KissGPEngine,
+    PixelGridInterpolationKernel,
+    default_device,
+    variance_flops,
+)
 from gpdepth3d.gp.model import Kernel
 
 CONFIGS = {"balanced": DepthGPConfig.paper(), "residual": DepthGPConfig.residual()}
@@ -80,6 +86,17 @@ def _assert_agree(exact, kiss):
     assert np.median(rel) <= 1e-4
     assert np.percentile(rel, 95) <= 1e-3
     assert rel.max() <= 1e-2
+
+
+def test_variance_flops_counts_each_method():
+    # one product on a 10 x 20 grid padded by 2 (14 x 24, dense factors): 2 * 14 * 24 * (14 + 24) + 64 n
+    n, outputs = 50, 300
+    product = 2 * 14 * 24 * 38 + 64 * n
+    flops = variance_flops(n, (10, 20), outputs, outputs, 100)
+    assert flops["cg"] == outputs * 102 * product
+    assert flops["cholesky"] == pytest.approx((n + outputs) * product + n**3 / 3 + outputs * n * n)
+    # Toeplitz factors: FFT products, cheaper on a long axis than the dense ones
+    assert variance_flops(n, (10, 2000), 1, 1, 1, toeplitz=True)["cg"] < variance_flops(n, (10, 2000), 1, 1, 1)["cg"]
 
 
 class TestPixelGridInterpolationKernel:
@@ -180,6 +197,20 @@ class TestKissGPEngine:
         mk, vk = KissGPEngine(device="cpu", variance_method="love", root_decomposition_size=8).solve(problem)
         assert np.all(vk >= 0)
         assert np.median(relative_error(vk, ve)) > 0.1
+
+    def test_auto_takes_the_cholesky_where_it_costs_less_than_cg(self, crop, monkeypatch):
+        # Sparse points (fewer than half the pixels) above max_cholesky_size: "solve" would run CG once per
+        # output pixel; the Cholesky costs a triangle solve each, fewer flops, and gives the exact variance.
+        _, mde, sparse = crop
+        problem, *_ = build_problem(mde, sparse, CONFIGS["residual"])
+        me, ve = ExactEngine().solve(problem)
+        mk, vk = solution = KissGPEngine(device="cpu", max_cholesky_size=0).solve(problem)
+        assert solution.info.details["variance_method"] == "cholesky"
+        assert rms(mk - me) <= 1e-5 * rms(me - me.mean())
+        assert relative_error(vk, ve).max() <= 1e-6
+        # the same problem where the dense matrices would pass the memory budget: CG solves
+        monkeypatch.setattr(KissGPEngine, "_memory_budget", lambda self: 8 * 200 * 200)
+        assert KissGPEngine(device="cpu", max_cholesky_size=0).solve(problem).info.details["variance_method"] == "solve"
 
     def test_mean_only_and_stats(self, crop):
         _, mde, sparse = crop
