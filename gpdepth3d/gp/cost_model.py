@@ -7,6 +7,7 @@ the routes they rank are measured in docs/engines.md and docs/results.md.
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 
@@ -121,12 +122,24 @@ def kissgp_bytes(shape: tuple[int, int], out_shape: tuple[int, int]) -> int:
     return KISSGP_BASE_BYTES + KISSGP_BYTES_PER_PIXEL * (shape[0] * shape[1] + out_shape[0] * out_shape[1])
 
 
-def memory_budget() -> int:
-    """Default memory budget of one solve (bytes): three quarters of the memory available now."""
-    try:
-        import psutil
+MEMORY_READING_S = 0.5
+"""Seconds one reading of the available memory serves `memory_budget`: a frame's route choices, and the
+frames of a sequence at camera rate, share a reading instead of each parsing the system's memory table."""
 
-        avail = int(psutil.virtual_memory().available)
-    except Exception:  # pragma: no cover - psutil missing or no /proc
-        avail = int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    return avail * 3 // 4
+_reading: tuple[float, int] = (-np.inf, 0)  # (time.monotonic() of the last reading, bytes available then)
+
+
+def memory_budget() -> int:
+    """Default memory budget of one solve (bytes): three quarters of the memory available now (read at most
+    once per `MEMORY_READING_S`)."""
+    global _reading
+    now = time.monotonic()
+    if now - _reading[0] > MEMORY_READING_S:
+        try:
+            import psutil
+
+            avail = int(psutil.virtual_memory().available)
+        except Exception:  # pragma: no cover - psutil missing or no /proc
+            avail = int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        _reading = (now, avail)
+    return _reading[1] * 3 // 4

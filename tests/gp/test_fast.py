@@ -551,6 +551,22 @@ class TestConditioningHelpers:
         avail = psutil.virtual_memory().available
         assert 0.5 * avail < memory_budget() <= 0.8 * avail
 
+    def test_memory_budget_reads_the_memory_once_per_interval(self, monkeypatch):
+        psutil = pytest.importorskip("psutil")
+        from types import SimpleNamespace
+
+        import gpdepth3d.gp.cost_model as cost_model
+
+        reads, clock = [], [1000.0]
+        monkeypatch.setattr(cost_model, "_reading", (-np.inf, 0))
+        monkeypatch.setattr(cost_model, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+        monkeypatch.setattr(psutil, "virtual_memory", lambda: reads.append(1) or type("M", (), {"available": 4000})())
+        assert cost_model.memory_budget() == 3000 and len(reads) == 1
+        clock[0] += 0.5 * cost_model.MEMORY_READING_S
+        assert cost_model.memory_budget() == 3000 and len(reads) == 1  # the same reading
+        clock[0] += cost_model.MEMORY_READING_S
+        assert cost_model.memory_budget() == 3000 and len(reads) == 2  # read again
+
 
 class TestPropertySweep:
     """Bounded property test: on small random problems every engine route returns a typed error or a finite
