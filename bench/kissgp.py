@@ -8,12 +8,17 @@ sigma 2 px), scaled by 1.1 and perturbed by a smooth relative error (+-5 %) and 
 
 Runs, each timed on the whole 125x414 frame with ``torch.set_num_threads(2)``:
 
-* ``balanced`` (paper defaults, ``DepthGPConfig()``): every MDE pixel + every LiDAR point.
-* ``residual`` (``DepthGPConfig.residual()``) with all LiDAR points (mean only: the exact
-  variance needs one solve per output pixel when the points are many, see the engine docs) and
+* ``balanced`` (the paper's preset, ``DepthGPConfig.paper()``): every MDE pixel + every LiDAR point.
+* ``residual`` (``DepthGPConfig.residual()``) with all LiDAR points (mean only: the exact variance
+  of all of them costs ~10^13 flops by any method, `gpdepth3d.gp.kissgp.variance_flops`) and
   with 500 of them (mean and variance; Cholesky route).
+* ``default`` (``DepthGPConfig()``, the library's model) through ``DepthCompleter`` with
+  ``EngineConfig(name="kissgp")``, RT-MonoDepth-S as the MDE (the real network, as bench/cuda.py), at the
+  KITTI protocol's densities 1/64 .. 1: seconds of mean + variance (one call after a warm-up at the
+  lowest density), the engine's variance method and CG iterations (no agreement columns: the lattice's
+  read-out off the grid nodes is KISS-GP's cubic interpolation, the one approximation of the engine).
 
-For each: time for mean only, time for mean + variance, CG iterations (mean solve; mean over
+For the first three: time for mean only, time for mean + variance, CG iterations (mean solve; mean over
 the batched variance solves), the variance method, and the agreement with the exact engine on a
 40x80 crop of the same frame (the crop's own problem solved by both engines): relative RMS of
 the mean difference (rms(mean_k - mean_e) / rms(mean_e - mean(mean_e))) and the median / 95th
@@ -37,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+DENSITIES = (1 / 64, 1 / 16, 1 / 4, 1.0)  # the KITTI protocol's fractions of the LiDAR (as bench/cuda.py)
 
 
 def default_data() -> Path:
@@ -127,9 +133,49 @@ def run_case(name, mde, sparse, config, device, variance: bool, crop) -> dict:
     return row
 
 
+def default_model_rows(data: Path, models: Path, device: str) -> list[dict]:
+    """The default model with the kissgp engine at the KITTI protocol's densities (see the module docstring)."""
+    import sys
+    import warnings
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _kitti_speed import draw, kitti_setup
+
+    from gpdepth3d import DepthCompleter, DepthGPConfig
+    from gpdepth3d.gp import EngineConfig
+    from gpdepth3d.mde import RTMonoDepthONNX
+
+    setup, _ = kitti_setup(data, RTMonoDepthONNX(models_dir=models, providers=["CPUExecutionProvider"]))
+    completer = DepthCompleter(DepthGPConfig(), engine=EngineConfig(name="kissgp", device=device))
+    rows = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        completer(setup.mde_grid, draw(setup, DENSITIES[0]))  # warm-up
+        for density in DENSITIES:
+            sparse = draw(setup, density)
+            t = time.perf_counter()
+            post = completer(setup.mde_grid, sparse)
+            st = post.solve.details
+            rows.append(
+                {
+                    "case": f"default, {density:g} of the LiDAR",
+                    "shape": list(setup.grid_shape),
+                    "observed": st["observed"],
+                    "time_mean_variance_s": time.perf_counter() - t,
+                    "cg_iterations_mean": st["cg_iterations_mean"],
+                    "cg_residual_mean": st["cg_residual_mean"],
+                    "variance_method": st.get("variance_method"),
+                    "cg_iterations_variance": st.get("cg_iterations_variance"),
+                }
+            )
+            print(f"  {rows[-1]}", flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=default_data(), help="kitti_tiny folder")
+    parser.add_argument("--models", type=Path, default=REPO.parent / "shared" / "models", help="networks folder")
     parser.add_argument("--frame", type=int, default=0)
     parser.add_argument("--device", default=None, help="torch device (default: cuda if available)")
     parser.add_argument("--output", type=Path, default=REPO / "bench" / "results" / "kissgp.json")
@@ -151,36 +197,44 @@ def main() -> None:
     crop = ((75, 115), (160, 240))  # 40x80 pixels in the LiDAR-covered lower half
     load_before = os.getloadavg()
     rows = [
-        run_case("balanced, all LiDAR", mde, sparse, DepthGPConfig(), device, True, crop),
+        run_case("balanced, all LiDAR", mde, sparse, DepthGPConfig.paper(), device, True, crop),
         run_case("residual, all LiDAR", mde, sparse, DepthGPConfig.residual(), device, False, crop),
         run_case("residual, 500 LiDAR", mde, few, DepthGPConfig.residual(), device, True, crop),
     ]
+    rows += default_model_rows(args.data.parent, args.models, device)
     result = {
-        "benchmark": "kissgp engine, 1/3 KITTI resolution (kitti_tiny, simulated MDE)",
+        "benchmark": "kissgp engine, 1/3 KITTI resolution (kitti_tiny; simulated MDE, the default model's rows "
+        "RT-MonoDepth-S)",
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {platform.platform()}",
         "frame": args.frame,
         "device": device,
         "torch_threads": torch.get_num_threads(),
         "lidar_points": len(sparse),
-        "platform": platform.platform(),
         "load_average_before": load_before,
         "load_average_after": os.getloadavg(),
         "rows": rows,
     }
     header = (
-        f"{'case':22s} {'obs':>6s} {'mean s':>8s} {'CG it':>6s} {'mean+var s':>11s} {'var method':>10s} "
+        f"{'case':30s} {'obs':>6s} {'mean s':>8s} {'CG it':>6s} {'mean+var s':>11s} {'var method':>10s} "
         f"{'var CG it':>9s} {'crop mean rel':>13s} {'crop var med/p95/max':>26s}"
     )
     print(header)
     print("-" * len(header))
     for r in rows:
-        a = r["agreement_with_exact"]
+        a = r.get("agreement_with_exact")
+        mean = f"{r['time_mean_s']:.2f}" if "time_mean_s" in r else "-"
         mv = f"{r['time_mean_variance_s']:.2f}" if "time_mean_variance_s" in r else "-"
         vit = r.get("cg_iterations_variance")
         vit = "-" if vit is None else f"{vit:.0f}"
+        crop = (
+            f"{a['mean_rel_rms']:13.1e} {a['var_rel_median']:8.1e}/{a['var_rel_p95']:8.1e}/{a['var_rel_max']:8.1e}"
+            if a
+            else f"{'-':>13s} {'-':>26s}"
+        )
         print(
-            f"{r['case']:22s} {r['observed']:6d} {r['time_mean_s']:8.2f} {r['cg_iterations_mean']:6d} {mv:>11s} "
-            f"{str(r.get('variance_method', '-')):>10s} {vit:>9s} {a['mean_rel_rms']:13.1e} "
-            f"{a['var_rel_median']:8.1e}/{a['var_rel_p95']:8.1e}/{a['var_rel_max']:8.1e}"
+            f"{r['case']:30s} {r['observed']:6d} {mean:>8s} {r['cg_iterations_mean']:6d} {mv:>11s} "
+            f"{str(r.get('variance_method', '-')):>10s} {vit:>9s} {crop}"
         )
     print(f"device {device}, {torch.get_num_threads()} threads, load {load_before[0]:.1f} -> {os.getloadavg()[0]:.1f}")
     with atomic_path(args.output) as tmp:
