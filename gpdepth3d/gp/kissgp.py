@@ -126,13 +126,13 @@ def default_device() -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
-def _check_memory(shape: tuple[int, int], out_shape: tuple[int, int]) -> None:
-    """Refuses a solve whose working memory (`cost_model.kissgp_bytes`) would pass the memory budget."""
-    need, budget = kissgp_bytes(shape, out_shape), memory_budget()
+def _check_memory(shape: tuple[int, int], out_shape: tuple[int, int], budget: int) -> None:
+    """Refuses a solve whose working memory (`cost_model.kissgp_bytes`) would pass ``budget`` (bytes)."""
+    need = kissgp_bytes(shape, out_shape)
     if need > budget:
         raise ProblemTooLargeError(
             "kissgp problem",
-            f"at most {budget / 2**30:.1f} GiB (three quarters of the free memory)",
+            f"at most {budget / 2**30:.1f} GiB (three quarters of the device's free memory)",
             f"{shape[0]}x{shape[1]} grid, {out_shape[0]}x{out_shape[1]} outputs: about {need / 2**30:.1f} GiB; "
             "use the fast engine",
         )
@@ -299,7 +299,7 @@ class KissGPEngine:
         s = float(k.outputscale)
         h, w = problem.shape
         ho, wo = problem.out_shape
-        _check_memory((h, w), (ho, wo))
+        _check_memory((h, w), (ho, wo), self._memory_budget())
         rows, cols = np.nonzero(problem.precision > 0)
         n = rows.shape[0]
         stats: dict = {"observed": int(n), "outputs": int(ho * wo), "device": str(self.device)}
@@ -409,7 +409,7 @@ class KissGPEngine:
         toeplitz = self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE
         outputs = problem.out_shape[0] * problem.out_shape[1]
         flops = variance_flops(n, (h, w), outputs, columns, iterations, pad=self.pad, toeplitz=toeplitz)
-        dense_bytes = 8 * (3 * n * n + 2 * self.block_entries)  # A, its symmetrised copy, L; two blocks
+        dense_bytes = 8 * (4 * n * n + 2 * self.block_entries)  # identity, A, its symmetrised copy, L; two blocks
         if flops["cholesky"] < flops["cg"] and dense_bytes <= self._memory_budget():
             return "cholesky"
         return iterative

@@ -208,9 +208,14 @@ class TestKissGPEngine:
         assert solution.info.details["variance_method"] == "cholesky"
         assert rms(mk - me) <= 1e-5 * rms(me - me.mean())
         assert relative_error(vk, ve).max() <= 1e-6
-        # the same problem where the dense matrices would pass the memory budget: CG solves
-        monkeypatch.setattr(KissGPEngine, "_memory_budget", lambda self: 8 * 200 * 200)
-        assert KissGPEngine(device="cpu", max_cholesky_size=0).solve(problem).info.details["variance_method"] == "solve"
+        # the same problem where the solve fits the memory budget but the dense matrices (with blocks of 1e9
+        # entries) would not: CG solves
+        from gpdepth3d.gp.cost_model import kissgp_bytes
+
+        budget = kissgp_bytes(problem.shape, problem.out_shape)
+        monkeypatch.setattr(KissGPEngine, "_memory_budget", lambda self: budget)
+        engine = KissGPEngine(device="cpu", max_cholesky_size=0, block_entries=10**9)
+        assert engine.solve(problem).info.details["variance_method"] == "solve"
 
     def test_mean_only_and_stats(self, crop):
         _, mde, sparse = crop
