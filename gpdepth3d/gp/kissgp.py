@@ -17,6 +17,7 @@ import torch
 
 import gpytorch
 import linear_operator
+from gpytorch.utils.interpolation import Interpolation
 from linear_operator.operators import DenseLinearOperator, KroneckerProductLinearOperator, ToeplitzLinearOperator
 
 from ..errors import ConvergenceError, InvalidInputError, ProblemTooLargeError
@@ -107,18 +108,14 @@ def variance_flops(
     pixel; "probe": one per colour) of ``iterations`` products each}.
 
     One product with the KISS-GP matrix costs the interpolation (16 weights a point, both sides) and the grid's
-    Kronecker product (dense factors: 2 H W (H + W); Toeplitz: FFTs). The Cholesky forms the (n, n) matrix and
-    a cross-covariance column per output pixel with one product each, factorises (n^3 / 3) and solves a
-    triangle per output pixel (n^2): with the hundreds of CG iterations a long length scale takes, it is the
-    cheaper well beyond a few thousand points.
+    Kronecker product (dense factors: 2 H W (H + W); Toeplitz: FFTs). The Cholesky reads its kernel blocks from
+    the grid's factors, factorises (n^3 / 3) and solves a triangle per output pixel (n^2): with the hundreds of
+    CG iterations a long length scale takes, it is the cheaper well beyond a few thousand points.
     """
     hp, wp = shape[0] + 2 * pad, shape[1] + 2 * pad
     grid = 10.0 * hp * wp * math.log2(hp * wp) if toeplitz else 2.0 * hp * wp * (hp + wp)
     product = grid + 64.0 * n
-    return {
-        "cholesky": (n + outputs) * product + n**3 / 3 + float(outputs) * n * n,
-        "cg": float(columns) * (max(iterations, 1) + 2) * product,
-    }
+    return {"cholesky": n**3 / 3 + float(outputs) * n * n, "cg": float(columns) * (max(iterations, 1) + 2) * product}
 
 
 def default_device() -> str:
@@ -362,7 +359,7 @@ class KissGPEngine:
                 method = self._choose_variance_method(problem, n, iters)
                 stats["variance_method"] = method
                 if method == "cholesky":
-                    var = self._variance_cholesky(covar, A, train_x, test_x, stats)
+                    var = self._variance_cholesky(covar, noise, train_x, problem, stats)
                 elif method == "probe":
                     var = self._variance_probe(covar, A, train_x, test_x, problem, precond, stats)
                 elif method == "solve":
@@ -409,39 +406,56 @@ class KissGPEngine:
         toeplitz = self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE
         outputs = problem.out_shape[0] * problem.out_shape[1]
         flops = variance_flops(n, (h, w), outputs, columns, iterations, pad=self.pad, toeplitz=toeplitz)
-        dense_bytes = 8 * (4 * n * n + 2 * self.block_entries)  # identity, A, its symmetrised copy, L; two blocks
+        dense_bytes = 8 * (5 * n * n + 3 * self.block_entries)  # K_oo's gathers and sum, L; a block's
         if flops["cholesky"] < flops["cg"] and dense_bytes <= self._memory_budget():
             return "cholesky"
         return iterative
 
-    def _columns(self, op, count: int, start: int, stop: int) -> torch.Tensor:
-        """Columns start:stop of a (.., count) operator as a dense block (one product per column)."""
-        eye = torch.zeros(count, stop - start, dtype=torch.float64, device=self.device)
-        eye[torch.arange(start, stop, device=self.device), torch.arange(stop - start, device=self.device)] = 1.0
-        return op._matmul(eye)
-
-    def _variance_cholesky(self, covar, A, train_x, test_x, stats) -> torch.Tensor:
-        """Few observations: Cholesky of the (n, n) KISS-GP matrix, var = k** - |L^-1 K_o*|^2."""
+    def _variance_cholesky(self, covar, noise, train_x, problem: GridProblem, stats) -> torch.Tensor:
+        """Cholesky of the (n, n) KISS-GP matrix, var = k** - |L^-1 K_o*|^2, with K_oo and K_o* read from the
+        grid's factors (`_kernel_factors`) instead of products with the whole grid."""
         n = train_x.shape[0]
-        m = test_x.shape[0]
-        dense = self._columns(A, n, 0, n)
-        dense = 0.5 * (dense + dense.T)
-        chol = torch.linalg.cholesky(dense)
+        ho, wo = problem.out_shape
+        m = ho * wo
+        k_oo, (p_rows, q_rows), (p_cols, q_cols) = self._kernel_factors(
+            covar, train_x, problem.out_rows, problem.out_cols
+        )
+        chol = torch.linalg.cholesky(k_oo + torch.diag(noise))
         out = torch.empty(m, dtype=torch.float64, device=self.device)
         block = int(max(1, min(m, self.block_entries // max(n, 1))))
-        cross_op = covar(train_x, test_x).evaluate_kernel()  # (n, m) = W_o K_UU W_*^T
         for start in range(0, m, block):
-            stop = min(m, start + block)
-            if n <= stop - start:
-                # n products of the (m, n) operator give the rows of this block of K_*o.
-                kxo = self._columns(covar(test_x[start:stop], train_x).evaluate_kernel(), n, 0, n).T
-            else:
-                kxo = self._columns(cross_op, m, start, stop)
-            half = torch.linalg.solve_triangular(chol, kxo, upper=False)
-            prior = covar(test_x[start:stop], diag=True).to_dense()
-            out[start:stop] = prior - (half * half).sum(0)
+            j = torch.arange(start, min(m, start + block), device=self.device)
+            half = torch.linalg.solve_triangular(chol, p_rows[:, j // wo] * p_cols[:, j % wo], upper=False)
+            out[j] = q_rows[j // wo] * q_cols[j % wo] - (half * half).sum(0)
         stats["cg_iterations_variance"] = 0
         return out
+
+    def _kernel_factors(self, covar, train_x: torch.Tensor, out_rows, out_cols):
+        """The KISS-GP kernel ``covar`` between the n observed pixels and the output grid out_rows x out_cols, by
+        axis: K_oo (n, n), (P_r (n, Ho), q_r (Ho,)), (P_c (n, Wo), q_c (Wo,)) with K(observed i, output (y, x)) =
+        P_r[i, y] P_c[i, x] and the output's prior variance k((y, x), (y, x)) = q_r[y] q_c[x].
+
+        K_UU = K_r (x) K_c and GPyTorch's interpolation weights are products of one cubic per axis, w = w_r (x)
+        w_c, so the kernel between grid nodes o (the observed pixels) and an interpolated point is (K_r[r_o] w_r)
+        (K_c[c_o] w_c), and its prior variance (w_r' K_r w_r)(w_c' K_c w_c): matrix products per axis for the
+        whole output grid, where GPyTorch's operator takes a product with the whole grid per output pixel (the
+        same sums in another order).
+        """
+        grid_kernel = covar.base_kernel
+        k_rows, k_cols = (f.to_dense() for f in grid_kernel._inducing_forward(last_dim_is_batch=False).linear_ops)
+        nodes = [(train_x[:, axis].round().long() + grid_kernel.pad) for axis in (0, 1)]
+        scale = covar.outputscale
+        axes = []
+        for axis, (k, coords) in enumerate(((k_rows, out_rows), (k_cols, out_cols))):
+            x = self._tensor(np.asarray(coords, np.float64))[:, None]
+            index, weight = Interpolation().interpolate([grid_kernel.grid[axis]], x)  # (len, 4) nodes, weights
+            interp = torch.zeros(x.shape[0], k.shape[0], dtype=torch.float64, device=self.device)
+            interp.scatter_add_(1, index, weight)
+            w_k = interp @ k
+            axes.append((w_k[:, nodes[axis]].T, (w_k * interp).sum(1)))
+        k_oo = scale * k_rows[nodes[0]][:, nodes[0]] * k_cols[nodes[1]][:, nodes[1]]
+        (p_rows, q_rows), cols = axes
+        return k_oo, (scale * p_rows, scale * q_rows), cols
 
     def _probe_colours(self, problem: GridProblem) -> tuple[np.ndarray, int, np.ndarray]:
         """(colour of each output pixel, number of colours, the output pixels over holes) of the "probe" method:
