@@ -145,6 +145,11 @@ COMPILE_NOTICE = "compiling kernels (once, ~1 min) ..."
 """Printed before numba first compiles one of the fast engine's kernels (a cold cache), never on warm runs."""
 
 
+DEMO_GROUPS = ("solve", "detail", "neumann")
+"""The kernel groups the demo reaches (`gpdepth3d.gp.compile_ahead.GROUPS`): the default model on frames with many
+points, then the paper's model by the Neumann route."""
+
+
 def _compile_notice(argv: list[str]):
     """Prints `COMPILE_NOTICE` once when a command compiles kernels (not for `view` or --help: no numba import)."""
     import contextlib
@@ -159,10 +164,10 @@ def _compile_notice(argv: list[str]):
     from ..gp.compile_notice import on_first_compile
 
     def cold(_name: str) -> None:  # a cold cache: the kernels this command reaches later, compiled on another core
-        from ..gp.compile_ahead import compile_ahead
+        from ..gp.compile_ahead import DEFAULT_MODEL_GROUPS, compile_ahead
 
         print(COMPILE_NOTICE, flush=True)
-        compile_ahead(("solve", "detail", "neumann") if argv[0] == "demo" else ("solve", "detail"))
+        compile_ahead(DEMO_GROUPS if argv[0] == "demo" else DEFAULT_MODEL_GROUPS)
 
     return on_first_compile(cold)
 

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import DataFormatError, GPDepthError, InvalidInputError, ProblemTooLargeError, describe
 from ..gp import EngineConfig, SolveInfo, make_engine
+from ..gp.compile_ahead import on_cold_cache
 from ..gp.model import DepthGPConfig
 from ..mde.align import AlignmentResult
 from ..measurements import SparseDepth
@@ -265,7 +266,8 @@ class DepthCompleter:
             frame: Name of the frame, used in the posterior's warnings.
         """
         strategy = formulation_of(self.config)  # `gpdepth3d.completion.formulations`
-        return DepthPosterior(**strategy.posterior(self, mde_depth, sparse, output_shape, variance, frame))
+        with on_cold_cache():  # a first run's later kernels compile on another core meanwhile
+            return DepthPosterior(**strategy.posterior(self, mde_depth, sparse, output_shape, variance, frame))
 
     def map(
         self,

@@ -1,6 +1,7 @@
 """Waiting for the kernels that a second process compiles ahead (`gpdepth3d.gp.compile_ahead`).
 
-On a cold numba cache the command line starts a process compiling the kernel groups a run reaches later; it
+On a cold numba cache the command line, or a program's first completion, starts a process compiling the kernel
+groups a run reaches later (`gpdepth3d.gp.compile_ahead`); it
 writes each group's name on its standard output once the group is in the cache. A module calls `ready` with a
 group's name before its first kernel call: it returns at once on warm runs (no such process) and otherwise once
 the group is reported, so that this process loads the group's kernels from the cache instead of compiling them a
@@ -39,6 +40,11 @@ def track(proc: subprocess.Popen, groups) -> None:
     """Makes `ready` wait for ``groups`` (names) until ``proc`` (its standard output a pipe) reports them."""
     global _AHEAD
     _AHEAD = _Ahead(proc, set(groups))
+
+
+def started() -> bool:
+    """Whether this process has started a process compiling ahead (`track`), running or ended."""
+    return _AHEAD is not None
 
 
 def ready(group: str) -> None:

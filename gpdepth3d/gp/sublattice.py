@@ -435,7 +435,6 @@ def sublattice_kriging(
         InvalidInputError: a stride below 2, non-positive scales, negative noise, two points on one pixel.
         ShapeError: arrays of mismatched lengths, or points outside the grid.
     """
-    compiled_ahead("detail")  # a cold cache: the kriging's kernels come from the second process
     h, w = (int(x) for x in shape)
     k = int(stride)
     if k < 2:
@@ -474,6 +473,8 @@ def sublattice_kriging(
     row_start = np.searchsorted(cr // k, np.arange(hl + 1)).astype(np.int64)
     col_start = np.searchsorted(cc // k, np.arange(wl + 1)).astype(np.int64)
     span = k + 2 * reach  # farthest offset between a window's pixel and a pixel of its cell, or two of its pixels
+    threads = get_num_threads() if n >= SERIAL_POINTS else 1
+    compiled_ahead("detail" if threads > 1 else "detail_serial")  # a cold cache: from the second process
     Er_p, Rr_p = _tables(np.arange(h, dtype=np.float64), np.arange(h), k, hl, inv_l, span)
     Ec_p, Rc_p = _tables(np.arange(w, dtype=np.float64), np.arange(w), k, wl, inv_l, span)
     # at the grid's own pixels (how `gpdepth3d.completion` krigs) the output's tables are the points' tables
@@ -486,7 +487,6 @@ def sublattice_kriging(
     if n:
         # prange hands each thread one contiguous share of the rows of cells; the points often fill only part of
         # the image (the LiDAR its lower two thirds), so each share takes every t-th row, not one block of rows
-        threads = get_num_threads() if n >= SERIAL_POINTS else 1
         cell_rows = np.concatenate([np.arange(t, hl, threads) for t in range(threads)]).astype(np.int64)
         kernel = _krige if threads > 1 else _krige_serial
         kernel(cell_rows, row_start, col_start, cr, cc, Er_o, Rr_o, Ec_o, Rc_o, Er_p, Rr_p[0], Ec_p, Rc_p[0], row_ptr,

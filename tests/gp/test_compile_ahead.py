@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from gpdepth3d.completion.complete import DepthCompleter
@@ -22,14 +23,20 @@ from gpdepth3d.gp.model import DepthGPConfig
 def test_the_groups_compile_the_signatures_of_a_real_run(street_frame):
     # a real run first: the default model with enough points for the parallel detail, the paper's model by the
     # Neumann route; the groups must then add no signature of their own (else a run would not find them cached)
-    DepthCompleter().complete(street_frame.mde, street_frame.lidar)
+    completer = DepthCompleter()
+    for _ in range(2):  # the second frame of a resolution reuses the prior's factor
+        completer.complete(street_frame.mde, street_frame.lidar)
+    few = street_frame.lidar.subset(np.arange(0, len(street_frame.lidar), 64))  # the serial detail
+    DepthCompleter().complete(street_frame.mde, few)
     DepthCompleter(DepthGPConfig.paper(), engine=EngineConfig(route="neumann")).complete(
         street_frame.mde, street_frame.lidar
     )
     kernels = [
         multifrontal._solve,
+        multifrontal._touched,
         readout._read_mean,
         sublattice._krige,
+        sublattice._krige_serial,
         neumann._coefficients,
         neumann._neumann_mean,
         neumann._diag_series,
@@ -99,4 +106,40 @@ def test_groups_are_checked():
     assert compile_ahead(()) is None
     with pytest.raises(KeyError):
         compile_groups(["everything"])
-    assert GROUPS == ("solve", "detail", "neumann")  # the order a run reaches them
+    assert GROUPS == ("solve", "detail_serial", "detail", "neumann", "reuse")  # the order a run reaches them
+
+
+def test_one_process_at_most_and_the_switch_turns_it_off(monkeypatch):
+    from gpdepth3d.gp import compile_ahead as module
+
+    started, proc = [], _reporting()
+    monkeypatch.setattr(ahead_module, "_AHEAD", None)
+    monkeypatch.setattr(module.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(module.subprocess, "Popen", lambda *a, **k: started.append(a) or proc)
+    monkeypatch.setenv(module.ENV_SWITCH, "0")
+    assert compile_ahead(("solve",)) is None and not started
+    monkeypatch.delenv(module.ENV_SWITCH)
+    assert compile_ahead(("solve",)) is not None and len(started) == 1
+    assert compile_ahead(("detail",)) is None and len(started) == 1  # one per process
+
+
+def test_the_first_completion_call_starts_it_on_a_cold_cache(monkeypatch):
+    from numba import njit
+
+    from gpdepth3d.gp import compile_ahead as module
+    from gpdepth3d.gp.compile_ahead import on_cold_cache
+
+    calls = []
+    monkeypatch.setattr(module, "_WATCHED", False)
+    monkeypatch.setattr(module, "compile_ahead", calls.append)
+
+    def compile_a_package_kernel():  # a new dispatcher of a package function: numba compiles it (a cold cache)
+        arrays = (np.zeros(1, np.int64), np.full(1, -1), np.zeros(1, np.int64), np.ones(1, np.int64), np.ones(1))
+        njit(multifrontal._touched.py_func)(*arrays)
+
+    with on_cold_cache(("solve",)):
+        compile_a_package_kernel()
+    assert calls == [("solve",)]
+    with on_cold_cache(("solve",)):  # only a process's first call watches
+        compile_a_package_kernel()
+    assert calls == [("solve",)]
