@@ -1,11 +1,10 @@
 """Waiting for the kernels that a second process compiles ahead (`gpdepth3d.gp.compile_ahead`).
 
 On a cold numba cache the command line, or a program's first completion, starts a process compiling the kernel
-groups a run reaches later (`gpdepth3d.gp.compile_ahead`); it
-writes each group's name on its standard output once the group is in the cache. A module calls `ready` with a
-group's name before its first kernel call: it returns at once on warm runs (no such process) and otherwise once
-the group is reported, so that this process loads the group's kernels from the cache instead of compiling them a
-second time alongside the other process. Kept apart from `gpdepth3d.gp.compile_ahead`, which imports the kernels'
+groups a run reaches later (`gpdepth3d.gp.compile_ahead`); it writes each group's name on its standard output once
+the group is in the cache. A module calls `ready` with a group's name before its first kernel call: it returns at
+once on warm runs (no such process) and otherwise once the group is reported, so that this process loads the
+group's kernels from the cache instead of compiling them a second time alongside the other process. Kept apart from `gpdepth3d.gp.compile_ahead`, which imports the kernels'
 modules, so that those can import this one.
 """
 
