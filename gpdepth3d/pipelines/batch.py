@@ -686,7 +686,12 @@ def _import_dask():
 
 
 def warm_up() -> None:
-    """Imports what a frame needs, on each worker at start-up (not during the first frame)."""
+    """Imports what a frame needs, on each worker of a local cluster at start-up (not during the first frame). The
+    workers share the cores between them, so none starts a process compiling kernels ahead on a cold cache
+    (`gpdepth3d.gp.compile_ahead`), unless the user's environment asks for it."""
+    from ..gp.compile_ahead import ENV_SWITCH
+
+    os.environ.setdefault(ENV_SWITCH, "0")
     import scipy.linalg  # noqa: F401
     import scipy.ndimage  # noqa: F401
 

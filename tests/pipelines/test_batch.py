@@ -721,3 +721,17 @@ class TestNoLeftovers:
         with pytest.raises(ProblemTooLargeError, match="--repeat 1000000000"):
             dataset_frames(tiny_kitti, repeat=10**9)
         assert [s.frame_id for s in dataset_frames(tiny_kitti, repeat=10**9, limit=1)] == ["0000000000"]
+
+
+def test_local_workers_start_no_process_compiling_ahead(monkeypatch):
+    # the workers of a local cluster share the cores: none starts its own compile process, unless the user asks
+    from gpdepth3d.gp.compile_ahead import ENV_SWITCH
+    from gpdepth3d.pipelines.batch import warm_up
+
+    monkeypatch.setenv(ENV_SWITCH, "1")  # recorded, so that the test leaves the variable as it found it
+    monkeypatch.delenv(ENV_SWITCH)
+    warm_up()
+    assert os.environ[ENV_SWITCH] == "0"
+    monkeypatch.setenv(ENV_SWITCH, "1")
+    warm_up()
+    assert os.environ[ENV_SWITCH] == "1"
