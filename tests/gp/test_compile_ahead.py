@@ -21,12 +21,13 @@ from gpdepth3d.gp.model import DepthGPConfig
 
 
 def test_the_groups_compile_the_signatures_of_a_real_run(street_frame):
-    # a real run first: the default model with enough points for the parallel detail, the paper's model by the
-    # Neumann route; the groups must then add no signature of their own (else a run would not find them cached)
+    # a real run first: the default model with enough points for the parallel detail (two frames: the second reuses
+    # the prior's factor) and with few (the serial detail), the paper's model by the Neumann route; the groups must
+    # then add no signature of their own (else a run would not find them cached)
     completer = DepthCompleter()
     for _ in range(2):  # the second frame of a resolution reuses the prior's factor
         completer.complete(street_frame.mde, street_frame.lidar)
-    few = street_frame.lidar.subset(np.arange(0, len(street_frame.lidar), 64))  # the serial detail
+    few = street_frame.lidar.subset(np.arange(0, len(street_frame.lidar), 64))
     DepthCompleter().complete(street_frame.mde, few)
     DepthCompleter(DepthGPConfig.paper(), engine=EngineConfig(route="neumann")).complete(
         street_frame.mde, street_frame.lidar
