@@ -24,7 +24,8 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     ho, wo = frame.out_shape
     if lattice.stride == 1 or not is_exponential(config.nu) or not lattice.rows.size or ho < h or wo < w:
         return field
-    at = _at_points((field.mean, *field.extra), lattice.rows, lattice.cols, (h, w))
+    fields = (field.mean, *field.extra)
+    at = _at_points(fields, lattice.rows, lattice.cols, (h, w))
     kernel = lattice.problem.kernel
     corr, reduction = sublattice_kriging(
         np.arange(h, dtype=np.float64),
@@ -42,7 +43,7 @@ def add_detail(field: FieldPosterior, lattice: Lattice, frame: LogFrame, config:
     if not frame.same_grid:
         corr = np.stack([frame.to_output(f) for f in corr])
         reduction = frame.to_output(reduction)
-    for f, c in zip((field.mean, *field.extra), corr):  # the corrections' own (fresh) arrays take the sums
+    for f, c in zip(fields, corr):  # the corrections' own (fresh) arrays take the sums
         c += f
     variance = np.subtract(field.variance, reduction, out=reduction)
     np.maximum(variance, 0.0, out=variance)

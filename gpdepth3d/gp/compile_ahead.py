@@ -42,15 +42,22 @@ DEFAULT_MODEL_GROUPS = ("solve", "detail_serial", "detail", "reuse")
 """The groups a run of the default model reaches (the paper's model adds "neumann")."""
 
 
+def _two_front_tree():
+    """A `gpdepth3d.gp.multifrontal.FrontTree` of two fronts (four variables): the smallest the kernels run on."""
+    from .multifrontal import FrontTree
+
+    return FrontTree.build([0, 2], [2, 2], [1, -1], [[2], []], 4)
+
+
 def _solve() -> None:
     """The grid route's solve (three right-hand sides) on a two-front tree, then the read-out of its means off the
     grid, as the default model calls them. The factor is left at zero: only the kernels' types matter here."""
     import scipy.sparse as sp
 
-    from .multifrontal import FrontalFactor, FrontTree
+    from .multifrontal import FrontalFactor
     from .readout import Readout, read_mean
 
-    tree = FrontTree.build([0, 2], [2, 2], [1, -1], [[2], []], 4)
+    tree = _two_front_tree()
     factor = FrontalFactor.__new__(FrontalFactor)  # no factorisation: its kernels are the first process's
     factor.tree, factor.scale2, factor.lbuf = tree, 1.0, np.zeros(tree.l_size)
     factor.solve(np.zeros((4, 3)))
@@ -63,9 +70,7 @@ def _reuse() -> None:
     """What the grid route's second frame of a resolution calls to reuse the prior's factor: the fronts that
     observations reach (`gpdepth3d.gp.multifrontal.FrontTree.touched_share`). No run waits for it: a second frame
     that comes before it compiles it itself."""
-    from .multifrontal import FrontTree
-
-    FrontTree.build([0, 2], [2, 2], [1, -1], [[2], []], 4).touched_share(np.zeros(4))
+    _two_front_tree().touched_share(np.zeros(4))
 
 
 def _detail(points: int) -> None:

@@ -399,12 +399,10 @@ class KissGPEngine:
         if n <= self.max_cholesky_size:
             return "cholesky"
         h, w = problem.shape
-        iterative = "probe" if n >= 0.5 * h * w else "solve"
-        columns = (
-            self._probe_colours(problem)[1] if iterative == "probe" else problem.out_shape[0] * problem.out_shape[1]
-        )
-        toeplitz = self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE
         outputs = problem.out_shape[0] * problem.out_shape[1]
+        iterative = "probe" if n >= 0.5 * h * w else "solve"
+        columns = self._probe_colours(problem)[1] if iterative == "probe" else outputs
+        toeplitz = self.toeplitz if self.toeplitz is not None else max(h, w) + 2 * self.pad > TOEPLITZ_ABOVE
         flops = variance_flops(n, (h, w), outputs, columns, iterations, pad=self.pad, toeplitz=toeplitz)
         dense_bytes = 8 * (5 * n * n + 3 * self.block_entries)  # K_oo's gathers and sum, L; a block's
         if flops["cholesky"] < flops["cg"] and dense_bytes <= self._memory_budget():
@@ -447,7 +445,7 @@ class KissGPEngine:
         scale = covar.outputscale
         axes = []
         for axis, (k, coords) in enumerate(((k_rows, out_rows), (k_cols, out_cols))):
-            x = self._tensor(np.asarray(coords, np.float64))[:, None]
+            x = self._tensor(coords)[:, None]
             index, weight = Interpolation().interpolate([grid_kernel.grid[axis]], x)  # (len, 4) nodes, weights
             interp = torch.zeros(x.shape[0], k.shape[0], dtype=torch.float64, device=self.device)
             interp.scatter_add_(1, index, weight)

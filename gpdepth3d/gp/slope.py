@@ -149,13 +149,16 @@ def _cholesky_solve(K: np.ndarray, diag: np.ndarray, rhs: np.ndarray, work: np.n
     """
     n = len(K)
     on_diagonal = np.arange(n)
-    np.copyto(work, K)
-    work[on_diagonal, on_diagonal] += diag
+
+    def build_s() -> None:  # S into work (again after a failed factorisation, which overwrote it)
+        np.copyto(work, K)
+        work[on_diagonal, on_diagonal] += diag
+
+    build_s()
     factor, info = lapack.dpotrf(work, lower=1, clean=0, overwrite_a=1)
     if info > 0:
-        np.copyto(work, K)  # S again (the failed factorisation overwrote it), with the jitter on its diagonal
-        work[on_diagonal, on_diagonal] += diag
-        work[on_diagonal, on_diagonal] += 1e-10 * np.trace(work) / n
+        build_s()
+        work[on_diagonal, on_diagonal] += 1e-10 * np.trace(work) / n  # the jitter
         factor, info = lapack.dpotrf(work, lower=1, clean=0, overwrite_a=1)
         if info > 0:
             raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
